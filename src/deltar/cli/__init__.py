@@ -1,0 +1,1 @@
+"""The ``deltar`` command line."""

@@ -1,0 +1,5 @@
+"""Imports every command module so each registers its commands on the app.
+
+Command modules import heavy dependencies (torch, timm) inside the command functions,
+so ``deltar --help`` stays fast.
+"""

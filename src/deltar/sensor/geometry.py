@@ -1,0 +1,146 @@
+"""Where each ToF zone falls in the camera image.
+
+Frames: the *sensor frame* has x along the zone grid's columns (left to right), y along
+its rows (top to bottom) and z along the viewing direction; the *camera frame* is the
+usual pinhole frame (x right, y down, z forward). ``SensorExtrinsics`` maps sensor
+coordinates to camera coordinates: ``p_cam = R @ p_sensor + t`` (metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from deltar.calibration.camera import CameraIntrinsics
+
+#: DELTAR's sensor model: 45 x 45 degrees split evenly into the zone grid.
+DEFAULT_FOV_DEG: tuple[float, float] = (45.0, 45.0)
+
+
+@dataclass(frozen=True)
+class SensorExtrinsics:
+    """Rigid transform from the ToF sensor frame to the camera frame.
+
+    Attributes:
+        rotation: (3, 3) rotation matrix R with ``p_cam = R @ p_sensor + t``.
+        translation_m: (3,) translation t in metres.
+    """
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        rot = np.asarray(self.rotation, dtype=np.float64)
+        trans = np.asarray(self.translation_m, dtype=np.float64).reshape(-1)
+        if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
+            raise ValueError(f"SensorExtrinsics.rotation must be a finite 3x3 matrix, "
+                             f"got shape {rot.shape}")
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
+            raise ValueError("SensorExtrinsics.rotation is not a proper rotation matrix")
+        if trans.shape != (3,) or not np.all(np.isfinite(trans)):
+            raise ValueError(f"SensorExtrinsics.translation_m must be 3 finite values, "
+                             f"got {trans}")
+        object.__setattr__(self, "rotation", rot)
+        object.__setattr__(self, "translation_m", trans)
+
+    def inverse(self) -> SensorExtrinsics:
+        """The camera-to-sensor transform, as a ``SensorExtrinsics`` object."""
+        rot_t = self.rotation.T
+        return SensorExtrinsics(rot_t, -rot_t @ self.translation_m)
+
+
+def zone_angles_deg(grid: int, fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> np.ndarray:
+    """Angular bounds of each zone in the sensor frame.
+
+    Args:
+        grid: zones per side (4 or 8).
+        fov_deg: (horizontal, vertical) field of view in degrees, split evenly.
+
+    Returns:
+        (grid * grid, 4) float64 array of (ay0, ax0, ay1, ax1) in degrees, row-major,
+        angles measured from the optical axis (negative = up / left).
+    """
+    fov_x, fov_y = float(fov_deg[0]), float(fov_deg[1])
+    if not (0 < fov_x < 180 and 0 < fov_y < 180):
+        raise ValueError(f"fov_deg must be two angles in (0, 180) degrees, got {fov_deg}")
+    edges_x = np.linspace(-fov_x / 2, fov_x / 2, grid + 1)
+    edges_y = np.linspace(-fov_y / 2, fov_y / 2, grid + 1)
+    rows, cols = np.meshgrid(np.arange(grid), np.arange(grid), indexing="ij")
+    rows, cols = rows.reshape(-1), cols.reshape(-1)
+    return np.stack([edges_y[rows], edges_x[cols], edges_y[rows + 1], edges_x[cols + 1]], axis=1)
+
+
+def zone_rects(
+    intrinsics: CameraIntrinsics,
+    grid: int = 8,
+    *,
+    fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
+    extrinsics: SensorExtrinsics | None = None,
+    depth_m: float | np.ndarray = 2.0,
+    samples_per_edge: int = 5,
+) -> np.ndarray:
+    """Each zone's bounding rectangle in image pixels.
+
+    A zone is the set of rays between its angular bounds; the rectangle is the bounding
+    box of its outline projected into the image at distance ``depth_m`` from the sensor
+    (along the sensor's z axis). Parallax between sensor and camera makes the
+    rectangle depend on that distance; with a zero translation it does not.
+
+    Args:
+        intrinsics: camera intrinsics (pixels).
+        grid: zones per side (4 or 8).
+        fov_deg: (horizontal, vertical) sensor field of view in degrees.
+        extrinsics: sensor-to-camera transform; identity when None.
+        depth_m: scalar or (grid * grid,) per-zone distance in metres (> 0), e.g. each
+            zone's measured mean.
+        samples_per_edge: points projected along each zone edge (a rotated or tilted
+            sensor maps zone edges to slanted lines).
+
+    Returns:
+        (grid * grid, 4) float32 array of (y0, x0, y1, x1) in pixels (pixel centres at
+        integer coordinates, so the full image is (-0.5, -0.5, H - 0.5, W - 0.5)).
+        Rectangles may extend past the image.
+    """
+    ext = extrinsics or SensorExtrinsics()
+    zones = grid * grid
+    depth = np.broadcast_to(np.asarray(depth_m, dtype=np.float64), (zones,)).copy()
+    if not np.all(np.isfinite(depth)) or np.any(depth <= 0):
+        raise ValueError("depth_m must be finite and > 0 for every zone")
+    angles = np.deg2rad(zone_angles_deg(grid, fov_deg))  # (Z, 4): ay0 ax0 ay1 ax1
+    t = np.linspace(0.0, 1.0, max(2, samples_per_edge))
+    # Outline of each zone as (ax, ay) angle pairs: four edges, S samples each.
+    ay0, ax0, ay1, ax1 = (angles[:, i : i + 1] for i in range(4))
+    ax = np.concatenate([ax0 + (ax1 - ax0) * t, np.repeat(ax1, t.size, 1),
+                         ax0 + (ax1 - ax0) * t, np.repeat(ax0, t.size, 1)], axis=1)
+    ay = np.concatenate([np.repeat(ay0, t.size, 1), ay0 + (ay1 - ay0) * t,
+                         np.repeat(ay1, t.size, 1), ay0 + (ay1 - ay0) * t], axis=1)
+    points = np.stack([np.tan(ax), np.tan(ay), np.ones_like(ax)], axis=-1) * depth[:, None, None]
+    cam = points @ ext.rotation.T + ext.translation_m  # (Z, P, 3)
+    z = cam[..., 2]
+    if np.any(z <= 1e-6):
+        raise ValueError("some zone corners project behind the camera; check the extrinsics "
+                         "and depth_m")
+    u = intrinsics.fx * cam[..., 0] / z + intrinsics.cx
+    v = intrinsics.fy * cam[..., 1] / z + intrinsics.cy
+    return np.stack([v.min(1), u.min(1), v.max(1), u.max(1)], axis=1).astype(np.float32)
+
+
+def zone_rects_to_pixel_bounds(rects: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Integer pixel bounds (y0, x0, y1, x1), half-open and clipped to the image.
+
+    Args:
+        rects: (..., 4) rectangles (y0, x0, y1, x1) in pixels.
+        height, width: image size in pixels.
+
+    Returns:
+        (..., 4) int64 with 0 <= y0 <= y1 <= height and 0 <= x0 <= x1 <= width; a zone
+        fully outside the image gets an empty range.
+    """
+    r = np.asarray(rects, dtype=np.float64)
+    y0 = np.clip(np.ceil(r[..., 0]), 0, height)
+    x0 = np.clip(np.ceil(r[..., 1]), 0, width)
+    y1 = np.clip(np.floor(r[..., 2]) + 1, 0, height)
+    x1 = np.clip(np.floor(r[..., 3]) + 1, 0, width)
+    y1, x1 = np.maximum(y1, y0), np.maximum(x1, x0)
+    return np.stack([y0, x0, y1, x1], axis=-1).astype(np.int64)

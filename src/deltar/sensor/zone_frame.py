@@ -1,0 +1,216 @@
+"""The zone frame: one reading of a multi-zone ToF sensor (VL53L5CX / VL53L8CX)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Target status codes that ST documents as a valid range (5: valid, 9: valid, large pulse).
+DEFAULT_VALID_STATUS: tuple[int, ...] = (5, 9)
+
+SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
+
+
+@dataclass(frozen=True)
+class Orientation:
+    """How the driver's zone grid maps onto the image grid.
+
+    Applied to the driver's ``(n, n)`` row-major grid in this order: up-down flip,
+    left-right flip, then ``rot90`` quarter turns counter-clockwise (``numpy.rot90``).
+    The identity leaves zone ``r * n + c`` at image row ``r``, column ``c``.
+    """
+
+    flip_ud: bool = False
+    flip_lr: bool = False
+    rot90: int = 0
+
+    def apply(self, grid: np.ndarray) -> np.ndarray:
+        """Reorient an array whose first two axes are the ``(n, n)`` zone grid."""
+        out = grid
+        if self.flip_ud:
+            out = out[::-1]
+        if self.flip_lr:
+            out = out[:, ::-1]
+        if self.rot90 % 4:
+            out = np.rot90(out, k=self.rot90 % 4, axes=(0, 1))
+        return np.ascontiguousarray(out)
+
+
+@dataclass
+class ZoneFrame:
+    """One multi-zone ToF reading on an ``n x n`` grid (n = 4 or 8), in image orientation.
+
+    Zone ``(r, c)`` is row ``r`` (top to bottom) and column ``c`` (left to right) of the grid
+    as it appears in the image; flat zone index ``r * n + c`` (row-major).
+
+    Attributes:
+        mean_m: (n, n) float32, per-zone distance in metres (meaningless where not valid).
+        sigma_m: (n, n) float32, per-zone standard deviation in metres (>= 0 where valid).
+        valid: (n, n) bool, zones that carry a measurement.
+        status: optional (n, n) uint8, the driver's raw ``target_status`` codes.
+        hist_edges_m: optional (B + 1,) float32 histogram bin edges in metres, increasing.
+        hist_counts: optional (n, n, B) float32 per-zone histogram counts (for sensors that
+            report one, e.g. ST's CH parts).
+        timestamp_s: optional capture time in seconds (any monotonic clock).
+        sensor_model: free text, e.g. ``"VL53L5CX"``.
+    """
+
+    mean_m: np.ndarray
+    sigma_m: np.ndarray
+    valid: np.ndarray
+    status: np.ndarray | None = None
+    hist_edges_m: np.ndarray | None = None
+    hist_counts: np.ndarray | None = None
+    timestamp_s: float | None = None
+    sensor_model: str = "VL53L5CX"
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.mean_m = np.asarray(self.mean_m, dtype=np.float32)
+        self.sigma_m = np.asarray(self.sigma_m, dtype=np.float32)
+        self.valid = np.asarray(self.valid, dtype=bool)
+        if self.mean_m.ndim == 1:  # flat row-major input
+            n = _grid_from_count(self.mean_m.size, "mean_m")
+            self.mean_m = self.mean_m.reshape(n, n)
+            self.sigma_m = self.sigma_m.reshape(n, n) if self.sigma_m.size == n * n \
+                else self.sigma_m
+            self.valid = self.valid.reshape(n, n) if self.valid.size == n * n else self.valid
+            if self.status is not None:
+                self.status = np.asarray(self.status).reshape(n, n)
+            if self.hist_counts is not None:
+                self.hist_counts = np.asarray(self.hist_counts).reshape(n, n, -1)
+        self.validate()
+
+    # ------------------------------------------------------------------ checks
+    @property
+    def grid(self) -> int:
+        """Zones per side (4 or 8)."""
+        return int(self.mean_m.shape[0])
+
+    @property
+    def zone_count(self) -> int:
+        return self.grid * self.grid
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the field if the frame is inconsistent."""
+        n = self.mean_m.shape[0] if self.mean_m.ndim == 2 else -1
+        if self.mean_m.ndim != 2 or self.mean_m.shape != (n, n) or n not in SUPPORTED_GRIDS:
+            raise ValueError(f"ZoneFrame.mean_m must have shape (n, n) with n in "
+                             f"{SUPPORTED_GRIDS}, got {self.mean_m.shape}")
+        for name in ("sigma_m", "valid"):
+            arr = getattr(self, name)
+            if arr.shape != (n, n):
+                raise ValueError(f"ZoneFrame.{name} must have shape ({n}, {n}) like mean_m, "
+                                 f"got {arr.shape}")
+        if self.status is not None:
+            self.status = np.asarray(self.status, dtype=np.uint8)
+            if self.status.shape != (n, n):
+                raise ValueError(f"ZoneFrame.status must have shape ({n}, {n}), "
+                                 f"got {self.status.shape}")
+        v = self.valid
+        if not np.all(np.isfinite(self.mean_m[v])):
+            raise ValueError("ZoneFrame.mean_m has NaN or infinite values in valid zones "
+                             f"{np.argwhere(v & ~np.isfinite(self.mean_m)).tolist()}")
+        if np.any(self.mean_m[v] < 0):
+            raise ValueError("ZoneFrame.mean_m has negative distances in valid zones "
+                             f"{np.argwhere(v & (self.mean_m < 0)).tolist()}")
+        if not np.all(np.isfinite(self.sigma_m[v])) or np.any(self.sigma_m[v] < 0):
+            raise ValueError("ZoneFrame.sigma_m must be finite and >= 0 in valid zones, bad "
+                             f"zones {np.argwhere(v & ~(self.sigma_m >= 0)).tolist()}")
+        if (self.hist_counts is None) != (self.hist_edges_m is None):
+            raise ValueError("ZoneFrame.hist_counts and hist_edges_m must be given together")
+        if self.hist_counts is not None:
+            self.hist_counts = np.asarray(self.hist_counts, dtype=np.float32)
+            self.hist_edges_m = np.asarray(self.hist_edges_m, dtype=np.float32)
+            bins = self.hist_edges_m.size - 1
+            if self.hist_edges_m.ndim != 1 or bins < 1 or np.any(np.diff(self.hist_edges_m) <= 0):
+                raise ValueError("ZoneFrame.hist_edges_m must be 1-D and strictly increasing")
+            if self.hist_counts.shape != (n, n, bins):
+                raise ValueError(f"ZoneFrame.hist_counts must have shape ({n}, {n}, {bins}), "
+                                 f"got {self.hist_counts.shape}")
+            if not np.all(np.isfinite(self.hist_counts)) or np.any(self.hist_counts < 0):
+                raise ValueError("ZoneFrame.hist_counts must be finite and >= 0")
+        if self.timestamp_s is not None and not math.isfinite(float(self.timestamp_s)):
+            raise ValueError(f"ZoneFrame.timestamp_s must be finite, got {self.timestamp_s}")
+
+    # ------------------------------------------------------------------ views
+    def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row-major flat views: mean (Z,), sigma (Z,), valid (Z,) with Z = n * n."""
+        return self.mean_m.reshape(-1), self.sigma_m.reshape(-1), self.valid.reshape(-1)
+
+    def mean_sigma(self) -> np.ndarray:
+        """(Z, 2) float32 of [mean, sigma] in metres, zeros in invalid zones (ZJU-L5 layout)."""
+        mean, sigma, valid = self.flat()
+        out = np.stack([mean, sigma], axis=1).astype(np.float32)
+        out[~valid] = 0.0
+        return out
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_driver(
+        cls,
+        distance_mm: Sequence[float],
+        range_sigma_mm: Sequence[float],
+        target_status: Sequence[int],
+        *,
+        grid: int | None = None,
+        valid_status: Sequence[int] = DEFAULT_VALID_STATUS,
+        orientation: Orientation | None = None,
+        timestamp_s: float | None = None,
+        sensor_model: str = "VL53L5CX",
+    ) -> ZoneFrame:
+        """Build a frame from what the Python drivers return.
+
+        Args:
+            distance_mm: flat list of 16 or 64 distances in millimetres (driver order).
+                Drivers built for several targets per zone return more entries; only
+                the first target of each zone is used then.
+            range_sigma_mm: flat list of the same length, sigma in millimetres.
+            target_status: flat list of the same length, ST's target status codes.
+            grid: 4 or 8; inferred from the length when None (16 -> 4, 64 -> 8).
+            valid_status: status codes that count as a valid range (default 5 and 9).
+            orientation: how the driver's grid maps onto the image (identity by default).
+            timestamp_s: capture time in seconds.
+            sensor_model: free text stored with the frame.
+        """
+        arrays = {}
+        for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
+                             ("target_status", target_status)):
+            arr = np.asarray(values, dtype=np.float64).reshape(-1)
+            arrays[name] = arr
+        n = grid if grid is not None else _grid_from_count(arrays["distance_mm"].size,
+                                                           "distance_mm")
+        if n not in SUPPORTED_GRIDS:
+            raise ValueError(f"grid must be one of {SUPPORTED_GRIDS}, got {n}")
+        zones = n * n
+        for name, arr in arrays.items():
+            if arr.size < zones or arr.size % zones:
+                raise ValueError(f"{name} has {arr.size} entries; expected {zones} for a "
+                                 f"{n}x{n} grid")
+            # Multi-target builds store targets per zone contiguously: keep the first.
+            arrays[name] = arr.reshape(zones, -1)[:, 0]
+        status = arrays["target_status"]
+        if np.any(~np.isfinite(status)) or np.any((status < 0) | (status > 255)):
+            raise ValueError("target_status must hold integer codes in 0..255")
+        status = status.astype(np.uint8)
+        valid = np.isin(status, np.asarray(valid_status, dtype=np.uint8))
+        mean = arrays["distance_mm"] / 1000.0
+        sigma = arrays["range_sigma_mm"] / 1000.0
+        valid &= np.isfinite(mean) & np.isfinite(sigma) & (mean > 0) & (sigma >= 0)
+        orient = orientation or Orientation()
+        mean, sigma, valid, status = (orient.apply(a.reshape(n, n))
+                                      for a in (mean, sigma, valid, status))
+        mean = np.where(valid, mean, 0.0)
+        sigma = np.where(valid, sigma, 0.0)
+        return cls(mean_m=mean, sigma_m=sigma, valid=valid, status=status,
+                   timestamp_s=timestamp_s, sensor_model=sensor_model)
+
+
+def _grid_from_count(count: int, name: str) -> int:
+    n = math.isqrt(count)
+    if n * n != count or n not in SUPPORTED_GRIDS:
+        raise ValueError(f"{name} has {count} zones; expected 16 (4x4) or 64 (8x8)")
+    return n
