@@ -127,20 +127,22 @@ def zone_rects(
 
 
 def zone_rects_to_pixel_bounds(rects: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Integer pixel bounds (y0, x0, y1, x1), half-open and clipped to the image.
+    """Integer pixel bounds (y0, x0, y1, x1) of the pixels a zone covers, clipped to the image.
+
+    A pixel belongs to a zone when its centre lies in ``[y0, y1) x [x0, x1)``, so the
+    bounds are ``ceil`` of the float rectangle; integer rectangles such as the 56 px
+    simulation grid cover exactly 56 x 56 pixels and neighbouring zones never overlap.
 
     Args:
         rects: (..., 4) rectangles (y0, x0, y1, x1) in pixels.
         height, width: image size in pixels.
 
     Returns:
-        (..., 4) int64 with 0 <= y0 <= y1 <= height and 0 <= x0 <= x1 <= width; a zone
-        fully outside the image gets an empty range.
+        (..., 4) int64, half-open, with 0 <= y0 <= y1 <= height and 0 <= x0 <= x1 <= width;
+        a zone fully outside the image gets an empty range.
     """
-    r = np.asarray(rects, dtype=np.float64)
-    y0 = np.clip(np.ceil(r[..., 0]), 0, height)
-    x0 = np.clip(np.ceil(r[..., 1]), 0, width)
-    y1 = np.clip(np.floor(r[..., 2]) + 1, 0, height)
-    x1 = np.clip(np.floor(r[..., 3]) + 1, 0, width)
+    r = np.ceil(np.asarray(rects, dtype=np.float64))
+    y0, y1 = np.clip(r[..., 0], 0, height), np.clip(r[..., 2], 0, height)
+    x0, x1 = np.clip(r[..., 1], 0, width), np.clip(r[..., 3], 0, width)
     y1, x1 = np.maximum(y1, y0), np.maximum(x1, x0)
     return np.stack([y0, x0, y1, x1], axis=-1).astype(np.int64)
