@@ -1,0 +1,491 @@
+"""RGB-D frames and readers for common folder layouts (7-Scenes / 3DMatch, TUM, plain folders).
+
+Every reader is a sequence of :class:`RGBDFrame`: ``len(reader)`` frames, ``reader[i]``
+decodes frame ``i`` from disk. Depth images hold integers in ``1 / depth_scale`` metres
+(millimetres: scale 1000; TUM benchmark: 5000); 0, 65535 and non-finite values are invalid
+and become 0.0.
+
+Per-folder option: a ``deltar_rgbd.json`` file in the dataset folder may set
+``{"layout": ..., "depth_scale": ..., "intrinsics": {"fx": ..., "fy": ..., "cx": ...,
+"cy": ...}}`` for :func:`open_rgbd`; keyword arguments override it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from deltar.calibration.camera import CameraIntrinsics
+
+#: Name of the optional per-folder settings file read by :func:`open_rgbd`.
+SIDECAR_NAME = "deltar_rgbd.json"
+#: Layouts :func:`open_rgbd` recognises.
+LAYOUTS: tuple[str, ...] = ("7scenes", "tum", "folder")
+#: Raw depth value that Kinect-style sensors write for "no reading" (besides 0).
+_SATURATED_U16 = 65535
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
+_DEPTH_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
+
+
+@dataclass
+class RGBDFrame:
+    """One registered colour + depth frame.
+
+    Attributes:
+        image: (H, W, 3) uint8 RGB image.
+        depth_m: (H, W) float32 depth in metres (z-depth along the optical axis), 0.0 where
+            invalid.
+        intrinsics: pinhole intrinsics of the colour camera at this resolution.
+        name: frame name, unique within its dataset.
+        timestamp_s: capture time in seconds when known.
+    """
+
+    image: np.ndarray
+    depth_m: np.ndarray
+    intrinsics: CameraIntrinsics
+    name: str
+    timestamp_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.image.dtype != np.uint8 or self.image.ndim != 3 or self.image.shape[2] != 3:
+            raise ValueError(f"RGBDFrame {self.name!r}: image must be (H, W, 3) uint8, got "
+                             f"{self.image.shape} {self.image.dtype}")
+        if self.depth_m.shape != self.image.shape[:2]:
+            raise ValueError(f"RGBDFrame {self.name!r}: depth size {self.depth_m.shape} differs "
+                             f"from the colour size {self.image.shape[:2]}")
+        size = (self.intrinsics.height, self.intrinsics.width)
+        if size != self.image.shape[:2]:
+            raise ValueError(f"RGBDFrame {self.name!r}: intrinsics are for {size}, image is "
+                             f"{self.image.shape[:2]}")
+
+
+# ---------------------------------------------------------------------- decoding helpers
+def read_color(path: str | Path) -> np.ndarray:
+    """Decode a colour image file to (H, W, 3) uint8 RGB.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is corrupt or truncated.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"colour image not found: {path}")
+    try:
+        with Image.open(path) as img:
+            img.load()  # decode now: truncated files raise here, not later
+            return np.asarray(img.convert("RGB"), dtype=np.uint8).copy()
+    except (OSError, UnidentifiedImageError, SyntaxError) as err:
+        raise ValueError(f"cannot decode colour image {path}: {err}") from err
+
+
+def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
+    """Decode a depth image to (H, W) float32 metres, 0.0 where invalid.
+
+    Args:
+        path: 16-bit PNG/TIFF/PGM (integers in ``1 / depth_scale`` metres) or ``.npy``.
+        depth_scale: raw units per metre (1000 for millimetres, 5000 for TUM).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is corrupt, not single-channel, or ``depth_scale`` <= 0.
+    """
+    path = Path(path)
+    if not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
+    if not path.is_file():
+        raise FileNotFoundError(f"depth image not found: {path}")
+    try:
+        if path.suffix.lower() == ".npy":
+            raw = np.load(path, allow_pickle=False)
+        else:
+            with Image.open(path) as img:
+                img.load()
+                raw = np.asarray(img)
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as err:
+        raise ValueError(f"cannot decode depth image {path}: {err}") from err
+    if raw.ndim != 2:
+        raise ValueError(f"depth image {path} must be single-channel, got shape {raw.shape}")
+    invalid = ~np.isfinite(raw) if raw.dtype.kind == "f" else np.zeros(raw.shape, bool)
+    if raw.dtype == np.uint16:
+        invalid |= raw == _SATURATED_U16
+    depth = np.where(invalid, 0.0, raw.astype(np.float64) / depth_scale)
+    depth[depth < 0] = 0.0
+    return depth.astype(np.float32)
+
+
+def _size_of(path: Path) -> tuple[int, int]:
+    """(height, width) of an image file, read from its header."""
+    if not path.is_file():
+        raise FileNotFoundError(f"colour image not found: {path}")
+    try:
+        with Image.open(path) as img:
+            return img.height, img.width
+    except (OSError, UnidentifiedImageError) as err:
+        raise ValueError(f"cannot read colour image {path}: {err}") from err
+
+
+def default_intrinsics(height: int, width: int) -> CameraIntrinsics:
+    """Kinect / PrimeSense default intrinsics (525 px focal length at 640x480), resized.
+
+    Used when a folder does not record its intrinsics; TUM recommends these values for
+    its data when no calibration is at hand.
+    """
+    base = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    return base if (height, width) == (480, 640) else base.scaled(height, width)
+
+
+def read_intrinsics_matrix(path: str | Path, height: int, width: int) -> CameraIntrinsics:
+    """Read a text 3x3 camera matrix (7-Scenes ``camera-intrinsics.txt`` style).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: it does not hold a valid 3x3 pinhole matrix.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"intrinsics file not found: {path}")
+    try:
+        k = np.loadtxt(path, dtype=np.float64)
+    except ValueError as err:
+        raise ValueError(f"intrinsics file {path} is not a numeric 3x3 matrix: {err}") from err
+    if k.shape != (3, 3):
+        raise ValueError(f"intrinsics file {path} must hold a 3x3 matrix, got {k.shape}")
+    return CameraIntrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+
+
+def _intrinsics_from_dict(data: dict, height: int, width: int, source: str
+                          ) -> CameraIntrinsics:
+    missing = {"fx", "fy", "cx", "cy"} - set(data)
+    if missing:
+        raise ValueError(f"{source}: intrinsics are missing {sorted(missing)}")
+    return CameraIntrinsics(float(data["fx"]), float(data["fy"]), float(data["cx"]),
+                            float(data["cy"]), int(data.get("width", width)),
+                            int(data.get("height", height)))
+
+
+def _check_intrinsics(intrinsics: CameraIntrinsics, height: int, width: int,
+                      source: str) -> CameraIntrinsics:
+    if (intrinsics.height, intrinsics.width) != (height, width):
+        raise ValueError(f"{source}: intrinsics are for {intrinsics.height}x{intrinsics.width} "
+                         f"but the images are {height}x{width}")
+    return intrinsics
+
+
+class _PairReader(Sequence):
+    """A list of (name, colour path, depth path, timestamp) decoded on indexing."""
+
+    def __init__(self, pairs: list[tuple[str, Path, Path, float | None]], depth_scale: float,
+                 source: Path) -> None:
+        if not pairs:
+            raise ValueError(f"no RGB-D frames found in {source}")
+        if not (math.isfinite(depth_scale) and depth_scale > 0):
+            raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
+        self.root = source
+        self.depth_scale = float(depth_scale)
+        self._pairs = pairs
+        self.intrinsics: CameraIntrinsics  # set by subclasses
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(height, width) of the first colour image."""
+        return _size_of(self._pairs[0][1])
+
+    @property
+    def names(self) -> list[str]:
+        return [p[0] for p in self._pairs]
+
+    def __len__(self) -> int:
+        return len(self._pairs)
+
+    def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
+        name, color_path, depth_path, stamp = self._pairs[index]
+        image = read_color(color_path)
+        depth = read_depth(depth_path, self.depth_scale)
+        if depth.shape != image.shape[:2]:
+            raise ValueError(f"colour {color_path} is {image.shape[:2]} but depth {depth_path} "
+                             f"is {depth.shape}; they must be registered at the same size")
+        intr = self.intrinsics
+        if (intr.height, intr.width) != image.shape[:2]:
+            raise ValueError(f"colour image {color_path} is {image.shape[:2]}, unlike the "
+                             f"dataset's {intr.height}x{intr.width}")
+        return RGBDFrame(image=image, depth_m=depth, intrinsics=intr, name=name,
+                         timestamp_s=stamp)
+
+
+# ---------------------------------------------------------------------- 7-Scenes / 3DMatch
+_SEVEN_SCENES_COLOR = re.compile(r"^(frame-\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
+
+
+class SevenScenesReader(_PairReader):
+    """7-Scenes / 3DMatch layout: ``frame-NNNNNN.color.(jpg|png)``, ``frame-NNNNNN.depth.png``.
+
+    Depth is in millimetres; ``camera-intrinsics.txt`` (3x3 matrix) in the folder gives the
+    intrinsics unless ``intrinsics`` is passed.
+
+    Args:
+        folder: the sequence folder.
+        depth_scale: raw depth units per metre (1000 = millimetres).
+        intrinsics: override for the folder's ``camera-intrinsics.txt``.
+    """
+
+    def __init__(self, folder: str | Path, depth_scale: float = 1000.0,
+                 intrinsics: CameraIntrinsics | None = None) -> None:
+        root = Path(folder)
+        if not root.is_dir():
+            raise FileNotFoundError(f"7-Scenes folder not found: {root}")
+        pairs = []
+        for path in sorted(root.iterdir()):
+            match = _SEVEN_SCENES_COLOR.match(path.name)
+            if match:
+                depth = root / f"{match.group(1)}.depth.png"
+                if not depth.is_file():
+                    raise FileNotFoundError(f"depth image missing for {path}: {depth}")
+                pairs.append((match.group(1), path, depth, None))
+        super().__init__(pairs, depth_scale, root)
+        height, width = self.image_size
+        if intrinsics is None:
+            intrinsics = read_intrinsics_matrix(root / "camera-intrinsics.txt", height, width)
+        self.intrinsics = _check_intrinsics(intrinsics, height, width, str(root))
+
+
+# ---------------------------------------------------------------------- TUM
+def _read_tum_list(path: Path) -> list[tuple[float, str]]:
+    """Read a TUM ``rgb.txt`` / ``depth.txt`` list: ``timestamp path`` per line."""
+    rows = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) < 2:
+            raise ValueError(f"{path}:{number}: expected 'timestamp path', got {line!r}")
+        try:
+            rows.append((float(fields[0]), fields[1]))
+        except ValueError as err:
+            raise ValueError(f"{path}:{number}: bad timestamp {fields[0]!r}") from err
+    return rows
+
+
+def _associate(rgb: list[tuple[float, str]], depth: list[tuple[float, str]],
+               max_dt_s: float) -> list[tuple[float, str, float, str]]:
+    """Pair each colour frame with the nearest depth frame within ``max_dt_s`` seconds."""
+    if not rgb or not depth:
+        return []
+    d_times = np.array([t for t, _ in depth])
+    order = np.argsort(d_times)
+    d_sorted = d_times[order]
+    out = []
+    for t, rgb_path in rgb:
+        i = int(np.searchsorted(d_sorted, t))
+        candidates = [j for j in (i - 1, i) if 0 <= j < d_sorted.size]
+        j = min(candidates, key=lambda k: abs(d_sorted[k] - t))
+        if abs(d_sorted[j] - t) <= max_dt_s:
+            dt, dpath = depth[order[j]]
+            out.append((t, rgb_path, dt, dpath))
+    return out
+
+
+class TUMReader(_PairReader):
+    """TUM RGB-D layout: an associations file ``t_rgb rgb/x.png t_depth depth/y.png``.
+
+    Without ``associations.txt`` the TUM lists ``rgb.txt`` and ``depth.txt`` are paired by
+    nearest timestamp (at most 20 ms apart, as TUM's ``associate.py`` does).
+
+    Args:
+        folder: the sequence folder.
+        depth_scale: raw depth units per metre (TUM benchmark: 5000; most RealSense /
+            Kinect recorders write millimetres: 1000).
+        intrinsics: camera intrinsics; when None, :func:`default_intrinsics` (TUM's
+            recommended defaults) with a warning.
+        associations: associations file name inside ``folder``.
+    """
+
+    def __init__(self, folder: str | Path, depth_scale: float = 5000.0,
+                 intrinsics: CameraIntrinsics | None = None,
+                 associations: str = "associations.txt") -> None:
+        root = Path(folder)
+        if not root.is_dir():
+            raise FileNotFoundError(f"TUM folder not found: {root}")
+        assoc_path = root / associations
+        if assoc_path.is_file():
+            rows = []
+            for number, line in enumerate(assoc_path.read_text(encoding="utf-8").splitlines(),
+                                          1):
+                fields = line.split()
+                if not fields or fields[0].startswith("#"):
+                    continue
+                if len(fields) < 4:
+                    raise ValueError(f"{assoc_path}:{number}: expected 'timestamp rgb timestamp "
+                                     f"depth', got {line!r}")
+                try:
+                    rows.append((float(fields[0]), fields[1], float(fields[2]), fields[3]))
+                except ValueError as err:
+                    raise ValueError(f"{assoc_path}:{number}: bad timestamp") from err
+        elif (root / "rgb.txt").is_file() and (root / "depth.txt").is_file():
+            rows = _associate(_read_tum_list(root / "rgb.txt"),
+                              _read_tum_list(root / "depth.txt"), max_dt_s=0.02)
+        else:
+            raise FileNotFoundError(f"TUM folder {root} has neither {associations} nor "
+                                    "rgb.txt + depth.txt")
+        pairs = [(Path(rgb).stem, root / rgb, root / depth, t_rgb)
+                 for t_rgb, rgb, _t_depth, depth in rows]
+        super().__init__(pairs, depth_scale, root)
+        height, width = self.image_size
+        if intrinsics is None:
+            warnings.warn(f"no intrinsics given for {root}; assuming the Kinect default "
+                          "(fx = fy = 525 px at 640x480)", stacklevel=2)
+            intrinsics = default_intrinsics(height, width)
+        self.intrinsics = _check_intrinsics(intrinsics, height, width, str(root))
+
+
+# ---------------------------------------------------------------------- plain folders
+def _stem_map(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
+    return {p.stem: p for p in sorted(folder.iterdir())
+            if p.is_file() and p.suffix.lower() in suffixes}
+
+
+class FolderReader(_PairReader):
+    """Two folders of images paired by file stem (``color/00012.jpg`` + ``depth/00012.png``).
+
+    Args:
+        folder: the dataset folder.
+        depth_scale: raw depth units per metre (1000 = millimetres).
+        intrinsics: camera intrinsics of the colour images.
+        color_dir: colour sub-folder name.
+        depth_dir: depth sub-folder name.
+
+    Raises:
+        FileNotFoundError: a sub-folder is missing.
+        ValueError: no stems are common to both folders.
+    """
+
+    def __init__(self, folder: str | Path, depth_scale: float,
+                 intrinsics: CameraIntrinsics, color_dir: str = "color",
+                 depth_dir: str = "depth") -> None:
+        root = Path(folder)
+        color_root, depth_root = root / color_dir, root / depth_dir
+        for sub in (color_root, depth_root):
+            if not sub.is_dir():
+                raise FileNotFoundError(f"image folder not found: {sub}")
+        colors = _stem_map(color_root, _IMAGE_SUFFIXES)
+        depths = _stem_map(depth_root, _DEPTH_SUFFIXES)
+        pairs = [(stem, colors[stem], depths[stem], None) for stem in colors if stem in depths]
+        super().__init__(pairs, depth_scale, root)
+        height, width = self.image_size
+        self.intrinsics = _check_intrinsics(intrinsics, height, width, str(root))
+
+
+# ---------------------------------------------------------------------- detection
+def detect_layout(folder: str | Path) -> str:
+    """Guess a folder's layout: ``"7scenes"``, ``"tum"`` or ``"folder"``.
+
+    Raises:
+        FileNotFoundError: the folder does not exist.
+        ValueError: no known layout matches.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise FileNotFoundError(f"RGB-D folder not found: {root}")
+    if any(_SEVEN_SCENES_COLOR.match(p.name) for p in root.iterdir()):
+        return "7scenes"
+    if (root / "associations.txt").is_file() or (
+            (root / "rgb.txt").is_file() and (root / "depth.txt").is_file()):
+        return "tum"
+    if (root / "color").is_dir() and (root / "depth").is_dir():
+        return "folder"
+    raise ValueError(f"cannot tell the layout of {root}: expected frame-*.color.* files "
+                     "(7-Scenes), associations.txt or rgb.txt + depth.txt (TUM), or color/ + "
+                     "depth/ folders")
+
+
+def _read_sidecar(root: Path) -> dict:
+    path = root / SIDECAR_NAME
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not valid JSON: {err}") from err
+    unknown = set(data) - {"layout", "depth_scale", "intrinsics"} if isinstance(data, dict) \
+        else {"<not an object>"}
+    if unknown:
+        raise ValueError(f"{path}: unknown settings {sorted(unknown)}")
+    return data
+
+
+def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float | None = None,
+              intrinsics: CameraIntrinsics | None = None) -> _PairReader:
+    """Open an RGB-D folder with the right reader and its depth scale and intrinsics.
+
+    Settings come from, in order: keyword arguments, the folder's ``deltar_rgbd.json``, then
+    the layout's defaults:
+
+    - ``7scenes``: millimetres, ``camera-intrinsics.txt``.
+    - ``tum``: a TUM benchmark sequence (has ``rgb.txt`` and ``depth.txt``) uses 5000 units
+      per metre; a folder with only ``associations.txt`` is taken as a RealSense/Kinect
+      recording in millimetres (1000). Intrinsics: Kinect defaults with a warning.
+    - ``folder`` (``color/`` + ``depth/``): millimetres; intrinsics from
+      ``camera-intrinsics.txt`` in the folder if present, else Kinect defaults with a
+      warning.
+
+    Args:
+        path: dataset folder.
+        layout: force a layout instead of detecting it.
+        depth_scale: raw depth units per metre.
+        intrinsics: camera intrinsics (pixels) at the images' resolution.
+
+    Returns:
+        A reader: a sequence of :class:`RGBDFrame`.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"RGB-D folder not found: {root}")
+    sidecar = _read_sidecar(root)
+    layout = layout or sidecar.get("layout") or detect_layout(root)
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    if depth_scale is None and "depth_scale" in sidecar:
+        depth_scale = float(sidecar["depth_scale"])
+    if intrinsics is None and "intrinsics" in sidecar:
+        height, width = _first_color_size(root, layout)
+        intrinsics = _intrinsics_from_dict(sidecar["intrinsics"], height, width,
+                                           str(root / SIDECAR_NAME))
+    if layout == "7scenes":
+        return SevenScenesReader(root, depth_scale or 1000.0, intrinsics)
+    if layout == "tum":
+        if depth_scale is None:
+            benchmark = (root / "rgb.txt").is_file() and (root / "depth.txt").is_file()
+            depth_scale = 5000.0 if benchmark else 1000.0
+        return TUMReader(root, depth_scale, intrinsics)
+    if intrinsics is None:
+        height, width = _first_color_size(root, layout)
+        k_file = root / "camera-intrinsics.txt"
+        if k_file.is_file():
+            intrinsics = read_intrinsics_matrix(k_file, height, width)
+        else:
+            warnings.warn(f"no intrinsics given for {root}; assuming the Kinect default "
+                          "(fx = fy = 525 px at 640x480)", stacklevel=2)
+            intrinsics = default_intrinsics(height, width)
+    return FolderReader(root, depth_scale or 1000.0, intrinsics)
+
+
+def _first_color_size(root: Path, layout: str) -> tuple[int, int]:
+    if layout == "7scenes":
+        files = sorted(p for p in root.iterdir() if _SEVEN_SCENES_COLOR.match(p.name))
+    elif layout == "folder":
+        files = sorted(_stem_map(root / "color", _IMAGE_SUFFIXES).values())
+    else:
+        sub = root / "rgb"
+        files = sorted(_stem_map(sub, _IMAGE_SUFFIXES).values()) if sub.is_dir() else []
+    if not files:
+        raise ValueError(f"no colour images found in {root}")
+    return _size_of(files[0])

@@ -1,0 +1,243 @@
+"""The ZJU-L5 layout: one HDF5 file per frame, listed in a ``data.json``.
+
+``data.json`` is ``{"<split>": [{"filename": "scene/frame.h5"}, ...]}`` with paths
+relative to the folder holding it. Each HDF5 file holds:
+
+- ``rgb``: (H, W, 3) uint8 colour image, RGB.
+- ``depth``: (H, W) float ground-truth depth in metres (0 where invalid).
+- ``hist_data``: (Z, 2) float per-zone [mean, sigma] in metres.
+- ``fr``: (Z, 4) float zone rectangles (y0, x0, y1, x1) in image pixels; they may
+  extend past the image.
+- ``mask``: (Z,) bool valid zones.
+
+Z is 64 (8x8) for the released data; 16 (4x4) is accepted too. Files written by
+:func:`write_zju_l5` also carry the camera intrinsics as attributes ``fx, fy, cx, cy``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.io.atomic import atomic_path, write_text_atomic
+
+#: Zone counts accepted in a ZJU-L5 file (4x4 and 8x8 grids).
+ZONE_COUNTS: tuple[int, ...] = (16, 64)
+_REQUIRED_KEYS: tuple[str, ...] = ("rgb", "depth", "hist_data", "fr", "mask")
+
+
+@dataclass
+class ZJUL5Sample:
+    """One ZJU-L5 frame: colour image, ground-truth depth and one L5 zone reading.
+
+    Attributes:
+        rgb: (H, W, 3) uint8 RGB image.
+        depth_m: (H, W) float32 depth in metres, 0.0 where invalid.
+        zone_mean_sigma: (Z, 2) float32 per-zone [mean, sigma] in metres (0 where invalid).
+        zone_rects: (Z, 4) float32 zone rectangles (y0, x0, y1, x1) in pixels.
+        zone_valid: (Z,) bool valid zones.
+        name: frame name, the file path relative to the set without ``.h5``
+            (e.g. ``"kitchen/00012"``).
+        intrinsics: camera intrinsics if known (the released files do not store them;
+            the reader fills in the paper's ZJU-L5 camera for them).
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    zone_mean_sigma: np.ndarray
+    zone_rects: np.ndarray
+    zone_valid: np.ndarray
+    name: str
+    intrinsics: CameraIntrinsics | None = None
+
+    def __post_init__(self) -> None:
+        self.rgb = np.asarray(self.rgb)
+        self.depth_m = np.asarray(self.depth_m, dtype=np.float32)
+        self.zone_mean_sigma = np.asarray(self.zone_mean_sigma, dtype=np.float32)
+        self.zone_rects = np.asarray(self.zone_rects, dtype=np.float32)
+        self.zone_valid = np.asarray(self.zone_valid, dtype=bool)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the field when shapes or values are inconsistent."""
+        where = f"ZJUL5Sample {self.name!r}"
+        if self.rgb.dtype != np.uint8 or self.rgb.ndim != 3 or self.rgb.shape[2] != 3:
+            raise ValueError(f"{where}: rgb must be (H, W, 3) uint8, got {self.rgb.shape} "
+                             f"{self.rgb.dtype}")
+        if self.depth_m.shape != self.rgb.shape[:2]:
+            raise ValueError(f"{where}: depth_m shape {self.depth_m.shape} does not match the "
+                             f"image size {self.rgb.shape[:2]}")
+        if not np.all(np.isfinite(self.depth_m)) or np.any(self.depth_m < 0):
+            raise ValueError(f"{where}: depth_m must be finite and >= 0 (0 marks invalid)")
+        zones = self.zone_valid.shape[0] if self.zone_valid.ndim == 1 else -1
+        if zones not in ZONE_COUNTS:
+            raise ValueError(f"{where}: zone_valid must be (Z,) with Z in {ZONE_COUNTS}, got "
+                             f"{self.zone_valid.shape}")
+        if self.zone_mean_sigma.shape != (zones, 2):
+            raise ValueError(f"{where}: zone_mean_sigma must be ({zones}, 2), got "
+                             f"{self.zone_mean_sigma.shape}")
+        if self.zone_rects.shape != (zones, 4):
+            raise ValueError(f"{where}: zone_rects must be ({zones}, 4), got "
+                             f"{self.zone_rects.shape}")
+        valid_ms = self.zone_mean_sigma[self.zone_valid]
+        if not np.all(np.isfinite(valid_ms)) or np.any(valid_ms < 0):
+            raise ValueError(f"{where}: zone_mean_sigma must be finite and >= 0 in valid zones")
+        if not np.all(np.isfinite(self.zone_rects)):
+            raise ValueError(f"{where}: zone_rects must be finite")
+
+    @property
+    def grid(self) -> int:
+        """Zones per side (4 or 8)."""
+        return math.isqrt(self.zone_valid.shape[0])
+
+
+def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | None
+                 ) -> ZJUL5Sample:
+    if not path.is_file():
+        raise FileNotFoundError(f"ZJU-L5 frame file not found: {path}")
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [k for k in _REQUIRED_KEYS if k not in f]
+            if missing:
+                raise ValueError(f"ZJU-L5 file {path} is missing datasets {missing}")
+            arrays = {k: f[k][()] for k in _REQUIRED_KEYS}
+            attrs = {k: f.attrs[k] for k in ("fx", "fy", "cx", "cy") if k in f.attrs}
+    except OSError as err:  # h5py raises OSError for truncated / non-HDF5 files
+        raise ValueError(f"cannot read ZJU-L5 file {path}: {err}") from err
+    depth = np.asarray(arrays["depth"], dtype=np.float32)
+    if depth.ndim == 3 and depth.shape[-1] == 1:
+        depth = depth[..., 0]
+    # Ground truth may mark holes with NaN or negative values; the convention is 0.0.
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
+    rgb = np.asarray(arrays["rgb"])
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"ZJU-L5 file {path}: rgb must be uint8, got {rgb.dtype}")
+    intrinsics = default_intrinsics
+    if len(attrs) == 4:
+        intrinsics = CameraIntrinsics(*(float(attrs[k]) for k in ("fx", "fy", "cx", "cy")),
+                                      width=rgb.shape[1], height=rgb.shape[0])
+    elif intrinsics is not None and rgb.ndim == 3 and (
+            (intrinsics.height, intrinsics.width) != rgb.shape[:2]):
+        intrinsics = intrinsics.scaled(rgb.shape[0], rgb.shape[1])
+    mean_sigma = np.asarray(arrays["hist_data"], dtype=np.float32)
+    valid = np.asarray(arrays["mask"]).astype(bool).reshape(-1)
+    try:
+        return ZJUL5Sample(rgb=rgb, depth_m=depth, zone_mean_sigma=mean_sigma,
+                           zone_rects=np.asarray(arrays["fr"], dtype=np.float32),
+                           zone_valid=valid, name=name, intrinsics=intrinsics)
+    except ValueError as err:
+        raise ValueError(f"ZJU-L5 file {path}: {err}") from err
+
+
+class ZJUL5Dataset(Sequence):
+    """Read a ZJU-L5-layout set (``data.json`` + one HDF5 file per frame).
+
+    Frames are read lazily on indexing.
+
+    Args:
+        data_json_path: path to ``data.json`` (or the folder that holds it).
+        split: key of the frame list in ``data.json`` (``"test"`` in the release).
+        intrinsics: camera intrinsics for files that do not store them; defaults to the
+            paper's ZJU-L5 camera (611.2, 609.6, 323.4, 244.9 at 480x640).
+
+    Raises:
+        FileNotFoundError: ``data.json`` is missing.
+        ValueError: ``data.json`` is not valid JSON or lacks the split.
+    """
+
+    def __init__(self, data_json_path: str | Path, split: str = "test",
+                 intrinsics: CameraIntrinsics | None = ZJU_L5_INTRINSICS) -> None:
+        path = Path(data_json_path)
+        if path.is_dir():
+            path = path / "data.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"ZJU-L5 index not found: {path}")
+        try:
+            index = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"ZJU-L5 index {path} is not valid JSON: {err}") from err
+        if not isinstance(index, dict) or split not in index:
+            keys = sorted(index) if isinstance(index, dict) else []
+            raise ValueError(f"ZJU-L5 index {path} has no split {split!r} (splits: {keys})")
+        entries = index[split]
+        if not isinstance(entries, list) or not all(
+                isinstance(e, dict) and isinstance(e.get("filename"), str) for e in entries):
+            raise ValueError(f"ZJU-L5 index {path}: split {split!r} must be a list of "
+                             '{"filename": "..."} entries')
+        self.root = path.parent
+        self.split = split
+        self.intrinsics = intrinsics
+        self.filenames: list[str] = [e["filename"] for e in entries]
+
+    def __len__(self) -> int:
+        return len(self.filenames)
+
+    def __getitem__(self, index: int) -> ZJUL5Sample:  # type: ignore[override]
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
+        rel = self.filenames[index]
+        name = rel[:-3] if rel.endswith(".h5") else rel
+        return _read_sample(self.root / rel, name, self.intrinsics)
+
+
+def _relative_filename(name: str) -> str:
+    rel = name if name.endswith(".h5") else f"{name}.h5"
+    parts = Path(rel).parts
+    if Path(rel).is_absolute() or ".." in parts or not parts:
+        raise ValueError(f"sample name {name!r} must be a relative path without '..'")
+    return Path(rel).as_posix()
+
+
+def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
+                 split: str = "test") -> Path:
+    """Write samples as a ZJU-L5-layout set that :class:`ZJUL5Dataset` (and the release) read.
+
+    Each sample goes to ``out_dir / (sample.name + ".h5")``; ``data.json`` is written last,
+    so a set without ``data.json`` is incomplete. Every file is written atomically.
+
+    Args:
+        out_dir: output folder; created if needed. It must not already hold a
+            ``data.json`` or any of the frame files.
+        samples: the frames; names must be unique relative paths (e.g. ``"scene/00001"``).
+        split: key of the frame list in ``data.json``.
+
+    Returns:
+        Path of the written ``data.json``.
+
+    Raises:
+        FileExistsError: ``data.json`` or a frame file already exists.
+        ValueError: a sample is inconsistent or two samples share a name.
+    """
+    out = Path(out_dir)
+    index_path = out / "data.json"
+    if index_path.exists():
+        raise FileExistsError(f"refusing to overwrite existing ZJU-L5 set: {index_path}")
+    filenames: list[str] = []
+    seen: set[str] = set()
+    for sample in samples:
+        sample.validate()
+        rel = _relative_filename(sample.name)
+        if rel in seen:
+            raise ValueError(f"two samples share the name {sample.name!r}")
+        seen.add(rel)
+        target = out / rel
+        with atomic_path(target, overwrite=False) as tmp, h5py.File(tmp, "w") as f:
+            f.create_dataset("rgb", data=sample.rgb, compression="gzip", compression_opts=4)
+            f.create_dataset("depth", data=sample.depth_m.astype(np.float32),
+                             compression="gzip", compression_opts=4)
+            f.create_dataset("hist_data", data=sample.zone_mean_sigma.astype(np.float32))
+            f.create_dataset("fr", data=sample.zone_rects.astype(np.float32))
+            f.create_dataset("mask", data=sample.zone_valid.astype(bool))
+            if sample.intrinsics is not None:
+                for key in ("fx", "fy", "cx", "cy"):
+                    f.attrs[key] = float(getattr(sample.intrinsics, key))
+        filenames.append(rel)
+    text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
+    return write_text_atomic(index_path, text + "\n", overwrite=False)

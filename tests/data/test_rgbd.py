@@ -1,0 +1,151 @@
+"""RGB-D folder readers on the shared real folders and on small generated folders."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.data.rgbd import (
+    FolderReader,
+    SevenScenesReader,
+    TUMReader,
+    detect_layout,
+    open_rgbd,
+    read_color,
+    read_depth,
+)
+
+
+def _raw_depth(path) -> np.ndarray:
+    return np.asarray(Image.open(path))
+
+
+def test_seven_scenes_shared_folder(shared_data):
+    folder = shared_data / "7scenes_redkitchen"
+    reader = open_rgbd(folder)
+    assert isinstance(reader, SevenScenesReader)
+    assert len(reader) == 500
+    frame = reader[0]
+    assert frame.name == "frame-000000"
+    assert frame.image.shape == (480, 640, 3) and frame.image.dtype == np.uint8
+    assert (frame.intrinsics.fx, frame.intrinsics.fy, frame.intrinsics.cx,
+            frame.intrinsics.cy) == (585.0, 585.0, 320.0, 240.0)
+    raw = _raw_depth(folder / "frame-000000.depth.png")
+    invalid = (raw == 0) | (raw == 65535)
+    assert np.all(frame.depth_m[invalid] == 0.0)
+    np.testing.assert_allclose(frame.depth_m[~invalid], raw[~invalid] / 1000.0, rtol=1e-6)
+    assert 0.3 < np.median(frame.depth_m[~invalid]) < 6.0
+
+
+def test_realsense_office_is_read_in_millimetres(shared_data):
+    folder = shared_data / "realsense_office"
+    assert detect_layout(folder) == "tum"
+    intr = CameraIntrinsics(615.0, 615.0, 320.0, 240.0, 640, 480)
+    reader = open_rgbd(folder, intrinsics=intr)
+    assert isinstance(reader, TUMReader)
+    assert reader.depth_scale == 1000.0
+    assert len(reader) == 97
+    frame = reader[0]
+    assert frame.name == "rgb00002"
+    assert frame.timestamp_s == pytest.approx(0.00585412979126)
+    raw = _raw_depth(folder / "depth" / "depth00002.png")
+    np.testing.assert_allclose(frame.depth_m[raw > 0], raw[raw > 0] / 1000.0, rtol=1e-6)
+    # A desk scene in millimetres: a median of a metre or so, not a fifth of it.
+    assert 0.4 < np.median(frame.depth_m[raw > 0]) < 4.0
+    assert frame.intrinsics == intr
+
+
+def test_icl_folder_loads_with_default_intrinsics_warning(shared_data):
+    folder = shared_data / "icl_livingroom1"
+    with pytest.warns(UserWarning, match="intrinsics"):
+        reader = open_rgbd(folder)
+    assert isinstance(reader, FolderReader)
+    assert len(reader) == 211
+    frame = reader[3]
+    assert frame.name == "00003"
+    assert (frame.intrinsics.fx, frame.intrinsics.cx, frame.intrinsics.cy) == (
+        525.0, 319.5, 239.5)
+    assert 0.3 < np.median(frame.depth_m[frame.depth_m > 0]) < 8.0
+
+
+def _write_png16(path, array):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(array.astype(np.uint16)).save(path)
+
+
+def _write_rgb(path, array):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(array).save(path)
+
+
+def test_invalid_depth_values_become_zero(tmp_path):
+    raw = np.array([[0, 1000, 65535], [2500, 5000, 1]], dtype=np.uint16)
+    _write_png16(tmp_path / "d.png", raw)
+    depth = read_depth(tmp_path / "d.png", depth_scale=1000.0)
+    np.testing.assert_allclose(depth, [[0.0, 1.0, 0.0], [2.5, 5.0, 0.001]], rtol=1e-6)
+    np.save(tmp_path / "d.npy", np.array([[np.nan, 2.0], [np.inf, -1.0]], np.float32))
+    np.testing.assert_array_equal(read_depth(tmp_path / "d.npy", 1.0), [[0, 2], [0, 0]])
+
+
+def test_tum_benchmark_lists_are_associated_with_scale_5000(tmp_path, rng):
+    for i, t in enumerate((1.00, 2.00)):
+        _write_rgb(tmp_path / "rgb" / f"{t:.2f}.png",
+                   rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+        _write_png16(tmp_path / "depth" / f"{t + 0.01:.2f}.png", np.full((6, 8), 5000 * (i + 1)))
+    (tmp_path / "rgb.txt").write_text("# colour\n1.00 rgb/1.00.png\n2.00 rgb/2.00.png\n")
+    # The second depth frame is 10 ms off, the third has no colour partner.
+    (tmp_path / "depth.txt").write_text("1.01 depth/1.01.png\n2.01 depth/2.01.png\n"
+                                        "9.00 depth/none.png\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reader = open_rgbd(tmp_path)
+    assert isinstance(reader, TUMReader) and reader.depth_scale == 5000.0
+    assert len(reader) == 2
+    np.testing.assert_allclose(reader[1].depth_m, 2.0)
+    assert reader[1].timestamp_s == pytest.approx(2.0)
+
+
+def test_sidecar_sets_scale_and_intrinsics(tmp_path, rng):
+    _write_rgb(tmp_path / "color" / "a.jpg", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / "depth" / "a.png", np.full((6, 8), 300))
+    (tmp_path / "deltar_rgbd.json").write_text(json.dumps(
+        {"depth_scale": 100.0, "intrinsics": {"fx": 10, "fy": 11, "cx": 3.5, "cy": 2.5}}))
+    frame = open_rgbd(tmp_path)[0]
+    np.testing.assert_allclose(frame.depth_m, 3.0)
+    assert frame.intrinsics == CameraIntrinsics(10.0, 11.0, 3.5, 2.5, 8, 6)
+    # Keyword arguments win over the sidecar.
+    np.testing.assert_allclose(open_rgbd(tmp_path, depth_scale=1000.0)[0].depth_m, 0.3)
+
+
+def test_size_mismatch_and_corrupt_images_name_the_file(tmp_path, rng):
+    intr = CameraIntrinsics(10.0, 10.0, 3.5, 2.5, 8, 6)
+    _write_rgb(tmp_path / "color" / "a.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / "depth" / "a.png", np.full((6, 7), 300))
+    with pytest.raises(ValueError, match=r"a\.png"):
+        FolderReader(tmp_path, 1000.0, intr)[0]
+    good = tmp_path / "good.jpg"
+    _write_rgb(good, rng.integers(0, 256, (64, 64, 3), dtype=np.uint8))
+    truncated = tmp_path / "truncated.jpg"
+    truncated.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(ValueError, match=r"truncated\.jpg"):
+        read_color(truncated)
+    with pytest.raises(FileNotFoundError, match=r"missing\.png"):
+        read_color(tmp_path / "missing.png")
+
+
+def test_unknown_layout_and_missing_intrinsics_file(tmp_path, rng):
+    with pytest.raises(ValueError, match="cannot tell the layout"):
+        open_rgbd(tmp_path)
+    _write_rgb(tmp_path / "frame-000000.color.png",
+               rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / "frame-000000.depth.png", np.full((6, 8), 1000))
+    with pytest.raises(FileNotFoundError, match=r"camera-intrinsics\.txt"):
+        open_rgbd(tmp_path)
+    (tmp_path / "camera-intrinsics.txt").write_text("1 0 0\n0 1 0\n")
+    with pytest.raises(ValueError, match="3x3"):
+        open_rgbd(tmp_path)

@@ -1,0 +1,129 @@
+"""ZJU-L5 reader and writer: round trip, the release's layout, and clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.data.zju_l5 import ZJUL5Dataset, ZJUL5Sample, write_zju_l5
+
+
+def _sample(rng: np.random.Generator, name: str, height: int = 24, width: int = 32,
+            zones: int = 64) -> ZJUL5Sample:
+    valid = rng.random(zones) > 0.2
+    mean_sigma = np.stack([rng.uniform(0.5, 3.5, zones), rng.uniform(0.01, 0.1, zones)], 1)
+    mean_sigma[~valid] = 0.0
+    return ZJUL5Sample(
+        rgb=rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
+        depth_m=rng.uniform(0.0, 4.0, (height, width)).astype(np.float32),
+        zone_mean_sigma=mean_sigma,
+        zone_rects=rng.uniform(-10, 40, (zones, 4)),
+        zone_valid=valid,
+        name=name,
+        intrinsics=CameraIntrinsics(30.0, 31.0, 15.5, 11.5, width, height),
+    )
+
+
+def _write_release_file(path, rgb, depth, hist, fr, mask):
+    """A frame file exactly as the release stores it (no extra attributes)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w") as f:
+        f["rgb"], f["depth"], f["hist_data"], f["fr"], f["mask"] = rgb, depth, hist, fr, mask
+
+
+def test_round_trip_preserves_every_array(tmp_path, rng):
+    samples = [_sample(rng, "kitchen/00001"), _sample(rng, "office/00007", zones=16)]
+    index = write_zju_l5(tmp_path / "set", samples, split="test")
+    assert json.loads(index.read_text()) == {
+        "test": [{"filename": "kitchen/00001.h5"}, {"filename": "office/00007.h5"}]}
+    ds = ZJUL5Dataset(index)
+    assert len(ds) == 2
+    for original, loaded in zip(samples, ds, strict=True):
+        assert loaded.name == original.name
+        np.testing.assert_array_equal(loaded.rgb, original.rgb)
+        np.testing.assert_array_equal(loaded.depth_m, original.depth_m)
+        np.testing.assert_array_equal(loaded.zone_mean_sigma, original.zone_mean_sigma)
+        np.testing.assert_array_equal(loaded.zone_rects, original.zone_rects)
+        np.testing.assert_array_equal(loaded.zone_valid, original.zone_valid)
+        assert loaded.intrinsics == original.intrinsics
+    assert ds[1].grid == 4
+
+
+def test_reads_release_layout_and_cleans_invalid_depth(tmp_path, rng):
+    depth = rng.uniform(0.5, 3.0, (480, 640)).astype(np.float64)
+    depth[0, 0], depth[1, 1] = np.nan, -1.0
+    mask = np.ones(64, bool)
+    mask[5] = False
+    _write_release_file(tmp_path / "scene" / "0.h5", rng.integers(0, 256, (480, 640, 3),
+                                                                   dtype=np.uint8),
+                        depth, np.full((64, 2), 1.5), np.zeros((64, 4)), mask)
+    (tmp_path / "data.json").write_text(json.dumps({"test": [{"filename": "scene/0.h5"}]}))
+    sample = ZJUL5Dataset(tmp_path)[0]
+    assert sample.name == "scene/0"
+    assert sample.depth_m.dtype == np.float32
+    assert sample.depth_m[0, 0] == 0.0 and sample.depth_m[1, 1] == 0.0
+    assert sample.depth_m[2, 2] == pytest.approx(depth[2, 2])
+    assert not sample.zone_valid[5] and sample.zone_valid.sum() == 63
+    # Release files carry no intrinsics: the paper's ZJU-L5 camera is filled in.
+    assert sample.intrinsics == ZJU_L5_INTRINSICS
+
+
+def test_writer_refuses_to_overwrite(tmp_path, rng):
+    write_zju_l5(tmp_path, [_sample(rng, "a")])
+    with pytest.raises(FileExistsError, match=r"data\.json"):
+        write_zju_l5(tmp_path, [_sample(rng, "b")])
+
+
+def test_writer_rejects_duplicate_and_unsafe_names(tmp_path, rng):
+    with pytest.raises(ValueError, match="share the name"):
+        write_zju_l5(tmp_path / "dup", [_sample(rng, "a"), _sample(rng, "a")])
+    assert not (tmp_path / "dup" / "data.json").exists()
+    with pytest.raises(ValueError, match="relative path"):
+        write_zju_l5(tmp_path / "up", [_sample(rng, "../escape")])
+
+
+def test_missing_split_and_missing_file(tmp_path):
+    (tmp_path / "data.json").write_text(json.dumps({"test": [{"filename": "x/1.h5"}]}))
+    with pytest.raises(ValueError, match="no split 'train'"):
+        ZJUL5Dataset(tmp_path / "data.json", split="train")
+    with pytest.raises(FileNotFoundError, match=r"1\.h5"):
+        ZJUL5Dataset(tmp_path)[0]
+    with pytest.raises(FileNotFoundError, match="index not found"):
+        ZJUL5Dataset(tmp_path / "nope.json")
+
+
+def test_corrupt_h5_and_missing_key_and_bad_shapes(tmp_path, rng):
+    (tmp_path / "bad.h5").write_bytes(b"not an hdf5 file at all")
+    rgb = rng.integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    with h5py.File(tmp_path / "nokey.h5", "w") as f:
+        f["rgb"], f["depth"] = rgb, np.ones((8, 8))
+    _write_release_file(tmp_path / "shape.h5", rgb, np.ones((8, 8)), np.ones((64, 3)),
+                        np.zeros((64, 4)), np.ones(64, bool))
+    _write_release_file(tmp_path / "size.h5", rgb, np.ones((8, 9)), np.ones((64, 2)),
+                        np.zeros((64, 4)), np.ones(64, bool))
+    entries = [{"filename": n} for n in ("bad.h5", "nokey.h5", "shape.h5", "size.h5")]
+    (tmp_path / "data.json").write_text(json.dumps({"test": entries}))
+    ds = ZJUL5Dataset(tmp_path)
+    with pytest.raises(ValueError, match=r"bad\.h5"):
+        ds[0]
+    with pytest.raises(ValueError, match=r"nokey\.h5.*missing.*hist_data"):
+        ds[1]
+    with pytest.raises(ValueError, match=r"shape\.h5.*zone_mean_sigma"):
+        ds[2]
+    with pytest.raises(ValueError, match=r"size\.h5.*depth_m shape"):
+        ds[3]
+
+
+def test_sample_validation_names_the_field(rng):
+    good = _sample(rng, "x")
+    with pytest.raises(ValueError, match="zone_valid"):
+        ZJUL5Sample(good.rgb, good.depth_m, good.zone_mean_sigma[:10], good.zone_rects[:10],
+                    good.zone_valid[:10], "x")
+    bad_ms = good.zone_mean_sigma.copy()
+    bad_ms[np.flatnonzero(good.zone_valid)[0], 0] = np.nan
+    with pytest.raises(ValueError, match="zone_mean_sigma"):
+        ZJUL5Sample(good.rgb, good.depth_m, bad_ms, good.zone_rects, good.zone_valid, "x")
