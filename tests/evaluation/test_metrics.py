@@ -1,0 +1,129 @@
+"""Depth metrics against values worked out by hand on tiny arrays."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from deltar.evaluation.metrics import (
+    METRIC_KEYS,
+    EmptyFrameError,
+    MetricAccumulator,
+    depth_metrics,
+)
+
+
+def test_hand_computed_values() -> None:
+    # The 0.0 pixel is invalid ground truth and must be ignored.
+    gt = np.array([[1.0, 2.0], [4.0, 0.0]])
+    pred = np.array([[1.0, 2.5], [2.0, 3.0]])
+    m = depth_metrics(pred, gt)
+    # Ratios max(gt/pred, pred/gt): 1, 1.25, 2.
+    assert m["d1"] == pytest.approx(1 / 3)  # 1.25 is not < 1.25
+    assert m["d2"] == pytest.approx(2 / 3)  # 1.25 < 1.5625 <= 2
+    assert m["d3"] == pytest.approx(2 / 3)  # 2 > 1.953125
+    assert m["rel"] == pytest.approx((0 + 0.5 / 2 + 2 / 4) / 3)
+    assert m["sq_rel"] == pytest.approx((0 + 0.25 / 2 + 4 / 4) / 3)
+    assert m["rmse"] == pytest.approx(math.sqrt((0 + 0.25 + 4) / 3))
+    e = [0.0, math.log(1.25), math.log(0.5)]
+    assert m["rmse_log"] == pytest.approx(math.sqrt(sum(x * x for x in e) / 3))
+    assert m["log10"] == pytest.approx((0 + math.log10(1.25) + math.log10(2)) / 3)
+    mean_e = sum(e) / 3
+    assert m["silog"] == pytest.approx(100 * math.sqrt(sum(x * x for x in e) / 3 - mean_e**2))
+    assert set(m) == set(METRIC_KEYS)
+
+
+def test_perfect_prediction() -> None:
+    gt = np.array([0.5, 1.0, 3.0, 7.0])
+    m = depth_metrics(gt.copy(), gt)
+    assert m["d1"] == m["d2"] == m["d3"] == 1.0
+    for key in ("rel", "sq_rel", "rmse", "rmse_log", "log10", "silog"):
+        assert m[key] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_silog_ignores_global_scale() -> None:
+    gt = np.array([1.0, 2.0, 3.0])
+    m = depth_metrics(2 * gt, gt)
+    assert m["silog"] == pytest.approx(0.0, abs=1e-5)
+    assert m["rmse_log"] == pytest.approx(math.log(2))
+
+
+def test_range_and_clipping() -> None:
+    # gt 12 m is outside (1e-3, 10) and ignored; predictions clip to [1e-3, 10].
+    gt = np.array([5.0, 12.0, 2.0])
+    pred = np.array([20.0, 1.0, 0.0])
+    m = depth_metrics(pred, gt)
+    # Remaining pairs: (gt 5, pred 10), (gt 2, pred 1e-3).
+    assert m["rel"] == pytest.approx((5 / 5 + (2 - 1e-3) / 2) / 2)
+    assert m["d3"] == 0.0
+
+
+def test_custom_range() -> None:
+    gt = np.array([0.5, 1.5, 2.5])
+    pred = np.array([1.0, 1.5, 2.5])
+    assert depth_metrics(pred, gt, min_depth=1.0, max_depth=3.0)["rel"] == 0.0
+
+
+def test_accepts_torch_tensors() -> None:
+    gt = torch.tensor([1.0, 2.0])
+    pred = torch.tensor([1.0, 4.0])
+    assert depth_metrics(pred, gt)["rel"] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("bad", ["pred", "gt"])
+def test_nan_raises(bad: str) -> None:
+    gt = np.array([1.0, 2.0])
+    pred = np.array([1.0, 2.0])
+    (pred if bad == "pred" else gt)[0] = np.nan
+    with pytest.raises(ValueError, match=f"{bad}_m"):
+        depth_metrics(pred, gt)
+
+
+def test_shape_mismatch_raises() -> None:
+    with pytest.raises(ValueError, match="same shape"):
+        depth_metrics(np.ones((2, 3)), np.ones((3, 2)))
+
+
+def test_bad_range_raises() -> None:
+    with pytest.raises(ValueError, match="min_depth"):
+        depth_metrics(np.ones(2), np.ones(2), min_depth=5.0, max_depth=1.0)
+
+
+def test_empty_frame_raises() -> None:
+    with pytest.raises(EmptyFrameError):
+        depth_metrics(np.ones((2, 2)), np.zeros((2, 2)))
+
+
+def test_accumulator_averages_per_frame_then_over_frames() -> None:
+    acc = MetricAccumulator()
+    # Frame 1: one pixel, rel 1. Frame 2: three exact pixels, rel 0.
+    acc.update(np.array([2.0]), np.array([1.0]))
+    acc.update(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]))
+    result = acc.compute()
+    # Per-frame mean: (1 + 0) / 2; pooling pixels would give 1 / 4.
+    assert result["rel"] == pytest.approx(0.5)
+    assert result["d1"] == pytest.approx(0.5)
+    assert acc.count == 2
+
+
+def test_accumulator_skips_empty_frames_with_warning() -> None:
+    acc = MetricAccumulator()
+    acc.update(np.array([2.0]), np.array([1.0]))
+    with pytest.warns(RuntimeWarning, match="skipping frame 'empty'"):
+        assert acc.update(np.array([1.0]), np.array([0.0]), name="empty") is None
+    assert acc.skipped == 1 and acc.count == 1
+    assert acc.compute()["rel"] == pytest.approx(1.0)
+    assert all(math.isfinite(v) for v in acc.compute().values())
+
+
+def test_accumulator_without_frames_raises() -> None:
+    with pytest.raises(ValueError, match="no frame"):
+        MetricAccumulator().compute()
+
+
+def test_accumulator_add_rejects_incomplete_dict() -> None:
+    with pytest.raises(ValueError, match="missing keys"):
+        MetricAccumulator().add({"d1": 1.0})
