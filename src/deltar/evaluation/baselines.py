@@ -1,0 +1,531 @@
+"""Classical baselines: dense depth from the zone means and the RGB image, no training.
+
+Three families, all taking the same inputs (the image and one sensor frame):
+
+- super-resolution of the zone-mean map: ``nearest`` (each pixel takes the value of the
+  zone whose rectangle holds its centre), ``bilinear`` and ``bicubic`` (interpolation
+  between zone centres), plus ``median`` (one constant, the median zone mean);
+- RGB-guided upsampling of the nearest map: ``guided_filter`` (He et al., colour guide,
+  built from box filters) and ``joint_bilateral`` (joint bilateral filter);
+- depth completion: ``colorization`` (zone means placed at the zone centres and filled
+  with Levin et al.'s colorization, as ``fill_depth_colorization`` of the NYU toolbox,
+  solved at reduced resolution and upsampled).
+
+Invalid zones are ignored. Pixels outside the sensor's field of view take the value of
+the nearest valid zone (super-resolution) or a smooth, image-guided fill (completion);
+no output pixel is ever 0 or NaN. With no valid zone at all every baseline returns the
+constant ``fallback_depth_m`` (default :data:`DEFAULT_FALLBACK_DEPTH_M`, 2 m, about the
+middle of the L5's 4 m range) and warns.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.ndimage
+import scipy.sparse
+import scipy.sparse.linalg
+
+from deltar.sensor.geometry import zone_rects_to_pixel_bounds
+
+#: Depth returned everywhere when a frame has no valid zone (metres).
+DEFAULT_FALLBACK_DEPTH_M = 2.0
+
+
+@dataclass(frozen=True)
+class ZoneInputs:
+    """Checked baseline inputs.
+
+    Attributes:
+        image: (H, W, 3) uint8 RGB image.
+        mean_m: (Z,) float64 zone means in metres (0 for invalid zones).
+        valid: (Z,) bool zone validity.
+        rects: (Z, 4) float64 zone rectangles (y0, x0, y1, x1) in pixels.
+        grid: zones per side (Z = grid * grid).
+    """
+
+    image: np.ndarray
+    mean_m: np.ndarray
+    valid: np.ndarray
+    rects: np.ndarray
+    grid: int
+
+    @property
+    def height(self) -> int:
+        return int(self.image.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.image.shape[1])
+
+    @property
+    def pitch_px(self) -> float:
+        """Median zone size in pixels (mean of height and width)."""
+        sizes = np.concatenate([self.rects[:, 2] - self.rects[:, 0],
+                                self.rects[:, 3] - self.rects[:, 1]])
+        return float(np.median(sizes))
+
+
+def check_zone_inputs(
+    image_rgb: np.ndarray,
+    zone_mean_m: np.ndarray,
+    zone_valid: np.ndarray,
+    zone_rects: np.ndarray,
+) -> ZoneInputs:
+    """Validate and convert the inputs shared by all baselines.
+
+    Args:
+        image_rgb: (H, W, 3) uint8 RGB image.
+        zone_mean_m: (Z,) zone means in metres; Z must be a square (16, 64, ...).
+        zone_valid: (Z,) bool validity; invalid zones may hold any value.
+        zone_rects: (Z, 4) rectangles (y0, x0, y1, x1) in pixels, row-major zone order.
+
+    Returns:
+        The checked inputs as a :class:`ZoneInputs`.
+
+    Raises:
+        ValueError: a shape, dtype or value is wrong (the message names the argument).
+    """
+    image = np.asarray(image_rgb)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"image_rgb must be an (H, W, 3) uint8 array, got shape "
+                         f"{image.shape} dtype {image.dtype}")
+    mean = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
+    valid = np.asarray(zone_valid).reshape(-1)
+    if valid.dtype != np.bool_:
+        if not np.all(np.isin(valid, (0, 1))):
+            raise ValueError("zone_valid must be boolean (or 0/1)")
+        valid = valid.astype(bool)
+    rects = np.asarray(zone_rects, dtype=np.float64)
+    zones = mean.size
+    grid = math.isqrt(zones)
+    if grid < 2 or grid * grid != zones:
+        raise ValueError(f"zone_mean_m must hold a square number (>= 4) of zones, got {zones}")
+    if valid.shape != (zones,):
+        raise ValueError(f"zone_valid must have shape ({zones},), got {valid.shape}")
+    if rects.shape != (zones, 4):
+        raise ValueError(f"zone_rects must have shape ({zones}, 4), got {rects.shape}")
+    if not np.all(np.isfinite(rects)):
+        raise ValueError("zone_rects contains NaN or infinite values")
+    if np.any(rects[:, 2] <= rects[:, 0]) or np.any(rects[:, 3] <= rects[:, 1]):
+        raise ValueError("zone_rects must satisfy y1 > y0 and x1 > x0 for every zone")
+    valid_means = mean[valid]
+    if not np.all(np.isfinite(valid_means)) or np.any(valid_means <= 0):
+        raise ValueError("zone_mean_m must be finite and > 0 for every valid zone")
+    mean = np.where(valid, mean, 0.0)
+    return ZoneInputs(image, mean, valid, rects, grid)
+
+
+def _fallback(inputs: ZoneInputs, fallback_depth_m: float) -> np.ndarray:
+    warnings.warn(f"no valid zone: returning the constant fallback depth "
+                  f"{fallback_depth_m} m", RuntimeWarning, stacklevel=3)
+    return np.full((inputs.height, inputs.width), fallback_depth_m, dtype=np.float32)
+
+
+def _fractional_index(coords: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Map pixel coordinates to fractional grid indices, piecewise linear between centres.
+
+    Beyond the first and last centre the map continues linearly with the end pitch, so
+    interpolation with border replication extrapolates the edge zones' values.
+    """
+    if np.any(np.diff(centres) <= 0):
+        raise ValueError("zone_rects centres must increase along rows and columns "
+                         "(row-major zones as they appear in the image)")
+    index = np.interp(coords, centres, np.arange(centres.size, dtype=np.float64))
+    first_pitch = centres[1] - centres[0]
+    last_pitch = centres[-1] - centres[-2]
+    before, after = coords < centres[0], coords > centres[-1]
+    index[before] = (coords[before] - centres[0]) / first_pitch
+    index[after] = centres.size - 1 + (coords[after] - centres[-1]) / last_pitch
+    return index
+
+
+def _filled_grid(inputs: ZoneInputs) -> np.ndarray:
+    """(grid, grid) zone means with each invalid zone set to its nearest valid zone."""
+    values = inputs.mean_m.reshape(inputs.grid, inputs.grid)
+    invalid = ~inputs.valid.reshape(inputs.grid, inputs.grid)
+    if not invalid.any():
+        return values.copy()
+    nearest = scipy.ndimage.distance_transform_edt(invalid, return_distances=False,
+                                                    return_indices=True)
+    return values[nearest[0], nearest[1]]
+
+
+def _grid_upsample(inputs: ZoneInputs, interpolation: int) -> np.ndarray:
+    """Interpolate the filled zone grid at every pixel (OpenCV remap, edges replicated)."""
+    grid = inputs.grid
+    centres_y = 0.5 * (inputs.rects[:, 0] + inputs.rects[:, 2]).reshape(grid, grid)
+    centres_x = 0.5 * (inputs.rects[:, 1] + inputs.rects[:, 3]).reshape(grid, grid)
+    # One centre per grid row / column: robust to slightly sheared calibrated layouts.
+    row_centres = np.median(centres_y, axis=1)
+    col_centres = np.median(centres_x, axis=0)
+    map_y = _fractional_index(np.arange(inputs.height, dtype=np.float64), row_centres)
+    map_x = _fractional_index(np.arange(inputs.width, dtype=np.float64), col_centres)
+    map_x, map_y = np.meshgrid(map_x.astype(np.float32), map_y.astype(np.float32))
+    source = _filled_grid(inputs).astype(np.float32)
+    return cv2.remap(source, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _nearest_zone_map(inputs: ZoneInputs) -> np.ndarray:
+    """Each pixel takes the value of the valid zone whose rectangle holds its centre.
+
+    Pixels no valid zone covers take the value of the nearest covered pixel. Where zone
+    rectangles overlap, the later zone (row-major order) wins.
+    """
+    depth = np.zeros((inputs.height, inputs.width), dtype=np.float64)
+    covered = np.zeros((inputs.height, inputs.width), dtype=bool)
+    bounds = zone_rects_to_pixel_bounds(inputs.rects, inputs.height, inputs.width)
+    for (y0, x0, y1, x1), value in zip(bounds[inputs.valid], inputs.mean_m[inputs.valid],
+                                       strict=True):
+        depth[y0:y1, x0:x1] = value
+        covered[y0:y1, x0:x1] = True
+    if not covered.any():
+        # Every valid zone lies outside the image: extrapolate from the zone grid instead.
+        return _grid_upsample(inputs, cv2.INTER_NEAREST)
+    if not covered.all():
+        nearest = scipy.ndimage.distance_transform_edt(~covered, return_distances=False,
+                                                        return_indices=True)
+        depth = depth[nearest[0], nearest[1]]
+    return depth
+
+
+def _valid_range(inputs: ZoneInputs) -> tuple[float, float]:
+    values = inputs.mean_m[inputs.valid]
+    return float(values.min()), float(values.max())
+
+
+def upsample_zone_means(inputs: ZoneInputs, method: str = "bilinear") -> np.ndarray:
+    """Super-resolve the zone-mean map to the image size.
+
+    Args:
+        inputs: checked inputs with at least one valid zone.
+        method: ``"nearest"`` (zone rectangles painted, uncovered pixels from the nearest
+            covered pixel), ``"bilinear"`` or ``"bicubic"`` (interpolation between zone
+            centres, edge zones extended outwards; bicubic is clipped to the range of the
+            valid zone means so it cannot overshoot to negative depth).
+
+    Returns:
+        (H, W) float32 depth in metres.
+    """
+    if not inputs.valid.any():
+        raise ValueError("upsample_zone_means needs at least one valid zone")
+    if method == "nearest":
+        depth = _nearest_zone_map(inputs)
+    elif method == "bilinear":
+        depth = _grid_upsample(inputs, cv2.INTER_LINEAR)
+    elif method == "bicubic":
+        depth = np.clip(_grid_upsample(inputs, cv2.INTER_CUBIC), *_valid_range(inputs))
+    else:
+        raise ValueError(f"method must be 'nearest', 'bilinear' or 'bicubic', got {method!r}")
+    return depth.astype(np.float32)
+
+
+def _box(array: np.ndarray, radius: int) -> np.ndarray:
+    """Mean over a (2 radius + 1)^2 window, reflected at the borders (per channel)."""
+    size = 2 * radius + 1
+    return cv2.boxFilter(array, -1, (size, size), normalize=True,
+                         borderType=cv2.BORDER_REFLECT)
+
+
+def guided_filter(source: np.ndarray, guide: np.ndarray, radius: int,
+                  eps: float = 1e-3) -> np.ndarray:
+    """He et al.'s guided filter with a colour guide, from box filters.
+
+    The output is locally an affine function of the guide's colour, fitted to
+    ``source`` in each window, so edges of the guide carry over to the output.
+
+    Args:
+        source: (H, W) float image to filter (e.g. depth in metres).
+        guide: (H, W, 3) float guide, values in [0, 1].
+        radius: window radius in pixels (window = 2 radius + 1).
+        eps: regularisation of the local colour covariance (guide units squared); larger
+            values smooth more.
+
+    Returns:
+        (H, W) float64 filtered image.
+    """
+    source = np.asarray(source, dtype=np.float64)
+    guide = np.asarray(guide, dtype=np.float64)
+    if guide.shape[:2] != source.shape or guide.ndim != 3 or guide.shape[2] != 3:
+        raise ValueError(f"guide must be (H, W, 3) matching source {source.shape}, "
+                         f"got {guide.shape}")
+    if radius < 1 or eps <= 0:
+        raise ValueError(f"need radius >= 1 and eps > 0, got radius={radius}, eps={eps}")
+    mean_i = _box(guide, radius)  # (H, W, 3)
+    mean_p = _box(source, radius)
+    cov_ip = _box(guide * source[..., None], radius) - mean_i * mean_p[..., None]
+    # Per-pixel 3x3 colour covariance from the 6 distinct products.
+    pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    products = np.stack([guide[..., i] * guide[..., j] for i, j in pairs], axis=-1)
+    mean_products = _box(products, radius)
+    sigma = np.empty((*source.shape, 3, 3))
+    for k, (i, j) in enumerate(pairs):
+        covariance = mean_products[..., k] - mean_i[..., i] * mean_i[..., j]
+        sigma[..., i, j] = sigma[..., j, i] = covariance
+    sigma += eps * np.eye(3)
+    a = np.linalg.solve(sigma, cov_ip[..., None])[..., 0]  # (H, W, 3)
+    b = mean_p - np.sum(a * mean_i, axis=-1)
+    return np.sum(_box(a, radius) * guide, axis=-1) + _box(b, radius)
+
+
+def joint_bilateral_filter(source: np.ndarray, guide: np.ndarray, radius: int,
+                           sigma_space: float, sigma_color: float, step: int = 1) -> np.ndarray:
+    """Joint (cross) bilateral filter: average ``source`` with weights from space and guide.
+
+    ``out(p) = sum_q w(p, q) source(q) / sum_q w(p, q)`` with
+    ``w = exp(-|p - q|^2 / (2 sigma_space^2)) * exp(-|guide(p) - guide(q)|^2 / (2 sigma_color^2))``
+    over the window offsets ``-radius..radius`` in steps of ``step`` pixels (a sparse
+    window keeps large radii cheap). Vectorised over pixels; one pass per offset.
+
+    Args:
+        source: (H, W) float image to filter (e.g. depth in metres).
+        guide: (H, W, C) float guide (e.g. RGB in [0, 1]).
+        radius: window radius in pixels.
+        sigma_space: spatial Gaussian sigma in pixels.
+        sigma_color: range Gaussian sigma in guide units.
+        step: spacing of the window offsets in pixels.
+
+    Returns:
+        (H, W) float32 filtered image.
+    """
+    source = np.asarray(source, dtype=np.float32)
+    guide = np.asarray(guide, dtype=np.float32)
+    if guide.ndim == 2:
+        guide = guide[..., None]
+    if guide.shape[:2] != source.shape:
+        raise ValueError(f"guide must be (H, W, C) matching source {source.shape}, "
+                         f"got {guide.shape}")
+    if radius < 1 or step < 1 or sigma_space <= 0 or sigma_color <= 0:
+        raise ValueError("need radius >= 1, step >= 1, sigma_space > 0 and sigma_color > 0")
+    height, width = source.shape
+    pad = ((radius, radius), (radius, radius))
+    source_pad = np.pad(source, pad, mode="edge")
+    guide_pad = np.pad(guide, (*pad, (0, 0)), mode="edge")
+    numerator = np.zeros_like(source)
+    denominator = np.zeros_like(source)
+    inv_space = -0.5 / sigma_space**2
+    inv_color = -0.5 / sigma_color**2
+    offsets = range(-(radius // step) * step, radius + 1, step)
+    for dy in offsets:
+        for dx in offsets:
+            window = (slice(radius + dy, radius + dy + height),
+                      slice(radius + dx, radius + dx + width))
+            colour_dist = np.sum((guide_pad[window] - guide) ** 2, axis=-1)
+            weight = np.exp(inv_color * colour_dist + inv_space * (dy * dy + dx * dx))
+            numerator += weight * source_pad[window]
+            denominator += weight
+    # The centre offset (0, 0) is always in the window, so the denominator is >= 1.
+    return numerator / denominator
+
+
+def _colorization_matrix(gray: np.ndarray) -> scipy.sparse.csr_matrix:
+    """Levin et al.'s affinity Laplacian (3x3 windows), as in the NYU toolbox's fill.
+
+    Row p is ``x_p - sum_q w_pq x_q`` with ``w_pq`` proportional to
+    ``exp(-(I_p - I_q)^2 / s_p)``, ``s_p`` = 0.6 x the local intensity variance, bounded
+    below so that the closest neighbour keeps a weight of at least 1 % (and by 2e-6).
+    """
+    height, width = gray.shape
+    index = np.arange(height * width).reshape(height, width)
+    offsets = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+    padded = np.pad(gray, 1, mode="constant", constant_values=np.nan)
+    padded_index = np.pad(index, 1, mode="constant", constant_values=-1)
+    neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
+                           for dy, dx in offsets], axis=-1)  # (H, W, 8), NaN outside
+    neighbour_index = np.stack([padded_index[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
+                                for dy, dx in offsets], axis=-1)
+    inside = neighbour_index >= 0
+    window = np.concatenate([neighbours, gray[..., None]], axis=-1)
+    variance = np.nanvar(window, axis=-1)
+    sq_diff = (neighbours - gray[..., None]) ** 2
+    min_sq_diff = np.nanmin(sq_diff, axis=-1)
+    scale = np.maximum(0.6 * variance, -min_sq_diff / math.log(0.01))
+    scale = np.maximum(scale, 2e-6)
+    weights = np.where(inside, np.exp(-np.where(inside, sq_diff, 0.0) / scale[..., None]), 0.0)
+    weights /= weights.sum(axis=-1, keepdims=True)
+    rows = np.broadcast_to(index[..., None], weights.shape)[inside]
+    cols = neighbour_index[inside]
+    size = height * width
+    affinity = scipy.sparse.csr_matrix((weights[inside], (rows, cols)), shape=(size, size))
+    return scipy.sparse.identity(size, format="csr") - affinity
+
+
+def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np.ndarray,
+                      alpha: float = 1.0) -> np.ndarray:
+    """Fill a sparse map guided by an intensity image (Levin et al. colorization).
+
+    Solves ``(L + alpha D) x = alpha D v`` where L is the colorization affinity Laplacian
+    of ``gray``, D the diagonal of ``known_mask`` and v the known values. The solution is
+    a weighted average of the known values, so it stays inside their range.
+
+    Args:
+        gray: (h, w) float intensity image in [0, 1].
+        known_values: (h, w) values at the known pixels (e.g. depth in metres).
+        known_mask: (h, w) bool, True where the value is known (at least one pixel).
+        alpha: weight of the data term.
+
+    Returns:
+        (h, w) float64 filled map.
+    """
+    gray = np.asarray(gray, dtype=np.float64)
+    known_mask = np.asarray(known_mask, dtype=bool)
+    if gray.ndim != 2 or known_mask.shape != gray.shape or known_values.shape != gray.shape:
+        raise ValueError(f"gray, known_values and known_mask must be (h, w) arrays of one "
+                         f"shape, got {gray.shape}, {known_values.shape}, {known_mask.shape}")
+    if not known_mask.any():
+        raise ValueError("known_mask must mark at least one pixel")
+    data = alpha * known_mask.reshape(-1).astype(np.float64)
+    system = _colorization_matrix(gray) + scipy.sparse.diags(data)
+    rhs = data * np.where(known_mask, known_values, 0.0).reshape(-1)
+    solution = scipy.sparse.linalg.spsolve(system.tocsc(), rhs)
+    return solution.reshape(gray.shape)
+
+
+def complete_colorization(inputs: ZoneInputs, solve_scale: float = 0.25,
+                          seed_fraction: float = 0.15) -> np.ndarray:
+    """Depth completion: zone means at the zone centres, colorization fill, upsampled.
+
+    Each valid zone's mean is placed on a small square at its centre (side
+    ``seed_fraction`` x the zone pitch, at least one pixel): a single pixel per zone
+    would leave spikes, as harmonic fills do around isolated points. A centre outside the
+    image is moved to the nearest pixel inside its zone's overlap with the image; zones
+    that do not overlap the image are skipped.
+
+    Args:
+        inputs: checked inputs with at least one valid zone.
+        solve_scale: resolution of the linear solve relative to the image (speed).
+        seed_fraction: side of each seed square as a fraction of the zone pitch.
+
+    Returns:
+        (H, W) float32 depth in metres.
+    """
+    if not 0 < solve_scale <= 1:
+        raise ValueError(f"solve_scale must be in (0, 1], got {solve_scale}")
+    height, width = inputs.height, inputs.width
+    small_h = max(2, round(height * solve_scale))
+    small_w = max(2, round(width * solve_scale))
+    sy, sx = small_h / height, small_w / width
+    image = cv2.resize(inputs.image, (small_w, small_h), interpolation=cv2.INTER_AREA)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0
+    # Pixel centres sit at integer coordinates, so coordinates scale about -0.5.
+    rects = inputs.rects[inputs.valid]
+    y0, y1 = (rects[:, 0] + 0.5) * sy - 0.5, (rects[:, 2] + 0.5) * sy - 0.5
+    x0, x1 = (rects[:, 1] + 0.5) * sx - 0.5, (rects[:, 3] + 0.5) * sx - 0.5
+    values = inputs.mean_m[inputs.valid]
+    overlaps = (y1 > -0.5) & (y0 < small_h - 0.5) & (x1 > -0.5) & (x0 < small_w - 0.5)
+    if not overlaps.any():
+        return upsample_zone_means(inputs, "nearest")
+    y0, y1, x0, x1, values = y0[overlaps], y1[overlaps], x0[overlaps], x1[overlaps], \
+        values[overlaps]
+    # Centre of each zone's part inside the image, in integer pixels.
+    cy = np.clip(np.rint(0.5 * (np.clip(y0, 0, small_h - 1) + np.clip(y1, 0, small_h - 1))),
+                 0, small_h - 1).astype(int)
+    cx = np.clip(np.rint(0.5 * (np.clip(x0, 0, small_w - 1) + np.clip(x1, 0, small_w - 1))),
+                 0, small_w - 1).astype(int)
+    half = max(0, int(seed_fraction * inputs.pitch_px * min(sy, sx) / 2))
+    known = np.zeros((small_h, small_w), dtype=bool)
+    known_values = np.zeros((small_h, small_w))
+    for y, x, value in zip(cy, cx, values, strict=True):
+        window = (slice(max(0, y - half), y + half + 1), slice(max(0, x - half), x + half + 1))
+        known[window] = True
+        known_values[window] = value
+    filled = colorization_fill(gray, known_values, known)
+    depth = cv2.resize(filled.astype(np.float32), (width, height),
+                       interpolation=cv2.INTER_LINEAR)
+    return np.clip(depth, *_valid_range(inputs))
+
+
+def _guide(inputs: ZoneInputs) -> np.ndarray:
+    return inputs.image.astype(np.float32) / 255.0
+
+
+def _nearest(inputs: ZoneInputs) -> np.ndarray:
+    return upsample_zone_means(inputs, "nearest")
+
+
+def _bilinear(inputs: ZoneInputs) -> np.ndarray:
+    return upsample_zone_means(inputs, "bilinear")
+
+
+def _bicubic(inputs: ZoneInputs) -> np.ndarray:
+    return upsample_zone_means(inputs, "bicubic")
+
+
+def _median(inputs: ZoneInputs) -> np.ndarray:
+    value = float(np.median(inputs.mean_m[inputs.valid]))
+    return np.full((inputs.height, inputs.width), value, dtype=np.float32)
+
+
+def _guided(inputs: ZoneInputs) -> np.ndarray:
+    # Window about half a zone: edges move to image edges within half a zone of the
+    # zone boundaries, while zone interiors keep their measured mean.
+    radius = max(1, round(0.5 * inputs.pitch_px))
+    depth = guided_filter(_nearest(inputs), _guide(inputs), radius, eps=1e-3)
+    return np.clip(depth, *_valid_range(inputs)).astype(np.float32)
+
+
+def _joint_bilateral(inputs: ZoneInputs) -> np.ndarray:
+    radius = max(1, round(0.5 * inputs.pitch_px))
+    step = max(1, radius // 5)  # about 11 x 11 taps whatever the zone size
+    depth = joint_bilateral_filter(_nearest(inputs), _guide(inputs), radius,
+                                   sigma_space=0.5 * radius, sigma_color=0.1, step=step)
+    return depth.astype(np.float32)
+
+
+def _colorization(inputs: ZoneInputs) -> np.ndarray:
+    return complete_colorization(inputs)
+
+
+_BASELINE_FUNCTIONS: dict[str, Callable[[ZoneInputs], np.ndarray]] = {
+    "median": _median,
+    "nearest": _nearest,
+    "bilinear": _bilinear,
+    "bicubic": _bicubic,
+    "guided_filter": _guided,
+    "joint_bilateral": _joint_bilateral,
+    "colorization": _colorization,
+}
+
+#: Names accepted by :func:`run_baseline`.
+BASELINES: tuple[str, ...] = tuple(_BASELINE_FUNCTIONS)
+
+
+def run_baseline(
+    name: str,
+    image_rgb: np.ndarray,
+    zone_mean_m: np.ndarray,
+    zone_valid: np.ndarray,
+    zone_rects: np.ndarray,
+    *,
+    fallback_depth_m: float = DEFAULT_FALLBACK_DEPTH_M,
+) -> np.ndarray:
+    """Dense depth from one image and one sensor frame with a classical baseline.
+
+    Args:
+        name: one of :data:`BASELINES`.
+        image_rgb: (H, W, 3) uint8 RGB image.
+        zone_mean_m: (Z,) zone means in metres (Z = 16, 64, ... a square).
+        zone_valid: (Z,) bool; invalid zones are ignored.
+        zone_rects: (Z, 4) zone rectangles (y0, x0, y1, x1) in image pixels; may be
+            non-integer and run past the image.
+        fallback_depth_m: constant depth returned (with a warning) when no zone is valid.
+
+    Returns:
+        (H, W) float32 depth in metres, finite and > 0 everywhere.
+
+    Raises:
+        ValueError: unknown ``name`` (the message lists the valid ones) or bad inputs.
+    """
+    if name not in _BASELINE_FUNCTIONS:
+        raise ValueError(f"unknown baseline {name!r}; valid names: {', '.join(BASELINES)}")
+    if not (math.isfinite(fallback_depth_m) and fallback_depth_m > 0):
+        raise ValueError(f"fallback_depth_m must be finite and > 0, got {fallback_depth_m}")
+    inputs = check_zone_inputs(image_rgb, zone_mean_m, zone_valid, zone_rects)
+    if not inputs.valid.any():
+        return _fallback(inputs, fallback_depth_m)
+    return _BASELINE_FUNCTIONS[name](inputs).astype(np.float32)
