@@ -70,11 +70,8 @@ def sample_hypotheses(mean_m: torch.Tensor, sigma_m: torch.Tensor, valid: torch.
         z = torch.erfinv(2 * probs - 1) * math.sqrt(2)
         samples = mean[..., None] + sigma[..., None] * z
     else:
-        start = mean - 3.0 * sigma
-        end = mean + 3.0 * sigma
-        # Weighted ends (not start + step * k) so both ends are hit exactly.
-        w_end = torch.linspace(0.0, 1.0, num_samples, dtype=mean.dtype, device=mean.device)
-        samples = (1 - w_end) * start[..., None] + w_end * end[..., None]
+        offsets = torch.linspace(-3.0, 3.0, num_samples, dtype=mean.dtype, device=mean.device)
+        samples = mean[..., None] + sigma[..., None] * offsets
     return torch.where(valid[..., None], samples, torch.zeros_like(samples))
 
 
