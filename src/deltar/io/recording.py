@@ -1,0 +1,340 @@
+"""Recording layout shared by ``deltar calibrate``, recording and replay.
+
+A recording is a folder::
+
+    meta.json            schema_version, intrinsics, sensor_model, grid, fov_deg
+    zones.jsonl          one zone frame per line (``deltar.io.zone_file`` schema, with
+                         timestamp_s), timestamps strictly increasing
+    color/<ns>.png       RGB images, file name = capture time in integer nanoseconds
+    depth/<ns>.png       optional depth maps, uint16 millimetres, 0 = invalid
+
+All timestamps are seconds on one clock shared by the sensor and the cameras.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.zone_file import zone_frame_from_dict, zone_frame_to_dict
+from deltar.sensor.geometry import DEFAULT_FOV_DEG
+from deltar.sensor.zone_frame import ZoneFrame
+
+RECORDING_SCHEMA_VERSION = 1
+META_FILE = "meta.json"
+ZONES_FILE = "zones.jsonl"
+COLOR_DIR = "color"
+DEPTH_DIR = "depth"
+
+
+@dataclass(frozen=True)
+class RecordingMeta:
+    """What ``meta.json`` holds.
+
+    Attributes:
+        intrinsics: colour camera intrinsics (pixels); depth images are aligned to colour.
+        sensor_model: e.g. ``"VL53L5CX"``.
+        grid: zones per side (4 or 8).
+        fov_deg: (horizontal, vertical) sensor field of view in degrees.
+        created: ISO 8601 creation time (UTC).
+    """
+
+    intrinsics: CameraIntrinsics
+    sensor_model: str = "VL53L5CX"
+    grid: int = 8
+    fov_deg: tuple[float, float] = DEFAULT_FOV_DEG
+    created: str = ""
+
+    def to_dict(self) -> dict:
+        return {"schema_version": RECORDING_SCHEMA_VERSION,
+                "intrinsics": self.intrinsics.to_dict(), "sensor_model": self.sensor_model,
+                "grid": int(self.grid), "fov_deg": [float(f) for f in self.fov_deg],
+                "created": self.created}
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = META_FILE) -> RecordingMeta:
+        if not isinstance(data, dict):
+            raise ValueError(f"{source}: expected a JSON object")
+        if data.get("schema_version") != RECORDING_SCHEMA_VERSION:
+            raise ValueError(f"{source}: unsupported schema_version "
+                             f"{data.get('schema_version')!r}")
+        try:
+            intr = CameraIntrinsics.from_dict(data["intrinsics"])
+            fov = tuple(float(f) for f in data.get("fov_deg", DEFAULT_FOV_DEG))
+            grid = int(data.get("grid", 8))
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"{source}: invalid recording metadata: {err}") from err
+        if grid not in (4, 8) or len(fov) != 2:
+            raise ValueError(f"{source}: grid must be 4 or 8 and fov_deg two angles")
+        return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid, fov,  # type: ignore[arg-type]
+                   str(data.get("created", "")))
+
+
+def timestamp_to_ns(timestamp_s: float) -> int:
+    """Seconds -> integer nanoseconds (the image file name)."""
+    return round(float(timestamp_s) * 1e9)
+
+
+class RecordingWriter:
+    """Append-only writer of a recording folder; never overwrites an existing file.
+
+    Args:
+        folder: the recording folder (created if missing).
+        meta: metadata written to ``meta.json``; when the folder already holds a
+            recording, it must match (then new frames are appended).
+    """
+
+    def __init__(self, folder: str | os.PathLike, meta: RecordingMeta) -> None:
+        self.folder = Path(folder)
+        meta_path = self.folder / META_FILE
+        if meta_path.exists():
+            existing = Recording(self.folder).meta
+            if (existing.intrinsics, existing.grid, tuple(existing.fov_deg)) != \
+                    (meta.intrinsics, meta.grid, tuple(meta.fov_deg)):
+                raise ValueError(f"{meta_path}: existing recording has different intrinsics, "
+                                 "grid or fov; write to a new folder")
+            self.meta = existing
+            self._last_zone_time = _last_zone_timestamp(self.folder / ZONES_FILE)
+        else:
+            created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
+            self.meta = RecordingMeta(meta.intrinsics, meta.sensor_model, meta.grid,
+                                      tuple(meta.fov_deg), created)  # type: ignore[arg-type]
+            write_text_atomic(meta_path, json.dumps(self.meta.to_dict(), indent=2) + "\n",
+                              overwrite=False)
+            self._last_zone_time = None
+        (self.folder / COLOR_DIR).mkdir(exist_ok=True)
+
+    def add_zone_frame(self, frame: ZoneFrame) -> None:
+        """Append one zone frame (must have a timestamp later than the previous one)."""
+        if frame.timestamp_s is None:
+            raise ValueError("frame.timestamp_s is required in a recording")
+        if frame.grid != self.meta.grid:
+            raise ValueError(f"frame has a {frame.grid}x{frame.grid} grid, recording is "
+                             f"{self.meta.grid}x{self.meta.grid}")
+        if self._last_zone_time is not None and frame.timestamp_s <= self._last_zone_time:
+            raise ValueError(f"zone frame timestamp {frame.timestamp_s} is not after the "
+                             f"previous one ({self._last_zone_time})")
+        line = json.dumps(zone_frame_to_dict(frame), allow_nan=False) + "\n"
+        # One write per line in append mode: a crash leaves at most one partial last line,
+        # which the reader skips with a warning.
+        with open(self.folder / ZONES_FILE, "a", encoding="utf-8") as handle:
+            handle.write(line)
+            handle.flush()
+            os.fsync(handle.fileno())
+        self._last_zone_time = float(frame.timestamp_s)
+
+    def add_color(self, timestamp_s: float, image_rgb: np.ndarray) -> Path:
+        """Write ``color/<ns>.png`` from an (H, W, 3) uint8 RGB image of the camera size."""
+        import cv2
+
+        image = np.asarray(image_rgb)
+        size = (self.meta.intrinsics.height, self.meta.intrinsics.width)
+        if image.dtype != np.uint8 or image.shape != (*size, 3):
+            raise ValueError(f"image_rgb must be {(*size, 3)} uint8, got {image.shape} "
+                             f"{image.dtype}")
+        return self._write_png(COLOR_DIR, timestamp_s, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+
+    def add_depth(self, timestamp_s: float, depth_m: np.ndarray) -> Path:
+        """Write ``depth/<ns>.png`` (uint16 mm) from an (H, W) depth map in metres, 0 invalid."""
+        depth = np.asarray(depth_m, dtype=np.float64)
+        size = (self.meta.intrinsics.height, self.meta.intrinsics.width)
+        if depth.shape != size:
+            raise ValueError(f"depth_m must have shape {size}, got {depth.shape}")
+        if not np.all(np.isfinite(depth)) or np.any(depth < 0) or np.any(depth > 65.535):
+            raise ValueError("depth_m must be finite, >= 0 and <= 65.535 m")
+        (self.folder / DEPTH_DIR).mkdir(exist_ok=True)
+        return self._write_png(DEPTH_DIR, timestamp_s, np.round(depth * 1000).astype(np.uint16))
+
+    def _write_png(self, subdir: str, timestamp_s: float, image: np.ndarray) -> Path:
+        import cv2
+
+        path = self.folder / subdir / f"{timestamp_to_ns(timestamp_s)}.png"
+        with atomic_path(path, overwrite=False) as tmp:
+            ok, data = cv2.imencode(".png", image)
+            if not ok:
+                raise ValueError(f"could not encode {path}")
+            tmp.write_bytes(data.tobytes())
+        return path
+
+
+@dataclass(frozen=True)
+class RecordingPair:
+    """One zone frame with its nearest colour (and depth) image.
+
+    Attributes:
+        zone_frame: the ToF reading.
+        color_path: the colour PNG.
+        depth_path: the depth PNG, or None when the recording has none near this time.
+        color_offset_s: colour time minus zone time, seconds.
+    """
+
+    zone_frame: ZoneFrame
+    color_path: Path
+    depth_path: Path | None
+    color_offset_s: float
+
+    def load_color(self) -> np.ndarray:
+        """The colour image, (H, W, 3) uint8 RGB."""
+        import cv2
+
+        image = cv2.imread(str(self.color_path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise ValueError(f"{self.color_path}: unreadable image")
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def load_depth(self) -> np.ndarray:
+        """The depth map, (H, W) float32 metres, 0 = invalid."""
+        import cv2
+
+        if self.depth_path is None:
+            raise FileNotFoundError("this pair has no depth image")
+        depth = cv2.imread(str(self.depth_path), cv2.IMREAD_UNCHANGED)
+        if depth is None or depth.dtype != np.uint16 or depth.ndim != 2:
+            raise ValueError(f"{self.depth_path}: expected a single-channel uint16 PNG")
+        return depth.astype(np.float32) / 1000.0
+
+
+class Recording:
+    """Reader of a recording folder.
+
+    Args:
+        folder: the folder written by ``RecordingWriter`` (or by hand in the same layout).
+
+    Raises:
+        FileNotFoundError: missing folder, ``meta.json`` or ``zones.jsonl``.
+        ValueError: corrupt metadata or zone lines, unsorted or duplicate timestamps
+            (the message names the file and line).
+    """
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        meta_path = self.folder / META_FILE
+        if not self.folder.is_dir():
+            raise FileNotFoundError(f"recording folder not found: {self.folder}")
+        if not meta_path.is_file():
+            raise FileNotFoundError(f"recording has no {META_FILE}: {meta_path}")
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"{meta_path}: corrupt JSON: {err}") from err
+        self.meta = RecordingMeta.from_dict(meta, str(meta_path))
+        self.color_times_s, self.color_paths = _image_index(self.folder / COLOR_DIR)
+        self.depth_times_s, self.depth_paths = _image_index(self.folder / DEPTH_DIR)
+
+    @property
+    def zones_path(self) -> Path:
+        return self.folder / ZONES_FILE
+
+    def zone_frames(self) -> list[ZoneFrame]:
+        """All zone frames in file order (timestamps strictly increasing, checked)."""
+        path = self.zones_path
+        if not path.is_file():
+            raise FileNotFoundError(f"recording has no {ZONES_FILE}: {path}")
+        lines = path.read_text(encoding="utf-8").splitlines()
+        frames: list[ZoneFrame] = []
+        for number, line in enumerate(lines, start=1):
+            if not line.strip():
+                continue
+            try:
+                data = json.loads(line)
+            except json.JSONDecodeError as err:
+                if number == len(lines):  # an interrupted final append
+                    warnings.warn(f"{path}:{number}: skipping truncated last line",
+                                  stacklevel=2)
+                    continue
+                raise ValueError(f"{path}:{number}: corrupt JSON line: {err}") from err
+            frame = zone_frame_from_dict(data, source=f"{path}:{number}")
+            if frame.timestamp_s is None:
+                raise ValueError(f"{path}:{number}: zone frame has no timestamp_s")
+            if frames and frame.timestamp_s <= frames[-1].timestamp_s:
+                kind = "duplicate" if frame.timestamp_s == frames[-1].timestamp_s else "unsorted"
+                raise ValueError(f"{path}:{number}: {kind} timestamp {frame.timestamp_s} "
+                                 f"(previous line has {frames[-1].timestamp_s})")
+            if frame.grid != self.meta.grid:
+                raise ValueError(f"{path}:{number}: {frame.grid}x{frame.grid} grid, "
+                                 f"meta.json says {self.meta.grid}x{self.meta.grid}")
+            frames.append(frame)
+        return frames
+
+    def pairs(self, tolerance_s: float = 0.02) -> list[RecordingPair]:
+        """Pair each zone frame with the nearest colour (and depth) image in time.
+
+        Zone frames without a colour image within ``tolerance_s`` are skipped with one
+        warning naming how many; depth is attached when one lies within the tolerance.
+
+        Args:
+            tolerance_s: largest allowed |image time - zone time| in seconds.
+
+        Returns:
+            The pairs, in time order.
+        """
+        if not tolerance_s >= 0:
+            raise ValueError(f"tolerance_s must be >= 0, got {tolerance_s}")
+        frames = self.zone_frames()
+        if not self.color_paths:
+            raise FileNotFoundError(f"recording has no colour images in "
+                                    f"{self.folder / COLOR_DIR}")
+        times = np.array([f.timestamp_s for f in frames], dtype=np.float64)
+        color_idx, color_gap = _nearest(self.color_times_s, times)
+        depth_idx, depth_gap = _nearest(self.depth_times_s, times)
+        out, skipped = [], 0
+        for i, frame in enumerate(frames):
+            if color_gap[i] > tolerance_s:
+                skipped += 1
+                continue
+            depth = (self.depth_paths[depth_idx[i]]
+                     if self.depth_paths and depth_gap[i] <= tolerance_s else None)
+            ci = color_idx[i]
+            out.append(RecordingPair(frame, self.color_paths[ci], depth,
+                                     float(self.color_times_s[ci] - times[i])))
+        if skipped:
+            warnings.warn(f"{self.folder}: skipped {skipped} of {len(frames)} zone frames with "
+                          f"no colour image within {tolerance_s} s", stacklevel=2)
+        return out
+
+
+def _image_index(folder: Path) -> tuple[np.ndarray, list[Path]]:
+    """Sorted capture times (s) and paths of ``<ns>.png`` files in ``folder``."""
+    if not folder.is_dir():
+        return np.zeros(0), []
+    entries = []
+    for path in folder.glob("*.png"):
+        try:
+            entries.append((int(path.stem), path))
+        except ValueError:
+            raise ValueError(f"{path}: image names must be integer nanoseconds") from None
+    entries.sort(key=lambda e: e[0])
+    return np.array([ns * 1e-9 for ns, _ in entries]), [p for _, p in entries]
+
+
+def _nearest(sorted_times: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the nearest entry of ``sorted_times`` for each query, and |gap| (inf if none)."""
+    if sorted_times.size == 0:
+        return np.zeros(query.size, dtype=np.int64), np.full(query.size, np.inf)
+    right = np.clip(np.searchsorted(sorted_times, query), 1, sorted_times.size - 1) \
+        if sorted_times.size > 1 else np.zeros(query.size, dtype=np.int64)
+    left = np.maximum(right - 1, 0)
+    pick_left = np.abs(query - sorted_times[left]) <= np.abs(sorted_times[right] - query)
+    idx = np.where(pick_left, left, right)
+    return idx, np.abs(sorted_times[idx] - query)
+
+
+def _last_zone_timestamp(path: Path) -> float | None:
+    if not path.is_file():
+        return None
+    last = None
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.strip():
+            try:
+                last = json.loads(line).get("timestamp_s", last)
+            except json.JSONDecodeError:
+                continue
+    return last

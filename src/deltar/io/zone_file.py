@@ -1,0 +1,242 @@
+"""Zone-frame files: one ToF reading as JSON or NPZ, and raw driver dumps.
+
+JSON layout (``schema_version`` 1), flat row-major lists of ``zone_count`` entries::
+
+    {"schema": "deltar.zone_frame", "schema_version": 1, "sensor_model": "VL53L5CX",
+     "zone_count": 64, "timestamp_s": 12.5,
+     "mean_m": [...], "sigma_m": [...], "valid": [...],
+     "status": [...],                        # optional, uint8 target status codes
+     "hist_edges_m": [...], "hist_counts": [[...], ...]}   # optional, (B + 1,), (Z, B)
+
+NPZ files hold the same keys as arrays (``schema``/``sensor_model`` as 0-d strings).
+A raw driver dump is a JSON object with ``distance_mm``, ``range_sigma_mm`` and
+``target_status`` (flat lists of 16 or 64, driver order), as the Python drivers return.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
+
+SCHEMA_NAME = "deltar.zone_frame"
+SCHEMA_VERSION = 1
+_DRIVER_FIELDS = ("distance_mm", "range_sigma_mm", "target_status")
+
+
+def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
+    """The JSON-ready dict of ``frame`` (flat row-major lists; metres; see module doc)."""
+    mean, sigma, valid = frame.flat()
+    data: dict[str, Any] = {
+        "schema": SCHEMA_NAME,
+        "schema_version": SCHEMA_VERSION,
+        "sensor_model": frame.sensor_model,
+        "zone_count": frame.zone_count,
+        "timestamp_s": None if frame.timestamp_s is None else float(frame.timestamp_s),
+        # Invalid zones carry 0.0 by convention, never a stale distance.
+        "mean_m": np.where(valid, mean, 0.0).astype(float).tolist(),
+        "sigma_m": np.where(valid, sigma, 0.0).astype(float).tolist(),
+        "valid": valid.tolist(),
+    }
+    if frame.status is not None:
+        data["status"] = frame.status.reshape(-1).astype(int).tolist()
+    if frame.hist_counts is not None:
+        data["hist_edges_m"] = frame.hist_edges_m.astype(float).tolist()
+        data["hist_counts"] = frame.hist_counts.reshape(frame.zone_count, -1).astype(
+            float).tolist()
+    return data
+
+
+def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
+                         orientation: Orientation | None = None,
+                         valid_status: tuple[int, ...] = DEFAULT_VALID_STATUS) -> ZoneFrame:
+    """Build a ``ZoneFrame`` from a schema dict or a raw driver dict.
+
+    Args:
+        data: either this module's schema (``mean_m`` ...) or a driver dict with
+            ``distance_mm``, ``range_sigma_mm``, ``target_status`` (flat lists, millimetres).
+        source: name used in error messages (e.g. the file path).
+        orientation: for driver dicts only, how the driver grid maps onto the image.
+        valid_status: for driver dicts only, status codes counted as valid.
+
+    Raises:
+        ValueError: naming ``source`` and the problem (missing keys, wrong zone count,
+            NaN or negative values, unknown schema version).
+    """
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{source}: expected a JSON object, got {type(data).__name__}")
+    if all(k in data for k in _DRIVER_FIELDS):
+        try:
+            return ZoneFrame.from_driver(
+                data["distance_mm"], data["range_sigma_mm"], data["target_status"],
+                orientation=orientation, valid_status=valid_status,
+                timestamp_s=_optional_float(data.get("timestamp_s"), source, "timestamp_s"),
+                sensor_model=str(data.get("sensor_model", "VL53L5CX")))
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{source}: invalid driver output: {err}") from err
+    if data.get("schema", SCHEMA_NAME) != SCHEMA_NAME:
+        raise ValueError(f"{source}: schema is {data.get('schema')!r}, expected {SCHEMA_NAME!r}")
+    version = data.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise ValueError(f"{source}: unsupported schema_version {version!r} "
+                         f"(this version reads {SCHEMA_VERSION})")
+    missing = [k for k in ("mean_m", "sigma_m", "valid") if k not in data]
+    if missing:
+        raise ValueError(f"{source}: missing keys {missing} (and no driver fields "
+                         f"{list(_DRIVER_FIELDS)})")
+    arrays = {}
+    for key in ("mean_m", "sigma_m"):
+        arr = _float_array(data[key], source, key)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{source}: {key} has NaN or infinite values at zones "
+                             f"{np.flatnonzero(~np.isfinite(arr)).tolist()}")
+        if np.any(arr < 0):
+            raise ValueError(f"{source}: {key} has negative values at zones "
+                             f"{np.flatnonzero(arr < 0).tolist()}")
+        arrays[key] = arr
+    valid = np.asarray(data["valid"]).reshape(-1)
+    if valid.dtype != bool and not np.all(np.isin(valid, (0, 1))):
+        raise ValueError(f"{source}: valid must hold booleans")
+    count = arrays["mean_m"].size
+    declared = data.get("zone_count", count)
+    for key, arr in (("sigma_m", arrays["sigma_m"]), ("valid", valid)):
+        if arr.size != count:
+            raise ValueError(f"{source}: {key} has {arr.size} zones but mean_m has {count}")
+    if declared != count or count not in (16, 64):
+        raise ValueError(f"{source}: wrong zone count: zone_count={declared}, mean_m has "
+                         f"{count} entries; expected 16 or 64")
+    status = None
+    if data.get("status") is not None:
+        status = _float_array(data["status"], source, "status")
+        if status.size != count or np.any((status < 0) | (status > 255)) or \
+                np.any(status != np.round(status)):
+            raise ValueError(f"{source}: status must hold {count} integer codes in 0..255")
+    edges = counts = None
+    if data.get("hist_counts") is not None or data.get("hist_edges_m") is not None:
+        edges = _float_array(data.get("hist_edges_m"), source, "hist_edges_m")
+        counts = np.asarray(data.get("hist_counts"), dtype=np.float64)
+        if counts.ndim != 2 or counts.shape[0] != count:
+            raise ValueError(f"{source}: hist_counts must be ({count}, bins), "
+                             f"got shape {counts.shape}")
+        if not np.all(np.isfinite(counts)) or not np.all(np.isfinite(edges)):
+            raise ValueError(f"{source}: histogram has NaN or infinite values")
+    timestamp = _optional_float(data.get("timestamp_s"), source, "timestamp_s")
+    try:
+        return ZoneFrame(mean_m=arrays["mean_m"], sigma_m=arrays["sigma_m"],
+                         valid=valid.astype(bool), status=status, hist_edges_m=edges,
+                         hist_counts=counts, timestamp_s=timestamp,
+                         sensor_model=str(data.get("sensor_model", "VL53L5CX")))
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from err
+
+
+def save_zone_frame(path: str | os.PathLike, frame: ZoneFrame, *,
+                    overwrite: bool = False) -> Path:
+    """Write ``frame`` atomically as ``.json`` or ``.npz`` (chosen by the suffix).
+
+    Args:
+        path: destination ending in ``.json`` or ``.npz``.
+        frame: the zone frame (metres).
+        overwrite: replace an existing file (default: refuse with ``FileExistsError``).
+
+    Returns:
+        The written path.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    data = zone_frame_to_dict(frame)
+    if suffix == ".json":
+        return write_text_atomic(path, json.dumps(data, allow_nan=False) + "\n",
+                                 overwrite=overwrite)
+    if suffix == ".npz":
+        arrays = {k: np.asarray(v) for k, v in data.items() if v is not None}
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **arrays)
+            tmp.write_bytes(buffer.getvalue())
+        return path
+    raise ValueError(f"path must end in .json or .npz, got {path}")
+
+
+def load_zone_frame(path: str | os.PathLike, *, orientation: Orientation | None = None,
+                    ) -> ZoneFrame:
+    """Read a zone frame from ``.json`` (schema or raw driver dump) or ``.npz``.
+
+    Args:
+        path: the file.
+        orientation: for raw driver dumps, how the driver grid maps onto the image.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: corrupt file or invalid content; the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"zone frame file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"{path}: corrupt JSON: {err}") from err
+        return zone_frame_from_dict(data, source=str(path), orientation=orientation)
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                data = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, EOFError) as err:
+            raise ValueError(f"{path}: corrupt NPZ: {err}") from err
+        data = {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
+        return zone_frame_from_dict(data, source=str(path), orientation=orientation)
+    raise ValueError(f"{path}: unknown zone frame format (expected .json or .npz)")
+
+
+def zone_frame_from_driver_result(result: Any, *, orientation: Orientation | None = None,
+                                  timestamp_s: float | None = None,
+                                  sensor_model: str = "VL53L5CX") -> ZoneFrame:
+    """Convert what a Python driver returns (dict or results object) into a ``ZoneFrame``.
+
+    Works with ``vl53l5cx-ctypes`` results, SparkFun's ``RangingDataResults`` and
+    CircuitPython's ``get_ranging_data()``: anything with ``distance_mm``,
+    ``range_sigma_mm`` and ``target_status`` as items or attributes (flat, millimetres).
+    """
+    fields = {}
+    for name in _DRIVER_FIELDS:
+        if isinstance(result, Mapping):
+            value = result.get(name)
+        else:
+            value = getattr(result, name, None)
+        if value is None:
+            raise ValueError(f"driver result has no field {name!r}")
+        fields[name] = list(value)
+    return ZoneFrame.from_driver(fields["distance_mm"], fields["range_sigma_mm"],
+                                 fields["target_status"], orientation=orientation,
+                                 timestamp_s=timestamp_s, sensor_model=sensor_model)
+
+
+def _float_array(values: Any, source: str, key: str) -> np.ndarray:
+    try:
+        return np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{source}: {key} must be a list of numbers") from err
+
+
+def _optional_float(value: Any, source: str, key: str) -> float | None:
+    if value is None:
+        return None
+    try:
+        out = float(value)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{source}: {key} must be a number, got {value!r}") from err
+    if not math.isfinite(out):
+        raise ValueError(f"{source}: {key} must be finite, got {value!r}")
+    return out

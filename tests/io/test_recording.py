@@ -1,0 +1,121 @@
+"""Recording folders: append-only writer, reader, timestamp pairing, clear errors."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.io.recording import Recording, RecordingMeta, RecordingWriter
+from deltar.sensor.zone_frame import ZoneFrame
+
+CAMERA = CameraIntrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
+
+
+def _zone_frame(t: float, value: float = 1.0) -> ZoneFrame:
+    return ZoneFrame(np.full(16, value), np.full(16, 0.01), np.ones(16, bool), timestamp_s=t)
+
+
+def _write(folder, zone_times, color_times, depth_times=()):
+    writer = RecordingWriter(folder, RecordingMeta(CAMERA, grid=4))
+    for t in zone_times:
+        writer.add_zone_frame(_zone_frame(t, value=1.0 + t))
+    for t in color_times:
+        writer.add_color(t, np.full((24, 32, 3), int(t * 10) % 255, np.uint8))
+    for t in depth_times:
+        writer.add_depth(t, np.full((24, 32), 1.234, np.float32))
+    return writer
+
+
+def test_pairs_take_the_nearest_images_within_tolerance(tmp_path):
+    _write(tmp_path / "rec", zone_times=[0.0, 0.1, 0.2, 0.3],
+           color_times=[0.005, 0.098, 0.25, 0.31], depth_times=[0.004, 0.2])
+    rec = Recording(tmp_path / "rec")
+    with pytest.warns(UserWarning, match="skipped 1 of 4"):
+        pairs = rec.pairs(tolerance_s=0.02)
+    # 0.2 has no colour within 20 ms (nearest 0.25) and is skipped.
+    assert [p.zone_frame.timestamp_s for p in pairs] == [0.0, 0.1, 0.3]
+    assert [round(p.color_offset_s, 3) for p in pairs] == [0.005, -0.002, 0.01]
+    assert pairs[0].depth_path is not None and pairs[0].depth_path.stem == "4000000"
+    assert pairs[1].depth_path is None  # nearest depth (0.004) is 96 ms away
+    assert pairs[1].load_color().shape == (24, 32, 3)
+    assert pairs[0].load_color()[0, 0, 0] == 0  # colour at 0.005 s was filled with 0
+    depth = pairs[0].load_depth()
+    assert depth.dtype == np.float32 and depth[0, 0] == pytest.approx(1.234)
+    assert pairs[2].zone_frame.mean_m[0, 0] == pytest.approx(1.3)
+
+
+def test_meta_and_layout_on_disk(tmp_path):
+    _write(tmp_path / "rec", [1.0], [1.0], [1.0])
+    meta = json.loads((tmp_path / "rec" / "meta.json").read_text())
+    assert meta["schema_version"] == 1 and meta["grid"] == 4
+    assert meta["intrinsics"]["fx"] == 50.0
+    assert (tmp_path / "rec" / "color" / "1000000000.png").is_file()
+    assert (tmp_path / "rec" / "depth" / "1000000000.png").is_file()
+    lines = (tmp_path / "rec" / "zones.jsonl").read_text().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["timestamp_s"] == 1.0
+
+
+def test_writer_appends_but_never_overwrites(tmp_path):
+    writer = _write(tmp_path / "rec", [0.0], [0.0])
+    with pytest.raises(FileExistsError):
+        writer.add_color(0.0, np.zeros((24, 32, 3), np.uint8))
+    with pytest.raises(ValueError, match="not after"):
+        writer.add_zone_frame(_zone_frame(0.0))
+    # Reopening appends to the same recording.
+    again = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    again.add_zone_frame(_zone_frame(0.5))
+    with pytest.raises(ValueError, match="not after"):
+        again.add_zone_frame(_zone_frame(0.2))
+    assert len(Recording(tmp_path / "rec").zone_frames()) == 2
+    other = CameraIntrinsics(60.0, 60.0, 15.5, 11.5, 32, 24)
+    with pytest.raises(ValueError, match="different intrinsics"):
+        RecordingWriter(tmp_path / "rec", RecordingMeta(other, grid=4))
+
+
+def test_writer_rejects_wrong_image_size(tmp_path):
+    writer = _write(tmp_path / "rec", [], [])
+    with pytest.raises(ValueError, match="image_rgb"):
+        writer.add_color(1.0, np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(ValueError, match="depth_m"):
+        writer.add_depth(1.0, np.full((24, 32), np.nan))
+
+
+@pytest.mark.parametrize("times", [[0.0, 0.2, 0.1], [0.0, 0.1, 0.1]])
+def test_unsorted_or_duplicate_timestamps_name_the_file(tmp_path, times):
+    _write(tmp_path / "rec", [], [0.0])
+    from deltar.io.zone_file import zone_frame_to_dict
+
+    lines = [json.dumps(zone_frame_to_dict(_zone_frame(t))) for t in times]
+    (tmp_path / "rec" / "zones.jsonl").write_text("\n".join(lines) + "\n")
+    kind = "duplicate" if times[1] == times[2] else "unsorted"
+    with pytest.raises(ValueError, match=rf"zones.jsonl:3: {kind} timestamp"):
+        Recording(tmp_path / "rec").pairs()
+
+
+def test_truncated_last_line_is_skipped_with_a_warning(tmp_path):
+    _write(tmp_path / "rec", [0.0, 0.1], [0.0])
+    with open(tmp_path / "rec" / "zones.jsonl", "a") as handle:
+        handle.write('{"schema": "deltar.zone_fr')
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        frames = Recording(tmp_path / "rec").zone_frames()
+    assert len(frames) == 2
+    assert any("truncated" in str(w.message) for w in caught)
+
+
+def test_missing_pieces_raise_clear_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        Recording(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"meta\.json"):
+        Recording(tmp_path / "empty")
+    _write(tmp_path / "rec", [0.0], [])
+    with pytest.raises(FileNotFoundError, match="no colour images"):
+        Recording(tmp_path / "rec").pairs()
+    (tmp_path / "rec" / "meta.json").write_text("{broken")
+    with pytest.raises(ValueError, match=r"meta\.json: corrupt JSON"):
+        Recording(tmp_path / "rec")
