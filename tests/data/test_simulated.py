@@ -1,0 +1,154 @@
+"""SimulatedL5Dataset: item contract, simulated values, seeding, augmentation geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.data.procedural import ProceduralReader
+from deltar.data.rgbd import RGBDFrame, open_rgbd
+from deltar.data.simulated import SimulatedL5Dataset
+from deltar.data.transforms import ImageAugmentation, mirror_zone_rects
+from deltar.sensor.augment import SignalAugmentation
+
+NO_JITTER = dict(max_rotation_deg=0.0, photometric_prob=0.0)
+
+
+class _ListReader(list):
+    """A reader is any sequence of frames."""
+
+
+def _frame(depth: np.ndarray, fx: float = 40.0) -> RGBDFrame:
+    height, width = depth.shape
+    rng = np.random.default_rng(1)
+    return RGBDFrame(image=rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
+                     depth_m=depth.astype(np.float32),
+                     intrinsics=CameraIntrinsics(fx, fx, (width - 1) / 2, (height - 1) / 2,
+                                                 width, height),
+                     name="synthetic")
+
+
+def test_item_contract_on_procedural_frames():
+    ds = SimulatedL5Dataset(ProceduralReader(2, seed=5, height=64, width=96), num_hypotheses=8)
+    item = ds[1]
+    shapes = {k: tuple(v.shape) for k, v in item.items()}
+    assert shapes == {"image": (3, 64, 96), "image_rgb": (64, 96, 3), "depth": (1, 64, 96),
+                      "zone_mean_sigma": (64, 2), "zone_valid": (64,), "zone_rects": (64, 4),
+                      "hypotheses": (64, 8), "intrinsics": (4,)}
+    assert item["image"].dtype == torch.float32 and item["image_rgb"].dtype == torch.uint8
+    assert item["zone_valid"].dtype == torch.bool
+    # ImageNet normalisation of the unaugmented image, checked by hand on one pixel.
+    rgb = item["image_rgb"][10, 20].double() / 255.0
+    expected = (rgb - torch.tensor([0.485, 0.456, 0.406], dtype=torch.float64)) / torch.tensor(
+        [0.229, 0.224, 0.225], dtype=torch.float64)
+    torch.testing.assert_close(item["image"][:, 10, 20].double(), expected, atol=3e-3, rtol=0)
+    valid = item["zone_valid"]
+    assert valid.any()
+    assert torch.all(item["hypotheses"][~valid] == 0)
+    # icdf hypotheses straddle each valid zone's mean.
+    means = item["zone_mean_sigma"][valid, 0]
+    assert torch.all(item["hypotheses"][valid, 0] <= means)
+    assert torch.all(item["hypotheses"][valid, -1] >= means)
+
+
+def test_flat_wall_gives_bin_centre_and_zero_sigma():
+    # A fronto-parallel wall at 1.5 m: every zone sees one 4 cm bin [1.48, 1.52).
+    ds = SimulatedL5Dataset(_ListReader([_frame(np.full((64, 64), 1.5))]), grid=4)
+    item = ds[0]
+    assert bool(item["zone_valid"].all())
+    torch.testing.assert_close(item["zone_mean_sigma"][:, 0], torch.full((16,), 1.5))
+    torch.testing.assert_close(item["zone_mean_sigma"][:, 1], torch.zeros(16))
+    torch.testing.assert_close(item["hypotheses"], torch.full((16, 16), 1.5))
+    # Calibrated 45 degree layout: the grid spans 2 * fx * tan(22.5 deg) pixels.
+    rects = item["zone_rects"]
+    span = float(rects[:, 3].max() - rects[:, 1].min())
+    assert span == pytest.approx(2 * 40.0 * np.tan(np.deg2rad(22.5)), rel=1e-5)
+
+
+def test_no_depth_gives_invalid_zones():
+    item = SimulatedL5Dataset(_ListReader([_frame(np.zeros((32, 32)))]), grid=4)[0]
+    assert not item["zone_valid"].any()
+    assert torch.all(item["zone_mean_sigma"] == 0) and torch.all(item["hypotheses"] == 0)
+
+
+def test_reproducible_per_seed_epoch_and_index():
+    reader = ProceduralReader(2, seed=0, height=64, width=96)
+    kwargs = dict(zone_layout="training", training_grid=4, training_zone_px=12,
+                  training_max_offset_px=4, signal_augmentation=SignalAugmentation(),
+                  image_augmentation=ImageAugmentation(crop_size=(48, 80)), seed=7)
+    a, b = SimulatedL5Dataset(reader, **kwargs), SimulatedL5Dataset(reader, **kwargs)
+    first, again = a[0], b[0]
+    for key in first:
+        torch.testing.assert_close(first[key], again[key])
+    draws = []
+    for epoch in range(4):
+        a.set_epoch(epoch)
+        item = a[0]
+        draws.append((item["zone_rects"][0].tolist(), item["image_rgb"].float().mean().item()))
+    assert len({str(d) for d in draws}) > 1  # epochs draw different augmentations
+
+
+def test_flip_mirrors_fixed_rects_and_their_order():
+    # Zones of 8 px with 4 px gaps; each zone column sees its own depth, with margin, so
+    # the geometric mirror (x -> W - 1 - x) keeps every zone on its own depth block.
+    width, height, grid = 64, 32, 4
+    starts = np.array([8, 20, 32, 44])
+    rects = np.array([[8 * r, x, 8 * r + 8, x + 8] for r in range(grid) for x in starts],
+                     dtype=np.float32)
+    depth = np.full((height, width), 3.8, np.float32)
+    for c, x in enumerate(starts):
+        depth[:, x - 2:x + 10] = 1.1 + 0.4 * c  # 4 cm bin centres
+    reader = _ListReader([_frame(depth)])
+    plain = SimulatedL5Dataset(reader, zone_layout=rects)[0]
+    flipped = SimulatedL5Dataset(reader, zone_layout=rects, image_augmentation=ImageAugmentation(
+        flip_prob=1.0, **NO_JITTER))[0]
+    torch.testing.assert_close(flipped["depth"], plain["depth"].flip(-1))
+    means = plain["zone_mean_sigma"][:, 0].reshape(grid, grid)
+    torch.testing.assert_close(flipped["zone_mean_sigma"][:, 0].reshape(grid, grid),
+                               means.flip(-1))
+    torch.testing.assert_close(means[0], torch.tensor([1.1, 1.5, 1.9, 2.3]))
+    # Zone 0 of the flipped frame is the mirror of zone 3 of the original.
+    assert flipped["zone_rects"][0].tolist() == [0.0, 11.0, 8.0, 19.0]
+    assert flipped["intrinsics"][2].item() == pytest.approx(width - 1 - (width - 1) / 2)
+
+
+def test_crop_shifts_fixed_rects_and_intrinsics():
+    depth = np.tile(np.linspace(1.0, 3.0, 64, dtype=np.float32), (48, 1))
+    rects = np.array([[10, 10, 20, 20]] * 16, dtype=np.float32)
+    ds = SimulatedL5Dataset(_ListReader([_frame(depth)]), zone_layout=rects, seed=3,
+                            image_augmentation=ImageAugmentation(crop_size=(32, 40), flip_prob=0,
+                                                                 **NO_JITTER))
+    item = ds[0]
+    _fx, _fy, cx, cy = item["intrinsics"].tolist()
+    top, left = 23.5 - cy, 31.5 - cx  # principal point moves by the crop offset
+    assert top == int(top) and left == int(left)
+    assert item["zone_rects"][0].tolist() == [10 - top, 10 - left, 20 - top, 20 - left]
+    torch.testing.assert_close(item["depth"][0], torch.from_numpy(
+        depth[int(top):int(top) + 32, int(left):int(left) + 40]))
+
+
+def test_mirror_zone_rects_by_hand():
+    rects = np.array([[0, 0, 1, 2], [0, 2, 1, 5], [1, 0, 2, 2], [1, 2, 2, 5]], np.float32)
+    np.testing.assert_array_equal(mirror_zone_rects(rects, width=10, grid=2),
+                                  [[0, 4, 1, 7], [0, 7, 1, 9], [1, 4, 2, 7], [1, 7, 2, 9]])
+
+
+def test_real_folder_item(shared_data):
+    reader = open_rgbd(shared_data / "7scenes_redkitchen")
+    item = SimulatedL5Dataset(reader)[0]
+    valid = item["zone_valid"]
+    assert valid.sum() > 32
+    means = item["zone_mean_sigma"][valid, 0]
+    assert torch.all((means > 0.04) & (means < 4.0))
+
+
+def test_bad_arguments():
+    reader = ProceduralReader(1, height=16, width=16)
+    with pytest.raises(ValueError, match="zone_layout"):
+        SimulatedL5Dataset(reader, zone_layout="diagonal")
+    with pytest.raises(ValueError, match="zone_layout array"):
+        SimulatedL5Dataset(reader, zone_layout=np.zeros((5, 4)))
+    with pytest.raises(ValueError, match="crop_size"):
+        SimulatedL5Dataset(reader, image_augmentation=ImageAugmentation(crop_size=(32, 8)))[0]
