@@ -1,0 +1,116 @@
+"""``deltar evaluate``: metrics of depth methods on a ZJU-L5-layout set."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from deltar.cli.main import app
+
+#: Columns of the paper's ZJU-L5 table (metric key, header, higher is better).
+_TABLE_COLUMNS = (("d1", "δ1 ↑", True), ("d2", "δ2 ↑", True), ("d3", "δ3 ↑", True),
+                  ("rel", "REL ↓", False), ("rmse", "RMSE ↓", False),
+                  ("log10", "log10 ↓", False))
+
+
+def _metrics_table(result, title: str):
+    """Rich table of the methods side by side, best value per column in bold."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("method")
+    for _, header, _ in _TABLE_COLUMNS:
+        table.add_column(header, justify="right")
+    table.add_column("s/frame", justify="right")
+    best = {}
+    for key, _, higher in _TABLE_COLUMNS:
+        values = [m[key] for m in result.metrics.values()]
+        best[key] = max(values) if higher else min(values)
+    for name, metrics in result.metrics.items():
+        cells = []
+        for key, _, _ in _TABLE_COLUMNS:
+            text = f"{metrics[key]:.3f}"
+            cells.append(f"[bold]{text}[/bold]" if metrics[key] == best[key] else text)
+        table.add_row(escape(name), *cells, f"{result.seconds_per_frame[name]:.3f}")
+    return table
+
+
+@app.command("evaluate")
+def evaluate(
+    method: str = typer.Option(
+        ..., "--method", "-m",
+        help="Comma-separated method names, or 'all' for every classical baseline."),
+    data: Path = typer.Option(..., "--data", help="data.json of a ZJU-L5-layout set."),
+    split: str = typer.Option("test", "--split", help="Split (key) in data.json."),
+    json_out: Path | None = typer.Option(
+        None, "--json", help="Write {method: metrics} here (JSON, atomic)."),
+    save_vis: Path | None = typer.Option(
+        None, "--save-vis", help="Write a PNG panel per frame and method into this folder."),
+    limit: int | None = typer.Option(None, "--limit", min=1,
+                                     help="Evaluate only the first N frames."),
+    min_depth: float = typer.Option(1e-3, "--min-depth", help="Ground truth must be > this (m)."),
+    max_depth: float = typer.Option(10.0, "--max-depth", help="Ground truth must be < this (m)."),
+) -> None:
+    """Evaluate depth methods on a ZJU-L5-layout set and print the paper's metrics table.
+
+    Metrics are computed per frame over pixels with ground truth in (min-depth,
+    max-depth) metres and averaged over frames, as in the official release.
+    """
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+    from deltar.data.zju_l5 import ZJUL5Dataset
+    from deltar.evaluation.runner import create_predictor, evaluate_methods, resolve_method_names
+    from deltar.evaluation.visualize import safe_filename, save_frame_panel
+    from deltar.io.atomic import write_text_atomic
+
+    console = Console()
+    try:
+        names = resolve_method_names(method)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="--method") from err
+    try:
+        dataset = ZJUL5Dataset(data, split=split)
+    except (FileNotFoundError, ValueError) as err:
+        raise typer.BadParameter(str(err), param_hint="--data") from err
+    if len(dataset) == 0:
+        raise typer.BadParameter(f"split {split!r} of {data} lists no frames",
+                                 param_hint="--data")
+    if json_out is not None and json_out.resolve() == Path(dataset.root / "data.json").resolve():
+        raise typer.BadParameter("refusing to overwrite the input data.json",
+                                 param_hint="--json")
+    predictors = {name: create_predictor(name) for name in names}
+    total = len(dataset) if limit is None else min(limit, len(dataset))
+
+    with Progress("[progress.description]{task.description}", BarColumn(),
+                  MofNCompleteColumn(), TimeRemainingColumn(), console=console,
+                  transient=True) as progress:
+        task = progress.add_task("evaluating", total=total)
+
+        def on_frame(index, sample, predictions) -> None:
+            if save_vis is not None:
+                for name, depth in predictions.items():
+                    target = save_vis / safe_filename(name) / f"{safe_filename(sample.name)}.png"
+                    save_frame_panel(target, sample, depth, name, max_depth_m=None)
+            progress.advance(task)
+
+        try:
+            result = evaluate_methods(dataset, predictors, min_depth=min_depth,
+                                      max_depth=max_depth, limit=limit, on_frame=on_frame)
+        except (FileNotFoundError, ValueError) as err:
+            console.print(f"[red]error:[/red] {escape(str(err))}")
+            raise typer.Exit(1) from err
+
+    title = escape(f"{data} (split {split}): {result.frames} frames")
+    if result.skipped:
+        title += f" ({result.skipped} without valid ground truth skipped)"
+    console.print(_metrics_table(result, title))
+    if json_out is not None:
+        write_text_atomic(json_out, json.dumps(result.metrics, indent=2) + "\n")
+        console.print(f"metrics written to {json_out}")
+    if save_vis is not None:
+        console.print(f"visualisations written to {save_vis}")

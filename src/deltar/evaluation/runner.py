@@ -1,0 +1,224 @@
+"""The evaluation loop: any number of depth *methods* over a ZJU-L5-layout set.
+
+A method is anything that turns a :class:`~deltar.data.zju_l5.ZJUL5Sample` into an
+(H, W) depth map in metres (the :class:`Predictor` protocol). Methods are created by
+name from a registry: every classical baseline is registered here, and other packages
+add theirs with :func:`register_method` (one name) or :func:`register_method_family`
+(a prefix such as ``"model"``, so ``"model:deltar-official"`` calls the family's
+factory with ``"deltar-official"``).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from deltar.evaluation.baselines import BASELINES, run_baseline
+from deltar.evaluation.metrics import EmptyFrameError, MetricAccumulator, depth_metrics
+
+if TYPE_CHECKING:
+    from deltar.data.zju_l5 import ZJUL5Sample
+
+
+class Predictor(Protocol):
+    """A depth method: one sample in, one (H, W) float depth map in metres out."""
+
+    def __call__(self, sample: ZJUL5Sample) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class BaselinePredictor:
+    """A classical baseline (:func:`~deltar.evaluation.baselines.run_baseline`) as a method.
+
+    Attributes:
+        baseline: name in :data:`~deltar.evaluation.baselines.BASELINES`.
+    """
+
+    baseline: str
+
+    def __call__(self, sample: ZJUL5Sample) -> np.ndarray:
+        """(H, W) float32 depth in metres from the sample's image and zone means."""
+        return run_baseline(self.baseline, sample.rgb, sample.zone_mean_sigma[:, 0],
+                            sample.zone_valid, sample.zone_rects)
+
+
+_METHODS: dict[str, Callable[[], Predictor]] = {}
+_FAMILIES: dict[str, Callable[[str], Predictor]] = {}
+
+
+def register_method(name: str, factory: Callable[[], Predictor], *,
+                    overwrite: bool = False) -> None:
+    """Make a method available by name (e.g. to ``deltar evaluate --method``).
+
+    Args:
+        name: method name; must not contain ``","`` or ``":"`` and must not be ``"all"``.
+        factory: called once per evaluation run to build the predictor (load weights
+            there, not at registration).
+        overwrite: replace an existing registration instead of raising.
+    """
+    if not name or "," in name or ":" in name or name == "all":
+        raise ValueError(f"invalid method name {name!r}")
+    if name in _METHODS and not overwrite:
+        raise ValueError(f"method {name!r} is already registered")
+    _METHODS[name] = factory
+
+
+def register_method_family(prefix: str, factory: Callable[[str], Predictor], *,
+                           overwrite: bool = False) -> None:
+    """Make ``"<prefix>:<anything>"`` methods available; ``factory(anything)`` builds them.
+
+    Args:
+        prefix: family name, e.g. ``"model"``; no ``","`` or ``":"``.
+        factory: builds the predictor from the part after the colon; it should raise
+            ``ValueError`` for names it does not know.
+        overwrite: replace an existing family instead of raising.
+    """
+    if not prefix or "," in prefix or ":" in prefix:
+        raise ValueError(f"invalid method family prefix {prefix!r}")
+    if prefix in _FAMILIES and not overwrite:
+        raise ValueError(f"method family {prefix!r} is already registered")
+    _FAMILIES[prefix] = factory
+
+
+def available_methods() -> list[str]:
+    """Registered method names, then one ``"<prefix>:NAME"`` entry per family."""
+    return [*_METHODS, *(f"{prefix}:NAME" for prefix in _FAMILIES)]
+
+
+def resolve_method_names(spec: str | Sequence[str]) -> list[str]:
+    """Expand a method list such as ``"nearest,bilinear"`` or ``"all"`` (every baseline).
+
+    Args:
+        spec: comma-separated names or a sequence of names; ``"all"`` expands to every
+            classical baseline.
+
+    Returns:
+        Unique names in the given order.
+
+    Raises:
+        ValueError: an unknown name (the message lists the valid ones) or an empty list.
+    """
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    names: list[str] = []
+    for item in (part.strip() for part in items):
+        if not item:
+            continue
+        expanded = list(BASELINES) if item == "all" else [item]
+        for name in expanded:
+            prefix = name.split(":", 1)[0] if ":" in name else None
+            known = name in _METHODS or (prefix in _FAMILIES and name.split(":", 1)[1])
+            if not known:
+                raise ValueError(f"unknown method {name!r}; valid methods: all, "
+                                 f"{', '.join(available_methods())}")
+            if name not in names:
+                names.append(name)
+    if not names:
+        raise ValueError("no method given")
+    return names
+
+
+def create_predictor(name: str) -> Predictor:
+    """Build the predictor of a registered method (see :func:`resolve_method_names`)."""
+    resolve_method_names([name])
+    if name in _METHODS:
+        return _METHODS[name]()
+    prefix, rest = name.split(":", 1)
+    return _FAMILIES[prefix](rest)
+
+
+for _baseline in BASELINES:
+    register_method(_baseline, lambda baseline=_baseline: BaselinePredictor(baseline))
+
+
+@dataclass
+class EvaluationResult:
+    """Outcome of :func:`evaluate_methods`.
+
+    Attributes:
+        metrics: method name -> averaged metrics (keys of ``METRIC_KEYS``).
+        frames: frames evaluated per method (frames with valid ground truth).
+        skipped: frames skipped for lack of valid ground truth.
+        seconds_per_frame: method name -> mean prediction time in seconds.
+    """
+
+    metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    frames: int = 0
+    skipped: int = 0
+    seconds_per_frame: dict[str, float] = field(default_factory=dict)
+
+
+FrameCallback = Callable[[int, "ZJUL5Sample", Mapping[str, np.ndarray]], None]
+
+
+def evaluate_methods(
+    samples: Sequence[ZJUL5Sample],
+    predictors: Mapping[str, Predictor],
+    *,
+    min_depth: float = 1e-3,
+    max_depth: float = 10.0,
+    limit: int | None = None,
+    on_frame: FrameCallback | None = None,
+) -> EvaluationResult:
+    """Run every method on every frame and average the metrics per frame, then over frames.
+
+    Args:
+        samples: the frames (e.g. a :class:`~deltar.data.zju_l5.ZJUL5Dataset`).
+        predictors: method name -> predictor.
+        min_depth, max_depth: ground-truth range in metres (see ``depth_metrics``).
+        limit: evaluate only the first ``limit`` frames.
+        on_frame: called after each frame with (index, sample, {method: depth}), e.g. to
+            save visualisations or advance a progress bar.
+
+    Returns:
+        An :class:`EvaluationResult`.
+
+    Raises:
+        ValueError: a method returns a map of the wrong shape or with NaN / inf (the
+            message names the method and frame), or no frame has valid ground truth.
+    """
+    if not predictors:
+        raise ValueError("predictors is empty")
+    if limit is not None and limit < 1:
+        raise ValueError(f"limit must be >= 1, got {limit}")
+    count = len(samples) if limit is None else min(limit, len(samples))
+    accumulators = {name: MetricAccumulator(min_depth, max_depth) for name in predictors}
+    seconds = dict.fromkeys(predictors, 0.0)
+    result = EvaluationResult()
+    for index in range(count):
+        sample = samples[index]
+        predictions: dict[str, np.ndarray] = {}
+        for name, predictor in predictors.items():
+            start = time.perf_counter()
+            depth = np.asarray(predictor(sample))
+            seconds[name] += time.perf_counter() - start
+            if depth.shape != sample.depth_m.shape:
+                raise ValueError(f"method {name!r} returned shape {depth.shape} for frame "
+                                 f"{sample.name!r}, expected {sample.depth_m.shape}")
+            if not np.all(np.isfinite(depth)):
+                raise ValueError(f"method {name!r} returned NaN or inf for frame "
+                                 f"{sample.name!r}")
+            predictions[name] = depth
+        try:
+            frame_metrics = {name: depth_metrics(depth, sample.depth_m, min_depth, max_depth)
+                             for name, depth in predictions.items()}
+        except EmptyFrameError as err:
+            warnings.warn(f"skipping frame {sample.name!r}: {err}", RuntimeWarning,
+                          stacklevel=2)
+            result.skipped += 1
+        else:
+            for name, values in frame_metrics.items():
+                accumulators[name].add(values)
+            result.frames += 1
+        if on_frame is not None:
+            on_frame(index, sample, predictions)
+    if result.frames == 0:
+        raise ValueError(f"none of the {count} frames has ground truth inside "
+                         f"({min_depth}, {max_depth}) m")
+    result.metrics = {name: acc.compute() for name, acc in accumulators.items()}
+    result.seconds_per_frame = {name: total / count for name, total in seconds.items()}
+    return result

@@ -1,0 +1,86 @@
+"""``deltar evaluate`` on tiny ZJU-L5-layout sets written to tmp_path."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+import deltar.cli.commands  # noqa: F401  (registers the commands)
+from deltar.cli.main import app
+from deltar.data.zju_l5 import write_zju_l5
+from deltar.evaluation.baselines import BASELINES
+from deltar.evaluation.metrics import METRIC_KEYS
+
+from .samples import make_sample
+
+# A wide terminal keeps rich from wrapping the table title.
+runner = CliRunner(env={"COLUMNS": "200"})
+
+
+@pytest.fixture
+def data_json(tmp_path: Path, tiny_samples) -> Path:
+    return write_zju_l5(tmp_path / "set", tiny_samples)
+
+
+def test_all_methods_table_and_json(data_json: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out" / "metrics.json"
+    result = runner.invoke(app, ["evaluate", "--method", "all", "--data", str(data_json),
+                                 "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    for name in BASELINES:
+        assert name in result.output
+    assert "RMSE" in result.output and "3 frames" in result.output
+    metrics = json.loads(out.read_text())
+    assert list(metrics) == list(BASELINES)
+    for values in metrics.values():
+        assert set(values) == set(METRIC_KEYS)
+    # The test frames are constant per zone, so painting zone means is exact.
+    assert metrics["nearest"]["d1"] == 1.0
+    assert metrics["nearest"]["rmse"] == pytest.approx(0.0, abs=1e-6)
+    assert metrics["median"]["rmse"] > 0.1
+
+
+def test_limit_and_visualisations(data_json: Path, tmp_path: Path) -> None:
+    vis = tmp_path / "vis"
+    result = runner.invoke(app, ["evaluate", "-m", "bilinear,nearest", "--data",
+                                 str(data_json), "--limit", "2", "--save-vis", str(vis)])
+    assert result.exit_code == 0, result.output
+    assert "2 frames" in result.output
+    pngs = sorted(p.relative_to(vis).as_posix() for p in vis.rglob("*.png"))
+    assert pngs == ["bilinear/scene_a__0001.png", "bilinear/scene_a__0002.png",
+                    "nearest/scene_a__0001.png", "nearest/scene_a__0002.png"]
+    assert (vis / pngs[0]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list(vis.rglob("*.tmp*"))
+
+
+def test_frames_without_ground_truth_are_skipped(tmp_path: Path) -> None:
+    data = write_zju_l5(tmp_path / "set", [make_sample("a", 0),
+                                          make_sample("b", 1, empty_gt=True)])
+    with pytest.warns(RuntimeWarning, match="skipping frame 'b'"):
+        result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data)])
+    assert result.exit_code == 0, result.output
+    assert "1 frames" in result.output and "1 without valid ground truth" in result.output
+
+
+def test_unknown_method_lists_valid_names(data_json: Path) -> None:
+    result = runner.invoke(app, ["evaluate", "-m", "nearest,magic", "--data", str(data_json)])
+    assert result.exit_code == 2
+    assert "magic" in result.output and "bilinear" in result.output
+
+
+def test_missing_data_json_names_the_path(tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere" / "data.json"
+    result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(missing)])
+    assert result.exit_code == 2
+    assert "not found" in result.output and "nowhere" in result.output
+
+
+def test_refuses_to_overwrite_the_input(data_json: Path) -> None:
+    before = data_json.read_text()
+    result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data_json),
+                                 "--json", str(data_json)])
+    assert result.exit_code == 2
+    assert data_json.read_text() == before

@@ -1,0 +1,101 @@
+"""The evaluation loop and the method registry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deltar.evaluation import runner
+from deltar.evaluation.baselines import BASELINES
+from deltar.evaluation.metrics import depth_metrics
+from deltar.evaluation.runner import (
+    BaselinePredictor,
+    create_predictor,
+    evaluate_methods,
+    register_method,
+    register_method_family,
+    resolve_method_names,
+)
+
+from .samples import make_sample
+
+
+@pytest.fixture
+def clean_registry(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runner, "_METHODS", dict(runner._METHODS))
+    monkeypatch.setattr(runner, "_FAMILIES", dict(runner._FAMILIES))
+
+
+def test_resolve_method_names() -> None:
+    assert resolve_method_names("all") == list(BASELINES)
+    assert resolve_method_names("bilinear, nearest,bilinear") == ["bilinear", "nearest"]
+    with pytest.raises(ValueError, match="valid methods: all, median, nearest"):
+        resolve_method_names("nearest,magic")
+    with pytest.raises(ValueError, match="no method"):
+        resolve_method_names(" , ")
+
+
+def test_registry_accepts_methods_and_families(clean_registry: None) -> None:
+    register_method("const3", lambda: lambda sample: np.full(sample.depth_m.shape, 3.0))
+    register_method_family("model", lambda name: lambda sample: np.full(
+        sample.depth_m.shape, float(len(name))))
+    assert "model:NAME" in runner.available_methods()
+    assert resolve_method_names("const3,model:abcd") == ["const3", "model:abcd"]
+    sample = make_sample("x", 0)
+    assert create_predictor("model:abcd")(sample)[0, 0] == 4.0
+    assert create_predictor("const3")(sample)[0, 0] == 3.0
+    with pytest.raises(ValueError, match="already registered"):
+        register_method("const3", lambda: None)
+    with pytest.raises(ValueError, match="unknown method 'model:'"):
+        resolve_method_names("model:")
+    with pytest.raises(ValueError, match="invalid method name"):
+        register_method("a:b", lambda: None)
+
+
+def test_nearest_is_exact_on_blocky_frames(tiny_samples) -> None:
+    result = evaluate_methods(tiny_samples, {"nearest": BaselinePredictor("nearest")})
+    metrics = result.metrics["nearest"]
+    assert result.frames == 3 and result.skipped == 0
+    assert metrics["d1"] == 1.0
+    assert metrics["rel"] == pytest.approx(0.0, abs=1e-6)
+    assert metrics["rmse"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_averages_per_frame_and_limit(tiny_samples) -> None:
+    def constant(sample):
+        return np.full(sample.depth_m.shape, 1.5, dtype=np.float32)
+
+    result = evaluate_methods(tiny_samples, {"constant": constant}, limit=2)
+    expected = np.mean([depth_metrics(np.full((32, 48), 1.5), s.depth_m)["rel"]
+                        for s in tiny_samples[:2]])
+    assert result.frames == 2
+    assert result.metrics["constant"]["rel"] == pytest.approx(expected)
+
+
+def test_on_frame_receives_every_prediction(tiny_samples) -> None:
+    seen = []
+    evaluate_methods(tiny_samples, {"nearest": BaselinePredictor("nearest"),
+                                    "bilinear": BaselinePredictor("bilinear")},
+                     on_frame=lambda i, s, preds: seen.append((i, s.name, sorted(preds))))
+    assert seen == [(0, "scene_a/0001", ["bilinear", "nearest"]),
+                    (1, "scene_a/0002", ["bilinear", "nearest"]),
+                    (2, "scene_b/0001", ["bilinear", "nearest"])]
+
+
+def test_frames_without_ground_truth_are_skipped(tiny_samples) -> None:
+    samples = [*tiny_samples[:1], make_sample("empty", 5, empty_gt=True)]
+    with pytest.warns(RuntimeWarning, match="skipping frame 'empty'"):
+        result = evaluate_methods(samples, {"nearest": BaselinePredictor("nearest")})
+    assert result.frames == 1 and result.skipped == 1
+    assert np.isfinite(list(result.metrics["nearest"].values())).all()
+    with pytest.warns(RuntimeWarning), pytest.raises(ValueError, match="none of the 1 frames"):
+        evaluate_methods(samples[1:], {"nearest": BaselinePredictor("nearest")})
+
+
+def test_bad_predictions_name_the_method(tiny_samples) -> None:
+    with pytest.raises(ValueError, match="method 'half' returned shape"):
+        evaluate_methods(tiny_samples, {"half": lambda s: np.ones((16, 24))})
+    with pytest.raises(ValueError, match="method 'nan' returned NaN"):
+        evaluate_methods(tiny_samples, {"nan": lambda s: np.full((32, 48), np.nan)})
+    with pytest.raises(ValueError, match="predictors is empty"):
+        evaluate_methods(tiny_samples, {})
