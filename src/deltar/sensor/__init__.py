@@ -1,20 +1,49 @@
-"""The multi-zone ToF sensor: zone frames, zone geometry, simulation and sampling."""
+"""The multi-zone ToF sensor: zone frames, zone geometry, simulation and sampling.
 
-from deltar.sensor.augment import SignalAugmentation, training_zone_rects
+The simulator, sampling and augmentation names need torch; they are imported on first
+use so that ``import deltar.sensor`` (and ``deltar --help``) stays light.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
 from deltar.sensor.geometry import (
     SensorExtrinsics,
     zone_angles_deg,
     zone_rects,
     zone_rects_to_pixel_bounds,
 )
-from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
-from deltar.sensor.simulate import (
-    SimulatedZones,
-    SimulatorConfig,
-    simulate_zone_frame,
-    simulate_zones,
-)
 from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
+
+if TYPE_CHECKING:
+    from deltar.sensor.augment import SignalAugmentation, training_zone_rects
+    from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
+    from deltar.sensor.simulate import (
+        SimulatedZones,
+        SimulatorConfig,
+        simulate_zone_frame,
+        simulate_zones,
+    )
+
+_LAZY = {
+    "SignalAugmentation": "deltar.sensor.augment",
+    "training_zone_rects": "deltar.sensor.augment",
+    "sample_hypotheses": "deltar.sensor.sampling",
+    "sample_hypotheses_from_histogram": "deltar.sensor.sampling",
+    "SimulatedZones": "deltar.sensor.simulate",
+    "SimulatorConfig": "deltar.sensor.simulate",
+    "simulate_zone_frame": "deltar.sensor.simulate",
+    "simulate_zones": "deltar.sensor.simulate",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'deltar.sensor' has no attribute {name!r}")
+
 
 __all__ = [
     "DEFAULT_VALID_STATUS",

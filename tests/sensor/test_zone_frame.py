@@ -1,0 +1,133 @@
+"""Tests of the zone frame (deltar.sensor.zone_frame)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deltar.sensor import Orientation, ZoneFrame
+
+
+def _driver_lists(zones: int, status: int = 5):
+    distance_mm = [1000.0 + 10 * i for i in range(zones)]
+    sigma_mm = [5.0 + i for i in range(zones)]
+    return distance_mm, sigma_mm, [status] * zones
+
+
+@pytest.mark.parametrize("zones, grid", [(16, 4), (64, 8)])
+def test_from_driver_flat_lists(zones, grid):
+    distance, sigma, status = _driver_lists(zones)
+    frame = ZoneFrame.from_driver(distance, sigma, status, timestamp_s=3.0)
+    assert frame.grid == grid and frame.zone_count == zones
+    assert frame.mean_m.shape == (grid, grid) and frame.mean_m.dtype == np.float32
+    assert frame.valid.all()
+    # Zone 5 (row-major) of the driver: 1050 mm and 10 mm.
+    assert frame.mean_m[5 // grid, 5 % grid] == pytest.approx(1.050)
+    assert frame.sigma_m[5 // grid, 5 % grid] == pytest.approx(0.010)
+    mean, sigma, valid = frame.flat()
+    assert mean.shape == sigma.shape == valid.shape == (zones,)
+    assert mean[-1] == pytest.approx(1.0 + 0.01 * (zones - 1))
+    assert frame.mean_sigma().shape == (zones, 2)
+    assert frame.timestamp_s == 3.0
+
+
+def test_multi_target_lists_keep_the_first_target():
+    distance = np.repeat(np.arange(16) * 100.0 + 500, 2)
+    distance[1::2] = 9999  # second target of each zone
+    frame = ZoneFrame.from_driver(distance, np.full(32, 10.0), np.full(32, 5), grid=4)
+    np.testing.assert_allclose(frame.flat()[0], (np.arange(16) * 100.0 + 500) / 1000)
+
+
+def test_status_filtering():
+    distance, sigma, status = _driver_lists(64)
+    status[3] = 255  # no target
+    status[10] = 9  # valid, large pulse
+    status[20] = 4  # consistency failed
+    distance[30] = 0.0  # valid status but zero distance
+    frame = ZoneFrame.from_driver(distance, sigma, status)
+    _, _, valid = frame.flat()
+    assert not valid[3] and valid[10] and not valid[20] and not valid[30]
+    assert int(valid.sum()) == 61
+    mean_sigma = frame.mean_sigma()
+    assert (mean_sigma[[3, 20, 30]] == 0).all()
+    assert frame.status.reshape(-1)[3] == 255
+    strict = ZoneFrame.from_driver(distance, sigma, status, valid_status=(5,))
+    assert not strict.flat()[2][10]
+
+
+def test_orientations_by_hand():
+    distance = np.arange(16) * 1000.0 + 1000  # driver zone i at (i + 1) metres
+    sigma, status = np.ones(16), np.full(16, 5)
+
+    def grid_of(orientation):
+        return ZoneFrame.from_driver(distance, sigma, status, orientation=orientation).mean_m
+
+    driver = (np.arange(16) + 1.0).reshape(4, 4)
+    np.testing.assert_allclose(grid_of(None), driver)
+    # Up-down flip: the image's top row is the driver's bottom row (zones 12..15).
+    np.testing.assert_allclose(grid_of(Orientation(flip_ud=True))[0], [13, 14, 15, 16])
+    # Left-right flip: the image's first column is the driver's last (zones 3, 7, 11, 15).
+    np.testing.assert_allclose(grid_of(Orientation(flip_lr=True))[:, 0], [4, 8, 12, 16])
+    # One counter-clockwise quarter turn: the driver's last column becomes the top row.
+    np.testing.assert_allclose(grid_of(Orientation(rot90=1))[0], [4, 8, 12, 16])
+    np.testing.assert_allclose(grid_of(Orientation(rot90=2)), driver[::-1, ::-1])
+    np.testing.assert_allclose(grid_of(Orientation(rot90=4)), driver)
+    # Flips are applied before the turn.
+    both = grid_of(Orientation(flip_ud=True, rot90=1))
+    np.testing.assert_allclose(both, np.rot90(driver[::-1]))
+
+
+def test_rejects_wrong_counts():
+    with pytest.raises(ValueError, match="distance_mm"):
+        ZoneFrame.from_driver(*_driver_lists(15))
+    distance, sigma, status = _driver_lists(64)
+    with pytest.raises(ValueError, match="range_sigma_mm"):
+        ZoneFrame.from_driver(distance, sigma[:60], status)
+    with pytest.raises(ValueError, match="grid"):
+        ZoneFrame.from_driver(distance, sigma, status, grid=6)
+    with pytest.raises(ValueError, match="target_status"):
+        ZoneFrame.from_driver(distance, sigma, [300] * 64)
+    with pytest.raises(ValueError, match="mean_m"):
+        ZoneFrame(mean_m=np.ones(36), sigma_m=np.ones(36), valid=np.ones(36, bool))
+    with pytest.raises(ValueError, match="sigma_m"):
+        ZoneFrame(mean_m=np.ones((8, 8)), sigma_m=np.ones((4, 4)), valid=np.ones((8, 8), bool))
+
+
+def test_rejects_nan_and_negative_values_in_valid_zones():
+    mean = np.ones((4, 4))
+    sigma = np.full((4, 4), 0.01)
+    valid = np.ones((4, 4), bool)
+    bad_mean = mean.copy()
+    bad_mean[1, 2] = np.nan
+    with pytest.raises(ValueError, match=r"mean_m.*\[\[1, 2\]\]"):
+        ZoneFrame(bad_mean, sigma, valid)
+    bad_sigma = sigma.copy()
+    bad_sigma[0, 3] = -0.1
+    with pytest.raises(ValueError, match=r"sigma_m.*\[\[0, 3\]\]"):
+        ZoneFrame(mean, bad_sigma, valid)
+    with pytest.raises(ValueError, match="mean_m"):
+        ZoneFrame(-mean, sigma, valid)
+    # The same values in an invalid zone are fine (they carry no measurement).
+    valid[1, 2] = False
+    ZoneFrame(bad_mean, sigma, valid)
+    # Driver NaNs make the zone invalid rather than failing.
+    distance, sigma_mm, status = _driver_lists(16)
+    distance[2] = float("nan")
+    assert not ZoneFrame.from_driver(distance, sigma_mm, status).flat()[2][2]
+
+
+def test_histogram_fields_validated():
+    kwargs = dict(mean_m=np.ones((4, 4)), sigma_m=np.zeros((4, 4)), valid=np.ones((4, 4), bool))
+    edges = np.linspace(0, 4, 101)
+    frame = ZoneFrame(**kwargs, hist_edges_m=edges, hist_counts=np.zeros((4, 4, 100)))
+    assert frame.hist_counts.dtype == np.float32
+    with pytest.raises(ValueError, match="together"):
+        ZoneFrame(**kwargs, hist_counts=np.zeros((4, 4, 100)))
+    with pytest.raises(ValueError, match="hist_counts"):
+        ZoneFrame(**kwargs, hist_edges_m=edges, hist_counts=np.zeros((4, 4, 99)))
+    with pytest.raises(ValueError, match="hist_edges_m"):
+        ZoneFrame(**kwargs, hist_edges_m=edges[::-1], hist_counts=np.zeros((4, 4, 100)))
+    with pytest.raises(ValueError, match="hist_counts"):
+        ZoneFrame(**kwargs, hist_edges_m=edges, hist_counts=-np.ones((4, 4, 100)))
+    with pytest.raises(ValueError, match="timestamp_s"):
+        ZoneFrame(**kwargs, timestamp_s=float("nan"))
