@@ -3,5 +3,4 @@
 Command modules import heavy dependencies (torch, timm) inside the command functions,
 so ``deltar --help`` stays fast.
 """
-import deltar.cli.simulate  # noqa: F401
 from deltar.cli import evaluate  # noqa: F401
