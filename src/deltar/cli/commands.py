@@ -3,4 +3,4 @@
 Command modules import heavy dependencies (torch, timm) inside the command functions,
 so ``deltar --help`` stays fast.
 """
-from deltar.cli import evaluate  # noqa: F401
+import deltar.cli.simulate  # noqa: F401

@@ -1,0 +1,69 @@
+"""``deltar simulate``: writes a readable ZJU-L5 set and never writes into existing data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from deltar.cli.main import _register_commands, app
+from deltar.data.procedural import render_scene
+from deltar.data.zju_l5 import ZJUL5Dataset
+from deltar.sensor.geometry import zone_rects_to_pixel_bounds
+
+_register_commands()
+runner = CliRunner()
+
+
+def test_procedural_source_round_trip(tmp_path):
+    out = tmp_path / "set"
+    result = runner.invoke(app, ["simulate", "procedural:3:4:48x64", str(out), "--grid", "4",
+                                 "--start", "1"])
+    assert result.exit_code == 0, result.output
+    ds = ZJUL5Dataset(out / "data.json")
+    assert [s.name for s in ds] == ["procedural/procedural-5", "procedural/procedural-6"]
+    sample = ds[0]
+    frame = render_scene(5, 48, 64)
+    np.testing.assert_array_equal(sample.depth_m, frame.depth_m)
+    np.testing.assert_array_equal(sample.rgb, frame.image)
+    assert sample.intrinsics == frame.intrinsics
+    assert sample.zone_valid.shape == (16,) and sample.zone_valid.any()
+    # Each valid zone's mean lies within the depth range of the pixels the zone covers.
+    bounds = zone_rects_to_pixel_bounds(sample.zone_rects, 48, 64)
+    for (y0, x0, y1, x1), (mean, _), ok in zip(bounds, sample.zone_mean_sigma,
+                                               sample.zone_valid, strict=True):
+        if ok:
+            patch = frame.depth_m[y0:y1, x0:x1]
+            assert patch.min() - 0.04 <= mean <= patch.max() + 0.04
+
+
+def test_folder_source_with_frame_range(shared_data, tmp_path):
+    out = tmp_path / "kitchen"
+    result = runner.invoke(app, ["simulate", str(shared_data / "7scenes_redkitchen"), str(out),
+                                 "--start", "10", "--stop", "20", "--step", "5", "--limit", "1",
+                                 "--layout", "aligned"])
+    assert result.exit_code == 0, result.output
+    (sample,) = list(ZJUL5Dataset(out))
+    assert sample.name == "7scenes_redkitchen/frame-000020"  # frame 10 of every-2nd frames
+    # The release's aligned layout: 56 px zones from (16, 96) at 480x640.
+    np.testing.assert_array_equal(sample.zone_rects[0], [16, 96, 72, 152])
+    np.testing.assert_array_equal(sample.zone_rects[63], [408, 488, 464, 544])
+
+
+def test_refuses_non_empty_output_and_bad_options(tmp_path):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    result = runner.invoke(app, ["simulate", "procedural:1:0:16x16", str(out)])
+    assert result.exit_code != 0
+    assert "refusing" in result.output
+    assert (out / "keep.txt").read_text() == "user data"
+    result = runner.invoke(app, ["simulate", "procedural:1", str(tmp_path / "x"), "--grid", "5"])
+    assert result.exit_code != 0
+
+
+@pytest.mark.parametrize("spec", ["procedural:x", "procedural:2:1:48by64"])
+def test_bad_procedural_spec(tmp_path, spec):
+    result = runner.invoke(app, ["simulate", spec, str(tmp_path / "o")])
+    assert result.exit_code == 2  # a usage error with a message, not a traceback
+    assert "procedural source must look like" in result.output
