@@ -70,6 +70,20 @@ def test_release_h5_json_layout(tmp_path, rng):
         NYUH5Reader(split, "val")
 
 
+def test_release_border_crop(tmp_path, rng):
+    rgb = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 5.0, (30, 40)).astype(np.float32)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        f["rgb"], f["depth"] = rgb.transpose(2, 0, 1), depth
+    (tmp_path / "split.json").write_text(json.dumps({"train": [{"filename": "f.h5"}]}))
+    frame = NYUH5Reader(tmp_path / "split.json", intrinsics=CameraIntrinsics(
+        5.0, 5.0, 20.5, 14.5, 40, 30), crop_border=True)[0]
+    # 30x40 minus 12 rows and 16 columns on each side.
+    np.testing.assert_array_equal(frame.image, rgb[12:18, 16:24])
+    np.testing.assert_array_equal(frame.depth_m, depth[12:18, 16:24])
+    assert (frame.intrinsics.cx, frame.intrinsics.cy) == (4.5, 2.5)
+
+
 def test_default_intrinsics_are_nyu():
     assert (NYU_INTRINSICS.fx, NYU_INTRINSICS.fy, NYU_INTRINSICS.cx, NYU_INTRINSICS.cy) == (
         518.86, 519.47, 325.58, 253.74)

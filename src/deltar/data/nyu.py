@@ -25,6 +25,8 @@ from deltar.data.rgbd import RGBDFrame
 
 #: NYU-Depth V2 colour camera at 480x640 (fx, fy, cx, cy from the dataset's toolbox).
 NYU_INTRINSICS = CameraIntrinsics(518.86, 519.47, 325.58, 253.74, 640, 480)
+#: (rows, columns) cut from each side by ``crop_border``: the release's training crop.
+BORDER_CROP: tuple[int, int] = (12, 16)
 
 
 def _clean_depth(depth: np.ndarray) -> np.ndarray:
@@ -105,6 +107,9 @@ class NYUH5Reader(Sequence):
         split: which list to read.
         data_root: folder the file names are relative to; the json's folder by default.
         intrinsics: camera intrinsics; NYU's by default.
+        crop_border: cut ``BORDER_CROP`` pixels (12 rows, 16 columns) off every side, as
+            the release does for training: NYU's registered frames have blank borders.
+            The intrinsics are cropped to match.
 
     Raises:
         FileNotFoundError: the json is missing (frame files are checked on access).
@@ -113,7 +118,8 @@ class NYUH5Reader(Sequence):
 
     def __init__(self, json_path: str | Path, split: str = "train",
                  data_root: str | Path | None = None,
-                 intrinsics: CameraIntrinsics = NYU_INTRINSICS) -> None:
+                 intrinsics: CameraIntrinsics = NYU_INTRINSICS,
+                 crop_border: bool = False) -> None:
         path = Path(json_path)
         if not path.is_file():
             raise FileNotFoundError(f"NYU split file not found: {path}")
@@ -132,6 +138,7 @@ class NYUH5Reader(Sequence):
         self.root = Path(data_root) if data_root is not None else path.parent
         self.filenames = [e["filename"] for e in entries]
         self.intrinsics = intrinsics
+        self.crop_border = crop_border
 
     def __len__(self) -> int:
         return len(self.filenames)
@@ -153,6 +160,13 @@ class NYUH5Reader(Sequence):
             raise ValueError(f"NYU frame file {path}: depth {depth.shape} does not match rgb "
                              f"{rgb.shape[1:]}")
         intr = _check_intrinsics(self.intrinsics, depth.shape, path)
+        image = rgb.transpose(1, 2, 0)
+        if self.crop_border:
+            rows, cols = BORDER_CROP
+            height, width = depth.shape
+            image = image[rows:height - rows, cols:width - cols]
+            depth = depth[rows:height - rows, cols:width - cols]
+            intr = intr.cropped(rows, cols, height - 2 * rows, width - 2 * cols)
         name = rel[:-3] if rel.endswith(".h5") else rel
-        return RGBDFrame(image=np.ascontiguousarray(rgb.transpose(1, 2, 0)),
-                         depth_m=_clean_depth(depth), intrinsics=intr, name=name)
+        return RGBDFrame(image=np.ascontiguousarray(image), depth_m=_clean_depth(depth),
+                         intrinsics=intr, name=name)
