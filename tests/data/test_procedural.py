@@ -47,7 +47,7 @@ def _prim(kind, **shape):
 def test_intersections_match_hand_computed_distances():
     origin = np.zeros(3)
     # Rays with unit z component: straight ahead, and 45 degrees to the right.
-    rays = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
+    rays = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]]).T  # (3, N)
     with np.errstate(divide="ignore", invalid="ignore"):
         sphere = procedural._hit_sphere(_prim("sphere", center=np.array([0, 0, 3.0]),
                                               radius=0.5), origin, rays)
@@ -66,5 +66,5 @@ def test_intersections_match_hand_computed_distances():
     with np.errstate(divide="ignore", invalid="ignore"):
         cap = procedural._hit_cylinder(_prim("cylinder", center=np.array([0, -1, 0.0]),
                                              radius=0.25, height=2.0),
-                                       np.array([0, 3.0, 0]), np.array([[0, -1.0, 1e-3]]))
+                                       np.array([0, 3.0, 0]), np.array([[0.0], [-1.0], [1e-3]]))
     np.testing.assert_allclose(cap, [2.0], rtol=1e-5)
