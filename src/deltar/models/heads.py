@@ -1,0 +1,199 @@
+"""Depth heads: adaptive bins (release head and AdaBins mViT) and a direct regressor.
+
+A bins head predicts, per image, N normalised bin widths over ``[min_depth,
+max_depth]`` and, per pixel, a softmax over the N bins; depth is the expectation of
+the bin centres and the uncertainty is the standard deviation of that per-pixel
+distribution (both in metres).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from einops import rearrange
+from torch import nn
+
+#: How raw bin-width regressions are turned into positive widths summing to one.
+BIN_NORMS = ("linear", "softmax", "sigmoid")
+
+
+def normalise_bin_widths(raw: torch.Tensor, norm: str) -> torch.Tensor:
+    """(B, N) raw regressor output -> (B, N) positive widths summing to 1.
+
+    ``linear`` (the release): ``relu(raw) + 0.1``, then divide by the sum.
+    """
+    if norm == "linear":
+        widths = torch.relu(raw) + 0.1
+    elif norm == "softmax":
+        return torch.softmax(raw, dim=1)
+    elif norm == "sigmoid":
+        widths = torch.sigmoid(raw)
+    else:
+        raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
+    return widths / widths.sum(dim=1, keepdim=True)
+
+
+def bins_to_depth(
+    normalised_widths: torch.Tensor,
+    probabilities: torch.Tensor,
+    min_depth: float,
+    max_depth: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Depth, bin edges and uncertainty from bin widths and per-pixel bin probabilities.
+
+    Args:
+        normalised_widths: (B, N) widths summing to 1.
+        probabilities: (B, N, h, w) per-pixel softmax over the N bins.
+        min_depth: depth of the first edge, metres.
+        max_depth: depth of the last edge, metres.
+
+    Returns:
+        depth (B, 1, h, w) metres, bin_edges (B, N + 1) metres, and uncertainty
+        (B, 1, h, w) metres (standard deviation over bin centres).
+    """
+    widths = (max_depth - min_depth) * normalised_widths
+    widths = F.pad(widths, (1, 0), mode="constant", value=min_depth)
+    edges = torch.cumsum(widths, dim=1)
+    centres = (0.5 * (edges[:, :-1] + edges[:, 1:]))[:, :, None, None]
+    depth = torch.sum(probabilities * centres, dim=1, keepdim=True)
+    variance = torch.sum(probabilities * (centres - depth) ** 2, dim=1, keepdim=True)
+    return depth, edges, variance.clamp_min(0).sqrt()
+
+
+class BinsHead(nn.Module):
+    """The release's head: global bin-width regressor plus a per-pixel bin softmax.
+
+    Args:
+        in_channels: input feature width.
+        n_bins: number of depth bins N.
+        embedding_dim: width of the range-attention features.
+        norm: bin-width normalisation, one of :data:`BIN_NORMS`.
+    """
+
+    def __init__(
+        self, in_channels: int, n_bins: int = 256, embedding_dim: int = 128, norm: str = "linear"
+    ) -> None:
+        super().__init__()
+        if norm not in BIN_NORMS:
+            raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
+        self.norm = norm
+        self.range_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=3, padding=1)
+        self.global_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=1, bias=False)
+        self.width_regressor = nn.Sequential(
+            nn.Linear(embedding_dim, 256),
+            nn.LeakyReLU(),
+            nn.Linear(256, 256),
+            nn.LeakyReLU(),
+            nn.Linear(256, n_bins),
+        )
+        self.logits_conv = nn.Conv2d(embedding_dim, n_bins, kernel_size=1)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C, h, w) -> normalised widths (B, N) and bin probabilities (B, N, h, w)."""
+        # mean(conv1x1(x)) == conv1x1(mean(x)) for a bias-free 1x1 convolution; the
+        # right-hand side skips a full-resolution convolution.
+        pooled = F.linear(features.mean(dim=(2, 3)), self.global_conv.weight.flatten(1))
+        widths = normalise_bin_widths(self.width_regressor(pooled), self.norm)
+        logits = self.logits_conv(self.range_conv(features))
+        return widths, torch.softmax(logits, dim=1)
+
+
+class MiniViTHead(nn.Module):
+    """AdaBins' mini-ViT refinement (the paper's head).
+
+    Patch embeddings of the decoder output go through a transformer encoder together
+    with 1 + Q learned query tokens. The first query regresses the bin widths; the
+    other Q are dotted with per-pixel features to give Q range-attention maps,
+    which a 1x1 convolution turns into a softmax over the N bins. (AdaBins takes
+    its queries from the first output patch tokens; learned query tokens give the
+    same computation for any input size, even one with fewer than Q + 1 patches.)
+
+    Args:
+        in_channels: input feature width.
+        n_bins: number of depth bins N.
+        embedding_dim: transformer width E.
+        num_queries: Q range-attention queries.
+        patch_size: side of the patch embedding in cells.
+        num_layers: transformer layers.
+        num_heads: transformer heads.
+        norm: bin-width normalisation, one of :data:`BIN_NORMS`.
+        design_tokens: (rows, cols) of the learned patch-position grid.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        n_bins: int = 256,
+        embedding_dim: int = 128,
+        num_queries: int = 128,
+        patch_size: int = 16,
+        num_layers: int = 4,
+        num_heads: int = 4,
+        norm: str = "linear",
+        design_tokens: tuple[int, int] = (15, 20),
+    ) -> None:
+        super().__init__()
+        if norm not in BIN_NORMS:
+            raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
+        self.norm = norm
+        self.patch_size = patch_size
+        self.patch_embed = nn.Conv2d(
+            in_channels, embedding_dim, kernel_size=patch_size, stride=patch_size
+        )
+        self.patch_position = nn.Parameter(torch.empty(embedding_dim, *design_tokens))
+        self.queries = nn.Parameter(torch.empty(1 + num_queries, embedding_dim))
+        nn.init.trunc_normal_(self.patch_position, std=0.2)
+        nn.init.trunc_normal_(self.queries, std=0.2)
+        layer = nn.TransformerEncoderLayer(
+            embedding_dim, num_heads, dim_feedforward=1024, dropout=0.0, batch_first=True
+        )
+        self.transformer = nn.TransformerEncoder(layer, num_layers, enable_nested_tensor=False)
+        self.pixel_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=3, padding=1)
+        self.width_regressor = nn.Sequential(
+            nn.Linear(embedding_dim, 256),
+            nn.LeakyReLU(),
+            nn.Linear(256, 256),
+            nn.LeakyReLU(),
+            nn.Linear(256, n_bins),
+        )
+        self.logits_conv = nn.Conv2d(num_queries, n_bins, kernel_size=1)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C, h, w) -> normalised widths (B, N) and bin probabilities (B, N, h, w)."""
+        batch = features.shape[0]
+        patches = self.patch_embed(features)
+        position = F.interpolate(
+            self.patch_position[None], size=patches.shape[-2:], mode="bilinear",
+            align_corners=True,
+        )
+        tokens = rearrange(patches + position, "b e h w -> b (h w) e")
+        queries = self.queries[None].expand(batch, -1, -1)
+        out = self.transformer(torch.cat([queries, tokens], dim=1))
+        widths = normalise_bin_widths(self.width_regressor(out[:, 0]), self.norm)
+        range_queries = out[:, 1 : self.queries.shape[0]]
+        range_maps = torch.einsum("behw,bqe->bqhw", self.pixel_conv(features), range_queries)
+        return widths, torch.softmax(self.logits_conv(range_maps), dim=1)
+
+
+class DirectDepthHead(nn.Module):
+    """No refinement (ablation): a 3x3 convolution and a sigmoid scaled to the depth range.
+
+    Args:
+        in_channels: input feature width.
+        min_depth: smallest output depth, metres.
+        max_depth: largest output depth, metres.
+    """
+
+    def __init__(self, in_channels: int, min_depth: float, max_depth: float) -> None:
+        super().__init__()
+        self.min_depth = min_depth
+        self.max_depth = max_depth
+        self.depth_conv = nn.Conv2d(in_channels, 1, kernel_size=3, padding=1)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(B, C, h, w) -> depth (B, 1, h, w), edges (B, 2) = range, uncertainty zeros."""
+        depth = self.min_depth + (self.max_depth - self.min_depth) * torch.sigmoid(
+            self.depth_conv(features)
+        )
+        edges = features.new_tensor([self.min_depth, self.max_depth]).expand(depth.shape[0], 2)
+        return depth, edges, torch.zeros_like(depth)

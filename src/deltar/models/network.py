@@ -1,0 +1,293 @@
+"""DeltarNet: dense metric depth from an RGB image and multi-zone ToF distributions."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from deltar.models.decoder import FUSION_STRIDES, FusionDecoder
+from deltar.models.encoders import DistributionEncoder, ImageEncoder
+from deltar.models.fusion import FUSION_MODES
+from deltar.models.heads import BinsHead, DirectDepthHead, MiniViTHead, bins_to_depth
+from deltar.models.zone_patches import ZonePatchResampler, zone_window
+
+HEADS = ("bins", "mvit", "direct")
+DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
+IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
+SAMPLINGS = ("icdf", "uniform")
+#: Input size divisor: the encoder's coarsest stride.
+SIZE_DIVISOR = 32
+
+
+class DeltarNet(nn.Module):
+    """The DELTAR network (Li et al., ECCV 2022), configurable for its ablations.
+
+    Args:
+        backbone: timm backbone name for the image encoder.
+        stem_activation: keep the activation after the stem norm (False reproduces the
+            released weights, see :class:`~deltar.models.encoders.ImageEncoder`).
+        decoder_channels: five decoder widths; the fusion widths are half of the
+            second to fourth, and the PointNet widths are those, fine to coarse.
+        head: "bins" (release), "mvit" (paper's AdaBins refinement) or "direct"
+            (no refinement ablation).
+        head_channels: width of the decoder output fed to the head.
+        n_bins: number of depth bins N.
+        min_depth: smallest depth, metres.
+        max_depth: largest depth, metres.
+        bin_norm: bin-width normalisation ("linear" in the release).
+        num_hypotheses: K hypotheses per zone the model is designed for.
+        distribution_input: "hypotheses" (K sampled depths per zone) or "mean_sigma"
+            (mean/variance PointNet ablation: one (mean, sigma) point per zone).
+        image_input: "rgb", or "rgb_zone_maps" (five-channel ablation: zone mean and
+            sigma painted into two extra input channels; no distribution branch).
+        fusion: zone fusion mode, one of
+            :data:`~deltar.models.fusion.FUSION_MODES`.
+        fusion_layers: order of "hist2image" / "image" layers at each fusion scale.
+        cross_heads: heads of the zone-to-image attention.
+        self_heads: heads of the image self attention.
+        design_size: (H, W) input size the positional encodings are laid out for.
+        hypothesis_sampling: how the data pipeline samples hypotheses ("icdf" or
+            "uniform"); recorded in :attr:`config`, does not change the network.
+    """
+
+    def __init__(
+        self,
+        backbone: str = "tf_efficientnetv2_b3",
+        stem_activation: bool = True,
+        decoder_channels: Sequence[int] = (256, 256, 128, 64, 32),
+        head: str = "bins",
+        head_channels: int = 128,
+        n_bins: int = 256,
+        min_depth: float = 1e-3,
+        max_depth: float = 10.0,
+        bin_norm: str = "linear",
+        num_hypotheses: int = 16,
+        distribution_input: str = "hypotheses",
+        image_input: str = "rgb",
+        fusion: str = "attention",
+        fusion_layers: Sequence[str] = ("hist2image", "image", "hist2image", "image"),
+        cross_heads: int = 4,
+        self_heads: int = 8,
+        design_size: tuple[int, int] = (480, 640),
+        hypothesis_sampling: str = "icdf",
+    ) -> None:
+        super().__init__()
+        _check_choice("head", head, HEADS)
+        _check_choice("distribution_input", distribution_input, DISTRIBUTION_INPUTS)
+        _check_choice("image_input", image_input, IMAGE_INPUTS)
+        _check_choice("fusion", fusion, FUSION_MODES)
+        _check_choice("hypothesis_sampling", hypothesis_sampling, SAMPLINGS)
+        if not 0 < min_depth < max_depth:
+            raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
+        if design_size[0] % SIZE_DIVISOR or design_size[1] % SIZE_DIVISOR:
+            raise ValueError(f"design_size must be divisible by {SIZE_DIVISOR}: {design_size}")
+        self.config = {
+            "backbone": backbone,
+            "stem_activation": stem_activation,
+            "decoder_channels": tuple(decoder_channels),
+            "head": head,
+            "head_channels": head_channels,
+            "n_bins": n_bins,
+            "min_depth": min_depth,
+            "max_depth": max_depth,
+            "bin_norm": bin_norm,
+            "num_hypotheses": num_hypotheses,
+            "distribution_input": distribution_input,
+            "image_input": image_input,
+            "fusion": fusion,
+            "fusion_layers": tuple(fusion_layers),
+            "cross_heads": cross_heads,
+            "self_heads": self_heads,
+            "design_size": tuple(design_size),
+            "hypothesis_sampling": hypothesis_sampling,
+        }
+        self.min_depth = min_depth
+        self.max_depth = max_depth
+        self.five_channel = image_input == "rgb_zone_maps"
+        self.mean_sigma_points = distribution_input == "mean_sigma"
+
+        in_channels = 5 if self.five_channel else 3
+        self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation)
+        fusion_kwargs = None
+        if not self.five_channel:
+            fusion_kwargs = {
+                "num_hypotheses": 1 if self.mean_sigma_points else num_hypotheses,
+                "layer_order": tuple(fusion_layers),
+                "mode": fusion,
+                "cross_heads": cross_heads,
+                "self_heads": self_heads,
+            }
+        self.decoder = FusionDecoder(
+            self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
+            design_size,
+        )
+        self.distribution_encoder = None
+        if not self.five_channel:
+            self.distribution_encoder = DistributionEncoder(
+                point_dim=2 if self.mean_sigma_points else 1,
+                widths=self.decoder.fusion_dims[::-1],
+            )
+        if head == "bins":
+            self.head = BinsHead(head_channels, n_bins, head_channels, bin_norm)
+        elif head == "mvit":
+            half = (design_size[0] // 2, design_size[1] // 2)
+            self.head = MiniViTHead(
+                head_channels, n_bins, head_channels, norm=bin_norm,
+                design_tokens=(half[0] // 16, half[1] // 16),
+            )
+        else:
+            self.head = DirectDepthHead(head_channels, min_depth, max_depth)
+
+    def forward(
+        self,
+        image: torch.Tensor,
+        hypotheses: torch.Tensor,
+        zone_rects: torch.Tensor,
+        zone_valid: torch.Tensor,
+        zone_mean_sigma: torch.Tensor | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Estimate depth.
+
+        Args:
+            image: (B, 3, H, W) float RGB normalised with ImageNet mean/std; H and W
+                divisible by 32.
+            hypotheses: (B, Z, K) depth hypotheses per zone, metres (0 for invalid
+                zones); Z = n * n zones, row-major.
+            zone_rects: (B, Z, 4) float (y0, x0, y1, x1) zone rectangles in pixels of
+                ``image``; may run past the image; layouts may differ per sample.
+            zone_valid: (B, Z) bool.
+            zone_mean_sigma: optional (B, Z, 2) zone mean and sigma in metres, used by
+                the mean/sigma and five-channel variants; if None they are estimated
+                from ``hypotheses`` (their mean and standard deviation).
+
+        Returns:
+            dict with ``depth`` (B, 1, H/2, W/2) metres, ``bin_edges`` (B, N + 1)
+            metres and ``uncertainty`` (B, 1, H/2, W/2) metres.
+        """
+        grid = self.validate_inputs(image, hypotheses, zone_rects, zone_valid, zone_mean_sigma)
+        valid = zone_valid.bool()
+        if (self.mean_sigma_points or self.five_channel) and zone_mean_sigma is None:
+            zone_mean_sigma = torch.stack(
+                [hypotheses.mean(dim=2), hypotheses.std(dim=2, unbiased=False)], dim=-1
+            )
+        if self.five_channel:
+            maps = paint_zone_maps(zone_mean_sigma, zone_rects, valid, image.shape[-2:])
+            image = torch.cat([image, maps.to(image.dtype)], dim=1)
+        image_features = self.image_encoder(image)
+
+        zone_features = resamplers = None
+        if self.distribution_encoder is not None:
+            if self.mean_sigma_points:
+                points = (zone_mean_sigma * valid[..., None])[:, :, None, :]
+            else:
+                points = hypotheses[..., None]
+            # The encoder lists features fine to coarse; fusion runs coarse to fine.
+            zone_features = self.distribution_encoder(points.to(image.dtype))[::-1]
+            height, width = image.shape[-2:]
+            resamplers = []
+            for stride in FUSION_STRIDES:
+                window = zone_window(zone_rects, float(stride), grid)
+                size = (height // stride, width // stride)
+                resamplers.append(ZonePatchResampler(window, size, image.dtype))
+
+        features = self.decoder(image_features, zone_features, valid, resamplers)
+        if isinstance(self.head, DirectDepthHead):
+            depth, edges, uncertainty = self.head(features)
+        else:
+            widths, probabilities = self.head(features)
+            depth, edges, uncertainty = bins_to_depth(
+                widths, probabilities, self.min_depth, self.max_depth
+            )
+        return {"depth": depth, "bin_edges": edges, "uncertainty": uncertainty}
+
+    def validate_inputs(
+        self,
+        image: torch.Tensor,
+        hypotheses: torch.Tensor,
+        zone_rects: torch.Tensor,
+        zone_valid: torch.Tensor,
+        zone_mean_sigma: torch.Tensor | None = None,
+    ) -> int:
+        """Check shapes and values of the forward inputs; return the zone grid side n.
+
+        Raises:
+            ValueError: naming the offending argument.
+        """
+        if image.ndim != 4 or image.shape[1] != 3:
+            raise ValueError(f"image must be (B, 3, H, W), got {tuple(image.shape)}")
+        batch, _, height, width = image.shape
+        if height % SIZE_DIVISOR or width % SIZE_DIVISOR:
+            raise ValueError(
+                f"image height and width must be divisible by {SIZE_DIVISOR}, got {height}x{width}"
+            )
+        if not torch.isfinite(image).all():
+            raise ValueError("image contains NaN or infinite values")
+        if hypotheses.ndim != 3 or hypotheses.shape[0] != batch:
+            raise ValueError(
+                f"hypotheses must be (B={batch}, Z, K), got {tuple(hypotheses.shape)}"
+            )
+        zones = hypotheses.shape[1]
+        grid = math.isqrt(zones)
+        if zones == 0 or grid * grid != zones:
+            raise ValueError(f"hypotheses: zone count Z={zones} is not a square grid (16, 64)")
+        if not torch.isfinite(hypotheses).all() or (hypotheses < 0).any():
+            raise ValueError("hypotheses must be finite and non-negative (metres)")
+        if tuple(zone_rects.shape) != (batch, zones, 4):
+            raise ValueError(
+                f"zone_rects must be (B={batch}, Z={zones}, 4), got {tuple(zone_rects.shape)}"
+            )
+        if not torch.isfinite(zone_rects).all():
+            raise ValueError("zone_rects contains NaN or infinite values")
+        if ((zone_rects[..., 2] <= zone_rects[..., 0]) | (zone_rects[..., 3] <= zone_rects[..., 1])).any():
+            raise ValueError("zone_rects: every zone needs y1 > y0 and x1 > x0")
+        if tuple(zone_valid.shape) != (batch, zones):
+            raise ValueError(
+                f"zone_valid must be (B={batch}, Z={zones}), got {tuple(zone_valid.shape)}"
+            )
+        if zone_valid.dtype != torch.bool:
+            raise ValueError(f"zone_valid must be a bool tensor, got {zone_valid.dtype}")
+        if zone_mean_sigma is not None:
+            if tuple(zone_mean_sigma.shape) != (batch, zones, 2):
+                raise ValueError(
+                    f"zone_mean_sigma must be (B={batch}, Z={zones}, 2), "
+                    f"got {tuple(zone_mean_sigma.shape)}"
+                )
+            if not torch.isfinite(zone_mean_sigma).all() or (zone_mean_sigma < 0).any():
+                raise ValueError("zone_mean_sigma must be finite and non-negative (metres)")
+        return grid
+
+
+def paint_zone_maps(
+    zone_mean_sigma: torch.Tensor,
+    zone_rects: torch.Tensor,
+    zone_valid: torch.Tensor,
+    size: tuple[int, int],
+) -> torch.Tensor:
+    """Paint each valid zone's mean and sigma over the pixels whose centre it contains.
+
+    Args:
+        zone_mean_sigma: (B, Z, 2) metres.
+        zone_rects: (B, Z, 4) (y0, x0, y1, x1) pixels; pixel (i, j) belongs to a zone
+            when y0 <= i < y1 and x0 <= j < x1.
+        zone_valid: (B, Z) bool.
+        size: (H, W) of the output maps.
+
+    Returns:
+        (B, 2, H, W) float maps in metres (0 where no valid zone lies).
+    """
+    rows = torch.arange(size[0], device=zone_rects.device, dtype=zone_rects.dtype)
+    cols = torch.arange(size[1], device=zone_rects.device, dtype=zone_rects.dtype)
+    in_rows = (rows >= zone_rects[..., 0:1]) & (rows < zone_rects[..., 2:3])
+    in_cols = (cols >= zone_rects[..., 1:2]) & (cols < zone_rects[..., 3:4])
+    values = zone_mean_sigma * zone_valid[..., None]
+    return torch.einsum(
+        "bzh,bzw,bzc->bchw", in_rows.to(values.dtype), in_cols.to(values.dtype), values
+    )
+
+
+def _check_choice(name: str, value: str, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
