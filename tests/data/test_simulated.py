@@ -152,3 +152,13 @@ def test_bad_arguments():
         SimulatedL5Dataset(reader, zone_layout=np.zeros((5, 4)))
     with pytest.raises(ValueError, match="crop_size"):
         SimulatedL5Dataset(reader, image_augmentation=ImageAugmentation(crop_size=(32, 8)))[0]
+
+
+def test_batches_through_a_dataloader():
+    reader = ProceduralReader(4, seed=2, height=32, width=48)
+    ds = SimulatedL5Dataset(reader, zone_layout="training", training_grid=3,
+                            training_zone_px=8, num_hypotheses=4)
+    batch = next(iter(torch.utils.data.DataLoader(ds, batch_size=4)))
+    assert batch["image"].shape == (4, 3, 32, 48)
+    assert batch["hypotheses"].shape == (4, 9, 4)
+    assert batch["zone_valid"].dtype == torch.bool
