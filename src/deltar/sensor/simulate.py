@@ -127,10 +127,12 @@ def depth_bin_index(depth_m: torch.Tensor, config: SimulatorConfig) -> torch.Ten
     depth = depth_m.to(torch.float32)
     bins = config.num_bins
     max_range = float(np.float32(config.max_range_m))
-    # int32 keeps the clamp and where cheap; the last bin is closed like torch.histc's.
-    index = (depth * bins / max_range).to(torch.int32).clamp(max=bins - 1)
-    counted = (depth > 0) & (depth <= max_range)
-    return torch.where(counted, index, bins)
+    # (depth * bins) / max_range in float32, then truncation: torch.histc's arithmetic.
+    # int32 keeps the clamp cheap; the clamp closes the last bin like histc does.
+    index = (depth * bins).div_(max_range).to(torch.int32).clamp_(max=bins - 1)
+    not_counted = depth <= 0
+    not_counted |= depth > max_range
+    return index.masked_fill_(not_counted, bins)
 
 
 def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
@@ -154,20 +156,28 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     max_h, max_w = int(zone_h.max()), int(zone_w.max())
     if max_h == 0 or max_w == 0:  # every zone is outside the image
         return torch.zeros(batch, zones, bins, dtype=torch.float32)
-    # Each zone reads a (max_h, max_w) window from its top-left pixel; window pixels
-    # beyond the zone's own size go to an extra "discard" bin.
+    pixels = batch * height * width
+    # int32 indices keep the per-pixel work light; int64 only for huge batches.
+    index_dtype = torch.int32 if pixels + 2 * max_w < 2**31 else torch.int64
+    # Bin of every pixel, plus one trailing "not counted" entry that window pixels
+    # outside their zone are pointed at.
+    bin_image = depth_bin_index(depth_m, config).reshape(-1)
+    bin_image = torch.cat([bin_image, bin_image.new_full((1,), bins)])
+    # Each zone reads a (max_h, max_w) window from its top-left pixel: flat index =
+    # row term + column term, where rows / columns beyond the zone's own size get an
+    # offset of ``pixels`` so their sum lands at or past the trailing entry.
+    frame_start = (torch.arange(batch) * (height * width))[:, None]
     dy = torch.arange(max_h)
     dx = torch.arange(max_w)
-    rows = (y0[..., None] + dy).clamp(max=height - 1)  # (B, Z, max_h)
-    cols = (x0[..., None] + dx).clamp(max=width - 1)  # (B, Z, max_w)
-    inside = (dy < zone_h[..., None])[..., :, None] & (dx < zone_w[..., None])[..., None, :]
-    flat = rows[..., :, None] * width + cols[..., None, :]  # (B, Z, max_h, max_w)
-    values = torch.gather(depth_m.reshape(batch, -1), 1, flat.reshape(batch, -1))
-    bin_index = depth_bin_index(values.reshape(flat.shape), config)
-    bin_index = torch.where(inside, bin_index, bins)
+    row_term = frame_start[..., None] + (y0[..., None] + dy) * width  # (B, Z, max_h)
+    row_term = torch.where(dy < zone_h[..., None], row_term, pixels)
+    col_term = torch.where(dx < zone_w[..., None], x0[..., None] + dx, pixels)  # (B, Z, max_w)
+    flat = row_term.to(index_dtype)[..., :, None] + col_term.to(index_dtype)[..., None, :]
+    flat = flat.clamp_(max=pixels).reshape(-1)
+    zone_bins = bin_image.index_select(0, flat).reshape(batch * zones, -1)
     # One bincount over (frame, zone, bin) keys: each zone owns bins + 1 slots.
-    zone_offset = torch.arange(batch * zones, dtype=torch.int32).reshape(batch, zones, 1, 1)
-    keys = (bin_index + zone_offset * (bins + 1)).reshape(-1)
+    zone_offset = torch.arange(batch * zones, dtype=torch.int32)[:, None] * (bins + 1)
+    keys = zone_bins.add_(zone_offset).reshape(-1)
     counts = torch.bincount(keys, minlength=batch * zones * (bins + 1))
     return counts.reshape(batch, zones, bins + 1)[..., :bins].to(torch.float32)
 
@@ -218,9 +228,8 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
                          f"{depth.dtype} and shape {tuple(depth.shape)}")
     if depth.shape[-1] == 0 or depth.shape[-2] == 0:
         raise ValueError(f"depth_m is empty: shape {tuple(depth.shape)}")
-    # One reduction instead of an element-wise test: a NaN or inf anywhere makes the sum
-    # non-finite (and depth that large is an error anyway).
-    if not torch.isfinite(depth.to(torch.float64).sum()):
+    # A cheap sum first; the element-wise test only runs when the sum is not finite.
+    if not torch.isfinite(depth.sum()) and not torch.isfinite(depth).all():
         raise ValueError("depth_m has NaN or infinite values; mark invalid pixels with 0.0")
     if boxes.ndim not in (2, 3) or boxes.shape[-1] != 4 or boxes.shape[-2] == 0:
         raise ValueError(f"rects must have shape (B, Z, 4) or (Z, 4), got {tuple(boxes.shape)}")
