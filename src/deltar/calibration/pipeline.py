@@ -1,0 +1,160 @@
+"""End-to-end sensor-camera calibration of a recording (what ``deltar calibrate`` runs)."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.calibration.extrinsic import (
+    PlaneObservation,
+    depth_to_points,
+    mean_zone_to_cloud_distance,
+    observation_from_points,
+    solve_extrinsics,
+)
+from deltar.calibration.plane import fit_plane_to_zones
+from deltar.calibration.rig import RigCalibration
+from deltar.calibration.slam import Trajectory, world_to_camera
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
+from deltar.sensor.zone_frame import ZoneFrame
+
+
+@dataclass
+class CalibrationResult:
+    """What a calibration run produced.
+
+    Attributes:
+        calibration: the rig calibration (save it with ``calibration.save(path)``).
+        nominal: the starting guess.
+        observations: the plane frames used.
+        distance_before_m: mean zone-to-cloud distance with the nominal extrinsics.
+        distance_after_m: the same with the calibrated extrinsics.
+        skipped: (frame name, reason) of frames that could not be used.
+    """
+
+    calibration: RigCalibration
+    nominal: SensorExtrinsics
+    observations: list[PlaneObservation]
+    distance_before_m: float
+    distance_after_m: float
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+
+def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
+                           nominal: SensorExtrinsics, *,
+                           fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
+                           visible_only: bool = False, name: str = "") -> PlaneObservation:
+    """Fit the frame's plane (sensor frame) and find it in the camera-frame cloud.
+
+    Args:
+        frame: the zone frame (means are z-depth in metres).
+        cloud_cam_m: (N, 3) scene points in the camera frame, metres.
+        nominal: nominal sensor-to-camera transform.
+        fov_deg: sensor field of view in degrees.
+        visible_only: drop occluded cloud points (SLAM maps).
+        name: label for error messages.
+
+    Raises:
+        ValueError: the frame has no usable plane (the message says why).
+    """
+    try:
+        plane = fit_plane_to_zones(frame, fov_deg=fov_deg)
+    except ValueError as err:
+        raise ValueError(f"frame {name}: {err}") from err
+    mean, _, _ = frame.flat()
+    return observation_from_points(plane, mean, cloud_cam_m, nominal, fov_deg=fov_deg,
+                                   visible_only=visible_only, name=name)
+
+
+def calibrate_observations(
+    observations: Sequence[PlaneObservation],
+    nominal: SensorExtrinsics,
+    intrinsics: CameraIntrinsics,
+    *,
+    grid: int = 8,
+    fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
+    sensor_model: str = "VL53L5CX",
+    skipped: Sequence[tuple[str, str]] = (),
+) -> CalibrationResult:
+    """Solve the extrinsics from plane observations and package the result.
+
+    Raises:
+        ValueError: too few or degenerate planes (the message says what to record).
+    """
+    solved = solve_extrinsics(observations, nominal)
+    before = mean_zone_to_cloud_distance(observations, nominal)
+    after = mean_zone_to_cloud_distance(observations, solved.extrinsics)
+    residuals = {"zone_to_cloud_before_m": before, "zone_to_cloud_after_m": after,
+                 "point_to_plane_rms_m": solved.rms_point_to_plane_m,
+                 "frames_used": float(len(observations))}
+    calibration = RigCalibration(intrinsics=intrinsics, extrinsics=solved.extrinsics,
+                                 grid=grid, fov_deg=fov_deg, sensor_model=sensor_model,
+                                 residuals=residuals)
+    return CalibrationResult(calibration, nominal, list(observations), before, after,
+                             list(skipped))
+
+
+def calibrate_recording(
+    recording,
+    nominal: SensorExtrinsics,
+    *,
+    tolerance_s: float = 0.02,
+    fov_deg: tuple[float, float] | None = None,
+    trajectory: Trajectory | None = None,
+    slam_points_world: np.ndarray | None = None,
+    depth_stride: int = 4,
+) -> CalibrationResult:
+    """Calibrate from a ``deltar.io.recording.Recording``.
+
+    Camera-frame points come from the recording's depth images, or, when
+    ``trajectory`` and ``slam_points_world`` are given, from the SLAM map seen from the
+    camera pose at each zone frame's time.
+
+    Args:
+        recording: the recording (``Recording``).
+        nominal: nominal sensor-to-camera transform.
+        tolerance_s: pairing tolerance between zone frames and images, seconds.
+        fov_deg: sensor field of view in degrees (default: the recording's).
+        trajectory: camera-to-world poses (SLAM), optional.
+        slam_points_world: (N, 3) SLAM map in the world frame, with ``trajectory``.
+        depth_stride: use every n-th depth pixel per row and column.
+
+    Returns:
+        ``CalibrationResult``; frames without a usable plane are listed in ``skipped``.
+    """
+    meta = recording.meta
+    fov = tuple(fov_deg) if fov_deg is not None else tuple(meta.fov_deg)
+    use_slam = trajectory is not None
+    if use_slam != (slam_points_world is not None):
+        raise ValueError("give both the SLAM point cloud and the trajectory, or neither")
+    observations, skipped = [], []
+    if use_slam:
+        items = [(f, None) for f in recording.zone_frames()]
+    else:
+        items = [(p.zone_frame, p) for p in recording.pairs(tolerance_s)]
+    for frame, pair in items:
+        name = f"t={frame.timestamp_s:.3f}s"
+        try:
+            if use_slam:
+                pose = trajectory.pose_at(frame.timestamp_s, max_gap_s=max(tolerance_s, 0.1))
+                if pose is None:
+                    raise ValueError(f"frame {name}: no camera pose near this time")
+                cloud = world_to_camera(slam_points_world, pose)
+            else:
+                if pair.depth_path is None:
+                    raise ValueError(f"frame {name}: no depth image within {tolerance_s} s")
+                cloud = depth_to_points(pair.load_depth(), meta.intrinsics, depth_stride)
+            observations.append(observation_from_frame(
+                frame, cloud, nominal, fov_deg=fov, visible_only=use_slam, name=name))
+        except ValueError as err:
+            skipped.append((name, str(err)))
+    if skipped:
+        warnings.warn(f"{len(skipped)} of {len(items)} frames had no usable plane; first: "
+                      f"{skipped[0][1]}", stacklevel=2)
+    return calibrate_observations(observations, nominal, meta.intrinsics, grid=meta.grid,
+                                  fov_deg=fov, sensor_model=meta.sensor_model,
+                                  skipped=skipped)

@@ -1,0 +1,168 @@
+"""The rig calibration file: camera intrinsics + ToF sensor model + sensor-to-camera pose.
+
+JSON layout (``schema_version`` 1)::
+
+    {"schema": "deltar.rig_calibration", "schema_version": 1, "date": "2026-...Z",
+     "intrinsics": {"fx": .., "fy": .., "cx": .., "cy": .., "width": .., "height": ..},
+     "sensor_model": "VL53L5CX", "grid": 8, "fov_deg": [45.0, 45.0],
+     "extrinsics": {"rotation": [[...], [...], [...]], "translation_m": [x, y, z]},
+     "residuals": {"zone_to_cloud_before_m": .., "zone_to_cloud_after_m": .., ...}}
+
+``extrinsics`` maps sensor to camera coordinates: ``p_cam = R @ p_sensor + t`` (metres).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.io.atomic import write_text_atomic
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects
+from deltar.sensor.zone_frame import ZoneFrame
+
+RIG_SCHEMA_NAME = "deltar.rig_calibration"
+RIG_SCHEMA_VERSION = 1
+#: Distance (metres) used to place zones that carry no measurement.
+FALLBACK_ZONE_DEPTH_M = 2.0
+
+
+@dataclass(frozen=True)
+class RigCalibration:
+    """Everything needed to place the sensor's zones in the camera image.
+
+    Attributes:
+        intrinsics: colour camera intrinsics (pixels) at the calibrated resolution.
+        extrinsics: sensor-to-camera transform (metres).
+        grid: zones per side (4 or 8).
+        fov_deg: (horizontal, vertical) sensor field of view in degrees.
+        sensor_model: e.g. ``"VL53L5CX"``.
+        residuals: fit quality numbers (metres), e.g. zone-to-cloud distances.
+        date: ISO 8601 UTC time of the calibration.
+        schema_version: file schema version.
+    """
+
+    intrinsics: CameraIntrinsics
+    extrinsics: SensorExtrinsics
+    grid: int = 8
+    fov_deg: tuple[float, float] = DEFAULT_FOV_DEG
+    sensor_model: str = "VL53L5CX"
+    residuals: dict = field(default_factory=dict)
+    date: str = ""
+    schema_version: int = RIG_SCHEMA_VERSION
+
+    def __post_init__(self) -> None:
+        if self.grid not in (4, 8):
+            raise ValueError(f"RigCalibration.grid must be 4 or 8, got {self.grid}")
+        fov = tuple(float(f) for f in self.fov_deg)
+        if len(fov) != 2 or not all(0 < f < 180 for f in fov):
+            raise ValueError(f"RigCalibration.fov_deg must be two angles in (0, 180), "
+                             f"got {self.fov_deg}")
+        object.__setattr__(self, "fov_deg", fov)
+        if not self.date:
+            object.__setattr__(self, "date", datetime.now(timezone.utc).isoformat(
+                timespec="seconds"))
+
+    # ------------------------------------------------------------------ zones in the image
+    def zone_rects_for(self, frame_or_depths: ZoneFrame | np.ndarray | float,
+                       image_size: tuple[int, int]) -> np.ndarray:
+        """Zone rectangles in the image, placed with each zone's measured distance.
+
+        Args:
+            frame_or_depths: a ``ZoneFrame`` (valid zones use their mean; invalid ones the
+                median of the valid means, or 2 m), a (Z,) array of distances in metres,
+                or one distance for all zones.
+            image_size: (height, width) of the image the rectangles are for; must be the
+                calibrated resolution.
+
+        Returns:
+            (Z, 4) float32 rectangles (y0, x0, y1, x1) in pixels, in the frame's zone order.
+
+        Raises:
+            ValueError: image size differs from the calibration's, or bad distances.
+        """
+        height, width = (int(s) for s in image_size)
+        if (height, width) != (self.intrinsics.height, self.intrinsics.width):
+            raise ValueError(f"image_size {height}x{width} does not match the calibrated "
+                             f"resolution {self.intrinsics.height}x{self.intrinsics.width}; "
+                             "resize the image or recalibrate")
+        zones = self.grid * self.grid
+        if isinstance(frame_or_depths, ZoneFrame):
+            if frame_or_depths.grid != self.grid:
+                raise ValueError(f"frame has a {frame_or_depths.grid}x{frame_or_depths.grid} "
+                                 f"grid, calibration is for {self.grid}x{self.grid}")
+            mean, _, valid = frame_or_depths.flat()
+            fill = float(np.median(mean[valid])) if valid.any() else FALLBACK_ZONE_DEPTH_M
+            depths = np.where(valid & (mean > 0), mean, fill).astype(np.float64)
+        else:
+            depths = np.broadcast_to(np.asarray(frame_or_depths, dtype=np.float64),
+                                     (zones,)).copy()
+        return zone_rects(self.intrinsics, self.grid, fov_deg=self.fov_deg,
+                          extrinsics=self.extrinsics, depth_m=depths)
+
+    # ------------------------------------------------------------------ files
+    def to_dict(self) -> dict:
+        return {
+            "schema": RIG_SCHEMA_NAME,
+            "schema_version": self.schema_version,
+            "date": self.date,
+            "intrinsics": self.intrinsics.to_dict(),
+            "sensor_model": self.sensor_model,
+            "grid": self.grid,
+            "fov_deg": list(self.fov_deg),
+            "extrinsics": {"rotation": self.extrinsics.rotation.tolist(),
+                           "translation_m": self.extrinsics.translation_m.tolist()},
+            "residuals": {k: float(v) for k, v in self.residuals.items()},
+        }
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the calibration atomically as JSON (refuses to overwrite by default)."""
+        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2,
+                                                  allow_nan=False) + "\n",
+                                 overwrite=overwrite)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "calibration") -> RigCalibration:
+        """Build from the JSON dict, validating every field (errors name ``source``)."""
+        if not isinstance(data, dict) or data.get("schema") != RIG_SCHEMA_NAME:
+            raise ValueError(f"{source}: not a deltar rig calibration (schema "
+                             f"{data.get('schema') if isinstance(data, dict) else None!r})")
+        if data.get("schema_version") != RIG_SCHEMA_VERSION:
+            raise ValueError(f"{source}: unsupported schema_version "
+                             f"{data.get('schema_version')!r}")
+        try:
+            extr = data["extrinsics"]
+            residuals = {str(k): float(v) for k, v in data.get("residuals", {}).items()}
+            if not all(math.isfinite(v) for v in residuals.values()):
+                raise ValueError("residuals must be finite")
+            return cls(
+                intrinsics=CameraIntrinsics.from_dict(data["intrinsics"]),
+                extrinsics=SensorExtrinsics(np.asarray(extr["rotation"], dtype=np.float64),
+                                            np.asarray(extr["translation_m"],
+                                                       dtype=np.float64)),
+                grid=int(data["grid"]),
+                fov_deg=tuple(float(f) for f in data["fov_deg"]),  # type: ignore[arg-type]
+                sensor_model=str(data.get("sensor_model", "VL53L5CX")),
+                residuals=residuals,
+                date=str(data.get("date", "")),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"{source}: invalid calibration: {err}") from err
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> RigCalibration:
+        """Read and validate a calibration JSON file."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"calibration file not found: {path}")
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"{path}: corrupt JSON: {err}") from err
+        return cls.from_dict(data, str(path))
