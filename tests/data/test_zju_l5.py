@@ -58,9 +58,11 @@ def test_reads_release_layout_and_cleans_invalid_depth(tmp_path, rng):
     depth[0, 0], depth[1, 1] = np.nan, -1.0
     mask = np.ones(64, bool)
     mask[5] = False
+    hist = np.full((64, 2), 1.5)
+    hist[5] = (np.nan, 2.0)  # a masked zone with stale values
     _write_release_file(tmp_path / "scene" / "0.h5", rng.integers(0, 256, (480, 640, 3),
                                                                    dtype=np.uint8),
-                        depth, np.full((64, 2), 1.5), np.zeros((64, 4)), mask)
+                        depth, hist, np.zeros((64, 4)), mask)
     (tmp_path / "data.json").write_text(json.dumps({"test": [{"filename": "scene/0.h5"}]}))
     sample = ZJUL5Dataset(tmp_path)[0]
     assert sample.name == "scene/0"
@@ -68,6 +70,8 @@ def test_reads_release_layout_and_cleans_invalid_depth(tmp_path, rng):
     assert sample.depth_m[0, 0] == 0.0 and sample.depth_m[1, 1] == 0.0
     assert sample.depth_m[2, 2] == pytest.approx(depth[2, 2])
     assert not sample.zone_valid[5] and sample.zone_valid.sum() == 63
+    assert sample.zone_mean_sigma[5].tolist() == [0.0, 0.0]
+    assert sample.zone_mean_sigma[6].tolist() == [1.5, 1.5]
     # Release files carry no intrinsics: the paper's ZJU-L5 camera is filled in.
     assert sample.intrinsics == ZJU_L5_INTRINSICS
 

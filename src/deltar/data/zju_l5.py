@@ -126,8 +126,11 @@ def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | N
     elif intrinsics is not None and rgb.ndim == 3 and (
             (intrinsics.height, intrinsics.width) != rgb.shape[:2]):
         intrinsics = intrinsics.scaled(rgb.shape[0], rgb.shape[1])
-    mean_sigma = np.asarray(arrays["hist_data"], dtype=np.float32)
+    mean_sigma = np.array(arrays["hist_data"], dtype=np.float32)
     valid = np.asarray(arrays["mask"]).astype(bool).reshape(-1)
+    if mean_sigma.ndim == 2 and mean_sigma.shape[0] == valid.shape[0]:
+        # Released files may keep stale values in masked zones; the convention is 0.0.
+        mean_sigma[~valid] = 0.0
     try:
         return ZJUL5Sample(rgb=rgb, depth_m=depth, zone_mean_sigma=mean_sigma,
                            zone_rects=np.asarray(arrays["fr"], dtype=np.float32),
