@@ -1,0 +1,98 @@
+"""The rig calibration file and zone placement in the image."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.calibration.extrinsic import nominal_extrinsics
+from deltar.calibration.rig import RigCalibration
+from deltar.sensor.geometry import SensorExtrinsics
+from deltar.sensor.zone_frame import ZoneFrame
+
+CAMERA = CameraIntrinsics(500.0, 480.0, 319.5, 239.5, 640, 480)
+
+
+def _calib(**kw) -> RigCalibration:
+    return RigCalibration(CAMERA, nominal_extrinsics(90.0, (0.02, -0.01, 0.0)),
+                          residuals={"zone_to_cloud_after_m": 0.015}, **kw)
+
+
+def test_round_trip(tmp_path):
+    calib = _calib(fov_deg=(44.0, 46.0))
+    path = calib.save(tmp_path / "calib.json")
+    back = RigCalibration.load(path)
+    assert back.intrinsics == CAMERA
+    np.testing.assert_allclose(back.extrinsics.rotation, calib.extrinsics.rotation)
+    np.testing.assert_allclose(back.extrinsics.translation_m, [0.02, -0.01, 0.0])
+    assert back.fov_deg == (44.0, 46.0) and back.grid == 8
+    assert back.residuals == {"zone_to_cloud_after_m": 0.015}
+    assert back.date == calib.date and back.date.startswith("20")
+    with pytest.raises(FileExistsError):
+        calib.save(path)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda d: d["extrinsics"].update(rotation=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]),
+         "rotation"),
+        (lambda d: d.update(grid=5), "grid"),
+        (lambda d: d.update(schema_version=7), "schema_version"),
+        (lambda d: d.pop("intrinsics"), "intrinsics"),
+        (lambda d: d.update(schema="something else"), "not a deltar rig calibration"),
+    ],
+)
+def test_invalid_files_name_the_file(tmp_path, edit, message):
+    data = json.loads(_calib().save(tmp_path / "ok.json").read_text())
+    edit(data)
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=message) as info:
+        RigCalibration.load(tmp_path / "bad.json")
+    assert "bad.json" in str(info.value)
+
+
+def test_missing_and_corrupt_files(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        RigCalibration.load(tmp_path / "none.json")
+    (tmp_path / "cut.json").write_text('{"schema": ')
+    with pytest.raises(ValueError, match="corrupt JSON"):
+        RigCalibration.load(tmp_path / "cut.json")
+
+
+def test_zone_rects_without_offset_are_the_projected_angles():
+    calib = RigCalibration(CAMERA, SensorExtrinsics(), grid=4)
+    rects = calib.zone_rects_for(1.5, (480, 640))
+    # Zone 0 spans -22.5..-11.25 deg in both axes; zone 15 ends at +22.5 deg.
+    t0, t1 = np.tan(np.radians(-22.5)), np.tan(np.radians(-11.25))
+    np.testing.assert_allclose(rects[0], [480 * t0 + 239.5, 500 * t0 + 319.5,
+                                          480 * t1 + 239.5, 500 * t1 + 319.5], atol=1e-3)
+    np.testing.assert_allclose(rects[15, 2:], [480 * -t0 + 239.5, 500 * -t0 + 319.5],
+                               atol=1e-3)
+
+
+def test_zone_rects_from_a_frame_use_each_zone_depth():
+    calib = _calib()
+    mean = np.linspace(0.5, 3.0, 64)
+    valid = np.ones(64, bool)
+    valid[10] = False
+    frame = ZoneFrame(np.where(valid, mean, 0), np.full(64, 0.01) * valid, valid)
+    rects = calib.zone_rects_for(frame, (480, 640))
+    depths = np.where(valid, mean, np.median(mean[valid]))
+    np.testing.assert_allclose(rects, calib.zone_rects_for(depths, (480, 640)), atol=1e-3)
+    # With a 2 cm offset, parallax moves near zones more than far ones.
+    near = calib.zone_rects_for(0.5, (480, 640))
+    far = calib.zone_rects_for(3.0, (480, 640))
+    assert np.all(np.abs(near[:, 1] - far[:, 1]) > 1.0)
+
+
+def test_zone_rects_reject_another_resolution_or_grid():
+    calib = _calib()
+    with pytest.raises(ValueError, match="does not match the calibrated resolution 480x640"):
+        calib.zone_rects_for(2.0, (240, 320))
+    frame16 = ZoneFrame(np.ones(16), np.zeros(16), np.ones(16, bool))
+    with pytest.raises(ValueError, match="grid"):
+        calib.zone_rects_for(frame16, (480, 640))
