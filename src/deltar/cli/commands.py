@@ -4,3 +4,6 @@ Command modules import heavy dependencies (torch, timm) inside the command funct
 so ``deltar --help`` stays fast.
 """
 import deltar.cli.simulate  # noqa: F401
+from deltar.cli import evaluate  # noqa: F401
+from deltar.cli import calibrate  # noqa: F401
+from deltar.cli import demo  # noqa: F401
