@@ -10,6 +10,7 @@ time per frame and the speed-up.
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -40,15 +41,22 @@ def load_depth() -> tuple[np.ndarray, str]:
     return (0.8 + 2.5 * cols / 640 + 0.3 * np.sin(rows / 30)).astype(np.float32), "synthetic"
 
 
-def best_time(fn, repeats: int) -> float:
-    """Best wall time of ``repeats`` runs in seconds (after one warm-up run)."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
+def interleaved_times(fns: dict, repeats: int) -> dict:
+    """Best and median CPU time of this process in seconds for each function.
+
+    CPU time (not wall time) so that other processes on a shared machine do not count;
+    with one torch thread it is the compute time. The functions run in turn within
+    every repeat so that cache and frequency effects hit them alike; one warm-up each.
+    """
+    for fn in fns.values():
         fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
+    times = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.process_time()
+            fn()
+            times[name].append(time.process_time() - start)
+    return {name: (min(t), statistics.median(t)) for name, t in times.items()}
 
 
 def main() -> None:
@@ -65,7 +73,7 @@ def main() -> None:
         "calibrated 8x8 (ZJU intrinsics, ~63 px, past the image)": zone_rects(ZJU_L5_INTRINSICS),
     }
     print(f"depth: {source} ({depth.shape[0]}x{depth.shape[1]}), torch threads: "
-          f"{args.threads}, repeats: {args.repeats} (best time)")
+          f"{args.threads}, repeats: {args.repeats}, process CPU time")
     for name, rects in layouts.items():
         out = simulate_zones(torch.from_numpy(depth), torch.from_numpy(rects))
         mean, sigma, valid, hist = simulate_zones_loop(depth, rects)
@@ -76,22 +84,23 @@ def main() -> None:
         if not agree:
             raise SystemExit(f"{name}: vectorised and loop results differ")
 
-        loop_s = best_time(lambda rects=rects: simulate_zones_loop(depth, rects), args.repeats)
-        vec_s = best_time(lambda rects=rects: simulate_zones(torch.from_numpy(depth),
-                                                             torch.from_numpy(rects)),
-                          args.repeats)
         batch = torch.from_numpy(np.repeat(depth[None], args.batch, axis=0))
-        batch_repeats = max(1, args.repeats // 4)
-        vec_batch_s = best_time(
-            lambda rects=rects, batch=batch: simulate_zones(batch, torch.from_numpy(rects)),
-            batch_repeats) / args.batch
+        single = torch.from_numpy(depth)
+        boxes = torch.from_numpy(rects)
+        times = interleaved_times({
+            "loop": lambda rects=rects: simulate_zones_loop(depth, rects),
+            "single": lambda boxes=boxes, single=single: simulate_zones(single, boxes),
+            "batch": lambda boxes=boxes, batch=batch: simulate_zones(batch, boxes),
+        }, args.repeats)
+        loop_best, loop_median = times["loop"]
         print(f"\n{name}: {int(valid.sum())}/64 valid zones, results agree")
-        print(f"  per-zone loop          {loop_s * 1e3:8.2f} ms / frame")
-        print(f"  vectorised, 1 frame    {vec_s * 1e3:8.2f} ms / frame   "
-              f"speed-up x{loop_s / vec_s:.1f}")
-        print(f"  vectorised, batch {args.batch:<3d}  {vec_batch_s * 1e3:8.2f} ms / frame   "
-              f"speed-up x{loop_s / vec_batch_s:.1f}")
-
+        print("  ms per frame (best / median)       speed-up vs loop (best / median)")
+        print(f"  per-zone loop          {loop_best * 1e3:7.2f} / {loop_median * 1e3:7.2f}")
+        for label, key, frames in (("vectorised, 1 frame", "single", 1),
+                                   (f"vectorised, batch {args.batch}", "batch", args.batch)):
+            best, median = (t / frames for t in times[key])
+            print(f"  {label:<22} {best * 1e3:7.2f} / {median * 1e3:7.2f}       "
+                  f"x{loop_best / best:.1f} / x{loop_median / median:.1f}")
 
 if __name__ == "__main__":
     main()
