@@ -114,7 +114,7 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     if raw.ndim != 2:
         raise ValueError(f"depth image {path} must be single-channel, got shape {raw.shape}")
     invalid = ~np.isfinite(raw) if raw.dtype.kind == "f" else np.zeros(raw.shape, bool)
-    if raw.dtype == np.uint16:
+    if raw.dtype.kind in "iu":  # Pillow may decode 16-bit PNGs as uint16 or int32
         invalid |= raw == _SATURATED_U16
     depth = np.where(invalid, 0.0, raw.astype(np.float64) / depth_scale)
     depth[depth < 0] = 0.0
