@@ -307,8 +307,8 @@ def observation_from_points(
     if seen.shape[0] < min_points:
         raise ValueError(f"frame {name}: only {seen.shape[0]} scene points in the sensor's "
                          "view; is the depth or SLAM map covering the sensor's field of view?")
-    if seen.shape[0] > 20000:  # RANSAC scoring cost grows with the point count
-        seen = seen[np.random.default_rng(seed).choice(seen.shape[0], 20000, replace=False)]
+    if seen.shape[0] > 5000:  # RANSAC scoring cost grows with the point count
+        seen = seen[np.random.default_rng(seed).choice(seen.shape[0], 5000, replace=False)]
     hint = nominal.rotation @ plane.normal
     try:
         _, _, inliers = ransac_plane(seen, threshold_m, normal_hint=hint,

@@ -126,11 +126,11 @@ def calibrate_recording(
     Returns:
         ``CalibrationResult``; frames without a usable plane are listed in ``skipped``.
     """
-    meta = recording.meta
-    fov = tuple(fov_deg) if fov_deg is not None else tuple(meta.fov_deg)
     use_slam = trajectory is not None
     if use_slam != (slam_points_world is not None):
         raise ValueError("give both the SLAM point cloud and the trajectory, or neither")
+    meta = recording.meta
+    fov = tuple(fov_deg) if fov_deg is not None else tuple(meta.fov_deg)
     observations, skipped = [], []
     if use_slam:
         items = [(f, None) for f in recording.zone_frames()]
