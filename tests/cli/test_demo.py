@@ -1,0 +1,30 @@
+"""``deltar demo`` end to end on one small generated scene."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from deltar.cli.main import _register_commands, app
+
+METRIC_KEYS = {"d1", "d2", "d3", "rel", "sq_rel", "rmse", "rmse_log", "log10", "silog"}
+
+
+def test_demo_writes_scenes_panels_and_metrics(tmp_path):
+    _register_commands()
+    out = tmp_path / "demo"
+    result = CliRunner().invoke(app, ["demo", str(out), "--frames", "1", "--size", "96x128"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {"nearest", "bilinear", "guided_filter", "colorization"} <= set(metrics)
+    for values in metrics.values():
+        assert set(values) == METRIC_KEYS
+        assert 0.0 <= values["d1"] <= 1.0 and values["rmse"] > 0
+    panels = sorted((out / "panels").rglob("*.png"))
+    assert len(panels) == len(metrics)
+    # A second run into the same folder must not overwrite the first.
+    again = CliRunner().invoke(app, ["demo", str(out), "--frames", "1", "--size", "96x128"],
+                               env={"COLUMNS": "300"})
+    assert again.exit_code != 0
+    assert "already holds a demo" in again.output
