@@ -1,4 +1,4 @@
-"""Image augmentation: rotation geometry, photometric ranges, seeding; open_source."""
+"""Image augmentation: rotation geometry, photometric ranges, seeding."""
 
 from __future__ import annotations
 
@@ -6,8 +6,6 @@ import numpy as np
 import pytest
 
 from deltar.calibration.camera import CameraIntrinsics
-from deltar.data.procedural import ProceduralReader
-from deltar.data.sources import open_source
 from deltar.data.transforms import ImageAugmentation, flip_intrinsics
 
 INTR = CameraIntrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
@@ -70,12 +68,3 @@ def test_bad_augmentation_settings():
     with pytest.raises(ValueError, match="flip_prob"):
         ImageAugmentation(flip_prob=1.5)
 
-
-def test_open_source_kinds(shared_data, tmp_path):
-    assert isinstance(open_source("procedural:2:1:16x24"), ProceduralReader)
-    assert len(open_source(shared_data / "7scenes_redkitchen")) == 500
-    with pytest.raises(FileNotFoundError):
-        open_source(tmp_path / "absent")
-    (tmp_path / "notes.txt").write_text("x")
-    with pytest.raises(ValueError, match="cannot tell"):
-        open_source(tmp_path / "notes.txt")

@@ -179,8 +179,17 @@ def _check_intrinsics(intrinsics: CameraIntrinsics, height: int, width: int,
     return intrinsics
 
 
-class _PairReader(Sequence):
-    """A list of (name, colour path, depth path, timestamp) decoded on indexing."""
+class RGBDReader(Sequence):
+    """Base of the folder readers: frames listed as file pairs, decoded on indexing.
+
+    Args:
+        pairs: (name, colour path, depth path, timestamp in seconds or None) per frame.
+        depth_scale: raw depth units per metre.
+        source: the dataset folder (for messages).
+
+    Attributes:
+        intrinsics: camera intrinsics shared by all frames (set by subclasses).
+    """
 
     def __init__(self, pairs: list[tuple[str, Path, Path, float | None]], depth_scale: float,
                  source: Path) -> None:
@@ -200,6 +209,7 @@ class _PairReader(Sequence):
 
     @property
     def names(self) -> list[str]:
+        """Frame names in reading order."""
         return [p[0] for p in self._pairs]
 
     def __len__(self) -> int:
@@ -226,7 +236,7 @@ class _PairReader(Sequence):
 _SEVEN_SCENES_COLOR = re.compile(r"^(frame-\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
 
 
-class SevenScenesReader(_PairReader):
+class SevenScenesReader(RGBDReader):
     """7-Scenes / 3DMatch layout: ``frame-NNNNNN.color.(jpg|png)``, ``frame-NNNNNN.depth.png``.
 
     Depth is in millimetres; ``camera-intrinsics.txt`` (3x3 matrix) in the folder gives the
@@ -294,7 +304,7 @@ def _associate(rgb: list[tuple[float, str]], depth: list[tuple[float, str]],
     return out
 
 
-class TUMReader(_PairReader):
+class TUMReader(RGBDReader):
     """TUM RGB-D layout: an associations file ``t_rgb rgb/x.png t_depth depth/y.png``.
 
     Without ``associations.txt`` the TUM lists ``rgb.txt`` and ``depth.txt`` are paired by
@@ -353,7 +363,7 @@ def _stem_map(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
             if p.is_file() and p.suffix.lower() in suffixes}
 
 
-class FolderReader(_PairReader):
+class FolderReader(RGBDReader):
     """Two folders of images paired by file stem (``color/00012.jpg`` + ``depth/00012.png``).
 
     Args:
@@ -423,7 +433,7 @@ def _read_sidecar(root: Path) -> dict:
 
 
 def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float | None = None,
-              intrinsics: CameraIntrinsics | None = None) -> _PairReader:
+              intrinsics: CameraIntrinsics | None = None) -> RGBDReader:
     """Open an RGB-D folder with the right reader and its depth scale and intrinsics.
 
     Settings come from, in order: keyword arguments, the folder's ``deltar_rgbd.json``, then
