@@ -154,21 +154,24 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     y0, x0, y1, x1 = bounds.unbind(-1)
     zone_h, zone_w = y1 - y0, x1 - x0
     max_h, max_w = int(zone_h.max()), int(zone_w.max())
+    device = depth_m.device
     if max_h == 0 or max_w == 0:  # every zone is outside the image
-        return torch.zeros(batch, zones, bins, dtype=torch.float32)
+        return torch.zeros(batch, zones, bins, dtype=torch.float32, device=device)
     pixels = batch * height * width
-    # int32 indices keep the per-pixel work light; int64 only for huge batches.
-    index_dtype = torch.int32 if pixels + 2 * max_w < 2**31 else torch.int64
+    # int32 indices keep the per-pixel work light; int64 only for huge batches (indices
+    # below reach 2 * pixels, keys batch * zones * (bins + 1)).
+    small = max(2 * pixels, batch * zones * (bins + 1)) < 2**31
+    index_dtype = torch.int32 if small else torch.int64
     # Bin of every pixel, plus one trailing "not counted" entry that window pixels
     # outside their zone are pointed at.
-    bin_image = depth_bin_index(depth_m, config).reshape(-1)
+    bin_image = depth_bin_index(depth_m, config).reshape(-1).to(index_dtype)
     bin_image = torch.cat([bin_image, bin_image.new_full((1,), bins)])
     # Each zone reads a (max_h, max_w) window from its top-left pixel: flat index =
     # row term + column term, where rows / columns beyond the zone's own size get an
     # offset of ``pixels`` so their sum lands at or past the trailing entry.
-    frame_start = (torch.arange(batch) * (height * width))[:, None]
-    dy = torch.arange(max_h)
-    dx = torch.arange(max_w)
+    frame_start = (torch.arange(batch, device=device) * (height * width))[:, None]
+    dy = torch.arange(max_h, device=device)
+    dx = torch.arange(max_w, device=device)
     row_term = frame_start[..., None] + (y0[..., None] + dy) * width  # (B, Z, max_h)
     row_term = torch.where(dy < zone_h[..., None], row_term, pixels)
     col_term = torch.where(dx < zone_w[..., None], x0[..., None] + dx, pixels)  # (B, Z, max_w)
@@ -176,7 +179,8 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     flat = flat.clamp_(max=pixels).reshape(-1)
     zone_bins = bin_image.index_select(0, flat).reshape(batch * zones, -1)
     # One bincount over (frame, zone, bin) keys: each zone owns bins + 1 slots.
-    zone_offset = torch.arange(batch * zones, dtype=torch.int32)[:, None] * (bins + 1)
+    zone_offset = torch.arange(batch * zones, dtype=index_dtype, device=device)[:, None]
+    zone_offset *= bins + 1
     keys = zone_bins.add_(zone_offset).reshape(-1)
     counts = torch.bincount(keys, minlength=batch * zones * (bins + 1))
     return counts.reshape(batch, zones, bins + 1)[..., :bins].to(torch.float32)
@@ -196,7 +200,8 @@ def strongest_cluster(counts: torch.Tensor) -> torch.Tensor:
     previous = torch.nn.functional.pad(nonzero[..., :-1], (1, 0), value=False)
     run_start = nonzero & ~previous
     run_id = torch.cumsum(run_start.to(torch.int64), dim=-1) * nonzero  # 0 = empty bin
-    run_sum = torch.zeros(*counts.shape[:-1], counts.shape[-1] + 1, dtype=torch.float64)
+    run_sum = torch.zeros(*counts.shape[:-1], counts.shape[-1] + 1, dtype=torch.float64,
+                          device=counts.device)
     run_sum.scatter_add_(-1, run_id, counts.to(torch.float64))
     run_sum[..., 0] = -1.0  # the empty bins never win
     best = torch.argmax(run_sum, dim=-1, keepdim=True)  # first maximum on ties
@@ -215,7 +220,8 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
         config: simulator parameters; ``SimulatorConfig()`` when None.
 
     Returns:
-        ``SimulatedZones`` with (B, Z) tensors, or (Z,) for an unbatched ``depth_m``.
+        ``SimulatedZones`` with (B, Z) tensors, or (Z,) for an unbatched ``depth_m``, on
+        ``depth_m``'s device.
 
     Raises:
         ValueError: wrong shapes, batch sizes that do not match, NaN or infinite values.
@@ -226,8 +232,9 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
     if depth.ndim not in (2, 3) or not depth.is_floating_point():
         raise ValueError(f"depth_m must be a float (B, H, W) or (H, W) map, got dtype "
                          f"{depth.dtype} and shape {tuple(depth.shape)}")
-    if depth.shape[-1] == 0 or depth.shape[-2] == 0:
+    if depth.numel() == 0:
         raise ValueError(f"depth_m is empty: shape {tuple(depth.shape)}")
+    depth = depth.to(torch.float32)
     # A cheap sum first; the element-wise test only runs when the sum is not finite.
     if not torch.isfinite(depth.sum()) and not torch.isfinite(depth).all():
         raise ValueError("depth_m has NaN or infinite values; mark invalid pixels with 0.0")
@@ -238,7 +245,6 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
     batched = depth.ndim == 3
     if not batched and boxes.ndim == 3:
         raise ValueError("rects is batched (B, Z, 4) but depth_m is a single (H, W) map")
-    depth = depth.to(torch.float32).cpu()
     if not batched:
         depth = depth[None]
     if boxes.ndim == 2:
@@ -246,7 +252,7 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
     if boxes.shape[0] != depth.shape[0]:
         raise ValueError(f"rects has batch size {boxes.shape[0]} but depth_m has "
                          f"{depth.shape[0]}")
-    boxes = boxes.cpu()
+    boxes = boxes.to(depth.device)
 
     histogram = zone_histograms(depth, boxes, cfg)
     cleaned = histogram.clone()
@@ -254,7 +260,7 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
     cleaned = (cleaned - cfg.noise_floor_counts).clamp(min=0.0)
     cluster = strongest_cluster(cleaned)
 
-    edges = cfg.bin_edges_m()
+    edges = cfg.bin_edges_m().to(depth.device)
     centres = (edges[1:] + edges[:-1]) / 2
     weights = cluster.to(torch.float64)
     total = weights.sum(-1)
