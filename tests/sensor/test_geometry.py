@@ -95,6 +95,8 @@ def test_four_by_four_grid_covers_the_same_field():
 def test_bad_geometry_raises():
     with pytest.raises(ValueError, match="depth_m"):
         zone_rects(K, depth_m=0.0)
+    with pytest.raises(ValueError, match="grid"):
+        zone_rects(K, grid=0)
     with pytest.raises(ValueError, match="fov_deg"):
         zone_rects(K, fov_deg=(200.0, 45.0))
     with pytest.raises(ValueError, match="rotation"):

@@ -87,6 +87,8 @@ def test_rejects_wrong_counts():
         ZoneFrame.from_driver(distance, sigma, status, grid=6)
     with pytest.raises(ValueError, match="target_status"):
         ZoneFrame.from_driver(distance, sigma, [300] * 64)
+    with pytest.raises(ValueError, match="distance_mm"):
+        ZoneFrame.from_driver(["far"] * 64, sigma, status)
     with pytest.raises(ValueError, match="mean_m"):
         ZoneFrame(mean_m=np.ones(36), sigma_m=np.ones(36), valid=np.ones(36, bool))
     with pytest.raises(ValueError, match="sigma_m"):

@@ -61,6 +61,8 @@ def zone_angles_deg(grid: int, fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -
         (grid * grid, 4) float64 array of (ay0, ax0, ay1, ax1) in degrees, row-major,
         angles measured from the optical axis (negative = up / left).
     """
+    if int(grid) != grid or grid < 1:
+        raise ValueError(f"grid must be a positive integer, got {grid}")
     fov_x, fov_y = float(fov_deg[0]), float(fov_deg[1])
     if not (0 < fov_x < 180 and 0 < fov_y < 180):
         raise ValueError(f"fov_deg must be two angles in (0, 180) degrees, got {fov_deg}")

@@ -179,7 +179,10 @@ class ZoneFrame:
         arrays = {}
         for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
                              ("target_status", target_status)):
-            arr = np.asarray(values, dtype=np.float64).reshape(-1)
+            try:
+                arr = np.asarray(values, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{name} must be a flat list of numbers: {err}") from err
             arrays[name] = arr
         n = grid if grid is not None else _grid_from_count(arrays["distance_mm"].size,
                                                            "distance_mm")
