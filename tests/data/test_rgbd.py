@@ -149,3 +149,16 @@ def test_unknown_layout_and_missing_intrinsics_file(tmp_path, rng):
     (tmp_path / "camera-intrinsics.txt").write_text("1 0 0\n0 1 0\n")
     with pytest.raises(ValueError, match="3x3"):
         open_rgbd(tmp_path)
+
+
+def test_sidecar_intrinsics_for_a_tum_folder_with_other_subfolders(tmp_path, rng):
+    _write_rgb(tmp_path / "cam" / "c1.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / "tof" / "d1.png", np.full((6, 8), 2000))
+    (tmp_path / "associations.txt").write_text("0.5 cam/c1.png 0.5 tof/d1.png\n")
+    (tmp_path / "deltar_rgbd.json").write_text(json.dumps(
+        {"intrinsics": {"fx": 7, "fy": 7, "cx": 3.5, "cy": 2.5}}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # intrinsics are given: no fallback warning
+        frame = open_rgbd(tmp_path)[0]
+    assert frame.intrinsics == CameraIntrinsics(7.0, 7.0, 3.5, 2.5, 8, 6)
+    np.testing.assert_allclose(frame.depth_m, 2.0)  # associations only: millimetres

@@ -304,6 +304,31 @@ def _associate(rgb: list[tuple[float, str]], depth: list[tuple[float, str]],
     return out
 
 
+def _tum_rows(root: Path, associations: str = "associations.txt"
+              ) -> list[tuple[float, str, float, str]]:
+    """(t_rgb, rgb path, t_depth, depth path) rows of a TUM folder, paths relative to it."""
+    assoc_path = root / associations
+    if assoc_path.is_file():
+        rows = []
+        for number, line in enumerate(assoc_path.read_text(encoding="utf-8").splitlines(), 1):
+            fields = line.split()
+            if not fields or fields[0].startswith("#"):
+                continue
+            if len(fields) < 4:
+                raise ValueError(f"{assoc_path}:{number}: expected 'timestamp rgb timestamp "
+                                 f"depth', got {line!r}")
+            try:
+                rows.append((float(fields[0]), fields[1], float(fields[2]), fields[3]))
+            except ValueError as err:
+                raise ValueError(f"{assoc_path}:{number}: bad timestamp") from err
+        return rows
+    if (root / "rgb.txt").is_file() and (root / "depth.txt").is_file():
+        return _associate(_read_tum_list(root / "rgb.txt"), _read_tum_list(root / "depth.txt"),
+                          max_dt_s=0.02)
+    raise FileNotFoundError(f"TUM folder {root} has neither {associations} nor "
+                            "rgb.txt + depth.txt")
+
+
 class TUMReader(RGBDReader):
     """TUM RGB-D layout: an associations file ``t_rgb rgb/x.png t_depth depth/y.png``.
 
@@ -325,27 +350,7 @@ class TUMReader(RGBDReader):
         root = Path(folder)
         if not root.is_dir():
             raise FileNotFoundError(f"TUM folder not found: {root}")
-        assoc_path = root / associations
-        if assoc_path.is_file():
-            rows = []
-            for number, line in enumerate(assoc_path.read_text(encoding="utf-8").splitlines(),
-                                          1):
-                fields = line.split()
-                if not fields or fields[0].startswith("#"):
-                    continue
-                if len(fields) < 4:
-                    raise ValueError(f"{assoc_path}:{number}: expected 'timestamp rgb timestamp "
-                                     f"depth', got {line!r}")
-                try:
-                    rows.append((float(fields[0]), fields[1], float(fields[2]), fields[3]))
-                except ValueError as err:
-                    raise ValueError(f"{assoc_path}:{number}: bad timestamp") from err
-        elif (root / "rgb.txt").is_file() and (root / "depth.txt").is_file():
-            rows = _associate(_read_tum_list(root / "rgb.txt"),
-                              _read_tum_list(root / "depth.txt"), max_dt_s=0.02)
-        else:
-            raise FileNotFoundError(f"TUM folder {root} has neither {associations} nor "
-                                    "rgb.txt + depth.txt")
+        rows = _tum_rows(root, associations)
         pairs = [(Path(rgb).stem, root / rgb, root / depth, t_rgb)
                  for t_rgb, rgb, _t_depth, depth in rows]
         super().__init__(pairs, depth_scale, root)
@@ -494,8 +499,7 @@ def _first_color_size(root: Path, layout: str) -> tuple[int, int]:
     elif layout == "folder":
         files = sorted(_stem_map(root / "color", _IMAGE_SUFFIXES).values())
     else:
-        sub = root / "rgb"
-        files = sorted(_stem_map(sub, _IMAGE_SUFFIXES).values()) if sub.is_dir() else []
+        files = [root / row[1] for row in _tum_rows(root)[:1]]
     if not files:
         raise ValueError(f"no colour images found in {root}")
     return _size_of(files[0])
