@@ -1,0 +1,111 @@
+"""``deltar calibrate``: ToF sensor to camera calibration of a recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from deltar.cli.main import app
+
+
+def _floats(text: str, count: int, name: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"{name} must be {count} comma-separated numbers") from None
+    if len(values) != count:
+        raise typer.BadParameter(f"{name} must be {count} comma-separated numbers, got {text!r}")
+    return values
+
+
+@app.command("calibrate")
+def calibrate_command(
+    recording: Path = typer.Argument(..., help="Recording folder (meta.json, zones.jsonl, "
+                                     "color/, depth/)."),
+    out: Path = typer.Option(..., "--out", help="Calibration JSON to write."),
+    tolerance_s: float = typer.Option(0.02, help="Max time gap between a zone frame and its "
+                                      "images, seconds."),
+    fov: str = typer.Option("", help="Sensor field of view 'H,V' in degrees (default: the "
+                            "recording's)."),
+    nominal_roll_deg: float = typer.Option(90.0, help="Nominal roll of the sensor about the "
+                                           "camera's viewing direction, degrees."),
+    nominal_translation: str = typer.Option("0,0,0", help="Nominal sensor position in the "
+                                            "camera frame 'x,y,z', metres."),
+    slam_cloud: Path | None = typer.Option(None, help="SLAM map (PLY) instead of depth images."),
+    slam_trajectory: Path | None = typer.Option(None, help="Camera trajectory of the SLAM map "
+                                                "(TUM format)."),
+    plot: Path | None = typer.Option(None, help="Folder for before/after zone pictures."),
+    overwrite: bool = typer.Option(False, help="Replace an existing --out file."),
+) -> None:
+    """Calibrate the ToF sensor against the camera from frames facing planes."""
+    import warnings
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from deltar.calibration.extrinsic import nominal_extrinsics
+    from deltar.calibration.pipeline import calibrate_recording
+    from deltar.calibration.rig import RigCalibration
+    from deltar.calibration.slam import read_ply_points, read_tum_trajectory
+    from deltar.io.recording import Recording
+
+    if (slam_cloud is None) != (slam_trajectory is None):
+        raise typer.BadParameter("give --slam-cloud and --slam-trajectory together")
+    if out.exists() and not overwrite:
+        raise typer.BadParameter(f"{out} exists; pass --overwrite to replace it")
+    fov_deg = _floats(fov, 2, "--fov") if fov else None
+    nominal = nominal_extrinsics(nominal_roll_deg,
+                                 _floats(nominal_translation, 3, "--nominal-translation"))
+    try:
+        rec = Recording(recording)
+        trajectory = points = None
+        if slam_cloud is not None:
+            points = read_ply_points(slam_cloud)
+            trajectory = read_tum_trajectory(slam_trajectory)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # skipped frames are reported below
+            result = calibrate_recording(rec, nominal, tolerance_s=tolerance_s,
+                                         fov_deg=fov_deg, trajectory=trajectory,
+                                         slam_points_world=points)
+    except (ValueError, FileNotFoundError) as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(code=1) from None
+
+    calib = result.calibration
+    calib.save(out, overwrite=overwrite)
+    used, skipped = len(result.observations), len(result.skipped)
+    typer.echo(f"frames used: {used}, skipped: {skipped}")
+    for name, reason in result.skipped[:5]:
+        typer.echo(f"  skipped {name}: {reason}")
+    delta = Rotation.from_matrix(calib.extrinsics.rotation @ nominal.rotation.T)
+    angle = np.degrees(Rotation.from_matrix(calib.extrinsics.rotation).magnitude())
+    typer.echo(f"rotation: {angle:.2f} deg total, {np.degrees(delta.magnitude()):.2f} deg "
+               "from the nominal guess")
+    typer.echo("translation (m): " + ", ".join(f"{v:+.4f}" for v in
+                                                calib.extrinsics.translation_m))
+    typer.echo(f"mean zone-to-cloud distance: {100 * result.distance_before_m:.2f} cm before, "
+               f"{100 * result.distance_after_m:.2f} cm after")
+    typer.echo(f"wrote {out}")
+
+    if plot is not None:
+        from deltar.calibration.plot import plot_zones_before_after
+
+        nominal_calib = RigCalibration(calib.intrinsics, nominal, calib.grid, calib.fov_deg,
+                                       calib.sensor_model)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                pairs = rec.pairs(tolerance_s)
+        except FileNotFoundError as err:
+            typer.echo(f"no pictures drawn: {err}")
+            pairs = []
+        picks = sorted({round(i) for i in np.linspace(0, len(pairs) - 1, min(3, len(pairs)))}
+                       ) if pairs else []
+        for index in picks:
+            pair = pairs[index]
+            ns = round(pair.zone_frame.timestamp_s * 1e9)
+            path = plot_zones_before_after(
+                plot / f"zones_{ns}.png", pair.load_color(), pair.zone_frame, nominal_calib,
+                calib, title=f"t = {pair.zone_frame.timestamp_s:.3f} s", overwrite=overwrite)
+            typer.echo(f"wrote {path}")

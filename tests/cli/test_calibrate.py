@@ -1,0 +1,59 @@
+"""``deltar calibrate`` end to end on a small synthetic recording."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.calibration.rig import RigCalibration
+from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+from deltar.cli.main import _register_commands, app
+from deltar.sensor.geometry import SensorExtrinsics
+
+CAMERA = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [92.0, -1.0, 1.5], degrees=True).as_matrix(),
+                        np.array([0.03, 0.01, -0.01]))
+
+
+def test_calibrate_writes_calibration_report_and_pictures(tmp_path):
+    _register_commands()
+    frames = synthetic_rig_frames(TRUE, CAMERA, frames_per_plane=3, mean_noise_m=0.015, seed=5)
+    write_synthetic_recording(tmp_path / "rec", frames, CAMERA)
+    out = tmp_path / "calib.json"
+    args = ["calibrate", str(tmp_path / "rec"), "--out", str(out), "--nominal-roll-deg", "90",
+            "--plot", str(tmp_path / "plots")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "cm before" in result.output and "frames used: 18" in result.output
+    calib = RigCalibration.load(out)
+    error = Rotation.from_matrix(calib.extrinsics.rotation @ TRUE.rotation.T).magnitude()
+    assert np.degrees(error) < 0.5
+    assert np.linalg.norm(calib.extrinsics.translation_m - TRUE.translation_m) < 0.01
+    residuals = calib.residuals
+    assert residuals["zone_to_cloud_after_m"] < residuals["zone_to_cloud_before_m"]
+    pictures = sorted((tmp_path / "plots").glob("zones_*.png"))
+    assert len(pictures) == 3 and all(p.stat().st_size > 1000 for p in pictures)
+    # The output is never silently replaced.
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code != 0 and "exists" in again.output
+
+
+def test_calibrate_reports_degenerate_recordings(tmp_path):
+    _register_commands()
+    frames = synthetic_rig_frames(TRUE, CAMERA, view_planes=(2,), frames_per_plane=4,
+                                  tilt_deg=1.0, mean_noise_m=0.0, seed=6)
+    write_synthetic_recording(tmp_path / "rec", frames, CAMERA)
+    result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "rec"), "--out",
+                                      str(tmp_path / "c.json")])
+    assert result.exit_code == 1
+    assert "all planes are parallel" in result.output
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_calibrate_missing_recording(tmp_path):
+    _register_commands()
+    result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "nope"), "--out",
+                                      str(tmp_path / "c.json")])
+    assert result.exit_code == 1 and "not found" in result.output
