@@ -44,6 +44,8 @@ def simulate_command(
                               "from a NYU split .json)."),
 ) -> None:
     """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set."""
+    import warnings
+
     import numpy as np
     from rich.progress import track
 
@@ -64,7 +66,10 @@ def simulate_command(
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "
                                  "to write into it")
     try:
-        source = open_source(src, depth_scale=depth_scale, split=split)
+        with warnings.catch_warnings():
+            if intrinsics is not None:  # replaced below: no "assuming defaults" warning
+                warnings.simplefilter("ignore")
+            source = open_source(src, depth_scale=depth_scale, split=split)
         if intrinsics is not None:
             height, width = source[0].depth_m.shape
             source = open_source(src, depth_scale=depth_scale, split=split,
