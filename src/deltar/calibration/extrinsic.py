@@ -272,6 +272,7 @@ def observation_from_points(
     fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
     threshold_m: float = 0.03,
     max_angle_deg: float = 30.0,
+    max_offset_diff_m: float = 0.15,
     min_points: int = 200,
     visible_only: bool = False,
     name: str = "",
@@ -280,8 +281,9 @@ def observation_from_points(
     """Pair a zone-frame plane with the matching plane in a camera-frame point cloud.
 
     The cloud is cut to the sensor's view under the nominal extrinsics (with a few
-    degrees to spare), and the dominant plane whose normal agrees with the sensor's
-    plane (mapped by the nominal rotation, within ``max_angle_deg``) is found by RANSAC.
+    degrees to spare), and the dominant plane that agrees with the sensor's plane mapped
+    by the nominal pose (normal within ``max_angle_deg``, offset within
+    ``max_offset_diff_m``) is found by RANSAC.
 
     Args:
         plane: the frame's ``ZonePlaneFit`` (sensor frame).
@@ -292,6 +294,8 @@ def observation_from_points(
         threshold_m: RANSAC inlier distance, metres.
         max_angle_deg: largest angle between the two planes' normals under the nominal
             rotation.
+        max_offset_diff_m: largest difference between the two planes' offsets under the
+            nominal pose, metres (should exceed the nominal translation's error).
         min_points: fewest plane points accepted.
         visible_only: drop occluded points (use for SLAM maps).
         name: label for error messages.
@@ -309,10 +313,13 @@ def observation_from_points(
                          "view; is the depth or SLAM map covering the sensor's field of view?")
     if seen.shape[0] > 5000:  # RANSAC scoring cost grows with the point count
         seen = seen[np.random.default_rng(seed).choice(seen.shape[0], 5000, replace=False)]
+    # The sensor's plane in camera coordinates under the nominal pose: R n, d - (R n) . t.
     hint = nominal.rotation @ plane.normal
+    offset_hint = plane.offset_m - float(hint @ nominal.translation_m)
     try:
         _, _, inliers = ransac_plane(seen, threshold_m, normal_hint=hint,
-                                     max_angle_deg=max_angle_deg, seed=seed)
+                                     max_angle_deg=max_angle_deg, offset_hint_m=offset_hint,
+                                     max_offset_diff_m=max_offset_diff_m, seed=seed)
     except ValueError as err:
         raise ValueError(f"frame {name}: no plane in the point cloud matches the sensor's "
                          f"plane: {err}") from err

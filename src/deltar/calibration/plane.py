@@ -106,6 +106,7 @@ def fit_plane_svd(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 def ransac_plane(points: np.ndarray, threshold_m: float, *, iterations: int = 256,
                  normal_hint: np.ndarray | None = None, max_angle_deg: float = 90.0,
+                 offset_hint_m: float | None = None, max_offset_diff_m: float = 0.15,
                  seed: int = 0) -> tuple[np.ndarray, float, np.ndarray]:
     """Dominant plane of a point set by RANSAC, refined by least squares on its inliers.
 
@@ -116,6 +117,10 @@ def ransac_plane(points: np.ndarray, threshold_m: float, *, iterations: int = 25
         normal_hint: optional (3,) direction; hypotheses whose normal is more than
             ``max_angle_deg`` away from it (either sign) are rejected.
         max_angle_deg: see ``normal_hint``.
+        offset_hint_m: optional expected offset d of the plane ``normal_hint . p + d = 0``
+            (needs ``normal_hint``); hypotheses farther than ``max_offset_diff_m`` from it
+            are rejected, which tells apart parallel surfaces (a cabinet and the wall).
+        max_offset_diff_m: see ``offset_hint_m``.
         seed: random seed (results are deterministic).
 
     Returns:
@@ -138,10 +143,16 @@ def ransac_plane(points: np.ndarray, threshold_m: float, *, iterations: int = 25
     if normal_hint is not None:
         hint = np.asarray(normal_hint, dtype=np.float64)
         hint = hint / np.linalg.norm(hint)
-        ok &= np.abs(normals @ hint) >= np.cos(np.deg2rad(max_angle_deg))
+        # Orient every hypothesis like the hint so that offsets are comparable.
+        normals *= np.where(normals @ hint < 0, -1.0, 1.0)[:, None]
+        ok &= normals @ hint >= np.cos(np.deg2rad(max_angle_deg))
+    offsets = -np.einsum("ij,ij->i", normals, a)
+    if offset_hint_m is not None:
+        if normal_hint is None:
+            raise ValueError("offset_hint_m needs normal_hint")
+        ok &= np.abs(offsets - offset_hint_m) <= max_offset_diff_m
     if not np.any(ok):
         raise ValueError("no plane hypothesis fits the points (degenerate or hint mismatch)")
-    offsets = -np.einsum("ij,ij->i", normals, a)
     # Score all hypotheses against all points in one matrix product.
     dist = np.abs(pts @ normals[ok].T + offsets[ok])
     counts = (dist < threshold_m).sum(axis=0)
