@@ -84,3 +84,11 @@ def test_refuses_to_overwrite_the_input(data_json: Path) -> None:
                                  "--json", str(data_json)])
     assert result.exit_code == 2
     assert data_json.read_text() == before
+
+
+def test_corrupt_frame_file_is_named(data_json: Path) -> None:
+    frame = data_json.parent / "scene_a" / "0002.h5"
+    frame.write_bytes(b"not an hdf5 file")
+    result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data_json)])
+    assert result.exit_code == 1
+    assert "0002.h5" in result.output

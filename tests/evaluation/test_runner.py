@@ -99,3 +99,13 @@ def test_bad_predictions_name_the_method(tiny_samples) -> None:
         evaluate_methods(tiny_samples, {"nan": lambda s: np.full((32, 48), np.nan)})
     with pytest.raises(ValueError, match="predictors is empty"):
         evaluate_methods(tiny_samples, {})
+
+
+def test_baseline_predictor_ignores_valid_zones_without_distance() -> None:
+    sample = make_sample("zero", 0)
+    sample.zone_mean_sigma[3, 0] = 0.0  # flagged valid, but no distance reported
+    depth = BaselinePredictor("nearest")(sample)
+    assert depth.min() > 0
+    # Zone 3 covers rows 0..7, columns 32..39; pixel (0, 32) is 1 px from zone 2's
+    # pixel (0, 31) and 8 px from zone 7's pixel (8, 32).
+    assert depth[0, 32] == sample.zone_mean_sigma[2, 0]

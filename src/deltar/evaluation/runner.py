@@ -42,9 +42,14 @@ class BaselinePredictor:
     baseline: str
 
     def __call__(self, sample: ZJUL5Sample) -> np.ndarray:
-        """(H, W) float32 depth in metres from the sample's image and zone means."""
-        return run_baseline(self.baseline, sample.rgb, sample.zone_mean_sigma[:, 0],
-                            sample.zone_valid, sample.zone_rects)
+        """(H, W) float32 depth in metres from the sample's image and zone means.
+
+        Zones flagged valid but reporting no distance (mean <= 0, which the ZJU-L5 reader
+        accepts) carry no measurement, so they are treated as invalid here.
+        """
+        means = sample.zone_mean_sigma[:, 0]
+        valid = sample.zone_valid & (means > 0)
+        return run_baseline(self.baseline, sample.rgb, means, valid, sample.zone_rects)
 
 
 _METHODS: dict[str, Callable[[], Predictor]] = {}
