@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from PIL import Image
 from typer.testing import CliRunner
 
 from deltar.cli.main import _register_commands, app
@@ -67,3 +68,32 @@ def test_bad_procedural_spec(tmp_path, spec):
     result = runner.invoke(app, ["simulate", spec, str(tmp_path / "o")])
     assert result.exit_code == 2  # a usage error with a message, not a traceback
     assert "procedural source must look like" in result.output
+
+
+def test_intrinsics_option_overrides_the_source(tmp_path):
+    rng = np.random.default_rng(0)
+    src = tmp_path / "src"
+    (src / "color").mkdir(parents=True)
+    (src / "depth").mkdir()
+    Image.fromarray(rng.integers(0, 256, (32, 48, 3), dtype=np.uint8)).save(
+        src / "color" / "0001.png")
+    Image.fromarray(np.full((32, 48), 1500, np.uint16)).save(src / "depth" / "0001.png")
+    out = tmp_path / "k"
+    result = runner.invoke(app, ["simulate", str(src), str(out), "--grid", "4",
+                                 "--intrinsics", "30,31,20.5,15.5"])
+    assert result.exit_code == 0, result.output
+    sample = ZJUL5Dataset(out)[0]
+    assert sample.name == "src/0001"
+    assert (sample.intrinsics.fx, sample.intrinsics.fy, sample.intrinsics.cx,
+            sample.intrinsics.cy) == (30.0, 31.0, 20.5, 15.5)
+    # The calibrated grid spans 2 * fx * tan(22.5 deg) pixels across.
+    span = sample.zone_rects[:, 3].max() - sample.zone_rects[:, 1].min()
+    assert span == pytest.approx(2 * 30.0 * np.tan(np.deg2rad(22.5)), rel=1e-5)
+    np.testing.assert_allclose(sample.zone_mean_sigma[sample.zone_valid, 0], 1.5)
+    for bad in (["--intrinsics", "30,31"],
+                ["--intrinsics", "30,31,20.5,15.5", "--depth-scale", "0"]):
+        result = runner.invoke(app, ["simulate", str(src), str(tmp_path / "bad"), *bad])
+        assert result.exit_code == 2, bad
+    result = runner.invoke(app, ["simulate", "procedural:1", str(tmp_path / "p"),
+                                 "--intrinsics", "30,31,20.5,15.5"])
+    assert result.exit_code == 2 and "own camera" in result.output

@@ -475,7 +475,8 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
         intrinsics = _intrinsics_from_dict(sidecar["intrinsics"], height, width,
                                            str(root / SIDECAR_NAME))
     if layout == "7scenes":
-        return SevenScenesReader(root, depth_scale or 1000.0, intrinsics)
+        return SevenScenesReader(root, 1000.0 if depth_scale is None else depth_scale,
+                                 intrinsics)
     if layout == "tum":
         if depth_scale is None:
             benchmark = (root / "rgb.txt").is_file() and (root / "depth.txt").is_file()
@@ -490,7 +491,7 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
             warnings.warn(f"no intrinsics given for {root}; assuming the Kinect default "
                           "(fx = fy = 525 px at 640x480)", stacklevel=2)
             intrinsics = default_intrinsics(height, width)
-    return FolderReader(root, depth_scale or 1000.0, intrinsics)
+    return FolderReader(root, 1000.0 if depth_scale is None else depth_scale, intrinsics)
 
 
 def _first_color_size(root: Path, layout: str) -> tuple[int, int]:

@@ -41,8 +41,9 @@ def open_source(spec: str | Path, *, depth_scale: float | None = None,
             - a ``.json`` split file of the release's NYU h5 files (``split`` selects the
               list);
             - ``procedural:<frames>[:<seed>[:<height>x<width>]]`` for procedural rooms.
-        depth_scale: raw depth units per metre for folder sources.
-        intrinsics: camera intrinsics (pixels) overriding the source's own.
+        depth_scale: raw depth units per metre; folder sources only.
+        intrinsics: camera intrinsics (pixels) overriding the source's own (not for
+            procedural sources, which define their camera).
         split: list to read from a NYU json split file.
 
     Returns:
@@ -54,12 +55,17 @@ def open_source(spec: str | Path, *, depth_scale: float | None = None,
     """
     text = str(spec)
     if text.startswith(PROCEDURAL_PREFIX):
+        if intrinsics is not None or depth_scale is not None:
+            raise ValueError("procedural sources define their own camera and metric depth; "
+                             "intrinsics and depth_scale do not apply")
         return _procedural(text)
     path = Path(spec)
     if path.is_dir():
         return open_rgbd(path, depth_scale=depth_scale, intrinsics=intrinsics)
     if not path.exists():
         raise FileNotFoundError(f"RGB-D source not found: {path}")
+    if depth_scale is not None:
+        raise ValueError(f"depth_scale applies to RGB-D folders only; {path} stores metres")
     if path.suffix.lower() == ".mat":
         return NYULabeledReader(path, intrinsics=intrinsics or NYU_INTRINSICS)
     if path.suffix.lower() == ".json":
