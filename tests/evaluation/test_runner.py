@@ -109,3 +109,16 @@ def test_baseline_predictor_ignores_valid_zones_without_distance() -> None:
     # Zone 3 covers rows 0..7, columns 32..39; pixel (0, 32) is 1 px from zone 2's
     # pixel (0, 31) and 8 px from zone 7's pixel (8, 32).
     assert depth[0, 32] == sample.zone_mean_sigma[2, 0]
+
+
+def test_resize_like_release_aligns_corners() -> None:
+    from deltar.evaluation.runner import resize_like_release
+
+    depth = np.array([[1.0, 3.0], [5.0, 7.0]])
+    resized = resize_like_release(depth, 3, 3)
+    # align_corners=True keeps the corners and puts the new samples half way between.
+    expected = np.array([[1.0, 2.0, 3.0], [3.0, 4.0, 5.0], [5.0, 6.0, 7.0]])
+    np.testing.assert_allclose(resized, expected, atol=1e-6)
+    assert resized.dtype == np.float32
+    with pytest.raises(ValueError, match="depth_m"):
+        resize_like_release(np.ones(3), 2, 2)

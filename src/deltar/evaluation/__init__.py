@@ -17,6 +17,7 @@ from deltar.evaluation.runner import (
     evaluate_methods,
     register_method,
     register_method_family,
+    resize_like_release,
     resolve_method_names,
 )
 
@@ -40,6 +41,7 @@ __all__ = [
     "plane_metrics",
     "register_method",
     "register_method_family",
+    "resize_like_release",
     "resolve_method_names",
     "run_baseline",
 ]

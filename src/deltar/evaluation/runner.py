@@ -52,6 +52,33 @@ class BaselinePredictor:
         return run_baseline(self.baseline, sample.rgb, means, valid, sample.zone_rects)
 
 
+def resize_like_release(depth_m: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize a predicted depth map the way the official evaluation does.
+
+    The release clips the network output to the depth range and resizes it to the input
+    size with bilinear interpolation and ``align_corners=True``; a model predictor that
+    returns half-resolution depth can use this to match its metrics.
+
+    Args:
+        depth_m: (h, w) depth in metres.
+        height, width: output size in pixels.
+
+    Returns:
+        (height, width) float32 depth in metres.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be an (h, w) array, got shape {depth.shape}")
+    if height < 1 or width < 1:
+        raise ValueError(f"output size must be positive, got {height}x{width}")
+    tensor = torch.from_numpy(np.ascontiguousarray(depth))[None, None]
+    resized = F.interpolate(tensor, size=(height, width), mode="bilinear", align_corners=True)
+    return resized[0, 0].numpy()
+
+
 _METHODS: dict[str, Callable[[], Predictor]] = {}
 _FAMILIES: dict[str, Callable[[str], Predictor]] = {}
 
