@@ -68,3 +68,16 @@ def test_intersections_match_hand_computed_distances():
                                              radius=0.25, height=2.0),
                                        np.array([0, 3.0, 0]), np.array([[0.0], [-1.0], [1e-3]]))
     np.testing.assert_allclose(cap, [2.0], rtol=1e-5)
+
+
+def test_shadow_rays_by_hand():
+    # A 2 m box floating 1-2 m above a floor point, light straight above: shadowed; light
+    # off to the side (the segment passes x = 1.7..3.3 m at the box's height): lit.
+    box = _prim("box", lo=np.array([-1.0, 1.0, -1.0]), hi=np.array([1.0, 2.0, 1.0]))
+    room = _prim("room", lo=np.array([-9.0, 0.0, -9.0]), hi=np.array([9.0, 4.0, 9.0]))
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    normals = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])  # the second faces away
+    above = procedural._in_shadow([room, box], points, normals, np.array([0.0, 3.0, 0.0]))
+    side = procedural._in_shadow([room, box], points, normals, np.array([5.0, 3.0, 0.0]))
+    assert above.tolist() == [True, False]  # a point facing away is unlit, not "shadowed"
+    assert side.tolist() == [False, False]

@@ -2,8 +2,8 @@
 
 A scene is a room (floor, ceiling, four walls) with furniture-like boxes, spheres and
 upright cylinders, each with a procedural solid texture (checker, wood-like stripes, value
-noise or plain) and Lambert + ambient shading from one point light. Everything is drawn
-from one seed, so a seed always gives the same frame.
+noise or plain) and Lambert + ambient shading from one point light, with hard shadows cast
+by the objects. Everything is drawn from one seed, so a seed always gives the same frame.
 
 World frame: x right, y up, z forward (metres); the room spans
 ``[-W/2, W/2] x [0, H] x [0, D]``. Rays are cast through every pixel with unnormalised
@@ -25,6 +25,8 @@ from deltar.data.rgbd import RGBDFrame
 FOCAL_PER_WIDTH = 0.81
 TEXTURES: tuple[str, ...] = ("checker", "wood", "noise", "plain")
 _AMBIENT = 0.3
+#: Fraction of direct light left in shadows (stands in for indirect light).
+_SHADOW = 0.25
 
 
 @dataclass(frozen=True)
@@ -50,9 +52,12 @@ class _Primitive:
 
 # ---------------------------------------------------------------------- intersections
 # Ray directions come as (3, N) arrays (one row per axis): element-wise work on whole rows
-# is much faster in numpy than reductions over a short trailing axis.
+# is much faster in numpy than reductions over a short trailing axis. Origins are (3,) for
+# camera rays or (3, N) for shadow rays. Each function returns (N,) hit distances in units
+# of the direction's length, inf where the ray misses.
 def _hit_room(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Distance to the inside of an axis-aligned box seen from within it."""
+    o = o.reshape(3, -1)
     t = np.full(d.shape[1], np.inf, dtype=d.dtype)
     for axis in range(3):
         da = d[axis]
@@ -65,6 +70,7 @@ def _hit_room(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def _hit_box(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Slab test against an axis-aligned box seen from outside; inf where missed."""
+    o = o.reshape(3, -1)
     t_near = np.full(d.shape[1], -np.inf, dtype=d.dtype)
     t_far = np.full(d.shape[1], np.inf, dtype=d.dtype)
     for axis in range(3):
@@ -76,10 +82,10 @@ def _hit_box(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def _hit_sphere(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-    oc = o - p.center
+    oc = o.reshape(3, -1) - p.center[:, None]
     a = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
     b = d[0] * oc[0] + d[1] * oc[1] + d[2] * oc[2]
-    c = float(oc @ oc) - p.radius**2
+    c = oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2] - p.radius**2
     disc = b * b - a * c
     t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
     return np.where((disc >= 0) & (t > 0), t, np.inf)
@@ -87,6 +93,7 @@ def _hit_sphere(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def _hit_cylinder(p: _Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Upright cylinder with a top cap (the bottom stands on something)."""
+    o = o.reshape(3, -1)
     ox, oz = o[0] - p.center[0], o[2] - p.center[2]
     dx, dy, dz = d[0], d[1], d[2]
     a = dx * dx + dz * dz
@@ -192,7 +199,7 @@ def _far_enough(lo: np.ndarray, hi: np.ndarray, cam: np.ndarray, clearance: floa
 def _sample_scene(rng: np.random.Generator) -> tuple[list[_Primitive], np.ndarray,
                                                      np.ndarray, np.ndarray]:
     """Room, objects, camera position (3,), camera rotation (3, 3) and light (3,)."""
-    size = np.array([rng.uniform(3.0, 6.0), rng.uniform(2.4, 3.0), rng.uniform(3.5, 7.0)])
+    size = np.array([rng.uniform(3.0, 5.5), rng.uniform(2.4, 3.0), rng.uniform(3.0, 6.0)])
     lo, hi = np.array([-size[0] / 2, 0.0, 0.0]), np.array([size[0] / 2, size[1], size[2]])
     floor = _textured(rng, "room")
     room = _Primitive("room", _random_color(rng) * 0.3 + 0.6, str(rng.choice(TEXTURES)),
@@ -245,6 +252,23 @@ def _camera_rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- rendering
+def _in_shadow(prims: list[_Primitive], points: np.ndarray, normals: np.ndarray,
+               light: np.ndarray) -> np.ndarray:
+    """(N,) bool: an object lies between each lit point and the light."""
+    lit = np.flatnonzero(np.einsum("ij,ij->i", normals, light - points) > 0)
+    # Start a little off the surface so a point does not shadow itself.
+    origins = (points[lit] + 1e-3 * normals[lit]).T.astype(np.float32)
+    to_light = (light[:, None] - origins).astype(np.float32)  # t in (0, 1): before the light
+    blocked = np.zeros(lit.size, dtype=bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for prim in prims:
+            if prim.kind != "room":  # the light hangs inside the room
+                blocked |= _HIT[prim.kind](prim, origins, to_light) < 1.0
+    out = np.zeros(points.shape[0], dtype=bool)
+    out[lit[blocked]] = True
+    return out
+
+
 def scene_intrinsics(height: int, width: int) -> CameraIntrinsics:
     """Intrinsics used for procedural frames: square pixels, centred principal point."""
     focal = FOCAL_PER_WIDTH * width
@@ -283,23 +307,28 @@ def render_scene(seed: int, height: int = 480, width: int = 640) -> RGBDFrame:
     depth = np.take_along_axis(hits, winner[None], axis=0)[0]
     points = (cam[:, None] + depth * rays).T.astype(np.float64)  # (N, 3) hit points
 
+    normals = np.zeros_like(points)
+    for k, prim in enumerate(prims):
+        sel = winner == k
+        normals[sel] = _normals(prim, points[sel])
+    to_light = light - points
+    dist = np.linalg.norm(to_light, axis=1)
+    lambert = np.clip(np.einsum("ij,ij->i", normals, to_light) / dist, 0.0, None)
+    lambert[_in_shadow(prims, points, normals, light)] *= _SHADOW
+    shade = _AMBIENT + (1.0 - _AMBIENT) * lambert * 6.0 / (4.0 + dist**2)
+
     color = np.zeros((rays.shape[1], 3))
     for k, prim in enumerate(prims):
         sel = np.flatnonzero(winner == k)
         if sel.size == 0:
             continue
-        pts = points[sel]
-        normal = _normals(prim, pts)
-        to_light = light - pts
-        dist = np.linalg.norm(to_light, axis=1)
-        lambert = np.clip(np.einsum("ij,ij->i", normal, to_light) / dist, 0.0, None)
-        shade = _AMBIENT + (1.0 - _AMBIENT) * lambert * 6.0 / (4.0 + dist**2)
-        color[sel] = prim.color * (_texture(prim, pts, noise) * shade)[:, None]
+        material = np.full(sel.size, -1)
         if prim.floor is not None:
-            on_floor = normal[:, 1] > 0.5
-            floor_pts = pts[on_floor]
-            color[sel[on_floor]] = prim.floor.color * (
-                _texture(prim.floor, floor_pts, noise) * shade[on_floor])[:, None]
+            material[normals[sel, 1] > 0.5] = 0
+        for mat, part in ((prim, material < 0), (prim.floor, material == 0)):
+            if mat is not None and part.any():
+                idx = sel[part]
+                color[idx] = mat.color * (_texture(mat, points[idx], noise) * shade[idx])[:, None]
     image = (np.clip(color, 0.0, 1.0) ** (1 / 2.2) * 255.0 + 0.5).astype(np.uint8)
     return RGBDFrame(image=image.reshape(height, width, 3),
                      depth_m=depth.reshape(height, width).astype(np.float32),
