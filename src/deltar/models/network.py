@@ -241,7 +241,9 @@ class DeltarNet(nn.Module):
             )
         if not torch.isfinite(zone_rects).all():
             raise ValueError("zone_rects contains NaN or infinite values")
-        if ((zone_rects[..., 2] <= zone_rects[..., 0]) | (zone_rects[..., 3] <= zone_rects[..., 1])).any():
+        y0, x0, y1, x1 = zone_rects.unbind(-1)
+        empty = (y1 <= y0) | (x1 <= x0)
+        if empty.any():
             raise ValueError("zone_rects: every zone needs y1 > y0 and x1 > x0")
         if tuple(zone_valid.shape) != (batch, zones):
             raise ValueError(

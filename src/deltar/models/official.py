@@ -52,7 +52,9 @@ def official_to_ours(name: str) -> str | None:
     for pattern, replacement in _ENCODER_RULES:
         if re.fullmatch(pattern, name):
             return re.sub(pattern, replacement, name)
-    match = re.fullmatch(r"hist_encoder\.hist_extractor(\d)\.pointnet_encoder\.(conv|bn)(\d)\.(.*)", name)
+    match = re.fullmatch(
+        r"hist_encoder\.hist_extractor(\d)\.pointnet_encoder\.(conv|bn)(\d)\.(.*)", name
+    )
     if match:
         block, kind, index, rest = match.groups()
         position = 3 * (int(index) - 1) + (0 if kind == "conv" else 1)

@@ -1,0 +1,146 @@
+"""DeltarNet: presets and ablations build and train, general inputs, clear input errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from deltar.models import ABLATIONS, create_model, list_presets
+
+
+@pytest.fixture(scope="module")
+def lite_model():
+    torch.manual_seed(0)
+    return create_model("deltar-lite").eval()
+
+
+def _forward_backward(model, inputs):
+    out = model(*inputs)
+    (out["depth"].mean() + out["uncertainty"].mean()).backward()
+    return out
+
+
+@pytest.mark.parametrize("preset", ["deltar-official", "deltar-paper", "deltar-lite"])
+def test_presets_forward_backward_finite(preset, network_inputs):
+    torch.manual_seed(0)
+    model = create_model(preset)
+    out = _forward_backward(model, network_inputs())
+    n_bins = model.config["n_bins"]
+    assert out["depth"].shape == (2, 1, 32, 48)
+    assert out["uncertainty"].shape == (2, 1, 32, 48)
+    assert out["bin_edges"].shape == (2, n_bins + 1)
+    for value in out.values():
+        assert torch.isfinite(value).all()
+    for name, parameter in model.named_parameters():
+        assert parameter.grad is not None, f"{name} received no gradient"
+        assert torch.isfinite(parameter.grad).all(), f"{name} has a non-finite gradient"
+
+
+@pytest.mark.parametrize("ablation", sorted(ABLATIONS))
+def test_ablations_forward_backward_finite(ablation, network_inputs):
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", **ABLATIONS[ablation])
+    out = _forward_backward(model, network_inputs())
+    assert out["depth"].shape == (2, 1, 32, 48)
+    assert torch.isfinite(out["depth"]).all()
+    for name, parameter in model.named_parameters():
+        assert parameter.grad is not None and torch.isfinite(parameter.grad).all(), name
+
+
+def test_uniform_sampling_is_recorded():
+    model = create_model("deltar-lite", **ABLATIONS["uniform_sampling"])
+    assert model.config["hypothesis_sampling"] == "uniform"
+
+
+def test_unknown_preset_lists_known_names():
+    with pytest.raises(ValueError, match="deltar-official"):
+        create_model("deltar-huge")
+    assert set(list_presets()) >= {"deltar-official", "deltar-paper", "deltar-lite"}
+
+
+@pytest.mark.parametrize(("height", "width", "grid"), [(96, 128, 4), (64, 160, 8), (128, 96, 8)])
+def test_sizes_and_grids(lite_model, network_inputs, height, width, grid):
+    with torch.inference_mode():
+        out = lite_model(*network_inputs(batch=2, height=height, width=width, n=grid))
+    assert out["depth"].shape == (2, 1, height // 2, width // 2)
+    assert torch.isfinite(out["depth"]).all()
+    assert (out["depth"] >= 1e-3).all() and (out["depth"] <= 10.0).all()
+
+
+def test_depth_is_expectation_of_bin_centres(lite_model, network_inputs):
+    # Uncertainty is the spread of a distribution over centres inside the edges, so it
+    # can never exceed half the depth range.
+    with torch.inference_mode():
+        out = lite_model(*network_inputs())
+    edges = out["bin_edges"]
+    assert torch.all(edges[:, 1:] > edges[:, :-1])
+    torch.testing.assert_close(edges[:, 0], torch.full((2,), 1e-3))
+    torch.testing.assert_close(edges[:, -1], torch.full((2,), 10.0), atol=1e-4, rtol=0)
+    assert (out["uncertainty"] >= 0).all() and (out["uncertainty"] <= 5.0).all()
+
+
+def test_no_valid_zone_gives_image_only_estimate(lite_model, network_inputs):
+    image, hypotheses, rects, valid = network_inputs()
+    none_valid = torch.zeros_like(valid)
+    with torch.inference_mode():
+        out_a = lite_model(image, torch.zeros_like(hypotheses), rects, none_valid)
+        # With every zone invalid, neither the hypotheses nor the layout may matter.
+        out_b = lite_model(image, torch.zeros_like(hypotheses), rects + 17.0, none_valid)
+    assert torch.isfinite(out_a["depth"]).all()
+    torch.testing.assert_close(out_a["depth"], out_b["depth"])
+
+
+def test_invalid_zones_are_ignored(lite_model, network_inputs):
+    image, hypotheses, rects, valid = network_inputs()
+    changed = hypotheses.clone()
+    changed[~valid] = 2.5  # values of invalid zones must not influence the output
+    with torch.inference_mode():
+        reference = lite_model(image, hypotheses, rects, valid)["depth"]
+        altered = lite_model(image, changed, rects, valid)["depth"]
+        moved = lite_model(image, hypotheses * 0.5, rects, valid)["depth"]
+    torch.testing.assert_close(reference, altered)
+    assert not torch.allclose(reference, moved)
+
+
+def test_zones_wholly_outside_the_image(lite_model, network_inputs):
+    image, hypotheses, rects, valid = network_inputs()
+    with torch.inference_mode():
+        outside = lite_model(image, hypotheses, rects + 1000.0, valid)["depth"]
+        no_zone = lite_model(image, hypotheses, rects, torch.zeros_like(valid))["depth"]
+    assert torch.isfinite(outside).all()
+    torch.testing.assert_close(outside, no_zone)
+
+
+def test_batch_samples_are_independent(lite_model, network_inputs):
+    image, hypotheses, rects, valid = network_inputs()
+    with torch.inference_mode():
+        both = lite_model(image, hypotheses, rects, valid)["depth"]
+        second = lite_model(image[1:], hypotheses[1:], rects[1:], valid[1:])["depth"]
+    torch.testing.assert_close(both[1:], second, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (lambda x: (x[0][:, :2], *x[1:]), "image must be"),
+        (lambda x: (x[0][:, :, :60], *x[1:]), "divisible by 32"),
+        (lambda x: (x[0], x[1].index_fill(2, torch.tensor([0]), float("nan")), *x[2:]),
+         "hypotheses must be finite"),
+        (lambda x: (x[0], -x[1] - 0.1, *x[2:]), "non-negative"),
+        (lambda x: (x[0], x[1][:, :60], *x[2:]), "square grid"),
+        (lambda x: (x[0], x[1], x[2][:, :16], x[3]), "zone_rects must be"),
+        (lambda x: (*x[:3], x[3][:, :16]), "zone_valid must be"),
+        (lambda x: (*x[:3], x[3].float()), "bool"),
+        (lambda x: (x[0], x[1], x[2].flip(-1), x[3]), "y1 > y0"),
+    ],
+)
+def test_bad_inputs_raise_clear_errors(lite_model, network_inputs, change, match):
+    with pytest.raises(ValueError, match=match):
+        lite_model(*change(network_inputs()))
+
+
+def test_bad_constructor_arguments():
+    with pytest.raises(ValueError, match="head"):
+        create_model("deltar-lite", head="magic")
+    with pytest.raises(ValueError, match="bad override"):
+        create_model("deltar-lite", no_such_argument=1)
