@@ -1,0 +1,555 @@
+"""The training configuration: one YAML file holds every hyper-parameter of a run.
+
+The schema is a tree of dataclasses (:class:`TrainConfig` at the root). Loading checks
+every key (unknown keys raise a ``ValueError`` naming them with their full dotted path)
+and every value (types, ranges, choices). ``key=value`` overrides use dotted paths into
+the same tree, e.g. ``optim.lr=1e-4`` or ``data.sources.0.path=/data/nyu.json``; values
+are parsed as YAML (``1e-4`` -> float, ``[416, 544]`` -> list, ``null`` -> None).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5")
+SOURCE_ROLES: tuple[str, ...] = ("train_val", "train", "val")
+HOLDOUT_POSITIONS: tuple[str, ...] = ("end", "start")
+ZONE_LAYOUTS: tuple[str, ...] = ("training", "calibrated")
+SAMPLINGS: tuple[str, ...] = ("icdf", "uniform")
+STRATEGIES: tuple[str, ...] = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_true")
+
+
+@dataclass
+class SourceConfig:
+    """One data source.
+
+    Attributes:
+        kind: ``rgbd`` (7-Scenes / TUM / colour+depth folder), ``procedural`` (rendered
+            rooms), ``nyu`` (a NYU labeled ``.mat`` or the release's split ``.json``) or
+            ``zju_l5`` (a ZJU-L5-layout set with real zone readings). The first three
+            get a simulated L5 signal.
+        path: folder or file (``data.json`` folder for ``zju_l5``); unused for
+            ``procedural``. Relative paths are taken relative to the working directory.
+        frames: number of frames (``procedural`` only).
+        seed: seed of the first procedural frame.
+        depth_scale: raw depth units per metre for ``rgbd`` (None: the layout's default).
+        split: list to read from a NYU ``.json`` or a ZJU-L5 ``data.json``.
+        resize: optional ``[height, width]`` in pixels every frame is resized to before
+            augmentation and zone simulation (``rgbd``, ``procedural``, ``nyu``).
+        role: ``train_val`` (split into training frames and a held-out block),
+            ``train`` (all frames train) or ``val`` (all frames validate).
+        holdout_fraction: fraction of the frames held out for validation, as one
+            contiguous block (neighbouring frames are near duplicates, so every n-th
+            frame would leak); only for ``train_val``.
+        holdout_position: where the block sits in the sequence, ``end`` or ``start``.
+    """
+
+    kind: str = "rgbd"
+    path: str | None = None
+    frames: int = 0
+    seed: int = 0
+    depth_scale: float | None = None
+    split: str = "train"
+    resize: list[int] | None = None
+    role: str = "train_val"
+    holdout_fraction: float = 0.1
+    holdout_position: str = "end"
+
+    def validate(self, where: str) -> None:
+        _choice(f"{where}.kind", self.kind, SOURCE_KINDS)
+        _choice(f"{where}.role", self.role, SOURCE_ROLES)
+        _choice(f"{where}.holdout_position", self.holdout_position, HOLDOUT_POSITIONS)
+        if self.kind == "procedural":
+            if self.frames < 1:
+                raise ValueError(f"{where}.frames must be >= 1 for procedural sources")
+        elif not self.path:
+            raise ValueError(f"{where}.path is required for {self.kind!r} sources")
+        if self.resize is not None and (len(self.resize) != 2 or min(self.resize) < 1):
+            raise ValueError(f"{where}.resize must be [height, width] > 0, got {self.resize}")
+        if self.resize is not None and self.kind == "zju_l5":
+            raise ValueError(f"{where}.resize is not supported for zju_l5 sources (their zone "
+                             "rectangles are given in pixels of the stored images)")
+        if self.role == "train_val" and not 0.0 < self.holdout_fraction < 1.0:
+            raise ValueError(f"{where}.holdout_fraction must be in (0, 1) for role "
+                             f"'train_val', got {self.holdout_fraction}")
+        if self.depth_scale is not None and not self.depth_scale > 0:
+            raise ValueError(f"{where}.depth_scale must be > 0, got {self.depth_scale}")
+
+
+@dataclass
+class ImageAugmentationConfig:
+    """Image augmentation of training frames (see ``deltar.data.transforms``).
+
+    Attributes:
+        enabled: apply it at all.
+        crop: ``[height, width]`` random crop in pixels (None: keep the whole frame);
+            both must be divisible by 32.
+        max_rotation_deg: random rotation within +- this many degrees.
+        flip_prob: probability of a horizontal flip.
+        photometric_prob: probability of gamma / brightness / colour jitter.
+    """
+
+    enabled: bool = True
+    crop: list[int] | None = None
+    max_rotation_deg: float = 2.5
+    flip_prob: float = 0.5
+    photometric_prob: float = 0.5
+
+    def validate(self, where: str) -> None:
+        if self.crop is not None and (len(self.crop) != 2 or min(self.crop) < 32
+                                      or self.crop[0] % 32 or self.crop[1] % 32):
+            raise ValueError(f"{where}.crop must be [height, width], each a positive "
+                             f"multiple of 32, got {self.crop}")
+        _fraction(f"{where}.flip_prob", self.flip_prob)
+        _fraction(f"{where}.photometric_prob", self.photometric_prob)
+        if not 0.0 <= self.max_rotation_deg < 90.0:
+            raise ValueError(f"{where}.max_rotation_deg must be in [0, 90)")
+
+
+@dataclass
+class SignalAugmentationConfig:
+    """Augmentation of the simulated zone signal of training frames.
+
+    Attributes:
+        enabled: apply it at all.
+        drop_fraction: fraction of valid zones made invalid.
+        noise_prob: probability of adding noise to a zone mean.
+        noise_mean_m, noise_std_m: Gaussian noise added to a zone mean, metres.
+    """
+
+    enabled: bool = True
+    drop_fraction: float = 0.34
+    noise_prob: float = 0.3
+    noise_mean_m: float = 0.17
+    noise_std_m: float = 0.20
+
+    def validate(self, where: str) -> None:
+        _fraction(f"{where}.drop_fraction", self.drop_fraction)
+        _fraction(f"{where}.noise_prob", self.noise_prob)
+        if self.noise_std_m < 0:
+            raise ValueError(f"{where}.noise_std_m must be >= 0")
+
+
+@dataclass
+class DataConfig:
+    """Datasets, zone simulation and loading.
+
+    Attributes:
+        sources: the data sources (at least one must train and one validate).
+        batch_size: training frames per batch and per process.
+        val_batch_size: validation frames per batch and per process.
+        num_workers: DataLoader worker processes per training process.
+        zone_layout: where simulated zones fall: ``training`` (the release's square grid
+            of ``training_grid`` x ``training_grid`` zones of ``training_zone_px`` pixels
+            centred in the image) or ``calibrated`` (the sensor FoV projected with the
+            camera intrinsics into ``grid`` x ``grid`` zones).
+        val_zone_layout: layout for validation frames (None: same as ``zone_layout``).
+        grid: zones per side of the calibrated layout (4 or 8).
+        training_grid, training_zone_px, training_max_offset_px: the training layout.
+        num_hypotheses: depth hypotheses sampled per zone (K).
+        sampling: ``icdf`` or ``uniform`` hypothesis sampling.
+        image_augmentation: training image augmentation.
+        signal_augmentation: training zone-signal augmentation.
+    """
+
+    sources: list[SourceConfig] = field(default_factory=list)
+    batch_size: int = 16
+    val_batch_size: int = 1
+    num_workers: int = 4
+    zone_layout: str = "training"
+    val_zone_layout: str | None = None
+    grid: int = 8
+    training_grid: int = 6
+    training_zone_px: int = 64
+    training_max_offset_px: int = 0
+    num_hypotheses: int = 16
+    sampling: str = "uniform"
+    image_augmentation: ImageAugmentationConfig = field(default_factory=ImageAugmentationConfig)
+    signal_augmentation: SignalAugmentationConfig = field(
+        default_factory=SignalAugmentationConfig)
+
+    def validate(self, where: str) -> None:
+        if not self.sources:
+            raise ValueError(f"{where}.sources must list at least one data source")
+        for i, source in enumerate(self.sources):
+            source.validate(f"{where}.sources.{i}")
+        if not any(s.role in ("train", "train_val") for s in self.sources):
+            raise ValueError(f"{where}.sources: no source has role 'train' or 'train_val'")
+        if not any(s.role in ("val", "train_val") for s in self.sources):
+            raise ValueError(f"{where}.sources: no source has role 'val' or 'train_val'")
+        for name in ("batch_size", "val_batch_size", "num_hypotheses", "training_grid",
+                     "training_zone_px"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{where}.{name} must be >= 1")
+        if self.num_workers < 0 or self.training_max_offset_px < 0:
+            raise ValueError(f"{where}.num_workers and training_max_offset_px must be >= 0")
+        _choice(f"{where}.zone_layout", self.zone_layout, ZONE_LAYOUTS)
+        if self.val_zone_layout is not None:
+            _choice(f"{where}.val_zone_layout", self.val_zone_layout, ZONE_LAYOUTS)
+        if self.grid not in (4, 8):
+            raise ValueError(f"{where}.grid must be 4 or 8, got {self.grid}")
+        _choice(f"{where}.sampling", self.sampling, SAMPLINGS)
+        self.image_augmentation.validate(f"{where}.image_augmentation")
+        self.signal_augmentation.validate(f"{where}.signal_augmentation")
+
+
+@dataclass
+class ModelConfig:
+    """The network and where its initial weights come from.
+
+    Attributes:
+        preset: ``deltar.models`` preset name (``deltar-official``, ``deltar-paper``,
+            ``deltar-lite``).
+        overrides: constructor arguments replacing the preset's (see ``DeltarNet``).
+        init_checkpoint: optional weights to start from: a Lightning checkpoint of a
+            previous run (``.ckpt``) or a ``model.pt`` exported by ``deltar train``.
+        official_weights: optional released ``nyu.pt`` (for ``deltar-official``).
+        sync_batchnorm: convert BatchNorm layers to SyncBatchNorm under DDP.
+    """
+
+    preset: str = "deltar-lite"
+    overrides: dict[str, Any] = field(default_factory=dict)
+    init_checkpoint: str | None = None
+    official_weights: str | None = None
+    sync_batchnorm: bool = False
+
+    def validate(self, where: str) -> None:
+        if self.init_checkpoint and self.official_weights:
+            raise ValueError(f"{where}: give init_checkpoint or official_weights, not both")
+
+
+@dataclass
+class OptimConfig:
+    """Loss, optimiser and learning-rate schedule.
+
+    Attributes:
+        lr: peak learning rate of the decoder and heads.
+        encoder_lr_factor: the image encoder's peak learning rate is ``lr`` times this.
+        weight_decay: AdamW weight decay.
+        betas: AdamW betas (beta1 is cycled by OneCycle when ``cycle_momentum``).
+        div_factor: OneCycle initial lr = peak / div_factor.
+        final_div_factor: OneCycle final lr = initial lr / final_div_factor.
+        pct_start: fraction of the steps spent warming up.
+        cycle_momentum: cycle beta1 between base_momentum and max_momentum.
+        base_momentum, max_momentum: the beta1 range.
+        grad_clip_norm: clip the gradient norm to this (None: no clipping).
+        loss_alpha, loss_lambda: scaled SI loss scale (10) and variance weight (0.85).
+    """
+
+    lr: float = 3e-4
+    encoder_lr_factor: float = 0.1
+    weight_decay: float = 0.1
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    div_factor: float = 25.0
+    final_div_factor: float = 100.0
+    pct_start: float = 0.3
+    cycle_momentum: bool = True
+    base_momentum: float = 0.85
+    max_momentum: float = 0.95
+    grad_clip_norm: float | None = 0.1
+    loss_alpha: float = 10.0
+    loss_lambda: float = 0.85
+
+    def validate(self, where: str) -> None:
+        for name in ("lr", "encoder_lr_factor", "div_factor", "final_div_factor",
+                     "loss_alpha"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{where}.{name} must be > 0, got {getattr(self, name)}")
+        if self.weight_decay < 0:
+            raise ValueError(f"{where}.weight_decay must be >= 0")
+        if not 0.0 < self.pct_start < 1.0:
+            raise ValueError(f"{where}.pct_start must be in (0, 1)")
+        if len(self.betas) != 2:
+            raise ValueError(f"{where}.betas must be two numbers")
+        if self.grad_clip_norm is not None and not self.grad_clip_norm > 0:
+            raise ValueError(f"{where}.grad_clip_norm must be > 0 or null")
+        _fraction(f"{where}.loss_lambda", self.loss_lambda)
+
+
+@dataclass
+class EMAConfig:
+    """Exponential moving average of the weights (used for validation and export).
+
+    Attributes:
+        enabled: keep an EMA copy.
+        decay: EMA decay per optimiser step.
+        start_step: first step that updates the average.
+    """
+
+    enabled: bool = False
+    decay: float = 0.999
+    start_step: int = 0
+
+    def validate(self, where: str) -> None:
+        if not 0.0 < self.decay < 1.0:
+            raise ValueError(f"{where}.decay must be in (0, 1)")
+
+
+@dataclass
+class TrainerConfig:
+    """Lightning trainer, checkpointing and logging.
+
+    Attributes:
+        max_epochs: epochs to train.
+        max_steps: stop after this many optimiser steps (-1: no limit).
+        accelerator: ``auto``, ``cpu``, ``gpu``.
+        devices: devices per node (int) or ``auto``.
+        num_nodes: nodes.
+        strategy: ``auto``, ``ddp`` (also under torchrun / SLURM) or ``ddp_spawn``.
+        precision: Lightning precision, e.g. ``32-true``, ``16-mixed``, ``bf16-mixed``.
+        checkpoint_every_n_steps: save ``checkpoints/last.ckpt`` every this many steps.
+        keep_checkpoints: step checkpoints kept besides ``last.ckpt`` (-1: all).
+        val_every_n_epochs: validate every this many epochs.
+        val_check_interval: validate every this many training steps within an epoch
+            (None: at epoch ends only).
+        limit_train_batches, limit_val_batches: Lightning limits (int batches or float
+            fraction), None for all.
+        log_every_n_steps: logging interval.
+        num_threads: torch CPU threads per process (None: torch's default).
+        deterministic: ask torch for deterministic algorithms.
+        progress_bar: show the rich progress bar.
+    """
+
+    max_epochs: int = 25
+    max_steps: int = -1
+    accelerator: str = "auto"
+    devices: int | str = 1
+    num_nodes: int = 1
+    strategy: str = "auto"
+    precision: str = "32-true"
+    checkpoint_every_n_steps: int = 500
+    keep_checkpoints: int = 2
+    val_every_n_epochs: int = 1
+    val_check_interval: int | None = None
+    limit_train_batches: int | float | None = None
+    limit_val_batches: int | float | None = None
+    log_every_n_steps: int = 10
+    num_threads: int | None = None
+    deterministic: bool = False
+    progress_bar: bool = True
+
+    def validate(self, where: str) -> None:
+        if self.max_epochs < 1:
+            raise ValueError(f"{where}.max_epochs must be >= 1")
+        _choice(f"{where}.strategy", self.strategy, STRATEGIES)
+        if self.checkpoint_every_n_steps < 1 or self.log_every_n_steps < 1:
+            raise ValueError(f"{where}.checkpoint_every_n_steps and log_every_n_steps must "
+                             "be >= 1")
+        if self.num_nodes < 1 or (isinstance(self.devices, int) and self.devices < 1):
+            raise ValueError(f"{where}.devices and num_nodes must be >= 1")
+        if isinstance(self.devices, str) and self.devices != "auto":
+            raise ValueError(f"{where}.devices must be an integer or 'auto'")
+        if self.num_threads is not None and self.num_threads < 1:
+            raise ValueError(f"{where}.num_threads must be >= 1 or null")
+
+
+@dataclass
+class TrainConfig:
+    """Root of the training configuration.
+
+    Attributes:
+        name: run name (run folders are ``<output_dir>/<name>-<timestamp>``).
+        output_dir: parent folder of the run folders.
+        seed: seed of everything (data order, augmentation, initial weights).
+        model, data, optim, ema, trainer: the sections.
+    """
+
+    name: str = "deltar"
+    output_dir: str = "runs"
+    seed: int = 0
+    model: ModelConfig = field(default_factory=ModelConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    ema: EMAConfig = field(default_factory=EMAConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+
+    def validate(self) -> None:
+        """Check every section; raise ``ValueError`` naming the offending key."""
+        if not self.name or "/" in self.name:
+            raise ValueError(f"name must be a non-empty string without '/', got {self.name!r}")
+        self.model.validate("model")
+        self.data.validate("data")
+        self.optim.validate("optim")
+        self.ema.validate("ema")
+        self.trainer.validate("trainer")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (YAML-serialisable)."""
+        return dataclasses.asdict(self)
+
+    def to_yaml(self) -> str:
+        """The configuration as YAML text (loads back to an equal config)."""
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+# ---------------------------------------------------------------------- loading
+def config_from_dict(data: dict[str, Any]) -> TrainConfig:
+    """Build and validate a :class:`TrainConfig` from a nested dict.
+
+    Raises:
+        ValueError: unknown keys (named with their dotted paths), wrong types or values.
+    """
+    config = _build(TrainConfig, data, "")
+    config.validate()
+    return config
+
+
+def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> TrainConfig:
+    """Read a YAML configuration file and apply ``key=value`` overrides.
+
+    Args:
+        path: YAML file.
+        overrides: dotted ``key=value`` strings applied in order, e.g. ``optim.lr=1e-4``.
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: invalid YAML, unknown keys or invalid values.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise FileNotFoundError(f"training config not found: {file}")
+    try:
+        data = yaml.safe_load(file.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"training config {file} is not valid YAML: {err}") from err
+    if not isinstance(data, dict):
+        raise ValueError(f"training config {file} must be a mapping at the top level")
+    for item in overrides:
+        apply_override(data, item)
+    try:
+        return config_from_dict(data)
+    except ValueError as err:
+        raise ValueError(f"training config {file}: {err}") from err
+
+
+def apply_override(data: dict[str, Any], item: str) -> None:
+    """Set one dotted ``key=value`` override in a nested dict (in place).
+
+    List elements are addressed by index (``data.sources.0.path=...``). Intermediate
+    mappings are created when missing; whether the key exists in the schema is checked
+    when the dict is turned into a :class:`TrainConfig`.
+
+    Raises:
+        ValueError: malformed override or a path through a non-container.
+    """
+    key, sep, text = item.partition("=")
+    if not sep or not key.strip():
+        raise ValueError(f"override must look like key=value, got {item!r}")
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ValueError(f"override {item!r}: value is not valid YAML: {err}") from err
+    parts = key.strip().split(".")
+    node: Any = data
+    for depth, part in enumerate(parts):
+        last = depth == len(parts) - 1
+        where = ".".join(parts[:depth + 1])
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ValueError(f"override {item!r}: {where} is not an index of a list of "
+                                 f"{len(node)}")
+            if last:
+                node[int(part)] = value
+            else:
+                node = node[int(part)]
+        elif isinstance(node, dict):
+            if last:
+                node[part] = value
+            else:
+                node = node.setdefault(part, {})
+                if node is None:
+                    raise ValueError(f"override {item!r}: {where} is null")
+        else:
+            raise ValueError(f"override {item!r}: {'.'.join(parts[:depth])} is not a mapping")
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    """Recursively turn a dict into dataclass ``cls``, checking keys and value types."""
+    label = where or "config"
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{label} must be a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - fields)
+    if unknown:
+        names = [f"{where}.{k}" if where else str(k) for k in unknown]
+        raise ValueError(f"unknown config keys {names}; known keys under {label}: "
+                         f"{sorted(fields)}")
+    values = {}
+    for name, value in data.items():
+        path = f"{where}.{name}" if where else name
+        values[name] = _convert(hints[name], value, path)
+    return cls(**values)
+
+
+def _convert(hint: Any, value: Any, path: str) -> Any:
+    """Check (and gently convert, e.g. int -> float) one value against its type hint."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(hint)
+        if value is None:
+            if type(None) in options:
+                return None
+            raise ValueError(f"{path} must not be null")
+        errors = []
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _convert(option, value, path)
+            except ValueError as err:
+                errors.append(str(err))
+        raise ValueError(errors[0] if len(errors) == 1 else
+                         f"{path}: {value!r} matches none of {hint}")
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, value, path)
+    if origin is list:
+        (item_hint,) = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{path} must be a list, got {value!r}")
+        return [_convert(item_hint, v, f"{path}.{i}") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ValueError(f"{path} must be a mapping, got {value!r}")
+        return dict(value)
+    if hint is Any:
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{path} must be true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{path} must be an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{path} must be a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{path} must be a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported type hint {hint} at {path}")
+
+
+def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+
+
+def _fraction(name: str, value: float) -> None:
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must be in [0, 1], got {value}")

@@ -1,0 +1,430 @@
+"""Training data: datasets from a :class:`DataConfig`, hold-out splits, resumable loading.
+
+Every item is a dict of tensors with the keys of
+:class:`deltar.data.simulated.SimulatedL5Dataset` plus ``index`` (the item's position in
+the concatenated dataset, recorded so that data sharding can be audited).
+
+Loading is deterministic and resumable: :class:`ShardedSampler` draws the order of epoch
+``e`` from ``(seed, e)`` and gives each process its own shard, and
+:class:`ResumableDataLoader` remembers how many batches of the epoch it has handed out,
+so Lightning can store that in a checkpoint and a resumed run skips exactly those.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import cv2
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
+
+from deltar.data.rgbd import RGBDFrame
+from deltar.data.transforms import ImageAugmentation, mirror_zone_rects, normalize_image
+from deltar.data.zju_l5 import ZJUL5Dataset
+from deltar.sensor.augment import SignalAugmentation
+from deltar.sensor.sampling import sample_hypotheses
+from deltar.training.config import DataConfig, SourceConfig
+
+
+# ---------------------------------------------------------------------- readers
+class ResizedReader(Sequence):
+    """View of an RGB-D reader with every frame resized (image: area, depth: nearest).
+
+    Args:
+        reader: sequence of :class:`~deltar.data.rgbd.RGBDFrame`.
+        height, width: output size in pixels.
+    """
+
+    def __init__(self, reader: Sequence[RGBDFrame], height: int, width: int) -> None:
+        if height < 1 or width < 1:
+            raise ValueError(f"resize height and width must be >= 1, got {height}x{width}")
+        self.reader, self.height, self.width = reader, int(height), int(width)
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
+        frame = self.reader[index]
+        size = (self.width, self.height)
+        # Nearest neighbour for depth: averaging across an edge invents surfaces.
+        return RGBDFrame(
+            image=cv2.resize(frame.image, size, interpolation=cv2.INTER_AREA),
+            depth_m=cv2.resize(frame.depth_m, size, interpolation=cv2.INTER_NEAREST),
+            intrinsics=frame.intrinsics.scaled(self.height, self.width),
+            name=frame.name, timestamp_s=frame.timestamp_s)
+
+
+class SubsetReader(Sequence):
+    """The frames ``indices`` of a reader (or of any sequence), in that order."""
+
+    def __init__(self, reader: Sequence, indices: Sequence[int]) -> None:
+        self.reader, self.indices = reader, [int(i) for i in indices]
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, index: int) -> Any:
+        return self.reader[self.indices[index]]
+
+
+def holdout_split(num_frames: int, fraction: float, position: str = "end"
+                  ) -> tuple[list[int], list[int]]:
+    """Split ``range(num_frames)`` into training frames and one contiguous held-out block.
+
+    Args:
+        num_frames: frames in the sequence.
+        fraction: share of frames held out, in (0, 1); at least one frame is held out
+            and at least one trains.
+        position: ``end`` (the last frames) or ``start`` (the first frames).
+
+    Returns:
+        ``(train_indices, val_indices)``.
+
+    Raises:
+        ValueError: fewer than two frames, a fraction outside (0, 1) or a bad position.
+    """
+    if num_frames < 2:
+        raise ValueError(f"need at least 2 frames to hold some out, got {num_frames}")
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"holdout fraction must be in (0, 1), got {fraction}")
+    held = min(max(round(num_frames * fraction), 1), num_frames - 1)
+    frames = list(range(num_frames))
+    if position == "end":
+        return frames[:num_frames - held], frames[num_frames - held:]
+    if position == "start":
+        return frames[held:], frames[:held]
+    raise ValueError(f"holdout position must be 'end' or 'start', got {position!r}")
+
+
+def open_source_reader(source: SourceConfig) -> Sequence:
+    """Open the frames of one source: RGB-D frames, or ZJU-L5 samples for ``zju_l5``."""
+    from deltar.data.nyu import NYU_INTRINSICS, NYUH5Reader, NYULabeledReader
+    from deltar.data.procedural import ProceduralReader
+    from deltar.data.rgbd import open_rgbd
+
+    if source.kind == "zju_l5":
+        return ZJUL5Dataset(source.path, split=source.split)
+    if source.kind == "procedural":
+        height, width = source.resize or (480, 640)
+        # Rendered directly at the requested size: exact depth, no resampling.
+        return ProceduralReader(source.frames, source.seed, height, width)
+    if source.kind == "rgbd":
+        reader = open_rgbd(source.path, depth_scale=source.depth_scale)
+    elif str(source.path).lower().endswith(".mat"):
+        reader = NYULabeledReader(source.path, intrinsics=NYU_INTRINSICS)
+    else:
+        reader = NYUH5Reader(source.path, split=source.split, intrinsics=NYU_INTRINSICS)
+    if source.resize is not None:
+        reader = ResizedReader(reader, *source.resize)
+    return reader
+
+
+# ---------------------------------------------------------------------- datasets
+class ZJUL5TrainingDataset(Dataset):
+    """Real-zone ZJU-L5 samples as training items (for fine-tuning and validation).
+
+    Hypotheses are sampled from each zone's measured mean and sigma. The only
+    augmentation is an optional horizontal flip (zone rectangles and their order are
+    mirrored with the image).
+
+    Args:
+        samples: a :class:`~deltar.data.zju_l5.ZJUL5Dataset` or any sequence of samples.
+        num_hypotheses: K per zone.
+        sampling: ``icdf`` or ``uniform``.
+        flip_prob: probability of a horizontal flip.
+        seed: base seed; item ``i`` of epoch ``e`` draws from ``(seed, e, i)``.
+    """
+
+    def __init__(self, samples: Sequence, num_hypotheses: int = 16, sampling: str = "icdf",
+                 flip_prob: float = 0.0, seed: int = 0) -> None:
+        self.samples, self.num_hypotheses, self.sampling = samples, num_hypotheses, sampling
+        self.flip_prob, self.seed, self.epoch = flip_prob, int(seed), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the epoch whose random draws ``__getitem__`` reproduces."""
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        sample = self.samples[index]
+        rng = np.random.default_rng((self.seed, self.epoch, index))
+        image = sample.rgb.astype(np.float32) / 255.0
+        depth, rects = sample.depth_m, sample.zone_rects.copy()
+        mean_sigma, valid = sample.zone_mean_sigma.copy(), sample.zone_valid.copy()
+        intr = sample.intrinsics
+        if rng.random() < self.flip_prob:
+            width = image.shape[1]
+            image, depth = image[:, ::-1], depth[:, ::-1]
+            # Mirroring reverses each zone row, so per-zone data are reordered the same way.
+            order = np.arange(len(valid)).reshape(sample.grid, sample.grid)[:, ::-1].ravel()
+            rects = mirror_zone_rects(rects, width, sample.grid)
+            mean_sigma, valid = mean_sigma[order], valid[order]
+            if intr is not None:
+                intr = type(intr)(intr.fx, intr.fy, intr.width - 1 - intr.cx, intr.cy,
+                                  intr.width, intr.height)
+        mean_sigma = np.where(valid[:, None], mean_sigma, 0.0).astype(np.float32)
+        mean = torch.from_numpy(mean_sigma[:, 0].copy())
+        sigma = torch.from_numpy(mean_sigma[:, 1].copy())
+        valid_t = torch.from_numpy(valid)
+        hypotheses = sample_hypotheses(mean, sigma, valid_t, self.num_hypotheses, self.sampling)
+        intrinsics = ([intr.fx, intr.fy, intr.cx, intr.cy] if intr is not None
+                      else [float("nan")] * 4)
+        return {
+            "image": torch.from_numpy(normalize_image(np.ascontiguousarray(image))),
+            "image_rgb": torch.from_numpy(np.ascontiguousarray(
+                np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8))),
+            "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
+            "zone_mean_sigma": torch.from_numpy(mean_sigma),
+            "zone_valid": valid_t,
+            "zone_rects": torch.from_numpy(rects.astype(np.float32)),
+            "hypotheses": hypotheses.to(torch.float32),
+            "intrinsics": torch.tensor(intrinsics, dtype=torch.float32),
+        }
+
+
+class IndexedConcat(ConcatDataset):
+    """Concatenated datasets whose items also carry their global ``index``.
+
+    ``set_epoch`` is forwarded to every part that has it.
+    """
+
+    def set_epoch(self, epoch: int) -> None:
+        """Forward the epoch to every dataset that draws per-epoch randomness."""
+        for dataset in self.datasets:
+            if hasattr(dataset, "set_epoch"):
+                dataset.set_epoch(epoch)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        item = dict(super().__getitem__(index))
+        item["index"] = torch.tensor(int(index), dtype=torch.int64)
+        return item
+
+
+def build_datasets(config: DataConfig, seed: int = 0) -> tuple[IndexedConcat, IndexedConcat]:
+    """Training and validation datasets described by a data config.
+
+    Each ``train_val`` source is split into training frames and one contiguous held-out
+    block (:func:`holdout_split`); ``train`` / ``val`` sources go entirely to one side.
+    Training items are augmented (image and signal, as configured); validation items
+    are not.
+
+    Args:
+        config: the data section of a training config.
+        seed: base seed of all item randomness.
+
+    Returns:
+        ``(train, val)`` datasets of item dicts (see the module docstring).
+
+    Raises:
+        FileNotFoundError: a source path does not exist.
+        ValueError: a source is empty or too small to split.
+    """
+    from deltar.data.simulated import SimulatedL5Dataset
+
+    image_aug = None
+    if config.image_augmentation.enabled:
+        aug = config.image_augmentation
+        image_aug = ImageAugmentation(
+            crop_size=tuple(aug.crop) if aug.crop else None,
+            max_rotation_deg=aug.max_rotation_deg, flip_prob=aug.flip_prob,
+            photometric_prob=aug.photometric_prob)
+    signal_aug = None
+    if config.signal_augmentation.enabled:
+        sig = config.signal_augmentation
+        signal_aug = SignalAugmentation(sig.drop_fraction, sig.noise_prob, sig.noise_mean_m,
+                                        sig.noise_std_m)
+
+    def simulated(reader: Sequence, train: bool, source_seed: int) -> Dataset:
+        layout = config.zone_layout if train else (config.val_zone_layout
+                                                   or config.zone_layout)
+        return SimulatedL5Dataset(
+            reader, zone_layout=layout, grid=config.grid,
+            training_grid=config.training_grid, training_zone_px=config.training_zone_px,
+            training_max_offset_px=config.training_max_offset_px if train else 0,
+            signal_augmentation=signal_aug if train else None,
+            image_augmentation=image_aug if train else None,
+            num_hypotheses=config.num_hypotheses, sampling=config.sampling,
+            seed=source_seed)
+
+    train_parts: list[Dataset] = []
+    val_parts: list[Dataset] = []
+    for number, source in enumerate(config.sources):
+        reader = open_source_reader(source)
+        if len(reader) == 0:
+            raise ValueError(f"data source {number} ({source.kind} {source.path}) has no frames")
+        if source.role == "train_val":
+            train_idx, val_idx = holdout_split(len(reader), source.holdout_fraction,
+                                               source.holdout_position)
+        elif source.role == "train":
+            train_idx, val_idx = list(range(len(reader))), []
+        else:
+            train_idx, val_idx = [], list(range(len(reader)))
+        source_seed = seed * 1000 + number
+        for indices, train, parts in ((train_idx, True, train_parts),
+                                      (val_idx, False, val_parts)):
+            if not indices:
+                continue
+            subset = SubsetReader(reader, indices)
+            if source.kind == "zju_l5":
+                flip = config.image_augmentation.flip_prob if (
+                    train and config.image_augmentation.enabled) else 0.0
+                parts.append(ZJUL5TrainingDataset(subset, config.num_hypotheses,
+                                                  config.sampling, flip, source_seed))
+            else:
+                parts.append(simulated(subset, train, source_seed))
+    return IndexedConcat(train_parts), IndexedConcat(val_parts)
+
+
+# ---------------------------------------------------------------------- loading
+class ShardedSampler(Sampler[int]):
+    """Deterministic per-epoch order, split into one shard per process.
+
+    The order of epoch ``e`` is a permutation drawn from ``(seed, e)`` (or the identity
+    when not shuffling). With ``pad=True`` the order is padded by wrapping around so
+    that every rank gets the same number of items (needed for DDP training, where all
+    ranks must take the same number of steps); validation uses ``pad=False`` so no
+    frame is counted twice. Rank ``r`` takes items ``r, r + world, r + 2 world, ...``.
+
+    Args:
+        num_items: dataset length.
+        shuffle: permute per epoch.
+        seed: base seed of the permutations.
+        rank, world_size: this process and the number of processes.
+        pad: equalise shard sizes by repeating items.
+    """
+
+    def __init__(self, num_items: int, shuffle: bool = True, seed: int = 0, rank: int = 0,
+                 world_size: int = 1, pad: bool = True) -> None:
+        if num_items < 1:
+            raise ValueError("ShardedSampler needs at least one item")
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank must be in [0, {world_size}), got {rank}")
+        self.num_items, self.shuffle, self.seed = num_items, shuffle, int(seed)
+        self.rank, self.world_size, self.pad = rank, world_size, pad
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the epoch (called by Lightning before each epoch)."""
+        self.epoch = int(epoch)
+
+    def indices(self) -> list[int]:
+        """This rank's items for the current epoch, in order."""
+        if self.shuffle:
+            order = np.random.default_rng((self.seed, self.epoch)).permutation(self.num_items)
+        else:
+            order = np.arange(self.num_items)
+        if self.pad:
+            total = math.ceil(self.num_items / self.world_size) * self.world_size
+            order = np.resize(order, total)  # wraps around
+        return order[self.rank::self.world_size].tolist()
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.indices())
+
+    def __len__(self) -> int:
+        if self.pad:
+            return math.ceil(self.num_items / self.world_size)
+        return len(range(self.rank, self.num_items, self.world_size))
+
+
+class ResumableDataLoader(DataLoader):
+    """A DataLoader that can resume in the middle of an epoch.
+
+    ``state_dict()`` records the sampler's epoch and how many batches this epoch has
+    been handed out; after ``load_state_dict()``, the next iteration over that epoch
+    starts after those batches (without loading them). Lightning saves and restores
+    this state with its checkpoints (its ``_Stateful`` protocol). Needs a
+    :class:`ShardedSampler` and batches of a fixed size (``drop_last`` or a final
+    partial batch only at the very end).
+    """
+
+    def __init__(self, dataset: Dataset, sampler: ShardedSampler, **kwargs: Any) -> None:
+        super().__init__(dataset, sampler=sampler, **kwargs)
+        self._served = 0
+        self._resume: tuple[int, int] | None = None
+
+    def __iter__(self) -> Iterator[Any]:
+        sampler: ShardedSampler = self.sampler  # type: ignore[assignment]
+        if hasattr(self.dataset, "set_epoch"):
+            # Workers are created per iteration (not persistent), so they copy this epoch.
+            self.dataset.set_epoch(sampler.epoch)
+        skip = 0
+        if self._resume is not None and self._resume[0] == sampler.epoch:
+            skip = self._resume[1]
+        self._resume = None
+        self._served = skip
+        if skip == 0:
+            yield from self._counted(super().__iter__())
+            return
+        # Serve the rest of the epoch from a loader over the remaining items only.
+        remaining = sampler.indices()[skip * self.batch_size:]
+        rest = DataLoader(self.dataset, batch_size=self.batch_size, sampler=remaining,
+                          num_workers=self.num_workers, collate_fn=self.collate_fn,
+                          pin_memory=self.pin_memory, drop_last=self.drop_last,
+                          worker_init_fn=self.worker_init_fn)
+        yield from self._counted(iter(rest))
+
+    def _counted(self, batches: Iterator[Any]) -> Iterator[Any]:
+        for batch in batches:
+            self._served += 1
+            yield batch
+
+    def state_dict(self) -> dict[str, int]:
+        """``{"epoch", "batches"}``: position in the current epoch."""
+        return {"epoch": self.sampler.epoch, "batches": self._served}  # type: ignore[attr-defined]
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        """Resume after ``state["batches"]`` batches of epoch ``state["epoch"]``."""
+        self._resume = (int(state["epoch"]), int(state["batches"]))
+
+
+class DeltarDataModule(L.LightningDataModule):
+    """Lightning data module built from the ``data`` section of a training config.
+
+    Args:
+        config: data configuration.
+        seed: base seed of data order and item randomness.
+    """
+
+    def __init__(self, config: DataConfig, seed: int = 0) -> None:
+        super().__init__()
+        self.config, self.seed = config, int(seed)
+        self.train_set: IndexedConcat | None = None
+        self.val_set: IndexedConcat | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        """Open the sources and split them (once)."""
+        if self.train_set is None:
+            self.train_set, self.val_set = build_datasets(self.config, self.seed)
+
+    def _rank_world(self) -> tuple[int, int]:
+        trainer = self.trainer
+        if trainer is None:
+            return 0, 1
+        return trainer.global_rank, trainer.world_size
+
+    def train_dataloader(self) -> ResumableDataLoader:
+        """Shuffled, sharded over processes, padded so all ranks take the same steps."""
+        self.setup()
+        rank, world = self._rank_world()
+        sampler = ShardedSampler(len(self.train_set), True, self.seed, rank, world, pad=True)
+        if len(sampler) < self.config.batch_size:
+            raise ValueError(f"data.batch_size={self.config.batch_size} is larger than the "
+                             f"{len(sampler)} training frames per process")
+        return ResumableDataLoader(self.train_set, sampler, batch_size=self.config.batch_size,
+                                   num_workers=self.config.num_workers, drop_last=True,
+                                   pin_memory=torch.cuda.is_available())
+
+    def val_dataloader(self) -> DataLoader:
+        """In order, sharded over processes without repeats."""
+        self.setup()
+        rank, world = self._rank_world()
+        sampler = ShardedSampler(len(self.val_set), False, self.seed, rank, world, pad=False)
+        return DataLoader(self.val_set, batch_size=self.config.val_batch_size, sampler=sampler,
+                          num_workers=self.config.num_workers)

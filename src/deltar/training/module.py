@@ -1,0 +1,250 @@
+"""``DeltarSystem``: the Lightning module that trains a :class:`~deltar.models.DeltarNet`.
+
+The network stays plain PyTorch; this module adds the loss (scaled SI loss on the valid
+ground-truth pixels, the prediction upsampled to the ground truth's resolution as the
+release does), the optimiser (AdamW, image encoder at a lower learning rate), the
+OneCycle schedule and validation with the paper's per-frame metrics.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from deltar.evaluation.metrics import METRIC_KEYS, EmptyFrameError, depth_metrics
+from deltar.models import create_model, scaled_si_loss
+from deltar.training.config import OptimConfig
+
+#: Keys of a batch the network consumes.
+MODEL_INPUTS: tuple[str, ...] = ("image", "hypotheses", "zone_rects", "zone_valid")
+
+
+class DeltarSystem(L.LightningModule):
+    """Train and validate a DELTAR network.
+
+    Args:
+        preset: model preset for :func:`deltar.models.create_model`.
+        model_overrides: constructor overrides of the preset.
+        optim: loss / optimiser / schedule settings (defaults: the release's recipe).
+        min_depth, max_depth: ground-truth range of the validation metrics, metres.
+    """
+
+    def __init__(self, preset: str = "deltar-lite", model_overrides: dict[str, Any] | None = None,
+                 optim: OptimConfig | None = None, min_depth: float = 1e-3,
+                 max_depth: float = 10.0) -> None:
+        super().__init__()
+        self.preset = preset
+        self.model_overrides = dict(model_overrides or {})
+        self.optim = optim or OptimConfig()
+        self.model = create_model(preset, **self.model_overrides)
+        self.min_depth, self.max_depth = float(min_depth), float(max_depth)
+        self._val_sums = torch.zeros(len(METRIC_KEYS), dtype=torch.float64)
+        self._val_loss_sum = torch.zeros((), dtype=torch.float64)
+        self._val_frames = torch.zeros((), dtype=torch.float64)
+        self._val_batches = torch.zeros((), dtype=torch.float64)
+        #: Metrics of the last completed validation (averaged over frames and processes).
+        self.last_val_metrics: dict[str, float] = {}
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Run the network on a batch dict (see ``deltar.training.data``).
+
+        Returns:
+            The network's outputs: ``depth`` (B, 1, H/2, W/2) metres, ``bin_edges``
+            (B, N + 1) metres, ``uncertainty`` (B, 1, H/2, W/2) metres.
+        """
+        return self.model(*(batch[key] for key in MODEL_INPUTS))
+
+    def loss(self, pred_m: torch.Tensor, target_m: torch.Tensor) -> torch.Tensor:
+        """Scaled SI loss between (B, 1, h, w) predictions and (B, 1, H, W) ground truth.
+
+        The prediction is upsampled bilinearly to the ground truth (as the release does)
+        and only pixels with ground truth above ``min_depth`` count.
+        """
+        valid = target_m > self.min_depth
+        # The log in the loss needs float32 even under mixed precision.
+        return scaled_si_loss(pred_m.float(), target_m.float(), valid,
+                              alpha=self.optim.loss_alpha, lam=self.optim.loss_lambda)
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        """One optimisation step's loss (logged as ``train/loss``)."""
+        output = self(batch)
+        loss = self.loss(output["depth"], batch["depth"])
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["depth"].shape[0])
+        return loss
+
+    # ------------------------------------------------------------------ validation
+    def on_validation_epoch_start(self) -> None:
+        self._val_sums.zero_()
+        self._val_loss_sum.zero_()
+        self._val_frames.zero_()
+        self._val_batches.zero_()
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        """Accumulate the loss and each frame's metrics at ground-truth resolution."""
+        output = self(batch)
+        target = batch["depth"]
+        self._val_loss_sum += float(self.loss(output["depth"], target))
+        self._val_batches += 1
+        pred = F.interpolate(output["depth"].float(), size=target.shape[-2:], mode="bilinear",
+                             align_corners=True)
+        for frame_pred, frame_gt in zip(pred[:, 0].cpu().numpy(), target[:, 0].cpu().numpy(),
+                                        strict=True):
+            try:
+                metrics = depth_metrics(frame_pred, frame_gt, self.min_depth, self.max_depth)
+            except EmptyFrameError:
+                continue  # no valid ground truth in this frame: it cannot be scored
+            self._val_sums += torch.tensor([metrics[k] for k in METRIC_KEYS],
+                                           dtype=torch.float64)
+            self._val_frames += 1
+
+    def on_validation_epoch_end(self) -> None:
+        """Average over frames of all processes, log ``val/<metric>`` and show a table."""
+        totals = torch.cat([self._val_sums, self._val_loss_sum[None], self._val_frames[None],
+                            self._val_batches[None]]).to(self.device)
+        totals = self.trainer.strategy.reduce(totals, reduce_op="sum")
+        totals = totals.double().cpu()
+        frames, batches = float(totals[-2]), float(totals[-1])
+        if frames == 0:
+            return
+        metrics = {key: float(totals[i]) / frames for i, key in enumerate(METRIC_KEYS)}
+        metrics["loss"] = float(totals[len(METRIC_KEYS)]) / max(batches, 1.0)
+        self.last_val_metrics = metrics
+        for key, value in metrics.items():
+            # Already reduced over processes, so no further syncing.
+            self.log(f"val/{key}", value, prog_bar=key in ("d1", "rel"), rank_zero_only=True)
+        if not self.trainer.sanity_checking and self.trainer.is_global_zero:
+            print_metrics_table(metrics, int(frames), self.current_epoch, self.global_step)
+
+    # ------------------------------------------------------------------ optimisation
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """Two AdamW groups: the image encoder at ``lr * encoder_lr_factor``, the rest at lr."""
+        encoder = list(self.model.image_encoder.parameters())
+        encoder_ids = {id(p) for p in encoder}
+        rest = [p for p in self.model.parameters() if id(p) not in encoder_ids]
+        return [
+            {"params": encoder, "lr": self.optim.lr * self.optim.encoder_lr_factor,
+             "name": "encoder"},
+            {"params": rest, "lr": self.optim.lr, "name": "decoder"},
+        ]
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        """AdamW + OneCycle, stepped every optimiser step over the whole run."""
+        cfg = self.optim
+        groups = self.parameter_groups()
+        optimizer = torch.optim.AdamW(groups, lr=cfg.lr, betas=tuple(cfg.betas),
+                                      weight_decay=cfg.weight_decay)
+        scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            optimizer, max_lr=[g["lr"] for g in groups],
+            total_steps=int(self.trainer.estimated_stepping_batches),
+            pct_start=cfg.pct_start, div_factor=cfg.div_factor,
+            final_div_factor=cfg.final_div_factor, cycle_momentum=cfg.cycle_momentum,
+            base_momentum=cfg.base_momentum, max_momentum=cfg.max_momentum)
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Store the model recipe and this process's RNG states next to the weights."""
+        checkpoint["deltar_model"] = {"preset": self.preset, "overrides": self.model_overrides}
+        # The legacy global numpy state is what third-party code (and timm) draws from.
+        checkpoint["deltar_rng"] = {
+            "torch": torch.get_rng_state(), "numpy": np.random.get_state(),  # noqa: NPY002
+            "python": random.getstate(),
+        }
+        if torch.cuda.is_available():
+            checkpoint["deltar_rng"]["cuda"] = torch.cuda.get_rng_state_all()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Restore the RNG states saved by :meth:`on_save_checkpoint` (resuming)."""
+        states = checkpoint.get("deltar_rng")
+        if states:
+            torch.set_rng_state(states["torch"])
+            np.random.set_state(states["numpy"])  # noqa: NPY002
+            random.setstate(states["python"])
+            if "cuda" in states and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(states["cuda"])
+
+
+def print_metrics_table(metrics: dict[str, float], frames: int, epoch: int, step: int) -> None:
+    """Print validation metrics as a rich table (d1..d3 higher is better, others lower)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"validation: epoch {epoch}, step {step}, {frames} frames")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    table.add_column("better", justify="center")
+    for key in [*METRIC_KEYS, "loss"]:
+        table.add_row(key, f"{metrics[key]:.4f}", "higher" if key in ("d1", "d2", "d3")
+                      else "lower")
+    Console().print(table)
+
+
+def export_model(model: nn.Module, preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The dict ``deltar train`` saves as ``model.pt``: recipe plus float32 state dict."""
+    return {"preset": preset, "overrides": dict(overrides),
+            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+
+
+def load_trained_model(path: str, map_location: str = "cpu") -> nn.Module:
+    """Rebuild a trained network from a ``model.pt`` export or a Lightning checkpoint.
+
+    Args:
+        path: ``model.pt`` written by ``deltar train`` or a run's ``.ckpt`` file.
+        map_location: torch device for the loaded tensors.
+
+    Returns:
+        The :class:`~deltar.models.DeltarNet` with the trained weights, in eval mode.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is neither kind.
+    """
+    model, _ = _load_weights_file(path, map_location)
+    return model.eval()
+
+
+def _load_weights_file(path: str, map_location: str = "cpu"
+                       ) -> tuple[nn.Module, dict[str, Any]]:
+    from pathlib import Path
+
+    file = Path(path)
+    if not file.is_file():
+        raise FileNotFoundError(f"weights file not found: {file}")
+    try:
+        data = torch.load(file, map_location=map_location, weights_only=False)
+    except Exception as err:
+        raise ValueError(f"cannot read weights file {file}: {err}") from err
+    if isinstance(data, dict) and "deltar_model" in data and "state_dict" in data:
+        recipe = data["deltar_model"]
+        prefix = "model."
+        state = {k[len(prefix):]: v for k, v in data["state_dict"].items()
+                 if k.startswith(prefix)}
+    elif isinstance(data, dict) and {"preset", "state_dict"} <= set(data):
+        recipe, state = {"preset": data["preset"], "overrides": data.get("overrides", {})}, \
+            data["state_dict"]
+    else:
+        raise ValueError(f"{file} is neither a deltar training checkpoint nor a model.pt "
+                         "export")
+    model = create_model(recipe["preset"], **recipe.get("overrides", {}))
+    model.load_state_dict(state)
+    return model, recipe
+
+
+def initial_weights(model: nn.Module, path: str) -> None:
+    """Load a previous run's weights (``.ckpt`` or ``model.pt``) into ``model`` (fine-tuning).
+
+    Raises:
+        ValueError: the architectures differ (the message lists mismatching keys).
+    """
+    source, _ = _load_weights_file(path)
+    try:
+        model.load_state_dict(source.state_dict())
+    except RuntimeError as err:
+        raise ValueError(f"weights in {path} do not fit the configured model: {err}") from err

@@ -1,0 +1,250 @@
+"""Run a training from a :class:`TrainConfig`: run folder, trainer, callbacks, resume.
+
+A run folder holds::
+
+    config.yaml            the full configuration (every hyper-parameter)
+    checkpoints/last.ckpt  newest checkpoint (every N steps and at epoch ends)
+    checkpoints/step=*.ckpt  the newest few step checkpoints
+    logs/                  TensorBoard events and metrics.csv
+    history/rank<r>.jsonl  per-step loss and the dataset indices each process trained on
+    history/rank<r>_final.json  final step and a digest of the weights of each process
+    model.pt               the trained network (EMA weights when enabled)
+
+Every file is written atomically, so a run killed at any moment leaves only complete
+files, and ``train(..., resume=True)`` continues from ``checkpoints/last.ckpt``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint
+from lightning.pytorch.plugins.io import TorchCheckpointIO
+from torch.optim.swa_utils import get_ema_multi_avg_fn
+
+from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.training.config import TrainConfig, config_from_dict
+from deltar.training.data import DeltarDataModule
+from deltar.training.module import DeltarSystem, export_model, initial_weights
+
+CONFIG_NAME = "config.yaml"
+LAST_CHECKPOINT = "last.ckpt"
+#: Environment variable carrying the run folder to processes launched by Lightning.
+RUN_DIR_ENV = "DELTAR_RUN_DIR"
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Checkpoint files written through :func:`deltar.io.atomic.atomic_path`.
+
+    The checkpoint is serialised into a temporary file in the same folder and renamed
+    over the target only when complete, so a process killed while saving never leaves
+    a truncated ``last.ckpt``. Loading allows the non-tensor objects our checkpoints
+    hold (RNG states), so only load checkpoints you wrote yourself.
+    """
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: str | os.PathLike,
+                        storage_options: Any | None = None) -> None:
+        """Serialise ``checkpoint`` to ``path`` atomically."""
+        if storage_options is not None:
+            raise TypeError("AtomicCheckpointIO takes no storage_options")
+        with atomic_path(path) as tmp:
+            torch.save(checkpoint, tmp)
+
+    def load_checkpoint(self, path: str | os.PathLike, map_location: Any = None,
+                        weights_only: bool | None = None) -> dict[str, Any]:
+        """Load a checkpoint written by this project (full pickle, trusted source)."""
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"checkpoint not found: {path}")
+        return torch.load(path, map_location=map_location or "cpu", weights_only=False)
+
+
+class TrainingHistory(Callback):
+    """Append each step's loss and sample indices to ``history/rank<r>.jsonl``.
+
+    One file per process, one JSON line per optimiser step:
+    ``{"step", "epoch", "loss", "indices"}``. A resumed run appends to the same file,
+    so steps re-done after the last checkpoint appear twice (the later line wins). At
+    the end of training each process writes ``history/rank<r>_final.json`` with the
+    global step and a SHA-256 digest of its parameters (equal on all ranks under DDP).
+    """
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+
+    def _path(self, trainer: L.Trainer, suffix: str) -> Path:
+        return self.folder / f"rank{trainer.global_rank}{suffix}"
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           outputs: Any, batch: dict[str, torch.Tensor], batch_idx: int
+                           ) -> None:
+        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
+        record = {"step": trainer.global_step, "epoch": trainer.current_epoch,
+                  "loss": float(loss), "indices": batch["index"].tolist()}
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with self._path(trainer, ".jsonl").open("a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        digest = parameter_digest(pl_module)
+        write_text_atomic(self._path(trainer, "_final.json"), json.dumps(
+            {"step": trainer.global_step, "parameters_sha256": digest}) + "\n")
+
+
+def parameter_digest(module: torch.nn.Module) -> str:
+    """SHA-256 over the bytes of every parameter (names and values), in order."""
+    sha = hashlib.sha256()
+    for name, param in module.named_parameters():
+        sha.update(name.encode())
+        sha.update(param.detach().cpu().contiguous().numpy().tobytes())
+    return sha.hexdigest()
+
+
+def read_history(path: str | Path) -> dict[int, dict[str, Any]]:
+    """Read a ``history/rank<r>.jsonl`` file: step -> record (the last record per step)."""
+    records: dict[int, dict[str, Any]] = {}
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        if line.strip():
+            record = json.loads(line)
+            records[int(record["step"])] = record
+    return records
+
+
+def new_run_dir(config: TrainConfig) -> Path:
+    """``<output_dir>/<name>-<UTC timestamp>`` (not created)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    return Path(config.output_dir) / f"{config.name}-{stamp}"
+
+
+def load_run_config(run_dir: str | Path) -> TrainConfig:
+    """The configuration saved in a run folder.
+
+    Raises:
+        FileNotFoundError: the folder has no ``config.yaml``.
+    """
+    import yaml
+
+    path = Path(run_dir) / CONFIG_NAME
+    if not path.is_file():
+        raise FileNotFoundError(f"no {CONFIG_NAME} in run folder {run_dir}")
+    return config_from_dict(yaml.safe_load(path.read_text(encoding="utf-8")))
+
+
+def build_system(config: TrainConfig) -> DeltarSystem:
+    """The Lightning module with the configured network and initial weights."""
+    system = DeltarSystem(config.model.preset, config.model.overrides, config.optim)
+    if config.model.official_weights:
+        from deltar.models import load_official_weights
+
+        load_official_weights(system.model, config.model.official_weights)
+    elif config.model.init_checkpoint:
+        initial_weights(system.model, config.model.init_checkpoint)
+    return system
+
+
+def build_trainer(config: TrainConfig, run_dir: Path) -> L.Trainer:
+    """A Lightning trainer for the configuration, writing into ``run_dir``."""
+    from lightning.pytorch.callbacks import LearningRateMonitor, RichProgressBar
+    from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+
+    tcfg = config.trainer
+    checkpoints = ModelCheckpoint(
+        dirpath=run_dir / "checkpoints", filename="step={step}", auto_insert_metric_name=False,
+        every_n_train_steps=tcfg.checkpoint_every_n_steps, save_top_k=tcfg.keep_checkpoints,
+        monitor="step", mode="max", save_last=True)
+    callbacks: list[Callback] = [checkpoints, TrainingHistory(run_dir / "history"),
+                                 LearningRateMonitor(logging_interval="step")]
+    if tcfg.progress_bar:
+        callbacks.append(RichProgressBar())
+    if config.ema.enabled:
+        callbacks.append(EMAWeightAveraging(
+            decay=config.ema.decay, update_starting_at_step=config.ema.start_step,
+            multi_avg_fn=get_ema_multi_avg_fn(config.ema.decay)))
+    loggers = [TensorBoardLogger(run_dir / "logs", name="", version="tensorboard"),
+               CSVLogger(run_dir / "logs", name="", version="csv")]
+    return L.Trainer(
+        accelerator=tcfg.accelerator, devices=tcfg.devices, num_nodes=tcfg.num_nodes,
+        strategy=tcfg.strategy, precision=tcfg.precision,
+        sync_batchnorm=config.model.sync_batchnorm,
+        max_epochs=tcfg.max_epochs, max_steps=tcfg.max_steps,
+        gradient_clip_val=config.optim.grad_clip_norm, gradient_clip_algorithm="norm",
+        check_val_every_n_epoch=tcfg.val_every_n_epochs, val_check_interval=tcfg.val_check_interval,
+        limit_train_batches=tcfg.limit_train_batches, limit_val_batches=tcfg.limit_val_batches,
+        log_every_n_steps=tcfg.log_every_n_steps, deterministic=tcfg.deterministic,
+        enable_progress_bar=tcfg.progress_bar, callbacks=callbacks, logger=loggers,
+        plugins=[AtomicCheckpointIO()], use_distributed_sampler=False,
+        num_sanity_val_steps=0, default_root_dir=run_dir)
+
+
+def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool = False) -> Path:
+    """Train (or resume) a run.
+
+    Args:
+        config: the validated configuration.
+        run_dir: run folder; None makes a new one under ``config.output_dir``. A new run
+            refuses a folder that already holds a ``config.yaml``.
+        resume: continue the run in ``run_dir`` from ``checkpoints/last.ckpt``, with the
+            optimiser, schedule, step, data position and RNG states; its saved
+            ``config.yaml`` must equal ``config``.
+
+    Returns:
+        The run folder.
+
+    Raises:
+        FileExistsError: a new run would overwrite an existing run folder's config.
+        FileNotFoundError: resuming without a checkpoint.
+        ValueError: resuming with a configuration that differs from the saved one.
+    """
+    run_dir = Path(run_dir) if run_dir is not None else _default_run_dir(config)
+    config_path = run_dir / CONFIG_NAME
+    checkpoint = run_dir / "checkpoints" / LAST_CHECKPOINT
+    if resume:
+        if not checkpoint.is_file():
+            raise FileNotFoundError(f"nothing to resume: {checkpoint} does not exist")
+        if load_run_config(run_dir).to_dict() != config.to_dict():
+            raise ValueError(f"config differs from the one saved in {config_path}; resume "
+                             "with the run's own config.yaml")
+    if config.trainer.num_threads is not None:
+        torch.set_num_threads(config.trainer.num_threads)
+    L.seed_everything(config.seed, workers=True, verbose=False)
+    system = build_system(config)
+    data = DeltarDataModule(config.data, config.seed)
+    trainer = build_trainer(config, run_dir)
+    if trainer.is_global_zero and not resume:
+        if config_path.exists():
+            raise FileExistsError(f"run folder {run_dir} already holds a run; resume it or "
+                                  "choose a new folder")
+        write_text_atomic(config_path, config.to_yaml(), overwrite=False)
+    # Processes that Lightning launches itself (strategy "ddp" without torchrun) inherit
+    # the environment and so use the same folder.
+    previous = os.environ.get(RUN_DIR_ENV)
+    os.environ[RUN_DIR_ENV] = str(run_dir)
+    try:
+        trainer.fit(system, datamodule=data, ckpt_path=str(checkpoint) if resume else None)
+    finally:
+        if previous is None:
+            os.environ.pop(RUN_DIR_ENV, None)
+        else:
+            os.environ[RUN_DIR_ENV] = previous
+    if trainer.is_global_zero:
+        with atomic_path(run_dir / "model.pt") as tmp:
+            torch.save(export_model(system.model, config.model.preset,
+                                    config.model.overrides), tmp)
+    return run_dir
+
+
+def _default_run_dir(config: TrainConfig) -> Path:
+    inherited = os.environ.get(RUN_DIR_ENV)
+    if inherited:
+        return Path(inherited)
+    world = max(int(os.environ.get(name, "1")) for name in ("WORLD_SIZE", "SLURM_NTASKS"))
+    if world > 1:
+        # Separately started processes (torchrun, srun) would each pick their own timestamp.
+        raise ValueError("multi-process launches need an explicit run folder (--run-dir)")
+    return new_run_dir(config)
