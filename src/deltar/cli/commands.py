@@ -7,3 +7,4 @@ import deltar.cli.simulate  # noqa: F401
 from deltar.cli import evaluate  # noqa: F401
 from deltar.cli import calibrate  # noqa: F401
 from deltar.cli import demo  # noqa: F401
+from deltar.cli import train  # noqa: F401
