@@ -305,20 +305,30 @@ def joint_bilateral_filter(source: np.ndarray, guide: np.ndarray, radius: int,
     height, width = source.shape
     pad = ((radius, radius), (radius, radius))
     source_pad = np.pad(source, pad, mode="edge")
-    guide_pad = np.pad(guide, (*pad, (0, 0)), mode="edge")
+    # Channels first and in-place arithmetic: contiguous slices, no per-tap allocations.
+    guide = np.ascontiguousarray(np.moveaxis(guide, -1, 0))
+    guide_pad = np.stack([np.pad(channel, pad, mode="edge") for channel in guide])
     numerator = np.zeros_like(source)
     denominator = np.zeros_like(source)
-    inv_space = -0.5 / sigma_space**2
-    inv_color = -0.5 / sigma_color**2
+    weight = np.empty_like(source)
+    scratch = np.empty_like(source)
+    inv_color = np.float32(-0.5 / sigma_color**2)
     offsets = range(-(radius // step) * step, radius + 1, step)
     for dy in offsets:
         for dx in offsets:
-            window = (slice(radius + dy, radius + dy + height),
-                      slice(radius + dx, radius + dx + width))
-            colour_dist = np.sum((guide_pad[window] - guide) ** 2, axis=-1)
-            weight = np.exp(inv_color * colour_dist + inv_space * (dy * dy + dx * dx))
-            numerator += weight * source_pad[window]
+            rows = slice(radius + dy, radius + dy + height)
+            cols = slice(radius + dx, radius + dx + width)
+            weight.fill(0.0)
+            for channel in range(guide.shape[0]):
+                np.subtract(guide_pad[channel, rows, cols], guide[channel], out=scratch)
+                np.multiply(scratch, scratch, out=scratch)
+                weight += scratch
+            weight *= inv_color
+            weight += np.float32(-0.5 * (dy * dy + dx * dx) / sigma_space**2)
+            np.exp(weight, out=weight)
             denominator += weight
+            weight *= source_pad[rows, cols]
+            numerator += weight
     # The centre offset (0, 0) is always in the window, so the denominator is >= 1.
     return numerator / denominator
 
