@@ -57,14 +57,16 @@ class ExtrinsicResult:
     Attributes:
         extrinsics: the solved sensor-to-camera transform.
         rms_point_to_plane_m: RMS of the point-to-plane residuals after solving, metres.
-        frames_used: number of plane observations.
+        frames_used: number of plane observations in the final solve.
         success: scipy's convergence flag.
+        rejected: names of frames dropped because their planes disagreed with the rest.
     """
 
     extrinsics: SensorExtrinsics
     rms_point_to_plane_m: float
     frames_used: int
     success: bool
+    rejected: tuple[str, ...] = ()
 
 
 def nominal_extrinsics(roll_deg: float = 90.0,
@@ -116,9 +118,15 @@ def solve_extrinsics(
     loss: str = "soft_l1",
     loss_scale_m: float = 0.02,
     max_points_per_frame: int = 400,
+    frame_outlier_m: float = 0.03,
     seed: int = 0,
 ) -> ExtrinsicResult:
     """Solve the sensor-to-camera extrinsics by robust point-to-plane least squares.
+
+    A frame whose sensor plane was fitted to the wrong surface disagrees with all the
+    others as a whole, which a per-point robust loss cannot undo; so after each solve,
+    frames whose RMS residual exceeds both ``frame_outlier_m`` and three times the
+    median frame RMS are dropped and the solve is repeated (at most three rounds).
 
     Args:
         observations: per-frame planes (sensor frame) and camera-frame points on them.
@@ -127,6 +135,7 @@ def solve_extrinsics(
         loss_scale_m: residual scale in metres where the robust loss bends.
         max_points_per_frame: camera points used per frame (random subset, fixed seed), so
             every frame weighs about the same.
+        frame_outlier_m: frame RMS residual (metres) below which a frame is never dropped.
         seed: random seed of the subsets.
 
     Returns:
@@ -136,43 +145,64 @@ def solve_extrinsics(
         ValueError: too few frames, or planes whose orientations cannot fix the transform
             (the message says what to record).
     """
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    normals = np.array([o.normal_sensor for o in observations]).reshape(-1, 3)
-    check_plane_diversity(normals)
     rng = np.random.default_rng(seed)
-    pts, nrm, off = [], [], []
+    frames = []
     for obs in observations:
         p = np.asarray(obs.points_cam_m, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 3:
             raise ValueError(f"observation {obs.name!r}: points_cam_m must be (N >= 3, 3)")
         if p.shape[0] > max_points_per_frame:
             p = p[rng.choice(p.shape[0], max_points_per_frame, replace=False)]
-        pts.append(p)
-        nrm.append(np.repeat(np.asarray(obs.normal_sensor, float)[None], p.shape[0], 0))
-        off.append(np.full(p.shape[0], float(obs.offset_sensor_m)))
-    points, plane_n, plane_d = np.concatenate(pts), np.concatenate(nrm), np.concatenate(off)
+        frames.append((obs, p))
+    rejected: list[str] = []
+    start = nominal
+    for _ in range(3):
+        check_plane_diversity(np.array([o.normal_sensor for o, _ in frames]))
+        extrinsics, success = _solve_once(frames, start, loss, loss_scale_m)
+        frame_rms = np.array([np.sqrt(np.mean(_plane_residuals(o, p, extrinsics) ** 2))
+                              for o, p in frames])
+        bad = (frame_rms > frame_outlier_m) & (frame_rms > 3 * np.median(frame_rms))
+        if not bad.any():
+            break
+        rejected += [o.name for (o, _), b in zip(frames, bad, strict=True) if b]
+        frames = [f for f, b in zip(frames, bad, strict=True) if not b]
+        start = extrinsics
+    residuals = np.concatenate([_plane_residuals(o, p, extrinsics) for o, p in frames])
+    return ExtrinsicResult(extrinsics, float(np.sqrt(np.mean(residuals ** 2))), len(frames),
+                           success, tuple(rejected))
 
-    start = nominal.inverse()  # camera -> sensor
-    rot0 = Rotation.from_matrix(start.rotation)
+
+def _plane_residuals(obs: PlaneObservation, points_cam: np.ndarray,
+                     extrinsics: SensorExtrinsics) -> np.ndarray:
+    """Signed distances (metres) of camera points to the frame's sensor plane."""
+    sensor = (points_cam - extrinsics.translation_m) @ extrinsics.rotation
+    return sensor @ np.asarray(obs.normal_sensor, float) + float(obs.offset_sensor_m)
+
+
+def _solve_once(frames: list[tuple[PlaneObservation, np.ndarray]], start: SensorExtrinsics,
+                loss: str, loss_scale_m: float) -> tuple[SensorExtrinsics, bool]:
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    points = np.concatenate([p for _, p in frames])
+    plane_n = np.concatenate([np.repeat(np.asarray(o.normal_sensor, float)[None], len(p), 0)
+                              for o, p in frames])
+    plane_d = np.concatenate([np.full(len(p), float(o.offset_sensor_m)) for o, p in frames])
+    inverse = start.inverse()  # camera -> sensor, the direction the residual uses
+    rot0 = Rotation.from_matrix(inverse.rotation)
 
     def transform(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # Rotation as a small rotation vector applied on top of the nominal guess.
-        rot = (Rotation.from_rotvec(x[:3]) * rot0).as_matrix()
-        return rot, x[3:]
+        # Rotation as a small rotation vector applied on top of the starting guess.
+        return (Rotation.from_rotvec(x[:3]) * rot0).as_matrix(), x[3:]
 
     def residuals(x: np.ndarray) -> np.ndarray:
         rot, trans = transform(x)
-        sensor_points = points @ rot.T + trans
-        return np.einsum("ij,ij->i", plane_n, sensor_points) + plane_d
+        return np.einsum("ij,ij->i", plane_n, points @ rot.T + trans) + plane_d
 
-    x0 = np.concatenate([np.zeros(3), start.translation_m])
+    x0 = np.concatenate([np.zeros(3), inverse.translation_m])
     solution = least_squares(residuals, x0, loss=loss, f_scale=loss_scale_m, x_scale="jac")
     rot, trans = transform(solution.x)
-    extrinsics = SensorExtrinsics(rot, trans).inverse()
-    rms = float(np.sqrt(np.mean(residuals(solution.x) ** 2)))
-    return ExtrinsicResult(extrinsics, rms, len(observations), bool(solution.success))
+    return SensorExtrinsics(rot, trans).inverse(), bool(solution.success)
 
 
 def mean_zone_to_cloud_distance(observations: Sequence[PlaneObservation],
@@ -274,6 +304,7 @@ def observation_from_points(
     max_angle_deg: float = 30.0,
     max_offset_diff_m: float = 0.15,
     min_points: int = 200,
+    min_point_fraction: float = 0.0,
     visible_only: bool = False,
     name: str = "",
     seed: int = 0,
@@ -297,6 +328,8 @@ def observation_from_points(
         max_offset_diff_m: largest difference between the two planes' offsets under the
             nominal pose, metres (should exceed the nominal translation's error).
         min_points: fewest plane points accepted.
+        min_point_fraction: fewest plane points accepted, as a fraction of the points in
+            the sensor's view.
         visible_only: drop occluded points (use for SLAM maps).
         name: label for error messages.
         seed: RANSAC seed.
@@ -326,6 +359,10 @@ def observation_from_points(
     if inliers.sum() < min_points:
         raise ValueError(f"frame {name}: the matching plane has only {int(inliers.sum())} "
                          f"points (need {min_points})")
+    if inliers.mean() < min_point_fraction:
+        raise ValueError(f"frame {name}: the matching plane covers only {inliers.mean():.0%} of "
+                         f"the scene points in the sensor's view (need "
+                         f"{min_point_fraction:.0%}): fill the view with a flat surface")
     zone_points = zone_centre_points(zone_mean_m, fov_deg)[plane.inliers]
     return PlaneObservation(plane.normal, plane.offset_m, seen[inliers], zone_points,
                             cloud_cam_m=cloud[view], name=name)

@@ -47,8 +47,13 @@ class CalibrationResult:
 def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
                            nominal: SensorExtrinsics, *,
                            fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
-                           visible_only: bool = False, name: str = "") -> PlaneObservation:
+                           visible_only: bool = False, min_zone_fraction: float = 0.6,
+                           min_point_fraction: float = 0.5,
+                           max_incidence_deg: float = 60.0, name: str = "") -> PlaneObservation:
     """Fit the frame's plane (sensor frame) and find it in the camera-frame cloud.
+
+    Calibration needs frames where one plane fills most of the sensor's view; frames
+    where it does not (clutter, corners) are refused rather than allowed to bias the fit.
 
     Args:
         frame: the zone frame (means are z-depth in metres).
@@ -56,6 +61,11 @@ def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
         nominal: nominal sensor-to-camera transform.
         fov_deg: sensor field of view in degrees.
         visible_only: drop occluded cloud points (SLAM maps).
+        min_zone_fraction: fewest valid zones (fraction) that must lie on the plane.
+        min_point_fraction: fewest cloud points in the sensor's view (fraction) that must
+            lie on the matching plane.
+        max_incidence_deg: largest angle between the plane's normal and the sensor's
+            axis; grazing planes are fitted poorly from zones.
         name: label for error messages.
 
     Raises:
@@ -65,9 +75,19 @@ def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
         plane = fit_plane_to_zones(frame, fov_deg=fov_deg)
     except ValueError as err:
         raise ValueError(f"frame {name}: {err}") from err
-    mean, _, _ = frame.flat()
+    incidence = float(np.degrees(np.arccos(min(1.0, abs(plane.normal[2])))))
+    if incidence > max_incidence_deg:
+        raise ValueError(f"frame {name}: the plane is seen {incidence:.0f} deg off head-on "
+                         f"(at most {max_incidence_deg:.0f}): view planes more squarely")
+    mean, _, valid = frame.flat()
+    fraction = plane.inliers.sum() / max(int(valid.sum()), 1)
+    if fraction < min_zone_fraction:
+        raise ValueError(f"frame {name}: only {fraction:.0%} of the valid zones lie on one "
+                         f"plane (need {min_zone_fraction:.0%}): fill the sensor's view with "
+                         "a flat surface")
     return observation_from_points(plane, mean, cloud_cam_m, nominal, fov_deg=fov_deg,
-                                   visible_only=visible_only, name=name)
+                                   visible_only=visible_only,
+                                   min_point_fraction=min_point_fraction, name=name)
 
 
 def calibrate_observations(
@@ -86,6 +106,11 @@ def calibrate_observations(
         ValueError: too few or degenerate planes (the message says what to record).
     """
     solved = solve_extrinsics(observations, nominal)
+    if solved.rejected:
+        rejected = set(solved.rejected)
+        skipped = [*skipped, *((name, "its plane disagrees with the other frames")
+                               for name in solved.rejected)]
+        observations = [o for o in observations if o.name not in rejected]
     before = mean_zone_to_cloud_distance(observations, nominal)
     after = mean_zone_to_cloud_distance(observations, solved.extrinsics)
     residuals = {"zone_to_cloud_before_m": before, "zone_to_cloud_after_m": after,
