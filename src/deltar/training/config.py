@@ -41,6 +41,8 @@ class SourceConfig:
         seed: seed of the first procedural frame.
         depth_scale: raw depth units per metre for ``rgbd`` (None: the layout's default).
         split: list to read from a NYU ``.json`` or a ZJU-L5 ``data.json``.
+        intrinsics: optional ``[fx, fy, cx, cy]`` in pixels of the stored images,
+            replacing the source's own (``rgbd`` and ``nyu``).
         resize: optional ``[height, width]`` in pixels every frame is resized to before
             augmentation and zone simulation (``rgbd``, ``procedural``, ``nyu``).
         role: ``train_val`` (split into training frames and a held-out block),
@@ -57,6 +59,7 @@ class SourceConfig:
     seed: int = 0
     depth_scale: float | None = None
     split: str = "train"
+    intrinsics: list[float] | None = None
     resize: list[int] | None = None
     role: str = "train_val"
     holdout_fraction: float = 0.1
@@ -79,6 +82,11 @@ class SourceConfig:
         if self.role == "train_val" and not 0.0 < self.holdout_fraction < 1.0:
             raise ValueError(f"{where}.holdout_fraction must be in (0, 1) for role "
                              f"'train_val', got {self.holdout_fraction}")
+        if self.intrinsics is not None and (len(self.intrinsics) != 4
+                                            or min(self.intrinsics[:2]) <= 0):
+            raise ValueError(f"{where}.intrinsics must be [fx, fy, cx, cy] with fx, fy > 0")
+        if self.intrinsics is not None and self.kind not in ("rgbd", "nyu"):
+            raise ValueError(f"{where}.intrinsics applies to rgbd and nyu sources only")
         if self.depth_scale is not None and not self.depth_scale > 0:
             raise ValueError(f"{where}.depth_scale must be > 0, got {self.depth_scale}")
 
@@ -535,6 +543,12 @@ def _convert(hint: Any, value: Any, path: str) -> Any:
             raise ValueError(f"{path} must be an integer, got {value!r}")
         return value
     if hint is float:
+        if isinstance(value, str):
+            # PyYAML (YAML 1.1) reads exponents without a dot, like 1e-4, as strings.
+            try:
+                return float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"{path} must be a number, got {value!r}")
         return float(value)

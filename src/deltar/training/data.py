@@ -13,6 +13,7 @@ so Lightning can store that in a checkpoint and a resumed run skips exactly thos
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
+from deltar.calibration.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
 from deltar.data.transforms import ImageAugmentation, mirror_zone_rects, normalize_image
 from deltar.data.zju_l5 import ZJUL5Dataset
@@ -112,15 +114,37 @@ def open_source_reader(source: SourceConfig) -> Sequence:
         height, width = source.resize or (480, 640)
         # Rendered directly at the requested size: exact depth, no resampling.
         return ProceduralReader(source.frames, source.seed, height, width)
+    intrinsics = None
+    if source.intrinsics is not None:
+        height, width = _native_size(source)
+        intrinsics = CameraIntrinsics(*source.intrinsics, width=width, height=height)
     if source.kind == "rgbd":
-        reader = open_rgbd(source.path, depth_scale=source.depth_scale)
+        reader = open_rgbd(source.path, depth_scale=source.depth_scale, intrinsics=intrinsics)
     elif str(source.path).lower().endswith(".mat"):
-        reader = NYULabeledReader(source.path, intrinsics=NYU_INTRINSICS)
+        reader = NYULabeledReader(source.path, intrinsics=intrinsics or NYU_INTRINSICS)
     else:
-        reader = NYUH5Reader(source.path, split=source.split, intrinsics=NYU_INTRINSICS)
+        reader = NYUH5Reader(source.path, split=source.split,
+                             intrinsics=intrinsics or NYU_INTRINSICS)
     if source.resize is not None:
         reader = ResizedReader(reader, *source.resize)
     return reader
+
+
+def _native_size(source: SourceConfig) -> tuple[int, int]:
+    """(height, width) of a source's stored frames, read from its first frame."""
+    from deltar.data.nyu import NYUH5Reader, NYULabeledReader
+    from deltar.data.rgbd import open_rgbd
+
+    if source.kind == "rgbd":
+        # Intrinsics are not needed to learn the size; silence the default-camera warning.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            reader = open_rgbd(source.path, depth_scale=source.depth_scale)
+    elif str(source.path).lower().endswith(".mat"):
+        reader = NYULabeledReader(source.path)
+    else:
+        reader = NYUH5Reader(source.path, split=source.split)
+    return tuple(reader[0].depth_m.shape)
 
 
 # ---------------------------------------------------------------------- datasets

@@ -33,6 +33,11 @@ class DeltarSystem(L.LightningModule):
         model_overrides: constructor overrides of the preset.
         optim: loss / optimiser / schedule settings (defaults: the release's recipe).
         min_depth, max_depth: ground-truth range of the validation metrics, metres.
+
+    Attributes:
+        schedule_steps: optimiser steps the OneCycle schedule spans. Set it before
+            ``fit`` (``deltar.training.run`` does); if None, Lightning's estimate is used,
+            which loads the training data early and so defeats mid-epoch resumption.
     """
 
     def __init__(self, preset: str = "deltar-lite", model_overrides: dict[str, Any] | None = None,
@@ -44,6 +49,7 @@ class DeltarSystem(L.LightningModule):
         self.optim = optim or OptimConfig()
         self.model = create_model(preset, **self.model_overrides)
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
+        self.schedule_steps: int | None = None
         self._val_sums = torch.zeros(len(METRIC_KEYS), dtype=torch.float64)
         self._val_loss_sum = torch.zeros((), dtype=torch.float64)
         self._val_frames = torch.zeros((), dtype=torch.float64)
@@ -141,7 +147,7 @@ class DeltarSystem(L.LightningModule):
                                       weight_decay=cfg.weight_decay)
         scheduler = torch.optim.lr_scheduler.OneCycleLR(
             optimizer, max_lr=[g["lr"] for g in groups],
-            total_steps=int(self.trainer.estimated_stepping_batches),
+            total_steps=self.schedule_steps or int(self.trainer.estimated_stepping_batches),
             pct_start=cfg.pct_start, div_factor=cfg.div_factor,
             final_div_factor=cfg.final_div_factor, cycle_momentum=cfg.cycle_momentum,
             base_momentum=cfg.base_momentum, max_momentum=cfg.max_momentum)

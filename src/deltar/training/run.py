@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -27,7 +28,6 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
-from torch.optim.swa_utils import get_ema_multi_avg_fn
 
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.training.config import TrainConfig, config_from_dict
@@ -148,8 +148,13 @@ def build_system(config: TrainConfig) -> DeltarSystem:
     return system
 
 
-def build_trainer(config: TrainConfig, run_dir: Path) -> L.Trainer:
-    """A Lightning trainer for the configuration, writing into ``run_dir``."""
+def build_trainer(config: TrainConfig, run_dir: Path,
+                  extra_callbacks: list[Callback] | tuple[Callback, ...] = ()) -> L.Trainer:
+    """A Lightning trainer for the configuration, writing into ``run_dir``.
+
+    ``extra_callbacks`` are appended to the standard ones (checkpoints, history, lr
+    monitor, progress bar, EMA).
+    """
     from lightning.pytorch.callbacks import LearningRateMonitor, RichProgressBar
     from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
@@ -159,13 +164,13 @@ def build_trainer(config: TrainConfig, run_dir: Path) -> L.Trainer:
         every_n_train_steps=tcfg.checkpoint_every_n_steps, save_top_k=tcfg.keep_checkpoints,
         monitor="step", mode="max", save_last=True)
     callbacks: list[Callback] = [checkpoints, TrainingHistory(run_dir / "history"),
-                                 LearningRateMonitor(logging_interval="step")]
+                                 LearningRateMonitor(logging_interval="step"),
+                                 *extra_callbacks]
     if tcfg.progress_bar:
         callbacks.append(RichProgressBar())
     if config.ema.enabled:
-        callbacks.append(EMAWeightAveraging(
-            decay=config.ema.decay, update_starting_at_step=config.ema.start_step,
-            multi_avg_fn=get_ema_multi_avg_fn(config.ema.decay)))
+        callbacks.append(EMAWeightAveraging(decay=config.ema.decay,
+                                            update_starting_at_step=config.ema.start_step))
     loggers = [TensorBoardLogger(run_dir / "logs", name="", version="tensorboard"),
                CSVLogger(run_dir / "logs", name="", version="csv")]
     return L.Trainer(
@@ -182,7 +187,8 @@ def build_trainer(config: TrainConfig, run_dir: Path) -> L.Trainer:
         num_sanity_val_steps=0, default_root_dir=run_dir)
 
 
-def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool = False) -> Path:
+def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool = False,
+          extra_callbacks: list[Callback] | tuple[Callback, ...] = ()) -> Path:
     """Train (or resume) a run.
 
     Args:
@@ -192,6 +198,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         resume: continue the run in ``run_dir`` from ``checkpoints/last.ckpt``, with the
             optimiser, schedule, step, data position and RNG states; its saved
             ``config.yaml`` must equal ``config``.
+        extra_callbacks: more Lightning callbacks for this run.
 
     Returns:
         The run folder.
@@ -215,7 +222,9 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     L.seed_everything(config.seed, workers=True, verbose=False)
     system = build_system(config)
     data = DeltarDataModule(config.data, config.seed)
-    trainer = build_trainer(config, run_dir)
+    data.setup()
+    trainer = build_trainer(config, run_dir, extra_callbacks)
+    system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)
     if trainer.is_global_zero and not resume:
         if config_path.exists():
             raise FileExistsError(f"run folder {run_dir} already holds a run; resume it or "
@@ -237,6 +246,29 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
             torch.save(export_model(system.model, config.model.preset,
                                     config.model.overrides), tmp)
     return run_dir
+
+
+def count_training_steps(config: TrainConfig, num_train_items: int, world_size: int) -> int:
+    """Optimiser steps of the whole run (what the OneCycle schedule spans).
+
+    Matches the data module: each process gets ``ceil(items / world_size)`` items per
+    epoch in full batches, limited by ``limit_train_batches``, over ``max_epochs`` epochs,
+    capped by ``max_steps``.
+    """
+    per_rank = math.ceil(num_train_items / world_size)
+    batches = per_rank // config.data.batch_size
+    limit = config.trainer.limit_train_batches
+    if isinstance(limit, int):
+        batches = min(batches, limit)
+    elif isinstance(limit, float):
+        batches = int(batches * limit)
+    total = batches * config.trainer.max_epochs
+    if config.trainer.max_steps > 0:
+        total = min(total, config.trainer.max_steps)
+    if total < 1:
+        raise ValueError(f"the configuration trains for no step ({num_train_items} training "
+                         f"frames, batch size {config.data.batch_size}, {world_size} processes)")
+    return total
 
 
 def _default_run_dir(config: TrainConfig) -> Path:

@@ -1,0 +1,98 @@
+"""Training configuration: schema validation, overrides and the shipped configs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from deltar.training.config import apply_override, config_from_dict, load_config
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("name", ["nyu_official", "shared_lite", "zju_finetune", "tiny_test"])
+def test_shipped_configs_load_and_round_trip(name):
+    config = load_config(CONFIGS / f"{name}.yaml")
+    again = config_from_dict(yaml.safe_load(config.to_yaml()))
+    assert again.to_dict() == config.to_dict()
+
+
+def test_nyu_official_matches_the_release_recipe():
+    # Values from reference/paper_and_release.md ("Release training config").
+    c = load_config(CONFIGS / "nyu_official.yaml")
+    assert c.model.preset == "deltar-official"
+    assert c.data.image_augmentation.crop == [416, 544]
+    assert c.data.image_augmentation.max_rotation_deg == 2.5
+    assert c.data.batch_size == 16 and c.trainer.max_epochs == 25
+    assert (c.data.zone_layout, c.data.training_grid, c.data.training_zone_px) == (
+        "training", 6, 64)
+    sig = c.data.signal_augmentation
+    assert (sig.drop_fraction, sig.noise_prob, sig.noise_mean_m, sig.noise_std_m) == (
+        0.34, 0.3, 0.17, 0.20)
+    assert c.data.sampling == "uniform"
+    o = c.optim
+    assert (o.lr, o.weight_decay, o.div_factor, o.final_div_factor) == (3e-4, 0.1, 25, 100)
+    assert o.encoder_lr_factor == 0.1
+    assert (o.loss_alpha, o.loss_lambda) == (10.0, 0.85)
+
+
+def _minimal() -> dict:
+    return {"data": {"sources": [{"kind": "procedural", "frames": 4}]}}
+
+
+@pytest.mark.parametrize(("data", "named"), [
+    ({"optimm": {}}, "optimm"),
+    ({"optim": {"lrr": 1}}, "optim.lrr"),
+    ({"data": {"sources": [{"kind": "procedural", "frames": 4, "pth": "x"}]}},
+     "data.sources.0.pth"),
+])
+def test_unknown_keys_are_named(data, named):
+    merged = {**_minimal(), **data}
+    with pytest.raises(ValueError, match=named.replace(".", r"\.")):
+        config_from_dict(merged)
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("optim.lr=fast", "optim.lr must be a number"),
+    ("optim.lr=-1", "optim.lr must be > 0"),
+    ("trainer.strategy=horovod", "trainer.strategy"),
+    ("data.batch_size=2.5", "data.batch_size must be an integer"),
+    ("data.image_augmentation.crop=[100, 128]", "multiple of 32"),
+    ("data.sources.0.holdout_fraction=1.0", "holdout_fraction"),
+    ("data.sources.0.role=val", "no source has role 'train'"),
+    ("data.zone_layout=diagonal", "data.zone_layout"),
+])
+def test_invalid_values_raise_naming_the_key(override, message):
+    data = _minimal()
+    apply_override(data, override)
+    with pytest.raises(ValueError, match=message):
+        config_from_dict(data)
+
+
+def test_overrides_parse_yaml_values_and_list_indices(tmp_path):
+    config = load_config(CONFIGS / "tiny_test.yaml", [
+        "optim.lr=1e-4", "data.sources.0.frames=7", "data.image_augmentation.crop=[32, 64]",
+        "model.overrides.n_bins=8", "trainer.limit_val_batches=0.5", "trainer.devices=auto"])
+    assert config.optim.lr == pytest.approx(1e-4) and isinstance(config.optim.lr, float)
+    assert config.data.sources[0].frames == 7
+    assert config.data.image_augmentation.crop == [32, 64]
+    assert config.model.overrides["n_bins"] == 8
+    assert config.trainer.limit_val_batches == 0.5
+    assert config.trainer.devices == "auto"
+
+
+@pytest.mark.parametrize("override", ["optim.lr", "=3", "data.sources.5.path=x"])
+def test_malformed_overrides_raise(override):
+    with pytest.raises(ValueError, match="override"):
+        apply_override(_minimal(), override)
+
+
+def test_missing_and_corrupt_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"nope\.yaml"):
+        load_config(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("optim: [unclosed\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_config(bad)

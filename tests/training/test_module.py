@@ -1,0 +1,121 @@
+"""DeltarSystem (loss, optimiser, schedule) and a tiny end-to-end run on CPU."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from deltar.training.config import OptimConfig, config_from_dict
+from deltar.training.module import DeltarSystem, load_trained_model
+from deltar.training.run import AtomicCheckpointIO, read_history, train
+
+TINY_MODEL = {"decoder_channels": [32, 32, 16, 16, 8], "head_channels": 16, "n_bins": 16,
+              "design_size": [64, 96]}
+
+
+@pytest.fixture(scope="module")
+def system():
+    torch.manual_seed(0)
+    return DeltarSystem("deltar-lite", TINY_MODEL, OptimConfig(lr=2e-3))
+
+
+def _reference_loss(pred, gt, alpha=10.0, lam=0.85):
+    valid = gt > 1e-3
+    g = np.log(pred[valid]) - np.log(gt[valid])
+    return alpha * math.sqrt(np.mean(g**2) - lam * np.mean(g) ** 2)
+
+
+def test_loss_is_the_scaled_si_loss_on_valid_pixels(system, rng):
+    gt = rng.uniform(0.5, 4.0, (2, 1, 8, 12)).astype(np.float32)
+    gt[0, 0, :3] = 0.0  # invalid pixels must not count
+    pred = rng.uniform(0.5, 4.0, (2, 1, 8, 12)).astype(np.float32)
+    loss = system.loss(torch.from_numpy(pred), torch.from_numpy(gt))
+    assert float(loss) == pytest.approx(_reference_loss(pred, gt), rel=1e-4)
+
+
+def test_loss_upsamples_a_half_resolution_prediction(system, rng):
+    gt = rng.uniform(0.5, 4.0, (1, 1, 8, 12)).astype(np.float32)
+    pred = np.full((1, 1, 4, 6), 2.0, dtype=np.float32)  # constant: upsampling is exact
+    loss = system.loss(torch.from_numpy(pred), torch.from_numpy(gt))
+    assert float(loss) == pytest.approx(_reference_loss(np.full_like(gt, 2.0), gt), rel=1e-4)
+
+
+def test_encoder_trains_at_a_tenth_of_the_learning_rate(system):
+    groups = system.parameter_groups()
+    assert [g["lr"] for g in groups] == pytest.approx([2e-4, 2e-3])
+    ids = [id(p) for g in groups for p in g["params"]]
+    assert len(ids) == len(set(ids)) == len(list(system.model.parameters()))
+    assert {id(p) for p in groups[0]["params"]} == {
+        id(p) for p in system.model.image_encoder.parameters()}
+
+
+def test_one_cycle_schedule_spans_the_run(system):
+    system.schedule_steps = 40
+    setup = system.configure_optimizers()
+    optimizer, scheduler = setup["optimizer"], setup["lr_scheduler"]["scheduler"]
+    peaks = [2e-4, 2e-3]
+    assert [g["lr"] for g in optimizer.param_groups] == pytest.approx([p / 25 for p in peaks])
+    lrs = []
+    for _ in range(39):  # the schedule's last step (index 39) has the final rate
+        optimizer.step()
+        scheduler.step()
+        lrs.append(optimizer.param_groups[1]["lr"])
+    assert max(lrs) == pytest.approx(2e-3, rel=1e-3)
+    assert lrs[-1] == pytest.approx(2e-3 / 25 / 100, rel=1e-2)
+    assert optimizer.param_groups[0]["weight_decay"] == pytest.approx(0.1)
+
+
+def test_tiny_end_to_end_run(tmp_path, tiny_config):
+    config = tiny_config("trainer.max_epochs=1", "ema.enabled=true", "ema.decay=0.5")
+    run = train(config, tmp_path / "run")
+
+    saved = yaml.safe_load((run / "config.yaml").read_text(encoding="utf-8"))
+    assert config_from_dict(saved).to_dict() == config.to_dict()
+    checkpoints = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert checkpoints == ["last.ckpt", "step=2.ckpt", "step=4.ckpt"]
+    assert not list(run.rglob("*.tmp*"))  # atomic writes leave no temporaries
+
+    history = read_history(run / "history" / "rank0.jsonl")
+    assert sorted(history) == [1, 2, 3, 4]  # 8 training frames / batch 2
+    trained = sorted(i for r in history.values() for i in r["indices"])
+    assert trained == list(range(8))  # held-out frames 8, 9 never train
+
+    with (run / "logs" / "csv" / "metrics.csv").open(encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    d1 = [float(r["val/d1"]) for r in rows if r.get("val/d1")]
+    assert len(d1) == 1 and 0.0 <= d1[0] <= 1.0
+
+    model = load_trained_model(str(run / "model.pt"))
+    from_ckpt = load_trained_model(str(run / "checkpoints" / "last.ckpt"))
+    for a, b in zip(model.state_dict().values(), from_ckpt.state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b)  # both hold the EMA weights at the end
+
+
+def test_new_run_refuses_an_existing_run_folder(tmp_path, tiny_config):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("name: other\n", encoding="utf-8")
+    with pytest.raises(FileExistsError, match="already holds a run"):
+        train(tiny_config(), run)
+    with pytest.raises(FileNotFoundError, match="nothing to resume"):
+        train(tiny_config(), run, resume=True)
+
+
+def test_atomic_checkpoint_io_keeps_the_old_file_when_saving_fails(tmp_path):
+    io = AtomicCheckpointIO()
+    path = tmp_path / "last.ckpt"
+    io.save_checkpoint({"step": 1}, path)
+
+    class Unpicklable:
+        def __reduce__(self):
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        io.save_checkpoint({"step": 2, "bad": Unpicklable()}, path)
+    assert io.load_checkpoint(path) == {"step": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]
