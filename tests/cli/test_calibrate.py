@@ -8,6 +8,7 @@ from typer.testing import CliRunner
 
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.rig import RigCalibration
+from deltar.calibration.slam import write_ply_points
 from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
 from deltar.cli.main import _register_commands, app
 from deltar.sensor.geometry import SensorExtrinsics
@@ -57,3 +58,38 @@ def test_calibrate_missing_recording(tmp_path):
     result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "nope"), "--out",
                                       str(tmp_path / "c.json")])
     assert result.exit_code == 1 and "not found" in result.output
+
+
+def test_calibrate_from_a_slam_map(tmp_path):
+    _register_commands()
+    frames = synthetic_rig_frames(TRUE, CAMERA, frames_per_plane=3, mean_noise_m=0.015, seed=7)
+    write_synthetic_recording(tmp_path / "rec", frames, CAMERA, with_depth=False)
+    # The map: points on the room's six faces (5 cm grid); the trajectory: the camera poses.
+    half = np.array([2.5, 1.3, 3.0])
+    faces = []
+    for axis in range(3):
+        a, b = (i for i in range(3) if i != axis)
+        ga, gb = np.meshgrid(np.arange(-half[a], half[a], 0.05),
+                             np.arange(-half[b], half[b], 0.05))
+        for sign in (-1, 1):
+            face = np.zeros((ga.size, 3))
+            face[:, a], face[:, b], face[:, axis] = ga.ravel(), gb.ravel(), sign * half[axis]
+            faces.append(face)
+    write_ply_points(tmp_path / "map.ply", np.concatenate(faces), binary=False)
+    lines = [" ".join(f"{v:.9f}" for v in (f.zone_frame.timestamp_s, *f.cam_to_world[:3, 3],
+                                             *Rotation.from_matrix(f.cam_to_world[:3, :3])
+                                             .as_quat())) for f in frames]
+    (tmp_path / "traj.txt").write_text("# t tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
+    result = CliRunner().invoke(app, [
+        "calibrate", str(tmp_path / "rec"), "--out", str(tmp_path / "c.json"),
+        "--slam-cloud", str(tmp_path / "map.ply"), "--slam-trajectory",
+        str(tmp_path / "traj.txt")])
+    assert result.exit_code == 0, result.output
+    calib = RigCalibration.load(tmp_path / "c.json")
+    error = Rotation.from_matrix(calib.extrinsics.rotation @ TRUE.rotation.T).magnitude()
+    assert np.degrees(error) < 0.5
+    assert np.linalg.norm(calib.extrinsics.translation_m - TRUE.translation_m) < 0.01
+    half_given = CliRunner().invoke(app, ["calibrate", str(tmp_path / "rec"), "--out",
+                                          str(tmp_path / "d.json"), "--slam-cloud",
+                                          str(tmp_path / "map.ply")])
+    assert half_given.exit_code != 0

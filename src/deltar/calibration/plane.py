@@ -266,7 +266,8 @@ def fit_plane_to_zones(
     inliers = np.zeros(mean.size, dtype=bool)
     inliers[idx[centre_inliers]] = True
     iterations = 0
-    for iterations in range(1, max_iterations + 1):  # noqa: B007 (reported below)
+    while iterations < max_iterations:
+        iterations += 1
         _check_enough(inliers, cells, min_zones)
         normal_new, offset_new = fit_plane_svd(points[inliers])  # E-step
         uv = _closest_in_cell(cells[idx], mean[idx], normal_new, offset_new)  # M-step

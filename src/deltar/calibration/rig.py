@@ -147,7 +147,7 @@ class RigCalibration:
                                             np.asarray(extr["translation_m"],
                                                        dtype=np.float64)),
                 grid=int(data["grid"]),
-                fov_deg=tuple(float(f) for f in data["fov_deg"]),  # type: ignore[arg-type]
+                fov_deg=tuple(float(f) for f in data["fov_deg"]),
                 sensor_model=str(data.get("sensor_model", "VL53L5CX")),
                 residuals=residuals,
                 date=str(data.get("date", "")),

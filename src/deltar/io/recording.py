@@ -68,14 +68,14 @@ class RecordingMeta:
                              f"{data.get('schema_version')!r}")
         try:
             intr = CameraIntrinsics.from_dict(data["intrinsics"])
-            fov = tuple(float(f) for f in data.get("fov_deg", DEFAULT_FOV_DEG))
+            fov_values = [float(f) for f in data.get("fov_deg", DEFAULT_FOV_DEG)]
             grid = int(data.get("grid", 8))
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid recording metadata: {err}") from err
-        if grid not in (4, 8) or len(fov) != 2:
+        if grid not in (4, 8) or len(fov_values) != 2:
             raise ValueError(f"{source}: grid must be 4 or 8 and fov_deg two angles")
-        return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid, fov,  # type: ignore[arg-type]
-                   str(data.get("created", "")))
+        return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid,
+                   (fov_values[0], fov_values[1]), str(data.get("created", "")))
 
 
 def timestamp_to_ns(timestamp_s: float) -> int:
@@ -106,7 +106,8 @@ class RecordingWriter:
         else:
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
             self.meta = RecordingMeta(meta.intrinsics, meta.sensor_model, meta.grid,
-                                      tuple(meta.fov_deg), created)  # type: ignore[arg-type]
+                                      (float(meta.fov_deg[0]), float(meta.fov_deg[1])),
+                                      created)
             write_text_atomic(meta_path, json.dumps(self.meta.to_dict(), indent=2) + "\n",
                               overwrite=False)
             self._last_zone_time = None
