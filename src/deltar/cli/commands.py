@@ -8,3 +8,4 @@ from deltar.cli import evaluate  # noqa: F401
 from deltar.cli import calibrate  # noqa: F401
 from deltar.cli import demo  # noqa: F401
 from deltar.cli import train  # noqa: F401
+from deltar.cli import predict  # noqa: F401

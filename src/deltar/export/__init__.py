@@ -1,0 +1,1 @@
+"""Model export (ONNX) and the onnxruntime runner: see :mod:`deltar.export.onnx`."""

@@ -1,0 +1,298 @@
+"""Export DeltarNet to ONNX and run the exported model with onnxruntime.
+
+The exported graph has a dynamic batch axis and a fixed input size. Parts of the
+zone fusion take their shapes from the zone layout (tokens per zone patch, the
+longest zone window), so the export fixes them too: an ONNX model serves every zone
+layout with the same *layout signature* (same patch sizes, windows no longer than
+at export). The signature is stored in the model's metadata and checked before
+every run, so a layout that does not fit raises a clear error instead of giving
+wrong depth. The nominal geometry at a fixed image size always fits.
+
+Two details of the export:
+
+* ``aten::trunc`` (used to locate the zone window) has no ONNX symbolic in the
+  TorchScript exporter; it is written as ``sign(x) * floor(|x|)``.
+* The resampling matrices are built with an in-place ``index_add_`` on a view, which
+  the tracer drops (the matrices came out as constant zeros). During export they are
+  built with an equivalent one-hot product instead (same values).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+    from deltar.models import DeltarNet
+
+INPUT_NAMES = ("image", "hypotheses", "zone_rects", "zone_valid")
+OUTPUT_NAMES = ("depth", "bin_edges", "uncertainty")
+OPSET = 17
+_SIGNATURE_KEY = "deltar_layout_signature"
+
+
+def layout_signature(zone_rects: np.ndarray | torch.Tensor, grid: int) -> list[dict]:
+    """The shape-determining numbers of a zone layout at each fusion stride.
+
+    Args:
+        zone_rects: (B, Z, 4) rectangles in network-input pixels.
+        grid: zones per side.
+
+    Returns:
+        One dict per fusion stride: ``stride``, ``patch`` [p_h, p_w] tokens per zone,
+        ``max_length`` [rows, cols] of the longest zone window in feature cells.
+    """
+    import torch
+
+    from deltar.models.decoder import FUSION_STRIDES
+    from deltar.models.zone_patches import zone_window
+
+    rects = torch.as_tensor(np.asarray(zone_rects, dtype=np.float32))
+    out = []
+    for stride in FUSION_STRIDES:
+        window = zone_window(rects, float(stride), grid)
+        out.append({"stride": int(stride), "patch": [int(p) for p in window.patch],
+                    "max_length": [int(v) for v in window.length.amax(0).tolist()]})
+    return out
+
+
+def _signature_fits(signature: list[dict], exported: list[dict]) -> bool:
+    return all(s["patch"] == e["patch"] and s["max_length"][0] <= e["max_length"][0]
+               and s["max_length"][1] <= e["max_length"][1]
+               for s, e in zip(signature, exported, strict=True))
+
+
+def _onehot_scatter_rows(rows: int, cols: int, row_index: torch.Tensor,
+                         col_index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Traceable twin of ``zone_patches._scatter_rows``: (B, rows, cols) matrix.
+
+    Adds ``weight[b, j]`` at ``(row_index[b, j], col_index[b, j])``; indices outside the
+    matrix contribute nothing.
+    """
+    import torch
+
+    row_hot = (row_index[..., None] == torch.arange(rows, device=weight.device))
+    col_hot = (col_index[..., None] == torch.arange(cols, device=weight.device))
+    return torch.einsum("bj,bjr,bjc->brc", weight, row_hot.to(weight.dtype),
+                        col_hot.to(weight.dtype))
+
+
+def _trunc_symbolic(g, x):
+    return g.op("Mul", g.op("Sign", x), g.op("Floor", g.op("Abs", x)))
+
+
+@contextlib.contextmanager
+def _exportable_model_ops() -> Iterator[None]:
+    """Swap in traceable resampling and register ``trunc`` for the export only."""
+    import torch
+
+    from deltar.models import zone_patches
+
+    torch.onnx.register_custom_op_symbolic("aten::trunc", _trunc_symbolic, OPSET)
+    original = zone_patches._scatter_rows
+    zone_patches._scatter_rows = _onehot_scatter_rows
+    try:
+        yield
+    finally:
+        zone_patches._scatter_rows = original
+        torch.onnx.unregister_custom_op_symbolic("aten::trunc", OPSET)
+
+
+def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
+    """Wrap DeltarNet so the traced graph returns (depth, bin_edges, uncertainty)."""
+    import torch
+
+    class TupleOutputs(torch.nn.Module):
+        def __init__(self, inner: DeltarNet) -> None:
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, image, hypotheses, zone_rects, zone_valid):
+            out = self.inner(image, hypotheses, zone_rects, zone_valid)
+            return out["depth"], out["bin_edges"], out["uncertainty"]
+
+    return TupleOutputs(model).eval()
+
+
+def example_inputs(model: DeltarNet, height: int, width: int,
+                   zone_rects: np.ndarray | None = None,
+                   grid: int = 8) -> tuple[torch.Tensor, ...]:
+    """Batch-1 inputs for tracing: mid-grey image, 2 m zones, the nominal zone layout.
+
+    Args:
+        model: the network (its ``num_hypotheses``).
+        height, width: input size in pixels (multiples of 32).
+        zone_rects: (Z, 4) layout in input pixels; nominal geometry when None.
+        grid: zones per side for the nominal layout.
+
+    Returns:
+        (image (1, 3, H, W), hypotheses (1, Z, K), zone_rects (1, Z, 4), zone_valid (1, Z)).
+    """
+    import torch
+
+    from deltar.inference.estimator import nominal_zone_rects
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    frame = ZoneFrame(mean_m=np.full((grid, grid), 2.0), sigma_m=np.full((grid, grid), 0.05),
+                      valid=np.ones((grid, grid), bool))
+    rects = nominal_zone_rects(frame, height, width) if zone_rects is None else zone_rects
+    rects = np.asarray(rects, dtype=np.float32)
+    zones = rects.shape[0]
+    k = int(model.config["num_hypotheses"])
+    hypotheses = torch.linspace(1.8, 2.2, k).expand(1, zones, k).contiguous()
+    return (torch.zeros(1, 3, height, width), hypotheses, torch.from_numpy(rects)[None],
+            torch.ones(1, zones, dtype=torch.bool))
+
+
+def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: int, *,
+                zone_rects: np.ndarray | None = None, overwrite: bool = False,
+                metadata: dict[str, str] | None = None) -> Path:
+    """Export ``model`` to an ONNX file with a dynamic batch axis, atomically.
+
+    Args:
+        model: the network (any preset); exported in eval mode, float32, on the CPU.
+        path: destination ``.onnx`` file.
+        height, width: the fixed input size in pixels (multiples of 32).
+        zone_rects: (Z, 4) zone layout in input pixels that fixes the layout signature;
+            the nominal 8x8 geometry at this size when None.
+        overwrite: replace an existing file (default: ``FileExistsError``).
+        metadata: extra string key/values stored in the model (e.g. the preset).
+
+    Returns:
+        The written path.
+    """
+    import onnx
+    import torch
+
+    from deltar.io.atomic import atomic_path
+
+    if height % 32 or width % 32 or height < 32 or width < 32:
+        raise ValueError(f"height and width must be positive multiples of 32, got "
+                         f"{height}x{width}")
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"refusing to overwrite existing file: {path}")
+    model = model.eval().float().cpu()
+    inputs = example_inputs(model, height, width, zone_rects)
+    grid = round(inputs[2].shape[1] ** 0.5)
+    signature = layout_signature(inputs[2].numpy(), grid)
+    dynamic = {name: {0: "batch"} for name in (*INPUT_NAMES, *OUTPUT_NAMES)}
+    with atomic_path(path, overwrite=overwrite) as tmp, _exportable_model_ops(), \
+            torch.no_grad(), _quiet_tracer():
+        torch.onnx.export(_tuple_outputs(model), inputs, str(tmp), input_names=list(INPUT_NAMES),
+                          output_names=list(OUTPUT_NAMES), dynamic_axes=dynamic,
+                          opset_version=OPSET, dynamo=False)
+        proto = onnx.load(str(tmp))
+        extra = {_SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
+                 "deltar_config": json.dumps(model.config, default=list),
+                 **(metadata or {})}
+        for key, value in extra.items():
+            entry = proto.metadata_props.add()
+            entry.key, entry.value = key, str(value)
+        onnx.save(proto, str(tmp))
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_tracer() -> Iterator[None]:
+    # The tracer warns about every Python-side shape computation, which is expected
+    # here (the layout signature is fixed on purpose and checked at run time).
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        yield
+
+
+class OnnxDepthModel:
+    """An exported DeltarNet run with onnxruntime on the CPU.
+
+    Args:
+        path: the ``.onnx`` file written by :func:`export_onnx`.
+        num_threads: onnxruntime intra-op threads (its default when None).
+
+    Attributes:
+        input_size: (H, W) fixed input size in pixels.
+        num_hypotheses: K hypotheses per zone.
+        grid: zones per side.
+    """
+
+    def __init__(self, path: str | os.PathLike, num_threads: int | None = None) -> None:
+        import onnxruntime as ort
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ONNX model not found: {path}")
+        options = ort.SessionOptions()
+        if num_threads:
+            options.intra_op_num_threads = int(num_threads)
+            options.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(path), options,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as err:  # onnxruntime raises its own exception types
+            raise ValueError(f"{path}: cannot load ONNX model: {err}") from err
+        self.path = path
+        names = [i.name for i in self.session.get_inputs()]
+        if names != list(INPUT_NAMES):
+            raise ValueError(f"{path}: inputs are {names}, expected {list(INPUT_NAMES)} "
+                             "(export with deltar export)")
+        meta = self.session.get_modelmeta().custom_metadata_map
+        if _SIGNATURE_KEY not in meta:
+            raise ValueError(f"{path}: no {_SIGNATURE_KEY} metadata (export with deltar export)")
+        self.signature = json.loads(meta[_SIGNATURE_KEY])
+        self.grid = int(meta["deltar_grid"])
+        self.metadata = dict(meta)
+        shapes = {i.name: i.shape for i in self.session.get_inputs()}
+        self.input_size = (int(shapes["image"][2]), int(shapes["image"][3]))
+        self.num_hypotheses = int(shapes["hypotheses"][2])
+
+    def check_layout(self, zone_rects: np.ndarray) -> None:
+        """Raise ``ValueError`` if a (B, Z, 4) layout does not fit the exported one."""
+        rects = np.asarray(zone_rects, dtype=np.float32)
+        if rects.ndim != 3 or rects.shape[1] != self.grid * self.grid or rects.shape[2] != 4:
+            raise ValueError(f"zone_rects must be (B, {self.grid * self.grid}, 4), got "
+                             f"{rects.shape}")
+        signature = layout_signature(rects, self.grid)
+        if not _signature_fits(signature, self.signature):
+            raise ValueError(f"{self.path}: this zone layout {signature} does not fit the one "
+                             f"the model was exported for {self.signature}; re-export with "
+                             "this layout (deltar export --layout-from) or use the PyTorch "
+                             "backend")
+
+    def run(self, image: np.ndarray, hypotheses: np.ndarray, zone_rects: np.ndarray,
+            zone_valid: np.ndarray) -> dict[str, np.ndarray]:
+        """Run the network; same inputs and outputs as ``DeltarNet.forward`` (numpy).
+
+        Args:
+            image: (B, 3, H, W) float32 normalised, H x W = :attr:`input_size`.
+            hypotheses: (B, Z, K) float32 metres.
+            zone_rects: (B, Z, 4) float32 pixels of the input.
+            zone_valid: (B, Z) bool.
+
+        Returns:
+            dict of ``depth`` (B, 1, H/2, W/2), ``bin_edges`` (B, N + 1) and
+            ``uncertainty`` (B, 1, H/2, W/2), float32 metres.
+        """
+        image = np.asarray(image, dtype=np.float32)
+        if image.ndim != 4 or tuple(image.shape[1:]) != (3, *self.input_size):
+            raise ValueError(f"image must be (B, 3, {self.input_size[0]}, "
+                             f"{self.input_size[1]}), got {image.shape}")
+        hyp = np.asarray(hypotheses, dtype=np.float32)
+        if hyp.ndim != 3 or hyp.shape[2] != self.num_hypotheses or not np.all(np.isfinite(hyp)):
+            raise ValueError(f"hypotheses must be finite (B, Z, {self.num_hypotheses}), got "
+                             f"{hyp.shape}")
+        self.check_layout(zone_rects)
+        feeds = {"image": image, "hypotheses": hyp,
+                 "zone_rects": np.asarray(zone_rects, dtype=np.float32),
+                 "zone_valid": np.asarray(zone_valid, dtype=bool)}
+        outputs = self.session.run(list(OUTPUT_NAMES), feeds)
+        return dict(zip(OUTPUT_NAMES, outputs, strict=True))

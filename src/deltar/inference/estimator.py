@@ -1,0 +1,502 @@
+"""From an RGB image and a zone frame to a full-resolution depth map: ``DepthEstimator``.
+
+The estimator does everything around the network: it places the zones in the image
+(from a :class:`~deltar.calibration.rig.RigCalibration`, or a nominal geometry),
+samples the per-zone depth hypotheses, resizes the image to a size divisible by 32
+(mapping the zone rectangles with it), runs the network (PyTorch or onnxruntime) and
+resizes depth and uncertainty back to the input resolution.
+
+Checkpoint format (``save_checkpoint`` / ``DepthEstimator.from_checkpoint``): a
+``torch.save`` file holding a dict::
+
+    {"format": "deltar.checkpoint", "format_version": 1,
+     "preset": "deltar-lite",            # a name known to deltar.models.create_model
+     "config": {"n_bins": 64, ...},      # overrides passed to create_model
+     "state_dict": {...}}                # DeltarNet.state_dict(), tensors
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects
+from deltar.sensor.zone_frame import ZoneFrame
+
+if TYPE_CHECKING:
+    import torch
+
+    from deltar.calibration.rig import RigCalibration
+    from deltar.export.onnx import OnnxDepthModel
+    from deltar.models import DeltarNet
+
+CHECKPOINT_FORMAT = "deltar.checkpoint"
+CHECKPOINT_FORMAT_VERSION = 1
+#: The network's input height and width must be multiples of this.
+SIZE_DIVISOR = 32
+PRECISIONS = ("float32", "float16", "bfloat16")
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+#: Distance used to place zones when no zone of the frame is valid (metres).
+FALLBACK_ZONE_DEPTH_M = 2.0
+
+
+@dataclass
+class DepthPrediction:
+    """The estimator's result for one image.
+
+    Attributes:
+        depth_m: (H, W) float32 depth in metres at the input image's resolution.
+        uncertainty_m: (H, W) float32 per-pixel standard deviation of the depth
+            distribution in metres.
+        zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
+        zone_frame: the zone frame the prediction used.
+        intrinsics: camera intrinsics of the input image (calibrated or nominal).
+    """
+
+    depth_m: np.ndarray
+    uncertainty_m: np.ndarray
+    zone_rects: np.ndarray
+    zone_frame: ZoneFrame
+    intrinsics: CameraIntrinsics
+
+
+def network_size(height: int, width: int, divisor: int = SIZE_DIVISOR) -> tuple[int, int]:
+    """The network input size for an image: each side rounded to the nearest multiple.
+
+    Args:
+        height, width: image size in pixels.
+        divisor: required multiple (32 for DeltarNet).
+
+    Returns:
+        (height, width) in pixels, each a positive multiple of ``divisor``.
+    """
+    if height < 1 or width < 1:
+        raise ValueError(f"image size must be positive, got {height}x{width}")
+    return (max(divisor, round(height / divisor) * divisor),
+            max(divisor, round(width / divisor) * divisor))
+
+
+def scale_rects(rects: np.ndarray, from_size: tuple[int, int],
+                to_size: tuple[int, int]) -> np.ndarray:
+    """Map (y0, x0, y1, x1) rectangles from one image size to a resized image.
+
+    Pixel centres sit at integer coordinates, so the image spans ``-0.5 .. size - 0.5``
+    and a coordinate ``c`` maps to ``(c + 0.5) * scale - 0.5``.
+
+    Args:
+        rects: (..., 4) rectangles in pixels of an image of ``from_size`` (H, W).
+        from_size: (H, W) of the source image.
+        to_size: (H, W) of the resized image.
+
+    Returns:
+        (..., 4) float32 rectangles in pixels of the resized image.
+    """
+    rects = np.asarray(rects, dtype=np.float64)
+    sy = to_size[0] / from_size[0]
+    sx = to_size[1] / from_size[1]
+    scale = np.array([sy, sx, sy, sx])
+    return ((rects + 0.5) * scale - 0.5).astype(np.float32)
+
+
+def nominal_zone_rects(frame: ZoneFrame, height: int, width: int,
+                       intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
+                       fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> np.ndarray:
+    """Zone rectangles without a calibration: nominal intrinsics, identity extrinsic.
+
+    Args:
+        frame: the zone frame (its grid and, for placement, each zone's mean).
+        height, width: image size in pixels.
+        intrinsics: nominal camera intrinsics, scaled to the image size.
+        fov_deg: sensor field of view (horizontal, vertical) in degrees.
+
+    Returns:
+        (Z, 4) float32 rectangles (y0, x0, y1, x1) in image pixels.
+    """
+    intr = intrinsics.scaled(height, width)
+    return zone_rects(intr, frame.grid, fov_deg=fov_deg, depth_m=_placement_depths(frame))
+
+
+def _placement_depths(frame: ZoneFrame) -> np.ndarray:
+    """Per-zone distance used to place the zones: the mean, or the median of valid means."""
+    mean, _, valid = frame.flat()
+    usable = valid & (mean > 0)
+    fill = float(np.median(mean[usable])) if usable.any() else FALLBACK_ZONE_DEPTH_M
+    return np.where(usable, mean, fill).astype(np.float64)
+
+
+def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """Check an RGB image: (H, W, 3) uint8; return it as a contiguous array.
+
+    Raises:
+        ValueError: naming ``name`` when the image has the wrong shape or dtype.
+    """
+    array = np.asarray(image)
+    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3:
+        raise ValueError(f"{name} must be an (H, W, 3) uint8 RGB image, got shape "
+                         f"{array.shape} and dtype {array.dtype}")
+    if array.shape[0] < 2 or array.shape[1] < 2:
+        raise ValueError(f"{name} is too small: {array.shape[0]}x{array.shape[1]} pixels")
+    return np.ascontiguousarray(array)
+
+
+def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
+                    config: dict[str, Any] | None = None, *, overwrite: bool = False) -> Path:
+    """Write a model as a deltar checkpoint (see the module docstring), atomically.
+
+    Args:
+        path: destination file (``.pt``).
+        model: the network.
+        preset: the preset it was built from (a ``create_model`` name).
+        config: the overrides it was built with (``create_model(preset, **config)``).
+        overwrite: replace an existing file (default: ``FileExistsError``).
+
+    Returns:
+        The written path.
+    """
+    import torch
+
+    from deltar.io.atomic import atomic_path
+
+    payload = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_FORMAT_VERSION,
+               "preset": str(preset), "config": dict(config or {}),
+               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        torch.save(payload, tmp)
+    return Path(path)
+
+
+def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, Any]]:
+    """Read a deltar checkpoint and build its model.
+
+    Returns:
+        (model in eval mode, preset name, config overrides).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a deltar checkpoint, or its weights do not fit the preset.
+    """
+    import torch
+
+    from deltar.models import create_model
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises several types for corrupt files
+        raise ValueError(f"{path}: cannot read checkpoint: {err}") from err
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a deltar checkpoint (expected a dict with format "
+                         f"{CHECKPOINT_FORMAT!r}; official weights load with from_official)")
+    if payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
+        raise ValueError(f"{path}: unsupported checkpoint format_version "
+                         f"{payload.get('format_version')!r}")
+    for key in ("preset", "config", "state_dict"):
+        if key not in payload:
+            raise ValueError(f"{path}: checkpoint has no {key!r}")
+    preset, config = str(payload["preset"]), dict(payload["config"])
+    # Lists come back from some writers where the model expects tuples.
+    config = {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
+    model = create_model(preset, **config)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except RuntimeError as err:
+        raise ValueError(f"{path}: weights do not fit preset {preset!r}: {err}") from err
+    return model.eval(), preset, config
+
+
+class DepthEstimator:
+    """Dense metric depth from an RGB image and a multi-zone ToF frame.
+
+    Build one with :meth:`from_preset`, :meth:`from_checkpoint`, :meth:`from_official`
+    or :meth:`from_onnx`, then call :meth:`predict`.
+
+    Args:
+        model: a ``DeltarNet`` (PyTorch backend), or None with ``onnx_model``.
+        onnx_model: an :class:`~deltar.export.onnx.OnnxDepthModel` (onnxruntime backend).
+        device: torch device for the PyTorch backend, e.g. ``"cpu"`` or ``"cuda"``.
+        precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backend).
+        input_size: fixed (H, W) network input size in pixels (multiples of 32); by
+            default each image's size rounded to the nearest multiple of 32.
+        intrinsics: nominal camera intrinsics used without a calibration (scaled to
+            each image); the ZJU-L5 RealSense camera by default.
+        fov_deg: sensor field of view for the nominal zone placement, degrees.
+        sampling: hypothesis sampling for frames without a histogram ("icdf" or
+            "uniform").
+        weights: free text saying where the weights come from (shown by the CLI).
+    """
+
+    def __init__(self, model: DeltarNet | None = None, *,
+                 onnx_model: OnnxDepthModel | None = None, device: str = "cpu",
+                 precision: str = "float32", input_size: tuple[int, int] | None = None,
+                 intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
+                 fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str = "icdf",
+                 weights: str = "unknown") -> None:
+        import torch
+
+        if (model is None) == (onnx_model is None):
+            raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        if sampling not in ("icdf", "uniform"):
+            raise ValueError(f"sampling must be 'icdf' or 'uniform', got {sampling!r}")
+        if onnx_model is not None:
+            if precision != "float32":
+                raise ValueError("the onnxruntime backend runs in float32 only")
+            if input_size is not None and tuple(input_size) != onnx_model.input_size:
+                raise ValueError(f"input_size {input_size} differs from the ONNX model's "
+                                 f"fixed size {onnx_model.input_size}")
+            input_size = onnx_model.input_size
+        if input_size is not None:
+            h, w = (int(s) for s in input_size)
+            if h < SIZE_DIVISOR or w < SIZE_DIVISOR or h % SIZE_DIVISOR or w % SIZE_DIVISOR:
+                raise ValueError(f"input_size must be positive multiples of {SIZE_DIVISOR}, "
+                                 f"got {input_size}")
+            input_size = (h, w)
+        self.device = torch.device(device)
+        self.dtype = getattr(torch, precision)
+        self.precision = precision
+        self.input_size = input_size
+        self.intrinsics = intrinsics
+        self.fov_deg = tuple(fov_deg)
+        self.sampling = sampling
+        self.weights = weights
+        self.onnx_model = onnx_model
+        self.model = None
+        if model is not None:
+            self.model = model.eval().to(device=self.device, dtype=self.dtype)
+            self.num_hypotheses = int(model.config["num_hypotheses"])
+        else:
+            self.num_hypotheses = onnx_model.num_hypotheses
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_preset(cls, preset: str, **kwargs: Any) -> DepthEstimator:
+        """An estimator with a preset's architecture and RANDOM (untrained) weights.
+
+        Useful for testing the pipeline and measuring speed; its depth is meaningless.
+        A ``UserWarning`` says so. ``kwargs`` go to the constructor; ``model_config``
+        (dict) goes to ``create_model``.
+        """
+        from deltar.models import create_model
+
+        config = kwargs.pop("model_config", None) or {}
+        warnings.warn(f"DepthEstimator.from_preset({preset!r}) uses random, untrained "
+                      "weights: the depth it predicts is meaningless", UserWarning,
+                      stacklevel=2)
+        return cls(create_model(preset, **config), weights=f"{preset} (random weights)",
+                   **kwargs)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike, **kwargs: Any) -> DepthEstimator:
+        """An estimator from a deltar checkpoint file (see :func:`save_checkpoint`)."""
+        model, preset, _ = load_checkpoint(path)
+        return cls(model, weights=f"{preset} from {path}", **kwargs)
+
+    @classmethod
+    def from_official(cls, path: str | os.PathLike, **kwargs: Any) -> DepthEstimator:
+        """An estimator with the officially released weights (e.g. ``nyu.pt``).
+
+        Raises:
+            FileNotFoundError: no such file.
+            ValueError: the file's weights do not fit the released architecture.
+        """
+        from deltar.models import create_model, load_official_weights
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"official weights not found: {path}")
+        model = create_model("deltar-official")
+        report = load_official_weights(model, path)
+        if not report.ok:
+            raise ValueError(f"{path}: official weights did not load cleanly: "
+                             f"{report.summary()}")
+        return cls(model, weights=f"deltar-official from {path}", **kwargs)
+
+    @classmethod
+    def from_onnx(cls, path: str | os.PathLike, num_threads: int | None = None,
+                  **kwargs: Any) -> DepthEstimator:
+        """An estimator running an exported ONNX model with onnxruntime (CPU)."""
+        from deltar.export.onnx import OnnxDepthModel
+
+        onnx_model = OnnxDepthModel(path, num_threads=num_threads)
+        return cls(onnx_model=onnx_model, weights=f"onnx {path}", **kwargs)
+
+    # ------------------------------------------------------------------ prediction
+    def zone_rects_for(self, frame: ZoneFrame, image_size: tuple[int, int],
+                       calibration: RigCalibration | None = None) -> np.ndarray:
+        """Zone rectangles (Z, 4) in pixels of an image of ``image_size`` (H, W).
+
+        Uses the calibration when given (its resolution must match the image), else
+        the nominal geometry (see :func:`nominal_zone_rects`).
+        """
+        height, width = image_size
+        if calibration is not None:
+            return calibration.zone_rects_for(frame, (height, width))
+        return nominal_zone_rects(frame, height, width, self.intrinsics, self.fov_deg)
+
+    def image_intrinsics(self, image_size: tuple[int, int],
+                         calibration: RigCalibration | None = None) -> CameraIntrinsics:
+        """Intrinsics of an image of ``image_size`` (H, W): calibrated or nominal."""
+        if calibration is not None:
+            return calibration.intrinsics
+        return self.intrinsics.scaled(*image_size)
+
+    def hypotheses_for(self, frame: ZoneFrame) -> torch.Tensor:
+        """(Z, K) float32 depth hypotheses in metres for one frame (zeros where invalid).
+
+        Frames with a histogram are sampled from it; others from N(mean, sigma).
+        """
+        import torch
+
+        from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
+
+        mean, sigma, valid = (torch.from_numpy(np.ascontiguousarray(a)) for a in frame.flat())
+        if frame.hist_counts is not None:
+            counts = torch.from_numpy(frame.hist_counts.reshape(frame.zone_count, -1))
+            return sample_hypotheses_from_histogram(torch.from_numpy(frame.hist_edges_m),
+                                                    counts, valid, self.num_hypotheses)
+        return sample_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
+
+    def prepare(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
+                calibration: RigCalibration | None = None) -> dict[str, Any]:
+        """Build the network inputs for a batch of same-size images.
+
+        Args:
+            images: B images, each (H, W, 3) uint8 RGB, all of one size.
+            frames: B zone frames of one grid size.
+            calibration: optional rig calibration for (H, W) images.
+
+        Returns:
+            dict with ``image`` (B, 3, h, w) normalised, ``hypotheses`` (B, Z, K) metres,
+            ``zone_rects`` (B, Z, 4) pixels of the network input, ``zone_valid`` (B, Z)
+            bool (torch tensors on the estimator's device) and ``image_rects`` (B, Z, 4)
+            numpy rectangles in input-image pixels, ``image_size`` (H, W).
+        """
+        import torch
+        import torch.nn.functional as F
+
+        if len(images) != len(frames) or not images:
+            raise ValueError(f"need one zone frame per image, got {len(images)} images and "
+                             f"{len(frames)} frames")
+        checked = [check_image(img, f"images[{i}]") for i, img in enumerate(images)]
+        size = checked[0].shape[:2]
+        for i, img in enumerate(checked):
+            if img.shape[:2] != size:
+                raise ValueError(f"images[{i}] is {img.shape[0]}x{img.shape[1]}, images[0] is "
+                                 f"{size[0]}x{size[1]}; a batch needs one image size")
+        for i, frame in enumerate(frames):
+            if not isinstance(frame, ZoneFrame):
+                raise ValueError(f"frames[{i}] must be a ZoneFrame, got {type(frame).__name__}")
+            if frame.grid != frames[0].grid:
+                raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
+                                 f"{frames[0].grid}x{frames[0].grid}")
+        net_size = self.input_size or network_size(*size)
+        rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
+        net_rects = scale_rects(rects, size, net_size)
+        # Resize with torch (one batched call); uint8 -> float in [0, 1] first.
+        batch = torch.from_numpy(np.stack(checked)).to(self.device)
+        batch = batch.permute(0, 3, 1, 2).to(torch.float32).div_(255.0)
+        if tuple(batch.shape[-2:]) != net_size:
+            batch = F.interpolate(batch, size=net_size, mode="bilinear", align_corners=False,
+                                  antialias=True)
+        mean = torch.tensor(IMAGENET_MEAN, device=self.device).view(1, 3, 1, 1)
+        std = torch.tensor(IMAGENET_STD, device=self.device).view(1, 3, 1, 1)
+        image = (batch - mean) / std
+        hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).to(self.device)
+        valid = torch.from_numpy(np.stack([f.flat()[2] for f in frames])).to(self.device)
+        return {"image": image, "hypotheses": hypotheses.float(),
+                "zone_rects": torch.from_numpy(net_rects).to(self.device), "zone_valid": valid,
+                "image_rects": rects, "image_size": size}
+
+    def run_network(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Run the network on :meth:`prepare`'s output.
+
+        Returns:
+            (depth, uncertainty), each (B, 1, h/2, w/2) float32 tensors in metres.
+        """
+        import torch
+
+        if self.onnx_model is not None:
+            out = self.onnx_model.run(inputs["image"].cpu().numpy(),
+                                      inputs["hypotheses"].cpu().numpy(),
+                                      inputs["zone_rects"].cpu().numpy(),
+                                      inputs["zone_valid"].cpu().numpy())
+            return torch.from_numpy(out["depth"]), torch.from_numpy(out["uncertainty"])
+        with torch.inference_mode():
+            out = self.model(inputs["image"].to(self.dtype),
+                             inputs["hypotheses"].to(self.dtype),
+                             inputs["zone_rects"], inputs["zone_valid"])
+        return out["depth"].float(), out["uncertainty"].float()
+
+    def predict(self, image: np.ndarray | Sequence[np.ndarray],
+                zone_frame: ZoneFrame | Sequence[ZoneFrame],
+                calibration: RigCalibration | None = None,
+                ) -> DepthPrediction | list[DepthPrediction]:
+        """Predict depth for one image or a batch.
+
+        Args:
+            image: (H, W, 3) uint8 RGB image, or a list of them (one size).
+            zone_frame: the matching ``ZoneFrame`` (or a list, one per image).
+            calibration: optional rig calibration for images of its resolution; without
+                it zones are placed with the nominal geometry.
+
+        Returns:
+            A :class:`DepthPrediction` (depth and uncertainty in metres at the input
+            resolution), or a list of them for list input.
+
+        Raises:
+            ValueError: bad image, zone frame or a calibration for another resolution.
+        """
+        import torch
+        import torch.nn.functional as F
+
+        single = isinstance(image, np.ndarray) and np.asarray(image).ndim == 3
+        images = [image] if single else list(image)
+        frames = [zone_frame] if isinstance(zone_frame, ZoneFrame) else list(zone_frame)
+        inputs = self.prepare(images, frames, calibration)
+        depth, uncertainty = self.run_network(inputs)
+        size = inputs["image_size"]
+        both = F.interpolate(torch.cat([depth, uncertainty], dim=1), size=size,
+                             mode="bilinear", align_corners=False).cpu().numpy()
+        intrinsics = self.image_intrinsics(size, calibration)
+        results = [DepthPrediction(depth_m=both[i, 0].astype(np.float32),
+                                   uncertainty_m=both[i, 1].astype(np.float32),
+                                   zone_rects=inputs["image_rects"][i], zone_frame=frames[i],
+                                   intrinsics=intrinsics) for i in range(len(images))]
+        return results[0] if single else results
+
+
+def zone_mean_depth(frame: ZoneFrame, rects: np.ndarray, image_size: tuple[int, int]
+                    ) -> np.ndarray:
+    """The raw sensor as a depth map: each valid zone's mean painted over its pixels.
+
+    Args:
+        frame: the zone frame.
+        rects: (Z, 4) zone rectangles in pixels (pixel centres in the half-open rectangle
+            belong to the zone).
+        image_size: (H, W).
+
+    Returns:
+        (H, W) float32 metres, 0 where no valid zone lies.
+    """
+    from deltar.sensor.geometry import zone_rects_to_pixel_bounds
+
+    height, width = image_size
+    out = np.zeros((height, width), dtype=np.float32)
+    mean, _, valid = frame.flat()
+    bounds = zone_rects_to_pixel_bounds(rects, height, width)
+    for (y0, x0, y1, x1), value, ok in zip(bounds, mean, valid, strict=True):
+        if ok:
+            out[y0:y1, x0:x1] = value
+    return out
+

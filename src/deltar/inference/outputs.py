@@ -1,0 +1,284 @@
+"""Writers for predicted depth: 16-bit PNG, .npy, colour PNG, PLY point cloud, panel.
+
+Every writer is atomic (``deltar.io.atomic``) and refuses to replace an existing file
+unless ``overwrite=True``.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.io.atomic import atomic_path, write_bytes_atomic
+
+if TYPE_CHECKING:
+    from deltar.inference.estimator import DepthPrediction
+
+#: Largest depth a 16-bit millimetre PNG can hold, metres.
+PNG16_MAX_M = 65.535
+#: Output kinds written by :func:`write_prediction`, with their file suffixes.
+OUTPUT_KINDS = {"png16": "_depth_mm.png", "npy": "_depth_m.npy", "color": "_depth_color.png",
+                "ply": "_cloud.ply", "panel": "_panel.png"}
+
+
+def _check_depth(depth_m: np.ndarray, name: str = "depth_m") -> np.ndarray:
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"{name} must be an (H, W) array, got shape {depth.shape}")
+    return depth
+
+
+def _encode_png(image: np.ndarray) -> bytes:
+    import cv2
+
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return data.tobytes()
+
+
+def depth_to_png16(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) depth in metres -> (H, W) uint16 millimetres; 0 where invalid or not finite.
+
+    Depths beyond 65.535 m are clipped to 65535 mm.
+    """
+    depth = _check_depth(depth_m).astype(np.float64)
+    good = np.isfinite(depth) & (depth > 0)
+    mm = np.where(good, np.round(np.clip(depth, 0.0, PNG16_MAX_M) * 1000.0), 0.0)
+    return mm.astype(np.uint16)
+
+
+def write_depth_png16(path: str | os.PathLike, depth_m: np.ndarray, *,
+                      overwrite: bool = False) -> Path:
+    """Write (H, W) depth in metres as a 16-bit PNG in millimetres (0 = invalid)."""
+    return write_bytes_atomic(path, _encode_png(depth_to_png16(depth_m)), overwrite=overwrite)
+
+
+def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray, *,
+                    overwrite: bool = False) -> Path:
+    """Write (H, W) depth as a float32 ``.npy`` file in metres."""
+    buffer = io.BytesIO()
+    np.save(buffer, _check_depth(depth_m), allow_pickle=False)
+    return write_bytes_atomic(path, buffer.getvalue(), overwrite=overwrite)
+
+
+def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None = None,
+             cmap: str = "turbo") -> np.ndarray:
+    """Map an (H, W) array to (H, W, 3) uint8 RGB with a matplotlib colour map.
+
+    Args:
+        values: (H, W) values, e.g. depth in metres; non-finite values come out black.
+        vmin, vmax: colour range; by default the 1st and 99th percentiles of the
+            finite values.
+        cmap: matplotlib colour map name.
+    """
+    import matplotlib
+
+    data = np.asarray(values, dtype=np.float64)
+    finite = np.isfinite(data)
+    if vmin is None or vmax is None:
+        lo, hi = np.percentile(data[finite], [1, 99]) if finite.any() else (0.0, 1.0)
+        vmin = lo if vmin is None else vmin
+        vmax = hi if vmax is None else vmax
+    span = max(float(vmax) - float(vmin), 1e-9)
+    scaled = np.clip((np.where(finite, data, vmin) - vmin) / span, 0.0, 1.0)
+    rgb = matplotlib.colormaps[cmap](scaled)[..., :3]
+    rgb[~finite] = 0.0
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_color_png(path: str | os.PathLike, depth_m: np.ndarray, *,
+                    vmin: float | None = None, vmax: float | None = None,
+                    overwrite: bool = False) -> Path:
+    """Write a colourised depth PNG (turbo colour map, near = blue)."""
+    import cv2
+
+    rgb = colorize(_check_depth(depth_m), vmin, vmax)
+    return write_bytes_atomic(path, _encode_png(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)),
+                              overwrite=overwrite)
+
+
+def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                    image: np.ndarray | None = None, stride: int = 1
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project a depth map to a coloured point cloud in the camera frame.
+
+    Args:
+        depth_m: (H, W) z-depth in metres; pixels that are 0 or not finite are skipped.
+        intrinsics: intrinsics of the (H, W) image.
+        image: optional (H, W, 3) uint8 RGB colours (grey when None).
+        stride: keep every ``stride``-th pixel in each direction.
+
+    Returns:
+        points (N, 3) float32 metres (x right, y down, z forward) and colours (N, 3) uint8.
+    """
+    depth = _check_depth(depth_m)
+    height, width = depth.shape
+    if (intrinsics.height, intrinsics.width) != (height, width):
+        raise ValueError(f"intrinsics are for {intrinsics.height}x{intrinsics.width}, depth "
+                         f"is {height}x{width}")
+    v, u = np.mgrid[0:height:stride, 0:width:stride]
+    z = depth[v, u]
+    keep = np.isfinite(z) & (z > 0)
+    z, u, v = z[keep], u[keep], v[keep]
+    x = (u - intrinsics.cx) / intrinsics.fx * z
+    y = (v - intrinsics.cy) / intrinsics.fy * z
+    points = np.stack([x, y, z], axis=1).astype(np.float32)
+    if image is None:
+        colors = np.full((points.shape[0], 3), 200, dtype=np.uint8)
+    else:
+        colors = np.asarray(image, dtype=np.uint8)[v, u]
+    return points, colors
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
+              intrinsics: CameraIntrinsics | None = None, *, overwrite: bool = False) -> Path:
+    """Write a binary little-endian PLY of coloured points (x, y, z float32; r, g, b uchar).
+
+    The camera intrinsics, when given, go into a header comment
+    ``comment intrinsics fx fy cx cy width height``.
+    """
+    pts = np.asarray(points, dtype=np.float32)
+    cols = np.asarray(colors, dtype=np.uint8)
+    if pts.ndim != 2 or pts.shape[1] != 3 or cols.shape != pts.shape:
+        raise ValueError(f"points and colors must both be (N, 3), got {pts.shape} and "
+                         f"{cols.shape}")
+    header = ["ply", "format binary_little_endian 1.0", "comment written by deltar",
+              "comment frame camera (x right, y down, z forward), metres"]
+    if intrinsics is not None:
+        i = intrinsics
+        header.append(f"comment intrinsics {i.fx!r} {i.fy!r} {i.cx!r} {i.cy!r} {i.width} "
+                      f"{i.height}")
+    header += [f"element vertex {pts.shape[0]}", "property float x", "property float y",
+               "property float z", "property uchar red", "property uchar green",
+               "property uchar blue", "end_header"]
+    vertex = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
+                       ("green", "u1"), ("blue", "u1")])
+    rows = np.empty(pts.shape[0], dtype=vertex)
+    rows["x"], rows["y"], rows["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rows["red"], rows["green"], rows["blue"] = cols[:, 0], cols[:, 1], cols[:, 2]
+    data = ("\n".join(header) + "\n").encode("ascii") + rows.tobytes()
+    return write_bytes_atomic(path, data, overwrite=overwrite)
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Read a PLY written by :func:`write_ply`: points (N, 3), colours (N, 3), comments."""
+    raw = Path(path).read_bytes()
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise ValueError(f"{path}: not a PLY file")
+    lines = raw[:end].decode("ascii").splitlines()
+    if "format binary_little_endian 1.0" not in lines:
+        raise ValueError(f"{path}: not a binary little-endian PLY")
+    count = next(int(line.split()[2]) for line in lines if line.startswith("element vertex"))
+    vertex = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
+                       ("green", "u1"), ("blue", "u1")])
+    rows = np.frombuffer(raw[end + len(b"end_header\n"):], dtype=vertex, count=count)
+    points = np.stack([rows["x"], rows["y"], rows["z"]], axis=1)
+    colors = np.stack([rows["red"], rows["green"], rows["blue"]], axis=1)
+    comments = [line[len("comment "):] for line in lines if line.startswith("comment ")]
+    return points, colors, comments
+
+
+def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPrediction, *,
+                title: str = "", overwrite: bool = False) -> Path:
+    """Write a four-panel PNG: image, zones over the image, depth, uncertainty (metres).
+
+    Args:
+        path: output ``.png``.
+        image: (H, W, 3) uint8 RGB input.
+        prediction: the estimator's result for ``image``.
+        title: figure title (e.g. the frame name and the weights).
+        overwrite: replace an existing file.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    frame = prediction.zone_frame
+    mean, _, valid = frame.flat()
+    depth = prediction.depth_m
+    vmax = float(np.percentile(depth[np.isfinite(depth)], 99)) if np.isfinite(depth).any() \
+        else 1.0
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+    try:
+        axes[0, 0].imshow(image)
+        axes[0, 0].set_title("image")
+        axes[0, 1].imshow(image)
+        for (y0, x0, y1, x1), value, ok in zip(prediction.zone_rects, mean, valid, strict=True):
+            style = {"edgecolor": "lime", "linestyle": "-"} if ok else \
+                {"edgecolor": "red", "linestyle": "--"}
+            axes[0, 1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False,
+                                           linewidth=0.8, **style))
+            if ok and frame.grid <= 8:
+                axes[0, 1].text((x0 + x1) / 2, (y0 + y1) / 2, f"{value:.2f}", color="white",
+                                fontsize=5, ha="center", va="center")
+        axes[0, 1].set_xlim(-0.5, image.shape[1] - 0.5)
+        axes[0, 1].set_ylim(image.shape[0] - 0.5, -0.5)
+        axes[0, 1].set_title("zones (m; red = invalid)")
+        shown = axes[1, 0].imshow(depth, cmap="turbo", vmin=0.0, vmax=vmax)
+        fig.colorbar(shown, ax=axes[1, 0], label="m")
+        axes[1, 0].set_title("depth")
+        shown = axes[1, 1].imshow(prediction.uncertainty_m, cmap="magma")
+        fig.colorbar(shown, ax=axes[1, 1], label="m")
+        axes[1, 1].set_title("uncertainty (std)")
+        for ax in axes.ravel():
+            ax.set_axis_off()
+        if title:
+            fig.suptitle(title)
+        fig.tight_layout()
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
+    finally:
+        plt.close(fig)
+    return Path(path)
+
+
+def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
+                     prediction: DepthPrediction, *, kinds: tuple[str, ...] = tuple(OUTPUT_KINDS),
+                     title: str = "", overwrite: bool = False, ply_stride: int = 1
+                     ) -> dict[str, Path]:
+    """Write the chosen outputs of one prediction as ``out_dir/<stem><suffix>``.
+
+    Args:
+        out_dir: output folder (created if missing).
+        stem: file-name stem, e.g. the input image's stem.
+        image: (H, W, 3) uint8 RGB input (colours of the point cloud, panel).
+        prediction: the estimator's result.
+        kinds: any of :data:`OUTPUT_KINDS` (``png16``, ``npy``, ``color``, ``ply``, ``panel``).
+        title: panel title.
+        overwrite: replace existing outputs (default: ``FileExistsError``).
+        ply_stride: point-cloud subsampling stride in pixels.
+
+    Returns:
+        dict kind -> written path.
+    """
+    unknown = set(kinds) - set(OUTPUT_KINDS)
+    if unknown:
+        raise ValueError(f"unknown output kinds {sorted(unknown)}; known: {list(OUTPUT_KINDS)}")
+    out = Path(out_dir)
+    paths = {kind: out / f"{stem}{OUTPUT_KINDS[kind]}" for kind in kinds}
+    if not overwrite:
+        existing = [str(p) for p in paths.values() if p.exists()]
+        if existing:
+            raise FileExistsError(f"refusing to overwrite existing outputs: {existing}")
+    depth = prediction.depth_m
+    if "png16" in paths:
+        write_depth_png16(paths["png16"], depth, overwrite=overwrite)
+    if "npy" in paths:
+        write_depth_npy(paths["npy"], depth, overwrite=overwrite)
+    if "color" in paths:
+        write_color_png(paths["color"], depth, overwrite=overwrite)
+    if "ply" in paths:
+        points, colors = depth_to_points(depth, prediction.intrinsics, image, ply_stride)
+        write_ply(paths["ply"], points, colors, prediction.intrinsics, overwrite=overwrite)
+    if "panel" in paths:
+        write_panel(paths["panel"], image, prediction, title=title, overwrite=overwrite)
+    return paths

@@ -1,0 +1,147 @@
+"""Replay a recording: pair zone frames with images by time, predict, write or show.
+
+Without a rig calibration, zones are placed with the recording's own camera
+intrinsics and sensor field of view, sensor and camera assumed at the same place
+(identity extrinsic).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from deltar.calibration.rig import RigCalibration
+from deltar.io.recording import Recording, RecordingPair
+from deltar.sensor.geometry import SensorExtrinsics
+
+if TYPE_CHECKING:
+    from deltar.inference.estimator import DepthEstimator, DepthPrediction
+
+#: A gap between zone frames longer than this many median periods is reported.
+GAP_FACTOR = 3.0
+
+
+@dataclass
+class ReplayItem:
+    """One replayed frame.
+
+    Attributes:
+        pair: the recording's zone frame with its colour (and depth) image.
+        image: (H, W, 3) uint8 RGB.
+        prediction: the estimator's result.
+        reference_depth_m: (H, W) recorded depth in metres (0 invalid) or None.
+    """
+
+    pair: RecordingPair
+    image: np.ndarray
+    prediction: DepthPrediction
+    reference_depth_m: np.ndarray | None
+
+
+def recording_calibration(recording: Recording) -> RigCalibration:
+    """A nominal calibration from a recording's metadata (identity extrinsic)."""
+    meta = recording.meta
+    return RigCalibration(intrinsics=meta.intrinsics, extrinsics=SensorExtrinsics(),
+                          grid=meta.grid, fov_deg=meta.fov_deg, sensor_model=meta.sensor_model)
+
+
+def check_gaps(recording: Recording, pairs: list[RecordingPair]) -> list[tuple[float, float]]:
+    """Warn about gaps in the zone-frame stream; return them as (start_s, length_s).
+
+    A gap is an interval between consecutive zone frames longer than
+    :data:`GAP_FACTOR` times the median interval.
+    """
+    times = np.array([p.zone_frame.timestamp_s for p in pairs], dtype=np.float64)
+    if times.size < 3:
+        return []
+    steps = np.diff(times)
+    limit = GAP_FACTOR * float(np.median(steps))
+    gaps = [(float(times[i]), float(steps[i])) for i in np.flatnonzero(steps > limit)]
+    for start, length in gaps:
+        warnings.warn(f"{recording.folder}: {length:.3f} s gap in the zone frames after "
+                      f"t = {start:.3f} s (median period {np.median(steps):.3f} s)",
+                      stacklevel=2)
+    return gaps
+
+
+def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, *,
+           calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
+           every: int = 1, limit: int | None = None) -> Iterator[ReplayItem]:
+    """Predict depth for each zone frame of a recording that has a colour image near it.
+
+    Zone frames without a colour image within ``tolerance_s`` are skipped with a
+    warning (by ``Recording.pairs``); gaps in the stream are warned about.
+
+    Args:
+        recording: the recording folder (or an open :class:`Recording`).
+        estimator: the depth estimator.
+        calibration: rig calibration; a nominal one from the recording's metadata when
+            None (see :func:`recording_calibration`).
+        tolerance_s: largest |image time - zone time| for a pair, seconds.
+        every: use every ``every``-th pair.
+        limit: stop after this many predictions.
+
+    Yields:
+        :class:`ReplayItem` per predicted frame, in time order.
+
+    Raises:
+        FileNotFoundError / ValueError: missing or corrupt recording files (naming them),
+            unsorted timestamps, a calibration for another resolution.
+    """
+    rec = recording if isinstance(recording, Recording) else Recording(recording)
+    calib = calibration or recording_calibration(rec)
+    meta_size = (rec.meta.intrinsics.height, rec.meta.intrinsics.width)
+    calib_size = (calib.intrinsics.height, calib.intrinsics.width)
+    if calib_size != meta_size:
+        raise ValueError(f"calibration is for {calib_size[0]}x{calib_size[1]} images, the "
+                         f"recording {rec.folder} has {meta_size[0]}x{meta_size[1]}")
+    pairs = rec.pairs(tolerance_s=tolerance_s)
+    check_gaps(rec, pairs)
+    done = 0
+    for pair in pairs[::max(1, int(every))]:
+        if limit is not None and done >= limit:
+            break
+        image = pair.load_color()
+        reference = pair.load_depth() if pair.depth_path is not None else None
+        prediction = estimator.predict(image, pair.zone_frame, calib)
+        done += 1
+        yield ReplayItem(pair, image, prediction, reference)
+
+
+def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
+                     out_dir: str | os.PathLike, *, kinds: tuple[str, ...] = ("png16", "npy",
+                                                                              "color"),
+                     calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
+                     every: int = 1, limit: int | None = None, overwrite: bool = False,
+                     on_item: Callable[[ReplayItem], None] | None = None) -> list[Path]:
+    """Replay a recording and write outputs named by the colour image's time stamp.
+
+    Returns:
+        The written files.
+
+    Raises:
+        ValueError: ``out_dir`` lies inside the recording (inputs are never touched).
+    """
+    from deltar.inference.outputs import write_prediction
+
+    rec = Recording(recording)
+    out = Path(out_dir).resolve()
+    if out == rec.folder.resolve() or rec.folder.resolve() in out.parents:
+        raise ValueError(f"output folder {out_dir} is inside the recording {rec.folder}; "
+                         "choose a folder outside it")
+    written: list[Path] = []
+    for item in replay(rec, estimator, calibration=calibration, tolerance_s=tolerance_s,
+                       every=every, limit=limit):
+        paths = write_prediction(out, item.pair.color_path.stem, item.image, item.prediction,
+                                 kinds=kinds, overwrite=overwrite,
+                                 title=f"{item.pair.color_path.name} ({estimator.weights})")
+        written.extend(paths.values())
+        if on_item is not None:
+            on_item(item)
+    return written
