@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from deltar.calibration.camera import CameraIntrinsics
@@ -49,7 +50,11 @@ def _kitchen_world(folder) -> tuple[np.ndarray, np.ndarray]:
         clouds.append(points @ pose[:3, :3].T + pose[:3, 3])
         centres.append(pose[:3, 3])
     world = np.concatenate(clouds)
-    _, keep = np.unique(np.floor(world / 0.01).astype(np.int64), axis=0, return_index=True)
+    voxel = np.floor(world / 0.01).astype(np.int64)
+    voxel -= voxel.min(axis=0)
+    key = (voxel[:, 0] * (voxel[:, 1].max() + 1) + voxel[:, 1]) * (voxel[:, 2].max() + 1) + \
+        voxel[:, 2]
+    _, keep = np.unique(key, return_index=True)
     return world[keep], np.mean(centres, axis=0)
 
 
@@ -106,3 +111,27 @@ def test_calibration_on_the_real_kitchen_geometry(shared_data):
     assert error_deg < 1.0
     assert np.linalg.norm(solved.translation_m - TRUE.translation_m) < 0.01
     assert result.distance_after_m < result.distance_before_m
+
+
+def test_whole_cluttered_kitchen_frames_are_refused_not_misfitted(shared_data):
+    """The kitchen's own frames (a general scan, not a calibration recording) mostly show
+    clutter; the pipeline must refuse them with advice rather than return a pose."""
+    folder = shared_data / "7scenes_redkitchen"
+    sensor_cam, rects = sensor_virtual_camera(8, (45.0, 45.0), 16)
+    nominal = nominal_extrinsics(90.0)
+    observations, reasons = [], []
+    for path in sorted(folder.glob("frame-*.depth.png"))[::40]:
+        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
+        depth[depth >= 65535] = 0
+        points = depth_to_points(depth / 1000.0, KINECT)
+        sensor_points = (points - TRUE.translation_m) @ TRUE.rotation  # camera -> sensor
+        frame = simulate_zone_frame(render_points_depth(sensor_points, sensor_cam), rects)
+        try:
+            observations.append(observation_from_frame(frame, points[::16], nominal,
+                                                       name=path.name))
+        except ValueError as err:
+            reasons.append(str(err))
+    assert len(reasons) > len(observations)
+    assert any("fill the sensor's view with a flat surface" in r for r in reasons)
+    with pytest.raises(ValueError, match="record at least three planes"):
+        calibrate_observations(observations, nominal, KINECT)

@@ -90,6 +90,10 @@ def render_points_depth(points_m: np.ndarray, intrinsics: CameraIntrinsics,
     pts = pts[pts[:, 2] > 1e-6]
     u = np.round(intrinsics.fx * pts[:, 0] / pts[:, 2] + intrinsics.cx).astype(np.int64)
     v = np.round(intrinsics.fy * pts[:, 1] / pts[:, 2] + intrinsics.cy).astype(np.int64)
+    # Cull points that land nowhere near the image before the (slow) scattered minimum.
+    near = (u >= -splat_px) & (u < intrinsics.width + splat_px) & (v >= -splat_px) & \
+        (v < intrinsics.height + splat_px)
+    pts, u, v = pts[near], u[near], v[near]
     depth = np.full(intrinsics.height * intrinsics.width, np.inf)
     for dv in range(-splat_px, splat_px + 1):
         for du in range(-splat_px, splat_px + 1):
