@@ -69,10 +69,11 @@ class TrainingHistory(Callback):
     """Append each step's loss and sample indices to ``history/rank<r>.jsonl``.
 
     One file per process, one JSON line per optimiser step:
-    ``{"step", "epoch", "loss", "indices"}``. A resumed run appends to the same file,
-    so steps re-done after the last checkpoint appear twice (the later line wins). At
-    the end of training each process writes ``history/rank<r>_final.json`` with the
-    global step and a SHA-256 digest of its parameters (equal on all ranks under DDP).
+    ``{"step", "epoch", "loss", "indices", "time"}`` (time: Unix seconds at the step's
+    end). A resumed run appends to the same file, so steps re-done after the last
+    checkpoint appear twice (the later line wins). At the end of training each process
+    writes ``history/rank<r>_final.json`` with the global step and a SHA-256 digest of
+    its parameters (equal on all ranks under DDP).
     """
 
     def __init__(self, folder: str | Path) -> None:
@@ -86,7 +87,8 @@ class TrainingHistory(Callback):
                            ) -> None:
         loss = outputs["loss"] if isinstance(outputs, dict) else outputs
         record = {"step": trainer.global_step, "epoch": trainer.current_epoch,
-                  "loss": float(loss), "indices": batch["index"].tolist()}
+                  "loss": float(loss), "indices": batch["index"].tolist(),
+                  "time": round(time.time(), 3)}
         self.folder.mkdir(parents=True, exist_ok=True)
         with self._path(trainer, ".jsonl").open("a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
