@@ -25,28 +25,27 @@ def linear_attention(
     """Multi-head linear attention.
 
     Args:
-        queries: (N, L, heads, D) projected queries.
-        keys: (N, S, heads, D) projected keys.
-        values: (N, S, heads, Dv) projected values.
+        queries: (N, heads, L, D) projected queries.
+        keys: (N, heads, S, D) projected keys.
+        values: (N, heads, S, Dv) projected values.
         key_mask: optional (N, S) bool; False keys are ignored.
         eps: added to the normaliser so that it never divides by zero.
 
     Returns:
-        (N, L, heads, Dv) attended values.
+        (N, heads, L, Dv) attended values.
     """
     q = F.elu(queries) + 1.0
     k = F.elu(keys) + 1.0
     if key_mask is not None:
-        keep = key_mask[:, :, None, None].to(k.dtype)
+        keep = key_mask[:, None, :, None].to(k.dtype)
         k = k * keep
         values = values * keep
-    num_keys = values.shape[1]
+    num_keys = values.shape[2]
     # Scaling the values by 1 / S before the key-value product (and back after) keeps
     # the sums in range in half precision; in float32 it only changes rounding.
-    scaled_values = values / num_keys
-    key_value = torch.einsum("nshd,nshv->nhdv", k, scaled_values)
-    normaliser = 1.0 / (torch.einsum("nlhd,nhd->nlh", q, k.sum(dim=1)) + eps)
-    return torch.einsum("nlhd,nhdv,nlh->nlhv", q, key_value, normaliser) * num_keys
+    key_value = k.transpose(2, 3) @ (values / num_keys)  # (N, heads, D, Dv)
+    normaliser = 1.0 / (q @ k.sum(dim=2, keepdim=True).transpose(2, 3) + eps)  # (N, heads, L, 1)
+    return (q @ key_value) * (normaliser * num_keys)
 
 
 class LinearAttentionLayer(nn.Module):
@@ -86,10 +85,10 @@ class LinearAttentionLayer(nn.Module):
         ``source_mask`` (N, S) bool, optional, hides False source tokens.
         """
         heads = self.num_heads
-        q = rearrange(self.query_proj(x), "n l (h d) -> n l h d", h=heads)
-        k = rearrange(self.key_proj(source), "n s (h d) -> n s h d", h=heads)
-        v = rearrange(self.value_proj(source), "n s (h d) -> n s h d", h=heads)
-        message = rearrange(linear_attention(q, k, v, source_mask), "n l h d -> n l (h d)")
+        q = rearrange(self.query_proj(x), "n l (h d) -> n h l d", h=heads)
+        k = rearrange(self.key_proj(source), "n s (h d) -> n h s d", h=heads)
+        v = rearrange(self.value_proj(source), "n s (h d) -> n h s d", h=heads)
+        message = rearrange(linear_attention(q, k, v, source_mask), "n h l d -> n l (h d)")
         message = self.norm_message(self.out_proj(message))
         message = self.norm_out(self.ffn(torch.cat([x, message], dim=2)))
         return x + message

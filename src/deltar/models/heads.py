@@ -43,7 +43,8 @@ def bins_to_depth(
 
     Args:
         normalised_widths: (B, N) widths summing to 1.
-        probabilities: (B, N, h, w) per-pixel softmax over the N bins.
+        probabilities: (B, N, h, w) per-pixel softmax over the N bins (any memory
+            layout; channels-last is fastest).
         min_depth: depth of the first edge, metres.
         max_depth: depth of the last edge, metres.
 
@@ -54,9 +55,15 @@ def bins_to_depth(
     widths = (max_depth - min_depth) * normalised_widths
     widths = F.pad(widths, (1, 0), mode="constant", value=min_depth)
     edges = torch.cumsum(widths, dim=1)
-    centres = (0.5 * (edges[:, :-1] + edges[:, 1:]))[:, :, None, None]
-    depth = torch.sum(probabilities * centres, dim=1, keepdim=True)
-    variance = torch.sum(probabilities * (centres - depth) ** 2, dim=1, keepdim=True)
+    centres = 0.5 * (edges[:, :-1] + edges[:, 1:])  # (B, N)
+    # Moments about a per-image reference depth keep E[c^2] - E[c]^2 well conditioned.
+    reference = centres.mean(dim=1, keepdim=True)
+    shifted = centres - reference
+    moments = torch.stack([shifted, shifted**2], dim=2)  # (B, N, 2)
+    per_pixel = probabilities.permute(0, 2, 3, 1) @ moments[:, None]  # (B, h, w, 2)
+    first, second = per_pixel.unbind(dim=-1)
+    depth = (first + reference[:, :, None])[:, None]
+    variance = (second - first**2)[:, None]
     return depth, edges, variance.clamp_min(0).sqrt()
 
 
