@@ -1,0 +1,215 @@
+"""DepthEstimator: zone placement, resizing, hypotheses, backends, checkpoints, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.calibration.rig import RigCalibration
+from deltar.inference.estimator import (
+    DepthEstimator,
+    load_checkpoint,
+    network_size,
+    nominal_zone_rects,
+    save_checkpoint,
+    scale_rects,
+    zone_mean_depth,
+)
+from deltar.sensor.geometry import SensorExtrinsics
+from deltar.sensor.zone_frame import ZoneFrame
+from tests.inference.fakes import ZonePainterNet
+
+torch.set_num_threads(1)
+
+
+def _frame(rng: np.random.Generator, grid: int = 8, invalid: int = 3) -> ZoneFrame:
+    mean = rng.uniform(0.8, 3.5, size=(grid, grid))
+    sigma = rng.uniform(0.01, 0.1, size=(grid, grid))
+    valid = np.ones((grid, grid), bool)
+    valid.flat[rng.choice(grid * grid, invalid, replace=False)] = False
+    return ZoneFrame(np.where(valid, mean, 0), np.where(valid, sigma, 0), valid)
+
+
+def _image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    return rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
+
+
+def test_network_size_rounds_to_nearest_multiple_of_32():
+    assert network_size(480, 640) == (480, 640)
+    assert network_size(60, 90) == (64, 96)
+    assert network_size(47, 49) == (32, 64)
+    assert network_size(10, 10) == (32, 32)
+    with pytest.raises(ValueError, match="positive"):
+        network_size(0, 10)
+
+
+def test_scale_rects_maps_image_bounds_and_centres():
+    # The whole image (-0.5 .. size - 0.5) maps onto the whole resized image.
+    full = np.array([[-0.5, -0.5, 59.5, 89.5]])
+    np.testing.assert_allclose(scale_rects(full, (60, 90), (64, 96)),
+                               [[-0.5, -0.5, 63.5, 95.5]], atol=1e-5)
+    # Doubling the size: pixel centre 10 -> 20.5 (centre of the 2x2 block 20..21).
+    np.testing.assert_allclose(scale_rects(np.array([[10.0, 4.0, 12.0, 6.0]]), (50, 50),
+                                           (100, 100)), [[20.5, 8.5, 24.5, 12.5]], atol=1e-5)
+
+
+def test_resized_zone_rects_line_up_with_the_image(rng):
+    """A network that paints zone means gives back the zone-mean map after the resizes."""
+    height, width = 150, 220  # -> network input 160x224: both axes resized
+    frame = _frame(rng, invalid=0)
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+    pred = estimator.predict(_image(rng, height, width), frame)
+    assert pred.depth_m.shape == (height, width)
+    expected = zone_mean_depth(frame, pred.zone_rects, (height, width))
+    np.testing.assert_allclose(pred.zone_rects,
+                               nominal_zone_rects(frame, height, width), atol=1e-5)
+    # Away from zone borders (where bilinear resizing mixes neighbours) the values match.
+    interior = np.ones((height, width), bool)
+    grad = np.abs(np.diff(expected, axis=0, prepend=expected[:1])) + \
+        np.abs(np.diff(expected, axis=1, prepend=expected[:, :1]))
+    near_border = torch.nn.functional.max_pool2d(
+        torch.from_numpy((grad > 0).astype(np.float32))[None, None], 7, 1, 3)[0, 0].numpy() > 0
+    interior &= ~near_border & (expected > 0)
+    assert interior.sum() > 0.1 * height * width
+    np.testing.assert_allclose(pred.depth_m[interior], expected[interior], atol=1e-4)
+
+
+def test_predict_lite_single_and_batch_agree(lite_model, rng):
+    estimator = DepthEstimator(lite_model, weights="test")
+    images = [_image(rng, 60, 90) for _ in range(2)]
+    frames = [_frame(rng), _frame(rng)]
+    batch = estimator.predict(images, frames)
+    assert isinstance(batch, list) and len(batch) == 2
+    for image, frame, pred in zip(images, frames, batch, strict=True):
+        single = estimator.predict(image, frame)
+        assert single.depth_m.shape == (60, 90) and single.depth_m.dtype == np.float32
+        assert np.isfinite(single.depth_m).all() and (single.depth_m > 0).all()
+        assert np.isfinite(single.uncertainty_m).all() and (single.uncertainty_m >= 0).all()
+        np.testing.assert_allclose(pred.depth_m, single.depth_m, atol=1e-4)
+
+
+def test_bfloat16_precision_runs(lite_model, rng):
+    estimator = DepthEstimator(lite_model, precision="bfloat16", weights="test")
+    pred = estimator.predict(_image(rng, 64, 96), _frame(rng))
+    assert pred.depth_m.dtype == np.float32 and np.isfinite(pred.depth_m).all()
+    lite_model.float()  # the session fixture is shared
+
+
+def test_histogram_frames_are_sampled_from_the_histogram(rng):
+    edges = np.linspace(0.0, 4.0, 101, dtype=np.float32)
+    counts = np.zeros((8, 8, 100), np.float32)
+    counts[..., 50] = 10.0  # every zone: all mass in [2.00, 2.04)
+    frame = ZoneFrame(np.full((8, 8), 1.0), np.full((8, 8), 0.5), np.ones((8, 8), bool),
+                      hist_edges_m=edges, hist_counts=counts)
+    hyp = DepthEstimator(ZonePainterNet(), weights="x").hypotheses_for(frame)
+    assert hyp.shape == (64, 16)
+    # The Gaussian (mean 1, sigma 0.5) would spread far; the histogram keeps them in the bin.
+    assert float(hyp.min()) >= 2.0 and float(hyp.max()) <= 2.04 + 1e-6
+
+
+def test_gaussian_hypotheses_are_icdf_quantiles(rng):
+    frame = _frame(rng, invalid=2)
+    hyp = DepthEstimator(ZonePainterNet(), weights="x").hypotheses_for(frame).numpy()
+    mean, sigma, valid = frame.flat()
+    from scipy.stats import norm
+
+    probs = np.linspace(1e-3, 1 - 1e-3, 16)
+    expected = mean[:, None] + sigma[:, None] * norm.ppf(probs)[None]
+    np.testing.assert_allclose(hyp[valid], expected[valid], atol=1e-5)
+    assert np.all(hyp[~valid] == 0)
+
+
+def test_calibration_places_zones_and_must_match_resolution(rng):
+    intr = CameraIntrinsics(80.0, 80.0, 47.5, 31.5, 96, 64)
+    calib = RigCalibration(intr, SensorExtrinsics(translation_m=np.array([0.03, 0.0, 0.0])))
+    frame = _frame(rng, invalid=0)
+    estimator = DepthEstimator(ZonePainterNet(), weights="x")
+    pred = estimator.predict(_image(rng, 64, 96), frame, calib)
+    np.testing.assert_allclose(pred.zone_rects, calib.zone_rects_for(frame, (64, 96)))
+    assert pred.intrinsics == intr
+    with pytest.raises(ValueError, match="calibrated resolution"):
+        estimator.predict(_image(rng, 48, 96), frame, calib)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((64, 96), np.uint8), "image"),
+    (np.zeros((64, 96, 3), np.float32), "uint8"),
+    (np.zeros((64, 96, 4), np.uint8), "image"),
+])
+def test_bad_images_raise(bad, match, rng):
+    estimator = DepthEstimator(ZonePainterNet(), weights="x")
+    with pytest.raises(ValueError, match=match):
+        estimator.predict(bad, _frame(rng))
+
+
+def test_batch_errors_name_the_problem(rng):
+    estimator = DepthEstimator(ZonePainterNet(), weights="x")
+    with pytest.raises(ValueError, match="one image size"):
+        estimator.predict([_image(rng, 64, 96), _image(rng, 32, 96)], [_frame(rng)] * 2)
+    with pytest.raises(ValueError, match="one zone frame per image"):
+        estimator.predict([_image(rng, 64, 96)] * 2, [_frame(rng)])
+    with pytest.raises(ValueError, match="grid"):
+        estimator.predict([_image(rng, 64, 96)] * 2, [_frame(rng), _frame(rng, grid=4)])
+
+
+def test_constructor_options_are_checked(lite_model):
+    with pytest.raises(ValueError, match="precision"):
+        DepthEstimator(lite_model, precision="int8")
+    with pytest.raises(ValueError, match="multiples of 32"):
+        DepthEstimator(lite_model, input_size=(60, 96))
+    with pytest.raises(ValueError, match="exactly one"):
+        DepthEstimator()
+
+
+def test_from_preset_warns_about_random_weights():
+    with pytest.warns(UserWarning, match="random"):
+        estimator = DepthEstimator.from_preset("deltar-lite",
+                                               model_config={"design_size": (64, 96)})
+    assert "random" in estimator.weights
+
+
+def test_checkpoint_round_trip(tmp_path, rng):
+    torch.manual_seed(1)
+    from deltar.models import create_model
+
+    config = {"design_size": (64, 96), "n_bins": 32}
+    model = create_model("deltar-lite", **config).eval()
+    path = save_checkpoint(tmp_path / "model.pt", model, "deltar-lite", config)
+    with pytest.raises(FileExistsError):
+        save_checkpoint(path, model, "deltar-lite", config)
+    restored, preset, saved_config = load_checkpoint(path)
+    assert not restored.training
+    assert preset == "deltar-lite" and saved_config == config
+    image, frame = _image(rng, 64, 96), _frame(rng)
+    a = DepthEstimator(model, weights="a").predict(image, frame)
+    b = DepthEstimator.from_checkpoint(path).predict(image, frame)
+    np.testing.assert_array_equal(a.depth_m, b.depth_m)
+
+
+def test_bad_checkpoints_raise(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        DepthEstimator.from_checkpoint(tmp_path / "missing.pt")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match=r"corrupt\.pt"):
+        DepthEstimator.from_checkpoint(corrupt)
+    plain = tmp_path / "plain.pt"
+    torch.save({"weights": torch.zeros(1)}, plain)
+    with pytest.raises(ValueError, match="not a deltar checkpoint"):
+        DepthEstimator.from_checkpoint(plain)
+    with pytest.raises(FileNotFoundError):
+        DepthEstimator.from_official(tmp_path / "nyu.pt")
+
+
+def test_zone_mean_depth_paints_valid_zones_only():
+    frame = ZoneFrame(np.arange(1, 17, dtype=float).reshape(4, 4) / 10, np.zeros((4, 4)),
+                      np.eye(4, dtype=bool))
+    rects = np.array([[r * 2 - 0.5, c * 2 - 0.5, r * 2 + 1.5, c * 2 + 1.5]
+                      for r in range(4) for c in range(4)], dtype=np.float32)
+    out = zone_mean_depth(frame, rects, (8, 8))
+    expected = np.zeros((8, 8), np.float32)
+    for k in range(4):
+        expected[2 * k:2 * k + 2, 2 * k:2 * k + 2] = (k * 4 + k + 1) / 10
+    np.testing.assert_allclose(out, expected)
