@@ -1,0 +1,115 @@
+"""Sensor adapters (with a fake driver), driver import errors, the simulated rig."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deltar.inference.drivers import (
+    DriverAdapter,
+    SimulatedRig,
+    open_circuitpython,
+    open_sparkfun,
+    open_vl53l5cx_ctypes,
+)
+from deltar.inference.wall_test import FlatWallSource
+from deltar.sensor.zone_frame import Orientation
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        self.now += 0.001
+        return self.now
+
+
+class FakeDriver:
+    """Mimics a driver: ready after ``polls`` calls, results like ST's ULD (mm, status)."""
+
+    def __init__(self, polls: int = 2) -> None:
+        self.polls, self.calls, self.started, self.stopped = polls, 0, False, False
+        self.distance_mm = list(range(1000, 1064))
+        self.range_sigma_mm = [5] * 64
+        self.target_status = [5] * 63 + [255]
+
+    def start_ranging(self):
+        self.started = True
+
+    def stop_ranging(self):
+        self.stopped = True
+
+    def data_ready(self):
+        self.calls += 1
+        return self.calls >= self.polls
+
+    def get_data(self):
+        self.calls = 0
+        return self
+
+
+def test_adapter_converts_driver_results_to_metres():
+    driver, clock = FakeDriver(), FakeClock()
+    with DriverAdapter(driver, clock=clock, poll_interval_s=0.0) as sensor:
+        assert driver.started
+        frame = sensor.read()
+    assert driver.stopped
+    mean, sigma, valid = frame.flat()
+    np.testing.assert_allclose(mean[:63], np.arange(1000, 1063) / 1000.0, rtol=1e-6)
+    assert sigma[0] == pytest.approx(0.005)
+    assert not valid[63] and valid[:63].all()  # status 255 = no target
+    assert 100.0 < frame.timestamp_s < 100.01
+
+
+def test_adapter_applies_orientation():
+    driver = FakeDriver(polls=1)
+    frame = DriverAdapter(driver, orientation=Orientation(flip_ud=True),
+                          poll_interval_s=0.0).read()
+    # Driver row 7 (distances 1056..1063) becomes image row 0.
+    np.testing.assert_allclose(frame.mean_m[0, :7], np.arange(1056, 1063) / 1000.0,
+                               rtol=1e-6)
+
+
+def test_adapter_timeout_and_missing_methods():
+    driver = FakeDriver(polls=10**9)
+    clock = FakeClock()
+    assert DriverAdapter(driver, clock=clock, poll_interval_s=0.0).read(timeout_s=0.005) is None
+    with pytest.raises(ValueError, match="get_ranging_data"):
+        DriverAdapter(driver, get_data="get_ranging_data")
+    with pytest.raises(ValueError, match="configured for 4x4"):
+        DriverAdapter(FakeDriver(polls=1), grid=4, poll_interval_s=0.0).read()
+
+
+@pytest.mark.parametrize("opener, package", [
+    (open_vl53l5cx_ctypes, "vl53l5cx-ctypes"),
+    (open_sparkfun, "sparkfun-qwiic-vl53l5cx"),
+])
+def test_missing_driver_packages_say_what_to_install(opener, package):
+    with pytest.raises(ImportError, match=package):
+        opener()
+
+
+def test_missing_circuitpython_driver():
+    with pytest.raises(ImportError, match="circuitpython-vl53lxcx"):
+        open_circuitpython(i2c=None)
+
+
+def test_simulated_rig_rates_and_zones():
+    rig = SimulatedRig(FlatWallSource(1.01, frames=6, height=48, width=64), grid=8,
+                       camera_hz=30.0, sensor_hz=10.0, sensor_delay_s=0.004)
+    captures = []
+    with rig:
+        while (capture := rig.grab()) is not None:
+            captures.append(capture)
+    assert len(captures) == 6
+    np.testing.assert_allclose([c.image_time_s for c in captures], np.arange(6) / 30.0)
+    with_zones = [i for i, c in enumerate(captures) if c.zone_frame is not None]
+    assert with_zones == [0, 3]  # 10 Hz sensor, 30 Hz camera
+    frame = captures[3].zone_frame
+    assert frame.timestamp_s == pytest.approx(3 / 30.0 + 0.004)
+    assert frame.hist_counts is None  # like a VL53L5CX: mean and sigma only
+    mean, _, valid = frame.flat()
+    # A flat wall at 1.01 m, 4 cm bins from 0: every zone reads the bin centre 1.02 m.
+    assert valid.any()
+    np.testing.assert_allclose(mean[valid], 1.02, atol=1e-5)

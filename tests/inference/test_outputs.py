@@ -1,0 +1,112 @@
+"""Output writers: 16-bit PNG, npy, colour PNG, PLY point cloud, panel, refusal to overwrite."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.inference.estimator import DepthPrediction
+from deltar.inference.outputs import (
+    OUTPUT_KINDS,
+    colorize,
+    depth_to_png16,
+    depth_to_points,
+    read_ply,
+    write_depth_npy,
+    write_depth_png16,
+    write_ply,
+    write_prediction,
+)
+from deltar.sensor.zone_frame import ZoneFrame
+
+
+def test_png16_is_millimetres_with_zero_for_invalid(tmp_path):
+    depth = np.array([[1.2346, 0.0, np.nan], [np.inf, 70.0, 0.0004]], np.float32)
+    expected = np.array([[1235, 0, 0], [0, 65535, 0]], np.uint16)  # 1234.6 mm -> 1235
+    np.testing.assert_array_equal(depth_to_png16(depth), expected)
+    path = write_depth_png16(tmp_path / "d.png", depth)
+    with Image.open(path) as img:
+        read = np.asarray(img)
+    np.testing.assert_array_equal(read.astype(np.uint16), expected)
+    with pytest.raises(FileExistsError):
+        write_depth_png16(path, depth)
+
+
+def test_npy_round_trip(tmp_path, rng):
+    depth = rng.uniform(0.5, 4, (5, 7)).astype(np.float32)
+    path = write_depth_npy(tmp_path / "d.npy", depth)
+    np.testing.assert_array_equal(np.load(path), depth)
+    with pytest.raises(ValueError, match="depth_m"):
+        write_depth_npy(tmp_path / "e.npy", depth[None])
+
+
+def test_colorize_range_and_invalid():
+    rgb = colorize(np.array([[0.0, 1.0, 2.0, np.nan]]), vmin=0.0, vmax=2.0)
+    assert rgb.shape == (1, 4, 3) and rgb.dtype == np.uint8
+    import matplotlib
+
+    turbo = matplotlib.colormaps["turbo"]
+    np.testing.assert_array_equal(rgb[0, 0], (np.array(turbo(0.0)[:3]) * 255 + 0.5).astype(int))
+    np.testing.assert_array_equal(rgb[0, 2], (np.array(turbo(1.0)[:3]) * 255 + 0.5).astype(int))
+    np.testing.assert_array_equal(rgb[0, 3], [0, 0, 0])
+
+
+def test_point_cloud_back_projection_by_hand():
+    intr = CameraIntrinsics(2.0, 4.0, 0.5, 0.5, 2, 2)
+    depth = np.array([[1.0, 2.0], [0.0, 4.0]], np.float32)
+    image = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
+    points, colors = depth_to_points(depth, intr, image)
+    # (u, v) = (0, 0): x = (0 - 0.5) / 2 * 1, y = (0 - 0.5) / 4 * 1.
+    expected = np.array([[-0.25, -0.125, 1.0], [0.5, -0.25, 2.0], [1.0, 0.5, 4.0]])
+    np.testing.assert_allclose(points, expected, atol=1e-6)
+    np.testing.assert_array_equal(colors, image.reshape(4, 3)[[0, 1, 3]])
+
+
+def test_ply_binary_little_endian_with_intrinsics(tmp_path):
+    intr = CameraIntrinsics(500.5, 501.0, 319.5, 239.5, 640, 480)
+    points = np.array([[0.1, -0.2, 1.5], [1.0, 2.0, 3.0]], np.float32)
+    colors = np.array([[255, 0, 10], [1, 2, 3]], np.uint8)
+    path = write_ply(tmp_path / "c.ply", points, colors, intr)
+    raw = path.read_bytes()
+    assert raw.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    # 15 bytes per vertex: 3 little-endian float32 + 3 uchar.
+    body = raw[raw.index(b"end_header\n") + len(b"end_header\n"):]
+    assert len(body) == 2 * 15
+    assert np.frombuffer(body[:12], "<f4").tolist() == pytest.approx([0.1, -0.2, 1.5])
+    assert list(body[12:15]) == [255, 0, 10]
+    read_points, read_colors, comments = read_ply(path)
+    np.testing.assert_array_equal(read_points, points)
+    np.testing.assert_array_equal(read_colors, colors)
+    assert "intrinsics 500.5 501.0 319.5 239.5 640 480" in comments
+
+
+def _prediction(rng, height=32, width=48):
+    frame = ZoneFrame(rng.uniform(1, 3, (4, 4)), np.full((4, 4), 0.02), np.ones((4, 4), bool))
+    rects = np.array([[r * 8 - 0.5, c * 12 - 0.5, r * 8 + 7.5, c * 12 + 11.5]
+                      for r in range(4) for c in range(4)], np.float32)
+    return DepthPrediction(depth_m=rng.uniform(1, 3, (height, width)).astype(np.float32),
+                           uncertainty_m=np.full((height, width), 0.05, np.float32),
+                           zone_rects=rects, zone_frame=frame,
+                           intrinsics=CameraIntrinsics(40, 40, 23.5, 15.5, width, height))
+
+
+def test_write_prediction_writes_every_kind_and_refuses_existing(tmp_path, rng):
+    pred = _prediction(rng)
+    image = rng.integers(0, 256, (32, 48, 3), dtype=np.uint8)
+    paths = write_prediction(tmp_path, "frame", image, pred, title="test")
+    assert set(paths) == set(OUTPUT_KINDS)
+    for path in paths.values():
+        assert path.is_file() and path.stat().st_size > 0
+    with Image.open(paths["panel"]) as img:
+        assert img.size[0] > 100
+    np.testing.assert_array_equal(np.load(paths["npy"]), pred.depth_m)
+    points, _, _ = read_ply(paths["ply"])
+    assert points.shape == (32 * 48, 3)
+    before = paths["png16"].read_bytes()
+    with pytest.raises(FileExistsError):
+        write_prediction(tmp_path, "frame", image, pred, kinds=("png16",))
+    assert paths["png16"].read_bytes() == before
+    with pytest.raises(ValueError, match="unknown output kinds"):
+        write_prediction(tmp_path, "x", image, pred, kinds=("jpeg",))
