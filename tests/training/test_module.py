@@ -119,3 +119,13 @@ def test_atomic_checkpoint_io_keeps_the_old_file_when_saving_fails(tmp_path):
         io.save_checkpoint({"step": 2, "bad": Unpicklable()}, path)
     assert io.load_checkpoint(path) == {"step": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]
+
+
+def test_mixed_precision_run_keeps_a_float32_loss(tmp_path, tiny_config):
+    # bf16 autocast is what CPUs offer; on GPUs the configs use 16-mixed the same way.
+    config = tiny_config("trainer.precision=bf16-mixed", "trainer.max_epochs=1")
+    run = train(config, tmp_path / "run")
+    losses = [r["loss"] for r in read_history(run / "history" / "rank0.jsonl").values()]
+    assert len(losses) == 4 and all(math.isfinite(v) and v > 0 for v in losses)
+    state = torch.load(run / "model.pt", weights_only=True)["state_dict"]
+    assert all(v.dtype == torch.float32 for v in state.values() if v.is_floating_point())
