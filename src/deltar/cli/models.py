@@ -1,0 +1,90 @@
+"""``deltar check-official`` and ``deltar bench``: model parity and speed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from deltar.cli.main import app
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"--size must look like 480x640, got {text!r}") from None
+    if height <= 0 or width <= 0 or height % 32 or width % 32:
+        raise typer.BadParameter(f"--size needs positive multiples of 32, got {text!r}")
+    return height, width
+
+
+@app.command("check-official")
+def check_official_command(
+    fixture: Path = typer.Argument(..., help="Parity fixture (.pt) with 'state_dict' and "
+                                   "'cases', as official_parity_fixture.pt."),
+    threads: int = typer.Option(2, help="torch threads."),
+) -> None:
+    """Check that deltar-official reproduces the release's outputs stored in FIXTURE."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from deltar.models.benchmark import (
+        DEPTH_TOLERANCE_M,
+        EDGE_TOLERANCE_M,
+        check_official_fixture,
+    )
+
+    try:
+        results = check_official_fixture(fixture, threads=threads)
+    except (FileNotFoundError, ValueError) as error:
+        raise typer.BadParameter(str(error)) from None
+    table = Table(title=f"deltar-official vs release outputs ({fixture.name})")
+    table.add_column("case")
+    table.add_column(f"max |depth error| m (tol {DEPTH_TOLERANCE_M:g})", justify="right")
+    table.add_column(f"max |bin edge error| m (tol {EDGE_TOLERANCE_M:g})", justify="right")
+    table.add_column("result")
+    for result in results:
+        table.add_row(result.name, f"{result.depth_max_error_m:.3g}",
+                      f"{result.edges_max_error_m:.3g}",
+                      "[green]pass[/green]" if result.passed else "[red]FAIL[/red]")
+    Console().print(table)
+    if not all(result.passed for result in results):
+        raise typer.Exit(code=1)
+
+
+@app.command("bench")
+def bench_command(
+    preset: str = typer.Option("deltar-official", help="Model preset."),
+    size: str = typer.Option("480x640", help="Input size HxW (multiples of 32)."),
+    batch: int = typer.Option(1, min=1, help="Batch size."),
+    threads: int = typer.Option(2, min=1, help="torch threads."),
+    repeats: int = typer.Option(10, min=1, help="Timed runs."),
+    warmup: int = typer.Option(2, min=0, help="Untimed runs first."),
+    optimize: bool = typer.Option(True, help="Fold batch norms (decoder) before timing."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the result as JSON."),
+    overwrite: bool = typer.Option(False, help="Replace an existing --json file."),
+) -> None:
+    """Measure forward latency (median of repeated runs) and peak memory of a preset."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from deltar.io.atomic import write_text_atomic
+    from deltar.models.benchmark import benchmark_preset
+    from deltar.models.presets import list_presets
+
+    height, width = _parse_size(size)
+    if preset not in list_presets():
+        raise typer.BadParameter(f"unknown preset {preset!r}; known: {list_presets()}")
+    if json_out is not None and json_out.exists() and not overwrite:
+        raise typer.BadParameter(f"{json_out} exists; pass --overwrite to replace it")
+    result = benchmark_preset(preset, height, width, batch, threads, repeats, warmup, optimize)
+    table = Table(title="deltar bench")
+    table.add_column("measure")
+    table.add_column("value", justify="right")
+    for key, value in result.items():
+        table.add_row(key, str(value))
+    Console().print(table)
+    if json_out is not None:
+        write_text_atomic(json_out, json.dumps(result, indent=2) + "\n", overwrite=overwrite)

@@ -1,0 +1,219 @@
+"""Latency / memory benchmark of a preset, and the official-parity check of a fixture."""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+#: Tolerances of the official parity check, metres.
+DEPTH_TOLERANCE_M = 1e-3
+EDGE_TOLERANCE_M = 1e-4
+
+
+def normalise_image(image_rgb_uint8: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) uint8 RGB -> (1, 3, H, W) float32 ImageNet-normalised network input."""
+    if image_rgb_uint8.ndim != 3 or image_rgb_uint8.shape[-1] != 3:
+        raise ValueError(f"image must be (H, W, 3), got {tuple(image_rgb_uint8.shape)}")
+    image = image_rgb_uint8.permute(2, 0, 1)[None].to(torch.float32) / 255.0
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    return (image - mean) / std
+
+
+def _peak_rss_mb() -> float | None:
+    """Peak resident memory of this process (VmHWM), MB; None where unavailable."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def _current_rss_mb() -> float | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    """Reset VmHWM to the current RSS (Linux: write 5 to clear_refs); True on success."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True
+
+
+def synthetic_inputs(height: int, width: int, batch: int, grid: int = 8, seed: int = 0):
+    """Random inputs of the network's layout: an 8x8 grid of valid zones over the centre.
+
+    Returns:
+        (image (B, 3, H, W), hypotheses (B, Z, 16) metres, rects (B, Z, 4) px, valid (B, Z)).
+    """
+    generator = torch.Generator().manual_seed(seed)
+    image = torch.randn(batch, 3, height, width, generator=generator)
+    zones = grid * grid
+    hypotheses = torch.rand(batch, zones, 16, generator=generator).sort(dim=2).values * 3 + 0.3
+    side = min(height, width) * 0.9 / grid
+    top, left = (height - side * grid) / 2, (width - side * grid) / 2
+    rows, cols = torch.meshgrid(torch.arange(grid), torch.arange(grid), indexing="ij")
+    y0 = top + rows.flatten() * side
+    x0 = left + cols.flatten() * side
+    rects = torch.stack([y0, x0, y0 + side, x0 + side], dim=1).float()
+    return image, hypotheses, rects.expand(batch, zones, 4).clone(), torch.ones(
+        batch, zones, dtype=torch.bool
+    )
+
+
+def benchmark_preset(
+    preset: str,
+    height: int,
+    width: int,
+    batch: int = 1,
+    threads: int = 2,
+    repeats: int = 10,
+    warmup: int = 2,
+    optimize: bool = True,
+) -> dict:
+    """Time the forward pass of a preset (random weights) under ``torch.inference_mode``.
+
+    Args:
+        preset: model preset name.
+        height: input height, pixels (divisible by 32).
+        width: input width, pixels (divisible by 32).
+        batch: batch size.
+        threads: torch intra-op threads.
+        repeats: timed runs (the median and minimum are reported).
+        warmup: untimed runs first.
+        optimize: apply :func:`~deltar.models.optimize.prepare_for_inference`.
+
+    Returns:
+        dict with preset, size ("HxW"), batch, threads, latency_ms_median,
+        latency_ms_min, peak_mem_mb (peak resident memory during the timed runs above
+        the resident memory before them; None if unavailable), params_m (millions),
+        load_avg_1min (system load when the run ended, for context).
+    """
+    from deltar.models.optimize import prepare_for_inference
+    from deltar.models.presets import create_model
+
+    if repeats < 1 or warmup < 0:
+        raise ValueError("repeats must be >= 1 and warmup >= 0")
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    model = create_model(preset).eval()
+    if optimize:
+        prepare_for_inference(model)
+    inputs = synthetic_inputs(height, width, batch)
+    with torch.inference_mode():
+        for _ in range(warmup):
+            model(*inputs)
+        rss_before = _current_rss_mb()
+        peak_resettable = _reset_peak_rss()
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            model(*inputs)
+            times.append((time.perf_counter() - start) * 1000.0)
+    peak = _peak_rss_mb()
+    peak_mem = None
+    if peak is not None and rss_before is not None and peak_resettable:
+        peak_mem = round(max(0.0, peak - rss_before), 1)
+    try:
+        load = round(float(Path("/proc/loadavg").read_text().split()[0]), 2)
+    except (OSError, ValueError):
+        load = None
+    return {
+        "preset": preset,
+        "size": f"{height}x{width}",
+        "batch": batch,
+        "threads": threads,
+        "latency_ms_median": round(statistics.median(times), 1),
+        "latency_ms_min": round(min(times), 1),
+        "peak_mem_mb": peak_mem,
+        "params_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
+        "load_avg_1min": load,
+    }
+
+
+@dataclass
+class ParityResult:
+    """Largest errors of one fixture case against the release's outputs (metres)."""
+
+    name: str
+    depth_max_error_m: float
+    edges_max_error_m: float
+
+    @property
+    def passed(self) -> bool:
+        """Both errors within :data:`DEPTH_TOLERANCE_M` / :data:`EDGE_TOLERANCE_M`."""
+        return (
+            math.isfinite(self.depth_max_error_m)
+            and self.depth_max_error_m <= DEPTH_TOLERANCE_M
+            and self.edges_max_error_m <= EDGE_TOLERANCE_M
+        )
+
+
+def check_official_fixture(path: str | Path, threads: int | None = None) -> list[ParityResult]:
+    """Run ``deltar-official`` with a fixture's weights on each of its cases.
+
+    The fixture layout is that of ``official_parity_fixture.pt``: ``state_dict`` and
+    ``cases`` (``image_rgb_uint8`` (H, W, 3), ``zone_samples_icdf16`` (Z, K),
+    ``zone_rects_yxyx`` (Z, 4), ``zone_valid`` (Z,), ``expected_bin_edges`` (N + 1,),
+    ``expected_depth_half_res`` (H / 2, W / 2)).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file does not have the fixture layout.
+    """
+    from deltar.models.official import load_official_weights
+    from deltar.models.presets import create_model
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"fixture not found: {path}")
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        # The fixture holds plain tensors, strings and lists; no code objects.
+        fixture = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:
+        raise ValueError(f"cannot read fixture {path}: {error}") from error
+    if not isinstance(fixture, dict) or "state_dict" not in fixture or "cases" not in fixture:
+        raise ValueError(f"{path}: expected a dict with 'state_dict' and 'cases'")
+    model = create_model("deltar-official")
+    load_official_weights(model, fixture["state_dict"])
+    model.eval()
+    results = []
+    required = ("image_rgb_uint8", "zone_samples_icdf16", "zone_rects_yxyx", "zone_valid",
+                "expected_bin_edges", "expected_depth_half_res")
+    for index, case in enumerate(fixture["cases"]):
+        missing = [key for key in required if key not in case]
+        if missing:
+            raise ValueError(f"{path}: case {index} lacks {missing}")
+        with torch.inference_mode():
+            out = model(
+                normalise_image(torch.as_tensor(case["image_rgb_uint8"])),
+                torch.as_tensor(case["zone_samples_icdf16"]).float()[None],
+                torch.as_tensor(case["zone_rects_yxyx"]).float()[None],
+                torch.as_tensor(case["zone_valid"]).bool()[None],
+            )
+        expected_depth = torch.as_tensor(case["expected_depth_half_res"]).float()
+        expected_edges = torch.as_tensor(case["expected_bin_edges"]).float()
+        depth_error = (out["depth"][0, 0] - expected_depth).abs().max().item()
+        edge_error = (out["bin_edges"][0] - expected_edges).abs().max().item()
+        results.append(ParityResult(str(case.get("name", f"case {index}")), depth_error,
+                                    edge_error))
+    return results
