@@ -9,3 +9,4 @@ from deltar.cli import calibrate  # noqa: F401
 from deltar.cli import demo  # noqa: F401
 from deltar.cli import train  # noqa: F401
 from deltar.cli import predict  # noqa: F401
+from deltar.cli import models  # noqa: F401
