@@ -1,0 +1,134 @@
+"""deltar predict / record / replay / wall-test / export through the CLI (lite, small)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from deltar.cli.main import _register_commands, app
+from deltar.io.zone_file import save_zone_frame
+from deltar.sensor.zone_frame import ZoneFrame
+
+_register_commands()
+runner = CliRunner()
+LITE = ["--preset", "deltar-lite", "--threads", "1"]
+
+
+def _inputs(folder, stem, rng, zones=64):
+    folder.mkdir(parents=True, exist_ok=True)
+    image = folder / f"{stem}.png"
+    Image.fromarray(rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)).save(image)
+    grid = int(np.sqrt(zones))
+    frame = ZoneFrame(rng.uniform(0.5, 3, (grid, grid)), np.full((grid, grid), 0.03),
+                      np.ones((grid, grid), bool))
+    zone_path = save_zone_frame(folder / f"{stem}.json", frame)
+    return image, zone_path
+
+
+def test_predict_single_image_writes_all_outputs_and_never_overwrites(tmp_path, rng):
+    image, zones = _inputs(tmp_path / "in", "a", rng)
+    out = tmp_path / "out"
+    args = ["predict", "--image", str(image), "--zones", str(zones), "--out", str(out), *LITE]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "random" in result.output
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["a_cloud.ply", "a_depth_color.png", "a_depth_m.npy", "a_depth_mm.png",
+                     "a_panel.png"]
+    depth = np.load(out / "a_depth_m.npy")
+    assert depth.shape == (64, 96)
+    with Image.open(out / "a_depth_mm.png") as img:
+        mm = np.asarray(img).astype(np.int64)
+    np.testing.assert_array_equal(mm, np.round(depth.astype(np.float64) * 1000).astype(np.int64))
+    again = runner.invoke(app, args)
+    assert again.exit_code == 1 and "refusing to overwrite" in again.output
+
+
+def test_predict_folder_mode_pairs_by_stem(tmp_path, rng):
+    for stem in ("f1", "f2"):
+        _inputs(tmp_path / "in", stem, rng)
+    Image.fromarray(np.zeros((64, 96, 3), np.uint8)).save(tmp_path / "in" / "lonely.png")
+    result = runner.invoke(app, ["predict", "--images", str(tmp_path / "in"), "--zones-dir",
+                                 str(tmp_path / "in"), "--out", str(tmp_path / "out"),
+                                 "--outputs", "npy", *LITE])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["f1_depth_m.npy",
+                                                                    "f2_depth_m.npy"]
+    assert "lonely" in result.output
+
+
+@pytest.mark.parametrize("problem, message", [
+    ("truncated_image", "cannot decode colour image"),
+    ("nan_zone", "NaN"),
+    ("negative_zone", "negative"),
+    ("zone_count", "wrong zone count"),
+])
+def test_predict_bad_inputs_name_file_and_problem(tmp_path, rng, problem, message):
+    image, zones = _inputs(tmp_path / "in", "a", rng)
+    if problem == "truncated_image":
+        data = image.read_bytes()
+        image.write_bytes(data[: len(data) // 2])
+        culprit = image.name
+    else:
+        content = json.loads(zones.read_text())
+        if problem == "nan_zone":
+            content["mean_m"][3] = float("nan")
+        elif problem == "negative_zone":
+            content["mean_m"][3] = -1.0
+        else:
+            for key in ("mean_m", "sigma_m", "valid"):
+                content[key] = content[key][:36]
+            content["zone_count"] = 36
+        zones.write_text(json.dumps(content))
+        culprit = zones.name
+    result = runner.invoke(app, ["predict", "--image", str(image), "--zones", str(zones),
+                                 "--out", str(tmp_path / "out"), *LITE])
+    assert result.exit_code == 1
+    text = " ".join(result.output.split())
+    assert message in text and culprit in text
+
+
+def test_predict_refuses_calibration_for_another_resolution(tmp_path, rng):
+    from deltar.calibration.camera import CameraIntrinsics
+    from deltar.calibration.rig import RigCalibration
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    image, zones = _inputs(tmp_path / "in", "a", rng)
+    calib = RigCalibration(CameraIntrinsics(500, 500, 319.5, 239.5, 640, 480),
+                           SensorExtrinsics()).save(tmp_path / "calib.json")
+    result = runner.invoke(app, ["predict", "--image", str(image), "--zones", str(zones),
+                                 "--calib", str(calib), "--out", str(tmp_path / "out"), *LITE])
+    assert result.exit_code == 1
+    assert "calibrated resolution" in " ".join(result.output.split())
+
+
+def test_record_replay_wall_test_export_end_to_end(tmp_path):
+    for distance in ("1.01", "2.05"):
+        result = runner.invoke(app, ["record", str(tmp_path / f"wall{distance}"), "--simulate",
+                                     f"wall:{distance}:4:64x96"])
+        assert result.exit_code == 0, result.output
+        assert "recorded 4 images, 2 zone frames" in result.output
+    replayed = runner.invoke(app, ["replay", str(tmp_path / "wall1.01"), "--out",
+                                   str(tmp_path / "replay"), *LITE])
+    assert replayed.exit_code == 0, replayed.output
+    assert len(list((tmp_path / "replay").glob("*_depth_m.npy"))) == 2
+    walls = runner.invoke(app, ["wall-test", str(tmp_path / "wall1.01"),
+                                str(tmp_path / "wall2.05"), "--out", str(tmp_path / "wall"),
+                                *LITE])
+    assert walls.exit_code == 0, walls.output
+    rows = json.loads((tmp_path / "wall" / "wall_test.json").read_text())["results"]
+    assert [round(r["distance_m"], 2) for r in rows] == [1.02, 2.06]
+    assert all(abs(r["zones_bias_m"] - 0.01) < 1e-4 for r in rows)
+    exported = runner.invoke(app, ["export", "--preset", "deltar-lite", "--out",
+                                   str(tmp_path / "lite.onnx"), "--size", "64x96",
+                                   "--layout-from", str(tmp_path / "wall1.01")])
+    assert exported.exit_code == 0, exported.output
+    onnx_replay = runner.invoke(app, ["replay", str(tmp_path / "wall1.01"), "--out",
+                                      str(tmp_path / "onnx"), "--onnx",
+                                      str(tmp_path / "lite.onnx"), "--threads", "1"])
+    assert onnx_replay.exit_code == 0, onnx_replay.output
+    assert len(list((tmp_path / "onnx").glob("*_depth_m.npy"))) == 2

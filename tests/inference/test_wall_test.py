@@ -1,0 +1,81 @@
+"""Flat-wall scenes and the wall test (hand-computed bias from the 4 cm simulator bins)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from deltar.evaluation.plane import backproject
+from deltar.inference.drivers import SimulatedRig
+from deltar.inference.estimator import DepthEstimator
+from deltar.inference.record import record
+from deltar.inference.wall_test import (
+    FlatWallSource,
+    evaluate_recording,
+    flat_wall_frame,
+    wall_test,
+    write_results,
+)
+from tests.inference.fakes import ZonePainterNet
+
+
+def test_flat_wall_frame_geometry():
+    frame = flat_wall_frame(2.0, 31, 41)
+    assert frame.depth_m[15, 20] == pytest.approx(2.0)  # the principal point's ray
+    np.testing.assert_allclose(frame.depth_m, 2.0, atol=1e-6)  # fronto-parallel
+    tilted = flat_wall_frame(2.0, 31, 41, tilt_deg=20.0)
+    assert tilted.depth_m[15, 20] == pytest.approx(2.0, abs=1e-6)
+    points = backproject(tilted.depth_m, tilted.intrinsics)
+    centred = points - points.mean(0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    assert np.abs(centred @ normal).max() < 1e-5  # all points on one plane
+    assert abs(abs(normal[0]) - np.sin(np.deg2rad(20.0))) < 1e-4
+    with pytest.raises(ValueError, match="distance_m"):
+        flat_wall_frame(0.0)
+
+
+def _recording(folder, distance):
+    record(folder, SimulatedRig(FlatWallSource(distance, 4, 48, 64)))
+    return folder
+
+
+def test_wall_test_bias_is_the_bin_quantisation(tmp_path):
+    """A wall at d reads as the centre of its 4 cm bin: bias = |centre - d|, jitter 0.
+
+    Walls at 1.01 m and 2.05 m fall in the bins centred at 1.02 m and 2.06 m, so both
+    the raw zones and the zone-painting network are 0.01 m off, with no spread.
+    """
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+    recordings = [_recording(tmp_path / "far", 2.05), _recording(tmp_path / "near", 1.01)]
+    results = wall_test(recordings, estimator)
+    assert [r.distance_m for r in results] == pytest.approx([1.02, 2.06], abs=1e-5)
+    for result in results:
+        assert result.frames == 2 and result.reference == "depth"
+        assert result.zones_bias_m == pytest.approx(0.01, abs=1e-5)
+        assert result.zones_jitter_m == pytest.approx(0.0, abs=1e-5)
+        assert result.network_bias_m == pytest.approx(0.01, abs=1e-4)
+        assert result.network_jitter_m == pytest.approx(0.0, abs=1e-4)
+    paths = write_results(tmp_path / "out", results, title="painter")
+    data = json.loads(paths["json"].read_text())
+    assert len(data["results"]) == 2 and paths["plot"].stat().st_size > 0
+    assert paths["csv"].read_text().splitlines()[0].startswith("recording,distance_m")
+    with pytest.raises(FileExistsError):
+        write_results(tmp_path / "out", results)
+
+
+def test_recording_without_reference_depth_fits_the_plane_to_itself(tmp_path):
+    folder = _recording(tmp_path / "rec", 1.01)
+    for path in (folder / "depth").iterdir():
+        path.unlink()
+    (folder / "depth").rmdir()
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+    result = evaluate_recording(folder, estimator)
+    assert result.reference == "self"
+    assert result.zones_bias_m == pytest.approx(0.0, abs=1e-5)  # flat, so no bias to itself
+
+
+def test_wall_test_needs_recordings():
+    with pytest.raises(ValueError, match="at least one"):
+        wall_test([], DepthEstimator(ZonePainterNet(), weights="painter"))
