@@ -15,26 +15,30 @@ import torch
 from deltar.training.run import read_history, train
 
 HERE = Path(__file__).resolve().parent
-# 8 training frames, batch 2: 4 steps per epoch, 2 epochs; checkpoints at steps 3 and 6.
-OVERRIDES = ("trainer.checkpoint_every_n_steps=3",)
 
 
-def test_killed_run_resumes_on_the_same_loss_curve(tmp_path, tiny_config):
-    config = tiny_config(*OVERRIDES)
+# 8 training frames, batch 2: 4 steps per epoch, 2 epochs (8 steps).
+@pytest.mark.parametrize(("every", "kill_at", "checkpoint_step"), [
+    (3, 4, 3),  # killed in step 5; newest checkpoint: step 3, in the middle of epoch 0
+    (2, 5, 4),  # killed in step 6; newest checkpoint: step 4, the end of epoch 0
+])
+def test_killed_run_resumes_on_the_same_loss_curve(tmp_path, tiny_config, every, kill_at,
+                                                   checkpoint_step):
+    overrides = (f"trainer.checkpoint_every_n_steps={every}",)
+    config = tiny_config(*overrides)
     reference = train(config, tmp_path / "uninterrupted")
 
     killed = tmp_path / "killed"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    # Killed while step 5 runs: the newest checkpoint is step 3, in the middle of epoch 0.
-    result = subprocess.run([sys.executable, str(HERE / "killable_run.py"), str(killed), "4",
-                             *OVERRIDES], env=env, capture_output=True, text=True,
-                            timeout=120, check=False)
+    result = subprocess.run([sys.executable, str(HERE / "killable_run.py"), str(killed),
+                             str(kill_at), *overrides], env=env, capture_output=True,
+                            text=True, timeout=120, check=False)
     assert result.returncode == -signal.SIGKILL, result.stderr[-2000:]
     last = torch.load(killed / "checkpoints" / "last.ckpt", weights_only=False)
-    assert last["global_step"] == 3 and last["epoch"] == 0
+    assert last["global_step"] == checkpoint_step and last["epoch"] == 0
     assert not (killed / "model.pt").exists()
     before = read_history(killed / "history" / "rank0.jsonl")
-    assert sorted(before) == [1, 2, 3, 4]
+    assert sorted(before) == list(range(1, kill_at + 1))
 
     train(config, killed, resume=True)
 
