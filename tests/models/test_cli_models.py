@@ -1,0 +1,74 @@
+"""``deltar check-official`` and ``deltar bench`` end to end (small inputs)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from deltar.cli.main import _register_commands, app
+
+PARITY_FIXTURE = Path(__file__).resolve().parents[2].parent / "shared" / "fixtures" / (
+    "official_parity_fixture.pt"
+)
+
+
+@pytest.fixture(scope="module")
+def runner():
+    _register_commands()
+    return CliRunner()
+
+
+@pytest.fixture(scope="module")
+def one_case_fixture():
+    if not PARITY_FIXTURE.is_file():
+        pytest.fail(f"official parity fixture not found at {PARITY_FIXTURE}")
+    fixture = torch.load(PARITY_FIXTURE, weights_only=False)
+    fixture["cases"] = fixture["cases"][:1]
+    return fixture
+
+
+def test_check_official_passes_and_fails(runner, one_case_fixture, tmp_path):
+    good = tmp_path / "good.pt"
+    torch.save(one_case_fixture, good)
+    result = runner.invoke(app, ["check-official", str(good)])
+    assert result.exit_code == 0, result.output
+    assert "pass" in result.output
+
+    shifted = dict(one_case_fixture)
+    case = dict(shifted["cases"][0])
+    case["expected_depth_half_res"] = case["expected_depth_half_res"] + 0.01
+    shifted["cases"] = [case]
+    bad = tmp_path / "bad.pt"
+    torch.save(shifted, bad)
+    result = runner.invoke(app, ["check-official", str(bad)])
+    assert result.exit_code == 1
+    assert "FAIL" in result.output
+
+
+def test_check_official_missing_file(runner, tmp_path):
+    result = runner.invoke(app, ["check-official", str(tmp_path / "none.pt")])
+    assert result.exit_code != 0
+
+
+def test_bench_writes_json(runner, tmp_path):
+    out = tmp_path / "bench.json"
+    args = ["bench", "--preset", "deltar-lite", "--size", "64x96", "--repeats", "1",
+            "--warmup", "0", "--threads", "1", "--json", str(out)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    for key in ("preset", "size", "batch", "threads", "latency_ms_median", "latency_ms_min",
+                "peak_mem_mb", "params_m"):
+        assert key in data
+    assert data["size"] == "64x96" and data["latency_ms_median"] > 0
+    # Never overwrite without being asked.
+    assert runner.invoke(app, args).exit_code != 0
+
+
+def test_bench_rejects_bad_size(runner):
+    result = runner.invoke(app, ["bench", "--size", "100x100"])
+    assert result.exit_code != 0
