@@ -219,7 +219,7 @@ class ModelConfig:
         init_checkpoint: optional weights to start from: a Lightning checkpoint of a
             previous run (``.ckpt``) or a ``model.pt`` exported by ``deltar train``.
         official_weights: optional released ``nyu.pt`` (for ``deltar-official``).
-        sync_batchnorm: convert BatchNorm layers to SyncBatchNorm under DDP.
+        sync_batchnorm: convert BatchNorm layers to SyncBatchNorm under DDP (GPUs only).
     """
 
     preset: str = "deltar-lite"

@@ -25,7 +25,12 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
-from deltar.data.transforms import ImageAugmentation, mirror_zone_rects, normalize_image
+from deltar.data.transforms import (
+    ImageAugmentation,
+    flip_intrinsics,
+    mirror_zone_rects,
+    normalize_image,
+)
 from deltar.data.zju_l5 import ZJUL5Dataset
 from deltar.sensor.augment import SignalAugmentation
 from deltar.sensor.sampling import sample_hypotheses
@@ -190,8 +195,7 @@ class ZJUL5TrainingDataset(Dataset):
             rects = mirror_zone_rects(rects, width, sample.grid)
             mean_sigma, valid = mean_sigma[order], valid[order]
             if intr is not None:
-                intr = type(intr)(intr.fx, intr.fy, intr.width - 1 - intr.cx, intr.cy,
-                                  intr.width, intr.height)
+                intr = flip_intrinsics(intr)
         mean_sigma = np.where(valid[:, None], mean_sigma, 0.0).astype(np.float32)
         mean = torch.from_numpy(mean_sigma[:, 0].copy())
         sigma = torch.from_numpy(mean_sigma[:, 1].copy())
