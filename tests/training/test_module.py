@@ -94,6 +94,11 @@ def test_tiny_end_to_end_run(tmp_path, tiny_config):
     from_ckpt = load_trained_model(str(run / "checkpoints" / "last.ckpt"))
     for a, b in zip(model.state_dict().values(), from_ckpt.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b)  # both hold the EMA weights at the end
+    # The checkpoint keeps the raw weights too, and they differ from the average.
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    raw, averaged = ckpt["current_model_state"], ckpt["state_dict"]
+    assert raw.keys() == averaged.keys()
+    assert any(not torch.equal(raw[k], averaged[k]) for k in raw if "weight" in k)
 
 
 def test_new_run_refuses_an_existing_run_folder(tmp_path, tiny_config):
