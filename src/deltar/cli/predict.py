@@ -363,7 +363,7 @@ def wall_test_command(
 
 
 def _layout_rects(source: Path, height: int, width: int):
-    """Zone rectangles at the network size from a calibration file or a recording."""
+    """Zone rectangles in pixels of a height x width image from a calibration or recording."""
     from deltar.calibration.rig import RigCalibration
     from deltar.inference.estimator import scale_rects
     from deltar.inference.replay import recording_calibration
@@ -386,8 +386,8 @@ def export_command(
     checkpoint: Path | None = CheckpointOption,
     official: Path | None = OfficialOption,
     format: str = typer.Option("onnx", "--format", help="Export format (onnx)."),
-    size: str = typer.Option("480x640", "--size", help="Fixed input size HxW (multiples "
-                             "of 32)."),
+    size: str = typer.Option("480x640", "--size", help="Camera image size HxW; the model's "
+                             "fixed input is that rounded to multiples of 32."),
     layout_from: Path | None = typer.Option(None, "--layout-from", help="Fix the zone "
                                             "layout from a rig calibration JSON or a "
                                             "recording folder (default: nominal 8x8)."),

@@ -125,31 +125,38 @@ def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
 def example_inputs(model: DeltarNet, height: int, width: int,
                    zone_rects: np.ndarray | None = None,
                    grid: int = 8) -> tuple[torch.Tensor, ...]:
-    """Batch-1 inputs for tracing: mid-grey image, 2 m zones, the nominal zone layout.
+    """Batch-1 network inputs for images of ``height`` x ``width``, as the estimator makes.
+
+    The network input size is :func:`~deltar.inference.estimator.network_size` of the
+    image size, and the zone layout is mapped to it with
+    :func:`~deltar.inference.estimator.scale_rects`, exactly as ``DepthEstimator`` does.
 
     Args:
         model: the network (its ``num_hypotheses``).
-        height, width: input size in pixels (multiples of 32).
-        zone_rects: (Z, 4) layout in input pixels; nominal geometry when None.
+        height, width: camera image size in pixels.
+        zone_rects: (Z, 4) layout in image pixels; the nominal geometry when None.
         grid: zones per side for the nominal layout.
 
     Returns:
-        (image (1, 3, H, W), hypotheses (1, Z, K), zone_rects (1, Z, 4), zone_valid (1, Z)).
+        (image (1, 3, h, w) mid-grey, hypotheses (1, Z, K) around 2 m, zone_rects
+        (1, Z, 4) in network-input pixels, zone_valid (1, Z) all True).
     """
     import torch
 
-    from deltar.inference.estimator import nominal_zone_rects
+    from deltar.inference.estimator import network_size, nominal_zone_rects, scale_rects
     from deltar.sensor.zone_frame import ZoneFrame
 
     frame = ZoneFrame(mean_m=np.full((grid, grid), 2.0), sigma_m=np.full((grid, grid), 0.05),
                       valid=np.ones((grid, grid), bool))
     rects = nominal_zone_rects(frame, height, width) if zone_rects is None else zone_rects
-    rects = np.asarray(rects, dtype=np.float32)
+    net_height, net_width = network_size(height, width)
+    rects = scale_rects(np.asarray(rects, dtype=np.float32), (height, width),
+                        (net_height, net_width))
     zones = rects.shape[0]
     k = int(model.config["num_hypotheses"])
     hypotheses = torch.linspace(1.8, 2.2, k).expand(1, zones, k).contiguous()
-    return (torch.zeros(1, 3, height, width), hypotheses, torch.from_numpy(rects)[None],
-            torch.ones(1, zones, dtype=torch.bool))
+    return (torch.zeros(1, 3, net_height, net_width), hypotheses,
+            torch.from_numpy(rects)[None], torch.ones(1, zones, dtype=torch.bool))
 
 
 def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: int, *,
@@ -160,8 +167,9 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     Args:
         model: the network (any preset); exported in eval mode, float32, on the CPU.
         path: destination ``.onnx`` file.
-        height, width: the fixed input size in pixels (multiples of 32).
-        zone_rects: (Z, 4) zone layout in input pixels that fixes the layout signature;
+        height, width: camera image size in pixels; the model's fixed input size is
+            that size rounded to multiples of 32 (as ``DepthEstimator`` resizes).
+        zone_rects: (Z, 4) zone layout in image pixels that fixes the layout signature;
             the nominal 8x8 geometry at this size when None.
         overwrite: replace an existing file (default: ``FileExistsError``).
         metadata: extra string key/values stored in the model (e.g. the preset).
@@ -174,9 +182,8 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
 
     from deltar.io.atomic import atomic_path
 
-    if height % 32 or width % 32 or height < 32 or width < 32:
-        raise ValueError(f"height and width must be positive multiples of 32, got "
-                         f"{height}x{width}")
+    if height < 1 or width < 1:
+        raise ValueError(f"height and width must be positive, got {height}x{width}")
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"refusing to overwrite existing file: {path}")
@@ -192,6 +199,7 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
                           opset_version=OPSET, dynamo=False)
         proto = onnx.load(str(tmp))
         extra = {_SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
+                 "deltar_image_size": f"{height}x{width}",
                  "deltar_config": json.dumps(model.config, default=list),
                  **(metadata or {})}
         for key, value in extra.items():

@@ -1,0 +1,117 @@
+"""Benchmark: end-to-end ``DepthEstimator.predict`` vs the bare network, PyTorch and ONNX.
+
+End to end = PNG decode + zone placement + hypothesis sampling + network + resize of
+depth and uncertainty to the input size; bare = the network call alone on prepared
+inputs. Weights are random (speed does not depend on them). Each ONNX model is
+exported first (not timed). Prints frames per second (median over the repeats).
+
+    python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
+        [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
+        [--backends torch onnx]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from deltar.export.onnx import export_onnx
+from deltar.inference.estimator import DepthEstimator
+from deltar.models import create_model
+from deltar.sensor.zone_frame import ZoneFrame
+
+
+def _median_seconds(function, repeats: int, warmup: int = 1) -> float:
+    for _ in range(warmup):
+        function()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _test_frame(height: int, width: int, seed: int = 0) -> tuple[bytes, ZoneFrame]:
+    """A textured test image encoded as PNG, and an 8x8 zone frame with 3 invalid zones."""
+    rng = np.random.default_rng(seed)
+    coarse = rng.uniform(0, 255, (height // 8, width // 8, 3)).astype(np.float32)
+    image = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+    ok, png = cv2.imencode(".png", np.clip(image, 0, 255).astype(np.uint8))
+    assert ok
+    valid = np.ones((8, 8), bool)
+    valid.flat[[3, 17, 60]] = False
+    frame = ZoneFrame(np.where(valid, rng.uniform(0.5, 3.5, (8, 8)), 0.0),
+                      np.where(valid, rng.uniform(0.01, 0.1, (8, 8)), 0.0), valid)
+    return png.tobytes(), frame
+
+
+def _decode(png: bytes) -> np.ndarray:
+    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeats: int,
+          workdir: Path) -> dict:
+    """Frames per second of the bare network and of predict() for one configuration."""
+    height, width = size
+    torch.manual_seed(0)
+    model = create_model(preset).eval()
+    if backend == "onnx":
+        path = workdir / f"{preset}-{height}x{width}.onnx"
+        start = time.perf_counter()
+        export_onnx(model, path, height, width, overwrite=True)
+        print(f"  exported {path.name} in {time.perf_counter() - start:.1f} s", flush=True)
+        estimator = DepthEstimator.from_onnx(path, num_threads=threads)
+    else:
+        estimator = DepthEstimator(model, weights=f"{preset} (random)")
+    png, frame = _test_frame(height, width)
+    inputs = estimator.prepare([_decode(png)], [frame])
+    bare = _median_seconds(lambda: estimator.run_network(inputs), repeats)
+    full = _median_seconds(lambda: estimator.predict(_decode(png), frame), repeats)
+    return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
+            "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full, "overhead": full / bare - 1.0}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--presets", nargs="+", default=["deltar-lite", "deltar-official"])
+    parser.add_argument("--sizes", nargs="+", default=["240x320", "480x640"])
+    parser.add_argument("--backends", nargs="+", default=["torch", "onnx"])
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    warnings.simplefilter("ignore")
+    print(f"threads={args.threads} repeats={args.repeats} torch={torch.__version__} "
+          f"load average={os.getloadavg()}", flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for preset in args.presets:
+            for size_text in args.sizes:
+                size = tuple(int(v) for v in size_text.split("x"))
+                for backend in args.backends:
+                    print(f"{preset} {size_text} {backend} ...", flush=True)
+                    rows.append(bench(preset, size, backend, args.threads, args.repeats,
+                                      Path(tmp)))
+    print(f"\nload average after: {os.getloadavg()}")
+    header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
+             f"{'overhead':>9}"
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(f"{r['preset']:<16} {r['size']:>8} {r['backend']:>8} {r['bare_fps']:>9.2f} "
+              f"{r['e2e_fps']:>8.2f} {100 * r['overhead']:>8.1f}%")
+
+
+if __name__ == "__main__":
+    main()
