@@ -55,9 +55,12 @@ def test_scale_rects_maps_image_bounds_and_centres():
                                            (100, 100)), [[20.5, 8.5, 24.5, 12.5]], atol=1e-5)
 
 
-def test_resized_zone_rects_line_up_with_the_image(rng):
-    """A network that paints zone means gives back the zone-mean map after the resizes."""
-    height, width = 150, 220  # -> network input 160x224: both axes resized
+@pytest.mark.parametrize("height, width", [(150, 220), (300, 430)])
+def test_resized_zone_rects_line_up_with_the_image(rng, height, width):
+    """A network that paints zone means gives back the zone-mean map after the resizes.
+
+    150x220 is enlarged to a 160x224 network input, 300x430 shrunk to 288x416.
+    """
     frame = _frame(rng, invalid=0)
     estimator = DepthEstimator(ZonePainterNet(), weights="painter")
     pred = estimator.predict(_image(rng, height, width), frame)

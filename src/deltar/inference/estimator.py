@@ -147,6 +147,37 @@ def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
+def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int]) -> np.ndarray:
+    """Resize RGB images to ``size`` and normalise them for the network.
+
+    Args:
+        images: B images, each (H, W, 3) uint8 RGB.
+        size: (h, w) network input size in pixels.
+
+    Returns:
+        (B, 3, h, w) float32, ``(rgb / 255 - mean) / std`` with ImageNet mean and std.
+    """
+    import cv2
+
+    height, width = size
+    # One multiply-add per pixel: x * (1 / (255 std)) - mean / std.
+    scale = (1.0 / (255.0 * np.asarray(IMAGENET_STD))).astype(np.float32)
+    offset = (-np.asarray(IMAGENET_MEAN) / np.asarray(IMAGENET_STD)).astype(np.float32)
+    out = np.empty((len(images), 3, height, width), dtype=np.float32)
+    for i, image in enumerate(images):
+        if image.shape[:2] != (height, width):
+            shrink = image.shape[0] > height or image.shape[1] > width
+            # Area averaging when shrinking (no aliasing), bilinear when enlarging; both
+            # keep pixel centres at integer coordinates, as scale_rects assumes.
+            image = cv2.resize(image, (width, height),
+                               interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+        pixels = image.astype(np.float32)
+        pixels *= scale
+        pixels += offset
+        out[i] = pixels.transpose(2, 0, 1)
+    return out
+
+
 def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
                     config: dict[str, Any] | None = None, *, overwrite: bool = False) -> Path:
     """Write a model as a deltar checkpoint (see the module docstring), atomically.
@@ -383,7 +414,6 @@ class DepthEstimator:
             numpy rectangles in input-image pixels, ``image_size`` (H, W).
         """
         import torch
-        import torch.nn.functional as F
 
         if len(images) != len(frames) or not images:
             raise ValueError(f"need one zone frame per image, got {len(images)} images and "
@@ -403,15 +433,7 @@ class DepthEstimator:
         net_size = self.input_size or network_size(*size)
         rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
         net_rects = scale_rects(rects, size, net_size)
-        # Resize with torch (one batched call); uint8 -> float in [0, 1] first.
-        batch = torch.from_numpy(np.stack(checked)).to(self.device)
-        batch = batch.permute(0, 3, 1, 2).to(torch.float32).div_(255.0)
-        if tuple(batch.shape[-2:]) != net_size:
-            batch = F.interpolate(batch, size=net_size, mode="bilinear", align_corners=False,
-                                  antialias=True)
-        mean = torch.tensor(IMAGENET_MEAN, device=self.device).view(1, 3, 1, 1)
-        std = torch.tensor(IMAGENET_STD, device=self.device).view(1, 3, 1, 1)
-        image = (batch - mean) / std
+        image = torch.from_numpy(normalise_images(checked, net_size)).to(self.device)
         hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).to(self.device)
         valid = torch.from_numpy(np.stack([f.flat()[2] for f in frames])).to(self.device)
         return {"image": image, "hypotheses": hypotheses.float(),
