@@ -184,3 +184,33 @@ def test_flipped_zone_rects_cover_the_mirrored_pixels(tmp_path, rng):
     rect = flipped["zone_rects"].numpy()
     np.testing.assert_allclose(rect[:, 1], 48 - sample.zone_rects[order, 3])
     np.testing.assert_allclose(rect[:, 3], 48 - sample.zone_rects[order, 1])
+
+
+def test_nyu_release_layout_source_with_border_crop(tmp_path, rng):
+    import json
+
+    import h5py
+
+    root = tmp_path / "nyudepthv2_sync"
+    (root / "scene").mkdir(parents=True)
+    for i in range(2):
+        with h5py.File(root / "scene" / f"{i:05d}.h5", "w") as f:
+            f["rgb"] = rng.integers(0, 255, (3, 480, 640), dtype=np.uint8)
+            f["depth"] = rng.uniform(0.5, 5.0, (480, 640)).astype(np.float32)
+    split = tmp_path / "split" / "nyu_sync.json"
+    split.parent.mkdir()
+    entries = [{"filename": f"scene/{i:05d}.h5"} for i in range(2)]
+    split.write_text(json.dumps({"train": entries, "test": entries}), encoding="utf-8")
+    config = DataConfig(sources=[
+        SourceConfig(kind="nyu", path=str(split), data_root=str(root), split="train",
+                     crop_border=True, role="train"),
+        SourceConfig(kind="nyu", path=str(split), data_root=str(root), split="test",
+                     role="val")], num_hypotheses=4, num_workers=0)
+    config.image_augmentation.crop = [416, 544]
+    train, val = build_datasets(config)
+    assert len(train) == len(val) == 2
+    # Border crop (480 - 24, 640 - 32), then the random 416x544 crop.
+    assert train.datasets[0].reader[0].depth_m.shape == (456, 608)
+    assert train[0]["image"].shape == (3, 416, 544)
+    assert train[0]["zone_rects"].shape == (36, 4)  # 6x6 training zones
+    assert val[0]["image"].shape == (3, 480, 640)

@@ -41,6 +41,10 @@ class SourceConfig:
         seed: seed of the first procedural frame.
         depth_scale: raw depth units per metre for ``rgbd`` (None: the layout's default).
         split: list to read from a NYU ``.json`` or a ZJU-L5 ``data.json``.
+        data_root: folder the NYU split file's names are relative to (``nyu`` with a
+            ``.json``; None: the json's folder).
+        crop_border: cut NYU's blank 12/16-pixel border off every frame, as the release
+            does for training (``nyu`` with a ``.json``).
         intrinsics: optional ``[fx, fy, cx, cy]`` in pixels of the stored images,
             replacing the source's own (``rgbd`` and ``nyu``).
         resize: optional ``[height, width]`` in pixels every frame is resized to before
@@ -59,6 +63,8 @@ class SourceConfig:
     seed: int = 0
     depth_scale: float | None = None
     split: str = "train"
+    data_root: str | None = None
+    crop_border: bool = False
     intrinsics: list[float] | None = None
     resize: list[int] | None = None
     role: str = "train_val"
@@ -82,6 +88,8 @@ class SourceConfig:
         if self.role == "train_val" and not 0.0 < self.holdout_fraction < 1.0:
             raise ValueError(f"{where}.holdout_fraction must be in (0, 1) for role "
                              f"'train_val', got {self.holdout_fraction}")
+        if (self.data_root is not None or self.crop_border) and self.kind != "nyu":
+            raise ValueError(f"{where}.data_root and crop_border apply to nyu sources only")
         if self.intrinsics is not None and (len(self.intrinsics) != 4
                                             or min(self.intrinsics[:2]) <= 0):
             raise ValueError(f"{where}.intrinsics must be [fx, fy, cx, cy] with fx, fy > 0")

@@ -128,8 +128,9 @@ def open_source_reader(source: SourceConfig) -> Sequence:
     elif str(source.path).lower().endswith(".mat"):
         reader = NYULabeledReader(source.path, intrinsics=intrinsics or NYU_INTRINSICS)
     else:
-        reader = NYUH5Reader(source.path, split=source.split,
-                             intrinsics=intrinsics or NYU_INTRINSICS)
+        reader = NYUH5Reader(source.path, split=source.split, data_root=source.data_root,
+                             intrinsics=intrinsics or NYU_INTRINSICS,
+                             crop_border=source.crop_border)
     if source.resize is not None:
         reader = ResizedReader(reader, *source.resize)
     return reader
@@ -148,7 +149,7 @@ def _native_size(source: SourceConfig) -> tuple[int, int]:
     elif str(source.path).lower().endswith(".mat"):
         reader = NYULabeledReader(source.path)
     else:
-        reader = NYUH5Reader(source.path, split=source.split)
+        reader = NYUH5Reader(source.path, split=source.split, data_root=source.data_root)
     return tuple(reader[0].depth_m.shape)
 
 
