@@ -90,3 +90,12 @@ def test_cli_resume_takes_no_other_config(tmp_path):
     result = _cli("--resume", str(tmp_path), "--config", str(TINY_CONFIG))
     assert result.exit_code == 2
     assert "--resume" in result.output
+
+
+def test_cli_reports_missing_data_without_a_traceback(tmp_path):
+    missing = tmp_path / "no_such_folder"
+    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"),
+                  "-o", "data.sources.0.kind=rgbd", "-o", f"data.sources.0.path={missing}")
+    assert result.exit_code == 1
+    assert str(missing) in result.output
+    assert not (tmp_path / "run" / "config.yaml").exists()
