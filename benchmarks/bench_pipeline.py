@@ -3,7 +3,8 @@
 End to end = PNG decode + zone placement + hypothesis sampling + network + resize of
 depth and uncertainty to the input size; bare = the network call alone on prepared
 inputs. Weights are random (speed does not depend on them). Each ONNX model is
-exported first (not timed). Prints frames per second (median over the repeats).
+exported first (not timed). Prints frames per second (medians over the repeats;
+bare and end-to-end runs alternate so that load from other processes hits both alike).
 
     python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
         [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
@@ -30,15 +31,18 @@ from deltar.models import create_model
 from deltar.sensor.zone_frame import ZoneFrame
 
 
-def _median_seconds(function, repeats: int, warmup: int = 1) -> float:
+def _interleaved_medians(first, second, repeats: int, warmup: int = 1) -> tuple[float, float]:
+    """Median seconds of two functions timed alternately, so machine load hits both alike."""
     for _ in range(warmup):
-        function()
-    times = []
+        first()
+        second()
+    times: tuple[list[float], list[float]] = ([], [])
     for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        for function, store in ((first, times[0]), (second, times[1])):
+            start = time.perf_counter()
+            function()
+            store.append(time.perf_counter() - start)
+    return statistics.median(times[0]), statistics.median(times[1])
 
 
 def _test_frame(height: int, width: int, seed: int = 0) -> tuple[bytes, ZoneFrame]:
@@ -76,8 +80,8 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         estimator = DepthEstimator(model, weights=f"{preset} (random)")
     png, frame = _test_frame(height, width)
     inputs = estimator.prepare([_decode(png)], [frame])
-    bare = _median_seconds(lambda: estimator.run_network(inputs), repeats)
-    full = _median_seconds(lambda: estimator.predict(_decode(png), frame), repeats)
+    bare, full = _interleaved_medians(lambda: estimator.run_network(inputs),
+                                      lambda: estimator.predict(_decode(png), frame), repeats)
     return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
             "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full, "overhead": full / bare - 1.0}
 
