@@ -1,7 +1,7 @@
 """Depth heads: adaptive bins (release head and AdaBins mViT) and a direct regressor.
 
 A bins head predicts, per image, N normalised bin widths over ``[min_depth,
-max_depth]`` and, per pixel, a softmax over the N bins; depth is the expectation of
+max_depth]`` and, per pixel, logits of a softmax over the N bins; depth is the expectation of
 the bin centres and the uncertainty is the standard deviation of that per-pixel
 distribution (both in metres).
 """
@@ -35,35 +35,47 @@ def normalise_bin_widths(raw: torch.Tensor, norm: str) -> torch.Tensor:
 
 def bins_to_depth(
     normalised_widths: torch.Tensor,
-    probabilities: torch.Tensor,
+    logits: torch.Tensor,
     min_depth: float,
     max_depth: float,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Depth, bin edges and uncertainty from bin widths and per-pixel bin probabilities.
+    """Depth, bin edges and uncertainty from bin widths and per-pixel bin logits.
+
+    The per-pixel bin probabilities are ``softmax(logits, dim=1)``; depth is their
+    expectation over the bin centres and the uncertainty their standard deviation.
 
     Args:
         normalised_widths: (B, N) widths summing to 1.
-        probabilities: (B, N, h, w) per-pixel softmax over the N bins (any memory
-            layout; channels-last is fastest).
+        logits: (B, N, h, w) per-pixel bin logits. Overwritten in place when
+            autograd is off (it is a temporary of the head).
         min_depth: depth of the first edge, metres.
         max_depth: depth of the last edge, metres.
 
     Returns:
         depth (B, 1, h, w) metres, bin_edges (B, N + 1) metres, and uncertainty
-        (B, 1, h, w) metres (standard deviation over bin centres).
+        (B, 1, h, w) metres.
     """
     widths = (max_depth - min_depth) * normalised_widths
     widths = F.pad(widths, (1, 0), mode="constant", value=min_depth)
     edges = torch.cumsum(widths, dim=1)
     centres = 0.5 * (edges[:, :-1] + edges[:, 1:])  # (B, N)
+    batch, bins, height, width = logits.shape
+    # Unnormalised softmax weights; the normaliser is the zeroth moment below.
+    peak = logits.amax(dim=1, keepdim=True)
+    if torch.is_grad_enabled():
+        weights = torch.exp(logits - peak)
+    else:
+        weights = logits.sub_(peak).exp_()
     # Moments about a per-image reference depth keep E[c^2] - E[c]^2 well conditioned.
     reference = centres.mean(dim=1, keepdim=True)
     shifted = centres - reference
-    moments = torch.stack([shifted, shifted**2], dim=2)  # (B, N, 2)
-    per_pixel = probabilities.permute(0, 2, 3, 1) @ moments[:, None]  # (B, h, w, 2)
-    first, second = per_pixel.unbind(dim=-1)
-    depth = (first + reference[:, :, None])[:, None]
-    variance = (second - first**2)[:, None]
+    moments = torch.stack([torch.ones_like(shifted), shifted, shifted**2], dim=1)  # (B, 3, N)
+    totals = (moments @ weights.reshape(batch, bins, height * width)).reshape(
+        batch, 3, height, width
+    )
+    mean_shift = totals[:, 1:2] / totals[:, 0:1]
+    variance = totals[:, 2:3] / totals[:, 0:1] - mean_shift**2
+    depth = mean_shift + reference[:, :, None, None]
     return depth, edges, variance.clamp_min(0).sqrt()
 
 
@@ -96,13 +108,12 @@ class BinsHead(nn.Module):
         self.logits_conv = nn.Conv2d(embedding_dim, n_bins, kernel_size=1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, C, h, w) -> normalised widths (B, N) and bin probabilities (B, N, h, w)."""
+        """(B, C, h, w) -> normalised widths (B, N) and bin logits (B, N, h, w)."""
         # mean(conv1x1(x)) == conv1x1(mean(x)) for a bias-free 1x1 convolution; the
         # right-hand side skips a full-resolution convolution.
         pooled = F.linear(features.mean(dim=(2, 3)), self.global_conv.weight.flatten(1))
         widths = normalise_bin_widths(self.width_regressor(pooled), self.norm)
-        logits = self.logits_conv(self.range_conv(features))
-        return widths, torch.softmax(logits, dim=1)
+        return widths, self.logits_conv(self.range_conv(features))
 
 
 class MiniViTHead(nn.Module):
@@ -166,7 +177,7 @@ class MiniViTHead(nn.Module):
         self.logits_conv = nn.Conv2d(num_queries, n_bins, kernel_size=1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, C, h, w) -> normalised widths (B, N) and bin probabilities (B, N, h, w)."""
+        """(B, C, h, w) -> normalised widths (B, N) and bin logits (B, N, h, w)."""
         batch = features.shape[0]
         patches = self.patch_embed(features)
         position = F.interpolate(
@@ -179,7 +190,7 @@ class MiniViTHead(nn.Module):
         widths = normalise_bin_widths(self.width_regressor(out[:, 0]), self.norm)
         range_queries = out[:, 1 : self.queries.shape[0]]
         range_maps = torch.einsum("behw,bqe->bqhw", self.pixel_conv(features), range_queries)
-        return widths, torch.softmax(self.logits_conv(range_maps), dim=1)
+        return widths, self.logits_conv(range_maps)
 
 
 class DirectDepthHead(nn.Module):

@@ -13,8 +13,9 @@ from deltar.models.encoders import DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
 from deltar.models.heads import BinsHead, DirectDepthHead, MiniViTHead, bins_to_depth
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
+from deltar.models.zone_prior import ZonePriorHead, zone_prior_map
 
-HEADS = ("bins", "mvit", "direct")
+HEADS = ("bins", "mvit", "direct", "zone_prior")
 DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
 IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
 SAMPLINGS = ("icdf", "uniform")
@@ -31,8 +32,10 @@ class DeltarNet(nn.Module):
             released weights, see :class:`~deltar.models.encoders.ImageEncoder`).
         decoder_channels: five decoder widths; the fusion widths are half of the
             second to fourth, and the PointNet widths are those, fine to coarse.
-        head: "bins" (release), "mvit" (paper's AdaBins refinement) or "direct"
-            (no refinement ablation).
+        head: "bins" (release), "mvit" (paper's AdaBins refinement), "direct"
+            (no refinement ablation) or "zone_prior" (log-ratio bins around a smooth
+            prior interpolated from the zone means; see
+            :mod:`~deltar.models.zone_prior`).
         head_channels: width of the decoder output fed to the head.
         n_bins: number of depth bins N.
         min_depth: smallest depth, metres.
@@ -138,6 +141,9 @@ class DeltarNet(nn.Module):
                 head_channels, n_bins, head_channels, norm=bin_norm,
                 design_tokens=(half[0] // 16, half[1] // 16),
             )
+        elif head == "zone_prior":
+            self.head = ZonePriorHead(head_channels, n_bins, head_channels,
+                                      min_depth=min_depth, max_depth=max_depth)
         else:
             self.head = DirectDepthHead(head_channels, min_depth, max_depth)
 
@@ -196,10 +202,17 @@ class DeltarNet(nn.Module):
         features = self.decoder(image_features, zone_features, valid, resamplers)
         if isinstance(self.head, DirectDepthHead):
             depth, edges, uncertainty = self.head(features)
+        elif isinstance(self.head, ZonePriorHead):
+            zone_mean = (zone_mean_sigma[..., 0] if zone_mean_sigma is not None
+                         else hypotheses.mean(dim=2))
+            stride = image.shape[-1] / features.shape[-1]
+            prior = zone_prior_map(zone_mean.to(features.dtype), valid, zone_rects,
+                                   tuple(features.shape[-2:]), stride)
+            depth, edges, uncertainty = self.head(features, prior)
         else:
-            widths, probabilities = self.head(features)
+            widths, logits = self.head(features)
             depth, edges, uncertainty = bins_to_depth(
-                widths, probabilities, self.min_depth, self.max_depth
+                widths, logits, self.min_depth, self.max_depth
             )
         return {"depth": depth, "bin_edges": edges, "uncertainty": uncertainty}
 
