@@ -65,6 +65,7 @@ class DriverAdapter(SensorAdapter):
             ``distance_mm``, ``range_sigma_mm``, ``target_status`` as flat lists).
         start: name of the method that starts ranging (None: nothing to call).
         stop: name of the method that stops ranging (None: nothing to call).
+        start_args: positional arguments of the start method.
         grid: zones per side the driver was configured for (4 or 8).
         orientation: how the driver's grid maps onto the image.
         sensor_model: stored in each frame.
@@ -74,7 +75,7 @@ class DriverAdapter(SensorAdapter):
 
     def __init__(self, driver: Any, *, data_ready: str = "data_ready",
                  get_data: str = "get_data", start: str | None = "start_ranging",
-                 stop: str | None = "stop_ranging", grid: int = 8,
+                 stop: str | None = "stop_ranging", start_args: tuple = (), grid: int = 8,
                  orientation: Orientation | None = None, sensor_model: str = "VL53L5CX",
                  clock: Callable[[], float] = time.monotonic,
                  poll_interval_s: float = 0.002) -> None:
@@ -85,6 +86,7 @@ class DriverAdapter(SensorAdapter):
             raise ValueError(f"grid must be 4 or 8, got {grid}")
         self.driver = driver
         self._names = (data_ready, get_data, start, stop)
+        self._start_args = tuple(start_args)
         self.grid = grid
         self.orientation = orientation or Orientation()
         self.sensor_model = sensor_model
@@ -93,7 +95,7 @@ class DriverAdapter(SensorAdapter):
 
     def start(self) -> None:
         if self._names[2] is not None:
-            getattr(self.driver, self._names[2])()
+            getattr(self.driver, self._names[2])(*self._start_args)
 
     def stop(self) -> None:
         if self._names[3] is not None:
@@ -158,22 +160,33 @@ def open_sparkfun(grid: int = 8, ranging_hz: int = 15,
 
 
 def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
+                       ranging_hz: int = 15,
                        orientation: Orientation | None = None) -> DriverAdapter:
     """A sensor through ``circuitpython-vl53lxcx`` on a CircuitPython board.
+
+    The driver needs ``init()`` (firmware upload) and starts ranging with the set of
+    outputs to report: distance, sigma and target status are requested.
 
     Args:
         i2c: the board's ``busio.I2C`` object.
         grid: zones per side.
         model: ``"VL53L5CX"`` or ``"VL53L8CX"`` (the driver class of that name).
+        ranging_hz: ranging frequency.
         orientation: how the driver grid maps onto the image.
     """
     driver_module = _import("vl53lxcx", "circuitpython-vl53lxcx")
     if model not in ("VL53L5CX", "VL53L8CX"):
         raise ValueError(f"model must be VL53L5CX or VL53L8CX, got {model!r}")
     driver = getattr(driver_module, model)(i2c)
+    driver.init()
     driver.resolution = grid * grid
+    driver.ranging_freq = ranging_hz
+    outputs = {getattr(driver_module, name) for name in
+               ("DATA_DISTANCE_MM", "DATA_RANGE_SIGMA_MM", "DATA_TARGET_STATUS")
+               if hasattr(driver_module, name)}
     return DriverAdapter(driver, data_ready="check_data_ready", get_data="get_ranging_data",
-                         grid=grid, orientation=orientation, sensor_model=model)
+                         start_args=(outputs,), grid=grid, orientation=orientation,
+                         sensor_model=model)
 
 
 class OpenCVCamera:
