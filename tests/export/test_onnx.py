@@ -143,3 +143,20 @@ def test_official_architecture_parity_on_fixture_case(tmp_path):
         assert layout_signature(other_rects, 8) != runner.signature
         with pytest.raises(ValueError, match="does not fit"):
             runner.check_layout(other_rects)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["deltar-paper", "deltar-official"])
+def test_other_presets_export_with_parity(preset, tmp_path):
+    """The paper preset (mViT head, transformer encoder) and the released one export too."""
+    torch.set_num_threads(2)
+    torch.manual_seed(0)
+    model = create_model(preset, design_size=(64, 96)).eval()
+    path = export_onnx(model, tmp_path / f"{preset}.onnx", 64, 96)
+    from deltar.export.onnx import example_inputs
+
+    rects = example_inputs(model, 64, 96)[2][0].numpy()
+    inputs = _random_inputs(rects, 2, 3)
+    expected = _torch_outputs(model, inputs)
+    got = OnnxDepthModel(path, num_threads=2).run(*(t.numpy() for t in inputs))
+    assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M

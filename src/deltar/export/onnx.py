@@ -15,6 +15,8 @@ Two details of the export:
 * The resampling matrices are built with an in-place ``index_add_`` on a view, which
   the tracer drops (the matrices came out as constant zeros). During export they are
   built with an equivalent one-hot product instead (same values).
+* PyTorch's fused transformer-encoder fast path (mViT head) is switched off during
+  export; it has no ONNX equivalent.
 """
 
 from __future__ import annotations
@@ -99,9 +101,14 @@ def _exportable_model_ops() -> Iterator[None]:
     torch.onnx.register_custom_op_symbolic("aten::trunc", _trunc_symbolic, OPSET)
     original = zone_patches._scatter_rows
     zone_patches._scatter_rows = _onehot_scatter_rows
+    # The fused transformer-encoder kernel (used by the mViT head in eval mode) has no
+    # ONNX symbolic; the plain path computes the same.
+    fastpath = torch.backends.mha.get_fastpath_enabled()
+    torch.backends.mha.set_fastpath_enabled(False)
     try:
         yield
     finally:
+        torch.backends.mha.set_fastpath_enabled(fastpath)
         zone_patches._scatter_rows = original
         torch.onnx.unregister_custom_op_symbolic("aten::trunc", OPSET)
 
