@@ -216,3 +216,21 @@ def test_zone_mean_depth_paints_valid_zones_only():
     for k in range(4):
         expected[2 * k:2 * k + 2, 2 * k:2 * k + 2] = (k * 4 + k + 1) / 10
     np.testing.assert_allclose(out, expected)
+
+
+def test_from_official_loads_release_weights(tmp_path, parity_fixture_path, rng):
+    """The fixture's state dict (release names, float16) saved as a file loads cleanly."""
+    fixture = torch.load(parity_fixture_path, weights_only=False)
+    weights = tmp_path / "nyu.pt"
+    torch.save({k: v.float() for k, v in fixture["state_dict"].items()}, weights)
+    estimator = DepthEstimator.from_official(weights)
+    assert "deltar-official" in estimator.weights
+    stem = estimator.model.image_encoder.backbone.conv_stem.weight
+    np.testing.assert_array_equal(stem.detach().numpy(),
+                                  fixture["state_dict"]["img_encoder.conv0.0.weight"].float())
+    pred = estimator.predict(_image(rng, 64, 96), _frame(rng))
+    assert pred.depth_m.shape == (64, 96) and np.isfinite(pred.depth_m).all()
+    broken = tmp_path / "broken.pt"
+    torch.save({"img_encoder.conv0.0.weight": torch.zeros(1)}, broken)
+    with pytest.raises(ValueError, match=r"broken\.pt"):
+        DepthEstimator.from_official(broken)

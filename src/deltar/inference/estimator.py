@@ -347,7 +347,10 @@ class DepthEstimator:
         if not path.is_file():
             raise FileNotFoundError(f"official weights not found: {path}")
         model = create_model("deltar-official")
-        report = load_official_weights(model, path)
+        try:
+            report = load_official_weights(model, path)
+        except (ValueError, RuntimeError, KeyError) as err:
+            raise ValueError(f"{path}: cannot load official weights: {err}") from err
         if not report.ok:
             raise ValueError(f"{path}: official weights did not load cleanly: "
                              f"{report.summary()}")
