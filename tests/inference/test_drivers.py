@@ -113,3 +113,29 @@ def test_simulated_rig_rates_and_zones():
     # A flat wall at 1.01 m, 4 cm bins from 0: every zone reads the bin centre 1.02 m.
     assert valid.any()
     np.testing.assert_allclose(mean[valid], 1.02, atol=1e-5)
+
+
+def test_hardware_rig_records_from_opencv_and_a_driver(tmp_path):
+    """The hardware path end to end: a video file as the camera, a fake ULD driver."""
+    import cv2
+
+    from deltar.calibration.camera import CameraIntrinsics
+    from deltar.inference.drivers import HardwareRig, OpenCVCamera
+    from deltar.inference.record import record
+    from deltar.io.recording import Recording
+
+    video = tmp_path / "camera.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (64, 48))
+    for i in range(5):
+        writer.write(np.full((48, 64, 3), 40 * i, np.uint8))
+    writer.release()
+    rig = HardwareRig(OpenCVCamera(str(video)), DriverAdapter(FakeDriver(polls=1),
+                                                              poll_interval_s=0.0))
+    intr = CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    summary = record(tmp_path / "rec", rig, intrinsics=intr)
+    assert (summary.images, summary.zone_frames, summary.depth_maps) == (5, 5, 0)
+    rec = Recording(tmp_path / "rec")
+    assert rec.meta.intrinsics == intr and len(rec.color_paths) == 5
+    assert [f.flat()[0][0] for f in rec.zone_frames()] == pytest.approx([1.0] * 5)
+    with pytest.raises(ValueError, match="cannot open camera"):
+        OpenCVCamera(str(tmp_path / "missing.avi"))
