@@ -139,6 +139,14 @@ def test_bad_inputs_raise_clear_errors(lite_model, network_inputs, change, match
         lite_model(*change(network_inputs()))
 
 
+def test_negative_sigma_raises(lite_model, network_inputs):
+    image, hypotheses, rects, valid = network_inputs()
+    mean_sigma = torch.ones(2, 64, 2)
+    mean_sigma[0, 3, 1] = -0.1
+    with pytest.raises(ValueError, match="zone_mean_sigma"):
+        lite_model(image, hypotheses, rects, valid, mean_sigma)
+
+
 def test_bad_constructor_arguments():
     with pytest.raises(ValueError, match="head"):
         create_model("deltar-lite", head="magic")
