@@ -252,7 +252,8 @@ class DepthEstimator:
     or :meth:`from_onnx`, then call :meth:`predict`.
 
     Args:
-        model: a ``DeltarNet`` (PyTorch backend), or None with ``onnx_model``.
+        model: a ``DeltarNet`` (PyTorch backend), or None with ``onnx_model``; it is put
+            in eval mode and moved to ``device`` / ``precision`` in place.
         onnx_model: an :class:`~deltar.export.onnx.OnnxDepthModel` (onnxruntime backend).
         device: torch device for the PyTorch backend, e.g. ``"cpu"`` or ``"cuda"``.
         precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backend).
