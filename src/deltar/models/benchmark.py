@@ -110,8 +110,10 @@ def benchmark_preset(
 
     Returns:
         dict with preset, size ("HxW"), batch, threads, latency_ms_median,
-        latency_ms_min, peak_mem_mb (peak resident memory during the timed runs above
-        the resident memory before them; None if unavailable), params_m (millions),
+        latency_ms_min, cpu_ms_per_run (process CPU time per forward summed over
+        threads: less sensitive to other processes than latency), peak_mem_mb
+        (peak resident memory during the timed runs above the resident memory
+        before them; None if unavailable), params_m (millions),
         load_avg_1min (system load when the run ended, for context).
     """
     if repeats < 1 or warmup < 0:
@@ -140,10 +142,12 @@ def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize
         rss_before = _current_rss_mb()
         peak_resettable = _reset_peak_rss()
         times = []
+        cpu_start = time.process_time()
         for _ in range(repeats):
             start = time.perf_counter()
             model(*inputs)
             times.append((time.perf_counter() - start) * 1000.0)
+        cpu_ms = (time.process_time() - cpu_start) * 1000.0 / repeats
     peak = _peak_rss_mb()
     peak_mem = None
     if peak is not None and rss_before is not None and peak_resettable:
@@ -159,6 +163,7 @@ def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize
         "threads": threads,
         "latency_ms_median": round(statistics.median(times), 1),
         "latency_ms_min": round(min(times), 1),
+        "cpu_ms_per_run": round(cpu_ms, 1),
         "peak_mem_mb": peak_mem,
         "params_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
         "optimized": optimize,
