@@ -39,7 +39,7 @@ def test_finetune_on_zju_layout_starts_from_given_weights(tmp_path, rng, tiny_co
     torch.manual_seed(123)
     start = create_model("deltar-lite", **TINY_MODEL)
     weights = tmp_path / "start.pt"
-    torch.save(export_model(start, "deltar-lite", TINY_MODEL), weights)
+    torch.save(export_model(start, "deltar-lite"), weights)
     config = tiny_config(
         f"model.init_checkpoint={weights}", "data.sources.0.kind=zju_l5",
         f"data.sources.0.path={data_json.parent}", "data.sources.0.split=train",
@@ -60,7 +60,7 @@ def test_finetune_on_zju_layout_starts_from_given_weights(tmp_path, rng, tiny_co
 def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_config):
     other = create_model("deltar-lite", **{**TINY_MODEL, "n_bins": 8})
     weights = tmp_path / "other.pt"
-    torch.save(export_model(other, "deltar-lite", {**TINY_MODEL, "n_bins": 8}), weights)
+    torch.save(export_model(other, "deltar-lite"), weights)
     try:
         build_system(tiny_config(f"model.init_checkpoint={weights}"))
     except ValueError as err:

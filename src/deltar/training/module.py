@@ -157,7 +157,9 @@ class DeltarSystem(L.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the model recipe and this process's RNG states next to the weights."""
-        checkpoint["deltar_model"] = {"preset": self.preset, "overrides": self.model_overrides}
+        # The full constructor config, so the checkpoint survives changes to preset defaults.
+        checkpoint["deltar_model"] = {"preset": self.preset,
+                                      "overrides": dict(self.model.config)}
         # The legacy global numpy state is what third-party code (and timm) draws from.
         checkpoint["deltar_rng"] = {
             "torch": torch.get_rng_state(), "numpy": np.random.get_state(),  # noqa: NPY002
@@ -192,9 +194,18 @@ def print_metrics_table(metrics: dict[str, float], frames: int, epoch: int, step
     Console().print(table)
 
 
-def export_model(model: nn.Module, preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
-    """The dict ``deltar train`` saves as ``model.pt``: recipe plus float32 state dict."""
-    return {"preset": preset, "overrides": dict(overrides),
+def export_model(model: nn.Module, preset: str) -> dict[str, Any]:
+    """The dict ``deltar train`` saves as ``model.pt``: a deltar checkpoint.
+
+    Same layout as :func:`deltar.inference.estimator.save_checkpoint` (format tag,
+    preset, the network's full constructor config, float32 state dict), so
+    ``DepthEstimator.from_checkpoint`` reads it and later changes to a preset's
+    defaults cannot change the saved architecture.
+    """
+    from deltar.inference.estimator import CHECKPOINT_FORMAT, CHECKPOINT_FORMAT_VERSION
+
+    return {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_FORMAT_VERSION,
+            "preset": preset, "config": dict(model.config),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
 
 
@@ -233,8 +244,9 @@ def _load_weights_file(path: str, map_location: str = "cpu"
         state = {k[len(prefix):]: v for k, v in data["state_dict"].items()
                  if k.startswith(prefix)}
     elif isinstance(data, dict) and {"preset", "state_dict"} <= set(data):
-        recipe, state = {"preset": data["preset"], "overrides": data.get("overrides", {})}, \
-            data["state_dict"]
+        # "config" (full constructor config) in current exports, "overrides" in older ones.
+        overrides = data.get("config", data.get("overrides", {}))
+        recipe, state = {"preset": data["preset"], "overrides": overrides}, data["state_dict"]
     else:
         raise ValueError(f"{file} is neither a deltar training checkpoint nor a model.pt "
                          "export")

@@ -245,8 +245,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
             os.environ[RUN_DIR_ENV] = previous
     if trainer.is_global_zero:
         with atomic_path(run_dir / "model.pt") as tmp:
-            torch.save(export_model(system.model, config.model.preset,
-                                    config.model.overrides), tmp)
+            torch.save(export_model(system.model, config.model.preset), tmp)
     return run_dir
 
 
