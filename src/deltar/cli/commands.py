@@ -3,10 +3,13 @@
 Command modules import heavy dependencies (torch, timm) inside the command functions,
 so ``deltar --help`` stays fast.
 """
-import deltar.cli.simulate  # noqa: F401
-from deltar.cli import evaluate  # noqa: F401
-from deltar.cli import calibrate  # noqa: F401
-from deltar.cli import demo  # noqa: F401
-from deltar.cli import train  # noqa: F401
-from deltar.cli import predict  # noqa: F401
-from deltar.cli import models  # noqa: F401
+
+from deltar.cli import (  # noqa: F401
+    calibrate,
+    demo,
+    evaluate,
+    models,
+    predict,
+    simulate,
+    train,
+)

@@ -40,9 +40,16 @@ def _metrics_table(result, title: str):
 
 @app.command("evaluate")
 def evaluate(
-    method: str = typer.Option(
-        ..., "--method", "-m",
+    method: str | None = typer.Option(
+        None, "--method", "-m",
         help="Comma-separated method names, or 'all' for every classical baseline."),
+    checkpoint: list[str] = typer.Option(
+        [], "--checkpoint", "-c",
+        help="A trained model to evaluate beside the methods: a bundled name ('default') "
+             "or a checkpoint file (repeatable); reported as 'model:NAME'."),
+    official: Path | None = typer.Option(
+        None, "--official", help="The officially released weights (e.g. nyu.pt); "
+        "reported as 'official:PATH'."),
     data: Path = typer.Option(..., "--data", help="data.json of a ZJU-L5-layout set."),
     split: str = typer.Option("test", "--split", help="Split (key) in data.json."),
     json_out: Path | None = typer.Option(
@@ -69,8 +76,15 @@ def evaluate(
     from deltar.io.atomic import write_text_atomic
 
     console = Console()
+    specs = [m for m in (method or "").split(",") if m.strip()]
+    specs += [f"model:{c}" for c in checkpoint]
+    if official is not None:
+        specs.append(f"official:{official}")
+    if not specs:
+        raise typer.BadParameter("give --method, --checkpoint or --official",
+                                 param_hint="--method")
     try:
-        names = resolve_method_names(method)
+        names = resolve_method_names(specs)
     except ValueError as err:
         raise typer.BadParameter(str(err), param_hint="--method") from err
     try:
@@ -83,7 +97,10 @@ def evaluate(
     if json_out is not None and json_out.resolve() == Path(dataset.root / "data.json").resolve():
         raise typer.BadParameter("refusing to overwrite the input data.json",
                                  param_hint="--json")
-    predictors = {name: create_predictor(name) for name in names}
+    try:
+        predictors = {name: create_predictor(name) for name in names}
+    except (FileNotFoundError, ValueError) as err:
+        raise typer.BadParameter(str(err), param_hint="--checkpoint/--official") from err
     total = len(dataset) if limit is None else min(limit, len(dataset))
 
     with Progress("[progress.description]{task.description}", BarColumn(),

@@ -45,3 +45,6 @@ __all__ = [
     "resolve_method_names",
     "run_baseline",
 ]
+
+# Registers the "model:" and "official:" method families (learned models).
+from deltar.evaluation import model_methods  # noqa: F401

@@ -403,13 +403,17 @@ class DepthEstimator:
         return sample_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
 
     def prepare(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
-                calibration: RigCalibration | None = None) -> dict[str, Any]:
+                calibration: RigCalibration | None = None,
+                zone_rects: np.ndarray | None = None) -> dict[str, Any]:
         """Build the network inputs for a batch of same-size images.
 
         Args:
             images: B images, each (H, W, 3) uint8 RGB, all of one size.
             frames: B zone frames of one grid size.
             calibration: optional rig calibration for (H, W) images.
+            zone_rects: optional (B, Z, 4) (y0, x0, y1, x1) zone rectangles in pixels of
+                the input images (e.g. a ZJU-L5 file's ``fr``); they replace the
+                calibrated or nominal placement.
 
         Returns:
             dict with ``image`` (B, 3, h, w) normalised, ``hypotheses`` (B, Z, K) metres,
@@ -435,7 +439,14 @@ class DepthEstimator:
                 raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
                                  f"{frames[0].grid}x{frames[0].grid}")
         net_size = self.input_size or network_size(*size)
-        rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
+        if zone_rects is not None:
+            rects = np.asarray(zone_rects, dtype=np.float32)
+            expected = (len(frames), frames[0].zone_count, 4)
+            if rects.shape != expected or not np.all(np.isfinite(rects)):
+                raise ValueError(f"zone_rects must be finite with shape {expected}, got "
+                                 f"{rects.shape}")
+        else:
+            rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
         net_rects = scale_rects(rects, size, net_size)
         image = torch.from_numpy(normalise_images(checked, net_size)).to(self.device)
         hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).to(self.device)
@@ -467,6 +478,7 @@ class DepthEstimator:
     def predict(self, image: np.ndarray | Sequence[np.ndarray],
                 zone_frame: ZoneFrame | Sequence[ZoneFrame],
                 calibration: RigCalibration | None = None,
+                zone_rects: np.ndarray | None = None,
                 ) -> DepthPrediction | list[DepthPrediction]:
         """Predict depth for one image or a batch.
 
@@ -475,6 +487,8 @@ class DepthEstimator:
             zone_frame: the matching ``ZoneFrame`` (or a list, one per image).
             calibration: optional rig calibration for images of its resolution; without
                 it zones are placed with the nominal geometry.
+            zone_rects: optional (Z, 4) rectangles (or (B, Z, 4) for a batch) in pixels of
+                the input image, replacing the calibrated or nominal placement.
 
         Returns:
             A :class:`DepthPrediction` (depth and uncertainty in metres at the input
@@ -489,7 +503,10 @@ class DepthEstimator:
         single = isinstance(image, np.ndarray) and np.asarray(image).ndim == 3
         images = [image] if single else list(image)
         frames = [zone_frame] if isinstance(zone_frame, ZoneFrame) else list(zone_frame)
-        inputs = self.prepare(images, frames, calibration)
+        if zone_rects is not None:
+            zone_rects = np.asarray(zone_rects, dtype=np.float32)
+            zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
+        inputs = self.prepare(images, frames, calibration, zone_rects)
         depth, uncertainty = self.run_network(inputs)
         size = inputs["image_size"]
         both = F.interpolate(torch.cat([depth, uncertainty], dim=1), size=size,

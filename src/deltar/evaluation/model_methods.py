@@ -1,0 +1,69 @@
+"""Learned models as evaluation methods: ``model:NAME|PATH`` and ``official:PATH``.
+
+``model:default`` is the bundled model, ``model:runs/x/model.pt`` any deltar checkpoint,
+``official:nyu.pt`` the officially released weights. Each runs through
+:class:`~deltar.inference.estimator.DepthEstimator` with the sample's own zone
+rectangles, at the network's design resolution, and its output is resized to the
+ground truth's resolution.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from deltar.evaluation.runner import register_method_family
+
+if TYPE_CHECKING:
+    from deltar.data.zju_l5 import ZJUL5Sample
+    from deltar.inference.estimator import DepthEstimator
+
+
+class EstimatorPredictor:
+    """Evaluation method wrapping a :class:`DepthEstimator`.
+
+    Args:
+        estimator: the estimator (its ``input_size`` decides the network resolution).
+    """
+
+    def __init__(self, estimator: DepthEstimator) -> None:
+        self.estimator = estimator
+
+    def __call__(self, sample: ZJUL5Sample) -> np.ndarray:
+        """(H, W) float32 depth in metres for one ZJU-L5 sample."""
+        from deltar.sensor.zone_frame import ZoneFrame
+
+        mean_sigma = np.asarray(sample.zone_mean_sigma, dtype=np.float32)
+        valid = np.asarray(sample.zone_valid, dtype=bool)
+        frame = ZoneFrame(mean_m=np.where(valid, mean_sigma[:, 0], 0.0),
+                          sigma_m=np.where(valid, mean_sigma[:, 1], 0.0), valid=valid)
+        prediction = self.estimator.predict(sample.rgb, frame, zone_rects=sample.zone_rects)
+        return prediction.depth_m
+
+
+def _design_size(model) -> tuple[int, int]:
+    return tuple(int(v) for v in model.config["design_size"])
+
+
+def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
+    """``model:NAME|PATH``: a bundled model name or a deltar checkpoint file."""
+    from deltar.inference.estimator import DepthEstimator, load_checkpoint
+    from deltar.weights import resolve_checkpoint
+
+    model, preset, _ = load_checkpoint(resolve_checkpoint(name_or_path))
+    return EstimatorPredictor(DepthEstimator(model, input_size=_design_size(model),
+                                             weights=f"{preset} ({name_or_path})"))
+
+
+def official_predictor(path: str) -> EstimatorPredictor:
+    """``official:PATH``: the officially released weights (e.g. ``nyu.pt``) at 480x640."""
+    from deltar.inference.estimator import DepthEstimator
+
+    estimator = DepthEstimator.from_official(path)
+    estimator.input_size = _design_size(estimator.model)
+    return EstimatorPredictor(estimator)
+
+
+register_method_family("model", checkpoint_predictor)
+register_method_family("official", official_predictor)

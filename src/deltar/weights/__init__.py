@@ -1,0 +1,40 @@
+"""Models shipped inside the package (no download needed).
+
+``default`` is a ``deltar-lite`` network trained on CPU on real indoor RGB-D frames
+with simulated L5 zones (see docs/training.md for the recipe and its validation table).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+_HERE = Path(__file__).resolve().parent
+
+#: Bundled model name -> file inside this package.
+BUNDLED_MODELS: dict[str, str] = {"default": "deltar_lite_default.pt"}
+
+
+def bundled_model_names() -> list[str]:
+    """Names of the bundled models whose file is present in this installation."""
+    return [name for name, file in BUNDLED_MODELS.items() if (_HERE / file).is_file()]
+
+
+def resolve_checkpoint(name_or_path: str | Path) -> Path:
+    """Path of a checkpoint given a bundled model name (e.g. ``"default"``) or a path.
+
+    Raises:
+        FileNotFoundError: neither a bundled model nor an existing file; the message
+            lists the bundled names.
+    """
+    text = str(name_or_path)
+    if text in BUNDLED_MODELS:
+        path = _HERE / BUNDLED_MODELS[text]
+        if not path.is_file():
+            raise FileNotFoundError(f"bundled model {text!r} is missing from this "
+                                    f"installation ({path})")
+        return path
+    path = Path(name_or_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {text!r} is neither a bundled model "
+                                f"({', '.join(BUNDLED_MODELS)}) nor an existing file")
+    return path

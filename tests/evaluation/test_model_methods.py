@@ -1,0 +1,56 @@
+"""Learned models in ``deltar evaluate``: ``--checkpoint`` and ``--official``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from typer.testing import CliRunner
+
+import deltar.cli.commands  # noqa: F401  (registers the commands)
+from deltar.cli.main import app
+from deltar.data.zju_l5 import write_zju_l5
+from deltar.inference.estimator import save_checkpoint
+from deltar.models import create_model
+
+runner = CliRunner(env={"COLUMNS": "200"})
+
+
+def _untrained_prior_model(path: Path) -> Path:
+    torch.manual_seed(0)
+    # An untrained zone-prior head returns the prior interpolated from the zones, so the
+    # model's depth is only right if the sample's own zone rectangles reach the network.
+    model = create_model("deltar-lite", head="zone_prior", design_size=(32, 64))
+    return save_checkpoint(path, model, "deltar-lite", dict(model.config))
+
+
+def test_checkpoint_is_evaluated_beside_the_baselines(tmp_path: Path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    checkpoint = _untrained_prior_model(tmp_path / "prior.pt")
+    out = tmp_path / "metrics.json"
+    result = runner.invoke(app, ["evaluate", "-m", "median,nearest", "--checkpoint",
+                                 str(checkpoint), "--data", str(data), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(out.read_text())
+    key = f"model:{checkpoint}"
+    assert list(metrics) == ["median", "nearest", key]
+    # Zone-following depth: far better than one constant, not as exact as painting zones.
+    assert metrics[key]["rmse"] < 0.6 * metrics["median"]["rmse"]
+    assert metrics[key]["d1"] > metrics["median"]["d1"]
+
+
+def test_missing_checkpoint_and_official_files_are_named(tmp_path: Path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    missing = tmp_path / "nope.pt"
+    for option in ("--checkpoint", "--official"):
+        result = runner.invoke(app, ["evaluate", option, str(missing), "--data", str(data)])
+        assert result.exit_code != 0
+        assert "nope.pt" in result.output
+
+
+def test_no_method_at_all_is_an_error(tmp_path: Path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    result = runner.invoke(app, ["evaluate", "--data", str(data)])
+    assert result.exit_code != 0
+    assert "--checkpoint" in result.output
