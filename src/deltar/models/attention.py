@@ -15,18 +15,30 @@ from einops import rearrange
 from torch import nn
 
 
+def elu_feature_map(x: torch.Tensor) -> torch.Tensor:
+    """The positive feature map ``phi(x) = elu(x) + 1`` of linear attention (any shape).
+
+    Written as ``x + 1`` for ``x > 0`` and ``exp(x)`` otherwise: the same function,
+    several times faster on CPU than ``F.elu`` followed by an addition.
+    """
+    positive = x > 0
+    # Zeroing the positive inputs keeps exp finite in the branch not taken, so the
+    # gradient never meets inf * 0.
+    return torch.where(positive, x + 1.0, torch.exp(x.masked_fill(positive, 0.0)))
+
+
 def linear_attention(
-    queries: torch.Tensor,
-    keys: torch.Tensor,
+    query_features: torch.Tensor,
+    key_features: torch.Tensor,
     values: torch.Tensor,
     key_mask: torch.Tensor | None = None,
     eps: float = 1e-6,
 ) -> torch.Tensor:
-    """Multi-head linear attention.
+    """Multi-head linear attention on feature-mapped queries and keys.
 
     Args:
-        queries: (N, heads, L, D) projected queries.
-        keys: (N, heads, S, D) projected keys.
+        query_features: (N, heads, L, D) ``elu_feature_map`` of the projected queries.
+        key_features: (N, heads, S, D) ``elu_feature_map`` of the projected keys.
         values: (N, heads, S, Dv) projected values.
         key_mask: optional (N, S) bool; False keys are ignored.
         eps: added to the normaliser so that it never divides by zero.
@@ -34,8 +46,7 @@ def linear_attention(
     Returns:
         (N, heads, L, Dv) attended values.
     """
-    q = F.elu(queries) + 1.0
-    k = F.elu(keys) + 1.0
+    q, k = query_features, key_features
     if key_mask is not None:
         keep = key_mask[:, None, :, None].to(k.dtype)
         k = k * keep
@@ -85,8 +96,9 @@ class LinearAttentionLayer(nn.Module):
         ``source_mask`` (N, S) bool, optional, hides False source tokens.
         """
         heads = self.num_heads
-        q = rearrange(self.query_proj(x), "n l (h d) -> n h l d", h=heads)
-        k = rearrange(self.key_proj(source), "n s (h d) -> n h s d", h=heads)
+        # The feature map runs before the head split, on contiguous memory (much faster).
+        q = rearrange(elu_feature_map(self.query_proj(x)), "n l (h d) -> n h l d", h=heads)
+        k = rearrange(elu_feature_map(self.key_proj(source)), "n s (h d) -> n h s d", h=heads)
         v = rearrange(self.value_proj(source), "n s (h d) -> n h s d", h=heads)
         message = rearrange(linear_attention(q, k, v, source_mask), "n h l d -> n l (h d)")
         message = self.norm_message(self.out_proj(message))

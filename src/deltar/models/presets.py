@@ -29,13 +29,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_depth": 10.0,
         "num_hypotheses": 16,
     },
-    # Small and fast for CPUs: MobileNetV3 encoder, narrow decoder, one fusion round
-    # per scale, fewer bins.
+    # Small and fast for CPUs: MobileNetV3 encoder, narrow decoder, fewer bins.
     "deltar-lite": {
         "backbone": "tf_mobilenetv3_large_minimal_100",
         "decoder_channels": (128, 128, 64, 32, 16),
-        "fusion_layers": ("hist2image", "image"),
-        "self_heads": 4,
         "head_channels": 64,
         "head": "bins",
         "n_bins": 64,
