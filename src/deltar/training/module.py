@@ -227,7 +227,8 @@ def load_trained_model(path: str, map_location: str = "cpu") -> nn.Module:
     return model.eval()
 
 
-def _load_weights_file(path: str, map_location: str = "cpu"
+def _load_weights_file(path: str, map_location: str = "cpu",
+                       model_config: dict[str, Any] | None = None,
                        ) -> tuple[nn.Module, dict[str, Any]]:
     from pathlib import Path
 
@@ -250,7 +251,9 @@ def _load_weights_file(path: str, map_location: str = "cpu"
     else:
         raise ValueError(f"{file} is neither a deltar training checkpoint nor a model.pt "
                          "export")
-    model = create_model(recipe["preset"], **recipe.get("overrides", {}))
+    overrides = {**recipe.get("overrides", {}), **(model_config or {})}
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    model = create_model(recipe["preset"], **overrides)
     model.load_state_dict(state)
     return model, recipe
 
