@@ -32,6 +32,11 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     tmp = Path(tmp_name)
     try:
         yield tmp
+        # mkstemp creates 0600 files; give the output the permissions of a normal file.
+        umask = os.umask(0)
+        os.umask(umask)
+        if tmp.exists():
+            os.chmod(tmp, 0o666 & ~umask)
         if not overwrite and final.exists():
             raise FileExistsError(f"refusing to overwrite existing file: {final}")
         os.replace(tmp, final)

@@ -1,0 +1,35 @@
+"""Atomic writes: complete or absent, never over an input when asked not to."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import pytest
+
+from deltar.io.atomic import atomic_path, write_text_atomic
+
+
+def test_written_file_has_normal_permissions_and_no_temporary_left(tmp_path):
+    target = write_text_atomic(tmp_path / "a" / "out.json", "{}")
+    assert target.read_text() == "{}"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o666 & ~umask
+    assert [p.name for p in target.parent.iterdir()] == ["out.json"]
+
+
+def test_failure_leaves_the_previous_file_untouched(tmp_path):
+    target = write_text_atomic(tmp_path / "out.txt", "old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("writer crashed")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_refuses_to_overwrite_when_asked(tmp_path):
+    target = write_text_atomic(tmp_path / "input.txt", "keep")
+    with pytest.raises(FileExistsError, match=r"input\.txt"):
+        write_text_atomic(target, "new", overwrite=False)
+    assert target.read_text() == "keep"
