@@ -41,3 +41,16 @@ def rects_on_grid():
 def network_inputs():
     """The :func:`make_inputs` function."""
     return make_inputs
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    """Run model tests on one torch thread (restored afterwards).
+
+    On a busy machine, two OpenMP threads waiting on each other make these small
+    forwards many times slower; the parity test asks for two threads itself.
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

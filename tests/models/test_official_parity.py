@@ -22,18 +22,15 @@ PARITY_FIXTURE = Path(__file__).resolve().parents[2].parent / "shared" / "fixtur
 )
 
 
-@pytest.fixture(scope="module", autouse=True)
-def two_threads():
+@pytest.fixture
+def two_threads(single_thread):
     # The fixture's random-weight encoder is chaotic and oneDNN picks other kernels for
     # a single thread: the release's own code reproduces the fixture only with >= 2.
-    previous = torch.get_num_threads()
-    torch.set_num_threads(max(2, previous))
-    yield
-    torch.set_num_threads(previous)
+    torch.set_num_threads(2)
 
 
 @pytest.fixture(scope="module")
-def fixture_and_model(two_threads):
+def fixture_and_model():
     if not PARITY_FIXTURE.is_file():
         pytest.fail(f"official parity fixture not found at {PARITY_FIXTURE}")
     fixture = torch.load(PARITY_FIXTURE, weights_only=False)
@@ -44,7 +41,7 @@ def fixture_and_model(two_threads):
 
 
 @pytest.mark.parametrize("case_index", [0, 1, 2])
-def test_matches_release_outputs(fixture_and_model, case_index):
+def test_matches_release_outputs(fixture_and_model, two_threads, case_index):
     fixture, model = fixture_and_model
     case = fixture["cases"][case_index]
     image = case["image_rgb_uint8"].permute(2, 0, 1)[None].float() / 255.0
