@@ -23,6 +23,15 @@ def test_demo_writes_scenes_panels_and_metrics(tmp_path):
         assert 0.0 <= values["d1"] <= 1.0 and values["rmse"] > 0
     panels = sorted((out / "panels").rglob("*.png"))
     assert len(panels) == len(metrics)
+    # The sample for `deltar predict` reads back as a valid frame with its camera.
+    from deltar.calibration.rig import RigCalibration
+    from deltar.io.zone_file import load_zone_frame
+
+    frame = load_zone_frame(out / "sample" / "zones.json")
+    assert frame.grid == 8 and frame.valid.any()
+    calib = RigCalibration.load(out / "sample" / "calib.json")
+    assert (calib.intrinsics.height, calib.intrinsics.width) == (96, 128)
+    assert (out / "sample" / "image.png").read_bytes()[:4] == b"\x89PNG"
     # A second run into the same folder must not overwrite the first.
     again = CliRunner().invoke(app, ["demo", str(out), "--frames", "1", "--size", "96x128"],
                                env={"COLUMNS": "300"})

@@ -14,14 +14,34 @@ import typer
 from deltar.cli.main import app
 
 
-def bundled_model_methods() -> list[str]:
-    """Evaluation method names of the models this installation ships (may be empty)."""
-    try:
-        from deltar.evaluation.runner import resolve_method_names
+def write_predict_sample(data_json: Path, folder: Path) -> None:
+    """Write the first frame of a ZJU-L5-layout set as ``deltar predict`` inputs.
 
-        return resolve_method_names("model:default")
-    except (ImportError, ValueError):
-        return []
+    Creates ``folder/image.png`` (RGB), ``folder/zones.json`` (zone frame) and
+    ``folder/calib.json`` (the frame's camera intrinsics, identity sensor extrinsic), so
+    ``deltar predict --image ... --zones ... --calib ...`` runs on it.
+    """
+    import cv2
+    import numpy as np
+
+    from deltar.calibration.rig import RigCalibration
+    from deltar.data.zju_l5 import ZJUL5Dataset
+    from deltar.io.atomic import atomic_path
+    from deltar.io.zone_file import save_zone_frame
+    from deltar.sensor.geometry import SensorExtrinsics
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    sample = ZJUL5Dataset(data_json)[0]
+    valid = np.asarray(sample.zone_valid, dtype=bool)
+    frame = ZoneFrame(mean_m=np.where(valid, sample.zone_mean_sigma[:, 0], 0.0),
+                      sigma_m=np.where(valid, sample.zone_mean_sigma[:, 1], 0.0), valid=valid)
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(folder / "image.png", overwrite=False) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(sample.rgb, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"could not write {folder / 'image.png'}")
+    save_zone_frame(folder / "zones.json", frame)
+    RigCalibration(intrinsics=sample.intrinsics, extrinsics=SensorExtrinsics(),
+                   grid=frame.grid).save(folder / "calib.json")
 
 
 @app.command("demo")
@@ -35,7 +55,8 @@ def demo(
     """Simulate L5 readings over generated rooms and compare depth methods on them.
 
     Writes OUT/scenes (a ZJU-L5-layout set), OUT/panels (one PNG per frame and method),
-    and OUT/metrics.json; prints the paper's metrics table.
+    OUT/metrics.json and OUT/sample (image.png, zones.json, calib.json: inputs for
+    ``deltar predict``); prints the paper's metrics table.
     """
     from deltar.cli.evaluate import evaluate
     from deltar.cli.simulate import simulate_command
@@ -47,7 +68,10 @@ def demo(
     simulate_command(src=f"procedural:{frames}:{seed}:{size}", out=scenes, grid=8,
                      layout="calibrated", start=0, stop=None, step=1, limit=None,
                      depth_scale=None, intrinsics=None, split="test")
-    methods = ",".join(["all", *bundled_model_methods()])
-    evaluate(method=methods, data=scenes / "data.json", split="test",
+    write_predict_sample(scenes / "data.json", out / "sample")
+    from deltar.weights import bundled_model_names
+
+    evaluate(method="all", checkpoint=bundled_model_names(), official=None,
+             data=scenes / "data.json", split="test",
              json_out=out / "metrics.json", save_vis=out / "panels", limit=None,
              min_depth=1e-3, max_depth=10.0)

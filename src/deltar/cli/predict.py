@@ -14,7 +14,9 @@ _DEFAULT_OUTPUTS = "png16,npy,color,ply,panel"
 
 PresetOption = typer.Option(None, "--preset", help="Model preset (RANDOM weights: for "
                             "testing the pipeline only).")
-CheckpointOption = typer.Option(None, "--checkpoint", help="deltar checkpoint (.pt).")
+CheckpointOption = typer.Option(None, "--checkpoint", help="deltar checkpoint (.pt) or a "
+                                "bundled model name; the bundled 'default' model when no "
+                                "model option is given.")
 OfficialOption = typer.Option(None, "--official", help="Officially released weights "
                               "(e.g. nyu.pt).")
 OnnxOption = typer.Option(None, "--onnx", help="ONNX model from 'deltar export' "
@@ -52,9 +54,17 @@ def _build_estimator(preset, checkpoint, official, onnx, device, precision, size
     chosen = [name for name, value in (("--preset", preset), ("--checkpoint", checkpoint),
                                        ("--official", official), ("--onnx", onnx))
               if value is not None]
+    if not chosen:
+        # No model named: the model bundled with the package.
+        from deltar.weights import bundled_model_names
+
+        if "default" not in bundled_model_names():
+            raise typer.BadParameter("this installation has no bundled model; give one of "
+                                     "--preset, --checkpoint, --official, --onnx")
+        checkpoint, chosen = "default", ["--checkpoint"]
     if len(chosen) != 1:
-        raise typer.BadParameter("give exactly one of --preset, --checkpoint, --official, "
-                                 f"--onnx (got {chosen or 'none'})")
+        raise typer.BadParameter("give only one of --preset, --checkpoint, --official, "
+                                 f"--onnx (got {chosen})")
     if threads:
         torch.set_num_threads(int(threads))
     kwargs = {"input_size": _parse_size(size)}

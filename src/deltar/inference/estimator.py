@@ -330,8 +330,19 @@ class DepthEstimator:
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, **kwargs: Any) -> DepthEstimator:
-        """An estimator from a deltar checkpoint file (see :func:`save_checkpoint`)."""
-        model, preset, _ = load_checkpoint(path)
+        """An estimator from a deltar checkpoint (see :func:`save_checkpoint`).
+
+        Args:
+            path: a checkpoint file, or the name of a model bundled with the package
+                (``"default"``, see :mod:`deltar.weights`).
+            kwargs: constructor arguments; ``input_size`` defaults to the network's
+                design size (the resolution it was trained at).
+        """
+        from deltar.weights import resolve_checkpoint
+
+        model, preset, _ = load_checkpoint(resolve_checkpoint(path))
+        if kwargs.get("input_size") is None:
+            kwargs["input_size"] = tuple(int(v) for v in model.config["design_size"])
         return cls(model, weights=f"{preset} from {path}", **kwargs)
 
     @classmethod
