@@ -37,17 +37,17 @@ def test_resolve_method_names() -> None:
 
 def test_registry_accepts_methods_and_families(clean_registry: None) -> None:
     register_method("const3", lambda: lambda sample: np.full(sample.depth_m.shape, 3.0))
-    register_method_family("model", lambda name: lambda sample: np.full(
+    register_method_family("testfam", lambda name: lambda sample: np.full(
         sample.depth_m.shape, float(len(name))))
-    assert "model:NAME" in runner.available_methods()
-    assert resolve_method_names("const3,model:abcd") == ["const3", "model:abcd"]
+    assert "testfam:NAME" in runner.available_methods()
+    assert resolve_method_names("const3,testfam:abcd") == ["const3", "testfam:abcd"]
     sample = make_sample("x", 0)
-    assert create_predictor("model:abcd")(sample)[0, 0] == 4.0
+    assert create_predictor("testfam:abcd")(sample)[0, 0] == 4.0
     assert create_predictor("const3")(sample)[0, 0] == 3.0
     with pytest.raises(ValueError, match="already registered"):
         register_method("const3", lambda: None)
-    with pytest.raises(ValueError, match="unknown method 'model:'"):
-        resolve_method_names("model:")
+    with pytest.raises(ValueError, match="unknown method 'testfam:'"):
+        resolve_method_names("testfam:")
     with pytest.raises(ValueError, match="invalid method name"):
         register_method("a:b", lambda: None)
 
