@@ -24,6 +24,7 @@ import numpy as np
 
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.io.atomic import write_text_atomic
+from deltar.io.json_file import read_json
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -158,11 +159,4 @@ class RigCalibration:
     @classmethod
     def load(cls, path: str | os.PathLike) -> RigCalibration:
         """Read and validate a calibration JSON file."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"calibration file not found: {path}")
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise ValueError(f"{path}: corrupt JSON: {err}") from err
-        return cls.from_dict(data, str(path))
+        return cls.from_dict(read_json(path, "calibration file"), str(path))

@@ -13,7 +13,6 @@ Both are sequences of :class:`~deltar.data.rgbd.RGBDFrame` with the NYU Kinect i
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import numpy as np
 
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
+from deltar.io.json_file import read_split_filenames
 
 #: NYU-Depth V2 colour camera at 480x640 (fx, fy, cx, cy from the dataset's toolbox).
 NYU_INTRINSICS = CameraIntrinsics(518.86, 519.47, 325.58, 253.74, 640, 480)
@@ -121,22 +121,8 @@ class NYUH5Reader(Sequence):
                  intrinsics: CameraIntrinsics = NYU_INTRINSICS,
                  crop_border: bool = False) -> None:
         path = Path(json_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"NYU split file not found: {path}")
-        try:
-            index = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise ValueError(f"NYU split file {path} is not valid JSON: {err}") from err
-        if not isinstance(index, dict) or split not in index:
-            keys = sorted(index) if isinstance(index, dict) else []
-            raise ValueError(f"NYU split file {path} has no split {split!r} (splits: {keys})")
-        entries = index[split]
-        if not isinstance(entries, list) or not all(
-                isinstance(e, dict) and isinstance(e.get("filename"), str) for e in entries):
-            raise ValueError(f"NYU split file {path}: {split!r} must be a list of "
-                             '{"filename": "..."} entries')
+        self.filenames = read_split_filenames(path, split, "NYU split file")
         self.root = Path(data_root) if data_root is not None else path.parent
-        self.filenames = [e["filename"] for e in entries]
         self.intrinsics = intrinsics
         self.crop_border = crop_border
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.json_file import read_split_filenames
 
 #: Zone counts accepted in a ZJU-L5 file (4x4 and 8x8 grids).
 ZONE_COUNTS: tuple[int, ...] = (16, 64)
@@ -160,24 +161,11 @@ class ZJUL5Dataset(Sequence):
         path = Path(data_json_path)
         if path.is_dir():
             path = path / "data.json"
-        if not path.is_file():
-            raise FileNotFoundError(f"ZJU-L5 index not found: {path}")
-        try:
-            index = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise ValueError(f"ZJU-L5 index {path} is not valid JSON: {err}") from err
-        if not isinstance(index, dict) or split not in index:
-            keys = sorted(index) if isinstance(index, dict) else []
-            raise ValueError(f"ZJU-L5 index {path} has no split {split!r} (splits: {keys})")
-        entries = index[split]
-        if not isinstance(entries, list) or not all(
-                isinstance(e, dict) and isinstance(e.get("filename"), str) for e in entries):
-            raise ValueError(f"ZJU-L5 index {path}: split {split!r} must be a list of "
-                             '{"filename": "..."} entries')
+        filenames = read_split_filenames(path, split, "ZJU-L5 index")
         self.root = path.parent
         self.split = split
         self.intrinsics = intrinsics
-        self.filenames: list[str] = [e["filename"] for e in entries]
+        self.filenames: list[str] = filenames
 
     def __len__(self) -> int:
         return len(self.filenames)

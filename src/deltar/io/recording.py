@@ -24,6 +24,7 @@ import numpy as np
 
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.json_file import read_json
 from deltar.io.zone_file import zone_frame_from_dict, zone_frame_to_dict
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 from deltar.sensor.zone_frame import ZoneFrame
@@ -222,11 +223,8 @@ class Recording:
             raise FileNotFoundError(f"recording folder not found: {self.folder}")
         if not meta_path.is_file():
             raise FileNotFoundError(f"recording has no {META_FILE}: {meta_path}")
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise ValueError(f"{meta_path}: corrupt JSON: {err}") from err
-        self.meta = RecordingMeta.from_dict(meta, str(meta_path))
+        self.meta = RecordingMeta.from_dict(read_json(meta_path, "recording metadata"),
+                                            str(meta_path))
         self.color_times_s, self.color_paths = _image_index(self.folder / COLOR_DIR)
         self.depth_times_s, self.depth_paths = _image_index(self.folder / DEPTH_DIR)
 

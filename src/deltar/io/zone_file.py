@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.json_file import read_json
 from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
 
 SCHEMA_NAME = "deltar.zone_frame"
@@ -184,10 +185,7 @@ def load_zone_frame(path: str | os.PathLike, *, orientation: Orientation | None 
         raise FileNotFoundError(f"zone frame file not found: {path}")
     suffix = path.suffix.lower()
     if suffix == ".json":
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise ValueError(f"{path}: corrupt JSON: {err}") from err
+        data = read_json(path, "zone frame file")
         return zone_frame_from_dict(data, source=str(path), orientation=orientation)
     if suffix == ".npz":
         try:
