@@ -132,3 +132,18 @@ def test_record_replay_wall_test_export_end_to_end(tmp_path):
                                       str(tmp_path / "lite.onnx"), "--threads", "1"])
     assert onnx_replay.exit_code == 0, onnx_replay.output
     assert len(list((tmp_path / "onnx").glob("*_depth_m.npy"))) == 2
+
+
+def test_predict_flip_runs_and_onnx_refuses_it(tmp_path, rng):
+    image, zones = _inputs(tmp_path / "in", "a", rng)
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["predict", "--image", str(image), "--zones", str(zones),
+                                 "--out", str(out), "--outputs", "npy", "--flip", *LITE])
+    assert result.exit_code == 0, result.output
+    assert np.isfinite(np.load(out / "a_depth_m.npy")).all()
+    fake_onnx = tmp_path / "model.onnx"
+    fake_onnx.write_bytes(b"not read")
+    refused = runner.invoke(app, ["predict", "--image", str(image), "--zones", str(zones),
+                                  "--out", str(tmp_path / "o2"), "--onnx", str(fake_onnx),
+                                  "--flip"])
+    assert refused.exit_code != 0 and "--flip" in refused.output

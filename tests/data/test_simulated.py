@@ -109,8 +109,9 @@ def test_flip_mirrors_fixed_rects_and_their_order():
     torch.testing.assert_close(flipped["zone_mean_sigma"][:, 0].reshape(grid, grid),
                                means.flip(-1))
     torch.testing.assert_close(means[0], torch.tensor([1.1, 1.5, 1.9, 2.3]))
-    # Zone 0 of the flipped frame is the mirror of zone 3 of the original.
-    assert flipped["zone_rects"][0].tolist() == [0.0, 11.0, 8.0, 19.0]
+    # Zone 0 of the flipped frame is the mirror of zone 3 of the original: its columns
+    # 44..51 land on 12..19.
+    assert flipped["zone_rects"][0].tolist() == [0.0, 12.0, 8.0, 20.0]
     assert flipped["intrinsics"][2].item() == pytest.approx(width - 1 - (width - 1) / 2)
 
 
@@ -130,9 +131,10 @@ def test_crop_shifts_fixed_rects_and_intrinsics():
 
 
 def test_mirror_zone_rects_by_hand():
+    # Columns [2, 5) = 2, 3, 4 mirror to 7, 6, 5 = [5, 8) in a 10 px image.
     rects = np.array([[0, 0, 1, 2], [0, 2, 1, 5], [1, 0, 2, 2], [1, 2, 2, 5]], np.float32)
     np.testing.assert_array_equal(mirror_zone_rects(rects, width=10, grid=2),
-                                  [[0, 4, 1, 7], [0, 7, 1, 9], [1, 4, 2, 7], [1, 7, 2, 9]])
+                                  [[0, 5, 1, 8], [0, 8, 1, 10], [1, 5, 2, 8], [1, 8, 2, 10]])
 
 
 def test_real_folder_item(shared_data):

@@ -54,3 +54,18 @@ def test_no_method_at_all_is_an_error(tmp_path: Path, tiny_samples) -> None:
     result = runner.invoke(app, ["evaluate", "--data", str(data)])
     assert result.exit_code != 0
     assert "--checkpoint" in result.output
+
+
+def test_flip_adds_a_flip_averaged_entry(tmp_path: Path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    checkpoint = _untrained_prior_model(tmp_path / "prior.pt")
+    out = tmp_path / "metrics.json"
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(checkpoint), "--flip",
+                                 "--data", str(data), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(out.read_text())
+    key = f"model:{checkpoint}"
+    assert list(metrics) == [key, f"{key}+flip"]
+    # The untrained prior is mirror-symmetric in the zones: flipping must not change it.
+    for name in ("rmse", "rel", "d1"):
+        assert abs(metrics[f"{key}+flip"][name] - metrics[key][name]) < 1e-4

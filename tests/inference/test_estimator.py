@@ -234,3 +234,53 @@ def test_from_official_loads_release_weights(tmp_path, parity_fixture_path, rng)
     torch.save({"img_encoder.conv0.0.weight": torch.zeros(1)}, broken)
     with pytest.raises(ValueError, match=r"broken\.pt"):
         DepthEstimator.from_official(broken)
+
+
+def _layout(height: int, width: int, grid: int = 8) -> np.ndarray:
+    """An asymmetric (Z, 4) layout in image pixels: zones shifted right of centre."""
+    side = 0.8 * min(height, width) / grid
+    rows, cols = np.meshgrid(np.arange(grid), np.arange(grid), indexing="ij")
+    y0 = 0.1 * height + rows.ravel() * side
+    x0 = 0.3 * width + cols.ravel() * side
+    return np.stack([y0, x0, y0 + side, x0 + side], axis=1).astype(np.float32)
+
+
+def test_flip_average_keeps_a_mirror_symmetric_prediction(lite_model, rng):
+    # The untrained zone-prior head returns the zone prior, which depends on the zone
+    # geometry only through mirror-symmetric Gaussians: a correct mirror of rectangles
+    # and zone order gives back the same depth; a one-pixel error would not.
+    image, frame = _image(rng, 64, 96), _frame(rng)
+    rects = _layout(64, 96)
+    plain = DepthEstimator(lite_model, weights="test").predict(image, frame, zone_rects=rects)
+    flipped = DepthEstimator(lite_model, weights="test", flip_average=True).predict(
+        image, frame, zone_rects=rects)
+    np.testing.assert_allclose(flipped.depth_m, plain.depth_m, rtol=1e-5)
+    np.testing.assert_allclose(flipped.uncertainty_m, plain.uncertainty_m, rtol=1e-4)
+
+
+def test_flip_average_is_mirror_equivariant(rng):
+    from deltar.data.transforms import mirror_zone_rects
+    from deltar.models import create_model
+
+    torch.manual_seed(1)
+    model = create_model("deltar-lite", design_size=(64, 96)).eval()
+    with torch.no_grad():  # a head that is not zero, so the image matters
+        model.head.logits_conv.weight.normal_(0.0, 0.5)
+    image, frame, rects = _image(rng, 64, 96), _frame(rng), _layout(64, 96)
+    mirrored_frame = ZoneFrame(frame.mean_m[:, ::-1], frame.sigma_m[:, ::-1],
+                               frame.valid[:, ::-1])
+    mirrored_rects = mirror_zone_rects(rects, 96, 8)
+    plain = DepthEstimator(model, weights="test")
+    averaged = DepthEstimator(model, weights="test", flip_average=True)
+    original = averaged.predict(image, frame, zone_rects=rects)
+    mirrored = averaged.predict(image[:, ::-1].copy(), mirrored_frame,
+                                zone_rects=mirrored_rects)
+    np.testing.assert_allclose(mirrored.depth_m[:, ::-1], original.depth_m, rtol=1e-4)
+    single = plain.predict(image, frame, zone_rects=rects)
+    assert np.abs(single.depth_m - original.depth_m).max() > 1e-3  # the flip did something
+    assert (original.uncertainty_m >= 0).all()
+
+
+def test_flip_average_needs_the_pytorch_backend():
+    with pytest.raises(ValueError, match="flip_average"):
+        DepthEstimator(onnx_model=object(), flip_average=True)

@@ -14,6 +14,13 @@ def lite_model():
     return create_model("deltar-lite").eval()
 
 
+@pytest.fixture(scope="module")
+def lite_bins_model():
+    """deltar-lite with the release's bins head (the preset uses the zone-prior head)."""
+    torch.manual_seed(0)
+    return create_model("deltar-lite", head="bins").eval()
+
+
 def _forward_backward(model, inputs):
     out = model(*inputs)
     (out["depth"].mean() + out["uncertainty"].mean()).backward()
@@ -67,11 +74,11 @@ def test_sizes_and_grids(lite_model, network_inputs, height, width, grid):
     assert (out["depth"] >= 1e-3).all() and (out["depth"] <= 10.0).all()
 
 
-def test_depth_is_expectation_of_bin_centres(lite_model, network_inputs):
+def test_depth_is_expectation_of_bin_centres(lite_bins_model, network_inputs):
     # Uncertainty is the spread of a distribution over centres inside the edges, so it
     # can never exceed half the depth range.
     with torch.inference_mode():
-        out = lite_model(*network_inputs())
+        out = lite_bins_model(*network_inputs())
     edges = out["bin_edges"]
     assert torch.all(edges[:, 1:] > edges[:, :-1])
     torch.testing.assert_close(edges[:, 0], torch.full((2,), 1e-3))
@@ -102,13 +109,17 @@ def test_invalid_zones_are_ignored(lite_model, network_inputs):
     assert not torch.allclose(reference, moved)
 
 
-def test_zones_wholly_outside_the_image(lite_model, network_inputs):
+def test_zones_wholly_outside_the_image(lite_model, lite_bins_model, network_inputs):
     image, hypotheses, rects, valid = network_inputs()
     with torch.inference_mode():
-        outside = lite_model(image, hypotheses, rects + 1000.0, valid)["depth"]
-        no_zone = lite_model(image, hypotheses, rects, torch.zeros_like(valid))["depth"]
+        # The bins head sees zones only through their image patches: none inside, no effect.
+        outside = lite_bins_model(image, hypotheses, rects + 1000.0, valid)["depth"]
+        no_zone = lite_bins_model(image, hypotheses, rects, torch.zeros_like(valid))["depth"]
+        # The zone-prior head extrapolates the nearest zones' means into the image.
+        prior_outside = lite_model(image, hypotheses, rects + 1000.0, valid)["depth"]
     assert torch.isfinite(outside).all()
     torch.testing.assert_close(outside, no_zone)
+    assert torch.isfinite(prior_outside).all() and (prior_outside > 0).all()
 
 
 def test_batch_samples_are_independent(lite_model, network_inputs):

@@ -172,10 +172,6 @@ def test_zju_items_use_the_measured_zones_and_flip_consistently(tmp_path, rng):
     np.testing.assert_array_equal(rows, sample.zone_rects[order][:, [0, 2]])
 
 
-@pytest.mark.xfail(strict=True, reason="deltar.data.transforms.mirror_zone_rects maps "
-                   "[x0, x1) to [W-1-x1, W-1-x0): exact for fractional bounds, but a zone "
-                   "with integer bounds then holds the pixel columns one left of the "
-                   "mirrored ones (reported to the data package owner)")
 def test_flipped_zone_rects_cover_the_mirrored_pixels(tmp_path, rng):
     samples, sample = _zju_set(tmp_path, rng)
     flipped = ZJUL5TrainingDataset(samples, num_hypotheses=5, flip_prob=1.0)[0]

@@ -60,6 +60,9 @@ def evaluate(
                                      help="Evaluate only the first N frames."),
     min_depth: float = typer.Option(1e-3, "--min-depth", help="Ground truth must be > this (m)."),
     max_depth: float = typer.Option(10.0, "--max-depth", help="Ground truth must be < this (m)."),
+    flip: bool = typer.Option(False, "--flip", help="Also evaluate each --checkpoint and "
+                              "--official model with test-time flip averaging (reported "
+                              "as 'model:NAME+flip')."),
 ) -> None:
     """Evaluate depth methods on a ZJU-L5-layout set and print the paper's metrics table.
 
@@ -77,9 +80,10 @@ def evaluate(
 
     console = Console()
     specs = [m for m in (method or "").split(",") if m.strip()]
-    specs += [f"model:{c}" for c in checkpoint]
+    models = [f"model:{c}" for c in checkpoint]
     if official is not None:
-        specs.append(f"official:{official}")
+        models.append(f"official:{official}")
+    specs += models + ([f"{m}+flip" for m in models] if flip else [])
     if not specs:
         raise typer.BadParameter("give --method, --checkpoint or --official",
                                  param_hint="--method")

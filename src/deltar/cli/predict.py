@@ -26,6 +26,9 @@ PrecisionOption = typer.Option("float32", help="float32, float16 or bfloat16 (Py
 SizeOption = typer.Option(None, "--size", help="Network input size HxW (multiples of 32); "
                           "default: the image size rounded to multiples of 32.")
 ThreadsOption = typer.Option(None, "--threads", help="CPU threads (torch / onnxruntime).")
+FlipOption = typer.Option(False, "--flip", help="Test-time flip averaging: also run the "
+                          "mirrored image and zones and average (2x network time; "
+                          "PyTorch backends).")
 CalibOption = typer.Option(None, "--calib", help="Rig calibration JSON (deltar calibrate).")
 
 
@@ -46,7 +49,8 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
     return height, width
 
 
-def _build_estimator(preset, checkpoint, official, onnx, device, precision, size, threads):
+def _build_estimator(preset, checkpoint, official, onnx, device, precision, size, threads,
+                     flip=False):
     import torch
 
     from deltar.inference.estimator import DepthEstimator
@@ -68,6 +72,11 @@ def _build_estimator(preset, checkpoint, official, onnx, device, precision, size
     if threads:
         torch.set_num_threads(int(threads))
     kwargs = {"input_size": _parse_size(size)}
+    if flip:
+        if onnx is not None:
+            raise typer.BadParameter("--flip needs a PyTorch model (an ONNX file is fixed to "
+                                     "one zone layout)", param_hint="--flip")
+        kwargs["flip_average"] = True
     if onnx is not None:
         return DepthEstimator.from_onnx(onnx, num_threads=threads, **kwargs)
     kwargs.update(device=device, precision=precision)
@@ -140,6 +149,7 @@ def predict_command(
     precision: str = PrecisionOption,
     size: str | None = SizeOption,
     threads: int | None = ThreadsOption,
+    flip: bool = FlipOption,
     outputs: str = typer.Option(_DEFAULT_OUTPUTS, help="Comma list of png16 (uint16 mm), "
                                 "npy (float32 m), color, ply (point cloud), panel."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs (never inputs)."),
@@ -172,7 +182,7 @@ def predict_command(
                 if target in inputs:
                     raise ValueError(f"output {target} would overwrite an input file")
         estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                     size, threads)
+                                     size, threads, flip)
         calibration = _load_calibration(calib)
         for img_path, zone_path in track(pairs, description="predicting",
                                          disable=len(pairs) < 2):
@@ -280,6 +290,7 @@ def replay_command(
     precision: str = PrecisionOption,
     size: str | None = SizeOption,
     threads: int | None = ThreadsOption,
+    flip: bool = FlipOption,
     outputs: str = typer.Option("png16,npy,color", help="Comma list of output kinds."),
     tolerance: float = typer.Option(0.02, help="Largest image-zone time offset, seconds."),
     every: int = typer.Option(1, help="Use every N-th frame."),
@@ -296,7 +307,7 @@ def replay_command(
     kinds = _parse_outputs(outputs)
     try:
         estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                     size, threads)
+                                     size, threads, flip)
         calibration = _load_calibration(calib)
         if show:
             _show_live(replay(recording, estimator, calibration=calibration,

@@ -134,7 +134,8 @@ def mirror_zone_rects(rects: np.ndarray, width: int, grid: int) -> np.ndarray:
     """Zone rectangles of a left-right mirrored image, in row-major image order again.
 
     Zone ``(r, c)`` of the mirrored image is zone ``(r, grid - 1 - c)`` of the original,
-    mirrored about the image centre (``x -> width - 1 - x``, pixel centres at integers).
+    mirrored about the image centre: pixel column ``x`` goes to ``width - 1 - x``, so the
+    columns ``[x0, x1)`` of a zone become ``[width - x1, width - x0)``.
 
     Args:
         rects: (grid * grid, 4) rectangles (y0, x0, y1, x1) in pixels.
@@ -149,8 +150,8 @@ def mirror_zone_rects(rects: np.ndarray, width: int, grid: int) -> np.ndarray:
         raise ValueError(f"rects must have shape ({grid * grid}, 4), got {rects.shape}")
     reordered = rects.reshape(grid, grid, 4)[:, ::-1].reshape(-1, 4)
     out = reordered.copy()
-    out[:, 1] = width - 1 - reordered[:, 3]
-    out[:, 3] = width - 1 - reordered[:, 1]
+    out[:, 1] = width - reordered[:, 3]
+    out[:, 3] = width - reordered[:, 1]
     return out
 
 

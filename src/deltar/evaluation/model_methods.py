@@ -1,7 +1,8 @@
 """Learned models as evaluation methods: ``model:NAME|PATH`` and ``official:PATH``.
 
 ``model:default`` is the bundled model, ``model:runs/x/model.pt`` any deltar checkpoint,
-``official:nyu.pt`` the officially released weights. Each runs through
+``official:nyu.pt`` the officially released weights. A ``+flip`` suffix
+(``model:default+flip``) adds test-time flip averaging. Each runs through
 :class:`~deltar.inference.estimator.DepthEstimator` with the sample's own zone
 rectangles, at the network's design resolution, and its output is resized to the
 ground truth's resolution.
@@ -46,21 +47,34 @@ def _design_size(model) -> tuple[int, int]:
     return tuple(int(v) for v in model.config["design_size"])
 
 
+#: Method-name suffix asking for test-time flip averaging.
+FLIP_SUFFIX = "+flip"
+
+
+def _split_flip(name: str) -> tuple[str, bool]:
+    if name.endswith(FLIP_SUFFIX):
+        return name[: -len(FLIP_SUFFIX)], True
+    return name, False
+
+
 def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
-    """``model:NAME|PATH``: a bundled model name or a deltar checkpoint file."""
+    """``model:NAME|PATH[+flip]``: a bundled model name or a deltar checkpoint file."""
     from deltar.inference.estimator import DepthEstimator, load_checkpoint
     from deltar.weights import resolve_checkpoint
 
+    name_or_path, flip = _split_flip(name_or_path)
     model, preset, _ = load_checkpoint(resolve_checkpoint(name_or_path))
     return EstimatorPredictor(DepthEstimator(model, input_size=_design_size(model),
-                                             weights=f"{preset} ({name_or_path})"))
+                                             weights=f"{preset} ({name_or_path})",
+                                             flip_average=flip))
 
 
 def official_predictor(path: str) -> EstimatorPredictor:
-    """``official:PATH``: the officially released weights (e.g. ``nyu.pt``) at 480x640."""
+    """``official:PATH[+flip]``: the released weights (e.g. ``nyu.pt``) at 480x640."""
     from deltar.inference.estimator import DepthEstimator
 
-    estimator = DepthEstimator.from_official(path)
+    path, flip = _split_flip(path)
+    estimator = DepthEstimator.from_official(path, flip_average=flip)
     estimator.input_size = _design_size(estimator.model)
     return EstimatorPredictor(estimator)
 

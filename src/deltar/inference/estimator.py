@@ -17,6 +17,7 @@ Checkpoint format (``save_checkpoint`` / ``DepthEstimator.from_checkpoint``): a
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from collections.abc import Sequence
@@ -265,6 +266,9 @@ class DepthEstimator:
         sampling: hypothesis sampling for frames without a histogram ("icdf" or
             "uniform").
         weights: free text saying where the weights come from (shown by the CLI).
+        flip_average: test-time augmentation: also run the left-right mirrored image
+            with the mirrored zone layout and average the two depth maps (twice the
+            network time; PyTorch backend only).
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -272,7 +276,7 @@ class DepthEstimator:
                  precision: str = "float32", input_size: tuple[int, int] | None = None,
                  intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
                  fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str = "icdf",
-                 weights: str = "unknown") -> None:
+                 weights: str = "unknown", flip_average: bool = False) -> None:
         import torch
 
         if (model is None) == (onnx_model is None):
@@ -284,6 +288,10 @@ class DepthEstimator:
         if onnx_model is not None:
             if precision != "float32":
                 raise ValueError("the onnxruntime backend runs in float32 only")
+            if flip_average:
+                # An ONNX file is exported for one zone layout; the mirrored one differs.
+                raise ValueError("flip_average needs the PyTorch backend (an ONNX model is "
+                                 "fixed to one zone layout)")
             if input_size is not None and tuple(input_size) != onnx_model.input_size:
                 raise ValueError(f"input_size {input_size} differs from the ONNX model's "
                                  f"fixed size {onnx_model.input_size}")
@@ -302,6 +310,7 @@ class DepthEstimator:
         self.fov_deg = tuple(fov_deg)
         self.sampling = sampling
         self.weights = weights
+        self.flip_average = flip_average
         self.onnx_model = onnx_model
         self.model = None
         if model is not None:
@@ -480,11 +489,50 @@ class DepthEstimator:
                                       inputs["zone_rects"].cpu().numpy(),
                                       inputs["zone_valid"].cpu().numpy())
             return torch.from_numpy(out["depth"]), torch.from_numpy(out["uncertainty"])
+        if self.flip_average:
+            return self._run_flip_averaged(inputs)
+        return self._run_model(inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
+                               inputs["zone_valid"])
+
+    def _run_model(self, image: torch.Tensor, hypotheses: torch.Tensor,
+                   zone_rects: torch.Tensor, zone_valid: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        import torch
+
         with torch.inference_mode():
-            out = self.model(inputs["image"].to(self.dtype),
-                             inputs["hypotheses"].to(self.dtype),
-                             inputs["zone_rects"], inputs["zone_valid"])
+            out = self.model(image.to(self.dtype), hypotheses.to(self.dtype), zone_rects,
+                             zone_valid)
         return out["depth"].float(), out["uncertainty"].float()
+
+    def _run_flip_averaged(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Average of the network on the inputs and on their left-right mirror.
+
+        The mirrored pass sees the mirrored image, zones in mirrored order and
+        mirrored rectangles; its output is flipped back. The uncertainty is that of the
+        equal mixture of the two per-pixel distributions (mean variance plus the
+        variance of the two means).
+        """
+        import torch
+
+        from deltar.data.transforms import mirror_zone_rects
+
+        image, hypotheses = inputs["image"], inputs["hypotheses"]
+        rects, valid = inputs["zone_rects"], inputs["zone_valid"]
+        zones = hypotheses.shape[1]
+        grid = math.isqrt(zones)
+        order = torch.arange(zones).reshape(grid, grid).flip(1).flatten().to(rects.device)
+        width = image.shape[-1]
+        mirrored_rects = torch.from_numpy(np.stack([
+            mirror_zone_rects(r, width, grid) for r in rects.cpu().numpy()])).to(rects.device)
+        depth, spread = self._run_model(
+            torch.cat([image, image.flip(-1)]), torch.cat([hypotheses, hypotheses[:, order]]),
+            torch.cat([rects, mirrored_rects]), torch.cat([valid, valid[:, order]]))
+        batch = image.shape[0]
+        depth_a, depth_b = depth[:batch], depth[batch:].flip(-1)
+        spread_a, spread_b = spread[:batch], spread[batch:].flip(-1)
+        mean = 0.5 * (depth_a + depth_b)
+        variance = 0.5 * (spread_a**2 + spread_b**2) + 0.25 * (depth_a - depth_b) ** 2
+        return mean, variance.sqrt()
 
     def predict(self, image: np.ndarray | Sequence[np.ndarray],
                 zone_frame: ZoneFrame | Sequence[ZoneFrame],

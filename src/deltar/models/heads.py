@@ -59,14 +59,36 @@ def bins_to_depth(
     widths = F.pad(widths, (1, 0), mode="constant", value=min_depth)
     edges = torch.cumsum(widths, dim=1)
     centres = 0.5 * (edges[:, :-1] + edges[:, 1:])  # (B, N)
+    depth, spread = softmax_moments(logits, centres)
+    return depth, edges, spread
+
+
+def softmax_moments(logits: torch.Tensor, centres: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and standard deviation of per-pixel softmax distributions over bin centres.
+
+    Computed as three moments with one matrix product over the bins (no softmax
+    along the channel axis, which exporters lower to slow transposes).
+
+    Args:
+        logits: (B, N, h, w) per-pixel bin logits. Overwritten in place when autograd
+            is off (it is a temporary of the head).
+        centres: (B, N) or (N,) bin centres, in the unit of the result (metres or
+            log-ratio).
+
+    Returns:
+        mean (B, 1, h, w) and standard deviation (B, 1, h, w) of the centres under
+        ``softmax(logits, dim=1)``.
+    """
     batch, bins, height, width = logits.shape
+    centres = centres.expand(batch, bins)
     # Unnormalised softmax weights; the normaliser is the zeroth moment below.
     peak = logits.amax(dim=1, keepdim=True)
     if torch.is_grad_enabled():
         weights = torch.exp(logits - peak)
     else:
         weights = logits.sub_(peak).exp_()
-    # Moments about a per-image reference depth keep E[c^2] - E[c]^2 well conditioned.
+    # Moments about a per-image reference keep E[c^2] - E[c]^2 well conditioned.
     reference = centres.mean(dim=1, keepdim=True)
     shifted = centres - reference
     moments = torch.stack([torch.ones_like(shifted), shifted, shifted**2], dim=1)  # (B, 3, N)
@@ -75,8 +97,7 @@ def bins_to_depth(
     )
     mean_shift = totals[:, 1:2] / totals[:, 0:1]
     variance = totals[:, 2:3] / totals[:, 0:1] - mean_shift**2
-    depth = mean_shift + reference[:, :, None, None]
-    return depth, edges, variance.clamp_min(0).sqrt()
+    return mean_shift + reference[:, :, None, None], variance.clamp_min(0).sqrt()
 
 
 class BinsHead(nn.Module):

@@ -29,16 +29,21 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_depth": 10.0,
         "num_hypotheses": 16,
     },
-    # Small and fast for CPUs: MobileNetV3 encoder, narrow decoder, fewer bins.
+    # Small and fast for CPUs: MobileNetV3 encoder, narrow decoder, one cross- and one
+    # self-attention layer per fusion scale, and the zone-prior head (starts from the
+    # sensor's reading, so it trains on little data; see docs/models.md).
     "deltar-lite": {
         "backbone": "tf_mobilenetv3_large_minimal_100",
         "decoder_channels": (128, 128, 64, 32, 16),
-        "head_channels": 64,
-        "head": "bins",
+        "head_channels": 32,
+        "head": "zone_prior",
         "n_bins": 64,
         "min_depth": 1e-3,
         "max_depth": 10.0,
         "num_hypotheses": 16,
+        "fusion_layers": ("hist2image", "image"),
+        "cross_heads": 2,
+        "self_heads": 2,
     },
 }
 

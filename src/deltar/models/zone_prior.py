@@ -14,6 +14,8 @@ import math
 import torch
 from torch import nn
 
+from deltar.models.heads import softmax_moments
+
 #: Depth (metres) used where no zone of the frame is valid.
 NO_ZONE_PRIOR_DEPTH = 2.0
 
@@ -56,9 +58,12 @@ def zone_prior_map(
     valid = zone_valid.bool()
     # Invalid zones get a very negative (finite) log-weight so softmax stays NaN-free.
     log_wy = log_wy.masked_fill(~valid[..., None], -1e4)
-    weights = torch.softmax(log_wy[..., :, None] + log_wx[..., None, :], dim=1)  # (B,Z,h,w)
+    # Zones on the last axis: a softmax over the last axis exports to a fast kernel.
+    logits = log_wy.transpose(1, 2)[:, :, None, :] + log_wx.transpose(1, 2)[:, None, :, :]
+    weights = torch.softmax(logits, dim=-1)  # (B, h, w, Z)
     log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
-    log_prior = torch.einsum("bzhw,bz->bhw", weights, log_mean)[:, None]
+    log_prior = (weights.flatten(1, 2) @ log_mean[..., None]).reshape(
+        log_mean.shape[0], 1, size[0], size[1])
     any_valid = valid.any(dim=1)[:, None, None, None]
     fallback = torch.full_like(log_prior, math.log(fallback_depth_m))
     return torch.exp(torch.where(any_valid, log_prior, fallback))
@@ -113,11 +118,8 @@ class ZonePriorHead(nn.Module):
         log_prior = torch.log(prior_m)
         centred = log_prior - log_prior.mean(dim=(2, 3), keepdim=True)
         logits = self.logits_conv(self.hidden(torch.cat([features, centred], dim=1)))
-        probabilities = torch.softmax(logits, dim=1)
         centres = 0.5 * (self.edges[:-1] + self.edges[1:])
-        log_ratio = torch.einsum("bnhw,n->bhw", probabilities, centres)[:, None]
-        second = torch.einsum("bnhw,n->bhw", probabilities, centres**2)[:, None]
-        spread = (second - log_ratio**2).clamp_min(0).sqrt()
+        log_ratio, spread = softmax_moments(logits, centres)
         depth = (prior_m * torch.exp(log_ratio)).clamp(self.min_depth, self.max_depth)
         typical = torch.exp(log_prior.mean(dim=(1, 2, 3)))[:, None]
         edges = typical * torch.exp(self.edges)[None]
