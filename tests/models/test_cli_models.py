@@ -72,3 +72,13 @@ def test_bench_writes_json(runner, tmp_path):
 def test_bench_rejects_bad_size(runner):
     result = runner.invoke(app, ["bench", "--size", "100x100"])
     assert result.exit_code != 0
+
+
+def test_bench_channels_last_and_encoder_folding_are_reported(runner, tmp_path):
+    out = tmp_path / "bench.json"
+    result = runner.invoke(app, ["bench", "--preset", "deltar-lite", "--size", "64x96",
+                                 "--repeats", "1", "--warmup", "0", "--threads", "1",
+                                 "--channels-last", "--no-fold-encoder", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    assert data["channels_last"] is True and data["encoder_folded"] is False

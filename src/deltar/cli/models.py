@@ -63,6 +63,11 @@ def bench_command(
     repeats: int = typer.Option(10, min=1, help="Timed runs."),
     warmup: int = typer.Option(2, min=0, help="Untimed runs first."),
     optimize: bool = typer.Option(True, help="Fold batch norms (decoder) before timing."),
+    fold_encoder: bool | None = typer.Option(None, "--fold-encoder/--no-fold-encoder",
+                                             help="Also fold the image encoder's batch norms "
+                                             "(default: every preset but deltar-official)."),
+    channels_last: bool = typer.Option(False, help="Channels-last decoder and head (for "
+                                       "trained weights; changes rounding)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the result as JSON."),
     overwrite: bool = typer.Option(False, help="Replace an existing --json file."),
 ) -> None:
@@ -79,7 +84,8 @@ def bench_command(
         raise typer.BadParameter(f"unknown preset {preset!r}; known: {list_presets()}")
     if json_out is not None and json_out.exists() and not overwrite:
         raise typer.BadParameter(f"{json_out} exists; pass --overwrite to replace it")
-    result = benchmark_preset(preset, height, width, batch, threads, repeats, warmup, optimize)
+    result = benchmark_preset(preset, height, width, batch, threads, repeats, warmup, optimize,
+                              fold_encoder, channels_last)
     table = Table(title="deltar bench")
     table.add_column("measure")
     table.add_column("value", justify="right")

@@ -92,6 +92,7 @@ def benchmark_preset(
     warmup: int = 2,
     optimize: bool = True,
     fold_encoder: bool | None = None,
+    channels_last: bool = False,
 ) -> dict:
     """Time the forward pass of a preset (random weights) under ``torch.inference_mode``.
 
@@ -107,6 +108,8 @@ def benchmark_preset(
         fold_encoder: also fold the image encoder's batch norms; None means every
             preset except ``deltar-official`` (whose parity fixture needs the
             encoder's arithmetic unchanged).
+        channels_last: channels-last decoder and head (changes rounding: for trained
+            weights; see :func:`~deltar.models.optimize.prepare_for_inference`).
 
     Returns:
         dict with preset, size ("HxW"), batch, threads, latency_ms_median,
@@ -122,19 +125,20 @@ def benchmark_preset(
     torch.set_num_threads(threads)
     try:
         return _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize,
-                           fold_encoder)
+                           fold_encoder, channels_last)
     finally:
         torch.set_num_threads(previous_threads)
 
 
-def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize, fold_encoder):
+def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize, fold_encoder,
+                channels_last):
     """The body of :func:`benchmark_preset` (thread count already set)."""
     torch.manual_seed(0)
     model = create_model(preset).eval()
     if fold_encoder is None:
         fold_encoder = preset != "deltar-official"
     if optimize:
-        prepare_for_inference(model, fold_encoder=fold_encoder)
+        prepare_for_inference(model, fold_encoder=fold_encoder, channels_last=channels_last)
     inputs = synthetic_inputs(height, width, batch)
     with torch.inference_mode():
         for _ in range(warmup):
@@ -168,6 +172,7 @@ def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize
         "params_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
         "optimized": optimize,
         "encoder_folded": bool(optimize and fold_encoder),
+        "channels_last": bool(optimize and channels_last),
         "load_avg_1min": load,
     }
 

@@ -92,9 +92,17 @@ def softmax_moments(logits: torch.Tensor, centres: torch.Tensor
     reference = centres.mean(dim=1, keepdim=True)
     shifted = centres - reference
     moments = torch.stack([torch.ones_like(shifted), shifted, shifted**2], dim=1)  # (B, 3, N)
-    totals = (moments @ weights.reshape(batch, bins, height * width)).reshape(
-        batch, 3, height, width
-    )
+    if weights.is_contiguous():
+        totals = (moments @ weights.reshape(batch, bins, height * width)).reshape(
+            batch, 3, height, width
+        )
+    else:
+        # Channels-last logits (from channels-last convolutions): the bins are the
+        # fastest axis, so (h w, N) @ (N, 3) reads them without a layout copy.
+        by_pixel = weights.permute(0, 2, 3, 1).reshape(batch, height * width, bins)
+        totals = (by_pixel @ moments.transpose(1, 2)).transpose(1, 2).reshape(
+            batch, 3, height, width
+        )
     mean_shift = totals[:, 1:2] / totals[:, 0:1]
     variance = totals[:, 2:3] / totals[:, 0:1] - mean_shift**2
     return mean_shift + reference[:, :, None, None], variance.clamp_min(0).sqrt()

@@ -79,7 +79,9 @@ def prepare_for_inference(
     Args:
         model: a :class:`~deltar.models.DeltarNet`.
         fold_encoder: also fold the image encoder's batch norms.
-        channels_last: convert the decoder's 4-D weights to channels-last layout.
+        channels_last: convert the decoder's and the head's 4-D weights to channels-last
+            layout (oneDNN's fast path, above all for the head's full-resolution
+            convolutions). Changes rounding like ``fold_encoder``: for trained weights.
 
     Returns:
         The same model, ready for ``torch.inference_mode()``.
@@ -94,4 +96,5 @@ def prepare_for_inference(
         fuse_conv_batch_norm(part)
     if channels_last:
         model.decoder.to(memory_format=torch.channels_last)
+        model.head.to(memory_format=torch.channels_last)
     return model
