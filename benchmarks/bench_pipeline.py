@@ -8,7 +8,7 @@ bare and end-to-end runs alternate so that load from other processes hits both a
 
     python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
         [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
-        [--backends torch onnx]
+        [--backends torch onnx] [--allow-spinning]
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def _decode(png: bytes) -> np.ndarray:
 
 
 def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeats: int,
-          workdir: Path) -> dict:
+          workdir: Path, allow_spinning: bool = False) -> dict:
     """Frames per second of the bare network and of predict() for one configuration."""
     height, width = size
     torch.manual_seed(0)
@@ -75,7 +75,8 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         start = time.perf_counter()
         export_onnx(model, path, height, width, overwrite=True)
         print(f"  exported {path.name} in {time.perf_counter() - start:.1f} s", flush=True)
-        estimator = DepthEstimator.from_onnx(path, num_threads=threads)
+        estimator = DepthEstimator.from_onnx(path, num_threads=threads,
+                                             allow_spinning=allow_spinning)
     else:
         estimator = DepthEstimator(model, weights=f"{preset} (random)")
     png, frame = _test_frame(height, width)
@@ -93,6 +94,8 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["deltar-lite", "deltar-official"])
     parser.add_argument("--sizes", nargs="+", default=["240x320", "480x640"])
     parser.add_argument("--backends", nargs="+", default=["torch", "onnx"])
+    parser.add_argument("--allow-spinning", action="store_true",
+                        help="let onnxruntime's idle threads busy-wait (its own default)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
@@ -106,7 +109,7 @@ def main() -> None:
                 for backend in args.backends:
                     print(f"{preset} {size_text} {backend} ...", flush=True)
                     rows.append(bench(preset, size, backend, args.threads, args.repeats,
-                                      Path(tmp)))
+                                      Path(tmp), args.allow_spinning))
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
              f"{'overhead':>9}"

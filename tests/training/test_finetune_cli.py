@@ -16,6 +16,7 @@ from deltar.training.run import build_system, read_history, train
 
 TINY_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
 TINY_MODEL = {"decoder_channels": [32, 32, 16, 16, 8], "head_channels": 16, "n_bins": 16,
+              "head": "bins",
               "design_size": [64, 96]}
 
 

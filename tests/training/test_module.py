@@ -15,6 +15,7 @@ from deltar.training.module import DeltarSystem, load_trained_model
 from deltar.training.run import AtomicCheckpointIO, read_history, train
 
 TINY_MODEL = {"decoder_channels": [32, 32, 16, 16, 8], "head_channels": 16, "n_bins": 16,
+              "head": "bins",
               "design_size": [64, 96]}
 
 

@@ -233,6 +233,9 @@ class OnnxDepthModel:
     Args:
         path: the ``.onnx`` file written by :func:`export_onnx`.
         num_threads: onnxruntime intra-op threads (its default when None).
+        allow_spinning: let onnxruntime's idle worker threads busy-wait for the next
+            run (its default). Off by default here: between runs the pipeline's own
+            work (decoding, resizing) needs those cores.
 
     Attributes:
         input_size: (H, W) fixed input size in pixels.
@@ -240,7 +243,8 @@ class OnnxDepthModel:
         grid: zones per side.
     """
 
-    def __init__(self, path: str | os.PathLike, num_threads: int | None = None) -> None:
+    def __init__(self, path: str | os.PathLike, num_threads: int | None = None,
+                 allow_spinning: bool = False) -> None:
         import onnxruntime as ort
 
         path = Path(path)
@@ -250,6 +254,8 @@ class OnnxDepthModel:
         if num_threads:
             options.intra_op_num_threads = int(num_threads)
             options.inter_op_num_threads = 1
+        if not allow_spinning:
+            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self.session = ort.InferenceSession(str(path), options,
                                                 providers=["CPUExecutionProvider"])

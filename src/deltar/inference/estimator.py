@@ -379,11 +379,16 @@ class DepthEstimator:
 
     @classmethod
     def from_onnx(cls, path: str | os.PathLike, num_threads: int | None = None,
-                  **kwargs: Any) -> DepthEstimator:
-        """An estimator running an exported ONNX model with onnxruntime (CPU)."""
+                  allow_spinning: bool = False, **kwargs: Any) -> DepthEstimator:
+        """An estimator running an exported ONNX model with onnxruntime (CPU).
+
+        ``num_threads`` and ``allow_spinning`` go to
+        :class:`~deltar.export.onnx.OnnxDepthModel`; ``kwargs`` to the constructor.
+        """
         from deltar.export.onnx import OnnxDepthModel
 
-        onnx_model = OnnxDepthModel(path, num_threads=num_threads)
+        onnx_model = OnnxDepthModel(path, num_threads=num_threads,
+                                    allow_spinning=allow_spinning)
         return cls(onnx_model=onnx_model, weights=f"onnx {path}", **kwargs)
 
     # ------------------------------------------------------------------ prediction
