@@ -284,3 +284,16 @@ def test_flip_average_is_mirror_equivariant(rng):
 def test_flip_average_needs_the_pytorch_backend():
     with pytest.raises(ValueError, match="flip_average"):
         DepthEstimator(onnx_model=object(), flip_average=True)
+
+
+def test_normalise_images_is_the_imagenet_formula(rng):
+    from deltar.inference.estimator import IMAGENET_MEAN, IMAGENET_STD, normalise_images
+
+    images = [_image(rng, 32, 64), _image(rng, 32, 64)]
+    out = normalise_images(images, (32, 64))
+    mean = np.asarray(IMAGENET_MEAN)[:, None, None]
+    std = np.asarray(IMAGENET_STD)[:, None, None]
+    for got, image in zip(out, images, strict=True):
+        expected = (image.transpose(2, 0, 1) / 255.0 - mean) / std
+        np.testing.assert_allclose(got, expected, atol=1e-5)
+    assert out.shape == (2, 3, 32, 64) and out.dtype == np.float32

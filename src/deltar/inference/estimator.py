@@ -172,10 +172,11 @@ def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int]) -> np.
             # keep pixel centres at integer coordinates, as scale_rects assumes.
             image = cv2.resize(image, (width, height),
                                interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        pixels = image.astype(np.float32)
-        pixels *= scale
-        pixels += offset
-        out[i] = pixels.transpose(2, 0, 1)
+        # Per channel on contiguous planes, written straight into the output: several
+        # times faster than converting the interleaved image and transposing it.
+        for channel, plane in enumerate(cv2.split(np.ascontiguousarray(image))):
+            np.multiply(plane, scale[channel], out=out[i, channel], dtype=np.float32)
+            out[i, channel] += offset[channel]
     return out
 
 
