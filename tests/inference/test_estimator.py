@@ -297,3 +297,28 @@ def test_normalise_images_is_the_imagenet_formula(rng):
         expected = (image.transpose(2, 0, 1) / 255.0 - mean) / std
         np.testing.assert_allclose(got, expected, atol=1e-5)
     assert out.shape == (2, 3, 32, 64) and out.dtype == np.float32
+
+
+def test_official_estimator_keeps_release_parity(tmp_path, parity_fixture_path):
+    """The estimator's network (batch norms folded) still reproduces the release."""
+    from deltar.models.benchmark import DEPTH_TOLERANCE_M, normalise_image
+
+    fixture = torch.load(parity_fixture_path, weights_only=False)
+    weights = tmp_path / "nyu.pt"
+    torch.save({k: v.float() for k, v in fixture["state_dict"].items()}, weights)
+    estimator = DepthEstimator.from_official(weights)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d)
+                   for m in estimator.model.decoder.modules())
+    case = fixture["cases"][0]
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)  # the fixture is reproduced with two or more threads
+    try:
+        depth, _ = estimator.run_network({
+            "image": normalise_image(torch.as_tensor(case["image_rgb_uint8"])),
+            "hypotheses": case["zone_samples_icdf16"][None].float(),
+            "zone_rects": case["zone_rects_yxyx"][None].float(),
+            "zone_valid": case["zone_valid"][None].bool()})
+    finally:
+        torch.set_num_threads(previous)
+    error = (depth[0, 0] - case["expected_depth_half_res"]).abs().max().item()
+    assert error < DEPTH_TOLERANCE_M

@@ -267,6 +267,10 @@ class DepthEstimator:
         sampling: hypothesis sampling for frames without a histogram ("icdf" or
             "uniform").
         weights: free text saying where the weights come from (shown by the CLI).
+        fold_batch_norms: fold the decoder's and distribution encoder's batch norms
+            into their convolutions, in place (faster; outputs change only by float
+            rounding, and the release's parity fixture still holds). Pass False to keep
+            a model you will go on training.
         flip_average: test-time augmentation: also run the left-right mirrored image
             with the mirrored zone layout and average the two depth maps (twice the
             network time; PyTorch backend only).
@@ -277,7 +281,8 @@ class DepthEstimator:
                  precision: str = "float32", input_size: tuple[int, int] | None = None,
                  intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
                  fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str = "icdf",
-                 weights: str = "unknown", flip_average: bool = False) -> None:
+                 weights: str = "unknown", fold_batch_norms: bool = True,
+                 flip_average: bool = False) -> None:
         import torch
 
         if (model is None) == (onnx_model is None):
@@ -315,7 +320,12 @@ class DepthEstimator:
         self.onnx_model = onnx_model
         self.model = None
         if model is not None:
-            self.model = model.eval().to(device=self.device, dtype=self.dtype)
+            model.eval()
+            if fold_batch_norms:
+                from deltar.models.optimize import prepare_for_inference
+
+                prepare_for_inference(model)
+            self.model = model.to(device=self.device, dtype=self.dtype)
             self.num_hypotheses = int(model.config["num_hypotheses"])
         else:
             self.num_hypotheses = onnx_model.num_hypotheses

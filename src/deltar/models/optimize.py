@@ -87,14 +87,14 @@ def prepare_for_inference(
         The same model, ready for ``torch.inference_mode()``.
     """
     model.eval()
-    parts = [model.decoder]
-    if getattr(model, "distribution_encoder", None) is not None:
-        parts.append(model.distribution_encoder)
-    if fold_encoder:
-        parts.append(model.image_encoder)
-    for part in parts:
-        fuse_conv_batch_norm(part)
+    names = ["decoder", "distribution_encoder"] + (["image_encoder"] if fold_encoder else [])
+    # Parts a model lacks (ablations without a distribution branch, test doubles) are skipped.
+    for part in (getattr(model, name, None) for name in names):
+        if part is not None:
+            fuse_conv_batch_norm(part)
     if channels_last:
-        model.decoder.to(memory_format=torch.channels_last)
-        model.head.to(memory_format=torch.channels_last)
+        for name in ("decoder", "head"):
+            part = getattr(model, name, None)
+            if part is not None:
+                part.to(memory_format=torch.channels_last)
     return model
