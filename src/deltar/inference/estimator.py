@@ -17,6 +17,7 @@ Checkpoint format (``save_checkpoint`` / ``DepthEstimator.from_checkpoint``): a
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import warnings
@@ -45,8 +46,6 @@ SIZE_DIVISOR = 32
 PRECISIONS = ("float32", "float16", "bfloat16")
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-#: Distance used to place zones when no zone of the frame is valid (metres).
-FALLBACK_ZONE_DEPTH_M = 2.0
 
 
 @dataclass
@@ -121,16 +120,15 @@ def nominal_zone_rects(frame: ZoneFrame, height: int, width: int,
     Returns:
         (Z, 4) float32 rectangles (y0, x0, y1, x1) in image pixels.
     """
-    intr = intrinsics.scaled(height, width)
-    return zone_rects(intr, frame.grid, fov_deg=fov_deg, depth_m=_placement_depths(frame))
+    # With the identity extrinsic there is no parallax: the layout does not depend on
+    # the zone depths, so it is computed once per image size and grid.
+    return _nominal_layout(intrinsics, frame.grid, tuple(fov_deg), height, width).copy()
 
 
-def _placement_depths(frame: ZoneFrame) -> np.ndarray:
-    """Per-zone distance used to place the zones: the mean, or the median of valid means."""
-    mean, _, valid = frame.flat()
-    usable = valid & (mean > 0)
-    fill = float(np.median(mean[usable])) if usable.any() else FALLBACK_ZONE_DEPTH_M
-    return np.where(usable, mean, fill).astype(np.float64)
+@functools.lru_cache(maxsize=32)
+def _nominal_layout(intrinsics: CameraIntrinsics, grid: int, fov_deg: tuple[float, float],
+                    height: int, width: int) -> np.ndarray:
+    return zone_rects(intrinsics.scaled(height, width), grid, fov_deg=fov_deg, depth_m=1.0)
 
 
 def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
