@@ -18,6 +18,8 @@ def test_demo_writes_scenes_panels_and_metrics(tmp_path):
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
     assert {"nearest", "bilinear", "guided_filter", "colorization"} <= set(metrics)
+    # The bundled model runs beside the baselines, once (no test-time flip here).
+    assert "model:default" in metrics and not any("+flip" in name for name in metrics)
     for values in metrics.values():
         assert set(values) == METRIC_KEYS
         assert 0.0 <= values["d1"] <= 1.0 and values["rmse"] > 0
