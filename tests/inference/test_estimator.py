@@ -36,6 +36,15 @@ def _image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
     return rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
 
 
+def test_network_size_shrinks_large_images_to_the_design_area():
+    # 480x640 for a model trained at 256x320: about 81,920 pixels at the same aspect.
+    assert network_size(480, 640, design_size=(256, 320)) == (256, 320)
+    # 720x1280 for 480x640: scale sqrt(307200 / 921600) = 0.577 -> 415.7 x 739.0.
+    assert network_size(720, 1280, design_size=(480, 640)) == (416, 736)
+    # Never enlarged.
+    assert network_size(240, 320, design_size=(480, 640)) == network_size(240, 320)
+
+
 def test_network_size_rounds_to_nearest_multiple_of_32():
     assert network_size(480, 640) == (480, 640)
     assert network_size(60, 90) == (64, 96)

@@ -64,3 +64,15 @@ def test_default_beats_zone_interpolation_on_held_out_real_frames(held_out_sampl
     bilinear = _mean_metrics(create_predictor("bilinear"), held_out_samples)
     assert model["rel"] < bilinear["rel"], (model, bilinear)
     assert model["rmse"] < bilinear["rmse"], (model, bilinear)
+
+
+def test_default_runs_large_images_at_its_training_scale(rng):
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    estimator = DepthEstimator.from_checkpoint("default")
+    frame = ZoneFrame(np.full((8, 8), 2.0), np.full((8, 8), 0.05), np.ones((8, 8), bool))
+    image = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    inputs = estimator.prepare([image], [frame])
+    assert tuple(inputs["image"].shape[-2:]) == (256, 320)
+    assert estimator.predict(image, frame).depth_m.shape == (480, 640)

@@ -135,7 +135,7 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     """Batch-1 network inputs for images of ``height`` x ``width``, as the estimator makes.
 
     The network input size is :func:`~deltar.inference.estimator.network_size` of the
-    image size, and the zone layout is mapped to it with
+    image size (with the model's design size), and the zone layout is mapped to it with
     :func:`~deltar.inference.estimator.scale_rects`, exactly as ``DepthEstimator`` does.
 
     Args:
@@ -156,7 +156,8 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     frame = ZoneFrame(mean_m=np.full((grid, grid), 2.0), sigma_m=np.full((grid, grid), 0.05),
                       valid=np.ones((grid, grid), bool))
     rects = nominal_zone_rects(frame, height, width) if zone_rects is None else zone_rects
-    net_height, net_width = network_size(height, width)
+    net_height, net_width = network_size(height, width,
+                                         design_size=model.config.get("design_size"))
     rects = scale_rects(np.asarray(rects, dtype=np.float32), (height, width),
                         (net_height, net_width))
     zones = rects.shape[0]

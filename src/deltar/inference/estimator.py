@@ -68,18 +68,29 @@ class DepthPrediction:
     intrinsics: CameraIntrinsics
 
 
-def network_size(height: int, width: int, divisor: int = SIZE_DIVISOR) -> tuple[int, int]:
+def network_size(height: int, width: int, divisor: int = SIZE_DIVISOR,
+                 design_size: tuple[int, int] | None = None) -> tuple[int, int]:
     """The network input size for an image: each side rounded to the nearest multiple.
+
+    With ``design_size`` (the size a model was trained at), an image with more pixels is
+    first shrunk, keeping its aspect ratio, to about that many pixels: the model then
+    sees objects at the scale it learned (and runs faster). Smaller images are not
+    enlarged.
 
     Args:
         height, width: image size in pixels.
         divisor: required multiple (32 for DeltarNet).
+        design_size: optional (H, W) the model was designed and trained for, pixels.
 
     Returns:
         (height, width) in pixels, each a positive multiple of ``divisor``.
     """
     if height < 1 or width < 1:
         raise ValueError(f"image size must be positive, got {height}x{width}")
+    if design_size is not None:
+        scale = math.sqrt(design_size[0] * design_size[1] / (height * width))
+        if scale < 1.0:
+            height, width = height * scale, width * scale
     return (max(divisor, round(height / divisor) * divisor),
             max(divisor, round(width / divisor) * divisor))
 
@@ -258,7 +269,8 @@ class DepthEstimator:
         device: torch device for the PyTorch backend, e.g. ``"cpu"`` or ``"cuda"``.
         precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backend).
         input_size: fixed (H, W) network input size in pixels (multiples of 32); by
-            default each image's size rounded to the nearest multiple of 32.
+            default each image's size, shrunk to about the model's design size when
+            larger (see :func:`network_size`), rounded to multiples of 32.
         intrinsics: nominal camera intrinsics used without a calibration (scaled to
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
@@ -325,8 +337,11 @@ class DepthEstimator:
                 prepare_for_inference(model)
             self.model = model.to(device=self.device, dtype=self.dtype)
             self.num_hypotheses = int(model.config["num_hypotheses"])
+            design = model.config.get("design_size")
+            self.design_size = tuple(design) if design is not None else None
         else:
             self.num_hypotheses = onnx_model.num_hypotheses
+            self.design_size = None  # the exported input size is fixed
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -472,7 +487,7 @@ class DepthEstimator:
             if frame.grid != frames[0].grid:
                 raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
                                  f"{frames[0].grid}x{frames[0].grid}")
-        net_size = self.input_size or network_size(*size)
+        net_size = self.input_size or network_size(*size, design_size=self.design_size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)
             expected = (len(frames), frames[0].zone_count, 4)
