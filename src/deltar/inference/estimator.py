@@ -225,17 +225,12 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, 
         FileNotFoundError: no such file.
         ValueError: not a deltar checkpoint, or its weights do not fit the preset.
     """
-    import torch
 
+    from deltar.io.torch_file import read_torch_file
     from deltar.models import create_model
 
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises several types for corrupt files
-        raise ValueError(f"{path}: cannot read checkpoint: {err}") from err
+    payload = read_torch_file(path, "checkpoint", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a deltar checkpoint (expected a dict with format "
                          f"{CHECKPOINT_FORMAT!r}; official weights load with from_official)")

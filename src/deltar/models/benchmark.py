@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 
+from deltar.io.torch_file import read_torch_file
 from deltar.models.official import load_official_weights
 from deltar.models.optimize import prepare_for_inference
 from deltar.models.presets import create_model
@@ -31,25 +32,24 @@ def normalise_image(image_rgb_uint8: torch.Tensor) -> torch.Tensor:
     return (image - mean) / std
 
 
-def _peak_rss_mb() -> float | None:
-    """Peak resident memory of this process (VmHWM), MB; None where unavailable."""
+def _status_mb(field: str) -> float | None:
+    """A memory field of /proc/self/status (e.g. ``VmHWM``), MB; None where unavailable."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         return None
     return None
+
+
+def _peak_rss_mb() -> float | None:
+    """Peak resident memory of this process (VmHWM), MB; None where unavailable."""
+    return _status_mb("VmHWM")
 
 
 def _current_rss_mb() -> float | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
+    return _status_mb("VmRSS")
 
 
 def _reset_peak_rss() -> bool:
@@ -216,13 +216,8 @@ def check_official_fixture(path: str | Path, threads: int = 2) -> list[ParityRes
         ValueError: the file does not have the fixture layout.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"fixture not found: {path}")
-    try:
-        # The fixture holds plain tensors, strings and lists; no code objects.
-        fixture = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:
-        raise ValueError(f"cannot read fixture {path}: {error}") from error
+    # The fixture holds plain tensors, strings and lists; no code objects.
+    fixture = read_torch_file(path, "fixture", weights_only=False)
     if not isinstance(fixture, dict) or "state_dict" not in fixture or "cases" not in fixture:
         raise ValueError(f"{path}: expected a dict with 'state_dict' and 'cases'")
     model = create_model("deltar-official")

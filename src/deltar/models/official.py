@@ -17,6 +17,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from deltar.io.torch_file import read_torch_file
+
 # (pattern, replacement) applied in order, first match wins. Patterns are anchored.
 _ENCODER_RULES = [
     (r"img_encoder\.conv0\.0\.(.*)", r"image_encoder.backbone.conv_stem.\1"),
@@ -209,13 +211,8 @@ def load_official_weights(
         ValueError: the file holds no state dict, or (strict) keys do not match.
     """
     if isinstance(path_or_state_dict, (str, Path)):
-        path = Path(path_or_state_dict)
-        if not path.is_file():
-            raise FileNotFoundError(f"official weights not found: {path}")
-        try:
-            checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as error:
-            raise ValueError(f"cannot read official weights {path}: {error}") from error
+        checkpoint = read_torch_file(path_or_state_dict, "official weights",
+                                     weights_only=True)
     else:
         checkpoint = path_or_state_dict
     converted, report = convert_official_state_dict(unwrap_state_dict(checkpoint), model)

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from deltar.evaluation.metrics import METRIC_KEYS, EmptyFrameError, depth_metrics
+from deltar.io.torch_file import read_torch_file
 from deltar.models import create_model, scaled_si_loss
 from deltar.training.config import OptimConfig
 
@@ -230,15 +231,8 @@ def load_trained_model(path: str, map_location: str = "cpu") -> nn.Module:
 def _load_weights_file(path: str, map_location: str = "cpu",
                        model_config: dict[str, Any] | None = None,
                        ) -> tuple[nn.Module, dict[str, Any]]:
-    from pathlib import Path
-
-    file = Path(path)
-    if not file.is_file():
-        raise FileNotFoundError(f"weights file not found: {file}")
-    try:
-        data = torch.load(file, map_location=map_location, weights_only=False)
-    except Exception as err:
-        raise ValueError(f"cannot read weights file {file}: {err}") from err
+    data = read_torch_file(path, "weights file", weights_only=False,
+                           map_location=map_location)
     if isinstance(data, dict) and "deltar_model" in data and "state_dict" in data:
         recipe = data["deltar_model"]
         prefix = "model."
@@ -249,7 +243,7 @@ def _load_weights_file(path: str, map_location: str = "cpu",
         overrides = data.get("config", data.get("overrides", {}))
         recipe, state = {"preset": data["preset"], "overrides": overrides}, data["state_dict"]
     else:
-        raise ValueError(f"{file} is neither a deltar training checkpoint nor a model.pt "
+        raise ValueError(f"{path} is neither a deltar training checkpoint nor a model.pt "
                          "export")
     overrides = {**recipe.get("overrides", {}), **(model_config or {})}
     overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
