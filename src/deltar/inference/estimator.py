@@ -225,7 +225,6 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, 
         FileNotFoundError: no such file.
         ValueError: not a deltar checkpoint, or its weights do not fit the preset.
     """
-
     from deltar.io.torch_file import read_torch_file
     from deltar.models import create_model
 
