@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -13,12 +11,7 @@ from deltar.inference.estimator import DepthEstimator
 from deltar.models import create_model
 from deltar.sensor.zone_frame import ZoneFrame
 
-IMAGENET_MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
-IMAGENET_STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
 DEPTH_TOLERANCE_M = 1e-3
-PARITY_FIXTURE = Path(__file__).resolve().parents[2].parent / "shared" / "fixtures" / (
-    "official_parity_fixture.pt"
-)
 
 
 def _torch_outputs(model, inputs):
@@ -110,35 +103,30 @@ def test_missing_or_foreign_onnx_files(tmp_path):
         OnnxDepthModel(bad)
 
 
-def test_official_architecture_parity_on_fixture_case(tmp_path):
-    """deltar-official exported at 480x640 matches PyTorch on the fixture's inputs.
+def test_official_export_reproduces_the_release_outputs(tmp_path, parity_fixture):
+    """deltar-official with the fixture's weights, exported at 480x640, run by onnxruntime,
+    matches the release's own outputs on the case's inputs (calibrated rectangles running
+    past the image); the two other cases have other layout signatures, which the exported
+    model must refuse."""
+    from deltar.models import load_official_weights
+    from deltar.models.benchmark import EDGE_TOLERANCE_M, normalise_image
 
-    The fixture's own weights cannot be used for an ONNX comparison: with them the
-    network is numerically chaotic (a 1e-6 relative change of the input moves the
-    PyTorch output by metres), so any reordering of float operations, as onnxruntime
-    does, breaks a 1e-3 m comparison. The same architecture with seeded random
-    initialisation is well conditioned; the case's image, hypotheses and zone layout
-    (calibrated rectangles running past the image) are used as they are. The two
-    other cases have other layout signatures, which the exported model must refuse.
-    """
-    if not PARITY_FIXTURE.is_file():
-        pytest.fail(f"official parity fixture not found at {PARITY_FIXTURE}")
     torch.set_num_threads(2)
-    fixture = torch.load(PARITY_FIXTURE, weights_only=False)
-    torch.manual_seed(0)
-    model = create_model("deltar-official").eval()
-    case = fixture["cases"][0]
+    model = create_model("deltar-official")
+    assert load_official_weights(model, parity_fixture["state_dict"]).ok
+    model.eval()
+    case = parity_fixture["cases"][0]
     rects = case["zone_rects_yxyx"].float().numpy()
     path = export_onnx(model, tmp_path / "official.onnx", 480, 640, zone_rects=rects)
-    image = case["image_rgb_uint8"].permute(2, 0, 1)[None].float() / 255.0
-    inputs = ((image - IMAGENET_MEAN) / IMAGENET_STD, case["zone_samples_icdf16"][None].float(),
+    inputs = (normalise_image(case["image_rgb_uint8"]), case["zone_samples_icdf16"][None].float(),
               torch.from_numpy(rects)[None], case["zone_valid"][None].bool())
-    expected = _torch_outputs(model, inputs)
     runner = OnnxDepthModel(path, num_threads=2)
     got = runner.run(*(t.numpy() for t in inputs))
-    assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
-    assert np.abs(got["bin_edges"] - expected["bin_edges"]).max() < DEPTH_TOLERANCE_M
-    for other in fixture["cases"][1:]:
+    depth_error = np.abs(got["depth"][0, 0] - case["expected_depth_half_res"].numpy()).max()
+    edge_error = np.abs(got["bin_edges"][0] - case["expected_bin_edges"].numpy()).max()
+    assert depth_error < DEPTH_TOLERANCE_M
+    assert edge_error < EDGE_TOLERANCE_M
+    for other in parity_fixture["cases"][1:]:
         other_rects = other["zone_rects_yxyx"][None].float().numpy()
         assert layout_signature(other_rects, 8) != runner.signature
         with pytest.raises(ValueError, match="does not fit"):

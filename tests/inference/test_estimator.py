@@ -227,12 +227,13 @@ def test_zone_mean_depth_paints_valid_zones_only():
     np.testing.assert_allclose(out, expected)
 
 
-def test_from_official_loads_release_weights(tmp_path, parity_fixture_path, rng):
+def test_from_official_loads_release_weights(tmp_path, parity_fixture, rng):
     """The fixture's state dict (release names, float16) saved as a file loads cleanly."""
-    fixture = torch.load(parity_fixture_path, weights_only=False)
+    fixture = parity_fixture
     weights = tmp_path / "nyu.pt"
     torch.save({k: v.float() for k, v in fixture["state_dict"].items()}, weights)
-    estimator = DepthEstimator.from_official(weights)
+    # Unfolded, so the stem's weights are the file's own.
+    estimator = DepthEstimator.from_official(weights, fold_batch_norms=False)
     assert "deltar-official" in estimator.weights
     stem = estimator.model.image_encoder.backbone.conv_stem.weight
     np.testing.assert_array_equal(stem.detach().numpy(),
@@ -308,26 +309,29 @@ def test_normalise_images_is_the_imagenet_formula(rng):
     assert out.shape == (2, 3, 32, 64) and out.dtype == np.float32
 
 
-def test_official_estimator_keeps_release_parity(tmp_path, parity_fixture_path):
-    """The estimator's network (batch norms folded) still reproduces the release."""
-    from deltar.models.benchmark import DEPTH_TOLERANCE_M, normalise_image
+@pytest.mark.parametrize("threads", [1, 2, 4])
+def test_official_estimator_keeps_release_parity(tmp_path, parity_fixture, threads):
+    """The estimator's network (every inference optimisation on) reproduces the release."""
+    from deltar.models.benchmark import DEPTH_TOLERANCE_M, EDGE_TOLERANCE_M, normalise_image
 
-    fixture = torch.load(parity_fixture_path, weights_only=False)
     weights = tmp_path / "nyu.pt"
-    torch.save({k: v.float() for k, v in fixture["state_dict"].items()}, weights)
+    torch.save({k: v.float() for k, v in parity_fixture["state_dict"].items()}, weights)
     estimator = DepthEstimator.from_official(weights)
-    assert not any(isinstance(m, torch.nn.BatchNorm2d)
-                   for m in estimator.model.decoder.modules())
-    case = fixture["cases"][0]
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in estimator.model.modules())
     previous = torch.get_num_threads()
-    torch.set_num_threads(2)  # the fixture is reproduced with two or more threads
+    torch.set_num_threads(threads)
     try:
-        depth, _ = estimator.run_network({
-            "image": normalise_image(torch.as_tensor(case["image_rgb_uint8"])),
-            "hypotheses": case["zone_samples_icdf16"][None].float(),
-            "zone_rects": case["zone_rects_yxyx"][None].float(),
-            "zone_valid": case["zone_valid"][None].bool()})
+        for case in parity_fixture["cases"]:
+            inputs = {"image": normalise_image(case["image_rgb_uint8"]),
+                      "hypotheses": case["zone_samples_icdf16"][None].float(),
+                      "zone_rects": case["zone_rects_yxyx"][None].float(),
+                      "zone_valid": case["zone_valid"][None].bool()}
+            depth, _ = estimator.run_network(inputs)
+            error = (depth[0, 0] - case["expected_depth_half_res"]).abs().max().item()
+            assert error < DEPTH_TOLERANCE_M, f"{case['name']}: {error} m"
+            with torch.inference_mode():
+                edges = estimator.model(*inputs.values())["bin_edges"][0]
+            edge_error = (edges - case["expected_bin_edges"]).abs().max().item()
+            assert edge_error < EDGE_TOLERANCE_M, f"{case['name']}: edges {edge_error} m"
     finally:
         torch.set_num_threads(previous)
-    error = (depth[0, 0] - case["expected_depth_half_res"]).abs().max().item()
-    assert error < DEPTH_TOLERANCE_M

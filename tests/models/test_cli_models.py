@@ -3,17 +3,12 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import torch
 from typer.testing import CliRunner
 
 from deltar.cli.main import _register_commands, app
-
-PARITY_FIXTURE = Path(__file__).resolve().parents[2].parent / "shared" / "fixtures" / (
-    "official_parity_fixture.pt"
-)
 
 
 @pytest.fixture(scope="module")
@@ -23,12 +18,8 @@ def runner():
 
 
 @pytest.fixture(scope="module")
-def one_case_fixture():
-    if not PARITY_FIXTURE.is_file():
-        pytest.fail(f"official parity fixture not found at {PARITY_FIXTURE}")
-    fixture = torch.load(PARITY_FIXTURE, weights_only=False)
-    fixture["cases"] = fixture["cases"][:1]
-    return fixture
+def one_case_fixture(parity_fixture):
+    return {**parity_fixture, "cases": parity_fixture["cases"][:1]}
 
 
 def test_check_official_passes_and_fails(runner, one_case_fixture, tmp_path):

@@ -2,24 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 
 from deltar.models import create_model, load_official_weights
 from deltar.models.official import official_to_ours, unwrap_state_dict
 
-PARITY_FIXTURE = Path(__file__).resolve().parents[2].parent / "shared" / "fixtures" / (
-    "official_parity_fixture.pt"
-)
-
 
 @pytest.fixture(scope="module")
-def official_state():
-    if not PARITY_FIXTURE.is_file():
-        pytest.fail(f"official parity fixture not found at {PARITY_FIXTURE}")
-    return torch.load(PARITY_FIXTURE, weights_only=False)["state_dict"]
+def official_state(parity_fixture):
+    return parity_fixture["state_dict"]
 
 
 @pytest.fixture(scope="module")

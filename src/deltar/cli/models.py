@@ -23,7 +23,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 @app.command("check-official")
 def check_official_command(
     fixture: Path = typer.Argument(..., help="Parity fixture (.pt) with 'state_dict' and "
-                                   "'cases', as official_parity_fixture.pt."),
+                                   "'cases', as official_parity_fixture_v2.pt."),
     threads: int = typer.Option(2, help="torch threads."),
 ) -> None:
     """Check that deltar-official reproduces the release's outputs stored in FIXTURE."""
@@ -62,12 +62,11 @@ def bench_command(
     threads: int = typer.Option(2, min=1, help="torch threads."),
     repeats: int = typer.Option(10, min=1, help="Timed runs."),
     warmup: int = typer.Option(2, min=0, help="Untimed runs first."),
-    optimize: bool = typer.Option(True, help="Fold batch norms (decoder) before timing."),
-    fold_encoder: bool | None = typer.Option(None, "--fold-encoder/--no-fold-encoder",
-                                             help="Also fold the image encoder's batch norms "
-                                             "(default: every preset but deltar-official)."),
-    channels_last: bool = typer.Option(False, help="Channels-last decoder and head (for "
-                                       "trained weights; changes rounding)."),
+    optimize: bool = typer.Option(True, help="Apply the inference optimisations (folding, "
+                                  "layout) before timing."),
+    fold_encoder: bool = typer.Option(True, "--fold-encoder/--no-fold-encoder",
+                                      help="Also fold the image encoder's batch norms."),
+    channels_last: bool = typer.Option(True, help="Channels-last decoder and head."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the result as JSON."),
     overwrite: bool = typer.Option(False, help="Replace an existing --json file."),
 ) -> None:

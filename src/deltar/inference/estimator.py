@@ -271,10 +271,11 @@ class DepthEstimator:
         sampling: hypothesis sampling for frames without a histogram ("icdf" or
             "uniform").
         weights: free text saying where the weights come from (shown by the CLI).
-        fold_batch_norms: fold the decoder's and distribution encoder's batch norms
-            into their convolutions, in place (faster; outputs change only by float
-            rounding, and the release's parity fixture still holds). Pass False to keep
-            a model you will go on training.
+        fold_batch_norms: apply every inference optimisation in place: fold all batch
+            norms into their convolutions and put the decoder and head in channels-last
+            layout (faster; outputs change only by float rounding: the release's parity
+            fixture still holds, tested). Pass False to keep a model you will go on
+            training.
         flip_average: test-time augmentation: also run the left-right mirrored image
             with the mirrored zone layout and average the two depth maps (twice the
             network time; PyTorch backend only).

@@ -65,23 +65,21 @@ def fuse_conv_batch_norm(model: nn.Module) -> int:
 
 
 def prepare_for_inference(
-    model: nn.Module, fold_encoder: bool = False, channels_last: bool = False
+    model: nn.Module, fold_encoder: bool = True, channels_last: bool = True
 ) -> nn.Module:
-    """Eval mode and folded batch norms (and optionally channels-last), in place.
+    """Eval mode, every batch norm folded and channels-last layout, in place.
 
-    Folding changes results only by float rounding, but a network with random (or
-    badly conditioned) weights can amplify rounding: the release's parity fixture
-    amplifies a 1e-6 relative change of the image encoder's input into centimetres
-    of depth. So by default only the decoder and the distribution encoder are
-    folded (verified to keep parity); ``fold_encoder=True`` folds the image encoder
-    too, for trained weights.
+    Each step changes results only by float rounding: on the release's v2 parity
+    fixture (well-conditioned weights) all of them together move depth by at most
+    3.3e-5 m at 1, 2 or 4 threads, far inside the 1e-3 m parity tolerance (tested).
 
     Args:
         model: a :class:`~deltar.models.DeltarNet`.
-        fold_encoder: also fold the image encoder's batch norms.
+        fold_encoder: also fold the image encoder's batch norms (not only the decoder's
+            and the distribution encoder's).
         channels_last: convert the decoder's and the head's 4-D weights to channels-last
             layout (oneDNN's fast path, above all for the head's full-resolution
-            convolutions). Changes rounding like ``fold_encoder``: for trained weights.
+            convolutions).
 
     Returns:
         The same model, ready for ``torch.inference_mode()``.
