@@ -164,3 +164,62 @@ def test_batches_through_a_dataloader():
     assert batch["image"].shape == (4, 3, 32, 48)
     assert batch["hypotheses"].shape == (4, 9, 4)
     assert batch["zone_valid"].dtype == torch.bool
+
+
+def _two_plane_depth(height=48, width=64) -> np.ndarray:
+    depth = np.full((height, width), 1.5, dtype=np.float32)
+    depth[:, width // 2:] = 2.0
+    return depth
+
+
+def test_depth_scale_augmentation_scales_ground_truth_and_zones_together():
+    reader = _ListReader([_frame(_two_plane_depth())])
+    plain = SimulatedL5Dataset(reader, grid=4, fov_deg=(60.0, 45.0))[0]
+    scaled_set = SimulatedL5Dataset(reader, grid=4, fov_deg=(60.0, 45.0),
+                                    depth_scale_range=(0.5, 2.0))
+    item = scaled_set[0]
+    k = float(item["depth"].max() / plain["depth"].max())
+    assert 0.5 <= k <= 2.0 and abs(k - 1.0) > 1e-3
+    torch.testing.assert_close(item["depth"], plain["depth"] * k)
+    valid = plain["zone_valid"] & item["zone_valid"]
+    assert valid.sum() >= 8
+    # The simulator bins at 4 cm: zone means follow the scene within a bin.
+    torch.testing.assert_close(item["zone_mean_sigma"][valid, 0],
+                               plain["zone_mean_sigma"][valid, 0] * k, atol=0.04, rtol=0)
+    assert torch.equal(item["zone_rects"], plain["zone_rects"])
+    with pytest.raises(ValueError, match="depth_scale_range"):
+        SimulatedL5Dataset(reader, depth_scale_range=(0.0, 2.0))
+
+
+def test_layout_jitter_moves_the_rectangles_not_the_readings():
+    from deltar.data.simulated import perturb_layout
+
+    reader = _ListReader([_frame(_two_plane_depth())])
+    plain = SimulatedL5Dataset(reader, grid=4, fov_deg=(60.0, 45.0))[0]
+    jittered = SimulatedL5Dataset(reader, grid=4, fov_deg=(60.0, 45.0), layout_jitter_px=5.0,
+                                  layout_rotation_deg=2.0)[0]
+    assert torch.equal(jittered["zone_mean_sigma"], plain["zone_mean_sigma"])
+    shift = (jittered["zone_rects"] - plain["zone_rects"]).abs()
+    assert 0 < shift.max() <= 5.0 + 64 * np.sin(np.deg2rad(2.0))
+    # By hand: a 90 degree turn about the centre of a 10 x 10 image, then a shift.
+    rects = np.array([[0.0, 6.0, 2.0, 8.0]], dtype=np.float32)  # centre (1, 7)
+
+    class Fixed:
+        def uniform(self, low, high, size=None):
+            return np.array([1.0, -2.0]) if size == 2 else np.pi / 2 * (180 / np.pi)
+
+    out = perturb_layout(rects, (10, 10), 3.0, 90.0, Fixed())
+    # Centre (1, 7) -> relative (-3.5, 2.5) -> rotated (2.5, 3.5) -> (7, 8), shift (1, -2).
+    np.testing.assert_allclose(out, [[7.0, 5.0, 9.0, 7.0]], atol=1e-5)
+    assert perturb_layout(rects, (10, 10), 0.0, 0.0, Fixed()) is rects
+
+
+def test_normalisation_follows_the_given_contract():
+    reader = _ListReader([_frame(_two_plane_depth())])
+    imagenet = SimulatedL5Dataset(reader, grid=4)[0]
+    half = SimulatedL5Dataset(reader, grid=4, image_mean=(0.5, 0.5, 0.5),
+                              image_std=(0.5, 0.5, 0.5))[0]
+    rgb = imagenet["image_rgb"][10, 20].double() / 255.0
+    torch.testing.assert_close(half["image"][:, 10, 20].double(), (rgb - 0.5) / 0.5, atol=3e-3,
+                               rtol=0)
+    assert not torch.allclose(half["image"], imagenet["image"])

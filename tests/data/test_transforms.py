@@ -68,3 +68,20 @@ def test_bad_augmentation_settings():
     with pytest.raises(ValueError, match="flip_prob"):
         ImageAugmentation(flip_prob=1.5)
 
+
+
+def test_zoom_multiplies_the_focal_lengths_and_keeps_the_size():
+    image, depth = _inputs()
+    depth[:, 32:] = 3.0
+    intrinsics = CameraIntrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
+    aug = ImageAugmentation(max_rotation_deg=0.0, flip_prob=0.0, photometric_prob=0.0,
+                            max_zoom=2.0)
+    out = aug.apply(image, depth, intrinsics, np.random.default_rng(3))
+    assert out.image.shape[:2] == depth.shape and out.depth_m.shape == depth.shape
+    zoom = out.intrinsics.fx / intrinsics.fx
+    assert 1.0 < zoom <= 2.0
+    assert out.intrinsics.fy / intrinsics.fy == pytest.approx(zoom, rel=0.05)
+    # Depth values are resampled by nearest neighbour: no new distances appear.
+    assert set(np.unique(out.depth_m)) <= set(np.unique(depth))
+    with pytest.raises(ValueError, match="max_zoom"):
+        ImageAugmentation(max_zoom=0.5)

@@ -16,9 +16,9 @@ def lite_model():
 
 @pytest.fixture(scope="module")
 def lite_bins_model():
-    """deltar-lite with the release's bins head (the preset uses the zone-prior head)."""
+    """deltar-lite with the release's bins head and metric input (as the release)."""
     torch.manual_seed(0)
-    return create_model("deltar-lite", head="bins").eval()
+    return create_model("deltar-lite", head="bins", zone_scale_norm=False).eval()
 
 
 def _forward_backward(model, inputs):
@@ -163,3 +163,48 @@ def test_bad_constructor_arguments():
         create_model("deltar-lite", head="magic")
     with pytest.raises(ValueError, match="bad override"):
         create_model("deltar-lite", no_such_argument=1)
+
+
+@pytest.mark.parametrize("head", ["zone_prior", "bins"])
+def test_zone_scale_norm_takes_the_metric_scale_from_the_zones(network_inputs, head):
+    # Scaling every zone reading by k scales depth, uncertainty and bin edges by k: the
+    # image says where depth changes, the zones say how far.
+    torch.manual_seed(3)
+    model = create_model("deltar-lite", head=head).eval()
+    assert model.config["zone_scale_norm"]
+    with torch.no_grad():
+        if head == "zone_prior":  # a head that is not zero, so the image matters
+            model.head.logits_conv.weight.normal_(0.0, 0.5)
+    image, hypotheses, rects, valid = network_inputs(seed=4)
+    # Small readings (scale ~0.4 m) keep 2.5 * depth inside the clamp: the untrained
+    # bins head answers about half its range (0.001-10) times the scale.
+    hypotheses = hypotheses.clamp(max=1.0) * 0.5
+    with torch.inference_mode():
+        base = model(image, hypotheses, rects, valid)
+        for k in (0.4, 2.5):
+            scaled = model(image, hypotheses * k, rects, valid)
+            # Equivariant up to the output clamp to (min_depth, max_depth).
+            inside = (base["depth"] * k < 9.99) & (scaled["depth"] < 9.99)
+            assert inside.float().mean() > 0.5
+            torch.testing.assert_close(scaled["depth"][inside], base["depth"][inside] * k,
+                                       rtol=1e-4, atol=1e-5)
+            for key in ("uncertainty", "bin_edges"):
+                torch.testing.assert_close(scaled[key], base[key] * k, rtol=1e-4, atol=1e-5)
+    if head == "bins":  # the release's metric bins are not equivariant without it
+        metric = create_model("deltar-lite", head=head, zone_scale_norm=False).eval()
+        metric.load_state_dict(model.state_dict())
+        with torch.inference_mode():
+            a = metric(image, hypotheses, rects, valid)["depth"]
+            b = metric(image, hypotheses * 2.5, rects, valid)["depth"]
+        assert not torch.allclose(b, a * 2.5, rtol=1e-2)
+
+
+def test_zone_scale_is_the_lower_median_of_valid_zone_means():
+    from deltar.models.network import zone_scale
+
+    means = torch.tensor([[1.0, 3.0, 2.0, 9.0], [5.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0],
+                          [4.0, 1.0, 0.0, 0.0]])
+    valid = torch.tensor([[True, True, True, False], [True, False, False, False],
+                          [False] * 4, [True, True, False, False]])
+    hypotheses = means[..., None].expand(4, 4, 3)
+    torch.testing.assert_close(zone_scale(hypotheses, valid), torch.tensor([2.0, 5.0, 1.0, 1.0]))

@@ -34,7 +34,7 @@ def test_icdf_matches_scipy_normal_quantiles(rng):
                                 torch.from_numpy(valid), num_samples=16)
     assert samples.shape == (3, 64, 16) and samples.dtype == torch.float64
     expected = stats.norm.ppf(PROBS, loc=mean[..., None], scale=sigma[..., None])
-    np.testing.assert_allclose(samples.numpy(), expected, atol=1e-9)
+    np.testing.assert_allclose(samples.numpy(), np.maximum(expected, 0.0), atol=1e-9)
 
 
 def test_uniform_spans_three_sigma(rng):
@@ -44,7 +44,7 @@ def test_uniform_spans_three_sigma(rng):
                                 torch.ones(36, dtype=torch.bool), num_samples=16,
                                 method="uniform")
     expected = np.linspace(mean - 3 * sigma, mean + 3 * sigma, 16, axis=-1)
-    np.testing.assert_allclose(samples.numpy(), expected, atol=1e-6)
+    np.testing.assert_allclose(samples.numpy(), np.maximum(expected, 0.0), atol=1e-6)
 
 
 @pytest.mark.parametrize("method", ["icdf", "uniform"])
@@ -144,3 +144,13 @@ def test_histogram_bad_inputs_raise():
         sample_hypotheses_from_histogram(edges, -torch.ones(2, 4), torch.ones(2, dtype=torch.bool))
     with pytest.raises(ValueError, match="valid"):
         sample_hypotheses_from_histogram(edges, torch.ones(2, 4), torch.ones(3, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("method", ["icdf", "uniform"])
+def test_wide_zones_near_the_sensor_get_no_negative_distance(method):
+    # A real frame had a zone at 0.27 m with sigma 0.63 m: its lowest quantiles are < 0.
+    mean, sigma = torch.tensor([0.27, 2.0]), torch.tensor([0.63, 0.05])
+    samples = sample_hypotheses(mean, sigma, torch.tensor([True, True]), 16, method)
+    assert (samples >= 0).all() and samples[0, 0] == 0.0 and samples[0, -1] > 1.0
+    assert torch.all(samples[:, 1:] >= samples[:, :-1])
+    torch.testing.assert_close(samples[1].mean(), torch.tensor(2.0), atol=1e-6, rtol=0)

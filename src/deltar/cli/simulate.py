@@ -42,19 +42,35 @@ def simulate_command(
                                           "pixels, overriding the source's."),
     split: str = typer.Option("test", help="Split name written to data.json (and read "
                               "from a NYU split .json)."),
+    drop_fraction: float = typer.Option(0.0, min=0.0, max=1.0, help="Degraded signal: make "
+                                        "this fraction of each frame's valid zones invalid."),
+    bias_prob: float = typer.Option(0.0, min=0.0, max=1.0, help="Degraded signal: "
+                                    "probability that a remaining zone's mean is biased."),
+    bias_mean: float = typer.Option(0.10, help="Mean of the bias added to those zone "
+                                    "means, metres."),
+    bias_std: float = typer.Option(0.15, min=0.0, help="Standard deviation of that bias, "
+                                   "metres."),
+    seed: int = typer.Option(0, help="Seed of the degradation draws (frame i draws from "
+                             "(seed, i))."),
 ) -> None:
-    """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set."""
+    """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set.
+
+    With --drop-fraction / --bias-prob the readings are degraded as a real sensor's can
+    be (zones lost, biased means), reproducibly from --seed.
+    """
     import warnings
 
     import numpy as np
+    import torch
     from rich.progress import track
 
     from deltar.data.rgbd import RGBDFrame
     from deltar.data.sources import open_source
     from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
-    from deltar.sensor.augment import training_zone_rects
+    from deltar.sensor.augment import SignalAugmentation, training_zone_rects
     from deltar.sensor.geometry import zone_rects
     from deltar.sensor.simulate import simulate_zone_frame
+    from deltar.sensor.zone_frame import ZoneFrame
 
     if grid not in (4, 8):
         raise typer.BadParameter(f"--grid must be 4 or 8, got {grid}")
@@ -80,6 +96,9 @@ def simulate_command(
     if not indices:
         raise typer.BadParameter(f"no frames selected from {len(source)} (check --start, "
                                  "--stop, --step)")
+    degrade = None
+    if drop_fraction > 0 or bias_prob > 0:
+        degrade = SignalAugmentation(drop_fraction, bias_prob, bias_mean, bias_std)
     scene = Path(src).stem if not src.startswith("procedural:") else "procedural"
     valid_counts: list[int] = []
 
@@ -94,6 +113,12 @@ def simulate_command(
                 zone_px = max(1, round(56 * grid / 8 * width / 640))
                 rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
             zones = simulate_zone_frame(frame.depth_m, rects)
+            if degrade is not None:
+                generator = torch.Generator().manual_seed(seed * 1_000_003 + i)
+                mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m),
+                                             torch.from_numpy(zones.sigma_m),
+                                             torch.from_numpy(zones.valid), generator)
+                zones = ZoneFrame(mean.numpy(), sigma.numpy(), valid.numpy())
             valid_counts.append(int(np.count_nonzero(zones.valid)))
             yield ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
                               zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,

@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
 from deltar.data.transforms import ImageAugmentation, mirror_zone_rects, normalize_image
+from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 from deltar.sensor.augment import SignalAugmentation, training_zone_rects
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects
 from deltar.sensor.sampling import sample_hypotheses
@@ -54,6 +55,17 @@ class SimulatedL5Dataset(Dataset):
         num_hypotheses: K, depth hypotheses per zone.
         sampling: ``"icdf"`` or ``"uniform"`` (see ``deltar.sensor.sampling``).
         seed: base seed of all randomness.
+        depth_scale_range: optional (low, high): scale the whole scene's depth by a
+            factor drawn log-uniformly from it before the zones are simulated (a scaled
+            scene images the same, so ground truth and zones scale together; the
+            sensor's range limit still applies). None: no scaling.
+        layout_jitter_px: calibration error: the rectangles handed to the network (not
+            those the zones were simulated with) are shifted by one offset drawn
+            uniformly within +- this many pixels in x and y.
+        layout_rotation_deg: calibration error: the handed-out zone centres are also
+            rotated about the image centre by up to +- this many degrees.
+        image_mean, image_std: per-channel normalisation of ``image`` (the network's
+            input contract, ``model.config["image_mean"]`` / ``["image_std"]``).
 
     Items are dicts of tensors: ``image`` (3, H, W) float32 ImageNet-normalised,
     ``image_rgb`` (H, W, 3) uint8, ``depth`` (1, H, W) float32 metres (0 invalid),
@@ -78,6 +90,11 @@ class SimulatedL5Dataset(Dataset):
         num_hypotheses: int = 16,
         sampling: str = "icdf",
         seed: int = 0,
+        depth_scale_range: tuple[float, float] | None = None,
+        layout_jitter_px: float = 0.0,
+        layout_rotation_deg: float = 0.0,
+        image_mean: Sequence[float] = IMAGENET_MEAN,
+        image_std: Sequence[float] = IMAGENET_STD,
     ) -> None:
         if isinstance(zone_layout, str):
             if zone_layout not in ZONE_LAYOUTS:
@@ -98,6 +115,16 @@ class SimulatedL5Dataset(Dataset):
             raise ValueError(f"grid must be 4 or 8, got {grid}")
         if len(reader) == 0:
             raise ValueError("reader has no frames")
+        if depth_scale_range is not None and not 0 < depth_scale_range[0] <= depth_scale_range[1]:
+            raise ValueError(f"depth_scale_range must be (low, high) with 0 < low <= high, got "
+                             f"{depth_scale_range}")
+        if layout_jitter_px < 0 or layout_rotation_deg < 0:
+            raise ValueError("layout_jitter_px and layout_rotation_deg must be >= 0")
+        self.depth_scale_range = depth_scale_range
+        self.layout_jitter_px = float(layout_jitter_px)
+        self.layout_rotation_deg = float(layout_rotation_deg)
+        self.image_mean = tuple(float(v) for v in image_mean)
+        self.image_std = tuple(float(v) for v in image_std)
         self.reader = reader
         self.zone_layout = zone_layout
         self.grid = grid
@@ -155,9 +182,14 @@ class SimulatedL5Dataset(Dataset):
             flipped = False
         height, width = depth.shape
         rects = self._rects(height, width, intr, top, left, flipped, rng)
+        if self.depth_scale_range is not None:
+            low, high = np.log(self.depth_scale_range)
+            depth = depth * np.float32(np.exp(rng.uniform(low, high)))
 
         zones = simulate_zones(torch.from_numpy(np.ascontiguousarray(depth)),
                                torch.from_numpy(rects), self.simulator)
+        rects = perturb_layout(rects, (height, width), self.layout_jitter_px,
+                               self.layout_rotation_deg, rng)
         mean, sigma, valid = zones.mean_m, zones.sigma_m, zones.valid
         if self.signal_augmentation is not None:
             generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
@@ -165,7 +197,7 @@ class SimulatedL5Dataset(Dataset):
         hypotheses = sample_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
         image_rgb = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return {
-            "image": torch.from_numpy(normalize_image(image)),
+            "image": torch.from_numpy(normalize_image(image, self.image_mean, self.image_std)),
             "image_rgb": torch.from_numpy(image_rgb),
             "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
             "zone_mean_sigma": torch.stack([mean, sigma], dim=-1).to(torch.float32),
@@ -175,3 +207,35 @@ class SimulatedL5Dataset(Dataset):
             "intrinsics": torch.tensor([intr.fx, intr.fy, intr.cx, intr.cy],
                                        dtype=torch.float32),
         }
+
+
+def perturb_layout(rects: np.ndarray, image_size: tuple[int, int], max_offset_px: float,
+                   max_rotation_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """A zone layout as a slightly wrong calibration would place it.
+
+    Every rectangle keeps its size; its centre is rotated about the image centre by one
+    angle within +- ``max_rotation_deg`` and shifted by one offset within +-
+    ``max_offset_px`` in x and y (the same for all zones, as a calibration error is).
+
+    Args:
+        rects: (Z, 4) (y0, x0, y1, x1) in pixels.
+        image_size: (H, W) in pixels.
+        max_offset_px: largest shift, pixels.
+        max_rotation_deg: largest rotation, degrees.
+        rng: the random draws.
+
+    Returns:
+        (Z, 4) float32 rectangles (the input itself when both limits are 0).
+    """
+    if max_offset_px == 0 and max_rotation_deg == 0:
+        return rects
+    angle = np.deg2rad(rng.uniform(-max_rotation_deg, max_rotation_deg))
+    shift_y, shift_x = rng.uniform(-max_offset_px, max_offset_px, size=2)
+    centre_y, centre_x = (image_size[0] - 1) / 2, (image_size[1] - 1) / 2
+    rects = np.asarray(rects, dtype=np.float64)
+    cy, cx = (rects[:, 0] + rects[:, 2]) / 2 - centre_y, (rects[:, 1] + rects[:, 3]) / 2 - centre_x
+    new_y = centre_y + np.sin(angle) * cx + np.cos(angle) * cy + shift_y
+    new_x = centre_x + np.cos(angle) * cx - np.sin(angle) * cy + shift_x
+    half_h, half_w = (rects[:, 2] - rects[:, 0]) / 2, (rects[:, 3] - rects[:, 1]) / 2
+    return np.stack([new_y - half_h, new_x - half_w, new_y + half_h, new_x + half_w],
+                    axis=1).astype(np.float32)

@@ -14,10 +14,7 @@ import cv2
 import numpy as np
 
 from deltar.calibration.camera import CameraIntrinsics
-
-#: ImageNet statistics the network's input is normalised with (RGB order).
-IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 
 
 @dataclass
@@ -51,6 +48,10 @@ class ImageAugmentation:
         flip_prob: probability of a horizontal flip.
         photometric_prob: probability of applying gamma, brightness and colour jitter.
         gamma_range, brightness_range, color_range: uniform ranges of the jitter factors.
+        max_zoom: random zoom by a factor drawn uniformly from [1, max_zoom]: a window of
+            1 / zoom of each side, at a random place, is resized back to the full size,
+            which multiplies the focal lengths by the zoom (another camera's
+            intrinsics). 1 disables it.
     """
 
     crop_size: tuple[int, int] | None = None
@@ -60,8 +61,11 @@ class ImageAugmentation:
     gamma_range: tuple[float, float] = (0.9, 1.1)
     brightness_range: tuple[float, float] = (0.75, 1.25)
     color_range: tuple[float, float] = (0.9, 1.1)
+    max_zoom: float = 1.0
 
     def __post_init__(self) -> None:
+        if not 1.0 <= self.max_zoom <= 4.0:
+            raise ValueError(f"ImageAugmentation.max_zoom must be in [1, 4], got {self.max_zoom}")
         if self.crop_size is not None and (len(self.crop_size) != 2 or min(self.crop_size) < 1):
             raise ValueError(f"ImageAugmentation.crop_size must be (height, width) > 0, got "
                              f"{self.crop_size}")
@@ -100,6 +104,16 @@ class ImageAugmentation:
                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         top = left = 0
         intr = intrinsics
+        if self.max_zoom > 1.0:
+            zoom = float(rng.uniform(1.0, self.max_zoom))
+            win_h, win_w = max(1, round(height / zoom)), max(1, round(width / zoom))
+            y0 = int(rng.integers(0, height - win_h + 1))
+            x0 = int(rng.integers(0, width - win_w + 1))
+            img = cv2.resize(img[y0:y0 + win_h, x0:x0 + win_w], (width, height),
+                             interpolation=cv2.INTER_LINEAR)
+            depth = cv2.resize(depth[y0:y0 + win_h, x0:x0 + win_w], (width, height),
+                               interpolation=cv2.INTER_NEAREST)
+            intr = intr.cropped(y0, x0, win_h, win_w).scaled(height, width)
         if self.crop_size is not None:
             crop_h, crop_w = (int(v) for v in self.crop_size)
             if crop_h > height or crop_w > width:
@@ -155,6 +169,12 @@ def mirror_zone_rects(rects: np.ndarray, width: int, grid: int) -> np.ndarray:
     return out
 
 
-def normalize_image(image: np.ndarray) -> np.ndarray:
-    """(H, W, 3) RGB in [0, 1] -> (3, H, W) float32 normalised with ImageNet mean and std."""
-    return ((image - IMAGENET_MEAN) / IMAGENET_STD).transpose(2, 0, 1).astype(np.float32)
+def normalize_image(image: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> np.ndarray:
+    """(H, W, 3) RGB in [0, 1] -> (3, H, W) float32 ``(image - mean) / std``.
+
+    ``mean`` and ``std`` are per RGB channel, the network's input contract
+    (``model.config["image_mean"]`` / ``["image_std"]``); ImageNet's by default.
+    """
+    mean = np.asarray(mean, dtype=np.float32)
+    std = np.asarray(std, dtype=np.float32)
+    return ((image - mean) / std).transpose(2, 0, 1).astype(np.float32)

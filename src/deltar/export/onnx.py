@@ -242,6 +242,10 @@ class OnnxDepthModel:
         input_size: (H, W) fixed input size in pixels.
         num_hypotheses: K hypotheses per zone.
         grid: zones per side.
+        contract: the exported network's config (``deltar_config`` metadata): its input
+            contract (``image_mean``, ``image_std``, ``hypothesis_sampling``,
+            ``num_hypotheses``, ...); files without it get the release's ImageNet
+            normalisation and inverse-CDF sampling.
     """
 
     def __init__(self, path: str | os.PathLike, num_threads: int | None = None,
@@ -276,6 +280,11 @@ class OnnxDepthModel:
         shapes = {i.name: i.shape for i in self.session.get_inputs()}
         self.input_size = (int(shapes["image"][2]), int(shapes["image"][3]))
         self.num_hypotheses = int(shapes["hypotheses"][2])
+        try:
+            config = json.loads(meta.get("deltar_config", "{}"))
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: unreadable deltar_config metadata: {err}") from err
+        self.contract = {**config, "num_hypotheses": self.num_hypotheses}
 
     def check_layout(self, zone_rects: np.ndarray) -> None:
         """Raise ``ValueError`` if a (B, Z, 4) layout does not fit the exported one."""

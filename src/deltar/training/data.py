@@ -32,6 +32,7 @@ from deltar.data.transforms import (
     normalize_image,
 )
 from deltar.data.zju_l5 import ZJUL5Dataset
+from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 from deltar.sensor.augment import SignalAugmentation
 from deltar.sensor.sampling import sample_hypotheses
 from deltar.training.config import DataConfig, SourceConfig
@@ -167,12 +168,16 @@ class ZJUL5TrainingDataset(Dataset):
         sampling: ``icdf`` or ``uniform``.
         flip_prob: probability of a horizontal flip.
         seed: base seed; item ``i`` of epoch ``e`` draws from ``(seed, e, i)``.
+        image_mean, image_std: per-channel image normalisation (the network's contract).
     """
 
     def __init__(self, samples: Sequence, num_hypotheses: int = 16, sampling: str = "icdf",
-                 flip_prob: float = 0.0, seed: int = 0) -> None:
+                 flip_prob: float = 0.0, seed: int = 0,
+                 image_mean: Sequence[float] = IMAGENET_MEAN,
+                 image_std: Sequence[float] = IMAGENET_STD) -> None:
         self.samples, self.num_hypotheses, self.sampling = samples, num_hypotheses, sampling
         self.flip_prob, self.seed, self.epoch = flip_prob, int(seed), 0
+        self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
 
     def set_epoch(self, epoch: int) -> None:
         """Select the epoch whose random draws ``__getitem__`` reproduces."""
@@ -205,7 +210,8 @@ class ZJUL5TrainingDataset(Dataset):
         intrinsics = ([intr.fx, intr.fy, intr.cx, intr.cy] if intr is not None
                       else [float("nan")] * 4)
         return {
-            "image": torch.from_numpy(normalize_image(np.ascontiguousarray(image))),
+            "image": torch.from_numpy(normalize_image(np.ascontiguousarray(image),
+                                                      self.image_mean, self.image_std)),
             "image_rgb": torch.from_numpy(np.ascontiguousarray(
                 np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8))),
             "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
@@ -235,7 +241,10 @@ class IndexedConcat(ConcatDataset):
         return item
 
 
-def build_datasets(config: DataConfig, seed: int = 0) -> tuple[IndexedConcat, IndexedConcat]:
+def build_datasets(config: DataConfig, seed: int = 0,
+                   image_mean: Sequence[float] = IMAGENET_MEAN,
+                   image_std: Sequence[float] = IMAGENET_STD,
+                   ) -> tuple[IndexedConcat, IndexedConcat]:
     """Training and validation datasets described by a data config.
 
     Each ``train_val`` source is split into training frames and one contiguous held-out
@@ -246,6 +255,8 @@ def build_datasets(config: DataConfig, seed: int = 0) -> tuple[IndexedConcat, In
     Args:
         config: the data section of a training config.
         seed: base seed of all item randomness.
+        image_mean, image_std: per-channel image normalisation, the network's input
+            contract (``model.config["image_mean"]`` / ``["image_std"]``).
 
     Returns:
         ``(train, val)`` datasets of item dicts (see the module docstring).
@@ -262,7 +273,7 @@ def build_datasets(config: DataConfig, seed: int = 0) -> tuple[IndexedConcat, In
         image_aug = ImageAugmentation(
             crop_size=tuple(aug.crop) if aug.crop else None,
             max_rotation_deg=aug.max_rotation_deg, flip_prob=aug.flip_prob,
-            photometric_prob=aug.photometric_prob)
+            photometric_prob=aug.photometric_prob, max_zoom=aug.max_zoom)
     signal_aug = None
     if config.signal_augmentation.enabled:
         sig = config.signal_augmentation
@@ -279,12 +290,19 @@ def build_datasets(config: DataConfig, seed: int = 0) -> tuple[IndexedConcat, In
             signal_augmentation=signal_aug if train else None,
             image_augmentation=image_aug if train else None,
             num_hypotheses=config.num_hypotheses, sampling=config.sampling,
-            seed=source_seed)
+            seed=source_seed,
+            depth_scale_range=(tuple(config.depth_scale_range)
+                               if train and config.depth_scale_range else None),
+            layout_jitter_px=config.layout_jitter_px if train else 0.0,
+            layout_rotation_deg=config.layout_rotation_deg if train else 0.0,
+            image_mean=image_mean, image_std=image_std)
 
     train_parts: list[Dataset] = []
     val_parts: list[Dataset] = []
     for number, source in enumerate(config.sources):
         reader = open_source_reader(source)
+        if source.every > 1:
+            reader = SubsetReader(reader, range(0, len(reader), source.every))
         if len(reader) == 0:
             raise ValueError(f"data source {number} ({source.kind} {source.path}) has no frames")
         if source.role == "train_val":
@@ -304,7 +322,8 @@ def build_datasets(config: DataConfig, seed: int = 0) -> tuple[IndexedConcat, In
                 flip = config.image_augmentation.flip_prob if (
                     train and config.image_augmentation.enabled) else 0.0
                 parts.append(ZJUL5TrainingDataset(subset, config.num_hypotheses,
-                                                  config.sampling, flip, source_seed))
+                                                  config.sampling, flip, source_seed,
+                                                  image_mean, image_std))
             else:
                 parts.append(simulated(subset, train, source_seed))
     return IndexedConcat(train_parts), IndexedConcat(val_parts)
@@ -419,18 +438,24 @@ class DeltarDataModule(L.LightningDataModule):
     Args:
         config: data configuration.
         seed: base seed of data order and item randomness.
+        image_mean, image_std: per-channel image normalisation of the network's input
+            contract (``model.config["image_mean"]`` / ``["image_std"]``).
     """
 
-    def __init__(self, config: DataConfig, seed: int = 0) -> None:
+    def __init__(self, config: DataConfig, seed: int = 0,
+                 image_mean: Sequence[float] = IMAGENET_MEAN,
+                 image_std: Sequence[float] = IMAGENET_STD) -> None:
         super().__init__()
         self.config, self.seed = config, int(seed)
+        self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
         self.train_set: IndexedConcat | None = None
         self.val_set: IndexedConcat | None = None
 
     def setup(self, stage: str | None = None) -> None:
         """Open the sources and split them (once)."""
         if self.train_set is None:
-            self.train_set, self.val_set = build_datasets(self.config, self.seed)
+            self.train_set, self.val_set = build_datasets(self.config, self.seed,
+                                                          self.image_mean, self.image_std)
 
     def _rank_world(self) -> tuple[int, int]:
         trainer = self.trainer

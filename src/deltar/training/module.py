@@ -20,6 +20,11 @@ from torch import nn
 from deltar.evaluation.metrics import METRIC_KEYS, EmptyFrameError, depth_metrics
 from deltar.io.torch_file import read_torch_file
 from deltar.models import create_model, scaled_si_loss
+from deltar.models.checkpoint import (
+    CHECKPOINT_FORMAT_VERSION,
+    checkpoint_payload,
+    model_from_config,
+)
 from deltar.training.config import OptimConfig
 
 #: Keys of a batch the network consumes.
@@ -34,6 +39,9 @@ class DeltarSystem(L.LightningModule):
         model_overrides: constructor overrides of the preset.
         optim: loss / optimiser / schedule settings (defaults: the release's recipe).
         min_depth, max_depth: ground-truth range of the validation metrics, metres.
+        encoder_weights: pretrained image-encoder weights (see
+            :func:`deltar.models.create_model`); None: random.
+        allow_download: let timm download ImageNet weights no package ships.
 
     Attributes:
         schedule_steps: optimiser steps the OneCycle schedule spans. Set it before
@@ -43,12 +51,14 @@ class DeltarSystem(L.LightningModule):
 
     def __init__(self, preset: str = "deltar-lite", model_overrides: dict[str, Any] | None = None,
                  optim: OptimConfig | None = None, min_depth: float = 1e-3,
-                 max_depth: float = 10.0) -> None:
+                 max_depth: float = 10.0, encoder_weights: str | None = None,
+                 allow_download: bool = False) -> None:
         super().__init__()
         self.preset = preset
         self.model_overrides = dict(model_overrides or {})
         self.optim = optim or OptimConfig()
-        self.model = create_model(preset, **self.model_overrides)
+        self.model = create_model(preset, encoder_weights, allow_download=allow_download,
+                                  **self.model_overrides)
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
         self.schedule_steps: int | None = None
         self._val_sums = torch.zeros(len(METRIC_KEYS), dtype=torch.float64)
@@ -98,8 +108,10 @@ class DeltarSystem(L.LightningModule):
         target = batch["depth"]
         self._val_loss_sum += float(self.loss(output["depth"], target))
         self._val_batches += 1
+        # Resized as the estimator and `deltar evaluate` do, so training metrics are the
+        # metrics users see.
         pred = F.interpolate(output["depth"].float(), size=target.shape[-2:], mode="bilinear",
-                             align_corners=True)
+                             align_corners=False)
         for frame_pred, frame_gt in zip(pred[:, 0].cpu().numpy(), target[:, 0].cpu().numpy(),
                                         strict=True):
             try:
@@ -160,7 +172,8 @@ class DeltarSystem(L.LightningModule):
         """Store the model recipe and this process's RNG states next to the weights."""
         # The full constructor config, so the checkpoint survives changes to preset defaults.
         checkpoint["deltar_model"] = {"preset": self.preset,
-                                      "overrides": dict(self.model.config)}
+                                      "overrides": dict(self.model.config),
+                                      "format_version": CHECKPOINT_FORMAT_VERSION}
         # The legacy global numpy state is what third-party code (and timm) draws from.
         checkpoint["deltar_rng"] = {
             "torch": torch.get_rng_state(), "numpy": np.random.get_state(),  # noqa: NPY002
@@ -196,18 +209,10 @@ def print_metrics_table(metrics: dict[str, float], frames: int, epoch: int, step
 
 
 def export_model(model: nn.Module, preset: str) -> dict[str, Any]:
-    """The dict ``deltar train`` saves as ``model.pt``: a deltar checkpoint.
-
-    Same layout as :func:`deltar.inference.estimator.save_checkpoint` (format tag,
-    preset, the network's full constructor config, float32 state dict), so
-    ``DepthEstimator.from_checkpoint`` reads it and later changes to a preset's
-    defaults cannot change the saved architecture.
-    """
-    from deltar.inference.estimator import CHECKPOINT_FORMAT, CHECKPOINT_FORMAT_VERSION
-
-    return {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_FORMAT_VERSION,
-            "preset": preset, "config": dict(model.config),
-            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+    """The dict ``deltar train`` saves as ``model.pt``: a deltar checkpoint
+    (:func:`deltar.models.checkpoint.checkpoint_payload`) with the network's full config,
+    so later changes to a preset's defaults cannot change the saved architecture."""
+    return checkpoint_payload(model, preset)
 
 
 def load_trained_model(path: str, map_location: str = "cpu") -> nn.Module:
@@ -238,16 +243,18 @@ def _load_weights_file(path: str, map_location: str = "cpu",
         prefix = "model."
         state = {k[len(prefix):]: v for k, v in data["state_dict"].items()
                  if k.startswith(prefix)}
+        # The network's full config (with its input contract) since format version 2.
+        version = int(recipe.get("format_version", 1))
     elif isinstance(data, dict) and {"preset", "state_dict"} <= set(data):
         # "config" (full constructor config) in current exports, "overrides" in older ones.
         overrides = data.get("config", data.get("overrides", {}))
         recipe, state = {"preset": data["preset"], "overrides": overrides}, data["state_dict"]
+        version = int(data.get("format_version", 1))
     else:
         raise ValueError(f"{path} is neither a deltar training checkpoint nor a model.pt "
                          "export")
     overrides = {**recipe.get("overrides", {}), **(model_config or {})}
-    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
-    model = create_model(recipe["preset"], **overrides)
+    model = model_from_config(recipe["preset"], overrides, version)
     model.load_state_dict(state)
     return model, recipe
 

@@ -140,7 +140,10 @@ def load_run_config(run_dir: str | Path) -> TrainConfig:
 
 def build_system(config: TrainConfig) -> DeltarSystem:
     """The Lightning module with the configured network and initial weights."""
-    system = DeltarSystem(config.model.preset, config.model.overrides, config.optim)
+    fresh = not (config.model.official_weights or config.model.init_checkpoint)
+    system = DeltarSystem(config.model.preset, config.model.overrides, config.optim,
+                          encoder_weights=config.model.encoder_weights if fresh else None,
+                          allow_download=config.model.allow_download)
     if config.model.official_weights:
         from deltar.models import load_official_weights
 
@@ -223,7 +226,9 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         torch.set_num_threads(config.trainer.num_threads)
     L.seed_everything(config.seed, workers=True, verbose=False)
     system = build_system(config)
-    data = DeltarDataModule(config.data, config.seed)
+    # The image normalisation is part of the network's input contract.
+    data = DeltarDataModule(config.data, config.seed, image_mean=system.model.config["image_mean"],
+                            image_std=system.model.config["image_std"])
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)

@@ -1,0 +1,191 @@
+"""Leave-one-scene-out: does a recipe beat the classical methods on a room it never saw?
+
+For each of the four scenes in ../shared/data/rgbd: train the recipe (a training config,
+``configs/cross_scene_lite.yaml`` by default) on the three other scenes with
+``deltar train``, simulate the left-out scene's zones with ``deltar simulate`` (clean,
+and degraded: 20% of the valid zones dropped, 30% of the rest biased by
+N(+0.10, 0.15) m), and score every classical baseline and the trained model on it with
+``deltar evaluate``. Prints each fold's table and the mean over folds, with the model's
+REL and RMSE change against the best baseline of each fold.
+
+    python benchmarks/cross_scene.py --out cross-scene/          # all four folds
+    python benchmarks/cross_scene.py --out cs/ --folds floor --steps 100   # a quick look
+    python benchmarks/cross_scene.py --out cs/ --extra-model default     # + bundled model
+
+Each step's output is kept in ``--out`` (test sets, runs, metrics), so an interrupted
+protocol resumes where it stopped; a fold whose ``model.pt`` exists is not retrained.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+PROJECT = Path(__file__).resolve().parents[1]
+DATA = PROJECT.parent / "shared" / "data" / "rgbd"
+
+#: name -> (folder, intrinsics "fx,fy,cx,cy" or None for the folder's own, test-frame step).
+SCENES: dict[str, tuple[str, str | None, int]] = {
+    "kitchen": ("7scenes_redkitchen", None, 5),
+    "office": ("realsense_office", "615,615,320,240", 2),
+    "icl": ("icl_livingroom1", "525,525,319.5,239.5", 3),
+    "floor": ("realsense_floor", "617.25,617.55,317.39,245.98", 1),
+}
+#: The degraded signal of the protocol: deltar simulate options.
+DEGRADED = ["--drop-fraction", "0.2", "--bias-prob", "0.3", "--bias-mean", "0.10",
+            "--bias-std", "0.15"]
+BASELINES = ("median", "nearest", "bilinear", "bicubic", "guided_filter", "joint_bilateral",
+             "colorization")
+METRICS = ("d1", "rel", "rmse", "log10")
+
+
+def deltar(*args: str) -> None:
+    """Run one ``deltar`` command in this Python, failing loudly."""
+    command = [sys.executable, "-m", "deltar", *args]
+    print("$", " ".join(command[2:]), flush=True)
+    subprocess.run(command, check=True, cwd=PROJECT)
+
+
+def test_set(out: Path, scene: str, degraded: bool) -> Path:
+    """The left-out scene's simulated test set (data.json), made once."""
+    folder, intrinsics, step = SCENES[scene]
+    target = out / "sets" / (scene + ("-degraded" if degraded else ""))
+    index = target / "data.json"
+    if not index.is_file():
+        args = ["simulate", str(DATA / folder), str(target), "--step", str(step)]
+        if intrinsics:
+            args += ["--intrinsics", intrinsics]
+        deltar(*args, *(DEGRADED if degraded else []))
+    return index
+
+
+def fold_config(template: dict, scene: str, steps: int | None) -> dict:
+    """The recipe with the left-out scene removed from its training sources."""
+    config = copy.deepcopy(template)
+    folder = SCENES[scene][0]
+    kept = [s for s in config["data"]["sources"] if Path(str(s.get("path", ""))).name != folder]
+    train = [s for s in kept if s.get("role", "train_val") in ("train", "train_val")]
+    if not train:
+        raise SystemExit(f"the recipe has no training source besides {folder}")
+    if not any(s.get("role") == "val" for s in kept):
+        # Validation is a sanity check only: a few frames of the first training scene.
+        kept.append({**train[0], "role": "val", "every": 50})
+    config["data"]["sources"] = kept
+    config["name"] = f"{config.get('name', 'run')}-without-{scene}"
+    if steps is not None:
+        config["trainer"]["max_steps"] = steps
+    return config
+
+
+def train_fold(out: Path, template: dict, scene: str, steps: int | None) -> tuple[Path, float]:
+    """Train the fold's model (unless done); return its model.pt and the wall time (s)."""
+    run_dir = out / "runs" / f"without-{scene}"
+    model = run_dir / "model.pt"
+    if model.is_file():
+        return model, float("nan")
+    config_path = out / "configs" / f"without-{scene}.yaml"
+    config_path.parent.mkdir(parents=True, exist_ok=True)
+    config_path.write_text(yaml.safe_dump(fold_config(template, scene, steps), sort_keys=False))
+    started = time.monotonic()
+    # A folder left by an interrupted run resumes from its last checkpoint.
+    resume = ["--resume"] if (run_dir / "checkpoints" / "last.ckpt").is_file() else []
+    deltar("train", "-c", str(config_path), "--run-dir", str(run_dir), *resume)
+    return model, time.monotonic() - started
+
+
+def evaluate(out: Path, index: Path, models: dict[str, str], tag: str) -> dict[str, dict]:
+    """``deltar evaluate`` of every baseline and model on one set; {method: metrics}."""
+    result = out / "metrics" / f"{tag}.json"
+    if not result.is_file():
+        result.parent.mkdir(parents=True, exist_ok=True)
+        args = ["evaluate", "--data", str(index), "--json", str(result),
+                "--method", ",".join(BASELINES)]
+        for path in models.values():
+            args += ["--checkpoint", path]
+        deltar(*args)
+    renamed = {}
+    for name, metrics in json.loads(result.read_text()).items():
+        for label, path in models.items():
+            if name == f"model:{path}":
+                name = label
+        renamed[name] = metrics
+    return renamed
+
+
+def table(title: str, rows: dict[str, dict]) -> str:
+    """A plain-text table of d1 / REL / RMSE / log10, one row per method."""
+    lines = [title, f"{'method':<18}" + "".join(f"{m:>9}" for m in METRICS)]
+    for name, metrics in rows.items():
+        lines.append(f"{name:<18}" + "".join(f"{metrics[m]:>9.3f}" for m in METRICS))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", type=Path, default=PROJECT / "configs" /
+                        "cross_scene_lite.yaml", help="the recipe (a deltar train config)")
+    parser.add_argument("--out", type=Path, required=True, help="working folder")
+    parser.add_argument("--folds", nargs="+", choices=sorted(SCENES), default=list(SCENES),
+                        help="scenes to leave out (default: all four)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="override the recipe's trainer.max_steps")
+    parser.add_argument("--extra-model", action="append", default=[], metavar="NAME_OR_PATH",
+                        help="also evaluate this checkpoint (e.g. 'default') on every fold")
+    args = parser.parse_args(argv)
+    template = yaml.safe_load(args.config.read_text())
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    summary: dict[str, dict] = {}
+    for scene in args.folds:
+        model, seconds = train_fold(args.out, template, scene, args.steps)
+        models = {"trained": str(model)}
+        models.update({f"extra:{name}": name for name in args.extra_model})
+        summary[scene] = {"train_seconds": seconds}
+        for degraded in (False, True):
+            tag = scene + ("-degraded" if degraded else "")
+            rows = evaluate(args.out, test_set(args.out, scene, degraded), models, tag)
+            summary[scene]["degraded" if degraded else "clean"] = rows
+
+    report = []
+    for condition in ("clean", "degraded"):
+        mean_rows: dict[str, dict[str, float]] = {}
+        gains = {"rel": [], "rmse": []}
+        for scene in args.folds:
+            rows = summary[scene][condition]
+            report.append(table(f"\n[{condition}] left out: {scene}", rows))
+            for key in ("rel", "rmse"):
+                best = min(rows[b][key] for b in BASELINES if b in rows)
+                gains[key].append(1.0 - rows["trained"][key] / best)
+            for name, metrics in rows.items():
+                for metric in METRICS:
+                    mean_rows.setdefault(name, {}).setdefault(metric, 0.0)
+                    mean_rows[name][metric] += metrics[metric] / len(args.folds)
+        report.append(table(f"\n[{condition}] mean over folds {args.folds}", mean_rows))
+        best_mean = {k: min(mean_rows[b][k] for b in BASELINES if b in mean_rows)
+                     for k in ("rel", "rmse")}
+        report.append(
+            f"trained vs the best baseline (+ = trained better), per fold: REL "
+            f"{_percent(gains['rel'])}, RMSE {_percent(gains['rmse'])}; on the fold means: REL "
+            f"{100 * (1 - mean_rows['trained']['rel'] / best_mean['rel']):+.1f}%, RMSE "
+            f"{100 * (1 - mean_rows['trained']['rmse'] / best_mean['rmse']):+.1f}%")
+        summary[f"mean_{condition}"] = mean_rows
+    text = "\n".join(report)
+    print(text)
+    (args.out / "summary.txt").write_text(text + "\n")
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return 0
+
+
+def _percent(values: list[float]) -> str:
+    return "[" + ", ".join(f"{100 * v:+.1f}%" for v in values) + "]"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,123 @@
+"""The deltar checkpoint: a network's weights with its whole input contract.
+
+One format for every producer and reader (training's ``model.pt``, packaged and bundled
+models, the estimator, export and evaluation). A ``torch.save`` file holding::
+
+    {"format": "deltar.checkpoint", "format_version": 2,
+     "preset": "deltar-lite",            # the create_model preset it was built from
+     "config": {...},                    # DeltarNet's full constructor config
+     "state_dict": {...}}                # DeltarNet.state_dict(), tensors
+
+The config is the network's own :attr:`DeltarNet.config`, so it carries the input
+contract of the weights: ``image_mean`` / ``image_std`` (normalisation), ``design_size``
+(the resolution it was trained at), ``hypothesis_sampling`` and ``num_hypotheses``, and
+``zone_scale_norm``. Readers take these from the file, never from a preset's current
+defaults.
+
+Version 1 files (before the contract keys existed) may hold partial overrides; they are
+read with the semantics they were trained with: ImageNet normalisation and no zone
+scale normalisation.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD, DeltarNet
+from deltar.models.presets import create_model
+
+CHECKPOINT_FORMAT = "deltar.checkpoint"
+CHECKPOINT_FORMAT_VERSION = 2
+#: Contract keys added in version 2, with the values every version-1 network had.
+_VERSION_1_CONTRACT = {"image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD,
+                       "zone_scale_norm": False}
+
+
+def checkpoint_payload(model: DeltarNet, preset: str) -> dict[str, Any]:
+    """The dict a checkpoint file holds (see the module docstring), float32 weights on CPU.
+
+    Args:
+        model: the network.
+        preset: the ``create_model`` preset it was built from.
+    """
+    return {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_FORMAT_VERSION,
+            "preset": str(preset), "config": dict(model.config),
+            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+
+
+def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
+                    config: dict[str, Any] | None = None, *, overwrite: bool = False) -> Path:
+    """Write a model as a deltar checkpoint, atomically.
+
+    Args:
+        path: destination file (``.pt``).
+        model: the network; its full ``config`` is stored.
+        preset: the preset it was built from (a ``create_model`` name).
+        config: ignored (kept for callers of the version-1 signature: the network's own
+            full config is always stored).
+        overwrite: replace an existing file (default: ``FileExistsError``).
+
+    Returns:
+        The written path.
+    """
+    from deltar.io.atomic import atomic_path
+
+    del config
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        torch.save(checkpoint_payload(model, preset), tmp)
+    return Path(path)
+
+
+def model_from_config(preset: str, config: dict[str, Any], format_version: int = 2
+                      ) -> DeltarNet:
+    """Rebuild a network (random weights) from a checkpoint's preset and config.
+
+    Args:
+        preset: the ``create_model`` preset name.
+        config: the stored constructor config (lists become tuples).
+        format_version: the file's version; version 1 configs get the version-1 input
+            contract for keys they lack.
+
+    Raises:
+        ValueError: unknown preset or a config the network does not accept.
+    """
+    config = {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
+    if format_version < 2:
+        config = {**_VERSION_1_CONTRACT, **config}
+    return create_model(preset, **config)
+
+
+def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, Any]]:
+    """Read a deltar checkpoint and build its model.
+
+    Returns:
+        (model in eval mode, preset name, the model's full config).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a deltar checkpoint, or its weights do not fit its config.
+    """
+    from deltar.io.torch_file import read_torch_file
+
+    path = Path(path)
+    payload = read_torch_file(path, "checkpoint", weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a deltar checkpoint (expected a dict with format "
+                         f"{CHECKPOINT_FORMAT!r}; official weights load with from_official)")
+    version = payload.get("format_version")
+    if version not in (1, CHECKPOINT_FORMAT_VERSION):
+        raise ValueError(f"{path}: unsupported checkpoint format_version {version!r}")
+    for key in ("preset", "config", "state_dict"):
+        if key not in payload:
+            raise ValueError(f"{path}: checkpoint has no {key!r}")
+    preset = str(payload["preset"])
+    try:
+        model = model_from_config(preset, dict(payload["config"]), version)
+        model.load_state_dict(payload["state_dict"])
+    except (RuntimeError, ValueError) as err:
+        raise ValueError(f"{path}: weights do not fit preset {preset!r}: {err}") from err
+    return model.eval(), preset, dict(model.config)
