@@ -121,18 +121,18 @@ def build_inputs(root: Path) -> Path:
     good = _zone_dict(rng)
     zones("z.json", good)
     zones("z4.json", _zone_dict(rng, grid=4))
-    as_ints = dict(good, mean_m=[int(round(v)) or 1 for v in good["mean_m"]],
+    as_ints = dict(good, mean_m=[round(v) or 1 for v in good["mean_m"]],
                    valid=[1] * 64)
     zones("z_ints.json", as_ints)
     zones("z_strings.json", dict(good, mean_m=[str(v) for v in good["mean_m"]]))
     zones("z_bools.json", dict(good, mean_m=[True] * 64))
-    zones("z_nan.json", dict(good, mean_m=[float("nan")] + good["mean_m"][1:]))
-    zones("z_negative.json", dict(good, mean_m=[-1.0] + good["mean_m"][1:]))
+    zones("z_nan.json", dict(good, mean_m=[float("nan"), *good["mean_m"][1:]]))
+    zones("z_negative.json", dict(good, mean_m=[-1.0, *good["mean_m"][1:]]))
     zones("z_count.json", dict(good, mean_m=good["mean_m"][:36], sigma_m=good["sigma_m"][:36],
                                valid=good["valid"][:36], zone_count=36))
     zones("z_invalid.json", dict(good, mean_m=[0.0] * 64, sigma_m=[0.0] * 64,
                                  valid=[False] * 64))
-    zones("z_far.json", dict(good, mean_m=[1e6] + good["mean_m"][1:]))
+    zones("z_far.json", dict(good, mean_m=[1000000.0, *good["mean_m"][1:]]))
     zones("z_zero.json", dict(good, mean_m=[0.0] * 64))
     zones("z_ts.json", dict(good, timestamp_s="12.5"))
     zones("driver.json", {"distance_mm": [1500] * 64, "range_sigma_mm": [20] * 64,
@@ -341,32 +341,32 @@ def cases() -> list[Case]:
         Case("predict-zones-all-0-m", _predict(zones="z_zero.json"),
              needles=("z_zero.json", "range")),
         # ---- predict: options
-        Case("predict-threads-0", _predict() + ["--threads", "0"], needles=("--threads",)),
-        Case("predict-threads-negative", _predict() + ["--threads", "-1"],
+        Case("predict-threads-0", [*_predict(), "--threads", "0"], needles=("--threads",)),
+        Case("predict-threads-negative", [*_predict(), "--threads", "-1"],
              needles=("--threads",)),
-        Case("predict-device-cuda", _predict() + ["--device", "cuda"],
+        Case("predict-device-cuda", [*_predict(), "--device", "cuda"],
              needles=("--device", "cuda")),
-        Case("predict-device-bogus", _predict() + ["--device", "bogus"],
+        Case("predict-device-bogus", [*_predict(), "--device", "bogus"],
              needles=("--device", "bogus")),
-        Case("predict-precision-bogus", _predict() + ["--precision", "float64"],
+        Case("predict-precision-bogus", [*_predict(), "--precision", "float64"],
              needles=("precision", "float64")),
-        Case("predict-size-text", _predict() + ["--size", "big"], needles=("size", "big")),
-        Case("predict-size-not-32", _predict() + ["--size", "100x100"],
+        Case("predict-size-text", [*_predict(), "--size", "big"], needles=("size", "big")),
+        Case("predict-size-not-32", [*_predict(), "--size", "100x100"],
              needles=("size", "32")),
-        Case("predict-outputs-bogus", _predict() + ["--outputs", "jpeg"],
+        Case("predict-outputs-bogus", [*_predict(), "--outputs", "jpeg"],
              needles=("--outputs", "jpeg")),
         Case("predict-missing-zones-option", ["predict", "--image", "{in}/img.png", "--out",
                                               "{out}", *LITE], needles=("--zones",)),
-        Case("predict-two-models", _predict() + ["--checkpoint", "default"],
+        Case("predict-two-models", [*_predict(), "--checkpoint", "default"],
              needles=("only one of",)),
         Case("predict-preset-bogus", ["predict", "--image", "{in}/img.png", "--zones",
                                       "{in}/z.json", "--out", "{out}", "--preset", "bogus"],
              needles=("bogus",), early=False),
-        Case("predict-calib-missing", _predict() + ["--calib", "{in}/nocalib.json"],
+        Case("predict-calib-missing", [*_predict(), "--calib", "{in}/nocalib.json"],
              needles=("nocalib.json", "not found")),
-        Case("predict-calib-corrupt", _predict() + ["--calib", "{in}/calib_corrupt.json"],
+        Case("predict-calib-corrupt", [*_predict(), "--calib", "{in}/calib_corrupt.json"],
              needles=("calib_corrupt.json", "json")),
-        Case("predict-calib-resolution", _predict() + ["--calib", "{in}/calib_640.json"],
+        Case("predict-calib-resolution", [*_predict(), "--calib", "{in}/calib_640.json"],
              needles=("calib", "resolution")),
         Case("predict-out-is-file", ["predict", "--image", "{in}/img.png", "--zones",
                                      "{in}/z.json", "--out", "{in}/outfile", *LITE],
@@ -413,7 +413,7 @@ def cases() -> list[Case]:
         Case("predict-valid-int-values", _predict(zones="z_ints.json"), expect="ok"),
         Case("predict-valid-grey-image", _predict("grey.png"), expect="ok"),
         Case("predict-valid-rgba-image", _predict("rgba.png"), expect="ok"),
-        Case("predict-valid-calib", _predict() + ["--calib", "{in}/calib.json"], expect="ok"),
+        Case("predict-valid-calib", [*_predict(), "--calib", "{in}/calib.json"], expect="ok"),
         # ---- Python API
         Case("api-image-2d", _api("predict", np.zeros((48, 64), np.uint8),
                                   lambda v: v["frame"]), needles=("(H, W, 3)", "(48, 64)")),
