@@ -80,8 +80,8 @@ class DeltarGroup(TyperGroup):
         if not standalone_mode:
             return super().main(args=args, prog_name=prog_name, complete_var=complete_var,
                                 standalone_mode=False, **extra)
-        shown = warnings.showwarning
-        warnings.showwarning = _show_warning
+        formatter = warnings.formatwarning
+        warnings.formatwarning = _format_warning
         try:
             status = super().main(args=args, prog_name=prog_name,
                                   complete_var=complete_var, standalone_mode=False, **extra)
@@ -103,11 +103,11 @@ class DeltarGroup(TyperGroup):
             error_line(format_error(err))
             sys.exit(1)
         finally:
-            warnings.showwarning = shown
+            warnings.formatwarning = formatter
         sys.exit(status if isinstance(status, int) else 0)
 
 
-def _show_warning(message: Warning | str, category: type[Warning], filename: str,
-                  lineno: int, file: Any = None, line: str | None = None) -> None:
+def _format_warning(message: Warning | str, category: type[Warning], filename: str,
+                    lineno: int, line: str | None = None) -> str:
     """Library warnings as one ``warning:`` line (no source location, no code line)."""
-    warn(str(message))
+    return f"warning: {' '.join(str(message).split())}\n"
