@@ -17,8 +17,8 @@ the outcome:
   warning): a wrong answer;
 - ``misleading``: an error whose message lacks the key words or has forbidden ones.
 
-Besides the verdict, three flags are counted: ``late`` (the error came only after the
-network was built, for inputs that can be checked before), ``partial`` (an output or
+Besides the verdict, three flags are counted: ``late`` (a command's error came only
+after the network was built, for inputs that can be checked before), ``partial`` (an output or
 temporary file was left behind by a failed run) and ``modified`` (an input file
 changed). Cases use ``--preset deltar-lite`` (random weights) to stay fast; the sweep
 takes a few minutes on two cores. The script works on older versions of the package
@@ -623,7 +623,7 @@ def run_case(case: Case, inp: Path, out: Path, cli, models: Callable[[], int]) -
         verdict = "silent"
     else:
         verdict = "clear" if found and not forbidden else "misleading"
-    if failed and case.early and models() > before:
+    if failed and case.early and not callable(case.run) and models() > before:
         flags.append("late")
     if failed and any((out / p).exists() for p in case.no_output):
         flags.append("partial")

@@ -139,6 +139,6 @@ def evaluate(
     if json_out is not None:
         write_text_atomic(json_out, json.dumps(result.metrics, indent=2) + "\n",
                           overwrite=overwrite)
-        console.print(f"metrics written to {json_out}")
+        typer.echo(f"metrics written to {json_out}")
     if save_vis is not None:
-        console.print(f"visualisations written to {save_vis}")
+        typer.echo(f"visualisations written to {save_vis}")

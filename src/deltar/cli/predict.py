@@ -219,6 +219,17 @@ def predict_command(
     jobs, complete = plan_jobs(pairs, out, kinds, overwrite=overwrite,
                                skip_existing=skip_existing)
     calibration = _load_calibration(calib)
+    if first is not None:
+        from deltar.inference.estimator import check_image
+
+        check_image(first[0], str(image))
+        shape = first[0].shape[:2]
+        if calibration is not None and shape != (calibration.intrinsics.height,
+                                                 calibration.intrinsics.width):
+            intr = calibration.intrinsics
+            raise ValueError(f"{image} is {shape[0]}x{shape[1]} pixels but --calib {calib} is "
+                             f"for the calibrated resolution {intr.height}x{intr.width}; "
+                             "resize the image or recalibrate")
     if unpaired:
         warn(f"{len(unpaired)} files without a partner are left out: "
              f"{unpaired[:5]}{' ...' if len(unpaired) > 5 else ''}")
@@ -442,6 +453,7 @@ def wall_test_command(
 ) -> None:
     """Bias and jitter against a robust plane fit, per distance, network vs raw zones."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from deltar.cli.checks import output_folder
@@ -459,7 +471,7 @@ def wall_test_command(
         paths = write_results(out, results, title=estimator.weights, overwrite=overwrite)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         _fail(err)
-    table = Table(title=f"flat wall ({estimator.weights})")
+    table = Table(title=escape(f"flat wall ({estimator.weights})"))
     for column in ("distance m", "frames", "plane from", "net bias mm", "net jitter mm",
                    "zones bias mm", "zones jitter mm"):
         table.add_column(column, justify="right")
