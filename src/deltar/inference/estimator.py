@@ -623,9 +623,10 @@ class DepthEstimator:
         for i, frame in enumerate(frames):
             depth, spread = both[i, 0].astype(np.float32), both[i, 1].astype(np.float32)
             if frame.valid_count == 0:
-                warnings.warn(f"zone frame {i} has no valid zone: image-only estimate, its "
-                              "metric scale is unknown (uncertainty set to at least the "
-                              "depth)", RuntimeWarning, stacklevel=2)
+                which = "the zone frame" if single else f"zone frame {i} of the batch"
+                warnings.warn(f"{which} has no valid zone: image-only estimate, its metric "
+                              "scale is unknown (uncertainty set to at least the depth)",
+                              RuntimeWarning, stacklevel=2)
                 spread = np.maximum(spread, depth)
             results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
                                            zone_rects=inputs["image_rects"][i],

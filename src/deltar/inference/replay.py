@@ -112,13 +112,17 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     for pair in pairs[::int(every)]:
         if limit is not None and done >= limit:
             break
-        if skip_no_zones and pair.zone_frame.valid_count == 0:
+        if pair.zone_frame.valid_count == 0:
+            what = "skipped" if skip_no_zones else "image-only estimate"
             warnings.warn(f"{rec.folder}: zone frame at t = {pair.zone_frame.timestamp_s:.3f} s "
-                          "has no valid zone; skipped", stacklevel=2)
-            continue
+                          f"has no valid zone; {what}", stacklevel=2)
+            if skip_no_zones:
+                continue
         image = pair.load_color()
         reference = pair.load_depth() if pair.depth_path is not None else None
-        prediction = estimator.predict(image, pair.zone_frame, calib)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*no valid zone")  # said above
+            prediction = estimator.predict(image, pair.zone_frame, calib)
         done += 1
         yield ReplayItem(pair, image, prediction, reference)
 
