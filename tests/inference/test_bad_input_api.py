@@ -77,11 +77,11 @@ def test_wrong_image_types_say_what_is_expected(estimator, bad, words):
 
 
 def test_wrong_zone_frame_and_calibration_types(estimator, image):
-    with pytest.raises(ValueError, match="zone_frame must be a ZoneFrame .* got a dict"):
+    with pytest.raises(ValueError, match=r"zone_frame must be a ZoneFrame .* got a dict"):
         estimator.predict(image, {"mean_m": [1.0]})
-    with pytest.raises(ValueError, match="zone_frame must be a ZoneFrame .* got a NoneType"):
+    with pytest.raises(ValueError, match=r"zone_frame must be a ZoneFrame .* got a NoneType"):
         estimator.predict(image, None)
-    with pytest.raises(ValueError, match="calibration must be a RigCalibration .* got a dict"):
+    with pytest.raises(ValueError, match=r"calibration must be a RigCalibration .* got a dict"):
         estimator.predict(image, _frame(), calibration={"fx": 1.0})
     with pytest.raises(ValueError, match="list of ZoneFrame"):
         estimator.predict([image, image], _frame())
@@ -122,7 +122,7 @@ def test_npz_zone_file_with_string_arrays(tmp_path):
 
 def test_read_color_refuses_depth_maps_and_accepts_grey(tmp_path):
     Image.fromarray(np.full((8, 8), 1000, np.uint16)).save(tmp_path / "d.png")
-    with pytest.raises(ValueError, match="d.png is a single-channel 16-bit image"):
+    with pytest.raises(ValueError, match=r"d\.png is a single-channel 16-bit image"):
         read_color(tmp_path / "d.png")
     Image.fromarray(np.full((8, 8), 7, np.uint8)).save(tmp_path / "g.png")
     assert read_color(tmp_path / "g.png").shape == (8, 8, 3)
@@ -138,5 +138,5 @@ def test_torch_file_errors_are_short_and_safe(tmp_path):
     assert "safe loading refuses (it refers to argparse.Namespace)" in message
     assert "weights_only" not in message and "\n" not in message
     (tmp_path / "text.pt").write_text("e" * 50)
-    with pytest.raises(ValueError, match="text.pt: cannot read checkpoint: not a PyTorch file"):
+    with pytest.raises(ValueError, match=r"text\.pt: cannot read checkpoint: not a PyTorch file"):
         read_torch_file(tmp_path / "text.pt", "checkpoint", weights_only=True)
