@@ -157,9 +157,16 @@ def test_replay_every_zero_is_a_usage_error(tmp_path):
     _one_error_line(result, "'--every'")
 
 
-def test_evaluate_refuses_to_overwrite_json_without_overwrite(tmp_path):
+@pytest.fixture
+def zju_set(tmp_path):
+    """A one-frame ZJU-L5-layout set (its data.json)."""
     data = tmp_path / "set" / "data.json"
     assert _run(["simulate", "procedural:1:0:48x64", data.parent]).exit_code == 0
+    return data
+
+
+def test_evaluate_refuses_to_overwrite_json_without_overwrite(tmp_path, zju_set):
+    data = zju_set
     metrics = tmp_path / "metrics.json"
     metrics.write_text("keep\n")
     refused = _run(["evaluate", "--data", data, "--method", "nearest", "--json", metrics])
@@ -220,12 +227,10 @@ def test_simulate_and_demo_refuse_tiny_sizes_and_files(tmp_path):
     _one_error_line(result, f"OUT {blocker} is a file, not a folder")
 
 
-def test_evaluate_save_vis_pointing_at_a_file(tmp_path):
-    data = tmp_path / "set" / "data.json"
-    assert _run(["simulate", "procedural:1:0:48x64", data.parent]).exit_code == 0
+def test_evaluate_save_vis_pointing_at_a_file(tmp_path, zju_set):
     blocker = tmp_path / "vis.txt"
     blocker.write_text("x")
-    result = _run(["evaluate", "--data", data, "--method", "nearest", "--save-vis", blocker])
+    result = _run(["evaluate", "--data", zju_set, "--method", "nearest", "--save-vis", blocker])
     _one_error_line(result, f"--save-vis {blocker} is a file, not a folder")
 
 
