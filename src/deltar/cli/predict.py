@@ -75,7 +75,7 @@ def _check_model_options(preset, checkpoint, official, onnx, device, precision, 
                                or parsed[1] % SIZE_DIVISOR):
         raise typer.BadParameter(f"must be positive multiples of {SIZE_DIVISOR}, got {size!r}",
                                  param_hint="--size")
-    if onnx is None:
+    if onnx is None and device != "cpu":  # the CPU is always there: no torch import
         from deltar.cli.checks import torch_device
 
         torch_device(device)
