@@ -56,11 +56,12 @@ def test_status_filtering():
 
 
 def test_orientations_by_hand():
-    distance = np.arange(16) * 1000.0 + 1000  # driver zone i at (i + 1) metres
+    distance = np.arange(16) * 100.0 + 100  # driver zone i at (i + 1) decimetres
     sigma, status = np.ones(16), np.full(16, 5)
 
-    def grid_of(orientation):
-        return ZoneFrame.from_driver(distance, sigma, status, orientation=orientation).mean_m
+    def grid_of(orientation):  # in decimetres
+        return 10 * ZoneFrame.from_driver(distance, sigma, status,
+                                          orientation=orientation).mean_m
 
     driver = (np.arange(16) + 1.0).reshape(4, 4)
     np.testing.assert_allclose(grid_of(None), driver)

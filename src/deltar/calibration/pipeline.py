@@ -34,6 +34,8 @@ class CalibrationResult:
         distance_before_m: mean zone-to-cloud distance with the nominal extrinsics.
         distance_after_m: the same with the calibrated extrinsics.
         skipped: (frame name, reason) of frames that could not be used.
+        unpaired: zone frames left out because no colour/depth image lies within the
+            pairing tolerance (depth-image calibration only).
     """
 
     calibration: RigCalibration
@@ -42,6 +44,7 @@ class CalibrationResult:
     distance_before_m: float
     distance_after_m: float
     skipped: list[tuple[str, str]] = field(default_factory=list)
+    unpaired: int = 0
 
 
 def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
@@ -149,18 +152,32 @@ def calibrate_recording(
         depth_stride: use every n-th depth pixel per row and column.
 
     Returns:
-        ``CalibrationResult``; frames without a usable plane are listed in ``skipped``.
+        ``CalibrationResult``; frames without a usable plane are listed in ``skipped``,
+        zone frames without an image nearby are counted in ``unpaired``.
+
+    Raises:
+        ValueError: no zone frame has a depth image (and no SLAM map is given), too few
+            usable or too similar planes (the message says what to record).
     """
     use_slam = trajectory is not None
     if use_slam != (slam_points_world is not None):
         raise ValueError("give both the SLAM point cloud and the trajectory, or neither")
     meta = recording.meta
     fov = tuple(fov_deg) if fov_deg is not None else tuple(meta.fov_deg)
+    if len(fov) != 2 or not all(np.isfinite(v) and 0 < v < 180 for v in fov):
+        raise ValueError(f"sensor field of view must be two angles in (0, 180) degrees, got "
+                         f"{fov}")
     observations, skipped = [], []
+    unpaired = 0
     if use_slam:
         items = [(f, None) for f in recording.zone_frames()]
     else:
         items = [(p.zone_frame, p) for p in recording.pairs(tolerance_s)]
+        unpaired = len(recording.zone_frames()) - len(items)
+        if items and all(pair.depth_path is None for _, pair in items):
+            raise ValueError(f"{recording.folder}: no depth image within {tolerance_s} s of "
+                             "any zone frame (is depth/ missing or empty?): calibration needs "
+                             "depth images, or a SLAM map and trajectory")
     for frame, pair in items:
         name = f"t={frame.timestamp_s:.3f}s"
         try:
@@ -180,6 +197,24 @@ def calibrate_recording(
     if skipped:
         warnings.warn(f"{len(skipped)} of {len(items)} frames had no usable plane; first: "
                       f"{skipped[0][1]}", stacklevel=2)
-    return calibrate_observations(observations, nominal, meta.intrinsics, grid=meta.grid,
-                                  fov_deg=fov, sensor_model=meta.sensor_model,
-                                  skipped=skipped)
+    result = calibrate_observations(observations, nominal, meta.intrinsics, grid=meta.grid,
+                                    fov_deg=fov, sensor_model=meta.sensor_model,
+                                    skipped=skipped)
+    result.unpaired = unpaired
+    return result
+
+
+def other_roll_guesses(roll_deg: float) -> list[float]:
+    """The other quarter-turn rolls to try when a nominal roll guess fails, degrees.
+
+    A sensor is usually mounted in one of four quarter-turn orientations; a wrong one
+    (e.g. -90 instead of 90) can leave too few frames consistent with each other.
+
+    Returns:
+        ``roll_deg + 90``, ``+ 180`` and ``+ 270``, wrapped to (-180, 180].
+    """
+    out = []
+    for step in (90.0, 180.0, 270.0):
+        value = (roll_deg + step) % 360.0
+        out.append(value - 360.0 if value > 180.0 else value)
+    return out

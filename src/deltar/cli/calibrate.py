@@ -24,8 +24,8 @@ def calibrate_command(
     recording: Path = typer.Argument(..., help="Recording folder (meta.json, zones.jsonl, "
                                      "color/, depth/)."),
     out: Path = typer.Option(..., "--out", help="Calibration JSON to write."),
-    tolerance_s: float = typer.Option(0.02, help="Max time gap between a zone frame and its "
-                                      "images, seconds."),
+    tolerance_s: float = typer.Option(0.02, min=0.0, help="Max time gap between a zone "
+                                      "frame and its images, seconds."),
     fov: str = typer.Option("", help="Sensor field of view 'H,V' in degrees (default: the "
                             "recording's)."),
     nominal_roll_deg: float = typer.Option(90.0, help="Nominal roll of the sensor about the "
@@ -38,7 +38,12 @@ def calibrate_command(
     plot: Path | None = typer.Option(None, help="Folder for before/after zone pictures."),
     overwrite: bool = typer.Option(False, help="Replace an existing --out file."),
 ) -> None:
-    """Calibrate the ToF sensor against the camera from frames facing planes."""
+    """Calibrate the ToF sensor against the camera from frames facing planes.
+
+    Every option and output is checked before the (long) calibration; if the nominal
+    roll guess leaves no consistent set of frames, the other quarter turns are tried
+    and the one that works is suggested.
+    """
     import warnings
 
     import numpy as np
@@ -48,34 +53,53 @@ def calibrate_command(
     from deltar.calibration.pipeline import calibrate_recording
     from deltar.calibration.rig import RigCalibration
     from deltar.calibration.slam import read_ply_points, read_tum_trajectory
+    from deltar.cli.checks import finite, output_file, output_folder
     from deltar.io.recording import Recording
 
     if (slam_cloud is None) != (slam_trajectory is None):
         raise typer.BadParameter("give --slam-cloud and --slam-trajectory together")
     if out.exists() and not overwrite:
         raise typer.BadParameter(f"{out} exists; pass --overwrite to replace it")
+    output_file(out, "--out", overwrite)
     fov_deg = _floats(fov, 2, "--fov") if fov else None
-    nominal = nominal_extrinsics(nominal_roll_deg,
-                                 _floats(nominal_translation, 3, "--nominal-translation"))
-    try:
-        rec = Recording(recording)
-        trajectory = points = None
-        if slam_cloud is not None:
-            points = read_ply_points(slam_cloud)
-            trajectory = read_tum_trajectory(slam_trajectory)
+    if fov_deg is not None and not all(np.isfinite(v) and 0 < v < 180 for v in fov_deg):
+        raise typer.BadParameter(f"angles must be in (0, 180) degrees, got {fov!r}",
+                                 param_hint="--fov")
+    finite(nominal_roll_deg, "--nominal-roll-deg")
+    finite(tolerance_s, "--tolerance-s")
+    translation = _floats(nominal_translation, 3, "--nominal-translation")
+    if not all(np.isfinite(translation)):
+        raise typer.BadParameter(f"must be finite, got {nominal_translation!r}",
+                                 param_hint="--nominal-translation")
+    if plot is not None:
+        output_folder(plot, "--plot")
+        if not overwrite and plot.is_dir() and any(plot.glob("zones_*.png")):
+            raise FileExistsError(f"--plot {plot} already holds zone pictures; pass "
+                                  "--overwrite to replace them")
+    nominal = nominal_extrinsics(nominal_roll_deg, translation)
+    rec = Recording(recording)
+    trajectory = points = None
+    if slam_cloud is not None:
+        points = read_ply_points(slam_cloud)
+        trajectory = read_tum_trajectory(slam_trajectory)
+
+    def run(guess):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped frames are reported below
-            result = calibrate_recording(rec, nominal, tolerance_s=tolerance_s,
-                                         fov_deg=fov_deg, trajectory=trajectory,
-                                         slam_points_world=points)
-    except (ValueError, FileNotFoundError) as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(code=1) from None
+            return calibrate_recording(rec, guess, tolerance_s=tolerance_s, fov_deg=fov_deg,
+                                       trajectory=trajectory, slam_points_world=points)
+
+    try:
+        result = run(nominal)
+    except ValueError as err:
+        raise ValueError(f"{err}{_roll_hint(run, nominal_roll_deg, translation)}") from None
 
     calib = result.calibration
     calib.save(out, overwrite=overwrite)
     used, skipped = len(result.observations), len(result.skipped)
-    typer.echo(f"frames used: {used}, skipped: {skipped}")
+    typer.echo(f"frames used: {used}, skipped: {skipped}"
+               + (f", zone frames without an image within {tolerance_s} s: {result.unpaired}"
+                  if result.unpaired else ""))
     for name, reason in result.skipped[:5]:
         typer.echo(f"  skipped {name}: {reason}")
     delta = Rotation.from_matrix(calib.extrinsics.rotation @ nominal.rotation.T)
@@ -109,3 +133,23 @@ def calibrate_command(
                 plot / f"zones_{ns}.png", pair.load_color(), pair.zone_frame, nominal_calib,
                 calib, title=f"t = {pair.zone_frame.timestamp_s:.3f} s", overwrite=overwrite)
             typer.echo(f"wrote {path}")
+
+
+def _roll_hint(run, roll_deg: float, translation) -> str:
+    """After a failed calibration: which other quarter-turn roll guess works, if any."""
+    from deltar.calibration.extrinsic import nominal_extrinsics
+    from deltar.calibration.pipeline import other_roll_guesses
+
+    working = []
+    for roll in other_roll_guesses(roll_deg):
+        try:
+            result = run(nominal_extrinsics(roll, translation))
+        except ValueError:
+            continue
+        working.append((len(result.observations), -result.distance_after_m, roll, result))
+    if not working:
+        return ""
+    frames, _, roll, result = max(working)
+    return (f". The nominal roll guess --nominal-roll-deg {roll_deg:g} may be wrong: with "
+            f"--nominal-roll-deg {roll:g} this recording calibrates ({frames} frames, mean "
+            f"zone-to-cloud distance {100 * result.distance_after_m:.2f} cm)")

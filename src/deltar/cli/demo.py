@@ -58,14 +58,17 @@ def demo(
     OUT/metrics.json and OUT/sample (image.png, zones.json, calib.json: inputs for
     ``deltar predict``); prints the paper's metrics table.
     """
+    from deltar.cli.checks import image_size, output_folder
     from deltar.cli.evaluate import evaluate
     from deltar.cli.simulate import simulate_command
 
+    height, width = image_size(size, "--size", minimum=8)
+    output_folder(out, "OUT")
     scenes = out / "scenes"
     if (scenes / "data.json").exists():
         raise typer.BadParameter(f"{out} already holds a demo; choose another folder",
                                  param_hint="OUT")
-    simulate_command(src=f"procedural:{frames}:{seed}:{size}", out=scenes, grid=8,
+    simulate_command(src=f"procedural:{frames}:{seed}:{height}x{width}", out=scenes, grid=8,
                      layout="calibrated", start=0, stop=None, step=1, limit=None,
                      depth_scale=None, intrinsics=None, split="test")
     write_predict_sample(scenes / "data.json", out / "sample")
@@ -74,4 +77,4 @@ def demo(
     evaluate(method="all", checkpoint=bundled_model_names(), official=None,
              data=scenes / "data.json", split="test",
              json_out=out / "metrics.json", save_vis=out / "panels", limit=None,
-             min_depth=1e-3, max_depth=10.0, flip=False)
+             min_depth=1e-3, max_depth=10.0, flip=False, overwrite=False)

@@ -63,6 +63,8 @@ def evaluate(
     flip: bool = typer.Option(False, "--flip", help="Also evaluate each --checkpoint and "
                               "--official model with test-time flip averaging (reported "
                               "as 'model:NAME+flip')."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --json "
+                                   "file and --save-vis panels."),
 ) -> None:
     """Evaluate depth methods on a ZJU-L5-layout set and print the paper's metrics table.
 
@@ -71,8 +73,9 @@ def evaluate(
     """
     from rich.console import Console
     from rich.markup import escape
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from deltar.cli.checks import output_file, output_folder
+    from deltar.cli.progress import ProgressReport
     from deltar.data.zju_l5 import ZJUL5Dataset
     from deltar.evaluation.runner import create_predictor, evaluate_methods, resolve_method_names
     from deltar.evaluation.visualize import safe_filename, save_frame_panel
@@ -101,37 +104,41 @@ def evaluate(
     if json_out is not None and json_out.resolve() == Path(dataset.root / "data.json").resolve():
         raise typer.BadParameter("refusing to overwrite the input data.json",
                                  param_hint="--json")
+    if json_out is not None:
+        output_file(json_out, "--json", overwrite)
+    if save_vis is not None:
+        output_folder(save_vis, "--save-vis")
+        used = [save_vis / safe_filename(name) for name in names
+                if (save_vis / safe_filename(name)).is_dir()
+                and any((save_vis / safe_filename(name)).iterdir())]
+        if used and not overwrite:
+            raise FileExistsError(f"--save-vis: {used[0]} already holds panels; pass "
+                                  "--overwrite to replace them or choose another folder")
     try:
         predictors = {name: create_predictor(name) for name in names}
     except (FileNotFoundError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--checkpoint/--official") from err
     total = len(dataset) if limit is None else min(limit, len(dataset))
 
-    with Progress("[progress.description]{task.description}", BarColumn(),
-                  MofNCompleteColumn(), TimeRemainingColumn(), console=console,
-                  transient=True) as progress:
-        task = progress.add_task("evaluating", total=total)
+    with ProgressReport("evaluating", total=total) as progress:
 
         def on_frame(index, sample, predictions) -> None:
             if save_vis is not None:
                 for name, depth in predictions.items():
                     target = save_vis / safe_filename(name) / f"{safe_filename(sample.name)}.png"
                     save_frame_panel(target, sample, depth, name, max_depth_m=None)
-            progress.advance(task)
+            progress.advance()
 
-        try:
-            result = evaluate_methods(dataset, predictors, min_depth=min_depth,
-                                      max_depth=max_depth, limit=limit, on_frame=on_frame)
-        except (FileNotFoundError, ValueError) as err:
-            console.print(f"[red]error:[/red] {escape(str(err))}")
-            raise typer.Exit(1) from err
+        result = evaluate_methods(dataset, predictors, min_depth=min_depth,
+                                  max_depth=max_depth, limit=limit, on_frame=on_frame)
 
     title = escape(f"{data} (split {split}): {result.frames} frames")
     if result.skipped:
         title += f" ({result.skipped} without valid ground truth skipped)"
     console.print(_metrics_table(result, title))
     if json_out is not None:
-        write_text_atomic(json_out, json.dumps(result.metrics, indent=2) + "\n")
-        console.print(f"metrics written to {json_out}")
+        write_text_atomic(json_out, json.dumps(result.metrics, indent=2) + "\n",
+                          overwrite=overwrite)
+        typer.echo(f"metrics written to {json_out}")
     if save_vis is not None:
-        console.print(f"visualisations written to {save_vis}")
+        typer.echo(f"visualisations written to {save_vis}")

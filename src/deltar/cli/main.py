@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import typer
 
+from deltar.cli.errors import DeltarGroup
+
 app = typer.Typer(
     name="deltar",
+    cls=DeltarGroup,
     help="Dense metric depth from an RGB camera and a multi-zone ToF sensor (DELTAR).",
     no_args_is_help=True,
     pretty_exceptions_show_locals=False,

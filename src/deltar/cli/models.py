@@ -28,6 +28,7 @@ def check_official_command(
 ) -> None:
     """Check that deltar-official reproduces the release's outputs stored in FIXTURE."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from deltar.models.benchmark import (
@@ -40,7 +41,7 @@ def check_official_command(
         results = check_official_fixture(fixture, threads=threads)
     except (FileNotFoundError, ValueError) as error:
         raise typer.BadParameter(str(error)) from None
-    table = Table(title=f"deltar-official vs release outputs ({fixture.name})")
+    table = Table(title=escape(f"deltar-official vs release outputs ({fixture.name})"))
     table.add_column("case")
     table.add_column(f"max |depth error| m (tol {DEPTH_TOLERANCE_M:g})", justify="right")
     table.add_column(f"max |bin edge error| m (tol {EDGE_TOLERANCE_M:g})", justify="right")

@@ -25,18 +25,21 @@ DeviceOption = typer.Option("cpu", help="Torch device (PyTorch backend).")
 PrecisionOption = typer.Option("float32", help="float32, float16 or bfloat16 (PyTorch).")
 SizeOption = typer.Option(None, "--size", help="Network input size HxW (multiples of 32); "
                           "default: the image size rounded to multiples of 32.")
-ThreadsOption = typer.Option(None, "--threads", help="CPU threads (torch / onnxruntime).")
+ThreadsOption = typer.Option(None, "--threads", min=1,
+                             help="CPU threads (torch / onnxruntime).")
 FlipOption = typer.Option(False, "--flip", help="Test-time flip averaging: also run the "
                           "mirrored image and zones and average (2x network time; "
                           "PyTorch backends).")
 CalibOption = typer.Option(None, "--calib", help="Rig calibration JSON (deltar calibrate).")
+AllowNoZonesOption = typer.Option(False, "--allow-no-zones", help="Write frames without "
+                                  "any valid zone as image-only estimates (flagged; metric "
+                                  "scale unknown) instead of refusing them.")
 
 
 def _fail(err: Exception) -> None:
-    from rich.console import Console
+    from deltar.cli.errors import fail
 
-    Console(stderr=True).print(f"[red]error:[/red] {err}")
-    raise typer.Exit(1)
+    fail(err)
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
@@ -45,8 +48,37 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
     try:
         height, width = (int(v) for v in text.lower().split("x"))
     except ValueError as err:
-        raise typer.BadParameter(f"size must look like 480x640, got {text!r}") from err
+        raise typer.BadParameter(f"size must look like 480x640, got {text!r}",
+                                 param_hint="--size") from err
     return height, width
+
+
+def _check_model_options(preset, checkpoint, official, onnx, device, precision, size,
+                         flip=False) -> None:
+    """Usage checks of the model options that need no model (run before any work)."""
+    from deltar.inference.estimator import PRECISIONS, SIZE_DIVISOR
+
+    chosen = [name for name, value in (("--preset", preset), ("--checkpoint", checkpoint),
+                                       ("--official", official), ("--onnx", onnx))
+              if value is not None]
+    if len(chosen) > 1:
+        raise typer.BadParameter("give only one of --preset, --checkpoint, --official, "
+                                 f"--onnx (got {chosen})")
+    if flip and onnx is not None:
+        raise typer.BadParameter("--flip needs a PyTorch model (an ONNX file is fixed to "
+                                 "one zone layout)", param_hint="--flip")
+    if precision not in PRECISIONS:
+        raise typer.BadParameter(f"must be one of {', '.join(PRECISIONS)}, got {precision!r}",
+                                 param_hint="--precision")
+    parsed = _parse_size(size)
+    if parsed is not None and (min(parsed) < SIZE_DIVISOR or parsed[0] % SIZE_DIVISOR
+                               or parsed[1] % SIZE_DIVISOR):
+        raise typer.BadParameter(f"must be positive multiples of {SIZE_DIVISOR}, got {size!r}",
+                                 param_hint="--size")
+    if onnx is None and device != "cpu":  # the CPU is always there: no torch import
+        from deltar.cli.checks import torch_device
+
+        torch_device(device)
 
 
 def _build_estimator(preset, checkpoint, official, onnx, device, precision, size, threads,
@@ -55,27 +87,19 @@ def _build_estimator(preset, checkpoint, official, onnx, device, precision, size
 
     from deltar.inference.estimator import DepthEstimator
 
-    chosen = [name for name, value in (("--preset", preset), ("--checkpoint", checkpoint),
-                                       ("--official", official), ("--onnx", onnx))
-              if value is not None]
-    if not chosen:
+    _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+    if all(value is None for value in (preset, checkpoint, official, onnx)):
         # No model named: the model bundled with the package.
         from deltar.weights import bundled_model_names
 
         if "default" not in bundled_model_names():
             raise typer.BadParameter("this installation has no bundled model; give one of "
                                      "--preset, --checkpoint, --official, --onnx")
-        checkpoint, chosen = "default", ["--checkpoint"]
-    if len(chosen) != 1:
-        raise typer.BadParameter("give only one of --preset, --checkpoint, --official, "
-                                 f"--onnx (got {chosen})")
+        checkpoint = "default"
     if threads:
         torch.set_num_threads(int(threads))
     kwargs = {"input_size": _parse_size(size)}
     if flip:
-        if onnx is not None:
-            raise typer.BadParameter("--flip needs a PyTorch model (an ONNX file is fixed to "
-                                     "one zone layout)", param_hint="--flip")
         kwargs["flip_average"] = True
     if onnx is not None:
         return DepthEstimator.from_onnx(onnx, num_threads=threads, **kwargs)
@@ -86,13 +110,12 @@ def _build_estimator(preset, checkpoint, official, onnx, device, precision, size
         return DepthEstimator.from_official(official, **kwargs)
     import warnings
 
+    from deltar.cli.errors import warn
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         estimator = DepthEstimator.from_preset(preset, **kwargs)
-    from rich.console import Console
-
-    Console(stderr=True).print(f"[yellow]warning:[/yellow] preset {preset!r} has random, "
-                               "untrained weights: its depth is meaningless")
+    warn(f"preset {preset!r} has random, untrained weights: its depth is meaningless")
     return estimator
 
 
@@ -153,51 +176,85 @@ def predict_command(
     outputs: str = typer.Option(_DEFAULT_OUTPUTS, help="Comma list of png16 (uint16 mm), "
                                 "npy (float32 m), color, ply (point cloud), panel."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs (never inputs)."),
+    skip_existing: bool = typer.Option(False, "--skip-existing", help="Resume: keep the "
+                                       "outputs that exist, write only the missing ones."),
+    keep_going: bool = typer.Option(False, "--keep-going", help="Folder mode: report a "
+                                    "frame that fails and go on; the summary counts the "
+                                    "failures (exit code 1 if any)."),
+    allow_no_zones: bool = AllowNoZonesOption,
 ) -> None:
-    """Predict dense metric depth from RGB image(s) and ToF zone frame(s)."""
-    from rich.progress import track
+    """Predict dense metric depth from RGB image(s) and ToF zone frame(s).
 
-    from deltar.data.rgbd import read_color
-    from deltar.inference.outputs import OUTPUT_KINDS, write_prediction
-    from deltar.io.zone_file import load_zone_frame
+    Inputs, calibration and outputs are checked before the network is built.
+    """
+    from deltar.cli.checks import output_folder
+    from deltar.cli.errors import warn
+    from deltar.cli.jobs import no_zone_message, plan_jobs, run_jobs
+    from deltar.cli.progress import ProgressReport
 
     single = image is not None or zones is not None
     folder = images is not None or zones_dir is not None
     if single == folder or (single and (image is None or zones is None)) or \
             (folder and (images is None or zones_dir is None)):
         raise typer.BadParameter("give --image and --zones, or --images and --zones-dir")
+    if overwrite and skip_existing:
+        raise typer.BadParameter("give --overwrite or --skip-existing, not both")
     kinds = _parse_outputs(outputs)
-    try:
-        if single:
-            pairs, unpaired = [(image, zones)], []
-        else:
-            pairs, unpaired = pair_by_stem(images, zones_dir)
-            if not pairs:
-                raise ValueError(f"no image in {images} has a zone file with the same stem in "
-                                 f"{zones_dir}")
-        inputs = {p.resolve() for pair in pairs for p in pair}
-        for img_path, _ in pairs:
-            for kind in kinds:
-                target = (out / f"{img_path.stem}{OUTPUT_KINDS[kind]}").resolve()
-                if target in inputs:
-                    raise ValueError(f"output {target} would overwrite an input file")
-        estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                     size, threads, flip)
-        calibration = _load_calibration(calib)
-        for img_path, zone_path in track(pairs, description="predicting",
-                                         disable=len(pairs) < 2):
-            rgb = read_color(img_path)
-            frame = load_zone_frame(zone_path)
-            prediction = estimator.predict(rgb, frame, calibration)
-            write_prediction(out, img_path.stem, rgb, prediction, kinds=kinds,
-                             overwrite=overwrite,
-                             title=f"{img_path.name} ({estimator.weights})")
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        _fail(err)
+    _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+    first = None
+    if single:
+        from deltar.data.rgbd import read_color
+        from deltar.io.zone_file import load_zone_frame
+
+        pairs, unpaired = [(image, zones)], []
+        first = (read_color(image), load_zone_frame(zones))
+        if first[1].valid_count == 0 and not allow_no_zones:
+            raise ValueError(no_zone_message(zones, first[1]))
+    else:
+        pairs, unpaired = pair_by_stem(images, zones_dir)
+        if not pairs:
+            raise ValueError(f"no image in {images} has a zone file with the same stem in "
+                             f"{zones_dir}")
+    output_folder(out, "--out")
+    jobs, complete = plan_jobs(pairs, out, kinds, overwrite=overwrite,
+                               skip_existing=skip_existing)
+    calibration = _load_calibration(calib)
+    if first is not None:
+        from deltar.inference.estimator import check_image
+
+        check_image(first[0], str(image))
+        shape = first[0].shape[:2]
+        if calibration is not None and shape != (calibration.intrinsics.height,
+                                                 calibration.intrinsics.width):
+            intr = calibration.intrinsics
+            raise ValueError(f"{image} is {shape[0]}x{shape[1]} pixels but --calib {calib} is "
+                             f"for the calibrated resolution {intr.height}x{intr.width}; "
+                             "resize the image or recalibrate")
     if unpaired:
-        typer.echo(f"warning: {len(unpaired)} files without a partner were skipped: "
-                   f"{unpaired[:5]}{' ...' if len(unpaired) > 5 else ''}", err=True)
-    typer.echo(f"wrote {len(pairs)} prediction(s) to {out}")
+        warn(f"{len(unpaired)} files without a partner are left out: "
+             f"{unpaired[:5]}{' ...' if len(unpaired) > 5 else ''}")
+    if complete:
+        typer.echo(f"{complete} frame(s) already have every output (--skip-existing)")
+    if not jobs:
+        typer.echo(f"nothing to do: every output exists in {out}")
+        return
+    estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
+                                 size, threads, flip)
+    with ProgressReport("predicting", total=len(jobs),
+                        terminal=None if len(jobs) > 1 else False) as progress:
+        summary = run_jobs(jobs, estimator, out, calibration=calibration,
+                           overwrite=overwrite, keep_going=keep_going,
+                           allow_no_zones=allow_no_zones,
+                           progress=progress if len(jobs) > 1 else None,
+                           first=first if first is not None and jobs else None)
+    typer.echo(f"wrote {summary.written} prediction(s) to {out}"
+               + (f" ({summary.image_only} image-only)" if summary.image_only else ""))
+    if summary.failed:
+        from deltar.cli.errors import fail
+
+        fail(f"{len(summary.failed)} of {len(jobs)} frames failed (first: "
+             f"{summary.failed[0][0]}: {summary.failed[0][1]}); re-run with --skip-existing "
+             "after fixing them")
 
 
 def _simulated_source(spec: str):
@@ -233,13 +290,14 @@ def record_command(
     calib: Path | None = typer.Option(None, "--calib", help="Rig calibration giving the "
                                       "camera intrinsics (hardware mode)."),
     grid: int = typer.Option(8, help="Zones per side (4 or 8)."),
-    frames: int | None = typer.Option(None, help="Stop after this many camera frames."),
+    frames: int | None = typer.Option(None, min=1, help="Stop after this many camera "
+                                      "frames."),
     duration: float | None = typer.Option(None, help="Stop after this many seconds."),
     sensor_hz: float = typer.Option(15.0, help="Sensor rate (simulated mode)."),
 ) -> None:
     """Record camera frames and ToF zone frames with timestamps into a recording folder."""
-    from rich.progress import Progress
-
+    from deltar.cli.checks import finite, output_folder
+    from deltar.cli.progress import ProgressReport
     from deltar.inference.drivers import (
         HardwareRig,
         OpenCVCamera,
@@ -249,6 +307,12 @@ def record_command(
     )
     from deltar.inference.record import record
 
+    if grid not in (4, 8):
+        raise typer.BadParameter(f"must be 4 or 8, got {grid}", param_hint="--grid")
+    finite(sensor_hz, "--sensor-hz", positive=True)
+    if duration is not None:
+        finite(duration, "--duration", positive=True)
+    output_folder(out, "OUT")
     try:
         intrinsics = None
         if simulate is not None:
@@ -264,11 +328,10 @@ def record_command(
             rig = HardwareRig(OpenCVCamera(camera, (intrinsics.height, intrinsics.width)),
                               openers[sensor](grid=grid))
         total = frames or (len(rig.source) if simulate is not None else None)
-        with Progress(transient=True) as progress:
-            task = progress.add_task("recording", total=total)
+        with ProgressReport("recording", total=total, unit="images") as progress:
             summary = record(out, rig, max_frames=frames, duration_s=duration,
                              intrinsics=intrinsics,
-                             on_step=lambda s: progress.update(task, completed=s.images))
+                             on_step=lambda s: progress.update(s.images))
     except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
         _fail(err)
     typer.echo(f"recorded {summary.images} images, {summary.zone_frames} zone frames, "
@@ -292,36 +355,67 @@ def replay_command(
     threads: int | None = ThreadsOption,
     flip: bool = FlipOption,
     outputs: str = typer.Option("png16,npy,color", help="Comma list of output kinds."),
-    tolerance: float = typer.Option(0.02, help="Largest image-zone time offset, seconds."),
-    every: int = typer.Option(1, help="Use every N-th frame."),
-    limit: int | None = typer.Option(None, help="Stop after this many frames."),
+    tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
+                                    "seconds."),
+    every: int = typer.Option(1, min=1, help="Use every N-th frame."),
+    limit: int | None = typer.Option(None, min=1, help="Stop after this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
+    allow_no_zones: bool = AllowNoZonesOption,
 ) -> None:
-    """Pair zone frames with images by nearest timestamp and predict depth for each."""
-    from rich.progress import Progress
+    """Pair zone frames with images by nearest timestamp and predict depth for each.
 
+    Frames without any valid zone are skipped with a warning unless --allow-no-zones.
+    """
+    from deltar.cli.progress import ProgressReport
     from deltar.inference.replay import replay, replay_to_folder
 
     if (out is None) == (not show):
         raise typer.BadParameter("give --out DIR, or --show")
     kinds = _parse_outputs(outputs)
-    try:
-        estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                     size, threads, flip)
-        calibration = _load_calibration(calib)
-        if show:
-            _show_live(replay(recording, estimator, calibration=calibration,
-                              tolerance_s=tolerance, every=every, limit=limit))
-            return
-        with Progress(transient=True) as progress:
-            task = progress.add_task("replaying", total=None)
-            written = replay_to_folder(recording, estimator, out, kinds=kinds,
-                                       calibration=calibration, tolerance_s=tolerance,
-                                       every=every, limit=limit, overwrite=overwrite,
-                                       on_item=lambda _: progress.advance(task))
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        _fail(err)
+    _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+    total = _check_replay(recording, out, kinds, tolerance, every, limit, overwrite, show)
+    calibration = _load_calibration(calib)
+    estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
+                                 size, threads, flip)
+    if show:
+        _show_live(replay(recording, estimator, calibration=calibration,
+                          tolerance_s=tolerance, every=every, limit=limit,
+                          skip_no_zones=not allow_no_zones))
+        return
+    with ProgressReport("replaying", total=total) as progress:
+        written = replay_to_folder(recording, estimator, out, kinds=kinds,
+                                   calibration=calibration, tolerance_s=tolerance,
+                                   every=every, limit=limit, overwrite=overwrite,
+                                   on_item=lambda _: progress.advance(),
+                                   skip_no_zones=not allow_no_zones)
     typer.echo(f"wrote {len(written)} files to {out}")
+
+
+def _check_replay(recording: Path, out: Path | None, kinds, tolerance: float, every: int,
+                  limit: int | None, overwrite: bool, show: bool) -> int:
+    """Check a replay's recording and outputs before the model; return its frame count."""
+    import warnings
+
+    from deltar.cli.checks import display, existing_outputs, output_folder
+    from deltar.inference.outputs import OUTPUT_KINDS
+    from deltar.io.recording import Recording
+
+    if show:
+        display("--show")
+    rec = Recording(recording)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # replaying warns about skipped frames itself
+        selected = rec.pairs(tolerance_s=tolerance)[::every][:limit]
+    if out is not None:
+        resolved = out.resolve()
+        if resolved == rec.folder.resolve() or rec.folder.resolve() in resolved.parents:
+            raise ValueError(f"--out {out} is inside the recording {rec.folder}; choose a "
+                             "folder outside it")
+        output_folder(out, "--out")
+        if not overwrite:
+            existing_outputs(out / f"{p.color_path.stem}{OUTPUT_KINDS[k]}" for p in selected
+                             for k in kinds)
+    return len(selected)
 
 
 def _show_live(items) -> None:
@@ -330,7 +424,7 @@ def _show_live(items) -> None:
 
     from deltar.inference.outputs import colorize
 
-    for item in items:
+    for item in items:  # the display was checked before the model was built
         depth = colorize(item.prediction.depth_m, 0.0, 5.0)
         panel = np.concatenate([item.image, depth], axis=1)
         cv2.imshow("deltar replay", cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
@@ -353,16 +447,22 @@ def wall_test_command(
     precision: str = PrecisionOption,
     size: str | None = SizeOption,
     threads: int | None = ThreadsOption,
-    every: int = typer.Option(1, help="Use every N-th frame."),
-    limit: int | None = typer.Option(None, help="Frames per recording at most."),
+    every: int = typer.Option(1, min=1, help="Use every N-th frame."),
+    limit: int | None = typer.Option(None, min=1, help="Frames per recording at most."),
     overwrite: bool = typer.Option(False, help="Replace existing result files."),
 ) -> None:
     """Bias and jitter against a robust plane fit, per distance, network vs raw zones."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
+    from deltar.cli.checks import output_folder
     from deltar.inference.wall_test import wall_test, write_results
+    from deltar.io.recording import Recording
 
+    for folder in recordings:
+        Recording(folder)  # a missing or corrupt recording fails before the model
+    output_folder(out, "--out")
     try:
         estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
                                      size, threads)
@@ -371,7 +471,7 @@ def wall_test_command(
         paths = write_results(out, results, title=estimator.weights, overwrite=overwrite)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         _fail(err)
-    table = Table(title=f"flat wall ({estimator.weights})")
+    table = Table(title=escape(f"flat wall ({estimator.weights})"))
     for column in ("distance m", "frames", "plane from", "net bias mm", "net jitter mm",
                    "zones bias mm", "zones jitter mm"):
         table.add_column(column, justify="right")
@@ -415,11 +515,16 @@ def export_command(
     overwrite: bool = typer.Option(False, help="Replace an existing file."),
 ) -> None:
     """Export a model to ONNX (dynamic batch, fixed input size and zone layout)."""
+    from deltar.cli.checks import output_file
     from deltar.export.onnx import export_onnx
 
     if format != "onnx":
-        raise typer.BadParameter(f"--format must be onnx, got {format!r}")
+        raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
     height, width = _parse_size(size)
+    output_file(out, "--out", overwrite)
+    if layout_from is not None and not layout_from.exists():
+        raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "
+                                "recording folder")
     try:
         estimator = _build_estimator(preset, checkpoint, official, None, "cpu", "float32",
                                      None, None)

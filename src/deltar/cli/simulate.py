@@ -62,8 +62,9 @@ def simulate_command(
 
     import numpy as np
     import torch
-    from rich.progress import track
 
+    from deltar.cli.checks import output_folder
+    from deltar.cli.progress import ProgressReport
     from deltar.data.rgbd import RGBDFrame
     from deltar.data.sources import open_source
     from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
@@ -80,7 +81,8 @@ def simulate_command(
         raise typer.BadParameter("--start must be >= 0, --step and --limit >= 1")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "
-                                 "to write into it")
+                                 "to write into it", param_hint="OUT")
+    output_folder(out, "OUT")
     try:
         with warnings.catch_warnings():
             if intrinsics is not None:  # replaced below: no "assuming defaults" warning
@@ -102,29 +104,33 @@ def simulate_command(
     scene = Path(src).stem if not src.startswith("procedural:") else "procedural"
     valid_counts: list[int] = []
 
+    def simulated(frame: RGBDFrame, index: int) -> ZJUL5Sample:
+        height, width = frame.depth_m.shape
+        if layout == "calibrated":
+            rects = zone_rects(frame.intrinsics, grid)
+        else:
+            # The release simulates 8x8 zones of 56 px at 480x640; scale with the width.
+            zone_px = max(1, round(56 * grid / 8 * width / 640))
+            rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
+        zones = simulate_zone_frame(frame.depth_m, rects)
+        if degrade is not None:
+            generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
+            mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m),
+                                         torch.from_numpy(zones.sigma_m),
+                                         torch.from_numpy(zones.valid), generator)
+            zones = ZoneFrame(mean.numpy(), sigma.numpy(), valid.numpy())
+        valid_counts.append(int(np.count_nonzero(zones.valid)))
+        return ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
+                           zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
+                           zone_valid=zones.valid.reshape(-1),
+                           name=f"{scene}/{frame.name}".replace("\\", "/"),
+                           intrinsics=frame.intrinsics)
+
     def samples():
-        for i in track(indices, description=f"simulating {len(indices)} frames"):
-            frame: RGBDFrame = source[i]
-            height, width = frame.depth_m.shape
-            if layout == "calibrated":
-                rects = zone_rects(frame.intrinsics, grid)
-            else:
-                # The release simulates 8x8 zones of 56 px at 480x640; scale with the width.
-                zone_px = max(1, round(56 * grid / 8 * width / 640))
-                rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
-            zones = simulate_zone_frame(frame.depth_m, rects)
-            if degrade is not None:
-                generator = torch.Generator().manual_seed(seed * 1_000_003 + i)
-                mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m),
-                                             torch.from_numpy(zones.sigma_m),
-                                             torch.from_numpy(zones.valid), generator)
-                zones = ZoneFrame(mean.numpy(), sigma.numpy(), valid.numpy())
-            valid_counts.append(int(np.count_nonzero(zones.valid)))
-            yield ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
-                              zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
-                              zone_valid=zones.valid.reshape(-1),
-                              name=f"{scene}/{frame.name}".replace("\\", "/"),
-                              intrinsics=frame.intrinsics)
+        with ProgressReport("simulating", total=len(indices)) as progress:
+            for i in indices:
+                yield simulated(source[i], i)
+                progress.advance()
 
     index = write_zju_l5(out, samples(), split=split)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "

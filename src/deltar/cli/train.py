@@ -45,10 +45,6 @@ def train_command(
         return
     from deltar.training.run import train
 
-    try:
-        folder = train(cfg, run_dir, resume=resume is not None)
-    except (FileNotFoundError, FileExistsError) as err:
-        # Missing data / weights or an occupied run folder: a message, not a traceback.
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(1) from err
+    # Missing data / weights or an occupied run folder reach the user as one error line.
+    folder = train(cfg, run_dir, resume=resume is not None)
     typer.echo(f"run folder: {folder}")

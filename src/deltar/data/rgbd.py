@@ -71,9 +71,12 @@ class RGBDFrame:
 def read_color(path: str | Path) -> np.ndarray:
     """Decode a colour image file to (H, W, 3) uint8 RGB.
 
+    8-bit grey and palette images are expanded to RGB, an alpha channel is dropped.
+
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file is corrupt or truncated.
+        ValueError: the file is corrupt or truncated, or holds one channel of more than
+            8 bits (a 16-bit or float image is a depth map, not a colour image).
     """
     path = Path(path)
     if not path.is_file():
@@ -81,9 +84,17 @@ def read_color(path: str | Path) -> np.ndarray:
     try:
         with Image.open(path) as img:
             img.load()  # decode now: truncated files raise here, not later
+            if img.mode in _DEPTH_LIKE_MODES:
+                raise ValueError(f"{path} is a single-channel {_DEPTH_LIKE_MODES[img.mode]} "
+                                 "image (a depth map?), not a colour image")
             return np.asarray(img.convert("RGB"), dtype=np.uint8).copy()
     except (OSError, UnidentifiedImageError, SyntaxError) as err:
         raise ValueError(f"cannot decode colour image {path}: {err}") from err
+
+
+#: Pillow modes of single-channel images deeper than 8 bits, as depth maps are stored.
+_DEPTH_LIKE_MODES = {"I;16": "16-bit", "I;16B": "16-bit", "I;16L": "16-bit",
+                     "I;16N": "16-bit", "I": "32-bit integer", "F": "32-bit float"}
 
 
 def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:

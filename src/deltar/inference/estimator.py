@@ -51,6 +51,7 @@ class DepthPrediction:
         zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
         zone_frame: the zone frame the prediction used.
         intrinsics: camera intrinsics of the input image (calibrated or nominal).
+        zones_used: number of valid zones the network saw (None when unknown).
     """
 
     depth_m: np.ndarray
@@ -58,6 +59,16 @@ class DepthPrediction:
     zone_rects: np.ndarray
     zone_frame: ZoneFrame
     intrinsics: CameraIntrinsics
+    zones_used: int | None = None
+
+    @property
+    def image_only(self) -> bool:
+        """True when no zone was valid: the depth is a guess from the image alone.
+
+        Its metric scale is then unknown; :meth:`DepthEstimator.predict` sets the
+        uncertainty to at least the depth itself (100 %).
+        """
+        return self.zones_used == 0
 
 
 def network_size(height: int, width: int, divisor: int = SIZE_DIVISOR,
@@ -235,6 +246,9 @@ class DepthEstimator:
         flip_average: test-time augmentation: also run the left-right mirrored image
             with the mirrored zone layout and average the two depth maps (twice the
             network time; PyTorch backend only).
+        max_range_m: largest distance a valid zone may read, metres; by default each
+            frame's sensor model's range (4 m for the VL53L5CX/L8CX, see
+            :data:`~deltar.sensor.zone_frame.SENSOR_MAX_RANGE_M`).
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -243,7 +257,7 @@ class DepthEstimator:
                  intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
                  fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str | None = None,
                  weights: str = "unknown", fold_batch_norms: bool = True,
-                 flip_average: bool = False) -> None:
+                 flip_average: bool = False, max_range_m: float | None = None) -> None:
         import torch
 
         from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
@@ -279,6 +293,10 @@ class DepthEstimator:
         self.fov_deg = tuple(fov_deg)
         self.weights = weights
         self.flip_average = flip_average
+        if max_range_m is not None and not (math.isfinite(max_range_m) and max_range_m > 0):
+            raise ValueError(f"max_range_m must be a positive number of metres, got "
+                             f"{max_range_m!r}")
+        self.max_range_m = max_range_m
         self.onnx_model = onnx_model
         self.model = None
         if model is not None:
@@ -444,6 +462,10 @@ class DepthEstimator:
             if frame.grid != frames[0].grid:
                 raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
                                  f"{frames[0].grid}x{frames[0].grid}")
+            problem = frame.range_error(self.max_range_m)
+            if problem is not None:
+                raise ValueError(f"frames[{i}]: {problem}")
+        _check_calibration(calibration)
         net_size = self.input_size or network_size(*size, design_size=self.design_size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)
@@ -536,19 +558,22 @@ class DepthEstimator:
             zone_rects: optional (Z, 4) rectangles (or (B, Z, 4) for a batch) in pixels of
                 the input image, replacing the calibrated or nominal placement.
 
+        A frame with no valid zone gives an image-only estimate: its result has
+        ``zones_used == 0`` (``image_only`` True), its uncertainty is at least the depth
+        itself (the metric scale is unknown) and a ``RuntimeWarning`` says so.
+
         Returns:
             A :class:`DepthPrediction` (depth and uncertainty in metres at the input
             resolution), or a list of them for list input.
 
         Raises:
-            ValueError: bad image, zone frame or a calibration for another resolution.
+            ValueError: bad image, zone frame (e.g. valid zones outside the sensor's
+                range) or a calibration for another resolution.
         """
         import torch
         import torch.nn.functional as F
 
-        single = isinstance(image, np.ndarray) and np.asarray(image).ndim == 3
-        images = [image] if single else list(image)
-        frames = [zone_frame] if isinstance(zone_frame, ZoneFrame) else list(zone_frame)
+        single, images, frames = _batch_arguments(image, zone_frame)
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
@@ -558,11 +583,67 @@ class DepthEstimator:
         both = F.interpolate(torch.cat([depth, uncertainty], dim=1), size=size,
                              mode="bilinear", align_corners=False).cpu().numpy()
         intrinsics = self.image_intrinsics(size, calibration)
-        results = [DepthPrediction(depth_m=both[i, 0].astype(np.float32),
-                                   uncertainty_m=both[i, 1].astype(np.float32),
-                                   zone_rects=inputs["image_rects"][i], zone_frame=frames[i],
-                                   intrinsics=intrinsics) for i in range(len(images))]
+        results = []
+        for i, frame in enumerate(frames):
+            depth, spread = both[i, 0].astype(np.float32), both[i, 1].astype(np.float32)
+            if frame.valid_count == 0:
+                which = "the zone frame" if single else f"zone frame {i} of the batch"
+                warnings.warn(f"{which} has no valid zone: image-only estimate, its metric "
+                              "scale is unknown (uncertainty set to at least the depth)",
+                              RuntimeWarning, stacklevel=2)
+                spread = np.maximum(spread, depth)
+            results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
+                                           zone_rects=inputs["image_rects"][i],
+                                           zone_frame=frame, intrinsics=intrinsics,
+                                           zones_used=frame.valid_count))
         return results[0] if single else results
+
+
+_IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"
+
+
+def _describe(value: Any) -> str:
+    """A short description of a wrongly typed argument, with a hint where one helps."""
+    kind = type(value).__name__
+    if isinstance(value, (str, os.PathLike)):
+        return (f"a {kind} path {str(value)!r}; read the file first, e.g. with "
+                "deltar.data.rgbd.read_color")
+    if type(value).__module__.startswith("torch"):
+        return (f"a torch {kind} of shape {tuple(getattr(value, 'shape', ()))}; convert "
+                "it with tensor.cpu().numpy() (uint8 RGB, channels last)")
+    return f"a {kind}"
+
+
+def _batch_arguments(image: Any, zone_frame: Any
+                     ) -> tuple[bool, list[np.ndarray], list[ZoneFrame]]:
+    """(single, images, frames) from ``predict``'s arguments, refusing wrong types."""
+    if isinstance(image, np.ndarray):
+        if image.ndim not in (3, 4):
+            raise ValueError(f"{_IMAGE_EXPECTED}, got an array of shape {image.shape}")
+        single = image.ndim == 3
+    elif isinstance(image, (list, tuple)):
+        single = False
+    else:
+        raise ValueError(f"{_IMAGE_EXPECTED}, got {_describe(image)}")
+    images = [image] if single else list(image)
+    if single:
+        if not isinstance(zone_frame, ZoneFrame):
+            raise ValueError("zone_frame must be a ZoneFrame (e.g. from "
+                             "deltar.io.zone_file.load_zone_frame), got "
+                             f"{_describe(zone_frame)}")
+        return True, images, [zone_frame]
+    if not isinstance(zone_frame, (list, tuple)):
+        raise ValueError(f"for a batch of {len(images)} images, zone_frame must be a list of "
+                         f"ZoneFrame, got {_describe(zone_frame)}")
+    return False, images, list(zone_frame)
+
+
+def _check_calibration(calibration: Any) -> None:
+    from deltar.calibration.rig import RigCalibration
+
+    if calibration is not None and not isinstance(calibration, RigCalibration):
+        raise ValueError("calibration must be a RigCalibration (e.g. "
+                         f"RigCalibration.load(path)) or None, got {_describe(calibration)}")
 
 
 def zone_mean_depth(frame: ZoneFrame, rects: np.ndarray, image_size: tuple[int, int]

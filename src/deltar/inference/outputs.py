@@ -33,13 +33,28 @@ def _check_depth(depth_m: np.ndarray, name: str = "depth_m") -> np.ndarray:
     return depth
 
 
-def _encode_png(image: np.ndarray) -> bytes:
+#: Metadata note of outputs made without any valid zone (PNG ``tEXt`` "deltar", PLY
+#: comment, panel title).
+IMAGE_ONLY_NOTE = "image-only estimate: no valid zone, metric scale unknown"
+
+
+def _encode_png(image: np.ndarray, note: str | None = None) -> bytes:
+    """PNG bytes of ``image``; ``note`` goes into a ``tEXt`` chunk with keyword "deltar"."""
+    import zlib
+
     import cv2
 
     ok, data = cv2.imencode(".png", image)
     if not ok:
         raise ValueError("PNG encoding failed")
-    return data.tobytes()
+    data = data.tobytes()
+    if note:
+        # Insert the chunk right after IHDR (8-byte signature + 25-byte IHDR chunk).
+        body = b"tEXt" + b"deltar\0" + note.encode("latin-1", "replace")
+        chunk = (len(body) - 4).to_bytes(4, "big") + body + \
+            zlib.crc32(body).to_bytes(4, "big")
+        data = data[:33] + chunk + data[33:]
+    return data
 
 
 def depth_to_png16(depth_m: np.ndarray) -> np.ndarray:
@@ -54,9 +69,13 @@ def depth_to_png16(depth_m: np.ndarray) -> np.ndarray:
 
 
 def write_depth_png16(path: str | os.PathLike, depth_m: np.ndarray, *,
-                      overwrite: bool = False) -> Path:
-    """Write (H, W) depth in metres as a 16-bit PNG in millimetres (0 = invalid)."""
-    return write_bytes_atomic(path, _encode_png(depth_to_png16(depth_m)), overwrite=overwrite)
+                      overwrite: bool = False, note: str | None = None) -> Path:
+    """Write (H, W) depth in metres as a 16-bit PNG in millimetres (0 = invalid).
+
+    ``note``, when given, is stored as a PNG ``tEXt`` chunk with keyword "deltar".
+    """
+    return write_bytes_atomic(path, _encode_png(depth_to_png16(depth_m), note),
+                              overwrite=overwrite)
 
 
 def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray, *,
@@ -94,12 +113,12 @@ def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None =
 
 def write_color_png(path: str | os.PathLike, depth_m: np.ndarray, *,
                     vmin: float | None = None, vmax: float | None = None,
-                    overwrite: bool = False) -> Path:
-    """Write a colourised depth PNG (turbo colour map, near = blue)."""
+                    overwrite: bool = False, note: str | None = None) -> Path:
+    """Write a colourised depth PNG (turbo colour map, near = blue); ``note`` as tEXt."""
     import cv2
 
     rgb = colorize(_check_depth(depth_m), vmin, vmax)
-    return write_bytes_atomic(path, _encode_png(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)),
+    return write_bytes_atomic(path, _encode_png(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), note),
                               overwrite=overwrite)
 
 
@@ -137,11 +156,12 @@ def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
-              intrinsics: CameraIntrinsics | None = None, *, overwrite: bool = False) -> Path:
+              intrinsics: CameraIntrinsics | None = None, *, overwrite: bool = False,
+              note: str | None = None) -> Path:
     """Write a binary little-endian PLY of coloured points (x, y, z float32; r, g, b uchar).
 
     The camera intrinsics, when given, go into a header comment
-    ``comment intrinsics fx fy cx cy width height``.
+    ``comment intrinsics fx fy cx cy width height``; ``note`` into another comment.
     """
     pts = np.asarray(points, dtype=np.float32)
     cols = np.asarray(colors, dtype=np.uint8)
@@ -154,6 +174,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
         i = intrinsics
         header.append(f"comment intrinsics {i.fx!r} {i.fy!r} {i.cx!r} {i.cy!r} {i.width} "
                       f"{i.height}")
+    if note:
+        header.append(f"comment {' '.join(note.split())}")
     header += [f"element vertex {pts.shape[0]}", "property float x", "property float y",
                "property float z", "property uchar red", "property uchar green",
                "property uchar blue", "end_header"]
@@ -257,12 +279,19 @@ def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
         overwrite: replace existing outputs (default: ``FileExistsError``).
         ply_stride: point-cloud subsampling stride in pixels.
 
+    A prediction made without any valid zone (``prediction.image_only``) is flagged in
+    every format that has metadata: :data:`IMAGE_ONLY_NOTE` in a PNG ``tEXt`` chunk
+    (keyword "deltar"), a PLY comment and the panel title.
+
     Returns:
         dict kind -> written path.
     """
     unknown = set(kinds) - set(OUTPUT_KINDS)
     if unknown:
         raise ValueError(f"unknown output kinds {sorted(unknown)}; known: {list(OUTPUT_KINDS)}")
+    note = IMAGE_ONLY_NOTE if getattr(prediction, "image_only", False) else None
+    if note:
+        title = f"{title} - {note.upper()}" if title else note.upper()
     out = Path(out_dir)
     paths = {kind: out / f"{stem}{OUTPUT_KINDS[kind]}" for kind in kinds}
     if not overwrite:
@@ -271,14 +300,15 @@ def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
             raise FileExistsError(f"refusing to overwrite existing outputs: {existing}")
     depth = prediction.depth_m
     if "png16" in paths:
-        write_depth_png16(paths["png16"], depth, overwrite=overwrite)
+        write_depth_png16(paths["png16"], depth, overwrite=overwrite, note=note)
     if "npy" in paths:
         write_depth_npy(paths["npy"], depth, overwrite=overwrite)
     if "color" in paths:
-        write_color_png(paths["color"], depth, overwrite=overwrite)
+        write_color_png(paths["color"], depth, overwrite=overwrite, note=note)
     if "ply" in paths:
         points, colors = depth_to_points(depth, prediction.intrinsics, image, ply_stride)
-        write_ply(paths["ply"], points, colors, prediction.intrinsics, overwrite=overwrite)
+        write_ply(paths["ply"], points, colors, prediction.intrinsics, overwrite=overwrite,
+                  note=note)
     if "panel" in paths:
         write_panel(paths["panel"], image, prediction, title=title, overwrite=overwrite)
     return paths

@@ -72,7 +72,8 @@ def check_gaps(recording: Recording, pairs: list[RecordingPair]) -> list[tuple[f
 
 def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, *,
            calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
-           every: int = 1, limit: int | None = None) -> Iterator[ReplayItem]:
+           every: int = 1, limit: int | None = None,
+           skip_no_zones: bool = False) -> Iterator[ReplayItem]:
     """Predict depth for each zone frame of a recording that has a colour image near it.
 
     Zone frames without a colour image within ``tolerance_s`` are skipped with a
@@ -84,8 +85,10 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         calibration: rig calibration; a nominal one from the recording's metadata when
             None (see :func:`recording_calibration`).
         tolerance_s: largest |image time - zone time| for a pair, seconds.
-        every: use every ``every``-th pair.
+        every: use every ``every``-th pair (>= 1).
         limit: stop after this many predictions.
+        skip_no_zones: skip zone frames without any valid zone (with a warning) instead
+            of predicting image-only estimates (see ``DepthPrediction.image_only``).
 
     Yields:
         :class:`ReplayItem` per predicted frame, in time order.
@@ -94,6 +97,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         FileNotFoundError / ValueError: missing or corrupt recording files (naming them),
             unsorted timestamps, a calibration for another resolution.
     """
+    if int(every) < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
     rec = recording if isinstance(recording, Recording) else Recording(recording)
     calib = calibration or recording_calibration(rec)
     meta_size = (rec.meta.intrinsics.height, rec.meta.intrinsics.width)
@@ -104,12 +109,20 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     pairs = rec.pairs(tolerance_s=tolerance_s)
     check_gaps(rec, pairs)
     done = 0
-    for pair in pairs[::max(1, int(every))]:
+    for pair in pairs[::int(every)]:
         if limit is not None and done >= limit:
             break
+        if pair.zone_frame.valid_count == 0:
+            what = "skipped" if skip_no_zones else "image-only estimate"
+            warnings.warn(f"{rec.folder}: zone frame at t = {pair.zone_frame.timestamp_s:.3f} s "
+                          f"has no valid zone; {what}", stacklevel=2)
+            if skip_no_zones:
+                continue
         image = pair.load_color()
         reference = pair.load_depth() if pair.depth_path is not None else None
-        prediction = estimator.predict(image, pair.zone_frame, calib)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*no valid zone")  # said above
+            prediction = estimator.predict(image, pair.zone_frame, calib)
         done += 1
         yield ReplayItem(pair, image, prediction, reference)
 
@@ -119,8 +132,12 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
                                                                               "color"),
                      calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
                      every: int = 1, limit: int | None = None, overwrite: bool = False,
-                     on_item: Callable[[ReplayItem], None] | None = None) -> list[Path]:
+                     on_item: Callable[[ReplayItem], None] | None = None,
+                     skip_no_zones: bool = False) -> list[Path]:
     """Replay a recording and write outputs named by the colour image's time stamp.
+
+    Arguments as :func:`replay`; frames without a valid zone are written as flagged
+    image-only estimates unless ``skip_no_zones``.
 
     Returns:
         The written files.
@@ -137,7 +154,7 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
                          "choose a folder outside it")
     written: list[Path] = []
     for item in replay(rec, estimator, calibration=calibration, tolerance_s=tolerance_s,
-                       every=every, limit=limit):
+                       every=every, limit=limit, skip_no_zones=skip_no_zones):
         paths = write_prediction(out, item.pair.color_path.stem, item.image, item.prediction,
                                  kinds=kinds, overwrite=overwrite,
                                  title=f"{item.pair.color_path.name} ({estimator.weights})")

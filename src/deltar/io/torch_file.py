@@ -30,4 +30,23 @@ def read_torch_file(path: str | os.PathLike, what: str, *, weights_only: bool,
     try:
         return torch.load(path, map_location=map_location, weights_only=weights_only)
     except Exception as err:  # torch raises several types for corrupt files
-        raise ValueError(f"{path}: cannot read {what}: {err}") from err
+        raise ValueError(f"{path}: cannot read {what}: {_reason(err)}") from err
+
+
+def _reason(err: Exception) -> str:
+    """A short, safe explanation of a ``torch.load`` failure.
+
+    PyTorch's own messages run over many lines and suggest loading with
+    ``weights_only=False``, which runs arbitrary code from the file: never repeated here.
+    """
+    import re
+
+    text = str(err)
+    if "Weights only load failed" in text:
+        found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+        names = f" (it refers to {found.group(1)})" if found else ""
+        return ("it holds Python objects besides tensors and plain containers, which safe "
+                f"loading refuses{names}; re-save it with tensors only")
+    if "zip archive" in text:
+        return "corrupt or truncated PyTorch file"
+    return "not a PyTorch file, or a corrupt or truncated one"

@@ -11,6 +11,12 @@ JSON layout (``schema_version`` 1), flat row-major lists of ``zone_count`` entri
 NPZ files hold the same keys as arrays (``schema``/``sensor_model`` as 0-d strings).
 A raw driver dump is a JSON object with ``distance_mm``, ``range_sigma_mm`` and
 ``target_status`` (flat lists of 16 or 64, driver order), as the Python drivers return.
+
+Values must be numbers: strings (``"1.5"``) and booleans (``true``) are refused, not
+converted. A schema file's valid zones must read a distance the sensor can measure
+(``0 < d <= 4 m`` for the VL53L5CX/L8CX, see
+:data:`~deltar.sensor.zone_frame.SENSOR_MAX_RANGE_M`); a driver dump's zones outside
+that range are marked invalid with a warning, as error codes (``d <= 0``) always are.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ import numpy as np
 
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.json_file import read_json
-from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
+from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame, number_array
 
 SCHEMA_NAME = "deltar.zone_frame"
 SCHEMA_VERSION = 1
@@ -75,13 +81,16 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     """
     if not isinstance(data, Mapping):
         raise ValueError(f"{source}: expected a JSON object, got {type(data).__name__}")
+    sensor_model = data.get("sensor_model", "VL53L5CX")
+    if not isinstance(sensor_model, str):
+        raise ValueError(f"{source}: sensor_model must be a string, got {sensor_model!r}")
     if all(k in data for k in _DRIVER_FIELDS):
+        fields = [number_array(data[k], f"{source}: {k}") for k in _DRIVER_FIELDS]
         try:
             return ZoneFrame.from_driver(
-                data["distance_mm"], data["range_sigma_mm"], data["target_status"],
-                orientation=orientation, valid_status=valid_status,
+                *fields, orientation=orientation, valid_status=valid_status,
                 timestamp_s=_optional_float(data.get("timestamp_s"), source, "timestamp_s"),
-                sensor_model=str(data.get("sensor_model", "VL53L5CX")))
+                sensor_model=sensor_model)
         except (TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid driver output: {err}") from err
     if data.get("schema", SCHEMA_NAME) != SCHEMA_NAME:
@@ -105,8 +114,9 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
                              f"{np.flatnonzero(arr < 0).tolist()}")
         arrays[key] = arr
     valid = np.asarray(data["valid"]).reshape(-1)
-    if valid.dtype != bool and not np.all(np.isin(valid, (0, 1))):
-        raise ValueError(f"{source}: valid must hold booleans")
+    if valid.dtype != bool and (valid.dtype.kind not in "iu" or
+                                not np.all(np.isin(valid, (0, 1)))):
+        raise ValueError(f"{source}: valid must hold booleans (true/false or 1/0)")
     count = arrays["mean_m"].size
     declared = data.get("zone_count", count)
     for key, arr in (("sigma_m", arrays["sigma_m"]), ("valid", valid)):
@@ -124,6 +134,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     edges = counts = None
     if data.get("hist_counts") is not None or data.get("hist_edges_m") is not None:
         edges = _float_array(data.get("hist_edges_m"), source, "hist_edges_m")
+        number_array(data.get("hist_counts"), f"{source}: hist_counts")
         counts = np.asarray(data.get("hist_counts"), dtype=np.float64)
         if counts.ndim != 2 or counts.shape[0] != count:
             raise ValueError(f"{source}: hist_counts must be ({count}, bins), "
@@ -132,12 +143,15 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
             raise ValueError(f"{source}: histogram has NaN or infinite values")
     timestamp = _optional_float(data.get("timestamp_s"), source, "timestamp_s")
     try:
-        return ZoneFrame(mean_m=arrays["mean_m"], sigma_m=arrays["sigma_m"],
-                         valid=valid.astype(bool), status=status, hist_edges_m=edges,
-                         hist_counts=counts, timestamp_s=timestamp,
-                         sensor_model=str(data.get("sensor_model", "VL53L5CX")))
+        frame = ZoneFrame(mean_m=arrays["mean_m"], sigma_m=arrays["sigma_m"],
+                          valid=valid.astype(bool), status=status, hist_edges_m=edges,
+                          hist_counts=counts, timestamp_s=timestamp, sensor_model=sensor_model)
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from err
+    problem = frame.range_error()
+    if problem is not None:
+        raise ValueError(f"{source}: {problem}")
+    return frame
 
 
 def save_zone_frame(path: str | os.PathLike, frame: ZoneFrame, *,
@@ -222,19 +236,15 @@ def zone_frame_from_driver_result(result: Any, *, orientation: Orientation | Non
 
 
 def _float_array(values: Any, source: str, key: str) -> np.ndarray:
-    try:
-        return np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{source}: {key} must be a list of numbers") from err
+    return number_array(values, f"{source}: {key}")
 
 
 def _optional_float(value: Any, source: str, key: str) -> float | None:
     if value is None:
         return None
-    try:
-        out = float(value)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{source}: {key} must be a number, got {value!r}") from err
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+        raise ValueError(f"{source}: {key} must be a number, got {value!r}")
+    out = float(value)
     if not math.isfinite(out):
         raise ValueError(f"{source}: {key} must be finite, got {value!r}")
     return out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -12,6 +13,15 @@ import numpy as np
 DEFAULT_VALID_STATUS: tuple[int, ...] = (5, 9)
 
 SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
+
+#: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
+#: A valid zone must read ``0 < d <= range``; unknown models have no upper limit.
+SENSOR_MAX_RANGE_M: dict[str, float] = {"VL53L5CX": 4.0, "VL53L8CX": 4.0}
+
+
+def sensor_max_range_m(sensor_model: str) -> float:
+    """The largest distance ``sensor_model`` reports, metres (``inf`` when unknown)."""
+    return SENSOR_MAX_RANGE_M.get(str(sensor_model).upper(), math.inf)
 
 
 @dataclass(frozen=True)
@@ -141,6 +151,41 @@ class ZoneFrame:
         """Row-major flat views: mean (Z,), sigma (Z,), valid (Z,) with Z = n * n."""
         return self.mean_m.reshape(-1), self.sigma_m.reshape(-1), self.valid.reshape(-1)
 
+    def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
+        """Valid zones whose distance is physically impossible for the sensor.
+
+        Args:
+            max_range_m: largest possible distance in metres; by default the sensor
+                model's (:data:`SENSOR_MAX_RANGE_M`, no limit for unknown models).
+
+        Returns:
+            (n, n) bool, True where a zone is flagged valid but reads ``d <= 0`` or
+            ``d > max_range_m``.
+        """
+        limit = sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        return self.valid & ((self.mean_m <= 0) | (self.mean_m > limit))
+
+    def range_error(self, max_range_m: float | None = None) -> str | None:
+        """Why the frame's valid zones are out of range, or None when they are not.
+
+        The message names the zones (flat row-major indices, at most five), their
+        readings and the accepted range.
+        """
+        bad = np.flatnonzero(self.out_of_range(max_range_m).reshape(-1))
+        if bad.size == 0:
+            return None
+        limit = sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        readings = ", ".join(f"{self.mean_m.reshape(-1)[i]:.6g}" for i in bad[:5])
+        more = f" and {bad.size - 5} more" if bad.size > 5 else ""
+        return (f"{bad.size} valid zone(s) read distances outside the {self.sensor_model} "
+                f"range 0 < d <= {limit:g} m (zones {bad[:5].tolist()}{more}: {readings} m); "
+                "mark such zones invalid")
+
+    @property
+    def valid_count(self) -> int:
+        """Number of valid zones."""
+        return int(np.count_nonzero(self.valid))
+
     def mean_sigma(self) -> np.ndarray:
         """(Z, 2) float32 of [mean, sigma] in metres, zeros in invalid zones (ZJU-L5 layout)."""
         mean, sigma, valid = self.flat()
@@ -166,6 +211,8 @@ class ZoneFrame:
 
         Args:
             distance_mm: flat list of 16 or 64 distances in millimetres (driver order).
+                Zones reading 0 or less (error codes) or more than the sensor model's
+                range (:data:`SENSOR_MAX_RANGE_M`, with a ``RuntimeWarning``) are invalid.
                 Drivers built for several targets per zone return more entries; only
                 the first target of each zone is used then.
             range_sigma_mm: flat list of the same length, sigma in millimetres.
@@ -179,11 +226,7 @@ class ZoneFrame:
         arrays = {}
         for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
                              ("target_status", target_status)):
-            try:
-                arr = np.asarray(values, dtype=np.float64).reshape(-1)
-            except (TypeError, ValueError) as err:
-                raise ValueError(f"{name} must be a flat list of numbers: {err}") from err
-            arrays[name] = arr
+            arrays[name] = number_array(values, name)
         n = grid if grid is not None else _grid_from_count(arrays["distance_mm"].size,
                                                            "distance_mm")
         if n not in SUPPORTED_GRIDS:
@@ -203,6 +246,14 @@ class ZoneFrame:
         mean = arrays["distance_mm"] / 1000.0
         sigma = arrays["range_sigma_mm"] / 1000.0
         valid &= np.isfinite(mean) & np.isfinite(sigma) & (mean > 0) & (sigma >= 0)
+        # Readings beyond the sensor's range are not measurements: invalid, visibly.
+        far = valid & (mean > sensor_max_range_m(sensor_model))
+        if far.any():
+            warnings.warn(f"{int(far.sum())} zone(s) with a valid status read more than the "
+                          f"{sensor_model}'s {sensor_max_range_m(sensor_model):g} m range "
+                          f"(up to {mean[far].max():.6g} m); marked invalid", RuntimeWarning,
+                          stacklevel=2)
+            valid &= ~far
         orient = orientation or Orientation()
         mean, sigma, valid, status = (orient.apply(a.reshape(n, n))
                                       for a in (mean, sigma, valid, status))
@@ -210,6 +261,41 @@ class ZoneFrame:
         sigma = np.where(valid, sigma, 0.0)
         return cls(mean_m=mean, sigma_m=sigma, valid=valid, status=status,
                    timestamp_s=timestamp_s, sensor_model=sensor_model)
+
+
+def number_array(values, name: str) -> np.ndarray:
+    """Flat float64 array of a list (or array) of numbers, refusing anything else.
+
+    Strings (``"1.5"``) and booleans are refused rather than converted: a file or driver
+    that stores them is not what the reader expects, and converting hides that.
+
+    Args:
+        values: a (nested) list or tuple of int / float, or a numeric numpy array.
+        name: what the values are, for the error message (e.g. ``"zones.json: mean_m"``).
+
+    Raises:
+        ValueError: ``"<name> must hold numbers, got ..."``.
+    """
+    if isinstance(values, np.ndarray):
+        if values.dtype.kind not in "iuf":
+            raise ValueError(f"{name} must hold numbers, got an array of {values.dtype}")
+        return values.astype(np.float64).reshape(-1)
+    if not isinstance(values, (list, tuple)):
+        raise ValueError(f"{name} must be a list of numbers, got {type(values).__name__}")
+    flat: list = []
+    pending = [values]
+    while pending:
+        item = pending.pop()
+        if isinstance(item, (list, tuple)):
+            pending.extend(reversed(item))
+        else:
+            flat.append(item)
+    bad = [v for v in flat if isinstance(v, (bool, np.bool_))
+           or not isinstance(v, (int, float, np.integer, np.floating))]
+    if bad:
+        raise ValueError(f"{name} must hold numbers, got {type(bad[0]).__name__} "
+                         f"{bad[0]!r}" + (f" and {len(bad) - 1} more" if len(bad) > 1 else ""))
+    return np.asarray(flat, dtype=np.float64)
 
 
 def _grid_from_count(count: int, name: str) -> int:

@@ -1,0 +1,696 @@
+"""Sweep of malformed inputs over every command and the Python API, with a verdict each.
+
+Usage::
+
+    PYTHONPATH=src python benchmarks/bad_input_sweep.py [--verbose] [--only NAME]
+
+Builds small inputs in a temporary folder (tiny images, zone files, a simulated
+recording, a two-frame ZJU-L5 set, a synthetic calibration recording), runs each case
+in-process (commands through typer's ``CliRunner``, API calls directly) and classifies
+the outcome:
+
+- ``clear``: an error whose message contains the case's key words (the argument or
+  file it names and what is wrong) and none of its forbidden words;
+- ``correct``: a valid input that succeeded (with the expected warning, if any);
+- ``traceback``: an exception escaped (a user saw a Python traceback);
+- ``silent``: a bad input was accepted without an error (or without the expected
+  warning): a wrong answer;
+- ``misleading``: an error whose message lacks the key words or has forbidden ones.
+
+Besides the verdict, three flags are counted: ``late`` (a command's error came only
+after the network was built, for inputs that can be checked before), ``partial`` (an output or
+temporary file was left behind by a failed run) and ``modified`` (an input file
+changed). Cases use ``--preset deltar-lite`` (random weights) to stay fast; the sweep
+takes a few minutes on two cores. The script works on older versions of the package
+too (it only uses the CLI and long-standing API calls), so the same sweep measures a
+change: run it once with ``PYTHONPATH`` pointing at each version.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import io
+import json
+import os
+import re
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+LITE = ["--preset", "deltar-lite", "--threads", "1"]
+_BOX = re.compile(r"[│╭╮╰╯─]+")
+
+
+@dataclass
+class Case:
+    """One malformed (or valid) input.
+
+    Attributes:
+        name: short identifier.
+        run: CLI argument list (``{in}`` / ``{out}`` replaced by the input and the case's
+            output folder) or a callable taking (inputs, out) for API cases.
+        expect: ``"error"`` (must fail clearly) or ``"ok"`` (must succeed).
+        needles: words the output must contain (case-insensitive).
+        forbid: words the output must not contain.
+        early: the problem can be found before building the network.
+        setup: called with (inputs, out) before the case runs.
+        no_output: paths (relative to out) that must not exist after a failure.
+    """
+
+    name: str
+    run: list[str] | Callable
+    expect: str = "error"
+    needles: tuple[str, ...] = ()
+    forbid: tuple[str, ...] = ()
+    early: bool = True
+    setup: Callable | None = None
+    no_output: tuple[str, ...] = ()
+
+
+@dataclass
+class Outcome:
+    verdict: str
+    text: str
+    seconds: float
+    flags: list[str] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------- inputs
+def _zone_dict(rng, grid=8, low=0.5, high=3.0):
+    from deltar.io.zone_file import zone_frame_to_dict
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    n = grid * grid
+    frame = ZoneFrame(rng.uniform(low, high, n), np.full(n, 0.03), np.ones(n, bool))
+    return zone_frame_to_dict(frame)
+
+
+def build_inputs(root: Path) -> Path:
+    """Write every input file the cases read into ``root/in``; return that folder."""
+    from deltar.calibration.camera import CameraIntrinsics
+    from deltar.calibration.rig import RigCalibration
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    rng = np.random.default_rng(0)
+    inp = root / "in"
+    inp.mkdir(parents=True)
+    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    Image.fromarray(rgb).save(inp / "img.png")
+    Image.fromarray(rgb[..., 0]).save(inp / "grey.png")
+    Image.fromarray(np.dstack([rgb, np.full((48, 64), 255, np.uint8)])).save(inp / "rgba.png")
+    Image.fromarray(rng.integers(0, 4000, (48, 64)).astype(np.uint16)).save(inp / "depth16.png")
+    Image.fromarray(rgb[:1, :1]).save(inp / "tiny.png")
+    data = (inp / "img.png").read_bytes()
+    (inp / "trunc.png").write_bytes(data[: len(data) // 2])
+    (inp / "text.png").write_text("not an image\n")
+
+    def zones(name, content):
+        (inp / name).write_text(json.dumps(content))
+
+    good = _zone_dict(rng)
+    zones("z.json", good)
+    zones("z4.json", _zone_dict(rng, grid=4))
+    as_ints = dict(good, mean_m=[round(v) or 1 for v in good["mean_m"]],
+                   valid=[1] * 64)
+    zones("z_ints.json", as_ints)
+    zones("z_strings.json", dict(good, mean_m=[str(v) for v in good["mean_m"]]))
+    zones("z_bools.json", dict(good, mean_m=[True] * 64))
+    zones("z_nan.json", dict(good, mean_m=[float("nan"), *good["mean_m"][1:]]))
+    zones("z_negative.json", dict(good, mean_m=[-1.0, *good["mean_m"][1:]]))
+    zones("z_count.json", dict(good, mean_m=good["mean_m"][:36], sigma_m=good["sigma_m"][:36],
+                               valid=good["valid"][:36], zone_count=36))
+    zones("z_invalid.json", dict(good, mean_m=[0.0] * 64, sigma_m=[0.0] * 64,
+                                 valid=[False] * 64))
+    zones("z_far.json", dict(good, mean_m=[1000000.0, *good["mean_m"][1:]]))
+    zones("z_zero.json", dict(good, mean_m=[0.0] * 64))
+    zones("z_ts.json", dict(good, timestamp_s="12.5"))
+    zones("driver.json", {"distance_mm": [1500] * 64, "range_sigma_mm": [20] * 64,
+                          "target_status": [5] * 60 + [255] * 4})
+    zones("driver_codes.json", {"distance_mm": [-3] * 64, "range_sigma_mm": [0] * 64,
+                                "target_status": [5] * 64})
+    zones("driver_strings.json", {"distance_mm": ["1500"] * 64, "range_sigma_mm": [20] * 64,
+                                  "target_status": [5] * 64})
+    (inp / "z_corrupt.json").write_text("{not json")
+    (inp / "z.txt").write_text(json.dumps(good))
+    np.savez(inp / "z_strings.npz", mean_m=np.array(["1.0"] * 64), sigma_m=np.zeros(64),
+             valid=np.ones(64, bool), schema_version=np.array(1))
+
+    camera = CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    RigCalibration(camera, SensorExtrinsics()).save(inp / "calib.json")
+    RigCalibration(CameraIntrinsics(500, 500, 319.5, 239.5, 640, 480),
+                   SensorExtrinsics()).save(inp / "calib_640.json")
+    (inp / "calib_corrupt.json").write_text("[1, 2")
+
+    import torch
+
+    (inp / "text.pt").write_text("e" * 200)
+    (inp / "trunc.pt").write_bytes(b"PK\x03\x04" + bytes(100))
+    torch.save({"weights": torch.zeros(2)}, inp / "foreign.pt")
+    (inp / "outfile").write_text("a file, not a folder\n")
+
+    folder = inp / "frames"
+    folder.mkdir()
+    for stem in ("f1", "f2"):
+        shutil.copy(inp / "img.png", folder / f"{stem}.png")
+        shutil.copy(inp / "z.json", folder / f"{stem}.json")
+    shutil.copy(inp / "img.png", folder / "f3.png")
+    (folder / "f3.json").write_text("{broken")
+    (inp / "empty").mkdir()
+    return inp
+
+
+def build_recordings(inp: Path, cli) -> None:
+    """A simulated wall recording, a ZJU-L5 set and a synthetic calibration recording."""
+    from scipy.spatial.transform import Rotation
+
+    from deltar.calibration.camera import CameraIntrinsics
+    from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    for args in (["record", str(inp / "rec"), "--simulate", "wall:1.5:4:48x64"],
+                 ["simulate", "procedural:2:0:48x64", str(inp / "zju")]):
+        result = cli(args)
+        if result.exit_code != 0:
+            raise RuntimeError(f"could not build inputs with {args}: {result.output}")
+    lines = (inp / "rec" / "zones.jsonl").read_text().splitlines()
+    shutil.copytree(inp / "rec", inp / "rec_corrupt")
+    # A corrupt line in the middle (a truncated *last* line is an interrupted recording,
+    # skipped with a warning by design).
+    (inp / "rec_corrupt" / "zones.jsonl").write_text("\n".join([lines[0], "{oops",
+                                                                 *lines[1:]]) + "\n")
+    camera = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    true = SensorExtrinsics(Rotation.from_euler("zyx", [92.0, -1.0, 1.5],
+                                                degrees=True).as_matrix(),
+                            np.array([0.03, 0.01, -0.01]))
+    frames = synthetic_rig_frames(true, camera, frames_per_plane=2, mean_noise_m=0.01, seed=5)
+    write_synthetic_recording(inp / "calrec", frames, camera)
+    write_synthetic_recording(inp / "calrec_nodepth", frames, camera, with_depth=False)
+    (inp / "vis.txt").write_text("a file\n")
+    (inp / "plot.txt").write_text("a file\n")
+    (inp / "metrics.json").write_text('{"keep": "me"}\n')
+
+
+# ---------------------------------------------------------------------------- cases
+def _predict(image="img.png", zones="z.json", *extra):
+    return ["predict", "--image", f"{{in}}/{image}", "--zones", f"{{in}}/{zones}",
+            "--out", "{out}", "--outputs", "npy", *LITE, *extra]
+
+
+def _api(fn_name: str, *args, **kwargs):
+    """An API case: estimator.predict(...) with the given arguments."""
+
+    def run(inp: Path, out: Path):
+        from deltar.data.rgbd import read_color
+        from deltar.inference.estimator import DepthEstimator
+        from deltar.io.zone_file import load_zone_frame
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            estimator = _cached_estimator(DepthEstimator)
+        image = read_color(inp / "img.png")
+        frame = load_zone_frame(inp / "z.json")
+        values = {"image": image, "frame": frame, "inp": inp}
+        call_args = [a(values) if callable(a) else a for a in args]
+        call_kwargs = {k: (v(values) if callable(v) else v) for k, v in kwargs.items()}
+        return getattr(estimator, fn_name)(*call_args, **call_kwargs)
+
+    return run
+
+
+_ESTIMATOR = {}
+
+
+def _cached_estimator(cls):
+    if "lite" not in _ESTIMATOR:
+        _ESTIMATOR["lite"] = cls.from_preset("deltar-lite")
+    return _ESTIMATOR["lite"]
+
+
+def _zone_frame(**fields):
+    def make(values):
+        from deltar.sensor.zone_frame import ZoneFrame
+
+        n = 64
+        base = {"mean_m": np.full(n, 1.5), "sigma_m": np.full(n, 0.02),
+                "valid": np.ones(n, bool)}
+        base.update(fields)
+        return ZoneFrame(**base)
+
+    return make
+
+
+def _api_call(fn: Callable):
+    return lambda inp, out: fn(inp)
+
+
+def _load_zone(name):
+    def run(inp):
+        from deltar.io.zone_file import load_zone_frame
+
+        return load_zone_frame(inp / name)
+
+    return run
+
+
+def _driver_strings(inp):
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    return ZoneFrame.from_driver(["1500"] * 64, [20] * 64, [5] * 64)
+
+
+def _existing_outputs(inp, out):
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "img_depth_m.npy").write_bytes(b"previous result")
+
+
+def _existing_calib(inp, out):
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "calib.json").write_text("{}")
+
+
+def _api_no_zones(inp, out):
+    """All zones invalid through the API: the result must say so (flag or warning)."""
+    run = _api("predict", lambda v: v["image"],
+               _zone_frame(mean_m=np.zeros(64), sigma_m=np.zeros(64),
+                           valid=np.zeros(64, bool)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = run(inp, out)
+    said = [str(w.message) for w in caught if "valid zone" in str(w.message)]
+    flagged = getattr(result, "image_only", None) is True
+    if not flagged and not said:
+        raise _Silent("an all-invalid frame gave a depth map with no flag and no warning")
+    return "image-only estimate flagged: " + (said[0] if said else "image_only=True")
+
+
+class _Silent(Exception):
+    """Raised by a custom check: the call succeeded but should not have, silently."""
+
+
+def cases() -> list[Case]:
+    """Every case of the sweep."""
+    from deltar.sensor.zone_frame import ZoneFrame  # noqa: F401  (import check)
+
+    rec, zju, cal = "{in}/rec", "{in}/zju/data.json", "{in}/calrec"
+    return [
+        # ---- predict: files
+        Case("predict-image-missing", _predict("nope.png"), needles=("nope.png", "not found")),
+        Case("predict-zones-missing", _predict(zones="nope.json"),
+             needles=("nope.json", "not found")),
+        Case("predict-image-truncated", _predict("trunc.png"), needles=("trunc.png",)),
+        Case("predict-image-text", _predict("text.png"), needles=("text.png",)),
+        Case("predict-image-depth16", _predict("depth16.png"),
+             needles=("depth16.png", "16-bit")),
+        Case("predict-image-1px", _predict("tiny.png"), needles=("tiny.png", "small")),
+        Case("predict-zones-strings", _predict(zones="z_strings.json"),
+             needles=("z_strings.json", "mean_m", "number")),
+        Case("predict-zones-bools", _predict(zones="z_bools.json"),
+             needles=("z_bools.json", "mean_m", "number")),
+        Case("predict-zones-timestamp-string", _predict(zones="z_ts.json"),
+             needles=("z_ts.json", "timestamp_s")),
+        Case("predict-zones-nan", _predict(zones="z_nan.json"),
+             needles=("z_nan.json", "nan")),
+        Case("predict-zones-negative", _predict(zones="z_negative.json"),
+             needles=("z_negative.json", "negative")),
+        Case("predict-zones-count", _predict(zones="z_count.json"),
+             needles=("z_count.json", "zone count")),
+        Case("predict-zones-corrupt", _predict(zones="z_corrupt.json"),
+             needles=("z_corrupt.json", "json")),
+        Case("predict-zones-suffix", _predict(zones="z.txt"), needles=("z.txt", ".json")),
+        Case("predict-zones-npz-strings", _predict(zones="z_strings.npz"),
+             needles=("z_strings.npz", "mean_m")),
+        Case("predict-zones-all-invalid", _predict(zones="z_invalid.json"),
+             needles=("z_invalid.json", "no valid zone")),
+        Case("predict-driver-error-codes", _predict(zones="driver_codes.json"),
+             needles=("driver_codes.json", "no valid zone")),
+        Case("predict-driver-strings", _predict(zones="driver_strings.json"),
+             needles=("driver_strings.json", "distance_mm")),
+        Case("predict-zone-1e6-m", _predict(zones="z_far.json"),
+             needles=("z_far.json", "range")),
+        Case("predict-zones-all-0-m", _predict(zones="z_zero.json"),
+             needles=("z_zero.json", "range")),
+        # ---- predict: options
+        Case("predict-threads-0", [*_predict(), "--threads", "0"], needles=("--threads",)),
+        Case("predict-threads-negative", [*_predict(), "--threads", "-1"],
+             needles=("--threads",)),
+        Case("predict-device-cuda", [*_predict(), "--device", "cuda"],
+             needles=("--device", "cuda")),
+        Case("predict-device-bogus", [*_predict(), "--device", "bogus"],
+             needles=("--device", "bogus")),
+        Case("predict-precision-bogus", [*_predict(), "--precision", "float64"],
+             needles=("precision", "float64")),
+        Case("predict-size-text", [*_predict(), "--size", "big"], needles=("size", "big")),
+        Case("predict-size-not-32", [*_predict(), "--size", "100x100"],
+             needles=("size", "32")),
+        Case("predict-outputs-bogus", [*_predict(), "--outputs", "jpeg"],
+             needles=("--outputs", "jpeg")),
+        Case("predict-missing-zones-option", ["predict", "--image", "{in}/img.png", "--out",
+                                              "{out}", *LITE], needles=("--zones",)),
+        Case("predict-two-models", [*_predict(), "--checkpoint", "default"],
+             needles=("only one of",)),
+        Case("predict-preset-bogus", ["predict", "--image", "{in}/img.png", "--zones",
+                                      "{in}/z.json", "--out", "{out}", "--preset", "bogus"],
+             needles=("bogus",), early=False),
+        Case("predict-calib-missing", [*_predict(), "--calib", "{in}/nocalib.json"],
+             needles=("nocalib.json", "not found")),
+        Case("predict-calib-corrupt", [*_predict(), "--calib", "{in}/calib_corrupt.json"],
+             needles=("calib_corrupt.json", "json")),
+        Case("predict-calib-resolution", [*_predict(), "--calib", "{in}/calib_640.json"],
+             needles=("calib", "resolution")),
+        Case("predict-out-is-file", ["predict", "--image", "{in}/img.png", "--zones",
+                                     "{in}/z.json", "--out", "{in}/outfile", *LITE],
+             needles=("outfile", "folder")),
+        Case("predict-out-under-file", ["predict", "--image", "{in}/img.png", "--zones",
+                                        "{in}/z.json", "--out", "{in}/outfile/sub", *LITE],
+             needles=("outfile",)),
+        Case("predict-existing-output", _predict(), needles=("img_depth_m.npy", "overwrite"),
+             setup=_existing_outputs),
+        Case("predict-checkpoint-text", ["predict", "--image", "{in}/img.png", "--zones",
+                                         "{in}/z.json", "--out", "{out}", "--checkpoint",
+                                         "{in}/text.pt"],
+             needles=("text.pt",), forbid=("weights_only", ": 101"), early=False),
+        Case("predict-checkpoint-truncated", ["predict", "--image", "{in}/img.png", "--zones",
+                                              "{in}/z.json", "--out", "{out}",
+                                              "--checkpoint", "{in}/trunc.pt"],
+             needles=("trunc.pt",), forbid=("weights_only",), early=False),
+        Case("predict-checkpoint-foreign", ["predict", "--image", "{in}/img.png", "--zones",
+                                            "{in}/z.json", "--out", "{out}", "--checkpoint",
+                                            "{in}/foreign.pt"],
+             needles=("foreign.pt", "not a deltar checkpoint"), early=False),
+        Case("predict-checkpoint-missing", ["predict", "--image", "{in}/img.png", "--zones",
+                                            "{in}/z.json", "--out", "{out}", "--checkpoint",
+                                            "{in}/none.pt"], needles=("none.pt",)),
+        Case("predict-official-missing", ["predict", "--image", "{in}/img.png", "--zones",
+                                          "{in}/z.json", "--out", "{out}", "--official",
+                                          "{in}/nyu.pt"], needles=("nyu.pt", "not found")),
+        Case("predict-onnx-missing", ["predict", "--image", "{in}/img.png", "--zones",
+                                      "{in}/z.json", "--out", "{out}", "--onnx",
+                                      "{in}/m.onnx"], needles=("m.onnx",)),
+        Case("predict-folder-missing", ["predict", "--images", "{in}/nofolder", "--zones-dir",
+                                        "{in}/frames", "--out", "{out}", *LITE],
+             needles=("nofolder", "not found")),
+        Case("predict-folder-no-pairs", ["predict", "--images", "{in}/empty", "--zones-dir",
+                                         "{in}/frames", "--out", "{out}", *LITE],
+             needles=("empty",)),
+        Case("predict-folder-bad-frame", ["predict", "--images", "{in}/frames", "--zones-dir",
+                                          "{in}/frames", "--out", "{out}", *LITE],
+             needles=("f3.json",), early=False),
+        # ---- predict: valid inputs
+        Case("predict-valid", _predict(), expect="ok"),
+        Case("predict-valid-4x4", _predict(zones="z4.json"), expect="ok"),
+        Case("predict-valid-driver-dump", _predict(zones="driver.json"), expect="ok"),
+        Case("predict-valid-int-values", _predict(zones="z_ints.json"), expect="ok"),
+        Case("predict-valid-grey-image", _predict("grey.png"), expect="ok"),
+        Case("predict-valid-rgba-image", _predict("rgba.png"), expect="ok"),
+        Case("predict-valid-calib", [*_predict(), "--calib", "{in}/calib.json"], expect="ok"),
+        # ---- Python API
+        Case("api-image-2d", _api("predict", np.zeros((48, 64), np.uint8),
+                                  lambda v: v["frame"]), needles=("(H, W, 3)", "(48, 64)")),
+        Case("api-image-tensor", _api("predict", lambda v: __import__("torch").zeros(48, 64, 3),
+                                      lambda v: v["frame"]), needles=("(H, W, 3)", "tensor")),
+        Case("api-image-dict", _api("predict", {"rgb": 1}, lambda v: v["frame"]),
+             needles=("(H, W, 3)", "dict")),
+        Case("api-image-path", _api("predict", lambda v: str(v["inp"] / "img.png"),
+                                    lambda v: v["frame"]), needles=("(H, W, 3)", "str")),
+        Case("api-image-float", _api("predict", np.zeros((48, 64, 3), np.float32),
+                                     lambda v: v["frame"]), needles=("uint8",)),
+        Case("api-calibration-dict", _api("predict", lambda v: v["image"],
+                                          lambda v: v["frame"], calibration={"fx": 1}),
+             needles=("calibration", "RigCalibration")),
+        Case("api-zone-frame-dict", _api("predict", lambda v: v["image"], {"mean_m": [1]}),
+             needles=("zone_frame", "ZoneFrame")),
+        Case("api-zone-frame-none", _api("predict", lambda v: v["image"], None),
+             needles=("ZoneFrame",)),
+        Case("api-zone-1e6-m", _api("predict", lambda v: v["image"],
+                                    _zone_frame(mean_m=np.r_[1e6, np.full(63, 1.5)])),
+             needles=("range",)),
+        Case("api-zones-all-0-m", _api("predict", lambda v: v["image"],
+                                       _zone_frame(mean_m=np.zeros(64))), needles=("range",)),
+        Case("api-no-valid-zone", _api_no_zones, expect="ok"),
+        Case("api-driver-strings", _api_call(_driver_strings),
+             needles=("distance_mm", "number")),
+        Case("api-load-npz-strings", _api_call(_load_zone("z_strings.npz")),
+             needles=("z_strings.npz", "mean_m")),
+        Case("api-valid-batch", _api("predict", lambda v: [v["image"], v["image"]],
+                                     lambda v: [v["frame"], v["frame"]]), expect="ok"),
+        # ---- replay
+        Case("replay-missing", ["replay", "{in}/norec", "--out", "{out}", *LITE],
+             needles=("norec", "not found")),
+        Case("replay-every-0", ["replay", rec, "--out", "{out}", "--every", "0", *LITE],
+             needles=("--every",)),
+        Case("replay-limit-0", ["replay", rec, "--out", "{out}", "--limit", "0", *LITE],
+             needles=("--limit",)),
+        Case("replay-tolerance-negative", ["replay", rec, "--out", "{out}", "--tolerance",
+                                           "-1", *LITE], needles=("--tolerance",)),
+        Case("replay-show-no-display", ["replay", rec, "--show", *LITE],
+             needles=("--show",)),
+        Case("replay-no-out", ["replay", rec, *LITE], needles=("--out",)),
+        Case("replay-out-inside", ["replay", rec, "--out", f"{rec}/o", *LITE],
+             needles=("inside the recording",)),
+        Case("replay-corrupt-zones", ["replay", "{in}/rec_corrupt", "--out", "{out}", *LITE],
+             needles=("zones.jsonl",)),
+        Case("replay-valid", ["replay", rec, "--out", "{out}", *LITE], expect="ok"),
+        # ---- record
+        Case("record-grid-3", ["record", "{out}/r", "--simulate", "wall:1.5:2:48x64",
+                               "--grid", "3"], needles=("--grid",)),
+        Case("record-simulate-bogus", ["record", "{out}/r", "--simulate", "bogus"],
+             needles=("bogus",)),
+        Case("record-wall-bad", ["record", "{out}/r", "--simulate", "wall:abc"],
+             needles=("wall",)),
+        Case("record-frames-0", ["record", "{out}/r", "--simulate", "wall:1.5:2:48x64",
+                                 "--frames", "0"], needles=("frames",)),
+        Case("record-sensor-hz-0", ["record", "{out}/r", "--simulate", "wall:1.5:2:48x64",
+                                    "--sensor-hz", "0"], needles=("--sensor-hz",)),
+        Case("record-hardware-no-calib", ["record", "{out}/r"], needles=("--calib",)),
+        Case("record-valid", ["record", "{out}/r", "--simulate", "wall:1.5:2:48x64"],
+             expect="ok"),
+        # ---- simulate
+        Case("simulate-1x1", ["simulate", "procedural:1:0:1x1", "{out}/s"],
+             needles=("1x1",)),
+        Case("simulate-src-missing", ["simulate", "{in}/nosrc", "{out}/s"],
+             needles=("nosrc", "not found")),
+        Case("simulate-grid-3", ["simulate", "procedural:1:0:48x64", "{out}/s", "--grid", "3"],
+             needles=("--grid",)),
+        Case("simulate-out-not-empty", ["simulate", "procedural:1:0:48x64", "{in}/frames"],
+             needles=("frames", "empty")),
+        Case("simulate-intrinsics-bad", ["simulate", "procedural:1:0:48x64", "{out}/s",
+                                         "--intrinsics", "1,2"], needles=("--intrinsics",)),
+        Case("simulate-valid", ["simulate", "procedural:1:0:48x64", "{out}/s"], expect="ok"),
+        # ---- demo
+        Case("demo-size-1x1", ["demo", "{out}/d", "--frames", "1", "--size", "1x1"],
+             needles=("--size",)),
+        Case("demo-size-text", ["demo", "{out}/d", "--frames", "1", "--size", "big"],
+             needles=("--size",)),
+        Case("demo-into-file", ["demo", "{in}/outfile", "--frames", "1", "--size", "48x64"],
+             needles=("outfile",)),
+        # ---- evaluate
+        Case("evaluate-json-exists", ["evaluate", "--data", zju, "--method", "nearest",
+                                      "--json", "{in}/metrics.json"],
+             needles=("metrics.json", "overwrite")),
+        Case("evaluate-save-vis-file", ["evaluate", "--data", zju, "--method", "nearest",
+                                        "--save-vis", "{in}/vis.txt"], needles=("vis.txt",)),
+        Case("evaluate-data-missing", ["evaluate", "--data", "{in}/none.json", "--method",
+                                       "nearest"], needles=("none.json", "not found")),
+        Case("evaluate-method-bogus", ["evaluate", "--data", zju, "--method", "bogus"],
+             needles=("bogus",)),
+        Case("evaluate-split-bogus", ["evaluate", "--data", zju, "--method", "nearest",
+                                      "--split", "nope"], needles=("nope",)),
+        Case("evaluate-checkpoint-text", ["evaluate", "--data", zju, "--checkpoint",
+                                          "{in}/text.pt"], needles=("text.pt",),
+             forbid=("weights_only", ": 101")),
+        Case("evaluate-limit-0", ["evaluate", "--data", zju, "--method", "nearest",
+                                  "--limit", "0"], needles=("--limit",)),
+        Case("evaluate-valid", ["evaluate", "--data", zju, "--method", "nearest", "--json",
+                                "{out}/m.json"], expect="ok"),
+        # ---- calibrate
+        Case("calibrate-roll-nan", ["calibrate", cal, "--out", "{out}/c.json",
+                                    "--nominal-roll-deg", "nan"],
+             needles=("--nominal-roll-deg",)),
+        Case("calibrate-fov-zero", ["calibrate", cal, "--out", "{out}/c.json", "--fov", "0,0"],
+             needles=("--fov",)),
+        Case("calibrate-no-depth", ["calibrate", "{in}/calrec_nodepth", "--out",
+                                    "{out}/c.json"], needles=("depth",)),
+        Case("calibrate-roll-wrong-sign", ["calibrate", cal, "--out", "{out}/c.json",
+                                           "--nominal-roll-deg", "-90"],
+             needles=("--nominal-roll-deg",)),
+        Case("calibrate-plot-file", ["calibrate", cal, "--out", "{out}/c.json", "--plot",
+                                     "{in}/plot.txt"], needles=("plot.txt",),
+             no_output=("c.json",)),
+        Case("calibrate-out-exists", ["calibrate", cal, "--out", "{out}/calib.json"],
+             needles=("calib.json", "exists"), setup=_existing_calib),
+        Case("calibrate-translation-bad", ["calibrate", cal, "--out", "{out}/c.json",
+                                           "--nominal-translation", "1,2"],
+             needles=("--nominal-translation",)),
+        Case("calibrate-missing", ["calibrate", "{in}/norec", "--out", "{out}/c.json"],
+             needles=("norec", "not found")),
+        Case("calibrate-slam-half", ["calibrate", cal, "--out", "{out}/c.json",
+                                     "--slam-cloud", "{in}/x.ply"], needles=("--slam",)),
+        Case("calibrate-valid", ["calibrate", cal, "--out", "{out}/c.json"], expect="ok"),
+        # ---- export, wall-test, bench, train
+        Case("export-format-bogus", ["export", "--preset", "deltar-lite", "--out",
+                                     "{out}/m.onnx", "--format", "tflite"],
+             needles=("--format",)),
+        Case("export-size-bad", ["export", "--preset", "deltar-lite", "--out", "{out}/m.onnx",
+                                 "--size", "big"], needles=("size",)),
+        Case("export-layout-missing", ["export", "--preset", "deltar-lite", "--out",
+                                       "{out}/m.onnx", "--layout-from", "{in}/nocal.json"],
+             needles=("nocal.json",)),
+        Case("wall-test-missing", ["wall-test", "{in}/norec", "--out", "{out}", *LITE],
+             needles=("norec",)),
+        Case("wall-test-every-0", ["wall-test", rec, "--out", "{out}", "--every", "0", *LITE],
+             needles=("--every",)),
+        Case("bench-size-bad", ["bench", "--size", "100x100"], needles=("--size",)),
+        Case("train-config-missing", ["train", "--config", "{in}/none.yaml"],
+             needles=("none.yaml",)),
+    ]
+
+
+# ---------------------------------------------------------------------------- running
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha1(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _normalise(text: str) -> str:
+    return " ".join(_BOX.sub(" ", text).split()).lower()
+
+
+def _count_models() -> Callable[[], int]:
+    """Count network constructions (``DepthEstimator.__init__`` calls)."""
+    from deltar.inference.estimator import DepthEstimator
+
+    calls = [0]
+    original = DepthEstimator.__init__
+
+    def counting(self, *args, **kwargs):
+        calls[0] += 1
+        original(self, *args, **kwargs)
+
+    DepthEstimator.__init__ = counting
+    return lambda: calls[0]
+
+
+def run_case(case: Case, inp: Path, out: Path, cli, models: Callable[[], int]) -> Outcome:
+    """Run one case and classify it."""
+    out.mkdir(parents=True, exist_ok=True)
+    if case.setup is not None:
+        case.setup(inp, out)
+    before = models()
+    start = time.perf_counter()
+    flags: list[str] = []
+    if callable(case.run):
+        stderr = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(stderr), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                value = case.run(inp, out)
+            failed, text, escaped = False, f"{value!r}"[:300], False
+        except _Silent as err:
+            return Outcome("silent", str(err), time.perf_counter() - start)
+        except (ValueError, TypeError, FileNotFoundError, FileExistsError) as err:
+            failed, text, escaped = True, f"{type(err).__name__}: {err}", False
+        except Exception as err:  # anything else reaches the user as a traceback
+            failed, text, escaped = True, f"{type(err).__name__}: {err}", True
+    else:
+        args = [a.replace("{in}", str(inp)).replace("{out}", str(out)) for a in case.run]
+        result = cli(args)
+        text = result.output
+        escaped = result.exception is not None and not isinstance(result.exception,
+                                                                  SystemExit)
+        if escaped:
+            text += f"\n{type(result.exception).__name__}: {result.exception}"
+        failed = result.exit_code != 0
+    seconds = time.perf_counter() - start
+    norm = _normalise(text)
+    found = all(n.lower() in norm for n in case.needles)
+    forbidden = any(f.lower() in norm for f in case.forbid)
+    if escaped:
+        verdict = "traceback"
+    elif case.expect == "ok":
+        verdict = "correct" if not failed and found else ("misleading" if failed else "silent")
+    elif not failed:
+        verdict = "silent"
+    else:
+        verdict = "clear" if found and not forbidden else "misleading"
+    if failed and case.early and not callable(case.run) and models() > before:
+        flags.append("late")
+    if failed and any((out / p).exists() for p in case.no_output):
+        flags.append("partial")
+    if failed and any(p.name.endswith(".tmp") or ".tmp." in p.name for p in out.rglob(".*")):
+        flags.append("partial")
+    return Outcome(verdict, text, seconds, flags)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--verbose", action="store_true", help="print every case's output")
+    parser.add_argument("--only", default=None, help="run only cases whose name contains this")
+    parser.add_argument("--json", type=Path, default=None, help="write the verdicts here")
+    args = parser.parse_args(argv)
+
+    os.environ.pop("DISPLAY", None)
+    os.environ.pop("WAYLAND_DISPLAY", None)
+    os.environ.setdefault("COLUMNS", "200")
+    from typer.testing import CliRunner
+
+    import deltar
+    from deltar.cli.main import _register_commands, app
+
+    _register_commands()
+    runner = CliRunner()
+
+    def cli(cli_args):
+        return runner.invoke(app, cli_args)
+
+    models = _count_models()
+    with tempfile.TemporaryDirectory(prefix="deltar-sweep-") as tmp:
+        root = Path(tmp)
+        inp = build_inputs(root)
+        build_recordings(inp, cli)
+        digest = _digest(inp)
+        selected = [c for c in cases() if args.only is None or args.only in c.name]
+        outcomes: dict[str, Outcome] = {}
+        for index, case in enumerate(selected):
+            outcome = run_case(case, inp, root / "out" / f"{index:03d}", cli, models)
+            now = _digest(inp)
+            if now != digest:
+                outcome.flags.append("modified")
+                changed = sorted(k for k in set(now) | set(digest) if now.get(k) != digest.get(k))
+                outcome.text += f"\n(inputs changed: {changed})"
+                digest = now
+            outcomes[case.name] = outcome
+            marks = f" [{', '.join(outcome.flags)}]" if outcome.flags else ""
+            print(f"{outcome.verdict:10s} {outcome.seconds:6.2f} s  {case.name}{marks}")
+            if args.verbose or outcome.verdict in ("traceback", "silent", "misleading"):
+                lines = outcome.text.strip().splitlines()
+                shown = lines[:3] + (["..."] if len(lines) > 6 else []) + lines[3:][-3:]
+                for line in shown:
+                    print(f"{'':20s}| {line[:160]}")
+    verdicts = Counter(o.verdict for o in outcomes.values())
+    flags = Counter(f for o in outcomes.values() for f in set(o.flags))
+    print(f"\ndeltar from {Path(deltar.__file__).parent}")
+    print(f"{len(outcomes)} cases: " + ", ".join(f"{verdicts.get(k, 0)} {k}" for k in (
+        "clear", "correct", "traceback", "silent", "misleading")))
+    print("flags: " + ", ".join(f"{flags.get(k, 0)} {k}" for k in ("late", "partial",
+                                                                  "modified")))
+    if args.json is not None:
+        args.json.write_text(json.dumps({name: {"verdict": o.verdict, "flags": o.flags,
+                                                "seconds": round(o.seconds, 3)}
+                                         for name, o in outcomes.items()}, indent=1) + "\n")
+    bad = sum(verdicts.get(k, 0) for k in ("traceback", "silent", "misleading"))
+    return 1 if bad or flags else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

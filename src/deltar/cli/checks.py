@@ -1,0 +1,150 @@
+"""Checks a command runs before any long work: outputs, devices, displays, numbers.
+
+Each raises ``ValueError`` (bad input, exit 1) or ``typer.BadParameter`` (usage, exit 2)
+with a message naming the option, so a mistake costs milliseconds, not a model load.
+None of them imports torch unless the check needs it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+
+import typer
+
+
+def output_folder(path: Path, option: str) -> Path:
+    """Check that ``path`` is, or can become, a folder this process can write in.
+
+    Nothing is created: the nearest existing ancestor must be a writable folder.
+
+    Args:
+        path: the output folder.
+        option: the option naming it, for the message (e.g. ``"--out"``).
+
+    Raises:
+        ValueError: ``path`` (or an ancestor) is a file, or the folder is not writable.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{option} {path} is a file, not a folder")
+    ancestor = path
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"{option} {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(f"{option} {path}: cannot write in {ancestor} (permission denied)")
+    return path
+
+
+def output_file(path: Path, option: str, overwrite: bool) -> Path:
+    """Check that ``path`` can be written: not a folder, absent unless ``overwrite``.
+
+    Raises:
+        ValueError / FileExistsError: naming ``option`` and the file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{option} {path} is a folder, not a file")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{option} {path} exists; pass --overwrite to replace it")
+    output_folder(path.parent, option)
+    return path
+
+
+def existing_outputs(paths: Iterable[Path], option: str = "--out") -> None:
+    """Refuse to start when outputs exist (resume with ``--skip-existing``).
+
+    Raises:
+        FileExistsError: naming how many exist and the first few.
+    """
+    existing = [str(p) for p in paths if p.exists()]
+    if existing:
+        shown = ", ".join(existing[:3]) + (" ..." if len(existing) > 3 else "")
+        raise FileExistsError(f"{option}: refusing to overwrite {len(existing)} existing "
+                              f"output file(s) ({shown}); pass --overwrite to replace them "
+                              "or --skip-existing to keep them and write the rest")
+
+
+def torch_device(name: str, option: str = "--device") -> str:
+    """Check that torch can run on device ``name`` here (e.g. ``cpu``, ``cuda:0``).
+
+    Raises:
+        typer.BadParameter: unknown device, or no such GPU on this machine.
+    """
+    import torch
+
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise typer.BadParameter(f"unknown device {name!r}; use cpu, cuda, cuda:N or mps",
+                                 param_hint=option) from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise typer.BadParameter(f"{name!r}: no CUDA GPU is available on this machine "
+                                     "(use --device cpu)", param_hint=option)
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise typer.BadParameter(f"{name!r}: this machine has "
+                                     f"{torch.cuda.device_count()} CUDA GPU(s)",
+                                     param_hint=option)
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise typer.BadParameter(f"{name!r}: Apple MPS is not available here",
+                                     param_hint=option)
+    elif device.type != "cpu":
+        raise typer.BadParameter(f"unsupported device {name!r}; use cpu, cuda, cuda:N or "
+                                 "mps", param_hint=option)
+    return name
+
+
+def display(option: str = "--show") -> None:
+    """Check that an OpenCV window can open (a display and a GUI build of OpenCV).
+
+    Raises:
+        ValueError: naming ``option`` and what is missing.
+    """
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                 or os.environ.get("WAYLAND_DISPLAY")):
+        raise ValueError(f"{option} needs a display (DISPLAY is not set); write the frames "
+                         "with --out DIR instead")
+    import cv2
+
+    try:
+        cv2.namedWindow("deltar")
+        cv2.destroyWindow("deltar")
+    except cv2.error:
+        raise ValueError(f"{option}: this OpenCV cannot open windows (a headless build?); "
+                         "write the frames with --out DIR instead") from None
+
+
+def finite(value: float, option: str, *, positive: bool = False) -> float:
+    """Check that a number option is finite (and > 0 when ``positive``).
+
+    Raises:
+        typer.BadParameter: naming ``option``.
+    """
+    if not math.isfinite(value) or (positive and value <= 0):
+        need = "a positive number" if positive else "a finite number"
+        raise typer.BadParameter(f"must be {need}, got {value}", param_hint=option)
+    return value
+
+
+def image_size(text: str, option: str, minimum: int = 8) -> tuple[int, int]:
+    """Parse ``HxW`` (pixels), each side at least ``minimum``.
+
+    Raises:
+        typer.BadParameter: naming ``option``.
+    """
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"must look like 480x640, got {text!r}",
+                                 param_hint=option) from None
+    if height < minimum or width < minimum:
+        raise typer.BadParameter(f"each side must be at least {minimum} pixels, got {text!r}",
+                                 param_hint=option)
+    return height, width

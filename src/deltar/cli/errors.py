@@ -1,0 +1,113 @@
+"""One error style for every command.
+
+A user mistake ends with a single line ``error: <message naming the argument or file>``
+on stderr: exit code 1 for bad input (files, values found wrong while running), 2 for
+usage errors (options the command line parser or a command refuses before any work).
+Warnings, the library's Python warnings included, are single ``warning: ...`` lines.
+Messages are printed literally, never interpreted as rich markup (a file called
+``[scan]frame.png`` prints as is).
+
+:class:`DeltarGroup` (the ``deltar`` command group) turns the library's
+``ValueError`` / ``OSError`` / ``ImportError`` into that line, so commands can let them
+propagate. Set ``DELTAR_TRACEBACK=1`` to see the Python traceback instead.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from typing import Any, NoReturn
+
+import typer
+from typer.core import TyperGroup
+
+try:  # recent typer vendors click
+    from typer._click.exceptions import ClickException, UsageError
+    from typer._click.utils import echo
+except ImportError:  # pragma: no cover - older typer on top of click
+    from click import echo
+    from click.exceptions import ClickException, UsageError
+
+#: Exceptions that mean "the input (or the environment) is wrong", not "deltar is broken".
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, ImportError)
+
+
+def format_error(err: BaseException) -> str:
+    """One line describing ``err``; operating-system errors as ``<path>: <reason>``."""
+    if isinstance(err, OSError) and err.strerror and err.filename:
+        text = f"{err.filename}: {err.strerror}"
+        if err.filename2:
+            text = f"{err.filename} -> {err.filename2}: {err.strerror}"
+    elif isinstance(err, ModuleNotFoundError) and err.name:
+        text = f"{err}: install the optional dependency (see the README's extras)"
+    else:
+        text = str(err) or type(err).__name__
+    return " ".join(text.split())
+
+
+def error_line(message: str) -> None:
+    """Print ``error: <message>`` on stderr as one literal line."""
+    echo(f"error: {' '.join(str(message).split())}", err=True)
+
+
+def warn(message: str) -> None:
+    """Print ``warning: <message>`` on stderr as one literal line."""
+    echo(f"warning: {' '.join(str(message).split())}", err=True)
+
+
+def fail(err: BaseException | str, code: int = 1) -> NoReturn:
+    """Print ``err`` as the ``error:`` line and exit with ``code`` (1: bad input)."""
+    error_line(err if isinstance(err, str) else format_error(err))
+    raise typer.Exit(code)
+
+
+def _usage_message(err: UsageError) -> str:
+    message = err.format_message()
+    ctx = getattr(err, "ctx", None)
+    if ctx is not None:
+        message += f" (see '{ctx.command_path} --help')"
+    return message
+
+
+class DeltarGroup(TyperGroup):
+    """The ``deltar`` group: every failure reaches the user as one ``error:`` line."""
+
+    def main(self, args: Any = None, prog_name: str | None = None,
+             complete_var: str | None = None, standalone_mode: bool = True,
+             **extra: Any) -> Any:
+        """Run the command line; in standalone mode, exit with the command's status."""
+        if not standalone_mode:
+            return super().main(args=args, prog_name=prog_name, complete_var=complete_var,
+                                standalone_mode=False, **extra)
+        formatter = warnings.formatwarning
+        warnings.formatwarning = _format_warning
+        try:
+            status = super().main(args=args, prog_name=prog_name,
+                                  complete_var=complete_var, standalone_mode=False, **extra)
+        except UsageError as err:
+            if type(err).__name__ == "NoArgsIsHelpError":  # bare ``deltar``: the help
+                err.show()
+            else:
+                error_line(_usage_message(err))
+            sys.exit(err.exit_code)
+        except ClickException as err:
+            error_line(err.format_message())
+            sys.exit(err.exit_code)
+        except typer.Abort:
+            error_line("aborted")
+            sys.exit(1)
+        except USER_ERRORS as err:
+            if os.environ.get("DELTAR_TRACEBACK"):
+                raise
+            error_line(format_error(err))
+            sys.exit(1)
+        finally:
+            warnings.formatwarning = formatter
+        sys.exit(status if isinstance(status, int) else 0)
+
+
+def _format_warning(message: Warning | str, category: type[Warning], filename: str,
+                    lineno: int, line: str | None = None) -> str:
+    """Library warnings as one ``warning:`` line (no source location, no code line)."""
+    return f"warning: {' '.join(str(message).split())}\n"

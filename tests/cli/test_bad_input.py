@@ -1,0 +1,417 @@
+"""Bad input on every command: one ``error:`` line naming the option or file, early.
+
+Each test asserts the message (not only the exit code). Commands use the random
+``deltar-lite`` preset on 48x64 images; "before the model" is checked by the absence of
+the preset's random-weights warning, printed when the network is built.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.calibration.rig import RigCalibration
+from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+from deltar.cli.main import _register_commands, app
+from deltar.io.zone_file import save_zone_frame, zone_frame_to_dict
+from deltar.sensor.geometry import SensorExtrinsics
+from deltar.sensor.zone_frame import ZoneFrame
+
+_register_commands()
+runner = CliRunner()
+LITE = ["--preset", "deltar-lite", "--threads", "1"]
+MODEL_BUILT = "random, untrained weights"
+
+
+def _run(args, **kwargs):
+    return runner.invoke(app, [str(a) for a in args], **kwargs)
+
+
+def _one_error_line(result, *needles):
+    """The run failed with exactly one ``error:`` line on stderr holding every needle."""
+    assert result.exception is None or isinstance(result.exception, SystemExit), \
+        result.exception
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.output
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.fixture
+def inputs(tmp_path, rng):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)).save(folder / "a.png")
+    frame = ZoneFrame(rng.uniform(0.5, 3, 64), np.full(64, 0.03), np.ones(64, bool))
+    save_zone_frame(folder / "a.json", frame)
+    return folder
+
+
+def _zones(folder, name, **changes):
+    data = json.loads((folder / "a.json").read_text())
+    data.update(changes)
+    (folder / name).write_text(json.dumps(data))
+    return folder / name
+
+
+def _predict(inputs, out, image="a.png", zones="a.json", *extra):
+    return _run(["predict", "--image", inputs / image, "--zones", inputs / zones, "--out", out,
+                 "--outputs", "npy", *LITE, *extra])
+
+
+# ------------------------------------------------------------------ silently wrong before
+def test_depth_png_as_image_is_refused(inputs, tmp_path):
+    Image.fromarray(np.full((48, 64), 1500, np.uint16)).save(inputs / "depth.png")
+    result = _predict(inputs, tmp_path / "out", "depth.png")
+    assert result.exit_code == 1
+    _one_error_line(result, "depth.png", "single-channel 16-bit image")
+    assert MODEL_BUILT not in result.output and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("value, shown", [("1.5", "str '1.5'"), (True, "bool True")])
+def test_zone_values_must_be_numbers(inputs, tmp_path, value, shown):
+    zones = _zones(inputs, "bad.json", mean_m=[value] * 64)
+    result = _predict(inputs, tmp_path / "out", zones=zones.name)
+    assert result.exit_code == 1
+    _one_error_line(result, "bad.json: mean_m must hold numbers", shown)
+
+
+@pytest.mark.parametrize("content", [
+    {"mean_m": [0.0] * 64, "sigma_m": [0.0] * 64, "valid": [False] * 64},
+    {"distance_mm": [-3] * 64, "range_sigma_mm": [0] * 64, "target_status": [5] * 64},
+], ids=["all-invalid", "driver-error-codes"])
+def test_frame_without_valid_zone_is_refused_unless_allowed(inputs, tmp_path, content):
+    path = inputs / "dark.json"
+    base = json.loads((inputs / "a.json").read_text()) if "mean_m" in content else {}
+    path.write_text(json.dumps({**base, **content}))
+    refused = _predict(inputs, tmp_path / "out", zones="dark.json")
+    assert refused.exit_code == 1
+    _one_error_line(refused, "dark.json: no valid zone", "--allow-no-zones")
+    assert MODEL_BUILT not in refused.output
+
+    out = tmp_path / "allowed"
+    allowed = _run(["predict", "--image", inputs / "a.png", "--zones", path, "--out", out,
+                    "--outputs", "png16,npy,color,ply", "--allow-no-zones", *LITE])
+    assert allowed.exit_code == 0, allowed.output
+    assert "image-only estimate" in allowed.stderr and "(1 image-only)" in allowed.stdout
+    note = b"image-only estimate: no valid zone, metric scale unknown"
+    for name in ("a_depth_mm.png", "a_depth_color.png"):
+        with Image.open(out / name) as img:
+            assert img.text.get("deltar") == note.decode()
+    assert note in (out / "a_cloud.ply").read_bytes().split(b"end_header")[0]
+    assert np.isfinite(np.load(out / "a_depth_m.npy")).all()
+
+
+@pytest.mark.parametrize("mean, shown", [([1e6] + [1.5] * 63, "1e+06"), ([0.0] * 64, "0 m")])
+def test_impossible_distances_are_refused(inputs, tmp_path, mean, shown):
+    zones = _zones(inputs, "far.json", mean_m=mean)
+    result = _predict(inputs, tmp_path / "out", zones=zones.name)
+    assert result.exit_code == 1
+    _one_error_line(result, "far.json", "outside the VL53L5CX range 0 < d <= 4 m", shown)
+
+
+def test_driver_zones_beyond_range_are_invalidated_with_one_warning_line(inputs, tmp_path):
+    """In a real run (not under pytest's warning capture) a library warning is one line."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    dump = {"distance_mm": [1500] * 63 + [9000], "range_sigma_mm": [20] * 64,
+            "target_status": [5] * 64}
+    (inputs / "driver.json").write_text(json.dumps(dump))
+    src = str(Path(__file__).resolve().parents[2] / "src")
+    env = {**os.environ, "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    done = subprocess.run([sys.executable, "-m", "deltar", "predict", "--image",
+                           str(inputs / "a.png"), "--zones", str(inputs / "driver.json"),
+                           "--out", str(tmp_path / "out"), "--outputs", "npy", *LITE],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == [
+        "warning: 1 zone(s) with a valid status read more than the VL53L5CX's 4 m range "
+        "(up to 9 m); marked invalid",
+        "warning: preset 'deltar-lite' has random, untrained weights: its depth is "
+        "meaningless"]
+
+
+@pytest.mark.parametrize("args, option", [
+    (["--threads", "0"], "--threads"), (["--threads", "-1"], "--threads")])
+def test_predict_thread_counts_below_one_are_usage_errors(inputs, tmp_path, args, option):
+    result = _predict(inputs, tmp_path / "out", "a.png", "a.json", *args)
+    assert result.exit_code == 2
+    _one_error_line(result, f"Invalid value for '{option}'", "deltar predict --help")
+
+
+def test_replay_every_zero_is_a_usage_error(tmp_path):
+    result = _run(["replay", tmp_path, "--out", tmp_path / "o", "--every", "0", *LITE])
+    assert result.exit_code == 2
+    _one_error_line(result, "'--every'")
+
+
+@pytest.fixture
+def zju_set(tmp_path):
+    """A one-frame ZJU-L5-layout set (its data.json)."""
+    data = tmp_path / "set" / "data.json"
+    assert _run(["simulate", "procedural:1:0:48x64", data.parent]).exit_code == 0
+    return data
+
+
+def test_evaluate_refuses_to_overwrite_json_without_overwrite(tmp_path, zju_set):
+    data = zju_set
+    metrics = tmp_path / "metrics.json"
+    metrics.write_text("keep\n")
+    refused = _run(["evaluate", "--data", data, "--method", "nearest", "--json", metrics])
+    assert refused.exit_code == 1
+    _one_error_line(refused, f"--json {metrics} exists; pass --overwrite")
+    assert metrics.read_text() == "keep\n"
+    replaced = _run(["evaluate", "--data", data, "--method", "nearest", "--json", metrics,
+                     "--overwrite"])
+    assert replaced.exit_code == 0, replaced.output
+    assert "nearest" in json.loads(metrics.read_text())
+
+
+# ------------------------------------------------------------------ tracebacks before
+def test_unwritable_out_is_found_before_the_model(inputs, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    result = _predict(inputs, blocker)
+    _one_error_line(result, f"--out {blocker} is a file, not a folder")
+    result = _predict(inputs, blocker / "sub")
+    _one_error_line(result, f"{blocker} is a file, not a folder")
+    assert MODEL_BUILT not in result.output
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without a GPU")
+def test_cuda_without_gpu_and_unknown_devices(inputs, tmp_path):
+    result = _predict(inputs, tmp_path / "out", "a.png", "a.json", "--device", "cuda")
+    assert result.exit_code == 2
+    _one_error_line(result, "Invalid value for --device:", "no CUDA GPU is available")
+    result = _predict(inputs, tmp_path / "out", "a.png", "a.json", "--device", "bogus")
+    _one_error_line(result, "Invalid value for --device:", "unknown device 'bogus'")
+
+
+@pytest.fixture
+def recording(tmp_path):
+    rec = tmp_path / "rec"
+    assert _run(["record", rec, "--simulate", "wall:1.5:4:48x64"]).exit_code == 0
+    return rec
+
+
+def test_replay_show_without_display(recording, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    result = _run(["replay", recording, "--show", *LITE])
+    assert result.exit_code == 1
+    _one_error_line(result, "--show needs a display", "--out DIR")
+    assert MODEL_BUILT not in result.output
+
+
+def test_simulate_and_demo_refuse_tiny_sizes_and_files(tmp_path):
+    result = _run(["simulate", "procedural:1:0:1x1", tmp_path / "s"])
+    _one_error_line(result, "SRC", "at least 8x8 pixels, got 1x1")
+    result = _run(["demo", tmp_path / "d", "--frames", "1", "--size", "1x1"])
+    assert result.exit_code == 2
+    _one_error_line(result, "Invalid value for --size:", "at least 8 pixels")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    result = _run(["demo", blocker, "--frames", "1", "--size", "48x64"])
+    _one_error_line(result, f"OUT {blocker} is a file, not a folder")
+
+
+def test_evaluate_save_vis_pointing_at_a_file(tmp_path, zju_set):
+    blocker = tmp_path / "vis.txt"
+    blocker.write_text("x")
+    result = _run(["evaluate", "--data", zju_set, "--method", "nearest", "--save-vis", blocker])
+    _one_error_line(result, f"--save-vis {blocker} is a file, not a folder")
+
+
+CAMERA = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [92.0, -1.0, 1.5], degrees=True).as_matrix(),
+                        np.array([0.03, 0.01, -0.01]))
+
+
+@pytest.fixture(scope="module")
+def calib_recordings(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cal")
+    frames = synthetic_rig_frames(TRUE, CAMERA, frames_per_plane=2, mean_noise_m=0.01, seed=5)
+    write_synthetic_recording(root / "rec", frames, CAMERA)
+    write_synthetic_recording(root / "nodepth", frames, CAMERA, with_depth=False)
+    return root
+
+
+def test_calibrate_refuses_nan_roll_and_checks_plot_before_writing(calib_recordings, tmp_path):
+    result = _run(["calibrate", calib_recordings / "rec", "--out", tmp_path / "c.json",
+                   "--nominal-roll-deg", "nan"])
+    assert result.exit_code == 2
+    _one_error_line(result, "Invalid value for --nominal-roll-deg:", "finite")
+    blocker = tmp_path / "plot.txt"
+    blocker.write_text("x")
+    result = _run(["calibrate", calib_recordings / "rec", "--out", tmp_path / "c.json",
+                   "--plot", blocker])
+    _one_error_line(result, f"--plot {blocker} is a file, not a folder")
+    assert not (tmp_path / "c.json").exists()  # no partial output
+
+
+def test_calibrate_explains_fov_missing_depth_and_wrong_roll(calib_recordings, tmp_path):
+    result = _run(["calibrate", calib_recordings / "rec", "--out", tmp_path / "c.json",
+                   "--fov", "0,0"])
+    _one_error_line(result, "Invalid value for --fov:", "(0, 180) degrees")
+    result = _run(["calibrate", calib_recordings / "nodepth", "--out", tmp_path / "c.json"])
+    _one_error_line(result, "no depth image within 0.02 s of any zone frame",
+                    "SLAM map")
+    result = _run(["calibrate", calib_recordings / "rec", "--out", tmp_path / "c.json",
+                   "--nominal-roll-deg", "-90"])
+    assert result.exit_code == 1
+    _one_error_line(result, "--nominal-roll-deg -90 may be wrong",
+                    "with --nominal-roll-deg 90 this recording calibrates")
+
+
+def test_calibrate_counts_zone_frames_without_an_image(calib_recordings, tmp_path):
+    rec = tmp_path / "rec"
+    import shutil
+
+    shutil.copytree(calib_recordings / "rec", rec)
+    lines = (rec / "zones.jsonl").read_text().splitlines()
+    extra = json.loads(lines[-1])
+    extra["timestamp_s"] += 100.0  # a zone frame long after the last image
+    (rec / "zones.jsonl").write_text("\n".join([*lines, json.dumps(extra)]) + "\n")
+    result = _run(["calibrate", rec, "--out", tmp_path / "c.json"])
+    assert result.exit_code == 0, result.output
+    assert "zone frames without an image within 0.02 s: 1" in result.stdout
+
+
+# ------------------------------------------------------------------ misleading before
+def test_checkpoint_errors_never_advise_unsafe_loading(inputs, tmp_path):
+    text = tmp_path / "text.pt"
+    text.write_text("e" * 200)
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(b"PK\x03\x04" + bytes(100))
+    for path, reason in ((text, "not a PyTorch file"), (broken, "corrupt or truncated")):
+        result = _run(["predict", "--image", inputs / "a.png", "--zones", inputs / "a.json",
+                       "--out", tmp_path / "out", "--checkpoint", path])
+        line = _one_error_line(result, f"{path}: cannot read checkpoint", reason)
+        assert "weights_only" not in result.output and ": 101" not in line
+
+
+def test_record_grid_three_names_the_option(tmp_path):
+    result = _run(["record", tmp_path / "r", "--simulate", "wall:1.5:2:48x64", "--grid", "3"])
+    assert result.exit_code == 2
+    _one_error_line(result, "Invalid value for --grid:", "must be 4 or 8, got 3")
+
+
+def test_messages_are_printed_literally(tmp_path, inputs):
+    result = _run(["predict", "--image", tmp_path / "[scan]missing.png", "--zones",
+                   inputs / "a.json", "--out", tmp_path / "out", *LITE])
+    _one_error_line(result, "[scan]missing.png")
+
+
+# ------------------------------------------------------------------ fail fast, resume
+def test_bad_calibration_and_existing_outputs_are_found_before_the_model(inputs, tmp_path):
+    (tmp_path / "calib.json").write_text("[1, 2")
+    result = _predict(inputs, tmp_path / "out", "a.png", "a.json", "--calib",
+                      tmp_path / "calib.json")
+    _one_error_line(result, "calib.json: corrupt JSON")
+    assert MODEL_BUILT not in result.output
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "a_depth_m.npy").write_bytes(b"earlier")
+    result = _predict(inputs, tmp_path / "out")
+    _one_error_line(result, "refusing to overwrite 1 existing output", "--skip-existing")
+    assert MODEL_BUILT not in result.output
+    assert (tmp_path / "out" / "a_depth_m.npy").read_bytes() == b"earlier"
+    calib = RigCalibration(CameraIntrinsics(500, 500, 319.5, 239.5, 640, 480),
+                           SensorExtrinsics()).save(tmp_path / "c640.json")
+    result = _predict(inputs, tmp_path / "o2", "a.png", "a.json", "--calib", calib)
+    _one_error_line(result, "a.png is 48x64 pixels", "calibrated resolution 480x640")
+    assert MODEL_BUILT not in result.output
+
+
+def test_folder_run_keeps_going_and_resumes(inputs, tmp_path, monkeypatch):
+    monkeypatch.setenv("DELTAR_PROGRESS_SECONDS", "0")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for stem in ("f1", "f2", "f3"):
+        (frames / f"{stem}.png").write_bytes((inputs / "a.png").read_bytes())
+        (frames / f"{stem}.json").write_text((inputs / "a.json").read_text())
+    (frames / "f2.json").write_text("{broken")
+    out = tmp_path / "out"
+    args = ["predict", "--images", frames, "--zones-dir", frames, "--out", out, "--outputs",
+            "npy,png16", *LITE]
+    stopped = _run(args)
+    assert stopped.exit_code == 1
+    _one_error_line(stopped, "f2.json: corrupt JSON")
+    assert sorted(p.name for p in out.iterdir()) == ["f1_depth_m.npy", "f1_depth_mm.png"]
+
+    kept = _run([*args, "--skip-existing", "--keep-going"])
+    assert kept.exit_code == 1
+    assert "1 frame(s) already have every output" in kept.stdout
+    assert "warning: skipped f2.png:" in kept.stderr
+    _one_error_line(kept, "1 of 2 frames failed (first: f2.png:", "--skip-existing")
+    assert {p.name for p in out.iterdir()} >= {"f3_depth_m.npy", "f3_depth_mm.png"}
+
+    # Fix the frame and lose one output of f3 (as if stopped in the middle of it).
+    (frames / "f2.json").write_text((inputs / "a.json").read_text())
+    (out / "f3_depth_mm.png").unlink()
+    kept_file = out / "f3_depth_m.npy"
+    before = kept_file.stat().st_mtime_ns
+    resumed = _run([*args, "--skip-existing"])
+    assert resumed.exit_code == 0, resumed.output
+    assert "wrote 2 prediction(s)" in resumed.stdout
+    assert "predicting: 1/2 frames" in resumed.stdout and "frames/s" in resumed.stdout
+    assert "predicting: 2/2 frames" in resumed.stdout and "done in" in resumed.stdout
+    assert kept_file.stat().st_mtime_ns == before and (out / "f3_depth_mm.png").exists()
+    assert len(list(out.iterdir())) == 6
+
+    both = _run([*args, "--skip-existing", "--overwrite"])
+    assert both.exit_code == 2
+    _one_error_line(both, "--overwrite or --skip-existing, not both")
+
+
+def test_progress_lines_when_not_a_terminal(recording, tmp_path, monkeypatch):
+    monkeypatch.setenv("DELTAR_PROGRESS_SECONDS", "0")
+    result = _run(["replay", recording, "--out", tmp_path / "o", *LITE])
+    assert result.exit_code == 0, result.output
+    assert "replaying: 1/2 frames" in result.stdout and "ETA" in result.stdout
+    assert "replaying: 2/2 frames" in result.stdout
+
+
+def test_replay_skips_frames_without_zones_unless_allowed(tmp_path):
+    from deltar.io.recording import RecordingMeta, RecordingWriter
+
+    writer = RecordingWriter(tmp_path / "rec", RecordingMeta(
+        intrinsics=CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48), sensor_model="VL53L5CX",
+        grid=8, fov_deg=(45.0, 45.0)))
+    image = np.zeros((48, 64, 3), np.uint8)
+    for i, valid in enumerate((True, False)):
+        writer.add_color(0.1 * i, image)
+        writer.add_zone_frame(ZoneFrame(np.full(64, 1.5 if valid else 0.0), np.full(64, 0.02),
+                                        np.full(64, valid), timestamp_s=0.1 * i))
+    with pytest.warns(UserWarning, match="t = 0.100 s has no valid zone; skipped"):
+        skipped = _run(["replay", tmp_path / "rec", "--out", tmp_path / "o1", "--outputs",
+                        "npy", *LITE])
+    assert skipped.exit_code == 0, skipped.output
+    assert len(list((tmp_path / "o1").glob("*.npy"))) == 1
+    allowed = _run(["replay", tmp_path / "rec", "--out", tmp_path / "o2", "--outputs", "npy",
+                    "--allow-no-zones", *LITE])
+    assert allowed.exit_code == 0, allowed.output
+    assert len(list((tmp_path / "o2").glob("*.npy"))) == 2
+
+
+def test_zone_dict_round_trip_still_loads(tmp_path):
+    """Integers and 0/1 validity flags are numbers, not coerced strings: still accepted."""
+    frame = ZoneFrame(np.full(16, 2.0), np.full(16, 0.02), np.ones(16, bool))
+    data = zone_frame_to_dict(frame)
+    data["mean_m"] = [2] * 16
+    data["valid"] = [1] * 16
+    (tmp_path / "z.json").write_text(json.dumps(data))
+    from deltar.io.zone_file import load_zone_frame
+
+    assert load_zone_frame(tmp_path / "z.json").valid.all()

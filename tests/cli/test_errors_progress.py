@@ -1,0 +1,37 @@
+"""The shared CLI error style and the progress lines for logs."""
+
+from __future__ import annotations
+
+import errno
+
+from deltar.cli.errors import format_error
+from deltar.cli.progress import ProgressReport
+
+
+def test_os_errors_read_as_path_and_reason():
+    err = OSError(errno.ENOTDIR, "Not a directory", "/data/file/sub")
+    assert format_error(err) == "/data/file/sub: Not a directory"
+    assert format_error(ValueError("two\nlines")) == "two lines"
+    assert format_error(ModuleNotFoundError("No module named 'onnx'", name="onnx")) == (
+        "No module named 'onnx': install the optional dependency (see the README's extras)")
+
+
+def test_progress_lines_have_count_rate_and_eta(capsys, monkeypatch):
+    monkeypatch.setenv("DELTAR_PROGRESS_SECONDS", "0")
+    with ProgressReport("predicting", total=3, terminal=False) as progress:
+        for _ in range(3):
+            progress.advance()
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(",")[0] for line in lines] == ["predicting: 1/3 frames",
+                                                      "predicting: 2/3 frames",
+                                                      "predicting: 3/3 frames"]
+    assert "frames/s" in lines[0] and "ETA" in lines[0] and "done in" in lines[-1]
+
+
+def test_progress_lines_are_rate_limited(capsys, monkeypatch):
+    monkeypatch.setenv("DELTAR_PROGRESS_SECONDS", "3600")
+    with ProgressReport("simulating", total=50, terminal=False) as progress:
+        for _ in range(50):
+            progress.advance()
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("simulating: 50/50 frames")

@@ -1,0 +1,142 @@
+"""Bad input through the Python API: ValueError naming the argument, never a wrong answer."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from deltar.data.rgbd import read_color
+from deltar.inference.estimator import DepthEstimator
+from deltar.io.torch_file import read_torch_file
+from deltar.io.zone_file import load_zone_frame, zone_frame_to_dict
+from deltar.sensor.zone_frame import ZoneFrame
+
+
+@pytest.fixture(scope="module")
+def estimator():
+    torch.manual_seed(0)
+    from deltar.models import create_model
+
+    return DepthEstimator(create_model("deltar-lite", design_size=(64, 96)).eval())
+
+
+@pytest.fixture
+def image(rng):
+    return rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+
+
+def _frame(mean=1.5, valid=True, sensor_model="VL53L5CX"):
+    mean = np.broadcast_to(np.asarray(mean, dtype=np.float64), (64,)).copy()
+    return ZoneFrame(mean, np.full(64, 0.02), np.full(64, valid), sensor_model=sensor_model)
+
+
+def test_frame_without_valid_zone_gives_a_flagged_image_only_estimate(estimator, image):
+    with pytest.warns(RuntimeWarning, match="the zone frame has no valid zone: image-only"):
+        result = estimator.predict(image, _frame(0.0, valid=False))
+    assert result.image_only and result.zones_used == 0
+    assert np.all(result.uncertainty_m >= result.depth_m - 1e-6)
+    normal = estimator.predict(image, _frame())
+    assert not normal.image_only and normal.zones_used == 64
+    assert np.median(normal.uncertainty_m / normal.depth_m) < 1.0
+
+
+@pytest.mark.parametrize("mean, shown", [(np.r_[1e6, np.full(63, 1.5)], "1e+06"),
+                                         (0.0, "zones [0, 1, 2, 3, 4] and 59 more")])
+def test_impossible_distances_raise(estimator, image, mean, shown):
+    with pytest.raises(ValueError, match="outside the VL53L5CX range 0 < d <= 4 m") as info:
+        estimator.predict(image, _frame(mean))
+    assert shown in str(info.value) and str(info.value).startswith("frames[0]:")
+
+
+def test_range_follows_the_sensor_model_and_max_range_m(estimator, image, lite_model):
+    far = _frame(np.r_[6.0, np.full(63, 1.5)], sensor_model="OTHER-TOF")
+    assert estimator.predict(image, far).zones_used == 64  # unknown model: no upper limit
+    strict = DepthEstimator(lite_model, max_range_m=2.0, fold_batch_norms=False)
+    with pytest.raises(ValueError, match="range 0 < d <= 2 m"):
+        strict.predict(image, _frame(np.r_[3.0, np.full(63, 1.5)]))
+    with pytest.raises(ValueError, match="max_range_m must be a positive number"):
+        DepthEstimator(lite_model, max_range_m=float("nan"), fold_batch_norms=False)
+
+
+@pytest.mark.parametrize("bad, words", [
+    (np.zeros((48, 64), np.uint8), "got an array of shape (48, 64)"),
+    (torch.zeros(48, 64, 3), "torch Tensor of shape (48, 64, 3); convert it"),
+    ({"rgb": 1}, "got a dict"),
+    ("frame.png", "str path 'frame.png'; read the file first"),
+])
+def test_wrong_image_types_say_what_is_expected(estimator, bad, words):
+    with pytest.raises(ValueError) as info:
+        estimator.predict(bad, _frame())
+    message = str(info.value)
+    assert message.startswith("image must be an (H, W, 3) uint8 RGB array") and words in message
+    assert "images and" not in message  # never "got 48 images"
+
+
+def test_wrong_zone_frame_and_calibration_types(estimator, image):
+    with pytest.raises(ValueError, match=r"zone_frame must be a ZoneFrame .* got a dict"):
+        estimator.predict(image, {"mean_m": [1.0]})
+    with pytest.raises(ValueError, match=r"zone_frame must be a ZoneFrame .* got a NoneType"):
+        estimator.predict(image, None)
+    with pytest.raises(ValueError, match=r"calibration must be a RigCalibration .* got a dict"):
+        estimator.predict(image, _frame(), calibration={"fx": 1.0})
+    with pytest.raises(ValueError, match="list of ZoneFrame"):
+        estimator.predict([image, image], _frame())
+
+
+def test_driver_values_must_be_numbers_and_out_of_range_zones_are_invalid():
+    with pytest.raises(ValueError, match="distance_mm must hold numbers, got str '1500'"):
+        ZoneFrame.from_driver(["1500"] * 64, [20] * 64, [5] * 64)
+    with pytest.warns(RuntimeWarning, match="2 zone.* read more than the VL53L5CX's 4 m"):
+        frame = ZoneFrame.from_driver([1500] * 62 + [4500, 8000], [20] * 64, [5] * 64)
+    assert frame.valid_count == 62
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("mean_m", ["1.5"] * 64, "mean_m must hold numbers, got str '1.5' and 63 more"),
+    ("sigma_m", [True] * 64, "sigma_m must hold numbers, got bool True"),
+    ("timestamp_s", "12.5", "timestamp_s must be a number, got '12.5'"),
+    ("valid", ["true"] * 64, "valid must hold booleans"),
+    ("sensor_model", 5, "sensor_model must be a string"),
+])
+def test_zone_files_refuse_strings_and_booleans(tmp_path, key, value, words):
+    data = zone_frame_to_dict(_frame())
+    data[key] = value
+    path = tmp_path / "z.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError) as info:
+        load_zone_frame(path)
+    assert str(info.value).startswith(str(path)) and words in str(info.value)
+
+
+def test_npz_zone_file_with_string_arrays(tmp_path):
+    path = tmp_path / "z.npz"
+    np.savez(path, mean_m=np.array(["1.0"] * 64), sigma_m=np.zeros(64), valid=np.ones(64, bool),
+             schema_version=np.array(1))
+    with pytest.raises(ValueError, match="mean_m must hold numbers, got an array of <U3"):
+        load_zone_frame(path)
+
+
+def test_read_color_refuses_depth_maps_and_accepts_grey(tmp_path):
+    Image.fromarray(np.full((8, 8), 1000, np.uint16)).save(tmp_path / "d.png")
+    with pytest.raises(ValueError, match=r"d\.png is a single-channel 16-bit image"):
+        read_color(tmp_path / "d.png")
+    Image.fromarray(np.full((8, 8), 7, np.uint8)).save(tmp_path / "g.png")
+    assert read_color(tmp_path / "g.png").shape == (8, 8, 3)
+
+
+def test_torch_file_errors_are_short_and_safe(tmp_path):
+    import argparse
+
+    torch.save({"args": argparse.Namespace(x=1)}, tmp_path / "objects.pt")
+    with pytest.raises(ValueError) as info:
+        read_torch_file(tmp_path / "objects.pt", "checkpoint", weights_only=True)
+    message = str(info.value)
+    assert "safe loading refuses (it refers to argparse.Namespace)" in message
+    assert "weights_only" not in message and "\n" not in message
+    (tmp_path / "text.pt").write_text("e" * 50)
+    with pytest.raises(ValueError, match=r"text\.pt: cannot read checkpoint: not a PyTorch file"):
+        read_torch_file(tmp_path / "text.pt", "checkpoint", weights_only=True)
