@@ -63,7 +63,8 @@ def demo(
                                  param_hint="OUT")
     simulate_command(src=f"procedural:{frames}:{seed}:{size}", out=scenes, grid=8,
                      layout="calibrated", start=0, stop=None, step=1, limit=None,
-                     depth_scale=None, intrinsics=None, split="test")
+                     depth_scale=None, intrinsics=None, split="test", cnh=False,
+                     cnh_bins=None, cnh_range=None)
     write_predict_sample(scenes / "data.json", out / "sample")
     from deltar.weights import bundled_model_names
 
