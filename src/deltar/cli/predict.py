@@ -7,6 +7,21 @@ from pathlib import Path
 import typer
 
 from deltar.cli.main import app
+from deltar.cli.robotics import (
+    BagOption,
+    BagStorageOption,
+    ImageTopicOption,
+    InfoTopicOption,
+    OutBagOption,
+    PointsOption,
+    RerunOption,
+    RerunSaveOption,
+    TofFormatOption,
+    TofOrientationOption,
+    TofSigmaOption,
+    TofTopicOption,
+    TopicPrefixOption,
+)
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
 _ZONE_SUFFIXES = (".json", ".npz")
@@ -153,10 +168,13 @@ def predict_command(
     outputs: str = typer.Option(_DEFAULT_OUTPUTS, help="Comma list of png16 (uint16 mm), "
                                 "npy (float32 m), color, ply (point cloud), panel."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs (never inputs)."),
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Predict dense metric depth from RGB image(s) and ToF zone frame(s)."""
     from rich.progress import track
 
+    from deltar.cli.robotics import open_viewer
     from deltar.data.rgbd import read_color
     from deltar.inference.outputs import OUTPUT_KINDS, write_prediction
     from deltar.io.zone_file import load_zone_frame
@@ -184,6 +202,7 @@ def predict_command(
         estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
                                      size, threads, flip)
         calibration = _load_calibration(calib)
+        viewer = open_viewer(rerun, rerun_save)
         for img_path, zone_path in track(pairs, description="predicting",
                                          disable=len(pairs) < 2):
             rgb = read_color(img_path)
@@ -192,7 +211,12 @@ def predict_command(
             write_prediction(out, img_path.stem, rgb, prediction, kinds=kinds,
                              overwrite=overwrite,
                              title=f"{img_path.name} ({estimator.weights})")
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
+            if viewer is not None:
+                viewer.log_prediction(rgb, prediction, calibration=calibration,
+                                      fov_deg=estimator.fov_deg)
+        if viewer is not None:
+            viewer.close()
+    except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
         _fail(err)
     if unpaired:
         typer.echo(f"warning: {len(unpaired)} files without a partner were skipped: "
@@ -236,10 +260,16 @@ def record_command(
     frames: int | None = typer.Option(None, help="Stop after this many camera frames."),
     duration: float | None = typer.Option(None, help="Stop after this many seconds."),
     sensor_hz: float = typer.Option(15.0, help="Sensor rate (simulated mode)."),
+    bag: bool = typer.Option(False, "--bag", help="Write OUT as a new ROS 2 bag (camera "
+                             "Image + CameraInfo, depth, deltar_msgs/msg/ZoneFrame)."),
+    bag_storage: str = BagStorageOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Record camera frames and ToF zone frames with timestamps into a recording folder."""
     from rich.progress import Progress
 
+    from deltar.cli.robotics import CaptureLogger, open_viewer
     from deltar.inference.drivers import (
         HardwareRig,
         OpenCVCamera,
@@ -264,11 +294,16 @@ def record_command(
             rig = HardwareRig(OpenCVCamera(camera, (intrinsics.height, intrinsics.width)),
                               openers[sensor](grid=grid))
         total = frames or (len(rig.source) if simulate is not None else None)
+        viewer = open_viewer(rerun, rerun_save)
         with Progress(transient=True) as progress:
             task = progress.add_task("recording", total=total)
             summary = record(out, rig, max_frames=frames, duration_s=duration,
                              intrinsics=intrinsics,
-                             on_step=lambda s: progress.update(task, completed=s.images))
+                             on_step=lambda s: progress.update(task, completed=s.images),
+                             bag_storage=bag_storage if bag else None,
+                             on_capture=None if viewer is None else CaptureLogger(viewer))
+        if viewer is not None:
+            viewer.close()
     except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
         _fail(err)
     typer.echo(f"recorded {summary.images} images, {summary.zone_frames} zone frames, "
@@ -277,7 +312,7 @@ def record_command(
 
 @app.command("replay")
 def replay_command(
-    recording: Path = typer.Argument(..., help="Recording folder."),
+    recording: Path | None = typer.Argument(None, help="Recording folder (or give --bag)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (outside the "
                                     "recording)."),
     show: bool = typer.Option(False, help="Show depth live in an OpenCV window instead."),
@@ -296,12 +331,41 @@ def replay_command(
     every: int = typer.Option(1, help="Use every N-th frame."),
     limit: int | None = typer.Option(None, help="Stop after this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
+    bag: Path | None = BagOption,
+    out_bag: Path | None = OutBagOption,
+    bag_storage: str = BagStorageOption,
+    image_topic: str | None = ImageTopicOption,
+    info_topic: str | None = InfoTopicOption,
+    tof_topic: str | None = TofTopicOption,
+    tof_format: str = TofFormatOption,
+    tof_orientation: str = TofOrientationOption,
+    tof_sigma: float = TofSigmaOption,
+    points: bool = PointsOption,
+    topic_prefix: str = TopicPrefixOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Pair zone frames with images by nearest timestamp and predict depth for each."""
     from rich.progress import Progress
 
+    from deltar.cli.robotics import replay_bag_command
     from deltar.inference.replay import replay, replay_to_folder
 
+    if (recording is None) == (bag is None):
+        raise typer.BadParameter("give a RECORDING folder or --bag BAG")
+    if bag is not None:
+        try:
+            typer.echo(replay_bag_command(
+                bag, lambda: _build_estimator(preset, checkpoint, official, onnx, device,
+                                              precision, size, threads, flip),
+                _load_calibration(calib), out=out, show=show, out_bag=out_bag,
+                storage=bag_storage, topics=(image_topic, info_topic, tof_topic),
+                tof=(tof_format, tof_orientation, tof_sigma), points=points,
+                prefix=topic_prefix, rerun=rerun, rerun_save=rerun_save,
+                tolerance=tolerance, every=every, limit=limit))
+        except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
+            _fail(err)
+        return
     if (out is None) == (not show):
         raise typer.BadParameter("give --out DIR, or --show")
     kinds = _parse_outputs(outputs)
