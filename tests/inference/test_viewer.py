@@ -58,19 +58,21 @@ def test_prediction_is_logged_as_pinhole_depth_zones_and_points(tmp_path):
     with RerunLogger(path) as logger:
         logger.log_prediction(image, prediction, calibration=calib)
     rows = read_rrd(path)
-    assert {"/world/camera", "/world/camera/image", "/world/camera/depth",
-            "/world/camera/zones", "/world/camera/tof", "/world/camera/tof/zones",
-            "/uncertainty"} <= set(rows)
-    (pinhole,) = rows["/world/camera"]
+    assert {"/world/camera/image", "/world/camera/image/depth", "/world/camera/image/zones",
+            "/world/camera/tof", "/world/camera/tof/zones", "/uncertainty"} <= set(rows)
+    # 3D points must not sit under the pinhole (rerun cannot draw them there).
+    pinholes = [e for e, r in rows.items() if any("Pinhole:image_from_camera" in x for x in r)]
+    assert pinholes == ["/world/camera/image"]
+    pinhole = next(r for r in rows["/world/camera/image"] if "Pinhole:image_from_camera" in r)
     # rerun stores the 3x3 matrix column-major.
     np.testing.assert_allclose(np.reshape(pinhole["Pinhole:image_from_camera"][0], (3, 3)).T,
                                INTR.matrix, rtol=1e-6)
-    (depth_row,) = rows["/world/camera/depth"]
+    (depth_row,) = rows["/world/camera/image/depth"]
     assert depth_row["DepthImage:meter"] == [1.0]
     np.testing.assert_allclose(_buffer(depth_row, "DepthImage"), prediction.depth_m)
     (unc_row,) = rows["/uncertainty"]
-    np.testing.assert_allclose(_buffer(unc_row, "Image"), prediction.uncertainty_m)
-    (boxes,) = rows["/world/camera/zones"]
+    np.testing.assert_allclose(_buffer(unc_row, "DepthImage"), prediction.uncertainty_m)
+    (boxes,) = rows["/world/camera/image/zones"]
     labels = boxes["Boxes2D:labels"]
     mean, _, valid = frame.flat()
     assert len(labels) == 64
@@ -117,10 +119,10 @@ def test_cli_record_simulate_and_predict_save_recordings(tmp_path):
     assert result.exit_code == 0, result.output
     rows = read_rrd(rrd)
     # Four camera frames at 30 Hz, each with the latest zone frame and the wall's depth.
-    depth_rows = rows["/world/camera/depth"]
+    depth_rows = rows["/world/camera/image/depth"]
     assert len(depth_rows) == 4
     np.testing.assert_allclose(_buffer(depth_rows[0], "DepthImage"), 1.2, atol=1e-6)
-    times = [r["time"] for r in rows["/world/camera/image"]]
+    times = [r["time"] for r in rows["/world/camera/image/depth"]]
     np.testing.assert_allclose(times, np.arange(4) * 1e9 / 30, atol=1)
     zone_points = rows["/world/camera/tof/zones"]
     assert len(zone_points) == 4
@@ -144,7 +146,7 @@ def test_cli_record_simulate_and_predict_save_recordings(tmp_path):
     assert result.exit_code == 0, result.output
     rows = read_rrd(rrd2)
     saved = np.load(tmp_path / "pred" / "image_depth_m.npy")
-    np.testing.assert_allclose(_buffer(rows["/world/camera/depth"][0], "DepthImage"), saved)
+    np.testing.assert_allclose(_buffer(rows["/world/camera/image/depth"][0], "DepthImage"), saved)
 
 
 def test_cli_replay_bag_can_view_without_writing_a_bag(tmp_path):
@@ -157,7 +159,7 @@ def test_cli_replay_bag_can_view_without_writing_a_bag(tmp_path):
     assert result.exit_code == 0, result.output
     assert "replayed 2 frames" in result.output
     rows = read_rrd(rrd)
-    assert len(rows["/world/camera/depth"]) == 2
+    assert len(rows["/world/camera/image/depth"]) == 2
     missing = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
                                   "deltar-lite"])
     assert missing.exit_code != 0 and "--out-bag BAG, --rerun or --rerun-save" in missing.output

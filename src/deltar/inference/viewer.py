@@ -2,19 +2,23 @@
 
 Per frame, on the timeline ``time`` (seconds, the capture time) and ``frame``:
 
-- ``world/camera``: the camera as a pinhole (``rr.Pinhole``, x right, y down, z forward);
-- ``world/camera/image``: the colour image;
-- ``world/camera/zones``: the zones as labelled 2D boxes, coloured by their distance
-  (turbo over ``depth_range_m``; invalid zones grey, labelled ``"-"``);
-- ``world/camera/depth``: the predicted depth as a depth image in metres
+- ``world/camera/image``: the camera as a pinhole (``rr.Pinhole``, x right, y down,
+  z forward) with the colour image;
+- ``world/camera/image/zones``: the zones as 2D boxes coloured by their distance (turbo
+  over ``depth_range_m``; invalid zones grey), labelled with it (``"-"`` if invalid;
+  labels show on hover);
+- ``world/camera/image/depth``: the predicted depth as a depth image in metres
   (``meter=1``), which the viewer back-projects to 3D through the pinhole;
-- ``uncertainty``: the per-pixel uncertainty in metres (a float image, 2D only);
+- ``uncertainty``: the per-pixel uncertainty in metres (a depth image outside the
+  pinhole, so 2D only, viridis);
 - ``world/camera/tof``: the ToF sensor's pose (sensor to camera, from the rig
   calibration; identity without one) and ``world/camera/tof/zones``: each valid zone's
   reading as a 3D point on its zone's central ray, in the sensor frame.
 
 ``RerunLogger(save_path=...)`` writes an ``.rrd`` recording instead of spawning the
-viewer (open it later with ``rerun FILE.rrd``).
+viewer (open it later with ``rerun FILE.rrd``). The recording carries a layout
+(:func:`default_blueprint`): the 3D scene beside the camera image with its zones, the
+depth and the uncertainty.
 """
 
 from __future__ import annotations
@@ -84,6 +88,28 @@ def zone_colors(frame: ZoneFrame, depth_range_m: tuple[float, float]) -> np.ndar
     return rgb
 
 
+def default_blueprint() -> Any:
+    """The layout: the 3D scene beside the camera image (with zones) and the uncertainty."""
+    import rerun.blueprint as rrb
+    from rerun.blueprint.archetypes import EyeControls3D
+
+    # Look at the scene from behind, beside and above the camera (x right, y down, z forward).
+    eye = EyeControls3D(kind="Orbital", position=[1.6, -1.4, -1.8],
+                        look_target=[0.0, 0.0, 2.5], eye_up=[0.0, -1.0, 0.0])
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="3D: depth and zone readings",
+                              eye_controls=eye),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="world/camera/image", name="camera and zones",
+                                  contents=["$origin", "$origin/zones"]),
+                rrb.Spatial2DView(origin="world/camera/image", name="depth (m)",
+                                  contents=["$origin/depth"]),
+                rrb.Spatial2DView(origin="uncertainty", name="uncertainty (m)")),
+            column_shares=[3, 2]),
+        collapse_panels=True)
+
+
 class RerunLogger:
     """Log rig frames and predictions to rerun.
 
@@ -113,6 +139,7 @@ class RerunLogger:
             self.stream.save(self.save_path)
         else:
             self.stream.spawn()
+        self.stream.send_blueprint(default_blueprint())
         self.stream.log("world", rr.ViewCoordinates.RDF, static=True)
         self.frames = 0
 
@@ -154,7 +181,8 @@ class RerunLogger:
         stream.set_time("frame", sequence=self.frames)
         stream.set_time("time", duration=float(time_s))
         height, width = image.shape[:2]
-        stream.log("world/camera", rr.Pinhole(
+        # 2D content lives under the pinhole; the ToF points (3D) must not.
+        stream.log("world/camera/image", rr.Pinhole(
             image_from_camera=intrinsics.matrix, width=width, height=height,
             camera_xyz=rr.ViewCoordinates.RDF))
         stream.log("world/camera/image", rr.Image(np.ascontiguousarray(image)))
@@ -163,15 +191,17 @@ class RerunLogger:
         labels = [f"{m:.2f} m" if ok else "-" for m, ok in zip(mean, valid, strict=True)]
         # (y0, x0, y1, x1) with pixel centres at integers -> rerun's pixel-corner XYXY.
         boxes = rects[:, [1, 0, 3, 2]] + 0.5
-        stream.log("world/camera/zones", rr.Boxes2D(
+        stream.log("world/camera/image/zones", rr.Boxes2D(
             array=boxes, array_format=rr.Box2DFormat.XYXY, labels=labels,
-            colors=zone_colors(frame, self.depth_range_m), show_labels=True))
+            colors=zone_colors(frame, self.depth_range_m), show_labels=False))
         if depth_m is not None:
             depth = np.asarray(depth_m, dtype=np.float32)
             depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
-            stream.log("world/camera/depth", rr.DepthImage(depth, meter=1.0))
+            stream.log("world/camera/image/depth", rr.DepthImage(depth, meter=1.0))
         if uncertainty_m is not None:
-            stream.log("uncertainty", rr.Image(np.asarray(uncertainty_m, dtype=np.float32)))
+            # A depth image outside the pinhole: 2D only, coloured, values in metres.
+            stream.log("uncertainty", rr.DepthImage(np.asarray(uncertainty_m, dtype=np.float32),
+                                                    meter=1.0, colormap="viridis"))
         ext = extrinsics or SensorExtrinsics()
         stream.log("world/camera/tof", rr.Transform3D(
             translation=ext.translation_m.astype(np.float32),
@@ -179,7 +209,7 @@ class RerunLogger:
         points, index = zone_points_m(frame, fov_deg)
         colors = zone_colors(frame, self.depth_range_m)[index]
         stream.log("world/camera/tof/zones", rr.Points3D(
-            points, colors=colors, radii=0.02, labels=[labels[i] for i in index]))
+            points, colors=colors, radii=0.04, labels=[labels[i] for i in index]))
         self.frames += 1
 
     def log_prediction(self, image: np.ndarray, prediction: DepthPrediction, *,
