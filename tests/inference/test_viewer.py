@@ -163,3 +163,15 @@ def test_cli_replay_bag_can_view_without_writing_a_bag(tmp_path):
     missing = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
                                   "deltar-lite"])
     assert missing.exit_code != 0 and "--out-bag BAG, --rerun or --rerun-save" in missing.output
+
+
+def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "rerun", None)
+    with pytest.raises(ImportError, match=r'pip install "deltar\[viewer\]"'):
+        RerunLogger(tmp_path / "x.rrd")
+    result = runner.invoke(app, ["record", str(tmp_path / "rec"), "--simulate", "wall:1:2",
+                                 "--rerun-save", str(tmp_path / "x.rrd")])
+    assert result.exit_code == 1 and 'needs the "viewer" extra' in result.output
+    assert not (tmp_path / "rec").exists()  # nothing recorded when the viewer is missing

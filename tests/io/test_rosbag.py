@@ -359,3 +359,14 @@ def test_record_writes_a_bag_that_replays(tmp_path):
     assert "wrote 3 frames" in replayed.output
     again = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate", "wall:1.5:2"])
     assert again.exit_code == 1 and "refusing to write into existing path" in again.output
+
+
+def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):
+    write_input_bag(tmp_path / "bag", frames=1)
+    monkeypatch.setitem(__import__("sys").modules, "rosbags", None)
+    monkeypatch.setitem(__import__("sys").modules, "rosbags.rosbag2", None)
+    with pytest.raises(ImportError, match=r'pip install "deltar\[ros\]"'):
+        BagInput(tmp_path / "bag")
+    result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
+                                 "deltar-lite", "--out-bag", str(tmp_path / "out")])
+    assert result.exit_code == 1 and 'needs the "ros" extra' in result.output

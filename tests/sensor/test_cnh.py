@@ -42,8 +42,9 @@ def test_config_edges_follow_start_bin_and_sub_sample():
 def test_config_from_range_rounds_to_device_bins():
     cfg = CNHConfig.from_range(0.3, 4.0, 16, device_bin_m=0.0375)
     assert cfg.start_bin == 8 and cfg.num_bins == 16
-    assert cfg.sub_sample == round((4.0 - 0.3) / 16 / 0.0375)
-    assert cfg.range_m[0] == pytest.approx(0.3)
+    assert cfg.sub_sample == 7  # (4.0 - 0.3) / 16 bins = 6.2 device bins, rounded up
+    near, far = cfg.range_m
+    assert near == pytest.approx(0.3) and far >= 4.0
     with pytest.raises(ValueError, match="near < far"):
         CNHConfig.from_range(2.0, 1.0, 8)
 

@@ -81,11 +81,11 @@ class CNHConfig:
     @classmethod
     def from_range(cls, near_m: float, far_m: float, num_bins: int,
                    device_bin_m: float = DEVICE_BIN_M) -> CNHConfig:
-        """The configuration whose ``num_bins`` bins best cover ``[near_m, far_m]``.
+        """The configuration whose ``num_bins`` bins cover ``[near_m, far_m]``.
 
         ``start_bin`` and ``sub_sample`` are whole device bins, so the covered range is
-        the requested one rounded to device bins (the near end down, the bin width to
-        the nearest whole number of device bins, at least one).
+        the requested one widened to device bins: the near end rounded down, the bin
+        width rounded up to a whole number of device bins.
 
         Raises:
             ValueError: ``far_m <= near_m``, a negative ``near_m`` or ``num_bins < 1``.
@@ -97,7 +97,7 @@ class CNHConfig:
             raise ValueError(f"num_bins must be an integer >= 1, got {num_bins!r}")
         start = math.floor(near_m / device_bin_m + 1e-9)
         width = (far_m - start * device_bin_m) / (num_bins * device_bin_m)
-        return cls(start, int(num_bins), max(1, round(width)), device_bin_m)
+        return cls(start, int(num_bins), max(1, math.ceil(width - 1e-9)), device_bin_m)
 
     def to_dict(self) -> dict:
         """JSON-ready dict (``start_bin``, ``num_bins``, ``sub_sample``, ``device_bin_m``)."""
