@@ -175,3 +175,24 @@ def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):
                                  "--rerun-save", str(tmp_path / "x.rrd")])
     assert result.exit_code == 1 and 'needs the "viewer" extra' in result.output
     assert not (tmp_path / "rec").exists()  # nothing recorded when the viewer is missing
+
+
+def test_cli_replay_folder_views_and_writes(tmp_path):
+    rec = tmp_path / "rec"
+    assert runner.invoke(app, ["record", str(rec), "--simulate", "wall:1.5:6:48x64"]).exit_code == 0
+    rrd = tmp_path / "replay.rrd"
+    result = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite", "--out",
+                                 str(tmp_path / "out"), "--outputs", "npy",
+                                 "--rerun-save", str(rrd)])
+    assert result.exit_code == 0, result.output
+    rows = read_rrd(rrd)
+    saved = sorted((tmp_path / "out").glob("*_depth_m.npy"))
+    assert len(saved) == 3 == len(rows["/world/camera/image/depth"])
+    np.testing.assert_allclose(_buffer(rows["/world/camera/image/depth"][0], "DepthImage"),
+                               np.load(saved[0]))
+    only_view = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite",
+                                    "--rerun-save", str(tmp_path / "v.rrd")])
+    assert only_view.exit_code == 0, only_view.output
+    assert len(read_rrd(tmp_path / "v.rrd")["/world/camera/image/depth"]) == 3
+    nothing = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite"])
+    assert nothing.exit_code != 0 and "give --out DIR" in nothing.output

@@ -348,7 +348,7 @@ def replay_command(
     """Pair zone frames with images by nearest timestamp and predict depth for each."""
     from rich.progress import Progress
 
-    from deltar.cli.robotics import replay_bag_command
+    from deltar.cli.robotics import ReplayViewer, open_viewer, replay_bag_command
     from deltar.inference.replay import replay, replay_to_folder
 
     if (recording is None) == (bag is None):
@@ -366,24 +366,38 @@ def replay_command(
         except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
             _fail(err)
         return
-    if (out is None) == (not show):
-        raise typer.BadParameter("give --out DIR, or --show")
+    viewing = rerun or rerun_save is not None
+    if (out is not None and show) or (out is None and not show and not viewing):
+        raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
     kinds = _parse_outputs(outputs)
     try:
         estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
                                      size, threads, flip)
         calibration = _load_calibration(calib)
-        if show:
-            _show_live(replay(recording, estimator, calibration=calibration,
-                              tolerance_s=tolerance, every=every, limit=limit))
+        viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
+        if out is None:
+            items = map(viewer, replay(recording, estimator, calibration=calibration,
+                                       tolerance_s=tolerance, every=every, limit=limit))
+            if show:
+                _show_live(items)
+            else:
+                for _ in items:
+                    pass
+            viewer.close()
             return
         with Progress(transient=True) as progress:
             task = progress.add_task("replaying", total=None)
+
+            def each(item) -> None:
+                viewer(item)
+                progress.advance(task)
+
             written = replay_to_folder(recording, estimator, out, kinds=kinds,
                                        calibration=calibration, tolerance_s=tolerance,
                                        every=every, limit=limit, overwrite=overwrite,
-                                       on_item=lambda _: progress.advance(task))
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
+                                       on_item=each)
+        viewer.close()
+    except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
         _fail(err)
     typer.echo(f"wrote {len(written)} files to {out}")
 

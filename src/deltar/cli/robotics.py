@@ -162,3 +162,35 @@ class CaptureLogger:
         self.viewer.log_frame(capture.image, self.zone_frame, rects, meta.intrinsics,
                               time_s=capture.image_time_s, fov_deg=meta.fov_deg,
                               depth_m=capture.depth_m)
+
+
+class ReplayViewer:
+    """Pass replay items through, logging each to the viewer (when there is one).
+
+    Args:
+        viewer: a :class:`RerunLogger` or None (then items only pass through).
+        recording: the recording folder (its metadata places the sensor without a
+            calibration).
+        calibration: the rig calibration the replay uses, or None.
+    """
+
+    def __init__(self, viewer: RerunLogger | None, recording: Path, calibration) -> None:
+        self.viewer = viewer
+        self.calibration = calibration
+        if viewer is not None and calibration is None:
+            from deltar.inference.replay import recording_calibration
+            from deltar.io.recording import Recording
+
+            self.calibration = recording_calibration(Recording(recording))
+
+    def __call__(self, item):
+        if self.viewer is not None:
+            self.viewer.log_prediction(item.image, item.prediction,
+                                       calibration=self.calibration,
+                                       time_s=item.pair.zone_frame.timestamp_s)
+        return item
+
+    def close(self) -> None:
+        """Finish the viewer's recording."""
+        if self.viewer is not None:
+            self.viewer.close()
