@@ -97,3 +97,35 @@ def test_intrinsics_option_overrides_the_source(tmp_path):
     result = runner.invoke(app, ["simulate", "procedural:1", str(tmp_path / "p"),
                                  "--intrinsics", "30,31,20.5,15.5"])
     assert result.exit_code == 2 and "own camera" in result.output
+
+
+def test_cnh_histograms_are_written_with_their_bins(tmp_path):
+    from deltar.sensor.cnh import CNHConfig, simulate_cnh
+
+    out = tmp_path / "cnh"
+    result = runner.invoke(app, ["simulate", "procedural:1:7:48x64", str(out), "--cnh-bins",
+                                 "12", "--cnh-range", "0.5:5.0"])
+    assert result.exit_code == 0, result.output
+    assert "12 bins" in result.output
+    (sample,) = list(ZJUL5Dataset(out))
+    config = CNHConfig.from_range(0.5, 5.0, 12)
+    np.testing.assert_allclose(sample.hist_edges_m, config.edges_m(), rtol=1e-6)
+    assert sample.hist_counts.shape == (64, 12)
+    frame = render_scene(7, 48, 64)
+    np.testing.assert_allclose(sample.hist_counts,
+                               simulate_cnh(frame.depth_m, sample.zone_rects, config), atol=1e-7)
+    # Every zone whose pixels lie in range has a histogram summing to 1, peaking where
+    # most of its pixels are.
+    bounds = zone_rects_to_pixel_bounds(sample.zone_rects, 48, 64)
+    y0, x0, y1, x1 = bounds[27]
+    patch = frame.depth_m[y0:y1, x0:x1]
+    assert sample.hist_counts[27].sum() == pytest.approx(1.0, abs=1e-6)
+    peak = sample.hist_counts[27].argmax()
+    share = np.mean((patch >= sample.hist_edges_m[peak]) & (patch < sample.hist_edges_m[peak + 1]))
+    assert share == pytest.approx(sample.hist_counts[27, peak], abs=1e-6)
+    default = runner.invoke(app, ["simulate", "procedural:1:7:48x64", str(tmp_path / "d"),
+                                  "--cnh"])
+    assert default.exit_code == 0 and "18 bins" in default.output
+    bad = runner.invoke(app, ["simulate", "procedural:1", str(tmp_path / "e"),
+                              "--cnh-range", "4:1"])
+    assert bad.exit_code != 0 and "near < far" in bad.output

@@ -92,3 +92,23 @@ def test_corrupt_frame_file_is_named(data_json: Path) -> None:
     result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data_json)])
     assert result.exit_code == 1
     assert "0002.h5" in result.output
+
+
+def test_thdr3k_layout_is_detected_rotated_and_masked(tmp_path: Path) -> None:
+    """A THDR3K file list evaluates like ZJU-L5: the nearest baseline is exact only if
+    the ToF grid is rotated to the image and the no-target zone is masked."""
+    from tests.data.thdr3k_set import write_set
+
+    list_path = write_set(tmp_path / "thdr", train=1, test=2)
+    out = tmp_path / "m.json"
+    result = runner.invoke(app, ["evaluate", "-m", "nearest,median", "--data", str(list_path),
+                                 "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "2 frames" in result.output
+    metrics = json.loads(out.read_text())
+    assert metrics["nearest"]["d1"] == 1.0
+    assert metrics["nearest"]["rmse"] == pytest.approx(0.0, abs=1e-5)
+    assert metrics["median"]["rmse"] > 0.3
+    refused = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(list_path),
+                                  "--json", str(list_path)])
+    assert refused.exit_code != 0 and "refusing to overwrite" in refused.output

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 from typer.testing import CliRunner
 
@@ -69,3 +70,26 @@ def test_flip_adds_a_flip_averaged_entry(tmp_path: Path, tiny_samples) -> None:
     # The untrained prior is mirror-symmetric in the zones: flipping must not change it.
     for name in ("rmse", "rel", "d1"):
         assert abs(metrics[f"{key}+flip"][name] - metrics[key][name]) < 1e-4
+
+
+def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_path):
+    """A THDR3K sample carries CNH histograms: the model's hypotheses come from them."""
+    from deltar.data.thdr3k import read_thdr3k_sample
+    from deltar.evaluation.model_methods import EstimatorPredictor
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.sensor.sampling import sample_hypotheses_from_histogram
+    from tests.data.thdr3k_set import write_sample
+    from tests.inference.fakes import ZonePainterNet
+
+    write_sample(tmp_path / "s", seed=3, height=64, width=96)
+    sample = read_thdr3k_sample(tmp_path / "s")
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter", input_size=(64, 96))
+    depth = EstimatorPredictor(estimator)(sample)
+    expected = sample_hypotheses_from_histogram(
+        torch.from_numpy(sample.hist_edges_m), torch.from_numpy(sample.hist_counts),
+        torch.from_numpy(sample.zone_valid), 16).mean(-1).numpy()
+    # The painter writes each zone's mean hypothesis over the zone (8 px zones here).
+    y0, x0, y1, x1 = sample.zone_rects[10].astype(int)
+    np.testing.assert_allclose(depth[y0 + 2:y1 - 2, x0 + 2:x1 - 2], expected[10], atol=1e-4)
+    # ... which is the histogram's, not the Gaussian around the reported distance.
+    assert abs(expected[10] - sample.zone_mean_sigma[10, 0]) > 1e-3

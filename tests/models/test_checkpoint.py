@@ -41,7 +41,7 @@ def test_version_1_files_keep_the_contract_they_were_trained_with(tmp_path):
     payload = {**checkpoint_payload(old, "deltar-lite"), "format_version": 1, "config": config}
     path = tmp_path / "v1.pt"
     torch.save(payload, path)
-    model, _, restored = load_checkpoint(path)
+    _, _, restored = load_checkpoint(path)
     assert restored["image_mean"] == IMAGENET_MEAN and restored["image_std"] == IMAGENET_STD
     assert restored["zone_scale_norm"] is False
     assert restored["backbone"] == "tf_mobilenetv3_large_minimal_100"

@@ -210,3 +210,32 @@ def test_nyu_release_layout_source_with_border_crop(tmp_path, rng):
     assert train[0]["image"].shape == (3, 416, 544)
     assert train[0]["zone_rects"].shape == (36, 4)  # 6x6 training zones
     assert val[0]["image"].shape == (3, 480, 640)
+
+
+def test_thdr3k_source_trains_from_its_histograms_and_flips_them(tmp_path):
+    from deltar.sensor.sampling import sample_hypotheses_from_histogram
+    from tests.data.thdr3k_set import write_set
+
+    list_path = write_set(tmp_path / "thdr", train=3, test=1, height=64, width=96)
+    config = DataConfig(sources=[
+        SourceConfig(kind="thdr3k", path=str(list_path), split="train", role="train"),
+        SourceConfig(kind="thdr3k", path=str(list_path), split="test", role="val")],
+        num_hypotheses=8)
+    config.image_augmentation.flip_prob = 1.0
+    train, val = build_datasets(config, seed=0)
+    assert (len(train), len(val)) == (3, 1)
+    item, flipped = val[0], train[0]
+    sample = train.datasets[0].samples[0]
+    expected = sample_hypotheses_from_histogram(
+        torch.from_numpy(sample.hist_edges_m), torch.from_numpy(sample.hist_counts),
+        torch.from_numpy(sample.zone_valid), 8)
+    order = np.arange(64).reshape(8, 8)[:, ::-1].ravel()
+    torch.testing.assert_close(flipped["hypotheses"], expected[order])
+    assert item["hypotheses"].shape == (64, 8) and item["depth"].shape == (1, 64, 96)
+    assert not bool(item["zone_valid"].all())  # the no-target zone stays invalid
+
+
+def test_thdr3k_sources_refuse_resize():
+    config = DataConfig(sources=[SourceConfig(kind="thdr3k", path="x.json", resize=[32, 32])])
+    with pytest.raises(ValueError, match="resize is not supported for thdr3k"):
+        config.validate("data")

@@ -22,19 +22,15 @@ def write_predict_sample(data_json: Path, folder: Path) -> None:
     ``deltar predict --image ... --zones ... --calib ...`` runs on it.
     """
     import cv2
-    import numpy as np
 
     from deltar.calibration.rig import RigCalibration
     from deltar.data.zju_l5 import ZJUL5Dataset
     from deltar.io.atomic import atomic_path
     from deltar.io.zone_file import save_zone_frame
     from deltar.sensor.geometry import SensorExtrinsics
-    from deltar.sensor.zone_frame import ZoneFrame
 
     sample = ZJUL5Dataset(data_json)[0]
-    valid = np.asarray(sample.zone_valid, dtype=bool)
-    frame = ZoneFrame(mean_m=np.where(valid, sample.zone_mean_sigma[:, 0], 0.0),
-                      sigma_m=np.where(valid, sample.zone_mean_sigma[:, 1], 0.0), valid=valid)
+    frame = sample.zone_frame()
     folder.mkdir(parents=True, exist_ok=True)
     with atomic_path(folder / "image.png", overwrite=False) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(sample.rgb, cv2.COLOR_RGB2BGR)):
@@ -70,7 +66,8 @@ def demo(
                                  param_hint="OUT")
     simulate_command(src=f"procedural:{frames}:{seed}:{height}x{width}", out=scenes, grid=8,
                      layout="calibrated", start=0, stop=None, step=1, limit=None,
-                     depth_scale=None, intrinsics=None, split="test")
+                     depth_scale=None, intrinsics=None, split="test", cnh=False,
+                     cnh_bins=None, cnh_range=None)
     write_predict_sample(scenes / "data.json", out / "sample")
     from deltar.weights import bundled_model_names
 

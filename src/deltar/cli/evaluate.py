@@ -1,4 +1,4 @@
-"""``deltar evaluate``: metrics of depth methods on a ZJU-L5-layout set."""
+"""``deltar evaluate``: metrics of depth methods on a ZJU-L5- or THDR3K-layout set."""
 
 from __future__ import annotations
 
@@ -50,7 +50,8 @@ def evaluate(
     official: Path | None = typer.Option(
         None, "--official", help="The officially released weights (e.g. nyu.pt); "
         "reported as 'official:PATH'."),
-    data: Path = typer.Option(..., "--data", help="data.json of a ZJU-L5-layout set."),
+    data: Path = typer.Option(..., "--data", help="data.json of a ZJU-L5-layout set, or "
+                              "the file list of a THDR3K-layout set (detected)."),
     split: str = typer.Option("test", "--split", help="Split (key) in data.json."),
     json_out: Path | None = typer.Option(
         None, "--json", help="Write {method: metrics} here (JSON, atomic)."),
@@ -76,7 +77,7 @@ def evaluate(
 
     from deltar.cli.checks import output_file, output_folder
     from deltar.cli.progress import ProgressReport
-    from deltar.data.zju_l5 import ZJUL5Dataset
+    from deltar.data.zone_sets import open_zone_set
     from deltar.evaluation.runner import create_predictor, evaluate_methods, resolve_method_names
     from deltar.evaluation.visualize import safe_filename, save_frame_panel
     from deltar.io.atomic import write_text_atomic
@@ -95,14 +96,15 @@ def evaluate(
     except ValueError as err:
         raise typer.BadParameter(str(err), param_hint="--method") from err
     try:
-        dataset = ZJUL5Dataset(data, split=split)
+        dataset = open_zone_set(data, split=split)
     except (FileNotFoundError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
     if len(dataset) == 0:
         raise typer.BadParameter(f"split {split!r} of {data} lists no frames",
                                  param_hint="--data")
-    if json_out is not None and json_out.resolve() == Path(dataset.root / "data.json").resolve():
-        raise typer.BadParameter("refusing to overwrite the input data.json",
+    index_path = data / "data.json" if data.is_dir() else data
+    if json_out is not None and json_out.resolve() == index_path.resolve():
+        raise typer.BadParameter(f"refusing to overwrite the input {index_path.name}",
                                  param_hint="--json")
     if json_out is not None:
         output_file(json_out, "--json", overwrite)

@@ -116,7 +116,8 @@ def image_only_warning(name: str) -> str:
 def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
              calibration: Any = None, overwrite: bool = False, keep_going: bool = False,
              allow_no_zones: bool = False, progress: Any = None,
-             first: tuple[Any, ZoneFrame] | None = None) -> JobSummary:
+             first: tuple[Any, ZoneFrame] | None = None,
+             on_prediction: Any = None) -> JobSummary:
     """Predict and write every job.
 
     Args:
@@ -130,6 +131,8 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
             (else such a frame fails).
         progress: optional :class:`~deltar.cli.progress.ProgressReport`.
         first: the first job's already decoded (image, zone frame), if any.
+        on_prediction: optional ``callable(rgb, prediction)`` called after each written
+            frame (e.g. a live viewer).
 
     Returns:
         A :class:`JobSummary`.
@@ -160,6 +163,8 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
                              overwrite=overwrite,
                              title=f"{job.image.name} ({estimator.weights})")
             summary.written += 1
+            if on_prediction is not None:
+                on_prediction(rgb, prediction)
             if prediction.image_only:
                 summary.image_only += 1
                 warn(image_only_warning(job.image.name))

@@ -7,6 +7,21 @@ from pathlib import Path
 import typer
 
 from deltar.cli.main import app
+from deltar.cli.robotics import (
+    BagOption,
+    BagStorageOption,
+    ImageTopicOption,
+    InfoTopicOption,
+    OutBagOption,
+    PointsOption,
+    RerunOption,
+    RerunSaveOption,
+    TofFormatOption,
+    TofOrientationOption,
+    TofSigmaOption,
+    TofTopicOption,
+    TopicPrefixOption,
+)
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
 _ZONE_SUFFIXES = (".json", ".npz")
@@ -182,6 +197,8 @@ def predict_command(
                                     "frame that fails and go on; the summary counts the "
                                     "failures (exit code 1 if any)."),
     allow_no_zones: bool = AllowNoZonesOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Predict dense metric depth from RGB image(s) and ToF zone frame(s).
 
@@ -191,6 +208,7 @@ def predict_command(
     from deltar.cli.errors import warn
     from deltar.cli.jobs import no_zone_message, plan_jobs, run_jobs
     from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import open_viewer
 
     single = image is not None or zones is not None
     folder = images is not None or zones_dir is not None
@@ -240,13 +258,22 @@ def predict_command(
         return
     estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
                                  size, threads, flip)
+    viewer = open_viewer(rerun, rerun_save)
+
+    def show(rgb, prediction) -> None:
+        viewer.log_prediction(rgb, prediction, calibration=calibration,
+                              fov_deg=estimator.fov_deg)
+
     with ProgressReport("predicting", total=len(jobs),
                         terminal=None if len(jobs) > 1 else False) as progress:
         summary = run_jobs(jobs, estimator, out, calibration=calibration,
                            overwrite=overwrite, keep_going=keep_going,
                            allow_no_zones=allow_no_zones,
                            progress=progress if len(jobs) > 1 else None,
-                           first=first if first is not None and jobs else None)
+                           first=first if first is not None and jobs else None,
+                           on_prediction=None if viewer is None else show)
+    if viewer is not None:
+        viewer.close()
     typer.echo(f"wrote {summary.written} prediction(s) to {out}"
                + (f" ({summary.image_only} image-only)" if summary.image_only else ""))
     if summary.failed:
@@ -294,10 +321,16 @@ def record_command(
                                       "frames."),
     duration: float | None = typer.Option(None, help="Stop after this many seconds."),
     sensor_hz: float = typer.Option(15.0, help="Sensor rate (simulated mode)."),
+    bag: bool = typer.Option(False, "--bag", help="Write OUT as a new ROS 2 bag (camera "
+                             "Image + CameraInfo, depth, deltar_msgs/msg/ZoneFrame)."),
+    bag_storage: str = BagStorageOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Record camera frames and ToF zone frames with timestamps into a recording folder."""
     from deltar.cli.checks import finite, output_folder
     from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import CaptureLogger, open_viewer
     from deltar.inference.drivers import (
         HardwareRig,
         OpenCVCamera,
@@ -328,10 +361,15 @@ def record_command(
             rig = HardwareRig(OpenCVCamera(camera, (intrinsics.height, intrinsics.width)),
                               openers[sensor](grid=grid))
         total = frames or (len(rig.source) if simulate is not None else None)
+        viewer = open_viewer(rerun, rerun_save)
         with ProgressReport("recording", total=total, unit="images") as progress:
             summary = record(out, rig, max_frames=frames, duration_s=duration,
                              intrinsics=intrinsics,
-                             on_step=lambda s: progress.update(s.images))
+                             on_step=lambda s: progress.update(s.images),
+                             bag_storage=bag_storage if bag else None,
+                             on_capture=None if viewer is None else CaptureLogger(viewer))
+        if viewer is not None:
+            viewer.close()
     except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
         _fail(err)
     typer.echo(f"recorded {summary.images} images, {summary.zone_frames} zone frames, "
@@ -340,7 +378,7 @@ def record_command(
 
 @app.command("replay")
 def replay_command(
-    recording: Path = typer.Argument(..., help="Recording folder."),
+    recording: Path | None = typer.Argument(None, help="Recording folder (or give --bag)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (outside the "
                                     "recording)."),
     show: bool = typer.Option(False, help="Show depth live in an OpenCV window instead."),
@@ -361,33 +399,76 @@ def replay_command(
     limit: int | None = typer.Option(None, min=1, help="Stop after this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
     allow_no_zones: bool = AllowNoZonesOption,
+    bag: Path | None = BagOption,
+    out_bag: Path | None = OutBagOption,
+    bag_storage: str = BagStorageOption,
+    image_topic: str | None = ImageTopicOption,
+    info_topic: str | None = InfoTopicOption,
+    tof_topic: str | None = TofTopicOption,
+    tof_format: str = TofFormatOption,
+    tof_orientation: str = TofOrientationOption,
+    tof_sigma: float = TofSigmaOption,
+    points: bool = PointsOption,
+    topic_prefix: str = TopicPrefixOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Pair zone frames with images by nearest timestamp and predict depth for each.
 
     Frames without any valid zone are skipped with a warning unless --allow-no-zones.
     """
     from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import ReplayViewer, open_viewer, replay_bag_command
     from deltar.inference.replay import replay, replay_to_folder
 
-    if (out is None) == (not show):
-        raise typer.BadParameter("give --out DIR, or --show")
+    if (recording is None) == (bag is None):
+        raise typer.BadParameter("give a RECORDING folder or --bag BAG")
+    if bag is not None:
+        _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+        try:
+            typer.echo(replay_bag_command(
+                bag, lambda: _build_estimator(preset, checkpoint, official, onnx, device,
+                                              precision, size, threads, flip),
+                _load_calibration(calib), out=out, show=show, out_bag=out_bag,
+                storage=bag_storage, topics=(image_topic, info_topic, tof_topic),
+                tof=(tof_format, tof_orientation, tof_sigma), points=points,
+                prefix=topic_prefix, rerun=rerun, rerun_save=rerun_save,
+                tolerance=tolerance, every=every, limit=limit))
+        except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
+            _fail(err)
+        return
+    viewing = rerun or rerun_save is not None
+    if (out is not None and show) or (out is None and not show and not viewing):
+        raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
     kinds = _parse_outputs(outputs)
     _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
     total = _check_replay(recording, out, kinds, tolerance, every, limit, overwrite, show)
     calibration = _load_calibration(calib)
     estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
                                  size, threads, flip)
-    if show:
-        _show_live(replay(recording, estimator, calibration=calibration,
-                          tolerance_s=tolerance, every=every, limit=limit,
-                          skip_no_zones=not allow_no_zones))
+    viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
+    if out is None:
+        items = map(viewer, replay(recording, estimator, calibration=calibration,
+                                   tolerance_s=tolerance, every=every, limit=limit,
+                                   skip_no_zones=not allow_no_zones))
+        if show:
+            _show_live(items)
+        else:
+            for _ in items:
+                pass
+        viewer.close()
         return
     with ProgressReport("replaying", total=total) as progress:
+
+        def each(item) -> None:
+            viewer(item)
+            progress.advance()
+
         written = replay_to_folder(recording, estimator, out, kinds=kinds,
                                    calibration=calibration, tolerance_s=tolerance,
                                    every=every, limit=limit, overwrite=overwrite,
-                                   on_item=lambda _: progress.advance(),
-                                   skip_no_zones=not allow_no_zones)
+                                   on_item=each, skip_no_zones=not allow_no_zones)
+    viewer.close()
     typer.echo(f"wrote {len(written)} files to {out}")
 
 

@@ -23,6 +23,27 @@ def _parse_intrinsics(text: str | None, height: int, width: int):
     return CameraIntrinsics(fx, fy, cx, cy, width, height)
 
 
+def _cnh_config(enabled: bool, bins: int | None, span: str | None):
+    """The CNH bin configuration asked for, or None (no histograms)."""
+    from deltar.sensor.cnh import CNHConfig
+
+    if not (enabled or bins is not None or span is not None):
+        return None
+    if bins is None and span is None:
+        return CNHConfig()
+    near, far = CNHConfig().range_m
+    if span is not None:
+        try:
+            near, far = (float(v) for v in span.split(":"))
+        except ValueError as err:
+            raise typer.BadParameter(f"--cnh-range must look like '0.2:4.0', got {span!r}",
+                                     param_hint="--cnh-range") from err
+    try:
+        return CNHConfig.from_range(near, far, bins or CNHConfig().num_bins)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="--cnh-range") from err
+
+
 @app.command("simulate")
 def simulate_command(
     src: str = typer.Argument(..., help="RGB-D folder, NYU .mat / split .json, or "
@@ -52,6 +73,13 @@ def simulate_command(
                                    "metres."),
     seed: int = typer.Option(0, help="Seed of the degradation draws (frame i draws from "
                              "(seed, i))."),
+    cnh: bool = typer.Option(False, "--cnh", help="Also write per-zone compact normalised "
+                             "histograms like ST's VL53L7CH/L8CH (default: 18 bins over "
+                             "0-4.73 m, ST's example configuration)."),
+    cnh_bins: int | None = typer.Option(None, "--cnh-bins", min=1, help="CNH bins per zone "
+                                        "(implies --cnh)."),
+    cnh_range: str | None = typer.Option(None, "--cnh-range", help="CNH range 'NEAR:FAR' "
+                                         "in metres (implies --cnh)."),
 ) -> None:
     """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set.
 
@@ -69,6 +97,7 @@ def simulate_command(
     from deltar.data.sources import open_source
     from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
     from deltar.sensor.augment import SignalAugmentation, training_zone_rects
+    from deltar.sensor.cnh import simulate_cnh
     from deltar.sensor.geometry import zone_rects
     from deltar.sensor.simulate import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
@@ -79,6 +108,7 @@ def simulate_command(
         raise typer.BadParameter(f"--layout must be one of {LAYOUTS}, got {layout!r}")
     if step < 1 or start < 0 or (limit is not None and limit < 1):
         raise typer.BadParameter("--start must be >= 0, --step and --limit >= 1")
+    cnh_config = _cnh_config(cnh, cnh_bins, cnh_range)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "
                                  "to write into it", param_hint="OUT")
@@ -120,11 +150,15 @@ def simulate_command(
                                          torch.from_numpy(zones.valid), generator)
             zones = ZoneFrame(mean.numpy(), sigma.numpy(), valid.numpy())
         valid_counts.append(int(np.count_nonzero(zones.valid)))
+        histogram = {}
+        if cnh_config is not None:
+            histogram = {"hist_edges_m": cnh_config.edges_m(),
+                         "hist_counts": simulate_cnh(frame.depth_m, rects, cnh_config)}
         return ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
                            zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
                            zone_valid=zones.valid.reshape(-1),
                            name=f"{scene}/{frame.name}".replace("\\", "/"),
-                           intrinsics=frame.intrinsics)
+                           intrinsics=frame.intrinsics, **histogram)
 
     def samples():
         with ProgressReport("simulating", total=len(indices)) as progress:
@@ -135,3 +169,7 @@ def simulate_command(
     index = write_zju_l5(out, samples(), split=split)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")
+    if cnh_config is not None:
+        near, far = cnh_config.range_m
+        typer.echo(f"with CNH histograms: {cnh_config.num_bins} bins of "
+                   f"{cnh_config.bin_width_m * 100:.1f} cm over {near:.2f}-{far:.2f} m")

@@ -11,7 +11,9 @@ relative to the folder holding it. Each HDF5 file holds:
 - ``mask``: (Z,) bool valid zones.
 
 Z is 64 (8x8) for the released data; 16 (4x4) is accepted too. Files written by
-:func:`write_zju_l5` also carry the camera intrinsics as attributes ``fx, fy, cx, cy``.
+:func:`write_zju_l5` also carry the camera intrinsics as attributes ``fx, fy, cx, cy``,
+and, for histogram sensors, optional datasets ``hist_edges_m`` (B + 1,) bin edges in
+metres and ``hist_counts`` (Z, B) per-zone histograms (e.g. ST's CNH).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from deltar.io.json_file import read_split_filenames
 #: Zone counts accepted in a ZJU-L5 file (4x4 and 8x8 grids).
 ZONE_COUNTS: tuple[int, ...] = (16, 64)
 _REQUIRED_KEYS: tuple[str, ...] = ("rgb", "depth", "hist_data", "fr", "mask")
+_HISTOGRAM_KEYS: tuple[str, ...] = ("hist_edges_m", "hist_counts")
 
 
 @dataclass
@@ -48,6 +51,9 @@ class ZJUL5Sample:
             (e.g. ``"kitchen/00012"``).
         intrinsics: camera intrinsics if known (the released files do not store them;
             the reader fills in the paper's ZJU-L5 camera for them).
+        hist_edges_m: optional (B + 1,) float32 histogram bin edges in metres.
+        hist_counts: optional (Z, B) float32 per-zone histograms (histogram sensors);
+            when present, models sample their depth hypotheses from them.
     """
 
     rgb: np.ndarray
@@ -57,6 +63,8 @@ class ZJUL5Sample:
     zone_valid: np.ndarray
     name: str
     intrinsics: CameraIntrinsics | None = None
+    hist_edges_m: np.ndarray | None = None
+    hist_counts: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.rgb = np.asarray(self.rgb)
@@ -92,11 +100,39 @@ class ZJUL5Sample:
             raise ValueError(f"{where}: zone_mean_sigma must be finite and >= 0 in valid zones")
         if not np.all(np.isfinite(self.zone_rects)):
             raise ValueError(f"{where}: zone_rects must be finite")
+        if (self.hist_edges_m is None) != (self.hist_counts is None):
+            raise ValueError(f"{where}: hist_edges_m and hist_counts must be given together")
+        if self.hist_counts is not None:
+            self.hist_edges_m = np.asarray(self.hist_edges_m, dtype=np.float32).reshape(-1)
+            self.hist_counts = np.asarray(self.hist_counts, dtype=np.float32)
+            bins = self.hist_edges_m.size - 1
+            if bins < 1 or np.any(np.diff(self.hist_edges_m) <= 0):
+                raise ValueError(f"{where}: hist_edges_m must be strictly increasing")
+            if self.hist_counts.shape != (zones, bins):
+                raise ValueError(f"{where}: hist_counts must be ({zones}, {bins}), got "
+                                 f"{self.hist_counts.shape}")
+            if not np.all(np.isfinite(self.hist_counts)) or np.any(self.hist_counts < 0):
+                raise ValueError(f"{where}: hist_counts must be finite and >= 0")
 
     @property
     def grid(self) -> int:
         """Zones per side (4 or 8)."""
         return math.isqrt(self.zone_valid.shape[0])
+
+    def zone_frame(self):
+        """The sample's zone reading as a :class:`~deltar.sensor.zone_frame.ZoneFrame`.
+
+        Mean and sigma (metres) are zero in invalid zones; zones flagged valid but
+        reporting no distance (mean <= 0) are invalid, as the classical baselines treat
+        them. The histogram is attached when the sample has one.
+        """
+        from deltar.sensor.zone_frame import ZoneFrame
+
+        valid = np.asarray(self.zone_valid, dtype=bool) & (self.zone_mean_sigma[:, 0] > 0)
+        return ZoneFrame(mean_m=np.where(valid, self.zone_mean_sigma[:, 0], 0.0),
+                         sigma_m=np.where(valid, self.zone_mean_sigma[:, 1], 0.0),
+                         valid=valid, hist_edges_m=self.hist_edges_m,
+                         hist_counts=self.hist_counts)
 
 
 def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | None
@@ -108,7 +144,7 @@ def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | N
             missing = [k for k in _REQUIRED_KEYS if k not in f]
             if missing:
                 raise ValueError(f"ZJU-L5 file {path} is missing datasets {missing}")
-            arrays = {k: f[k][()] for k in _REQUIRED_KEYS}
+            arrays = {k: f[k][()] for k in (*_REQUIRED_KEYS, *_HISTOGRAM_KEYS) if k in f}
             attrs = {k: f.attrs[k] for k in ("fx", "fy", "cx", "cy") if k in f.attrs}
     except OSError as err:  # h5py raises OSError for truncated / non-HDF5 files
         raise ValueError(f"cannot read ZJU-L5 file {path}: {err}") from err
@@ -135,7 +171,9 @@ def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | N
     try:
         return ZJUL5Sample(rgb=rgb, depth_m=depth, zone_mean_sigma=mean_sigma,
                            zone_rects=np.asarray(arrays["fr"], dtype=np.float32),
-                           zone_valid=valid, name=name, intrinsics=intrinsics)
+                           zone_valid=valid, name=name, intrinsics=intrinsics,
+                           hist_edges_m=arrays.get("hist_edges_m"),
+                           hist_counts=arrays.get("hist_counts"))
     except ValueError as err:
         raise ValueError(f"ZJU-L5 file {path}: {err}") from err
 
@@ -226,6 +264,9 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
             f.create_dataset("hist_data", data=sample.zone_mean_sigma.astype(np.float32))
             f.create_dataset("fr", data=sample.zone_rects.astype(np.float32))
             f.create_dataset("mask", data=sample.zone_valid.astype(bool))
+            if sample.hist_counts is not None:
+                f.create_dataset("hist_edges_m", data=sample.hist_edges_m.astype(np.float32))
+                f.create_dataset("hist_counts", data=sample.hist_counts.astype(np.float32))
             if sample.intrinsics is not None:
                 for key in ("fx", "fy", "cx", "cy"):
                     f.attrs[key] = float(getattr(sample.intrinsics, key))

@@ -34,16 +34,13 @@ class EstimatorPredictor:
     def __call__(self, sample: ZJUL5Sample) -> np.ndarray:
         """(H, W) float32 depth in metres for one ZJU-L5 sample.
 
-        Zones flagged valid but reporting no distance (mean <= 0) are treated as
-        invalid, as the classical baselines treat them.
+        Hypotheses come from the sample's histogram when it has one (histogram
+        sensors, e.g. THDR3K), else from each zone's mean and sigma. Zones flagged valid
+        but reporting no distance (mean <= 0) are treated as invalid, as the classical
+        baselines treat them.
         """
-        from deltar.sensor.zone_frame import ZoneFrame
-
-        mean_sigma = np.asarray(sample.zone_mean_sigma, dtype=np.float32)
-        valid = np.asarray(sample.zone_valid, dtype=bool) & (mean_sigma[:, 0] > 0)
-        frame = ZoneFrame(mean_m=np.where(valid, mean_sigma[:, 0], 0.0),
-                          sigma_m=np.where(valid, mean_sigma[:, 1], 0.0), valid=valid)
-        prediction = self.estimator.predict(sample.rgb, frame, zone_rects=sample.zone_rects)
+        prediction = self.estimator.predict(sample.rgb, sample.zone_frame(),
+                                            zone_rects=sample.zone_rects)
         return prediction.depth_m
 
 

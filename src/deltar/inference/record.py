@@ -3,7 +3,8 @@
 The folder layout is :mod:`deltar.io.recording` (``meta.json``, ``zones.jsonl``,
 ``color/<ns>.png``, optional ``depth/<ns>.png``). Nothing in a recording is ever
 overwritten: recording into an existing folder appends (same camera and sensor), and
-a frame whose file already exists raises ``FileExistsError``.
+a frame whose file already exists raises ``FileExistsError``. With ``bag_storage`` the
+same items go into a new ROS 2 bag instead (:class:`deltar.io.rosbag.BagRecordingWriter`).
 """
 
 from __future__ import annotations
@@ -12,10 +13,15 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from deltar.calibration.camera import CameraIntrinsics
 from deltar.io.recording import RecordingMeta, RecordingWriter
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
+
+if TYPE_CHECKING:
+    from deltar.inference.drivers import Capture
+    from deltar.io.rosbag import BagRecordingWriter
 
 
 @dataclass
@@ -40,8 +46,11 @@ class RecordSummary:
 def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
            duration_s: float | None = None, intrinsics: CameraIntrinsics | None = None,
            fov_deg: tuple[float, float] | None = None, save_depth: bool = True,
-           on_step: Callable[[RecordSummary], None] | None = None) -> RecordSummary:
-    """Grab from a rig into a recording folder until it ends or a limit is reached.
+           on_step: Callable[[RecordSummary], None] | None = None,
+           bag_storage: str | None = None,
+           on_capture: Callable[[Capture, RecordingMeta], None] | None = None
+           ) -> RecordSummary:
+    """Grab from a rig into a recording folder (or a ROS 2 bag) until it ends or a limit.
 
     Args:
         out: the recording folder (created; appended to if it holds a recording of the
@@ -57,6 +66,11 @@ def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
             default 45 x 45 degrees, when None.
         save_depth: also store reference depth when the rig delivers it.
         on_step: called after each step with the running summary (progress display).
+        bag_storage: write a new ROS 2 bag at ``out`` instead of a folder, with this
+            storage (``"sqlite3"`` or ``"mcap"``; see
+            :class:`deltar.io.rosbag.BagRecordingWriter`).
+        on_capture: called with each recorded capture and the recording's metadata
+            (e.g. a live viewer).
 
     Returns:
         A :class:`RecordSummary`.
@@ -68,40 +82,53 @@ def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
     intr = intrinsics or getattr(rig, "intrinsics", None)
     fov = tuple(fov_deg or getattr(rig, "fov_deg", DEFAULT_FOV_DEG))
     summary = RecordSummary(folder=Path(out))
-    writer: RecordingWriter | None = None
+    writer: RecordingWriter | BagRecordingWriter | None = None
     first_time: float | None = None
-    with rig:
-        while max_frames is None or summary.images < max_frames:
-            capture = rig.grab()
-            if capture is None:
-                break
-            if capture.image is not None and writer is None:
-                height, width = capture.image.shape[:2]
-                if intr is None:
-                    raise ValueError("camera intrinsics are unknown: pass intrinsics (e.g. "
-                                     "from a calibration file)")
-                if (intr.height, intr.width) != (height, width):
-                    raise ValueError(f"camera delivers {height}x{width} images, intrinsics are "
-                                     f"for {intr.height}x{intr.width}")
-                meta = RecordingMeta(intrinsics=intr, sensor_model=rig.sensor_model,
-                                     grid=rig.grid, fov_deg=fov)
-                writer = RecordingWriter(out, meta)
-            if writer is None:
-                continue
-            if capture.image is not None:
-                if first_time is None:
-                    first_time = capture.image_time_s
-                if duration_s is not None and capture.image_time_s - first_time > duration_s:
+    try:
+        with rig:
+            while max_frames is None or summary.images < max_frames:
+                capture = rig.grab()
+                if capture is None:
                     break
-                writer.add_color(capture.image_time_s, capture.image)
-                summary.images += 1
-                summary.duration_s = capture.image_time_s - first_time
-                if save_depth and capture.depth_m is not None:
-                    writer.add_depth(capture.image_time_s, capture.depth_m)
-                    summary.depth_maps += 1
-            if capture.zone_frame is not None:
-                writer.add_zone_frame(capture.zone_frame)
-                summary.zone_frames += 1
-            if on_step is not None:
-                on_step(summary)
+                if capture.image is not None and writer is None:
+                    height, width = capture.image.shape[:2]
+                    if intr is None:
+                        raise ValueError("camera intrinsics are unknown: pass intrinsics "
+                                         "(e.g. from a calibration file)")
+                    if (intr.height, intr.width) != (height, width):
+                        raise ValueError(f"camera delivers {height}x{width} images, intrinsics "
+                                         f"are for {intr.height}x{intr.width}")
+                    meta = RecordingMeta(intrinsics=intr, sensor_model=rig.sensor_model,
+                                         grid=rig.grid, fov_deg=fov)
+                    if bag_storage is None:
+                        writer = RecordingWriter(out, meta)
+                    else:
+                        from deltar.io.rosbag import BagRecordingWriter
+
+                        writer = BagRecordingWriter(out, meta, storage=bag_storage)
+                if writer is None:
+                    continue
+                if capture.image is not None:
+                    if first_time is None:
+                        first_time = capture.image_time_s
+                    if duration_s is not None and \
+                            capture.image_time_s - first_time > duration_s:
+                        break
+                    writer.add_color(capture.image_time_s, capture.image)
+                    summary.images += 1
+                    summary.duration_s = capture.image_time_s - first_time
+                    if save_depth and capture.depth_m is not None:
+                        writer.add_depth(capture.image_time_s, capture.depth_m)
+                        summary.depth_maps += 1
+                if capture.zone_frame is not None:
+                    writer.add_zone_frame(capture.zone_frame)
+                    summary.zone_frames += 1
+                if on_capture is not None:
+                    on_capture(capture, writer.meta)
+                if on_step is not None:
+                    on_step(summary)
+    finally:
+        # A bag becomes readable only when closed: keep what was recorded, even on error.
+        if writer is not None:
+            writer.close()
     return summary

@@ -114,6 +114,9 @@ class RecordingWriter:
             self._last_zone_time = None
         (self.folder / COLOR_DIR).mkdir(exist_ok=True)
 
+    def close(self) -> None:
+        """Nothing to finish: every item is complete on disk once its call returns."""
+
     def add_zone_frame(self, frame: ZoneFrame) -> None:
         """Append one zone frame (must have a timestamp later than the previous one)."""
         if frame.timestamp_s is None:
@@ -282,8 +285,8 @@ class Recording:
             raise FileNotFoundError(f"recording has no colour images in "
                                     f"{self.folder / COLOR_DIR}")
         times = np.array([f.timestamp_s for f in frames], dtype=np.float64)
-        color_idx, color_gap = _nearest(self.color_times_s, times)
-        depth_idx, depth_gap = _nearest(self.depth_times_s, times)
+        color_idx, color_gap = nearest_in_time(self.color_times_s, times)
+        depth_idx, depth_gap = nearest_in_time(self.depth_times_s, times)
         out, skipped = [], 0
         for i, frame in enumerate(frames):
             if color_gap[i] > tolerance_s:
@@ -314,8 +317,17 @@ def _image_index(folder: Path) -> tuple[np.ndarray, list[Path]]:
     return np.array([ns * 1e-9 for ns, _ in entries]), [p for _, p in entries]
 
 
-def _nearest(sorted_times: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index of the nearest entry of ``sorted_times`` for each query, and |gap| (inf if none)."""
+def nearest_in_time(sorted_times: np.ndarray, query: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the nearest entry of ``sorted_times`` for each query, and |gap| (inf if none).
+
+    Args:
+        sorted_times: (N,) increasing times, seconds.
+        query: (M,) times, seconds.
+
+    Returns:
+        (M,) int64 indices into ``sorted_times`` and (M,) float64 absolute gaps, seconds.
+    """
     if sorted_times.size == 0:
         return np.zeros(query.size, dtype=np.int64), np.full(query.size, np.inf)
     right = np.clip(np.searchsorted(sorted_times, query), 1, sorted_times.size - 1) \

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
+from deltar.sensor.cnh import CNHConfig, zone_frame_from_cnh
 from deltar.sensor.geometry import (
     SensorExtrinsics,
     zone_angles_deg,
@@ -47,6 +48,7 @@ def __getattr__(name: str):
 
 __all__ = [
     "DEFAULT_VALID_STATUS",
+    "CNHConfig",
     "Orientation",
     "SensorExtrinsics",
     "SignalAugmentation",
@@ -59,6 +61,7 @@ __all__ = [
     "simulate_zones",
     "training_zone_rects",
     "zone_angles_deg",
+    "zone_frame_from_cnh",
     "zone_rects",
     "zone_rects_to_pixel_bounds",
 ]

@@ -18,7 +18,9 @@ from typing import Any
 
 import yaml
 
-SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5")
+SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5", "thdr3k")
+#: Source kinds with real (recorded) zone readings: no simulated signal.
+ZONE_SET_SOURCE_KINDS: tuple[str, ...] = ("zju_l5", "thdr3k")
 SOURCE_ROLES: tuple[str, ...] = ("train_val", "train", "val")
 HOLDOUT_POSITIONS: tuple[str, ...] = ("end", "start")
 ZONE_LAYOUTS: tuple[str, ...] = ("training", "calibrated")
@@ -33,14 +35,17 @@ class SourceConfig:
     Attributes:
         kind: ``rgbd`` (7-Scenes / TUM / colour+depth folder), ``procedural`` (rendered
             rooms), ``nyu`` (a NYU labeled ``.mat`` or the release's split ``.json``) or
-            ``zju_l5`` (a ZJU-L5-layout set with real zone readings). The first three
-            get a simulated L5 signal.
-        path: folder or file (``data.json`` folder for ``zju_l5``); unused for
-            ``procedural``. Relative paths are taken relative to the working directory.
+            ``zju_l5`` (a ZJU-L5-layout set with real zone readings) or ``thdr3k`` (a
+            THDR3K-layout set: real VL53L8CH histograms). The first three get a
+            simulated L5 signal.
+        path: folder or file (``data.json`` folder for ``zju_l5``, the file list JSON
+            for ``thdr3k``); unused for ``procedural``. Relative paths are taken
+            relative to the working directory.
         frames: number of frames (``procedural`` only).
         seed: seed of the first procedural frame.
         depth_scale: raw depth units per metre for ``rgbd`` (None: the layout's default).
-        split: list to read from a NYU ``.json`` or a ZJU-L5 ``data.json``.
+        split: list to read from a NYU ``.json``, a ZJU-L5 ``data.json`` or a THDR3K
+            file list.
         data_root: folder the NYU split file's names are relative to (``nyu`` with a
             ``.json``; None: the json's folder).
         crop_border: cut NYU's blank 12/16-pixel border off every frame, as the release
@@ -87,9 +92,9 @@ class SourceConfig:
             raise ValueError(f"{where}.path is required for {self.kind!r} sources")
         if self.resize is not None and (len(self.resize) != 2 or min(self.resize) < 1):
             raise ValueError(f"{where}.resize must be [height, width] > 0, got {self.resize}")
-        if self.resize is not None and self.kind == "zju_l5":
-            raise ValueError(f"{where}.resize is not supported for zju_l5 sources (their zone "
-                             "rectangles are given in pixels of the stored images)")
+        if self.resize is not None and self.kind in ZONE_SET_SOURCE_KINDS:
+            raise ValueError(f"{where}.resize is not supported for {self.kind} sources (their "
+                             "zone rectangles are given in pixels of the stored images)")
         if self.role == "train_val" and not 0.0 < self.holdout_fraction < 1.0:
             raise ValueError(f"{where}.holdout_fraction must be in (0, 1) for role "
                              f"'train_val', got {self.holdout_fraction}")

@@ -31,11 +31,11 @@ from deltar.data.transforms import (
     mirror_zone_rects,
     normalize_image,
 )
-from deltar.data.zju_l5 import ZJUL5Dataset
+from deltar.data.zone_sets import open_zone_set
 from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 from deltar.sensor.augment import SignalAugmentation
-from deltar.sensor.sampling import sample_hypotheses
-from deltar.training.config import DataConfig, SourceConfig
+from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
+from deltar.training.config import ZONE_SET_SOURCE_KINDS, DataConfig, SourceConfig
 
 
 # ---------------------------------------------------------------------- readers
@@ -109,13 +109,13 @@ def holdout_split(num_frames: int, fraction: float, position: str = "end"
 
 
 def open_source_reader(source: SourceConfig) -> Sequence:
-    """Open the frames of one source: RGB-D frames, or ZJU-L5 samples for ``zju_l5``."""
+    """Open one source's frames: RGB-D frames, or samples for ``zju_l5`` / ``thdr3k``."""
     from deltar.data.nyu import NYU_INTRINSICS, NYUH5Reader, NYULabeledReader
     from deltar.data.procedural import ProceduralReader
     from deltar.data.rgbd import open_rgbd
 
-    if source.kind == "zju_l5":
-        return ZJUL5Dataset(source.path, split=source.split)
+    if source.kind in ZONE_SET_SOURCE_KINDS:
+        return open_zone_set(source.path, split=source.split, kind=source.kind)
     if source.kind == "procedural":
         height, width = source.resize or (480, 640)
         # Rendered directly at the requested size: exact depth, no resampling.
@@ -158,7 +158,8 @@ def _native_size(source: SourceConfig) -> tuple[int, int]:
 class ZJUL5TrainingDataset(Dataset):
     """Real-zone ZJU-L5 samples as training items (for fine-tuning and validation).
 
-    Hypotheses are sampled from each zone's measured mean and sigma. The only
+    Hypotheses are sampled from each zone's histogram when the samples carry one
+    (histogram sensors, e.g. THDR3K), else from its measured mean and sigma. The only
     augmentation is an optional horizontal flip (zone rectangles and their order are
     mirrored with the image).
 
@@ -192,6 +193,7 @@ class ZJUL5TrainingDataset(Dataset):
         image = sample.rgb.astype(np.float32) / 255.0
         depth, rects = sample.depth_m, sample.zone_rects.copy()
         mean_sigma, valid = sample.zone_mean_sigma.copy(), sample.zone_valid.copy()
+        counts = sample.hist_counts
         intr = sample.intrinsics
         if rng.random() < self.flip_prob:
             width = image.shape[1]
@@ -200,13 +202,20 @@ class ZJUL5TrainingDataset(Dataset):
             order = np.arange(len(valid)).reshape(sample.grid, sample.grid)[:, ::-1].ravel()
             rects = mirror_zone_rects(rects, width, sample.grid)
             mean_sigma, valid = mean_sigma[order], valid[order]
+            counts = None if counts is None else counts[order]
             if intr is not None:
                 intr = flip_intrinsics(intr)
         mean_sigma = np.where(valid[:, None], mean_sigma, 0.0).astype(np.float32)
         mean = torch.from_numpy(mean_sigma[:, 0].copy())
         sigma = torch.from_numpy(mean_sigma[:, 1].copy())
         valid_t = torch.from_numpy(valid)
-        hypotheses = sample_hypotheses(mean, sigma, valid_t, self.num_hypotheses, self.sampling)
+        if counts is not None:
+            hypotheses = sample_hypotheses_from_histogram(
+                torch.from_numpy(sample.hist_edges_m), torch.from_numpy(counts.copy()),
+                valid_t, self.num_hypotheses)
+        else:
+            hypotheses = sample_hypotheses(mean, sigma, valid_t, self.num_hypotheses,
+                                           self.sampling)
         intrinsics = ([intr.fx, intr.fy, intr.cx, intr.cy] if intr is not None
                       else [float("nan")] * 4)
         return {
@@ -318,7 +327,7 @@ def build_datasets(config: DataConfig, seed: int = 0,
             if not indices:
                 continue
             subset = SubsetReader(reader, indices)
-            if source.kind == "zju_l5":
+            if source.kind in ZONE_SET_SOURCE_KINDS:
                 flip = config.image_augmentation.flip_prob if (
                     train and config.image_augmentation.enabled) else 0.0
                 parts.append(ZJUL5TrainingDataset(subset, config.num_hypotheses,

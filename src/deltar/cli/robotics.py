@@ -1,0 +1,196 @@
+"""Options and helpers for ROS 2 bags and the rerun viewer in ``predict``/``record``/``replay``.
+
+The commands in :mod:`deltar.cli.predict` declare these options and call the helpers;
+``rosbags`` and ``rerun`` are imported only when a bag or the viewer is used.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import typer
+
+if TYPE_CHECKING:
+    from deltar.inference.viewer import RerunLogger
+    from deltar.sensor.zone_frame import Orientation
+
+RerunOption = typer.Option(False, "--rerun", help="Show the frames live in the rerun viewer "
+                           "(needs the 'viewer' extra).")
+RerunSaveOption = typer.Option(None, "--rerun-save", help="Write a rerun recording (.rrd) "
+                               "instead of spawning the viewer.")
+BagStorageOption = typer.Option("sqlite3", "--bag-storage", help="Storage of written bags: "
+                                "sqlite3 or mcap.")
+BagOption = typer.Option(None, "--bag", help="Read this ROS 2 bag instead of a recording "
+                         "folder (needs the 'ros' extra).")
+OutBagOption = typer.Option(None, "--out-bag", help="Write depth, uncertainty and CameraInfo "
+                            "into this new ROS 2 bag.")
+ImageTopicOption = typer.Option(None, "--image-topic", help="Camera topic (Image rgb8/bgr8 "
+                                "or CompressedImage); found by type when unique.")
+InfoTopicOption = typer.Option(None, "--info-topic", help="CameraInfo topic; found by type "
+                               "when unique.")
+TofTopicOption = typer.Option(None, "--tof-topic", help="ToF topic; a deltar_msgs/msg/"
+                              "ZoneFrame topic is found by type when unique.")
+TofFormatOption = typer.Option("deltar", "--tof-format", help="ToF topic format: deltar "
+                               "(deltar_msgs/msg/ZoneFrame) or vl53l5cx_ros2 (that driver's "
+                               "32FC1 distance image).")
+TofOrientationOption = typer.Option("flip_ud", "--tof-orientation", help="vl53l5cx_ros2 only: "
+                                    "zone grid to image, a comma list of flip_ud, flip_lr, "
+                                    "rot90:K, or 'none'.")
+TofSigmaOption = typer.Option(0.0, "--tof-sigma", help="vl53l5cx_ros2 only: sigma in metres "
+                              "given to every zone (the driver publishes none).")
+PointsOption = typer.Option(False, "--points", help="Also write a coloured PointCloud2 per "
+                            "frame into --out-bag.")
+TopicPrefixOption = typer.Option("/deltar", "--topic-prefix", help="Prefix of the topics "
+                                 "written into --out-bag.")
+
+
+def parse_orientation(text: str) -> Orientation:
+    """``"flip_ud"``, ``"flip_lr,rot90:1"``, ``"none"``... -> :class:`Orientation`."""
+    from deltar.sensor.zone_frame import Orientation
+
+    flip_ud = flip_lr = False
+    rot = 0
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        if part == "none":
+            continue
+        if part == "flip_ud":
+            flip_ud = True
+        elif part == "flip_lr":
+            flip_lr = True
+        elif part.startswith("rot90:") and part[6:].lstrip("-").isdigit():
+            rot = int(part[6:])
+        else:
+            raise typer.BadParameter(f"unknown orientation part {part!r}; use flip_ud, "
+                                     "flip_lr, rot90:K or none", param_hint="--tof-orientation")
+    return Orientation(flip_ud=flip_ud, flip_lr=flip_lr, rot90=rot)
+
+
+def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
+    """A :class:`~deltar.inference.viewer.RerunLogger` when asked for, else None."""
+    if not rerun and rerun_save is None:
+        return None
+    from deltar.inference.viewer import RerunLogger
+
+    return RerunLogger(rerun_save)
+
+
+def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, out_bag,
+                       storage: str, topics: tuple, tof: tuple, points: bool, prefix: str,
+                       rerun: bool, rerun_save: Path | None, tolerance: float, every: int,
+                       limit: int | None) -> str:
+    """Run ``deltar replay --bag``: write the output bag and/or feed the viewer.
+
+    Args:
+        bag: the input bag (only read).
+        build_estimator: returns the depth estimator (called after the checks).
+        calibration: a rig calibration, or None (nominal, from CameraInfo).
+        topics: (image, camera info, ToF) topic names, None = by type.
+        tof: (format, orientation text, sigma in metres) of the ToF topic.
+        other arguments: the command's options.
+
+    Returns:
+        A one-line summary for the terminal.
+    """
+    from rich.progress import Progress
+
+    from deltar.inference.bag_replay import replay_bag, replay_bag_to_bag
+    from deltar.io.rosbag import BagInput
+
+    if out is not None or show:
+        raise typer.BadParameter("with --bag, write with --out-bag and/or view with --rerun "
+                                 "/ --rerun-save (not --out / --show)")
+    if out_bag is None and not rerun and rerun_save is None:
+        raise typer.BadParameter("give --out-bag BAG, --rerun or --rerun-save FILE")
+    estimator = build_estimator()
+    image_topic, info_topic, tof_topic = topics
+    tof_format, tof_orientation, tof_sigma = tof
+    bag_input = BagInput(bag, image_topic=image_topic, info_topic=info_topic,
+                         tof_topic=tof_topic, tof_format=tof_format,
+                         tof_orientation=parse_orientation(tof_orientation),
+                         tof_sigma_m=tof_sigma)
+    viewer = open_viewer(rerun, rerun_save)
+    kwargs = {"calibration": calibration, "tolerance_s": tolerance, "every": every,
+              "limit": limit}
+    with Progress(transient=True) as progress:
+        task = progress.add_task("replaying", total=None)
+
+        def each(item) -> None:
+            if viewer is not None:
+                viewer.log_prediction(item.image, item.prediction,
+                                      calibration=item.calibration,
+                                      time_s=item.pair.image_stamp_ns / 1e9)
+            progress.advance(task)
+
+        try:
+            if out_bag is not None:
+                path, frames = replay_bag_to_bag(bag_input, estimator, out_bag,
+                                                 storage=storage, prefix=prefix,
+                                                 points=points, on_item=each, **kwargs)
+                return f"wrote {frames} frames of depth to the bag {path}"
+            frames = 0
+            for item in replay_bag(bag_input, estimator, **kwargs):
+                each(item)
+                frames += 1
+            return f"replayed {frames} frames of {bag_input.path}"
+        finally:
+            if viewer is not None:
+                viewer.close()
+
+
+class CaptureLogger:
+    """Log recorded captures (image, latest zone frame, reference depth) to the viewer.
+
+    Called as ``on_capture(capture, meta)`` by :func:`deltar.inference.record.record`.
+    """
+
+    def __init__(self, viewer: RerunLogger) -> None:
+        self.viewer = viewer
+        self.zone_frame = None
+
+    def __call__(self, capture, meta) -> None:
+        from deltar.calibration.rig import RigCalibration
+        from deltar.sensor.geometry import SensorExtrinsics
+
+        if capture.zone_frame is not None:
+            self.zone_frame = capture.zone_frame
+        if capture.image is None or self.zone_frame is None:
+            return
+        calib = RigCalibration(meta.intrinsics, SensorExtrinsics(), grid=meta.grid,
+                               fov_deg=meta.fov_deg)
+        rects = calib.zone_rects_for(self.zone_frame, capture.image.shape[:2])
+        self.viewer.log_frame(capture.image, self.zone_frame, rects, meta.intrinsics,
+                              time_s=capture.image_time_s, fov_deg=meta.fov_deg,
+                              depth_m=capture.depth_m)
+
+
+class ReplayViewer:
+    """Pass replay items through, logging each to the viewer (when there is one).
+
+    Args:
+        viewer: a :class:`RerunLogger` or None (then items only pass through).
+        recording: the recording folder (its metadata places the sensor without a
+            calibration).
+        calibration: the rig calibration the replay uses, or None.
+    """
+
+    def __init__(self, viewer: RerunLogger | None, recording: Path, calibration) -> None:
+        self.viewer = viewer
+        self.calibration = calibration
+        if viewer is not None and calibration is None:
+            from deltar.inference.replay import recording_calibration
+            from deltar.io.recording import Recording
+
+            self.calibration = recording_calibration(Recording(recording))
+
+    def __call__(self, item):
+        if self.viewer is not None:
+            self.viewer.log_prediction(item.image, item.prediction,
+                                       calibration=self.calibration,
+                                       time_s=item.pair.zone_frame.timestamp_s)
+        return item
+
+    def close(self) -> None:
+        """Finish the viewer's recording."""
+        if self.viewer is not None:
+            self.viewer.close()

@@ -1,0 +1,150 @@
+"""Replay a ROS 2 bag: pair ToF frames with camera images, predict, write a new bag.
+
+The input bag is only read (:class:`deltar.io.rosbag.BagInput`). Outputs go to a new
+bag (:class:`deltar.io.rosbag.BagWriter`), one message set per predicted frame, with
+the camera image's header stamp, frame id and bag time:
+
+- ``<prefix>/depth``: ``sensor_msgs/msg/Image`` ``32FC1``, metres, NaN = invalid;
+- ``<prefix>/uncertainty``: the same for the per-pixel uncertainty;
+- ``<prefix>/camera_info``: the intrinsics the depth is for;
+- ``<prefix>/points`` (optional): ``sensor_msgs/msg/PointCloud2`` x y z rgb in the
+  camera's optical frame (x right, y down, z forward).
+
+Zones are placed with the rig calibration when given, else with the bag's CameraInfo,
+the sensor's nominal field of view and an identity extrinsic.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from deltar.calibration.rig import RigCalibration
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
+
+if TYPE_CHECKING:
+    from deltar.inference.estimator import DepthEstimator, DepthPrediction
+    from deltar.io.rosbag import BagInput, BagPair
+
+
+@dataclass
+class BagReplayItem:
+    """One predicted frame of a bag.
+
+    Attributes:
+        pair: the ToF frame and its camera image's stamps.
+        image: (H, W, 3) uint8 RGB.
+        prediction: the estimator's result.
+        calibration: the calibration the zones were placed with.
+    """
+
+    pair: BagPair
+    image: np.ndarray
+    prediction: DepthPrediction
+    calibration: RigCalibration
+
+
+def pair_calibration(pair: BagPair, calibration: RigCalibration | None,
+                     fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> RigCalibration:
+    """The given calibration, or a nominal one from the pair's CameraInfo.
+
+    Raises:
+        ValueError: neither a calibration nor a CameraInfo is available.
+    """
+    if calibration is not None:
+        return calibration
+    if pair.intrinsics is None:
+        raise ValueError("the bag has no sensor_msgs/msg/CameraInfo topic; pass a rig "
+                         "calibration (--calib) for the camera intrinsics")
+    return RigCalibration(intrinsics=pair.intrinsics, extrinsics=SensorExtrinsics(),
+                          grid=pair.zone_frame.grid, fov_deg=fov_deg,
+                          sensor_model=pair.zone_frame.sensor_model)
+
+
+def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
+               calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
+               every: int = 1, limit: int | None = None,
+               fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> Iterator[BagReplayItem]:
+    """Predict depth for every ToF frame of a bag that has a camera image near it.
+
+    Args:
+        bag: the opened input bag.
+        estimator: the depth estimator.
+        calibration: rig calibration (its resolution must match the images); nominal
+            from CameraInfo when None.
+        tolerance_s: largest |image stamp - ToF stamp|, seconds.
+        every: use every ``every``-th pair.
+        limit: stop after this many predictions.
+        fov_deg: sensor field of view of the nominal placement, degrees.
+
+    Yields:
+        :class:`BagReplayItem` per predicted frame, in bag order of the images.
+    """
+    pairs = bag.pairs(tolerance_s=tolerance_s)[::max(1, int(every))]
+    if limit is not None:
+        pairs = pairs[:limit]
+    for pair, image in bag.images(pairs):
+        calib = pair_calibration(pair, calibration, fov_deg)
+        size = (calib.intrinsics.height, calib.intrinsics.width)
+        if image.shape[:2] != size:
+            raise ValueError(f"{bag.image_topic}: images are {image.shape[0]}x{image.shape[1]},"
+                             f" the camera intrinsics are for {size[0]}x{size[1]}")
+        yield BagReplayItem(pair, image, estimator.predict(image, pair.zone_frame, calib), calib)
+
+
+def replay_bag_to_bag(bag: BagInput, estimator: DepthEstimator, out_bag: str | os.PathLike, *,
+                      storage: str = "sqlite3", prefix: str = "/deltar", points: bool = False,
+                      point_stride: int = 2, on_item: Callable[[BagReplayItem], None] | None = None,
+                      **replay_kwargs) -> tuple[Path, int]:
+    """Replay a bag and write depth, uncertainty, CameraInfo (and points) into a new bag.
+
+    Args:
+        bag: the input bag (never written).
+        estimator: the depth estimator.
+        out_bag: the output bag folder; must not exist nor lie inside the input bag.
+        storage: ``"sqlite3"`` or ``"mcap"``.
+        prefix: topic prefix of the outputs (see the module docstring).
+        points: also write a coloured ``PointCloud2`` per frame.
+        point_stride: keep every ``point_stride``-th pixel in each direction for points.
+        on_item: called after each written frame (progress display, viewer).
+        replay_kwargs: passed to :func:`replay_bag`.
+
+    Returns:
+        (the output bag path, frames written).
+
+    Raises:
+        ValueError: ``out_bag`` is the input bag or inside it.
+        FileExistsError: ``out_bag`` exists.
+    """
+    from deltar.inference.outputs import depth_to_points
+    from deltar.io.rosbag import OUTPUT_TOPICS, BagWriter
+
+    out = Path(out_bag).resolve()
+    source = bag.path.resolve()
+    if out == source or source in out.parents:
+        raise ValueError(f"output bag {out_bag} is the input bag {bag.path} or inside it; "
+                         "choose a path outside it")
+    topic = {key: f"{prefix.rstrip('/')}/{name}" for key, name in OUTPUT_TOPICS.items()}
+    frames = 0
+    with BagWriter(out_bag, storage=storage) as writer:
+        for item in replay_bag(bag, estimator, **replay_kwargs):
+            pair, pred = item.pair, item.prediction
+            stamp, frame_id, log = pair.image_stamp_ns, pair.frame_id, pair.image_log_ns
+            depth = pred.depth_m
+            valid = np.isfinite(depth) & (depth > 0)
+            writer.add_metric_image(topic["depth"], stamp, frame_id, depth, log)
+            writer.add_metric_image(topic["uncertainty"], stamp, frame_id,
+                                    np.where(valid, pred.uncertainty_m, np.nan), log)
+            writer.add_camera_info(topic["camera_info"], stamp, frame_id, pred.intrinsics, log)
+            if points:
+                xyz, rgb = depth_to_points(depth, pred.intrinsics, item.image, point_stride)
+                writer.add_point_cloud(topic["points"], stamp, frame_id, xyz, rgb, log)
+            frames += 1
+            if on_item is not None:
+                on_item(item)
+    return Path(out_bag), frames

@@ -1,0 +1,372 @@
+"""ROS 2 bags: read camera + CameraInfo + ToF, predict, write depth bags; record to bags.
+
+Input bags are written here with ``rosbags`` directly (not with deltar's writer), read
+by ``deltar replay --bag``; outputs are read back with ``rosbags``' own reader.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from typer.testing import CliRunner
+
+import deltar.cli.commands  # noqa: F401  (registers the commands)
+from deltar.calibration.camera import CameraIntrinsics
+from deltar.cli.main import app
+from deltar.inference.bag_replay import pair_calibration, replay_bag_to_bag
+from deltar.inference.estimator import DepthEstimator
+from deltar.io.rosbag import (
+    BagInput,
+    image_from_msg,
+    metric_image_from_msg,
+    typestore,
+    zone_frame_from_vl53l5cx_ros2,
+)
+from deltar.sensor.zone_frame import Orientation
+from tests.inference.fakes import ZonePainterNet
+
+runner = CliRunner(env={"COLUMNS": "200"})
+HEIGHT, WIDTH = 48, 64
+INTR = CameraIntrinsics(52.0, 52.0, 31.5, 23.5, WIDTH, HEIGHT)
+T0 = 1_700_000_000_000_000_000  # a wall-clock stamp, ns
+
+
+def _header(store, stamp_ns, frame_id):
+    sec, nsec = divmod(stamp_ns, 1_000_000_000)
+    return store.types["std_msgs/msg/Header"](
+        stamp=store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec),
+        frame_id=frame_id)
+
+
+def _image(store, stamp, encoding="rgb8", seed=0):
+    rgb = np.random.default_rng(seed).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+    if encoding == "compressed":
+        ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        assert ok
+        return rgb, "sensor_msgs/msg/CompressedImage", store.types[
+            "sensor_msgs/msg/CompressedImage"](header=_header(store, stamp, "cam_optical"),
+                                               format="png", data=png.reshape(-1))
+    data = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": rgb[..., :1]}[encoding]
+    channels = data.shape[2]
+    return rgb, "sensor_msgs/msg/Image", store.types["sensor_msgs/msg/Image"](
+        header=_header(store, stamp, "cam_optical"), height=HEIGHT, width=WIDTH,
+        encoding=encoding, is_bigendian=0, step=channels * WIDTH,
+        data=np.ascontiguousarray(data).reshape(-1))
+
+
+def _camera_info(store, stamp):
+    intr = INTR
+    roi = store.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0,
+                                                          width=0, do_rectify=False)
+    return store.types["sensor_msgs/msg/CameraInfo"](
+        header=_header(store, stamp, "cam_optical"), height=HEIGHT, width=WIDTH,
+        distortion_model="plumb_bob", d=np.zeros(5),
+        k=np.array([intr.fx, 0, intr.cx, 0, intr.fy, intr.cy, 0, 0, 1], dtype=np.float64),
+        r=np.eye(3).reshape(-1), p=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
+
+
+def _zones(store, stamp, seed=0):
+    rng = np.random.default_rng(100 + seed)
+    distance = rng.uniform(0.8, 3.0, 64).astype(np.float32)
+    status = np.full(64, 5, np.uint8)
+    status[[7, 20]] = 255  # no target
+    msg = store.types["deltar_msgs/msg/ZoneFrame"](
+        header=_header(store, stamp, "tof"), sensor_model="VL53L5CX", zone_count=64,
+        distance_m=distance, sigma_m=np.full(64, 0.02, np.float32), status=status,
+        valid=np.zeros(0, bool), hist_edges_m=np.zeros(0, np.float32),
+        hist_counts=np.zeros(0, np.float32))
+    return distance, status, msg
+
+
+def write_input_bag(path: Path, frames: int = 3, *, encoding: str = "rgb8",
+                    tof_offset_ns: int | list[int] = 4_000_000, with_tof: bool = True,
+                    with_info: bool = True, storage=StoragePlugin.SQLITE3) -> dict:
+    """A camera at 10 Hz with CameraInfo and a ToF frame 4 ms (or as given) after each image."""
+    store = typestore()
+    offsets = tof_offset_ns if isinstance(tof_offset_ns, list) else [tof_offset_ns] * frames
+    truth = {"rgb": [], "distance": [], "status": [], "stamps": []}
+    with Writer(path, version=8, storage_plugin=storage) as writer:
+        _, image_type, _ = _image(store, 0, encoding)
+        cam = writer.add_connection("/camera/image", image_type, typestore=store)
+        info = writer.add_connection("/camera/camera_info", "sensor_msgs/msg/CameraInfo",
+                                     typestore=store) if with_info else None
+        tof = writer.add_connection("/tof/zones", "deltar_msgs/msg/ZoneFrame",
+                                    typestore=store) if with_tof else None
+        for i in range(frames):
+            stamp = T0 + i * 100_000_000
+            rgb, msgtype, msg = _image(store, stamp, encoding, seed=i)
+            writer.write(cam, stamp + 1000, store.serialize_cdr(msg, msgtype))
+            if info is not None:
+                writer.write(info, stamp + 1000, store.serialize_cdr(
+                    _camera_info(store, stamp), "sensor_msgs/msg/CameraInfo"))
+            if tof is not None:
+                distance, status, zmsg = _zones(store, stamp + offsets[i], seed=i)
+                writer.write(tof, stamp + offsets[i] + 1000,
+                             store.serialize_cdr(zmsg, "deltar_msgs/msg/ZoneFrame"))
+                truth["distance"].append(distance)
+                truth["status"].append(status)
+            truth["rgb"].append(rgb)
+            truth["stamps"].append(stamp)
+    return truth
+
+
+def read_topic(path: Path, topic: str) -> list[tuple[int, object]]:
+    """Messages of a topic with rosbags' reader, types taken from the bag itself."""
+    with AnyReader([path]) as reader:
+        connections = [c for c in reader.connections if c.topic == topic]
+        assert connections, f"no topic {topic} in {[c.topic for c in reader.connections]}"
+        return [(t, reader.deserialize(raw, c.msgtype))
+                for c, t, raw in reader.messages(connections=connections)]
+
+
+def _digest(folder: Path) -> dict:
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "compressed"])
+def test_bag_pairs_decode_and_predict_into_a_new_bag(tmp_path, encoding):
+    source = tmp_path / "in_bag"
+    truth = write_input_bag(source, encoding=encoding)
+    before = _digest(source)
+    bag = BagInput(source)
+    assert (bag.image_topic, bag.info_topic, bag.tof_topic) == \
+        ("/camera/image", "/camera/camera_info", "/tof/zones")
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+    out, frames = replay_bag_to_bag(bag, estimator, tmp_path / "out_bag", points=True)
+    assert frames == 3
+    assert _digest(source) == before  # the input bag is untouched
+    depth_msgs = read_topic(out, "/deltar/depth")
+    info_msgs = read_topic(out, "/deltar/camera_info")
+    unc_msgs = read_topic(out, "/deltar/uncertainty")
+    cloud_msgs = read_topic(out, "/deltar/points")
+    assert len(depth_msgs) == len(info_msgs) == len(unc_msgs) == len(cloud_msgs) == 3
+    for i, ((log_ns, depth_msg), (_, info), (_, unc)) in enumerate(
+            zip(depth_msgs, info_msgs, unc_msgs, strict=True)):
+        stamp = truth["stamps"][i]
+        assert log_ns == stamp + 1000  # the camera image's bag time
+        for msg in (depth_msg, info, unc):
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
+            assert msg.header.frame_id == "cam_optical"
+        assert depth_msg.encoding == "32FC1" and depth_msg.step == 4 * WIDTH
+        depth = metric_image_from_msg(depth_msg)
+        assert depth.shape == (HEIGHT, WIDTH)
+        np.testing.assert_allclose(np.asarray(info.k).reshape(3, 3), INTR.matrix)
+        # The bag holds the prediction for the decoded image and the zone frame, with
+        # NaN where the network gives no depth (REP 118).
+        pair = BagInput(source).pairs()[i]
+        frame = pair.zone_frame
+        valid = np.isin(truth["status"][i], (5, 9))
+        np.testing.assert_array_equal(frame.valid.reshape(-1), valid)
+        np.testing.assert_allclose(frame.mean_m.reshape(-1)[valid],
+                                   truth["distance"][i][valid])
+        expected = estimator.predict(truth["rgb"][i], frame, pair_calibration(pair, None))
+        has_depth = expected.depth_m > 0
+        np.testing.assert_array_equal(np.isnan(depth), ~has_depth)
+        np.testing.assert_allclose(depth[has_depth], expected.depth_m[has_depth])
+        uncertainty = metric_image_from_msg(unc)
+        np.testing.assert_allclose(uncertainty[has_depth], 0.1, atol=1e-6)
+        assert np.isnan(uncertainty[~has_depth]).all()
+
+
+def test_point_cloud_holds_back_projected_coloured_points(tmp_path):
+    source = tmp_path / "in_bag"
+    truth = write_input_bag(source, frames=1)
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+    out, _ = replay_bag_to_bag(BagInput(source), estimator, tmp_path / "out", points=True,
+                               point_stride=1, storage="mcap")
+    (_, cloud), = read_topic(out, "/deltar/points")
+    (_, depth_msg), = read_topic(out, "/deltar/depth")
+    depth = metric_image_from_msg(depth_msg)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "rgb"]
+    assert cloud.point_step == 16 and cloud.height == 1
+    data = np.asarray(cloud.data, dtype=np.uint8).view(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    assert cloud.width == np.isfinite(depth).sum() == data.size
+    # Pick the point of pixel (v, u) by back-projecting it and compare colours.
+    v, u = np.argwhere(np.isfinite(depth))[len(data) // 2]
+    z = depth[v, u]
+    expected = np.array([(u - INTR.cx) / INTR.fx * z, (v - INTR.cy) / INTR.fy * z, z])
+    xyz = np.stack([data["x"], data["y"], data["z"]], axis=1)
+    index = np.argmin(np.linalg.norm(xyz - expected, axis=1))
+    np.testing.assert_allclose(xyz[index], expected, atol=1e-5)
+    r, g, b = truth["rgb"][0][v, u].astype(np.uint32)
+    assert data["rgb"][index] == (r << 16) | (g << 8) | b
+
+
+def test_cli_replay_bag_with_the_bundled_model(tmp_path):
+    source = tmp_path / "in_bag"
+    write_input_bag(source, frames=2)
+    out = tmp_path / "depth_bag"
+    result = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag", str(out),
+                                 "--bag-storage", "mcap"])
+    assert result.exit_code == 0, result.output
+    assert "wrote 2 frames" in result.output
+    assert (out / "metadata.yaml").is_file() and list(out.glob("*.mcap"))
+    depth_msgs = read_topic(out, "/deltar/depth")
+    # The bag holds exactly what the estimator predicts for the same inputs.
+    bag = BagInput(source)
+    (pair, rgb), = list(bag.images(bag.pairs()[:1]))
+    expected = DepthEstimator.from_checkpoint("default").predict(
+        rgb, pair.zone_frame, pair_calibration(pair, None)).depth_m
+    np.testing.assert_allclose(metric_image_from_msg(depth_msgs[0][1]), expected, atol=1e-5)
+    again = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag", str(out)])
+    assert again.exit_code == 1 and "refusing to write into existing path" in again.output
+    inside = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag",
+                                 str(source / "out")])
+    assert inside.exit_code == 1 and "inside it" in inside.output
+
+
+def test_missing_tof_topic_is_a_clear_error(tmp_path):
+    write_input_bag(tmp_path / "bag", with_tof=False)
+    with pytest.raises(ValueError, match=r"no ToF topic \(deltar_msgs/msg/ZoneFrame\)"):
+        BagInput(tmp_path / "bag")
+    with pytest.raises(ValueError, match="no topic '/nope'"):
+        BagInput(tmp_path / "bag", tof_topic="/nope")
+    with pytest.raises(ValueError, match="is sensor_msgs/msg/Image, expected"):
+        BagInput(tmp_path / "bag", tof_topic="/camera/image")
+    result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--out-bag",
+                                 str(tmp_path / "o")])
+    assert result.exit_code == 1 and "no ToF topic" in result.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_wrong_encoding_names_topic_and_encoding(tmp_path):
+    write_input_bag(tmp_path / "bag", encoding="mono8")
+    bag = BagInput(tmp_path / "bag")
+    with pytest.raises(ValueError, match=r"/camera/image: image encoding 'mono8' is not "
+                                         r"supported; expected rgb8 or bgr8"):
+        replay_bag_to_bag(bag, DepthEstimator(ZonePainterNet()), tmp_path / "out")
+    assert not (tmp_path / "out").exists()  # nothing half written
+    assert not list(tmp_path.glob(".out.*"))
+
+
+def test_unpaired_stamps_are_a_clear_error(tmp_path):
+    write_input_bag(tmp_path / "bag", tof_offset_ns=5_000_000_000)
+    with pytest.raises(ValueError, match=r"no ToF message on /tof/zones has a camera image "
+                                         r"within 0.02 s"):
+        BagInput(tmp_path / "bag").pairs()
+    pairs = BagInput(tmp_path / "bag").pairs(tolerance_s=6.0)
+    assert len(pairs) == 3
+
+
+def test_partly_unpaired_stamps_warn_and_skip(tmp_path):
+    # The second ToF frame is 50 ms from both neighbouring images (10 Hz camera).
+    write_input_bag(tmp_path / "bag", tof_offset_ns=[4_000_000, 50_000_000, 4_000_000])
+    with pytest.warns(UserWarning, match="skipped 1 of 3 ToF frames"):
+        pairs = BagInput(tmp_path / "bag").pairs()
+    assert [p.image_index for p in pairs] == [0, 2]
+    assert all(abs(p.offset_s + 0.004) < 1e-6 for p in pairs)  # float64 s of a 1.7e9 s clock
+
+
+def test_no_camera_info_needs_a_calibration(tmp_path):
+    write_input_bag(tmp_path / "bag", with_info=False)
+    bag = BagInput(tmp_path / "bag")
+    assert bag.info_topic is None
+    with pytest.raises(ValueError, match="no sensor_msgs/msg/CameraInfo topic; pass a rig "
+                                         "calibration"):
+        replay_bag_to_bag(bag, DepthEstimator(ZonePainterNet()), tmp_path / "out")
+
+
+def test_vl53l5cx_ros2_distance_image_adapter():
+    store = typestore()
+    values = np.arange(64, dtype=np.float32).reshape(8, 8) / 10 + 0.5
+    values[0, 1] = np.nan  # a zone the driver marked invalid
+    msg = store.types["sensor_msgs/msg/Image"](
+        header=_header(store, T0, "tof"), height=8, width=8, encoding="32FC1",
+        is_bigendian=0, step=32, data=values.astype("<f4").view(np.uint8).reshape(-1))
+    frame = zone_frame_from_vl53l5cx_ros2(msg, orientation=Orientation(flip_ud=True),
+                                          sigma_m=0.03)
+    expected = values[::-1]
+    assert frame.grid == 8 and frame.timestamp_s == pytest.approx(T0 / 1e9)
+    np.testing.assert_array_equal(frame.valid, np.isfinite(expected))
+    np.testing.assert_allclose(frame.mean_m[frame.valid], expected[frame.valid])
+    assert np.all(frame.sigma_m[frame.valid] == pytest.approx(0.03))
+    assert not frame.valid[7, 1]  # row 0 became row 7
+    bad = store.types["sensor_msgs/msg/Image"](
+        header=_header(store, T0, "tof"), height=8, width=8, encoding="16UC1",
+        is_bigendian=0, step=16, data=np.zeros(128, np.uint8))
+    with pytest.raises(ValueError, match="expected a 4x4 or 8x8 32FC1"):
+        zone_frame_from_vl53l5cx_ros2(bad)
+
+
+def test_vl53l5cx_ros2_bag_replays_with_its_topic_named(tmp_path):
+    store = typestore()
+    path = tmp_path / "bag"
+    with Writer(path, version=8) as writer:
+        cam = writer.add_connection("/camera/image", "sensor_msgs/msg/Image", typestore=store)
+        info = writer.add_connection("/camera/camera_info", "sensor_msgs/msg/CameraInfo",
+                                     typestore=store)
+        tof = writer.add_connection("/vl53l5cx/x29/image", "sensor_msgs/msg/Image",
+                                    typestore=store)
+        for i in range(2):
+            stamp = T0 + i * 100_000_000
+            _, msgtype, msg = _image(store, stamp, seed=i)
+            writer.write(cam, stamp, store.serialize_cdr(msg, msgtype))
+            writer.write(info, stamp, store.serialize_cdr(_camera_info(store, stamp),
+                                                          "sensor_msgs/msg/CameraInfo"))
+            dist = np.full((8, 8), 1.25, "<f4")
+            tmsg = store.types["sensor_msgs/msg/Image"](
+                header=_header(store, stamp + 2_000_000, "tof"), height=8, width=8,
+                encoding="32FC1", is_bigendian=0, step=32, data=dist.view(np.uint8).reshape(-1))
+            writer.write(tof, stamp + 2_000_000, store.serialize_cdr(tmsg, "sensor_msgs/msg/Image"))
+    with pytest.raises(ValueError, match="needs the ToF topic named"):
+        BagInput(path, tof_format="vl53l5cx_ros2")
+    bag = BagInput(path, tof_format="vl53l5cx_ros2", tof_topic="/vl53l5cx/x29/image")
+    assert bag.image_topic == "/camera/image"  # the ToF image is not taken for the camera
+    pairs = bag.pairs()
+    assert len(pairs) == 2 and np.allclose(pairs[0].zone_frame.mean_m, 1.25)
+    with pytest.raises(ValueError, match="no ToF topic"):
+        BagInput(path)  # the default format wants a deltar_msgs/msg/ZoneFrame topic
+    result = runner.invoke(app, ["replay", "--bag", str(path), "--tof-format", "vl53l5cx_ros2",
+                                 "--tof-topic", "/vl53l5cx/x29/image", "--preset",
+                                 "deltar-lite", "--out-bag", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert len(read_topic(tmp_path / "out", "/deltar/depth")) == 2
+
+
+def test_record_writes_a_bag_that_replays(tmp_path):
+    bag_path = tmp_path / "rec_bag"
+    result = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate",
+                                 "wall:1.5:6:48x64"])
+    assert result.exit_code == 0, result.output
+    assert "recorded 6 images, 3 zone frames" in result.output
+    images = read_topic(bag_path, "/camera/color/image_raw")
+    infos = read_topic(bag_path, "/camera/color/camera_info")
+    depths = read_topic(bag_path, "/camera/depth/image")
+    zones = read_topic(bag_path, "/tof/zones")
+    assert (len(images), len(infos), len(depths), len(zones)) == (6, 6, 6, 3)
+    assert images[0][1].encoding == "rgb8" and depths[0][1].encoding == "32FC1"
+    np.testing.assert_allclose(metric_image_from_msg(depths[0][1]), 1.5, atol=1e-6)
+    rgb = image_from_msg(images[1][1], "sensor_msgs/msg/Image")
+    assert rgb.shape == (48, 64, 3)
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in images]
+    np.testing.assert_allclose(np.diff(stamps), 1e9 / 30, atol=1)  # the 30 Hz camera
+    zone_stamp = zones[0][1].header.stamp
+    assert zone_stamp.sec * 10**9 + zone_stamp.nanosec == stamps[0] + 4_000_000
+    assert zones[0][1].zone_count == 64
+    # Simulated 4 cm bins: a wall at 1.5 m reads 1.5 m (bin centre 1.50).
+    assert np.nanmedian(np.asarray(zones[0][1].distance_m)) == pytest.approx(1.5, abs=0.021)
+    replayed = runner.invoke(app, ["replay", "--bag", str(bag_path), "--preset", "deltar-lite",
+                                   "--out-bag", str(tmp_path / "depth")])
+    assert replayed.exit_code == 0, replayed.output
+    assert "wrote 3 frames" in replayed.output
+    again = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate", "wall:1.5:2"])
+    assert again.exit_code == 1 and "refusing to write into existing path" in again.output
+
+
+def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):
+    write_input_bag(tmp_path / "bag", frames=1)
+    monkeypatch.setitem(__import__("sys").modules, "rosbags", None)
+    monkeypatch.setitem(__import__("sys").modules, "rosbags.rosbag2", None)
+    with pytest.raises(ImportError, match=r'pip install "deltar\[ros\]"'):
+        BagInput(tmp_path / "bag")
+    result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
+                                 "deltar-lite", "--out-bag", str(tmp_path / "out")])
+    assert result.exit_code == 1 and 'needs the "ros" extra' in result.output
