@@ -66,7 +66,8 @@ def demo(
                                  param_hint="OUT")
     simulate_command(src=f"procedural:{frames}:{seed}:{height}x{width}", out=scenes, grid=8,
                      layout="calibrated", start=0, stop=None, step=1, limit=None,
-                     depth_scale=None, intrinsics=None, split="test", cnh=False,
+                     depth_scale=None, intrinsics=None, split="test", drop_fraction=0.0,
+                     bias_prob=0.0, bias_mean=0.10, bias_std=0.15, seed=0, cnh=False,
                      cnh_bins=None, cnh_range=None)
     write_predict_sample(scenes / "data.json", out / "sample")
     from deltar.weights import bundled_model_names
