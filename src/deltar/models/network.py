@@ -54,6 +54,10 @@ class DeltarNet(nn.Module):
         design_size: (H, W) input size the positional encodings are laid out for.
         hypothesis_sampling: how the data pipeline samples hypotheses ("icdf" or
             "uniform"); recorded in :attr:`config`, does not change the network.
+        decoder_block: "conv" (release) or "separable" up-block convolutions, and
+        decoder_convs: convolutions per up block, strides 16, 8, 4, 2, and
+        decoder_out_kernel: the stride-2 output convolution's kernel (3 or 1): CPU
+            shapes of the decoder (see :class:`~deltar.models.decoder.FusionDecoder`).
     """
 
     def __init__(
@@ -76,6 +80,9 @@ class DeltarNet(nn.Module):
         self_heads: int = 8,
         design_size: tuple[int, int] = (480, 640),
         hypothesis_sampling: str = "icdf",
+        decoder_block: str = "conv",
+        decoder_convs: Sequence[int] = (2, 2, 2, 2),
+        decoder_out_kernel: int = 3,
     ) -> None:
         super().__init__()
         _check_choice("head", head, HEADS)
@@ -106,6 +113,9 @@ class DeltarNet(nn.Module):
             "self_heads": self_heads,
             "design_size": tuple(design_size),
             "hypothesis_sampling": hypothesis_sampling,
+            "decoder_block": decoder_block,
+            "decoder_convs": tuple(decoder_convs),
+            "decoder_out_kernel": decoder_out_kernel,
         }
         self.min_depth = min_depth
         self.max_depth = max_depth
@@ -125,7 +135,7 @@ class DeltarNet(nn.Module):
             }
         self.decoder = FusionDecoder(
             self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
-            design_size,
+            design_size, decoder_block, decoder_convs, decoder_out_kernel,
         )
         self.distribution_encoder = None
         if not self.five_channel:
