@@ -59,7 +59,7 @@ def zone_prior_map(
     # Invalid zones get a very negative (finite) log-weight so softmax stays NaN-free.
     log_wy = log_wy.masked_fill(~valid[..., None], -1e4)
     # Zones on the last axis, contiguous: a softmax over the last axis exports to a fast
-    # kernel, and in PyTorch a strided zone axis made this map 5x slower (1/2 of 256x320).
+    # kernel, and in PyTorch a strided zone axis makes it slower.
     log_wy = log_wy.transpose(1, 2).contiguous()  # (B, h, Z)
     log_wx = log_wx.transpose(1, 2).contiguous()  # (B, w, Z)
     logits = log_wy[:, :, None, :] + log_wx[:, None, :, :]  # (B, h, w, Z)

@@ -179,7 +179,7 @@ def _mark_not_counted(index: torch.Tensor, depth: torch.Tensor, config: Simulato
     max_range = np.float32(config.max_range_m)
     if depth.device.type == "cpu":
         # numpy's comparisons and boolean assignment are several times faster here.
-        depth_np = depth.numpy()
+        depth_np = depth.detach().numpy()
         outside = depth_np <= 0
         outside |= depth_np > max_range
         index.numpy()[outside] = value
