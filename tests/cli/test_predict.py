@@ -147,3 +147,15 @@ def test_predict_flip_runs_and_onnx_refuses_it(tmp_path, rng):
                                   "--out", str(tmp_path / "o2"), "--onnx", str(fake_onnx),
                                   "--flip"])
     assert refused.exit_code != 0 and "--flip" in refused.output
+
+
+def test_export_int8_needs_a_calibration_folder(tmp_path):
+    out = tmp_path / "int8.onnx"
+    alone = runner.invoke(app, ["export", "--preset", "deltar-lite", "--out", str(out),
+                                "--size", "64x96", "--int8"])
+    assert alone.exit_code != 0 and "--calibration" in alone.output
+    missing = runner.invoke(app, ["export", "--preset", "deltar-lite", "--out", str(out),
+                                  "--size", "64x96", "--int8", "--calibration",
+                                  str(tmp_path / "nowhere")])
+    assert missing.exit_code != 0 and "calibration RGB-D folder not found" in missing.output
+    assert not out.exists()

@@ -48,14 +48,18 @@ def test_check_official_missing_file(runner, tmp_path):
 def test_bench_writes_json(runner, tmp_path):
     out = tmp_path / "bench.json"
     args = ["bench", "--preset", "deltar-lite", "--size", "64x96", "--repeats", "1",
-            "--warmup", "0", "--threads", "1", "--json", str(out)]
+            "--warmup", "0", "--threads", "1", "--matmul-size", "128", "--json", str(out)]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     data = json.loads(out.read_text())
     for key in ("preset", "size", "batch", "threads", "latency_ms_median", "latency_ms_min",
-                "peak_mem_mb", "params_m"):
+                "peak_mem_mb", "params_m", "gflop", "gflop_s", "matmul_gflop_s",
+                "matmul_fraction"):
         assert key in data
     assert data["size"] == "64x96" and data["latency_ms_median"] > 0
+    assert data["gflop"] > 0 and data["matmul_gflop_s"] > 0
+    assert data["matmul_fraction"] == pytest.approx(data["gflop_s"] / data["matmul_gflop_s"],
+                                                    abs=6e-4)
     # Never overwrite without being asked.
     assert runner.invoke(app, args).exit_code != 0
 

@@ -68,10 +68,13 @@ def bench_command(
     fold_encoder: bool = typer.Option(True, "--fold-encoder/--no-fold-encoder",
                                       help="Also fold the image encoder's batch norms."),
     channels_last: bool = typer.Option(True, help="Channels-last decoder and head."),
+    matmul_size: int = typer.Option(2048, min=0, help="Side of the float32 matrix product "
+                                    "timed in the same process as the reference rate "
+                                    "(0 skips it)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the result as JSON."),
     overwrite: bool = typer.Option(False, help="Replace an existing --json file."),
 ) -> None:
-    """Measure forward latency (median of repeated runs) and peak memory of a preset."""
+    """Forward latency, peak memory, counted GFLOP and the fraction of the float32 matmul rate."""
     from rich.console import Console
     from rich.table import Table
 
@@ -85,7 +88,7 @@ def bench_command(
     if json_out is not None and json_out.exists() and not overwrite:
         raise typer.BadParameter(f"{json_out} exists; pass --overwrite to replace it")
     result = benchmark_preset(preset, height, width, batch, threads, repeats, warmup, optimize,
-                              fold_encoder, channels_last)
+                              fold_encoder, channels_last, matmul_size)
     table = Table(title="deltar bench")
     table.add_column("measure")
     table.add_column("value", justify="right")

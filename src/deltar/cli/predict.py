@@ -593,11 +593,18 @@ def export_command(
     layout_from: Path | None = typer.Option(None, "--layout-from", help="Fix the zone "
                                             "layout from a rig calibration JSON or a "
                                             "recording folder (default: nominal 8x8)."),
+    int8: bool = typer.Option(False, "--int8", help="Write a statically quantised int8 "
+                              "model (see docs/inference.md for its measured accuracy)."),
+    calibration: Path | None = typer.Option(None, "--calibration", help="RGB-D folder whose "
+                                            "frames (zones simulated) calibrate --int8."),
+    calibration_frames: int = typer.Option(16, "--calibration-frames", min=1,
+                                           help="Calibration frames for --int8."),
     overwrite: bool = typer.Option(False, help="Replace an existing file."),
 ) -> None:
     """Export a model to ONNX (dynamic batch, fixed input size and zone layout)."""
     from deltar.cli.checks import output_file
     from deltar.export.onnx import export_onnx
+    from deltar.export.quantize import export_int8
 
     if format != "onnx":
         raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
@@ -606,12 +613,22 @@ def export_command(
     if layout_from is not None and not layout_from.exists():
         raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "
                                 "recording folder")
+    if int8 != (calibration is not None):
+        raise typer.BadParameter("--int8 and --calibration DIR go together",
+                                 param_hint="--calibration")
     try:
         estimator = _build_estimator(preset, checkpoint, official, None, "cpu", "float32",
                                      None, None)
         rects = None if layout_from is None else _layout_rects(layout_from, height, width)
-        path = export_onnx(estimator.model, out, height, width, zone_rects=rects,
-                           overwrite=overwrite, metadata={"deltar_weights": estimator.weights})
+        metadata = {"deltar_weights": estimator.weights}
+        if int8:
+            path = export_int8(estimator.model, out, height, width, calibration,
+                               frames=calibration_frames, zone_rects=rects,
+                               overwrite=overwrite, metadata=metadata)
+        else:
+            path = export_onnx(estimator.model, out, height, width, zone_rects=rects,
+                               overwrite=overwrite, metadata=metadata)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         _fail(err)
-    typer.echo(f"wrote {path} ({height}x{width}, weights: {estimator.weights})")
+    kind = "int8" if int8 else "float32"
+    typer.echo(f"wrote {path} ({kind}, {height}x{width}, weights: {estimator.weights})")

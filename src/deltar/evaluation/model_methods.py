@@ -1,8 +1,9 @@
 """Learned models as evaluation methods: ``model:NAME|PATH`` and ``official:PATH``.
 
 ``model:default`` is the bundled model, ``model:runs/x/model.pt`` any deltar checkpoint,
-``official:nyu.pt`` the officially released weights. A ``+flip`` suffix
-(``model:default+flip``) adds test-time flip averaging. Each runs through
+``official:nyu.pt`` the officially released weights, ``onnx:model.onnx`` an exported
+(float32 or int8) model run by onnxruntime. A ``+flip`` suffix
+(``model:default+flip``) adds test-time flip averaging (not for ``onnx:``). Each runs through
 :class:`~deltar.inference.estimator.DepthEstimator` with the sample's own zone
 rectangles, at the network's design resolution, and its output is resized to the
 ground truth's resolution.
@@ -80,5 +81,17 @@ def official_predictor(path: str) -> EstimatorPredictor:
     return EstimatorPredictor(estimator)
 
 
+def onnx_predictor(path: str) -> EstimatorPredictor:
+    """``onnx:PATH``: an exported ONNX model (``deltar export``, also ``--int8``).
+
+    It runs at its fixed input size; the sample's zone layout must fit the one it was
+    exported for (else ``ValueError``; export with that layout).
+    """
+    from deltar.inference.estimator import DepthEstimator
+
+    return EstimatorPredictor(DepthEstimator.from_onnx(path))
+
+
 register_method_family("model", checkpoint_predictor)
+register_method_family("onnx", onnx_predictor)
 register_method_family("official", official_predictor)

@@ -1,4 +1,12 @@
-"""Latency / memory benchmark of a preset, and the official-parity check of a fixture."""
+"""Latency / memory / FLOP benchmark of a preset, and the official-parity check of a fixture.
+
+Latency alone does not compare across machines; :func:`benchmark_preset` therefore also
+counts the forward pass's floating-point operations (torch's ``FlopCounterMode``:
+2 per multiply-add of convolutions and matrix products; element-wise work is not
+counted) and measures, in the same process and with the same threads, the rate of a
+large float32 matrix product. The achieved fraction of that rate says how well the
+network uses the machine.
+"""
 
 from __future__ import annotations
 
@@ -81,6 +89,51 @@ def synthetic_inputs(height: int, width: int, batch: int, grid: int = 8, seed: i
     )
 
 
+def count_gflop(model: torch.nn.Module, inputs: tuple) -> float:
+    """Floating-point operations of one ``model(*inputs)`` call, in GFLOP (1e9).
+
+    Counted by ``torch.utils.flop_counter.FlopCounterMode``: 2 per multiply-add of
+    convolutions, matrix products and attention; element-wise operations, softmax and
+    normalisation are not counted.
+
+    Args:
+        model: the network, in the state it will be timed in.
+        inputs: its positional inputs.
+    """
+    from torch.utils.flop_counter import FlopCounterMode
+
+    counter = FlopCounterMode(display=False)
+    with torch.inference_mode(), counter:
+        model(*inputs)
+    return counter.get_total_flops() / 1e9
+
+
+def matmul_gflop_s(size: int = 2048, repeats: int = 3) -> float:
+    """Best rate of a (size x size) @ (size x size) float32 product, GFLOP/s (2 size^3 FLOP).
+
+    Runs with the current torch thread count; a reference for how fast this machine
+    multiplies dense float32 matrices right now.
+
+    Args:
+        size: matrix side (2048: 17.2 GFLOP per product).
+        repeats: timed products after one warm-up; the fastest counts.
+    """
+    if size < 1 or repeats < 1:
+        raise ValueError("size and repeats must be >= 1")
+    generator = torch.Generator().manual_seed(0)
+    left = torch.randn(size, size, generator=generator)
+    right = torch.randn(size, size, generator=generator)
+    out = torch.empty(size, size)
+    with torch.inference_mode():
+        torch.mm(left, right, out=out)
+        best = math.inf
+        for _ in range(repeats):
+            start = time.perf_counter()
+            torch.mm(left, right, out=out)
+            best = min(best, time.perf_counter() - start)
+    return 2.0 * size**3 / best / 1e9
+
+
 def benchmark_preset(
     preset: str,
     height: int,
@@ -92,6 +145,8 @@ def benchmark_preset(
     optimize: bool = True,
     fold_encoder: bool = True,
     channels_last: bool = True,
+    matmul_size: int = 2048,
+    overrides: dict | None = None,
 ) -> dict:
     """Time the forward pass of a preset (random weights) under ``torch.inference_mode``.
 
@@ -107,34 +162,53 @@ def benchmark_preset(
         fold_encoder: also fold the image encoder's batch norms.
         channels_last: channels-last decoder and head (see
             :func:`~deltar.models.optimize.prepare_for_inference`).
+        matmul_size: side of the float32 matrix product timed (best of three, before
+            and after the forward runs) as this machine's reference rate; 0 skips it
+            (and the fraction).
+        overrides: constructor arguments replacing the preset's (as
+            :func:`~deltar.models.presets.create_model` takes them), e.g. a decoder
+            variant or ``design_size``.
 
     Returns:
         dict with preset, size ("HxW"), batch, threads, latency_ms_median,
         latency_ms_min, cpu_ms_per_run (process CPU time per forward summed over
         threads: less sensitive to other processes than latency), peak_mem_mb
         (peak resident memory during the timed runs above the resident memory
-        before them; None if unavailable), params_m (millions),
-        load_avg_1min (system load when the run ended, for context).
+        before them; None if unavailable), params_m (millions), gflop (counted
+        FLOP of one forward of the whole batch, 1e9), gflop_s (gflop over the
+        fastest forward), matmul_gflop_s (the reference product's best rate; None if
+        skipped), matmul_fraction (gflop_s / matmul_gflop_s: best against best),
+        overrides, load_avg_1min (system load when the run ended, for context).
     """
     if repeats < 1 or warmup < 0:
         raise ValueError("repeats must be >= 1 and warmup >= 0")
+    if matmul_size < 0:
+        raise ValueError(f"matmul_size must be >= 0, got {matmul_size}")
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        return _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize,
-                           fold_encoder, channels_last)
+        reference = matmul_gflop_s(matmul_size) if matmul_size else None
+        result = _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize,
+                             fold_encoder, channels_last, overrides or {})
+        if reference is not None:
+            reference = max(reference, matmul_gflop_s(matmul_size))
     finally:
         torch.set_num_threads(previous_threads)
+    result["matmul_gflop_s"] = None if reference is None else round(reference, 1)
+    result["matmul_fraction"] = (None if reference is None
+                                 else round(result["gflop_s"] / reference, 3))
+    return result
 
 
 def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize, fold_encoder,
-                channels_last):
+                channels_last, overrides):
     """The body of :func:`benchmark_preset` (thread count already set)."""
     torch.manual_seed(0)
-    model = create_model(preset).eval()
+    model = create_model(preset, **overrides).eval()
     if optimize:
         prepare_for_inference(model, fold_encoder=fold_encoder, channels_last=channels_last)
     inputs = synthetic_inputs(height, width, batch)
+    gflop = count_gflop(model, inputs)
     with torch.inference_mode():
         for _ in range(warmup):
             model(*inputs)
@@ -165,9 +239,13 @@ def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize
         "cpu_ms_per_run": round(cpu_ms, 1),
         "peak_mem_mb": peak_mem,
         "params_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
+        "gflop": round(gflop, 3),
+        "gflop_s": round(gflop / (min(times) / 1000.0), 2),
         "optimized": optimize,
         "encoder_folded": bool(optimize and fold_encoder),
         "channels_last": bool(optimize and channels_last),
+        "overrides": {key: list(value) if isinstance(value, tuple) else value
+                      for key, value in overrides.items()},
         "load_avg_1min": load,
     }
 

@@ -67,6 +67,10 @@ class DeltarNet(nn.Module):
             multiply depth, uncertainty and bin edges by ``s`` afterwards, so that
             scaling every zone reading by ``k`` scales the output by ``k`` (up to the
             ``min_depth``/``max_depth`` clamp). Frames without a valid zone use ``s = 1``.
+        decoder_block: "conv" (release) or "separable" up-block convolutions, and
+        decoder_convs: convolutions per up block, strides 16, 8, 4, 2, and
+        decoder_out_kernel: the stride-2 output convolution's kernel (3 or 1): CPU
+            shapes of the decoder (see :class:`~deltar.models.decoder.FusionDecoder`).
     """
 
     def __init__(
@@ -92,6 +96,9 @@ class DeltarNet(nn.Module):
         image_mean: Sequence[float] = IMAGENET_MEAN,
         image_std: Sequence[float] = IMAGENET_STD,
         zone_scale_norm: bool = False,
+        decoder_block: str = "conv",
+        decoder_convs: Sequence[int] = (2, 2, 2, 2),
+        decoder_out_kernel: int = 3,
     ) -> None:
         super().__init__()
         _check_choice("head", head, HEADS)
@@ -128,6 +135,9 @@ class DeltarNet(nn.Module):
             "image_mean": tuple(float(v) for v in image_mean),
             "image_std": tuple(float(v) for v in image_std),
             "zone_scale_norm": bool(zone_scale_norm),
+            "decoder_block": decoder_block,
+            "decoder_convs": tuple(decoder_convs),
+            "decoder_out_kernel": decoder_out_kernel,
         }
         self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth
@@ -148,7 +158,7 @@ class DeltarNet(nn.Module):
             }
         self.decoder = FusionDecoder(
             self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
-            design_size,
+            design_size, decoder_block, decoder_convs, decoder_out_kernel,
         )
         self.distribution_encoder = None
         if not self.five_channel:

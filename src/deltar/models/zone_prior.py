@@ -58,8 +58,15 @@ def zone_prior_map(
     valid = zone_valid.bool()
     # Invalid zones get a very negative (finite) log-weight so softmax stays NaN-free.
     log_wy = log_wy.masked_fill(~valid[..., None], -1e4)
-    # Zones on the last axis: a softmax over the last axis exports to a fast kernel.
-    logits = log_wy.transpose(1, 2)[:, :, None, :] + log_wx.transpose(1, 2)[:, None, :, :]
+    # Zones on the last axis, contiguous: a softmax over the last axis exports to a fast
+    # kernel, and in PyTorch a strided zone axis makes it slower.
+    log_wy = log_wy.transpose(1, 2).contiguous()  # (B, h, Z)
+    log_wx = log_wx.transpose(1, 2).contiguous()  # (B, w, Z)
+    logits = log_wy[:, :, None, :] + log_wx[:, None, :, :]  # (B, h, w, Z)
+    # Weights below e^-80 of a pixel's largest are raised to it (a change of ~1e-35):
+    # exponentials that small are subnormal floats, which CPUs compute many times
+    # slower (most of this map's time, before).
+    logits = (logits - logits.amax(dim=-1, keepdim=True)).clamp_min(-80.0)
     weights = torch.softmax(logits, dim=-1)  # (B, h, w, Z)
     log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
     log_prior = (weights.flatten(1, 2) @ log_mean[..., None]).reshape(

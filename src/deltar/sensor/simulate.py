@@ -124,20 +124,106 @@ def depth_bin_index(depth_m: torch.Tensor, config: SimulatorConfig) -> torch.Ten
     Returns:
         (...) int32 bin indices in ``[0, bins)``, or ``bins`` for values not counted.
     """
-    depth = depth_m.to(torch.float32)
+    depth = depth_m.to(torch.float32).contiguous()
     bins = config.num_bins
+    index = _scaled_bin(depth, config)
+    index.clamp_(0, bins)  # only for not-counted values, replaced below
+    index.masked_fill_(index == bins, bins - 1)  # the last bin is closed, as in histc
+    _mark_not_counted(index, depth, config, bins)
+    return index
+
+
+def _scaled_bin(depth: torch.Tensor, config: SimulatorConfig,
+                out: torch.Tensor | None = None) -> torch.Tensor:
+    """int32 ``trunc(depth * bins / max_range_m)`` in float32 arithmetic (histc's).
+
+    For depth in ``(0, max_range_m]`` this is histc's bin, except ``bins`` at the closed
+    upper end of the last bin (where histc takes ``bins - 1``). Values that are not
+    counted get arbitrary indices: the caller overwrites them (:func:`_mark_not_counted`).
+
+    Args:
+        depth: (...) float32 depth in metres.
+        config: simulator parameters.
+        out: optional float32 buffer of ``depth``'s shape, reused for the result (as
+            int32, same memory).
+
+    Returns:
+        (...) int32 indices.
+    """
     max_range = float(np.float32(config.max_range_m))
-    # (depth * bins) / max_range in float32, then truncation: torch.histc's arithmetic.
-    # int32 keeps the clamp cheap; the clamp closes the last bin like histc does.
-    index = (depth * bins).div_(max_range).to(torch.int32).clamp_(max=bins - 1)
-    not_counted = depth <= 0
-    not_counted |= depth > max_range
-    return index.masked_fill_(not_counted, bins)
+    bins = config.num_bins
+    if math.frexp(max_range)[0] == 0.5:
+        # Dividing by a power of two is exact, so one product gives the same float32.
+        scaled = torch.mul(depth, bins / max_range, out=out)
+    else:
+        scaled = torch.mul(depth, bins, out=out).div_(max_range)
+    # Keeps the float-to-int conversion defined for infinite or huge values.
+    scaled.clamp_(-1.0, bins + 1.0)
+    # Converted in place (same element size): a fresh full-size tensor would cost more
+    # than the arithmetic, mostly in page faults.
+    index = scaled.view(torch.int32)
+    index.copy_(scaled)  # truncation toward zero
+    return index
+
+
+def _mark_not_counted(index: torch.Tensor, depth: torch.Tensor, config: SimulatorConfig,
+                      value: int) -> None:
+    """Set ``index`` to ``value`` in place where depth is <= 0 or beyond ``max_range_m``.
+
+    Args:
+        index: (...) contiguous int32 tensor, modified in place.
+        depth: (...) contiguous float32 depth in metres, same shape and device.
+        config: simulator parameters.
+        value: the index given to values that are not counted.
+    """
+    max_range = np.float32(config.max_range_m)
+    if depth.device.type == "cpu":
+        # numpy's comparisons and boolean assignment are several times faster here.
+        depth_np = depth.detach().numpy()
+        outside = depth_np <= 0
+        outside |= depth_np > max_range
+        index.numpy()[outside] = value
+    else:
+        outside = torch.le(depth, 0.0).logical_or_(torch.gt(depth, float(max_range)))
+        index.masked_fill_(outside, value)
+
+
+#: Most (frame, cell, bin) keys of one ``bincount`` in :func:`zone_histograms`.
+_MAX_KEYS = 1 << 24
+#: Interleaved copies of the cell histograms in :func:`zone_histograms`.
+_LANES = 4
+
+
+def _cell_boundaries(low: torch.Tensor, high: torch.Tensor, size: int) -> torch.Tensor:
+    """Sorted distinct zone boundaries along one image axis, per frame.
+
+    Args:
+        low, high: (B, Z) int64 half-open zone bounds along the axis, in ``[0, size]``.
+        size: image size along the axis, pixels.
+
+    Returns:
+        (B, N) int64: 0, every distinct bound, ``size``, ascending; frames with fewer
+        distinct bounds are padded with ``size + 1`` (past every pixel).
+    """
+    batch = low.shape[0]
+    ends = torch.tensor([0, size], dtype=torch.int64, device=low.device).expand(batch, 2)
+    values = torch.cat([ends, low, high], dim=1).sort(dim=1).values
+    repeated = torch.zeros_like(values, dtype=torch.bool)
+    repeated[:, 1:] = values[:, 1:] == values[:, :-1]
+    values = values.masked_fill(repeated, size + 1).sort(dim=1).values
+    count = int((~repeated).sum(dim=1).max())
+    return values[:, :count].contiguous()
 
 
 def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
                     config: SimulatorConfig) -> torch.Tensor:
-    """Per-zone depth histograms, vectorised over the batch and the zones.
+    """Per-zone depth histograms of a batch: one pass over the pixels for all zones.
+
+    The zone bounds cut each image into a grid of cells (rows between consecutive
+    distinct row bounds, columns likewise; 9 x 9 cells for an 8x8 grid of abutting
+    zones). One ``bincount`` over (frame, cell, bin) keys histograms every cell; a zone,
+    being a rectangle of whole cells, is then four look-ups in the 2-D cumulative sum
+    of the cell histograms. Zones may overlap or leave the image.
 
     Args:
         depth_m: (B, H, W) depth in metres, 0 = invalid pixel.
@@ -147,43 +233,75 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     Returns:
         (B, Z, bins) float32 pixel counts.
     """
+    depth_m = depth_m.to(torch.float32).contiguous()
     batch, height, width = depth_m.shape
-    zones = rects.shape[1]
     bins = config.num_bins
-    bounds = zone_pixel_bounds(rects, height, width)  # (B, Z, 4)
-    y0, x0, y1, x1 = bounds.unbind(-1)
-    zone_h, zone_w = y1 - y0, x1 - x0
-    max_h, max_w = int(zone_h.max()), int(zone_w.max())
+    # Per cell: the bins and one slot for depth exactly at max_range_m (merged into the
+    # last bin at the end).
+    slots = bins + 1
+    y0, x0, y1, x1 = zone_pixel_bounds(rects, height, width).unbind(-1)  # (B, Z) each
+    row_bounds = _cell_boundaries(y0, y1, height)  # (B, Ny)
+    col_bounds = _cell_boundaries(x0, x1, width)  # (B, Nx)
+    cells_y, cells_x = row_bounds.shape[1] - 1, col_bounds.shape[1] - 1
+    per_frame = cells_y * cells_x * slots
+    # Layouts with many distinct bounds make many cells: keep each bincount moderate
+    # (and its keys within int32) by splitting the zones, then the batch.
+    zones = rects.shape[1]
+    if per_frame > _MAX_KEYS and zones > 1:
+        half = zones // 2
+        return torch.cat([zone_histograms(depth_m, rects[:, :half], config),
+                          zone_histograms(depth_m, rects[:, half:], config)], dim=1)
+    chunk = max(1, min(batch, _MAX_KEYS // per_frame))
+    if chunk < batch:
+        return torch.cat([zone_histograms(depth_m[i : i + chunk], rects[i : i + chunk], config)
+                          for i in range(0, batch, chunk)])
     device = depth_m.device
-    if max_h == 0 or max_w == 0:  # every zone is outside the image
-        return torch.zeros(batch, zones, bins, dtype=torch.float32, device=device)
-    pixels = batch * height * width
-    # int32 indices keep the per-pixel work light; int64 only for huge batches (indices
-    # below reach 2 * pixels, keys batch * zones * (bins + 1)).
-    small = max(2 * pixels, batch * zones * (bins + 1)) < 2**31
-    index_dtype = torch.int32 if small else torch.int64
-    # Bin of every pixel, plus one trailing "not counted" entry that window pixels
-    # outside their zone are pointed at.
-    bin_image = depth_bin_index(depth_m, config).reshape(-1).to(index_dtype)
-    bin_image = torch.cat([bin_image, bin_image.new_full((1,), bins)])
-    # Each zone reads a (max_h, max_w) window from its top-left pixel: flat index =
-    # row term + column term, where rows / columns beyond the zone's own size get an
-    # offset of ``pixels`` so their sum lands at or past the trailing entry.
-    frame_start = (torch.arange(batch, device=device) * (height * width))[:, None]
-    dy = torch.arange(max_h, device=device)
-    dx = torch.arange(max_w, device=device)
-    row_term = frame_start[..., None] + (y0[..., None] + dy) * width  # (B, Z, max_h)
-    row_term = torch.where(dy < zone_h[..., None], row_term, pixels)
-    col_term = torch.where(dx < zone_w[..., None], x0[..., None] + dx, pixels)  # (B, Z, max_w)
-    flat = row_term.to(index_dtype)[..., :, None] + col_term.to(index_dtype)[..., None, :]
-    flat = flat.clamp_(max=pixels).reshape(-1)
-    zone_bins = bin_image.index_select(0, flat).reshape(batch * zones, -1)
-    # One bincount over (frame, zone, bin) keys: each zone owns bins + 1 slots.
-    zone_offset = torch.arange(batch * zones, dtype=index_dtype, device=device)[:, None]
-    zone_offset *= bins + 1
-    keys = zone_bins.add_(zone_offset).reshape(-1)
-    counts = torch.bincount(keys, minlength=batch * zones * (bins + 1))
-    return counts.reshape(batch, zones, bins + 1)[..., :bins].to(torch.float32)
+    pixels = torch.arange(max(height, width), dtype=torch.int64, device=device)
+    # Cell of every row / column: the number of bounds at or before it, minus one.
+    row_cell = torch.searchsorted(row_bounds, pixels[:height].expand(batch, height),
+                                  right=True) - 1
+    col_cell = torch.searchsorted(col_bounds, pixels[:width].expand(batch, width),
+                                  right=True) - 1
+    # Neighbouring pixels mostly share a key, and counting the same slot over and over
+    # waits on the previous increment: columns take turns over _LANES copies of the
+    # histogram, summed afterwards.
+    lane = pixels[:width] % _LANES
+    row_key = (row_cell * cells_x * slots).to(torch.int32)  # (B, H)
+    col_key = (col_cell * slots + lane * per_frame).to(torch.int32)  # (B, W)
+    dump = _LANES * per_frame  # one slot past every histogram, for pixels not counted
+    # Frame by frame, in one reused buffer: a frame's pixels stay in the CPU cache
+    # through all steps, and no full-size tensor is allocated per frame.
+    buffer = torch.empty((height, width), dtype=torch.float32, device=device)
+    counts = torch.empty(batch, per_frame, dtype=torch.int64, device=device)
+    for index in range(batch):
+        keys = _scaled_bin(depth_m[index], config, out=buffer)
+        keys.add_(row_key[index, :, None]).add_(col_key[index, None, :])
+        _mark_not_counted(keys, depth_m[index], config, dump)
+        lanes = torch.bincount(keys.reshape(-1), minlength=dump + 1)[:dump]
+        torch.sum(lanes.reshape(_LANES, per_frame), dim=0, out=counts[index])
+    # A zone's histogram sums the cells in its row range and column range: with 0/1
+    # membership matrices, one batched product over the rows, then a weighted sum over
+    # the columns. float32 is exact here: every partial sum is a whole number of
+    # pixels below 2**24.
+    cells = counts.to(torch.float32).reshape(batch, cells_y, cells_x * slots)
+    row_in = _cell_membership(row_bounds, y0, y1)  # (B, Z, Ny)
+    col_in = _cell_membership(col_bounds, x0, x1)  # (B, Z, Nx)
+    by_rows = torch.bmm(row_in, cells).reshape(batch, -1, cells_x, slots)
+    zone = torch.einsum("bzcs,bzc->bzs", by_rows, col_in)
+    zone[..., bins - 1] += zone[..., bins]
+    return zone[..., :bins].contiguous()
+
+
+def _cell_membership(bounds: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """(B, Z, N - 1) float32: 1 where cell ``[bounds[i], bounds[i + 1])`` lies in ``[low, high)``.
+
+    Args:
+        bounds: (B, N) int64 cell bounds from :func:`_cell_boundaries`.
+        low, high: (B, Z) int64 zone bounds, each one of ``bounds``.
+    """
+    start = bounds[:, None, :-1]
+    inside = (start >= low[..., None]) & (start < high[..., None])
+    return inside.to(torch.float32)
 
 
 def strongest_cluster(counts: torch.Tensor) -> torch.Tensor:
