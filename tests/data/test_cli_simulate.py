@@ -129,3 +129,22 @@ def test_cnh_histograms_are_written_with_their_bins(tmp_path):
     bad = runner.invoke(app, ["simulate", "procedural:1", str(tmp_path / "e"),
                               "--cnh-range", "4:1"])
     assert bad.exit_code != 0 and "near < far" in bad.output
+
+
+def test_degraded_signal_drops_and_biases_zones_reproducibly(tmp_path):
+    args = ["simulate", "procedural:2:4:48x64", "--grid", "8"]
+    clean, a, b = tmp_path / "clean", tmp_path / "a", tmp_path / "b"
+    degrade = ["--drop-fraction", "0.5", "--bias-prob", "1.0", "--bias-mean", "0.3",
+               "--bias-std", "0.0", "--seed", "3"]
+    for out, extra in ((clean, []), (a, degrade), (b, degrade)):
+        result = runner.invoke(app, [*args[:2], str(out), *args[2:], *extra])
+        assert result.exit_code == 0, result.output
+    for s_clean, s_a, s_b in zip(ZJUL5Dataset(clean / "data.json"), ZJUL5Dataset(a / "data.json"),
+                                 ZJUL5Dataset(b / "data.json"), strict=True):
+        assert np.array_equal(s_a.zone_valid, s_b.zone_valid)  # same seed, same draws
+        kept = s_a.zone_valid
+        assert kept.sum() == s_clean.zone_valid.sum() - int(0.5 * s_clean.zone_valid.sum())
+        assert not (kept & ~s_clean.zone_valid).any()
+        # Every remaining zone is biased by exactly +0.3 m.
+        np.testing.assert_allclose(s_a.zone_mean_sigma[kept, 0],
+                                   s_clean.zone_mean_sigma[kept, 0] + 0.3, atol=1e-5)

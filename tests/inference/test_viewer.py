@@ -131,12 +131,10 @@ def test_cli_record_simulate_and_predict_save_recordings(tmp_path):
     assert "/uncertainty" not in rows  # a recording has no prediction
     sample = tmp_path / "sample"
     from deltar.cli.demo import write_predict_sample
-    from deltar.cli.simulate import simulate_command
+    from deltar.data.procedural import ProceduralReader
+    from deltar.data.simulated import simulate_set
 
-    simulate_command(src="procedural:1:3:48x64", out=tmp_path / "scenes", grid=8,
-                     layout="calibrated", start=0, stop=None, step=1, limit=None,
-                     depth_scale=None, intrinsics=None, split="test", cnh=False,
-                     cnh_bins=None, cnh_range=None)
+    simulate_set(ProceduralReader(1, 3, 48, 64), tmp_path / "scenes", scene="procedural")
     write_predict_sample(tmp_path / "scenes" / "data.json", sample)
     rrd2 = tmp_path / "pred.rrd"
     result = runner.invoke(app, ["predict", "--image", str(sample / "image.png"), "--zones",

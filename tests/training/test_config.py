@@ -12,7 +12,8 @@ from deltar.training.config import apply_override, config_from_dict, load_config
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
-@pytest.mark.parametrize("name", ["nyu_official", "shared_lite", "zju_finetune", "tiny_test"])
+@pytest.mark.parametrize("name", ["nyu_official", "cross_scene_lite", "zju_finetune",
+                                  "tiny_test"])
 def test_shipped_configs_load_and_round_trip(name):
     config = load_config(CONFIGS / f"{name}.yaml")
     again = config_from_dict(yaml.safe_load(config.to_yaml()))
@@ -96,3 +97,18 @@ def test_missing_and_corrupt_files(tmp_path):
     bad.write_text("optim: [unclosed\n", encoding="utf-8")
     with pytest.raises(ValueError, match="not valid YAML"):
         load_config(bad)
+
+
+def test_new_recipe_keys_are_checked():
+    base = load_config(CONFIGS / "cross_scene_lite.yaml").to_dict()
+    assert base["model"]["encoder_weights"] == "imagenet"
+    assert base["data"]["depth_scale_range"] == [0.5, 2.0]
+    for dotted, value, message in (
+            ("data.depth_scale_range", [2.0, 1.0], "depth_scale_range"),
+            ("data.layout_jitter_px", -1.0, "layout_jitter_px"),
+            ("data.image_augmentation.max_zoom", 0.5, "max_zoom"),
+            ("data.sources.0.every", 0, "every")):
+        config = yaml.safe_load(yaml.safe_dump(base))
+        apply_override(config, f"{dotted}={value}")
+        with pytest.raises(ValueError, match=message):
+            config_from_dict(config)

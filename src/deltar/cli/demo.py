@@ -56,7 +56,8 @@ def demo(
     """
     from deltar.cli.checks import image_size, output_folder
     from deltar.cli.evaluate import evaluate
-    from deltar.cli.simulate import simulate_command
+    from deltar.data.procedural import ProceduralReader
+    from deltar.data.simulated import simulate_set
 
     height, width = image_size(size, "--size", minimum=8)
     output_folder(out, "OUT")
@@ -64,11 +65,7 @@ def demo(
     if (scenes / "data.json").exists():
         raise typer.BadParameter(f"{out} already holds a demo; choose another folder",
                                  param_hint="OUT")
-    simulate_command(src=f"procedural:{frames}:{seed}:{height}x{width}", out=scenes, grid=8,
-                     layout="calibrated", start=0, stop=None, step=1, limit=None,
-                     depth_scale=None, intrinsics=None, split="test", drop_fraction=0.0,
-                     bias_prob=0.0, bias_mean=0.10, bias_std=0.15, seed=0, cnh=False,
-                     cnh_bins=None, cnh_range=None)
+    simulate_set(ProceduralReader(frames, seed, height, width), scenes, scene="procedural")
     write_predict_sample(scenes / "data.json", out / "sample")
     from deltar.weights import bundled_model_names
 

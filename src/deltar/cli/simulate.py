@@ -89,18 +89,12 @@ def simulate_command(
     import warnings
 
     import numpy as np
-    import torch
 
     from deltar.cli.checks import output_folder
     from deltar.cli.progress import ProgressReport
-    from deltar.data.rgbd import RGBDFrame
+    from deltar.data.simulated import simulate_set
     from deltar.data.sources import open_source
-    from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
-    from deltar.sensor.augment import SignalAugmentation, training_zone_rects
-    from deltar.sensor.cnh import simulate_cnh
-    from deltar.sensor.geometry import zone_rects
-    from deltar.sensor.simulate import simulate_zone_frame
-    from deltar.sensor.zone_frame import ZoneFrame
+    from deltar.sensor.augment import SignalAugmentation
 
     if grid not in (4, 8):
         raise typer.BadParameter(f"--grid must be 4 or 8, got {grid}")
@@ -132,41 +126,11 @@ def simulate_command(
     if drop_fraction > 0 or bias_prob > 0:
         degrade = SignalAugmentation(drop_fraction, bias_prob, bias_mean, bias_std)
     scene = Path(src).stem if not src.startswith("procedural:") else "procedural"
-    valid_counts: list[int] = []
-
-    def simulated(frame: RGBDFrame, index: int) -> ZJUL5Sample:
-        height, width = frame.depth_m.shape
-        if layout == "calibrated":
-            rects = zone_rects(frame.intrinsics, grid)
-        else:
-            # The release simulates 8x8 zones of 56 px at 480x640; scale with the width.
-            zone_px = max(1, round(56 * grid / 8 * width / 640))
-            rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
-        zones = simulate_zone_frame(frame.depth_m, rects)
-        if degrade is not None:
-            generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
-            mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m),
-                                         torch.from_numpy(zones.sigma_m),
-                                         torch.from_numpy(zones.valid), generator)
-            zones = ZoneFrame(mean.numpy(), sigma.numpy(), valid.numpy())
-        valid_counts.append(int(np.count_nonzero(zones.valid)))
-        histogram = {}
-        if cnh_config is not None:
-            histogram = {"hist_edges_m": cnh_config.edges_m(),
-                         "hist_counts": simulate_cnh(frame.depth_m, rects, cnh_config)}
-        return ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
-                           zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
-                           zone_valid=zones.valid.reshape(-1),
-                           name=f"{scene}/{frame.name}".replace("\\", "/"),
-                           intrinsics=frame.intrinsics, **histogram)
-
-    def samples():
-        with ProgressReport("simulating", total=len(indices)) as progress:
-            for i in indices:
-                yield simulated(source[i], i)
-                progress.advance()
-
-    index = write_zju_l5(out, samples(), split=split)
+    with ProgressReport("simulating", total=len(indices)) as progress:
+        index, valid_counts = simulate_set(source, out, indices, grid=grid, layout=layout,
+                                           degrade=degrade, seed=seed, cnh_config=cnh_config,
+                                           scene=scene, split=split,
+                                           on_frame=progress.advance)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")
     if cnh_config is not None:

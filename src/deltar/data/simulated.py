@@ -239,3 +239,80 @@ def perturb_layout(rects: np.ndarray, image_size: tuple[int, int], max_offset_px
     half_h, half_w = (rects[:, 2] - rects[:, 0]) / 2, (rects[:, 3] - rects[:, 1]) / 2
     return np.stack([new_y - half_h, new_x - half_w, new_y + half_h, new_x + half_w],
                     axis=1).astype(np.float32)
+
+
+def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None = None, *,
+                 grid: int = 8, layout: str = "calibrated",
+                 degrade: SignalAugmentation | None = None, seed: int = 0,
+                 cnh_config=None, scene: str = "scene", split: str = "test",
+                 on_frame=None):
+    """Simulate L5 readings for RGB-D frames and write them as a ZJU-L5-layout set.
+
+    Args:
+        source: RGB-D frames (any reader of :mod:`deltar.data.sources`).
+        out: output folder (written by :func:`deltar.data.zju_l5.write_zju_l5`).
+        indices: frames of ``source`` to use (all by default).
+        grid: zones per side (4 or 8).
+        layout: ``calibrated`` (the 45 x 45 deg FoV projected with each frame's
+            intrinsics) or ``aligned`` (the release's 56 px grid centred in the image,
+            scaled with the width).
+        degrade: optional signal degradation (zones dropped, means biased); frame ``i``
+            draws from ``(seed, i)``.
+        seed: seed of the degradation.
+        cnh_config: optional :class:`~deltar.sensor.cnh.CNHConfig`: also write ideal
+            compact normalised histograms.
+        scene: prefix of the sample names (``scene/frame``).
+        split: split name written to ``data.json``.
+        on_frame: optional callable called after each frame (progress).
+
+    Returns:
+        ``(index_path, valid_counts)``: the written ``data.json`` and the number of valid
+        zones of each frame.
+    """
+    from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    if grid not in (4, 8):
+        raise ValueError(f"grid must be 4 or 8, got {grid}")
+    if layout not in ("calibrated", "aligned"):
+        raise ValueError(f"layout must be 'calibrated' or 'aligned', got {layout!r}")
+    indices = list(range(len(source))) if indices is None else list(indices)
+    valid_counts: list[int] = []
+
+    def simulated(frame: RGBDFrame, index: int) -> ZJUL5Sample:
+        from deltar.sensor.simulate import simulate_zone_frame
+
+        height, width = frame.depth_m.shape
+        if layout == "calibrated":
+            rects = zone_rects(frame.intrinsics, grid)
+        else:
+            zone_px = max(1, round(56 * grid / 8 * width / 640))
+            rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
+        zones = simulate_zone_frame(frame.depth_m, rects)
+        if degrade is not None:
+            generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
+            # The augmentation works on a frame's flat (Z,) zones, not per grid row.
+            mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m.reshape(-1)),
+                                         torch.from_numpy(zones.sigma_m.reshape(-1)),
+                                         torch.from_numpy(zones.valid.reshape(-1)), generator)
+            zones = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in (mean, sigma, valid)))
+        valid_counts.append(int(np.count_nonzero(zones.valid)))
+        histogram = {}
+        if cnh_config is not None:
+            from deltar.sensor.cnh import simulate_cnh
+
+            histogram = {"hist_edges_m": cnh_config.edges_m(),
+                         "hist_counts": simulate_cnh(frame.depth_m, rects, cnh_config)}
+        return ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
+                           zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
+                           zone_valid=zones.valid.reshape(-1),
+                           name=f"{scene}/{frame.name}".replace("\\", "/"),
+                           intrinsics=frame.intrinsics, **histogram)
+
+    def samples():
+        for i in indices:
+            yield simulated(source[i], i)
+            if on_frame is not None:
+                on_frame()
+
+    return write_zju_l5(out, samples(), split=split), valid_counts
