@@ -179,8 +179,27 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(report)
     print(text)
     (args.out / "summary.txt").write_text(text + "\n")
+    (args.out / "summary.md").write_text(markdown(summary, args.folds) + "\n")
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return 0
+
+
+def markdown(summary: dict, folds: list[str]) -> str:
+    """Markdown tables, one per condition: a row per method, d1 / REL / RMSE per fold."""
+    out = []
+    for condition in ("clean", "degraded"):
+        names = list(summary[f"mean_{condition}"])
+        header = " | ".join(f"{scene} d1 / REL / RMSE" for scene in folds)
+        out += [f"{condition}:", "", f"| method | {header} | mean d1 / REL / RMSE |",
+                "|---" * (len(folds) + 2) + "|"]
+        for name in names:
+            cells = [summary[scene][condition].get(name) for scene in folds]
+            cells.append(summary[f"mean_{condition}"][name])
+            text = " | ".join("-" if c is None else
+                              f"{c['d1']:.3f} / {c['rel']:.3f} / {c['rmse']:.3f}" for c in cells)
+            out.append(f"| {name} | {text} |")
+        out.append("")
+    return "\n".join(out)
 
 
 def _percent(values: list[float]) -> str:

@@ -148,3 +148,19 @@ def test_other_presets_export_with_parity(preset, tmp_path):
     expected = _torch_outputs(model, inputs)
     got = OnnxDepthModel(path, num_threads=2).run(*(t.numpy() for t in inputs))
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
+
+
+def test_zone_select_head_exports_with_parity(tmp_path):
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", head="zone_select", design_size=(64, 96)).eval()
+    with torch.no_grad():
+        model.head.query.weight.normal_(0.0, 0.5)
+    path = export_onnx(model, tmp_path / "select.onnx", 64, 96)
+    from deltar.export.onnx import example_inputs
+
+    rects = example_inputs(model, 64, 96)[2][0].numpy()
+    inputs = _random_inputs(rects, 2, 5)
+    expected = _torch_outputs(model, inputs)
+    got = OnnxDepthModel(path, num_threads=1).run(*(t.numpy() for t in inputs))
+    assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M

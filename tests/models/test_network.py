@@ -165,7 +165,7 @@ def test_bad_constructor_arguments():
         create_model("deltar-lite", no_such_argument=1)
 
 
-@pytest.mark.parametrize("head", ["zone_prior", "bins"])
+@pytest.mark.parametrize("head", ["zone_prior", "zone_select", "bins"])
 def test_zone_scale_norm_takes_the_metric_scale_from_the_zones(network_inputs, head):
     # Scaling every zone reading by k scales depth, uncertainty and bin edges by k: the
     # image says where depth changes, the zones say how far.
@@ -175,6 +175,8 @@ def test_zone_scale_norm_takes_the_metric_scale_from_the_zones(network_inputs, h
     with torch.no_grad():
         if head == "zone_prior":  # a head that is not zero, so the image matters
             model.head.logits_conv.weight.normal_(0.0, 0.5)
+        if head == "zone_select":
+            model.head.query.weight.normal_(0.0, 0.5)
     image, hypotheses, rects, valid = network_inputs(seed=4)
     # Small readings (scale ~0.4 m) keep 2.5 * depth inside the clamp: the untrained
     # bins head answers about half its range (0.001-10) times the scale.

@@ -83,3 +83,56 @@ def test_network_with_zone_prior_head_trains_toward_the_target():
         losses.append(loss.item())
     assert losses[0] == pytest.approx(math.log(2.6 / 2.0), rel=1e-3)
     assert losses[-1] < 0.5 * losses[0]
+
+
+def test_untrained_zone_select_head_is_the_prior_and_stays_within_the_readings():
+    from deltar.models.zone_prior import ZoneSelectHead
+
+    torch.manual_seed(0)
+    head = ZoneSelectHead(in_channels=8, key_channels=4, n_bins=16)
+    rects = _grid_rects(4, 8).repeat(2, 1, 1)
+    means = torch.rand(2, 16) * 3 + 0.5
+    valid = torch.rand(2, 16) > 0.2
+    features = torch.randn(2, 8, 16, 16)
+    depth, edges, spread = head(features, means, valid, rects, stride=2.0)
+    torch.testing.assert_close(depth, zone_prior_map(means, valid, rects, (16, 16), 2.0),
+                               rtol=1e-5, atol=1e-6)
+    assert edges.shape == (2, 17) and (spread >= 0).all()
+    # Any learned affinity keeps every pixel inside its frame's range of valid readings.
+    with torch.no_grad():
+        head.query.weight.normal_(0.0, 3.0)
+    depth, _, _ = head(features, means, valid, rects, stride=2.0)
+    for b in range(2):
+        low, high = means[b][valid[b]].min(), means[b][valid[b]].max()
+        assert depth[b].min() >= low - 1e-4 and depth[b].max() <= high + 1e-4
+    none = torch.zeros_like(valid)
+    fallback, _, _ = head(features, means, none, rects, stride=2.0)
+    torch.testing.assert_close(fallback, torch.full_like(fallback, NO_ZONE_PRIOR_DEPTH))
+
+
+def test_zone_select_learns_which_zone_a_pixel_belongs_to():
+    # Two zones read 1 m and 3 m; the image says the left half belongs to the 3 m zone
+    # (its colour): the head must learn to pick by appearance, not by distance.
+    from deltar.models.zone_prior import ZoneSelectHead
+
+    torch.manual_seed(0)
+    head = ZoneSelectHead(in_channels=2, key_channels=4, n_bins=8)
+    rects = torch.tensor([[[0.0, 0.0, 8.0, 8.0], [0.0, 8.0, 8.0, 16.0]]])
+    means, valid = torch.tensor([[1.0, 3.0]]), torch.ones(1, 2, dtype=torch.bool)
+    features = torch.zeros(1, 2, 8, 16)
+    features[:, 0, :, :4] = 1.0  # left quarter looks like the right zone
+    features[:, 1, :, 4:] = 1.0
+    features[:, 0, :, 8:] = 1.0
+    features[:, 1, :, 8:] = 0.0
+    target = torch.full((1, 1, 8, 16), 1.0)
+    target[..., :4] = 3.0
+    target[..., 8:] = 3.0
+    optimiser = torch.optim.Adam(head.parameters(), lr=0.05)
+    for _ in range(150):
+        depth, _, _ = head(features, means, valid, rects, stride=1.0)
+        loss = (torch.log(depth) - torch.log(target)).abs().mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    depth, _, _ = head(features, means, valid, rects, stride=1.0)
+    assert depth[..., :3].mean() > 2.5 and depth[..., 5:7].mean() < 1.5

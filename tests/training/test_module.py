@@ -55,6 +55,29 @@ def test_encoder_trains_at_a_tenth_of_the_learning_rate(system):
         id(p) for p in system.model.image_encoder.parameters()}
 
 
+def test_a_frozen_encoder_keeps_its_weights_and_statistics():
+    torch.manual_seed(0)
+    frozen = DeltarSystem("deltar-lite", TINY_MODEL, OptimConfig(lr=1e-2, freeze_encoder=True))
+    groups = frozen.parameter_groups()
+    assert [g["name"] for g in groups] == ["decoder"]
+    encoder = frozen.model.image_encoder
+    before = {k: v.clone() for k, v in encoder.state_dict().items()}
+    frozen.train()
+    assert not encoder.training and frozen.model.decoder.training
+    from tests.models.conftest import make_inputs
+
+    image, hypotheses, rects, valid = make_inputs(batch=2, height=64, width=96)
+    optimizer = torch.optim.AdamW([p for g in groups for p in g["params"]], lr=1e-2)
+    for _ in range(2):
+        out = frozen.model(image, hypotheses, rects, valid)
+        out["depth"].mean().backward()
+        optimizer.step()
+        optimizer.zero_grad()
+    after = encoder.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)  # batch-norm stats too
+    assert all(p.grad is None for p in encoder.parameters())
+
+
 def test_one_cycle_schedule_spans_the_run(system):
     system.schedule_steps = 40
     setup = system.configure_optimizers()

@@ -13,9 +13,9 @@ from deltar.models.encoders import DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
 from deltar.models.heads import BinsHead, DirectDepthHead, MiniViTHead, bins_to_depth
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
-from deltar.models.zone_prior import ZonePriorHead, zone_prior_map
+from deltar.models.zone_prior import ZonePriorHead, ZoneSelectHead, zone_prior_map
 
-HEADS = ("bins", "mvit", "direct", "zone_prior")
+HEADS = ("bins", "mvit", "direct", "zone_prior", "zone_select")
 DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
 IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
 SAMPLINGS = ("icdf", "uniform")
@@ -38,7 +38,8 @@ class DeltarNet(nn.Module):
         head: "bins" (release), "mvit" (paper's AdaBins refinement), "direct"
             (no refinement ablation) or "zone_prior" (log-ratio bins around a smooth
             prior interpolated from the zone means; see
-            :mod:`~deltar.models.zone_prior`).
+            :mod:`~deltar.models.zone_prior`) or "zone_select" (an image-guided
+            choice among the zone readings, :class:`~deltar.models.zone_prior.ZoneSelectHead`).
         head_channels: width of the decoder output fed to the head.
         n_bins: number of depth bins N.
         min_depth: smallest depth, metres.
@@ -174,6 +175,9 @@ class DeltarNet(nn.Module):
                 head_channels, n_bins, head_channels, norm=bin_norm,
                 design_tokens=(half[0] // 16, half[1] // 16),
             )
+        elif head == "zone_select":
+            self.head = ZoneSelectHead(head_channels, head_channels, n_bins,
+                                       min_depth=min_depth, max_depth=max_depth)
         elif head == "zone_prior":
             self.head = ZonePriorHead(head_channels, n_bins, head_channels,
                                       min_depth=min_depth, max_depth=max_depth)
@@ -241,6 +245,12 @@ class DeltarNet(nn.Module):
         features = self.decoder(image_features, zone_features, valid, resamplers)
         if isinstance(self.head, DirectDepthHead):
             depth, edges, uncertainty = self.head(features)
+        elif isinstance(self.head, ZoneSelectHead):
+            zone_mean = (zone_mean_sigma[..., 0] if zone_mean_sigma is not None
+                         else hypotheses.mean(dim=2))
+            stride = image.shape[-1] / features.shape[-1]
+            depth, edges, uncertainty = self.head(features, zone_mean.to(features.dtype), valid,
+                                                  zone_rects, stride)
         elif isinstance(self.head, ZonePriorHead):
             zone_mean = (zone_mean_sigma[..., 0] if zone_mean_sigma is not None
                          else hypotheses.mean(dim=2))

@@ -20,6 +20,47 @@ from deltar.models.heads import softmax_moments
 NO_ZONE_PRIOR_DEPTH = 2.0
 
 
+def zone_gaussians(zone_rects: torch.Tensor, zone_valid: torch.Tensor,
+                   size: tuple[int, int], stride: float
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Separable Gaussian log-weights of every zone over a feature map.
+
+    Each zone spreads with a Gaussian centred on the zone whose standard deviation is
+    half the zone's size; invalid zones get a very negative (finite) weight.
+
+    Args:
+        zone_rects: (B, Z, 4) (y0, x0, y1, x1) in pixels of the network input.
+        zone_valid: (B, Z) bool.
+        size: (h, w) of the map.
+        stride: input pixels per map cell.
+
+    Returns:
+        ``(log_wy, log_wx)``: (B, h, Z) and (B, w, Z) log-weights (zones last,
+        contiguous); a cell's log-weight for zone z is ``log_wy[:, i, z] + log_wx[:, j, z]``.
+    """
+    rects = zone_rects.float() / stride
+    centre_y = 0.5 * (rects[..., 0] + rects[..., 2]) - 0.5
+    centre_x = 0.5 * (rects[..., 1] + rects[..., 3]) - 0.5
+    sigma_y = (0.5 * (rects[..., 2] - rects[..., 0])).clamp_min(0.5)
+    sigma_x = (0.5 * (rects[..., 3] - rects[..., 1])).clamp_min(0.5)
+    rows = torch.arange(size[0], device=rects.device, dtype=rects.dtype)
+    cols = torch.arange(size[1], device=rects.device, dtype=rects.dtype)
+    log_wy = -0.5 * ((rows - centre_y[..., None]) / sigma_y[..., None]) ** 2  # (B, Z, h)
+    log_wx = -0.5 * ((cols - centre_x[..., None]) / sigma_x[..., None]) ** 2  # (B, Z, w)
+    log_wy = log_wy.masked_fill(~zone_valid.bool()[..., None], -1e4)
+    # Zones on the last axis, contiguous: a softmax over the last axis exports to a fast
+    # kernel, and in PyTorch a strided zone axis makes it slower.
+    return log_wy.transpose(1, 2).contiguous(), log_wx.transpose(1, 2).contiguous()
+
+
+def _softmax_over_zones(logits: torch.Tensor) -> torch.Tensor:
+    # Weights below e^-80 of a pixel's largest are raised to it (a change of ~1e-35):
+    # exponentials that small are subnormal floats, which CPUs compute many times
+    # slower.
+    logits = (logits - logits.amax(dim=-1, keepdim=True)).clamp_min(-80.0)
+    return torch.softmax(logits, dim=-1)
+
+
 def zone_prior_map(
     zone_mean_m: torch.Tensor,
     zone_valid: torch.Tensor,
@@ -31,9 +72,9 @@ def zone_prior_map(
     """Smooth depth map interpolated from zone means (Gaussian-weighted, in log depth).
 
     Every valid zone spreads its mean with a Gaussian centred on the zone whose
-    standard deviation is half the zone's size; a pixel's prior is the weighted
-    geometric mean. Far from all zones the nearest zone dominates, so the prior
-    extrapolates past the sensor's field of view instead of falling to zero.
+    standard deviation is half the zone's size (:func:`zone_gaussians`); a pixel's prior
+    is the weighted geometric mean. Far from all zones the nearest zone dominates, so
+    the prior extrapolates past the sensor's field of view instead of falling to zero.
 
     Args:
         zone_mean_m: (B, Z) zone means in metres (ignored where not valid).
@@ -46,34 +87,93 @@ def zone_prior_map(
     Returns:
         (B, 1, h, w) prior depth in metres.
     """
-    rects = zone_rects.to(zone_mean_m.dtype) / stride
-    centre_y = 0.5 * (rects[..., 0] + rects[..., 2]) - 0.5
-    centre_x = 0.5 * (rects[..., 1] + rects[..., 3]) - 0.5
-    sigma_y = (0.5 * (rects[..., 2] - rects[..., 0])).clamp_min(0.5)
-    sigma_x = (0.5 * (rects[..., 3] - rects[..., 1])).clamp_min(0.5)
-    rows = torch.arange(size[0], device=rects.device, dtype=rects.dtype)
-    cols = torch.arange(size[1], device=rects.device, dtype=rects.dtype)
-    log_wy = -0.5 * ((rows - centre_y[..., None]) / sigma_y[..., None]) ** 2  # (B, Z, h)
-    log_wx = -0.5 * ((cols - centre_x[..., None]) / sigma_x[..., None]) ** 2  # (B, Z, w)
+    log_wy, log_wx = zone_gaussians(zone_rects.to(zone_mean_m.dtype), zone_valid, size, stride)
+    weights = _softmax_over_zones(log_wy[:, :, None, :] + log_wx[:, None, :, :])  # (B,h,w,Z)
     valid = zone_valid.bool()
-    # Invalid zones get a very negative (finite) log-weight so softmax stays NaN-free.
-    log_wy = log_wy.masked_fill(~valid[..., None], -1e4)
-    # Zones on the last axis, contiguous: a softmax over the last axis exports to a fast
-    # kernel, and in PyTorch a strided zone axis makes it slower.
-    log_wy = log_wy.transpose(1, 2).contiguous()  # (B, h, Z)
-    log_wx = log_wx.transpose(1, 2).contiguous()  # (B, w, Z)
-    logits = log_wy[:, :, None, :] + log_wx[:, None, :, :]  # (B, h, w, Z)
-    # Weights below e^-80 of a pixel's largest are raised to it (a change of ~1e-35):
-    # exponentials that small are subnormal floats, which CPUs compute many times
-    # slower (most of this map's time, before).
-    logits = (logits - logits.amax(dim=-1, keepdim=True)).clamp_min(-80.0)
-    weights = torch.softmax(logits, dim=-1)  # (B, h, w, Z)
     log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
     log_prior = (weights.flatten(1, 2) @ log_mean[..., None]).reshape(
         log_mean.shape[0], 1, size[0], size[1])
     any_valid = valid.any(dim=1)[:, None, None, None]
     fallback = torch.full_like(log_prior, math.log(fallback_depth_m))
     return torch.exp(torch.where(any_valid, log_prior, fallback))
+
+
+class ZoneSelectHead(nn.Module):
+    """Depth as a learned, image-guided choice among the zones' readings (in log depth).
+
+    Each pixel takes a softmax-weighted geometric mean of the valid zones' means. The
+    weights' logits are the zone prior's Gaussian log-weights (:func:`zone_gaussians`)
+    plus a learned affinity between the pixel's features and each zone's features
+    (pooled over the zone's Gaussian): a learned joint-bilateral interpolation, where
+    the image says which zone's surface a pixel belongs to and the zones say how far it
+    is. The output never leaves the range of the frame's valid readings, scales exactly
+    with them, and the untrained head (zero affinity) is the zone prior itself.
+
+    Args:
+        in_channels: decoder feature width C.
+        key_channels: width D of the pixel and zone embeddings.
+        n_bins: number of entries of the reported ``bin_edges`` (N + 1 edges).
+        min_depth, max_depth: output clamp, metres.
+    """
+
+    def __init__(self, in_channels: int, key_channels: int = 32, n_bins: int = 64,
+                 min_depth: float = 1e-3, max_depth: float = 10.0) -> None:
+        super().__init__()
+        self.min_depth, self.max_depth = min_depth, max_depth
+        self.scale = key_channels ** -0.5
+        self.query = nn.Conv2d(in_channels, key_channels, kernel_size=1)
+        self.key = nn.Linear(in_channels, key_channels)
+        limit = math.log(3.0)
+        self.register_buffer("edges", torch.linspace(-limit, limit, n_bins + 1),
+                             persistent=False)
+        # Zero affinity at the start: the untrained head returns the zone prior.
+        nn.init.zeros_(self.query.weight)
+        nn.init.zeros_(self.query.bias)
+
+    def forward(self, features: torch.Tensor, zone_mean_m: torch.Tensor,
+                zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Depth, bin edges and uncertainty.
+
+        Args:
+            features: (B, C, h, w) decoder features.
+            zone_mean_m: (B, Z) zone means, metres (ignored where not valid).
+            zone_valid: (B, Z) bool.
+            zone_rects: (B, Z, 4) rectangles in pixels of the network input.
+            stride: input pixels per feature cell.
+
+        Returns:
+            depth (B, 1, h, w) metres; bin_edges (B, N + 1) metres (log-spaced around the
+            frame's typical depth); uncertainty (B, 1, h, w) metres: the depth times the
+            spread of the chosen zones' log readings.
+        """
+        batch, _, height, width = features.shape
+        log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, (height, width), stride)
+        gauss = _softmax_over_zones(log_wy[:, :, None, :] + log_wx[:, None, :, :])
+        # Each zone's features: the average over its own Gaussian footprint.
+        footprint = torch.exp(log_wy - log_wy.amax(dim=1, keepdim=True))[:, :, None, :] * \
+            torch.exp(log_wx - log_wx.amax(dim=1, keepdim=True))[:, None, :, :]  # (B,h,w,Z)
+        footprint = footprint / footprint.sum(dim=(1, 2), keepdim=True).clamp_min(1e-12)
+        tokens = features.flatten(2)  # (B, C, h*w)
+        pooled = tokens @ footprint.flatten(1, 2)  # (B, C, Z)
+        keys = self.key(pooled.transpose(1, 2))  # (B, Z, D)
+        queries = self.query(features).flatten(2).transpose(1, 2)  # (B, h*w, D)
+        affinity = (queries @ keys.transpose(1, 2)) * self.scale  # (B, h*w, Z)
+        logits = torch.log(gauss.flatten(1, 2).clamp_min(1e-30)) + affinity
+        valid = zone_valid.bool()
+        logits = logits.masked_fill(~valid[:, None, :], -1e4)
+        weights = _softmax_over_zones(logits)
+        log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
+        log_depth = weights @ log_mean[..., None]  # (B, h*w, 1)
+        spread = (weights @ (log_mean[..., None] ** 2) - log_depth ** 2).clamp_min(0.0).sqrt()
+        any_valid = valid.any(dim=1)[:, None, None]
+        log_depth = torch.where(any_valid, log_depth,
+                                torch.full_like(log_depth, math.log(NO_ZONE_PRIOR_DEPTH)))
+        depth = torch.exp(log_depth).reshape(batch, 1, height, width)
+        depth = depth.clamp(self.min_depth, self.max_depth)
+        uncertainty = depth * spread.reshape(batch, 1, height, width)
+        typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
+        return depth, typical * torch.exp(self.edges)[None], uncertainty
 
 
 class ZonePriorHead(nn.Module):

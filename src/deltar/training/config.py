@@ -294,6 +294,9 @@ class OptimConfig:
         base_momentum, max_momentum: the beta1 range.
         grad_clip_norm: clip the gradient norm to this (None: no clipping).
         loss_alpha, loss_lambda: scaled SI loss scale (10) and variance weight (0.85).
+        freeze_encoder: keep the image encoder's weights and batch-norm statistics as
+            they start (e.g. ImageNet's): only the rest of the network trains. Little
+            data then cannot overfit the encoder, and each step costs less.
     """
 
     lr: float = 3e-4
@@ -309,6 +312,7 @@ class OptimConfig:
     grad_clip_norm: float | None = 0.1
     loss_alpha: float = 10.0
     loss_lambda: float = 0.85
+    freeze_encoder: bool = False
 
     def validate(self, where: str) -> None:
         for name in ("lr", "encoder_lr_factor", "div_factor", "final_div_factor",

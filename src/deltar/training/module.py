@@ -59,6 +59,8 @@ class DeltarSystem(L.LightningModule):
         self.optim = optim or OptimConfig()
         self.model = create_model(preset, encoder_weights, allow_download=allow_download,
                                   **self.model_overrides)
+        if self.optim.freeze_encoder:
+            self.model.image_encoder.requires_grad_(False)
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
         self.schedule_steps: int | None = None
         self._val_sums = torch.zeros(len(METRIC_KEYS), dtype=torch.float64)
@@ -141,16 +143,25 @@ class DeltarSystem(L.LightningModule):
             print_metrics_table(metrics, int(frames), self.current_epoch, self.global_step)
 
     # ------------------------------------------------------------------ optimisation
+    def train(self, mode: bool = True) -> DeltarSystem:
+        """Train mode, except a frozen encoder, whose batch norms keep their statistics."""
+        super().train(mode)
+        if self.optim.freeze_encoder:
+            self.model.image_encoder.eval()
+        return self
+
     def parameter_groups(self) -> list[dict[str, Any]]:
-        """Two AdamW groups: the image encoder at ``lr * encoder_lr_factor``, the rest at lr."""
+        """AdamW groups: the image encoder at ``lr * encoder_lr_factor`` (none when frozen),
+        the rest at lr."""
         encoder = list(self.model.image_encoder.parameters())
         encoder_ids = {id(p) for p in encoder}
         rest = [p for p in self.model.parameters() if id(p) not in encoder_ids]
-        return [
-            {"params": encoder, "lr": self.optim.lr * self.optim.encoder_lr_factor,
-             "name": "encoder"},
-            {"params": rest, "lr": self.optim.lr, "name": "decoder"},
-        ]
+        groups = [{"params": rest, "lr": self.optim.lr, "name": "decoder"}]
+        if not self.optim.freeze_encoder:
+            groups.insert(0, {"params": encoder,
+                              "lr": self.optim.lr * self.optim.encoder_lr_factor,
+                              "name": "encoder"})
+        return groups
 
     def configure_optimizers(self) -> dict[str, Any]:
         """AdamW + OneCycle, stepped every optimiser step over the whole run."""
