@@ -134,7 +134,7 @@ def test_cnh_histograms_are_written_with_their_bins(tmp_path):
 def test_degraded_signal_drops_and_biases_zones_reproducibly(tmp_path):
     args = ["simulate", "procedural:2:4:48x64", "--grid", "8"]
     clean, a, b = tmp_path / "clean", tmp_path / "a", tmp_path / "b"
-    degrade = ["--drop-fraction", "0.5", "--bias-prob", "1.0", "--bias-mean", "0.3",
+    degrade = ["--drop-fraction", "0.5", "--bias-prob", "1.0", "--bias-mean", "-0.3",
                "--bias-std", "0.0", "--seed", "3"]
     for out, extra in ((clean, []), (a, degrade), (b, degrade)):
         result = runner.invoke(app, [*args[:2], str(out), *args[2:], *extra])
@@ -145,6 +145,17 @@ def test_degraded_signal_drops_and_biases_zones_reproducibly(tmp_path):
         kept = s_a.zone_valid
         assert kept.sum() == s_clean.zone_valid.sum() - int(0.5 * s_clean.zone_valid.sum())
         assert not (kept & ~s_clean.zone_valid).any()
-        # Every remaining zone is biased by exactly +0.3 m.
+        # Every remaining zone is biased by exactly -0.3 m.
         np.testing.assert_allclose(s_a.zone_mean_sigma[kept, 0],
-                                   s_clean.zone_mean_sigma[kept, 0] + 0.3, atol=1e-5)
+                                   s_clean.zone_mean_sigma[kept, 0] - 0.3, atol=1e-5)
+
+
+def test_readings_biased_past_the_sensor_range_are_not_reported(tmp_path):
+    out = tmp_path / "far"
+    result = runner.invoke(app, ["simulate", "procedural:1:4:48x64", str(out), "--grid", "4",
+                                 "--bias-prob", "1.0", "--bias-mean", "5.0", "--bias-std",
+                                 "0.0"])
+    assert result.exit_code == 0, result.output
+    sample = ZJUL5Dataset(out / "data.json")[0]
+    assert not sample.zone_valid.any()  # every reading was pushed beyond 4 m
+    assert (sample.zone_mean_sigma == 0).all()

@@ -1,75 +1,53 @@
-"""The model shipped inside the package: small, the deltar-lite preset, and useful."""
+"""The model shipped inside the package: small, the current lite recipe, and well behaved.
+
+How accurate it is on rooms it never saw is measured by the leave-one-scene-out protocol
+(benchmarks/cross_scene.py, docs/training.md), not here: it was trained on every shared
+scene, so no shared frame is unseen by it.
+"""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
-import deltar.evaluation.baselines  # noqa: F401  (registers the baselines)
 from deltar.data.sources import open_source
-from deltar.data.zju_l5 import ZJUL5Sample
-from deltar.evaluation.metrics import depth_metrics
-from deltar.evaluation.model_methods import checkpoint_predictor
-from deltar.evaluation.runner import create_predictor
-from deltar.inference.estimator import load_checkpoint
-from deltar.models.presets import PRESETS
+from deltar.inference.estimator import DepthEstimator, load_checkpoint
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulate import simulate_zone_frame
+from deltar.sensor.zone_frame import ZoneFrame
 from deltar.weights import resolve_checkpoint
 
-#: Frames of the 7-Scenes kitchen sequence that the bundled model never saw: its
-#: recipe (configs/shared_lite.yaml) holds out the last 15% (frames 425 on).
-HELD_OUT_KITCHEN_FRAMES = (430, 455, 480)
 
-
-def test_default_is_a_small_float16_deltar_lite():
+def test_default_is_a_small_float16_lite_model_with_its_input_contract():
     path = resolve_checkpoint("default")
     assert path.stat().st_size <= 20 * 1024 * 1024
     payload = torch.load(path, map_location="cpu", weights_only=False)
     floats = [t for t in payload["state_dict"].values() if t.is_floating_point()]
     assert floats and all(t.dtype == torch.float16 for t in floats)
     model, preset, config = load_checkpoint(path)
-    assert preset == "deltar-lite"
-    for key, value in PRESETS["deltar-lite"].items():
-        assert config[key] == (tuple(value) if isinstance(value, list) else value), key
-    assert not model.training
+    assert preset == "deltar-lite" and not model.training
+    assert config["backbone"] == "tf_efficientnet_lite0" and config["head"] == "zone_select"
+    assert config["image_mean"] == (0.5, 0.5, 0.5) and config["image_std"] == (0.5, 0.5, 0.5)
+    assert config["zone_scale_norm"] and config["design_size"] == (256, 320)
 
 
-@pytest.fixture(scope="module")
-def held_out_samples():
-    from tests.conftest import SHARED_DATA
-
-    source = open_source(str(SHARED_DATA / "7scenes_redkitchen"))
-    samples = []
-    for index in HELD_OUT_KITCHEN_FRAMES:
-        frame = source[index]
-        rects = zone_rects(frame.intrinsics, 8)
-        zones = simulate_zone_frame(frame.depth_m, rects)
-        samples.append(ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
-                                   zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
-                                   zone_valid=zones.valid.reshape(-1), name=str(index),
-                                   intrinsics=frame.intrinsics))
-    return samples
-
-
-def _mean_metrics(predictor, samples) -> dict[str, float]:
-    per_frame = [depth_metrics(predictor(s), s.depth_m) for s in samples]
-    return {key: float(np.mean([m[key] for m in per_frame])) for key in ("rel", "rmse", "d1")}
-
-
-def test_default_beats_zone_interpolation_on_held_out_real_frames(held_out_samples):
+def test_default_keeps_the_sensor_scale_on_a_real_frame(shared_data):
     torch.set_num_threads(2)
-    model = _mean_metrics(checkpoint_predictor("default"), held_out_samples)
-    bilinear = _mean_metrics(create_predictor("bilinear"), held_out_samples)
-    assert model["rel"] < bilinear["rel"], (model, bilinear)
-    assert model["rmse"] < bilinear["rmse"], (model, bilinear)
+    frame = open_source(str(shared_data / "realsense_floor"))[3]
+    rects = zone_rects(frame.intrinsics, 8)
+    zones = simulate_zone_frame(frame.depth_m, rects)
+    estimator = DepthEstimator.from_checkpoint("default")
+    depth = estimator.predict(frame.image, zones).depth_m
+    readings = zones.mean_m[zones.valid]
+    # The zone-select head never leaves the range of the frame's valid readings...
+    assert depth.min() >= readings.min() - 1e-3 and depth.max() <= readings.max() + 1e-3
+    # ...and scaling every reading scales the depth (the scale comes from the sensor).
+    scaled = ZoneFrame(zones.mean_m * 0.7, zones.sigma_m * 0.7, zones.valid)
+    np.testing.assert_allclose(estimator.predict(frame.image, scaled).depth_m, depth * 0.7,
+                               rtol=2e-3)
 
 
 def test_default_runs_large_images_at_its_training_scale(rng):
-    from deltar.inference.estimator import DepthEstimator
-    from deltar.sensor.zone_frame import ZoneFrame
-
     estimator = DepthEstimator.from_checkpoint("default")
     frame = ZoneFrame(np.full((8, 8), 2.0), np.full((8, 8), 0.05), np.ones((8, 8), bool))
     image = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)

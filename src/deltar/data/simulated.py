@@ -295,6 +295,9 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
             mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m.reshape(-1)),
                                          torch.from_numpy(zones.sigma_m.reshape(-1)),
                                          torch.from_numpy(zones.valid.reshape(-1)), generator)
+            # A reading biased past the sensor's range is one it does not report.
+            valid = valid & (mean > 0) & (mean <= SimulatorConfig().max_range_m)
+            mean, sigma = mean * valid, sigma * valid
             zones = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in (mean, sigma, valid)))
         valid_counts.append(int(np.count_nonzero(zones.valid)))
         histogram = {}
