@@ -28,7 +28,9 @@ import torch
 from deltar.export.onnx import export_onnx
 from deltar.inference.estimator import DepthEstimator
 from deltar.models import create_model
+from deltar.models.checkpoint import load_checkpoint
 from deltar.sensor.zone_frame import ZoneFrame
+from deltar.weights import bundled_model_names, resolve_checkpoint
 
 
 def _interleaved_medians(first, second, repeats: int, warmup: int = 1) -> tuple[float, float]:
@@ -69,7 +71,11 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
     """Frames per second of the bare network and of predict() for one configuration."""
     height, width = size
     torch.manual_seed(0)
-    model = create_model(preset).eval()
+    if preset in bundled_model_names() or preset.endswith(".pt"):
+        # A bundled model or a checkpoint file: the real network, trained weights.
+        model = load_checkpoint(resolve_checkpoint(preset))[0]
+    else:
+        model = create_model(preset).eval()
     if backend == "onnx":
         path = workdir / f"{preset}-{height}x{width}.onnx"
         start = time.perf_counter()
@@ -91,7 +97,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--presets", nargs="+", default=["deltar-lite", "deltar-official"])
+    parser.add_argument("--presets", nargs="+", default=["deltar-lite", "deltar-official"],
+                        help="presets (random weights), bundled model names ('default') or "
+                             "checkpoint files")
     parser.add_argument("--sizes", nargs="+", default=["240x320", "480x640"])
     parser.add_argument("--backends", nargs="+", default=["torch", "onnx"])
     parser.add_argument("--allow-spinning", action="store_true",

@@ -21,7 +21,7 @@ NO_ZONE_PRIOR_DEPTH = 2.0
 
 
 def zone_gaussians(zone_rects: torch.Tensor, zone_valid: torch.Tensor,
-                   size: tuple[int, int], stride: float
+                   size: tuple[int, int], stride: float, dtype: torch.dtype | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """Separable Gaussian log-weights of every zone over a feature map.
 
@@ -33,12 +33,13 @@ def zone_gaussians(zone_rects: torch.Tensor, zone_valid: torch.Tensor,
         zone_valid: (B, Z) bool.
         size: (h, w) of the map.
         stride: input pixels per map cell.
+        dtype: float dtype of the result (that of ``zone_rects`` when None).
 
     Returns:
         ``(log_wy, log_wx)``: (B, h, Z) and (B, w, Z) log-weights (zones last,
         contiguous); a cell's log-weight for zone z is ``log_wy[:, i, z] + log_wx[:, j, z]``.
     """
-    rects = zone_rects.float() / stride
+    rects = zone_rects.to(dtype or zone_rects.dtype) / stride
     centre_y = 0.5 * (rects[..., 0] + rects[..., 2]) - 0.5
     centre_x = 0.5 * (rects[..., 1] + rects[..., 3]) - 0.5
     sigma_y = (0.5 * (rects[..., 2] - rects[..., 0])).clamp_min(0.5)
@@ -87,7 +88,7 @@ def zone_prior_map(
     Returns:
         (B, 1, h, w) prior depth in metres.
     """
-    log_wy, log_wx = zone_gaussians(zone_rects.to(zone_mean_m.dtype), zone_valid, size, stride)
+    log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, size, stride, zone_mean_m.dtype)
     weights = _softmax_over_zones(log_wy[:, :, None, :] + log_wx[:, None, :, :])  # (B,h,w,Z)
     valid = zone_valid.bool()
     log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
@@ -148,7 +149,8 @@ class ZoneSelectHead(nn.Module):
             spread of the chosen zones' log readings.
         """
         batch, _, height, width = features.shape
-        log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, (height, width), stride)
+        log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, (height, width), stride,
+                                        features.dtype)
         gauss = _softmax_over_zones(log_wy[:, :, None, :] + log_wx[:, None, :, :])
         # Each zone's features: the average over its own Gaussian footprint.
         footprint = torch.exp(log_wy - log_wy.amax(dim=1, keepdim=True))[:, :, None, :] * \
