@@ -151,7 +151,6 @@ class ZoneSelectHead(nn.Module):
         batch, _, height, width = features.shape
         log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, (height, width), stride,
                                         features.dtype)
-        gauss = _softmax_over_zones(log_wy[:, :, None, :] + log_wx[:, None, :, :])
         # Each zone's features: the average over its own Gaussian footprint.
         footprint = torch.exp(log_wy - log_wy.amax(dim=1, keepdim=True))[:, :, None, :] * \
             torch.exp(log_wx - log_wx.amax(dim=1, keepdim=True))[:, None, :, :]  # (B,h,w,Z)
@@ -161,9 +160,11 @@ class ZoneSelectHead(nn.Module):
         keys = self.key(pooled.transpose(1, 2))  # (B, Z, D)
         queries = self.query(features).flatten(2).transpose(1, 2)  # (B, h*w, D)
         affinity = (queries @ keys.transpose(1, 2)) * self.scale  # (B, h*w, Z)
-        logits = torch.log(gauss.flatten(1, 2).clamp_min(1e-30)) + affinity
+        # The prior's own logits: its softmax's per-pixel normaliser cancels in the
+        # softmax below, so it is never computed (invalid zones are already at -1e4).
+        prior_logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]).flatten(1, 2)
+        logits = prior_logits + affinity
         valid = zone_valid.bool()
-        logits = logits.masked_fill(~valid[:, None, :], -1e4)
         weights = _softmax_over_zones(logits)
         log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
         log_depth = weights @ log_mean[..., None]  # (B, h*w, 1)
