@@ -8,8 +8,6 @@ import typer
 
 from deltar.cli.main import app
 
-LAYOUTS = ("calibrated", "aligned")
-
 
 def _parse_intrinsics(text: str | None, height: int, width: int):
     from deltar.calibration.camera import CameraIntrinsics
@@ -98,8 +96,10 @@ def simulate_command(
 
     if grid not in (4, 8):
         raise typer.BadParameter(f"--grid must be 4 or 8, got {grid}")
-    if layout not in LAYOUTS:
-        raise typer.BadParameter(f"--layout must be one of {LAYOUTS}, got {layout!r}")
+    from deltar.data.simulated import SET_LAYOUTS
+
+    if layout not in SET_LAYOUTS:
+        raise typer.BadParameter(f"--layout must be one of {SET_LAYOUTS}, got {layout!r}")
     if step < 1 or start < 0 or (limit is not None and limit < 1):
         raise typer.BadParameter("--start must be >= 0, --step and --limit >= 1")
     cnh_config = _cnh_config(cnh, cnh_bins, cnh_range)

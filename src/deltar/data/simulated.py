@@ -25,6 +25,8 @@ from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects
 from deltar.sensor.sampling import sample_hypotheses
 from deltar.sensor.simulate import SimulatorConfig, simulate_zones
 
+#: Zone layouts of :func:`simulate_set` (``deltar simulate --layout``).
+SET_LAYOUTS: tuple[str, ...] = ("calibrated", "aligned")
 #: Named zone layouts; a (Z, 4) array of fixed rectangles is accepted as well.
 ZONE_LAYOUTS: tuple[str, ...] = ("calibrated", "training")
 
@@ -274,8 +276,8 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
 
     if grid not in (4, 8):
         raise ValueError(f"grid must be 4 or 8, got {grid}")
-    if layout not in ("calibrated", "aligned"):
-        raise ValueError(f"layout must be 'calibrated' or 'aligned', got {layout!r}")
+    if layout not in SET_LAYOUTS:
+        raise ValueError(f"layout must be one of {SET_LAYOUTS}, got {layout!r}")
     indices = list(range(len(source))) if indices is None else list(indices)
     valid_counts: list[int] = []
 
