@@ -136,3 +136,37 @@ def test_zone_select_learns_which_zone_a_pixel_belongs_to():
         optimiser.step()
     depth, _, _ = head(features, means, valid, rects, stride=1.0)
     assert depth[..., :3].mean() > 2.5 and depth[..., 5:7].mean() < 1.5
+
+
+def test_zone_select_matches_the_dense_footprint_formula_where_weights_underflow():
+    # Zone features are pooled axis by axis with log-weights floored 40 below each
+    # zone's peak (subnormal floats are many times slower); on a map large enough for
+    # far zones' Gaussians to underflow, the head must still equal the dense formula:
+    # footprint = normalised outer product of the two axes' Gaussians, in float64.
+    from deltar.models.zone_prior import ZoneSelectHead, zone_gaussians
+
+    torch.manual_seed(0)
+    head = ZoneSelectHead(in_channels=6, key_channels=4, n_bins=8)
+    with torch.no_grad():
+        head.query.weight.normal_(0.0, 1.0)
+    rects = _grid_rects(8, 20)  # 8x8 zones of 20x20 px over a 160x160 input
+    means = torch.rand(1, 64) * 3 + 0.5
+    valid = torch.rand(1, 64) > 0.1
+    features = torch.randn(1, 6, 80, 80)
+    depth, _, _ = head(features, means, valid, rects, stride=2.0)
+
+    f64 = features.double()
+    log_wy, log_wx = zone_gaussians(rects.double(), valid, (80, 80), 2.0)
+    log_footprint = log_wy[:, :, None, :] + log_wx[:, None, :, :]  # (1, h, w, Z)
+    footprint = torch.exp(log_footprint - log_footprint.amax(dim=(1, 2), keepdim=True))
+    footprint = footprint / footprint.sum(dim=(1, 2), keepdim=True)
+    pooled = torch.einsum("bchw,bhwz->bzc", f64, footprint)
+    keys = pooled @ head.key.weight.double().T + head.key.bias.double()
+    queries = torch.einsum("bchw,dc->bhwd", f64, head.query.weight.double()[:, :, 0, 0])
+    queries = queries + head.query.bias.double()
+    logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]) + \
+        torch.einsum("bhwd,bzd->bhwz", queries, keys) * head.scale
+    weights = torch.softmax(logits, dim=-1)
+    log_mean = torch.log(means.double()).masked_fill(~valid, 0.0)
+    expected = torch.exp(torch.einsum("bhwz,bz->bhw", weights, log_mean))[:, None]
+    torch.testing.assert_close(depth.double(), expected, rtol=1e-5, atol=1e-5)
