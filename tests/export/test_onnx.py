@@ -164,3 +164,24 @@ def test_zone_select_head_exports_with_parity(tmp_path):
     expected = _torch_outputs(model, inputs)
     got = OnnxDepthModel(path, num_threads=1).run(*(t.numpy() for t in inputs))
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
+
+
+def test_plane_select_network_exports_with_parity(tmp_path):
+    # No decoder: encoder descriptors, zone planes (closed-form 2x2 solves) and the
+    # stride-4 head resized to the contract's stride 2, all in the graph.
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", head="plane_select", decoder="descriptors",
+                         design_size=(64, 96)).eval()
+    with torch.no_grad():
+        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    path = export_onnx(model, tmp_path / "plane.onnx", 64, 96)
+    from deltar.export.onnx import example_inputs
+
+    rects = example_inputs(model, 64, 96)[2][0].numpy()
+    inputs = _random_inputs(rects, 2, 7)
+    expected = _torch_outputs(model, inputs)
+    got = OnnxDepthModel(path, num_threads=1).run(*(t.numpy() for t in inputs))
+    assert got["depth"].shape == (2, 1, 32, 48)
+    assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
+    assert np.abs(got["uncertainty"] - expected["uncertainty"]).max() < DEPTH_TOLERANCE_M

@@ -6,8 +6,10 @@ import math
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead
 from deltar.models.decoder import FUSION_STRIDES, FusionDecoder
 from deltar.models.encoders import DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
@@ -15,7 +17,9 @@ from deltar.models.heads import BinsHead, DirectDepthHead, MiniViTHead, bins_to_
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
 from deltar.models.zone_prior import ZonePriorHead, ZoneSelectHead, zone_prior_map
 
-HEADS = ("bins", "mvit", "direct", "zone_prior", "zone_select")
+HEADS = ("bins", "mvit", "direct", "zone_prior", "zone_select", "plane_select")
+#: Where the head's features come from: the zone-fusion decoder, or the encoder alone.
+DECODERS = ("fusion", "descriptors")
 DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
 IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
 SAMPLINGS = ("icdf", "uniform")
@@ -39,7 +43,9 @@ class DeltarNet(nn.Module):
             (no refinement ablation) or "zone_prior" (log-ratio bins around a smooth
             prior interpolated from the zone means; see
             :mod:`~deltar.models.zone_prior`) or "zone_select" (an image-guided
-            choice among the zone readings, :class:`~deltar.models.zone_prior.ZoneSelectHead`).
+            choice among the zone readings, :class:`~deltar.models.zone_prior.ZoneSelectHead`)
+            or "plane_select" (the zones' local planes chosen by feature affinity,
+            :class:`~deltar.models.affinity.PlanarSelectHead`).
         head_channels: width of the decoder output fed to the head.
         n_bins: number of depth bins N.
         min_depth: smallest depth, metres.
@@ -72,6 +78,13 @@ class DeltarNet(nn.Module):
         decoder_convs: convolutions per up block, strides 16, 8, 4, 2, and
         decoder_out_kernel: the stride-2 output convolution's kernel (3 or 1): CPU
             shapes of the decoder (see :class:`~deltar.models.decoder.FusionDecoder`).
+        decoder: "fusion" (the zone-fusion decoder of the paper) or "descriptors" (no
+            decoder: the head compares frozen-encoder descriptors,
+            :class:`~deltar.models.affinity.EncoderDescriptors`, at stride 4; the zone
+            readings enter only through the head, so a selecting head is required).
+        descriptor_strides: encoder strides the descriptors use.
+        select_temperature: initial affinity temperature of the "plane_select" head.
+        planar: "plane_select" hypotheses are the zones' local planes (else constants).
     """
 
     def __init__(
@@ -100,6 +113,10 @@ class DeltarNet(nn.Module):
         decoder_block: str = "conv",
         decoder_convs: Sequence[int] = (2, 2, 2, 2),
         decoder_out_kernel: int = 3,
+        decoder: str = "fusion",
+        descriptor_strides: Sequence[int] = (8, 16),
+        select_temperature: float = 5.0,
+        planar: bool = True,
     ) -> None:
         super().__init__()
         _check_choice("head", head, HEADS)
@@ -107,6 +124,12 @@ class DeltarNet(nn.Module):
         _check_choice("image_input", image_input, IMAGE_INPUTS)
         _check_choice("fusion", fusion, FUSION_MODES)
         _check_choice("hypothesis_sampling", hypothesis_sampling, SAMPLINGS)
+        _check_choice("decoder", decoder, DECODERS)
+        if decoder == "descriptors" and head not in ("zone_select", "plane_select"):
+            raise ValueError(f"decoder 'descriptors' gives the head no zone information: it "
+                             f"needs head 'zone_select' or 'plane_select', got {head!r}")
+        if decoder == "descriptors" and image_input != "rgb":
+            raise ValueError("decoder 'descriptors' takes image_input 'rgb' only")
         if not 0 < min_depth < max_depth:
             raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
         if design_size[0] % SIZE_DIVISOR or design_size[1] % SIZE_DIVISOR:
@@ -139,6 +162,10 @@ class DeltarNet(nn.Module):
             "decoder_block": decoder_block,
             "decoder_convs": tuple(decoder_convs),
             "decoder_out_kernel": decoder_out_kernel,
+            "decoder": decoder,
+            "descriptor_strides": tuple(int(v) for v in descriptor_strides),
+            "select_temperature": float(select_temperature),
+            "planar": bool(planar),
         }
         self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth
@@ -148,25 +175,29 @@ class DeltarNet(nn.Module):
 
         in_channels = 5 if self.five_channel else 3
         self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation)
-        fusion_kwargs = None
-        if not self.five_channel:
-            fusion_kwargs = {
-                "num_hypotheses": 1 if self.mean_sigma_points else num_hypotheses,
-                "layer_order": tuple(fusion_layers),
-                "mode": fusion,
-                "cross_heads": cross_heads,
-                "self_heads": self_heads,
-            }
-        self.decoder = FusionDecoder(
-            self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
-            design_size, decoder_block, decoder_convs, decoder_out_kernel,
-        )
         self.distribution_encoder = None
-        if not self.five_channel:
-            self.distribution_encoder = DistributionEncoder(
-                point_dim=2 if self.mean_sigma_points else 1,
-                widths=self.decoder.fusion_dims[::-1],
+        if decoder == "descriptors":
+            self.decoder = EncoderDescriptors(self.image_encoder.channels, descriptor_strides)
+            head_channels = self.decoder.channels
+        else:
+            fusion_kwargs = None
+            if not self.five_channel:
+                fusion_kwargs = {
+                    "num_hypotheses": 1 if self.mean_sigma_points else num_hypotheses,
+                    "layer_order": tuple(fusion_layers),
+                    "mode": fusion,
+                    "cross_heads": cross_heads,
+                    "self_heads": self_heads,
+                }
+            self.decoder = FusionDecoder(
+                self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
+                design_size, decoder_block, decoder_convs, decoder_out_kernel,
             )
+            if not self.five_channel:
+                self.distribution_encoder = DistributionEncoder(
+                    point_dim=2 if self.mean_sigma_points else 1,
+                    widths=self.decoder.fusion_dims[::-1],
+                )
         if head == "bins":
             self.head = BinsHead(head_channels, n_bins, head_channels, bin_norm)
         elif head == "mvit":
@@ -178,6 +209,9 @@ class DeltarNet(nn.Module):
         elif head == "zone_select":
             self.head = ZoneSelectHead(head_channels, head_channels, n_bins,
                                        min_depth=min_depth, max_depth=max_depth)
+        elif head == "plane_select":
+            self.head = PlanarSelectHead(select_temperature, planar, n_bins=n_bins,
+                                         min_depth=min_depth, max_depth=max_depth)
         elif head == "zone_prior":
             self.head = ZonePriorHead(head_channels, n_bins, head_channels,
                                       min_depth=min_depth, max_depth=max_depth)
@@ -242,10 +276,13 @@ class DeltarNet(nn.Module):
                 size = (height // stride, width // stride)
                 resamplers.append(ZonePatchResampler(window, size, image.dtype))
 
-        features = self.decoder(image_features, zone_features, valid, resamplers)
+        if isinstance(self.decoder, EncoderDescriptors):
+            features = self.decoder(image_features, tuple(image.shape[-2:]))
+        else:
+            features = self.decoder(image_features, zone_features, valid, resamplers)
         if isinstance(self.head, DirectDepthHead):
             depth, edges, uncertainty = self.head(features)
-        elif isinstance(self.head, ZoneSelectHead):
+        elif isinstance(self.head, (ZoneSelectHead, PlanarSelectHead)):
             zone_mean = (zone_mean_sigma[..., 0] if zone_mean_sigma is not None
                          else hypotheses.mean(dim=2))
             stride = image.shape[-1] / features.shape[-1]
@@ -263,6 +300,14 @@ class DeltarNet(nn.Module):
             depth, edges, uncertainty = bins_to_depth(
                 widths, logits, self.min_depth, self.max_depth
             )
+        half = (image.shape[-2] // 2, image.shape[-1] // 2)
+        if tuple(depth.shape[-2:]) != half:
+            # Heads on coarser features: their output is resized to the contract's
+            # stride 2 (depth in log space, so that a constant stays constant).
+            depth = torch.exp(F.interpolate(torch.log(depth), size=half, mode="bilinear",
+                                            align_corners=False))
+            uncertainty = F.interpolate(uncertainty, size=half, mode="bilinear",
+                                        align_corners=False)
         if scale is not None:
             metric = scale.to(depth.dtype)
             depth = (depth * metric[:, None, None, None]).clamp(self.min_depth, self.max_depth)

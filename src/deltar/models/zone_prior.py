@@ -111,6 +111,34 @@ def zone_prior_map(
     return torch.exp(torch.where(any_valid, log_prior, fallback))
 
 
+def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid: torch.Tensor,
+                      size: tuple[int, int], log_edges: torch.Tensor, min_depth: float,
+                      max_depth: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The outputs of a zone-selecting head from its per-cell log depth and spread.
+
+    Args:
+        log_depth: (B, h*w, 1) chosen log depth (log metres).
+        spread: (B, h*w, 1) standard deviation of the chosen log depths.
+        zone_valid: (B, Z) bool; frames without a valid zone get
+            :data:`NO_ZONE_PRIOR_DEPTH`.
+        size: (h, w) of the map.
+        log_edges: (N + 1,) log-ratio bin edges reported around the typical depth.
+        min_depth, max_depth: output clamp, metres.
+
+    Returns:
+        depth (B, 1, h, w) metres, bin_edges (B, N + 1) metres, uncertainty (B, 1, h, w)
+        metres (depth times spread).
+    """
+    any_valid = zone_valid.any(dim=1)[:, None, None]
+    log_depth = torch.where(any_valid, log_depth,
+                            torch.full_like(log_depth, math.log(NO_ZONE_PRIOR_DEPTH)))
+    batch = log_depth.shape[0]
+    depth = torch.exp(log_depth).reshape(batch, 1, *size).clamp(min_depth, max_depth)
+    uncertainty = depth * spread.reshape(batch, 1, *size)
+    typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
+    return depth, typical * torch.exp(log_edges)[None], uncertainty
+
+
 class ZoneSelectHead(nn.Module):
     """Depth as a learned, image-guided choice among the zones' readings (in log depth).
 
@@ -160,7 +188,7 @@ class ZoneSelectHead(nn.Module):
             frame's typical depth); uncertainty (B, 1, h, w) metres: the depth times the
             spread of the chosen zones' log readings.
         """
-        batch, _, height, width = features.shape
+        _, _, height, width = features.shape
         log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, (height, width), stride,
                                         features.dtype)
         # Each zone's features: the average over its own Gaussian footprint. The
@@ -181,14 +209,8 @@ class ZoneSelectHead(nn.Module):
         log_mean = torch.log(zone_mean_m.clamp_min(1e-3)).masked_fill(~valid, 0.0)
         log_depth = weights @ log_mean[..., None]  # (B, h*w, 1)
         spread = (weights @ (log_mean[..., None] ** 2) - log_depth ** 2).clamp_min(0.0).sqrt()
-        any_valid = valid.any(dim=1)[:, None, None]
-        log_depth = torch.where(any_valid, log_depth,
-                                torch.full_like(log_depth, math.log(NO_ZONE_PRIOR_DEPTH)))
-        depth = torch.exp(log_depth).reshape(batch, 1, height, width)
-        depth = depth.clamp(self.min_depth, self.max_depth)
-        uncertainty = depth * spread.reshape(batch, 1, height, width)
-        typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
-        return depth, typical * torch.exp(self.edges)[None], uncertainty
+        return selection_outputs(log_depth, spread, valid, (height, width), self.edges,
+                                 self.min_depth, self.max_depth)
 
 
 class ZonePriorHead(nn.Module):

@@ -1,0 +1,157 @@
+"""The plane-select head, its zone planes and the encoder descriptors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead, zone_planes
+from deltar.models.zone_prior import zone_prior_map
+
+
+def _grid_rects(grid: int, zone_px: int) -> torch.Tensor:
+    rows, cols = torch.meshgrid(torch.arange(grid), torch.arange(grid), indexing="ij")
+    y0, x0 = (rows * zone_px).reshape(-1), (cols * zone_px).reshape(-1)
+    return torch.stack([y0, x0, y0 + zone_px, x0 + zone_px], dim=-1).float()[None]
+
+
+def _plane_depth(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """A slanted floor-like plane: inverse depth affine in the pixel coordinates (1/m)."""
+    return 1.0 / (0.2 + 0.004 * y + 0.001 * x)
+
+
+def _centres(rects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    return 0.5 * (rects[..., 0] + rects[..., 2]), 0.5 * (rects[..., 1] + rects[..., 3])
+
+
+def test_zone_planes_recover_a_plane_and_ignore_a_neighbour_across_a_depth_edge():
+    rects = _grid_rects(8, 16)
+    cy, cx = _centres(rects)
+    means = _plane_depth(cy, cx)
+    valid = torch.ones(1, 64, dtype=torch.bool)
+    slope_y, slope_x = zone_planes(means.double(), valid, rects.double(), ridge=1e-9,
+                                   similarity=10.0)
+    # 1/d = (1/m_k)(1 + a dy + b dx) with offsets in zone sizes (16 px).
+    inverse = 1.0 / means.double()
+    torch.testing.assert_close(slope_y, 0.004 * 16 / inverse, rtol=1e-4, atol=1e-9)
+    torch.testing.assert_close(slope_x, 0.001 * 16 / inverse, rtol=1e-4, atol=1e-9)
+
+    # A fronto-parallel wall at 2 m with one zone on an object at 1 m: the wall zones
+    # next to it stay flat (the similarity weight drops the object), and the ridge
+    # keeps an isolated zone flat.
+    wall = torch.full((1, 64), 2.0)
+    wall[0, 27] = 1.0
+    slope_y, slope_x = zone_planes(wall, valid, rects)
+    assert slope_y.abs().max() < 1e-4 and slope_x.abs().max() < 1e-4
+    only = torch.zeros(1, 64, dtype=torch.bool)
+    only[0, 0] = True
+    slope_y, slope_x = zone_planes(wall, only, rects)
+    assert slope_y.abs().max() == 0 and slope_x.abs().max() == 0
+
+
+def test_untrained_flat_head_is_the_zone_prior():
+    torch.manual_seed(0)
+    head = PlanarSelectHead(temperature=0.0, planar=False, n_bins=8)
+    rects = _grid_rects(4, 8).repeat(2, 1, 1)
+    means = torch.rand(2, 16) * 3 + 0.5
+    valid = torch.rand(2, 16) > 0.2
+    descriptors = torch.nn.functional.normalize(torch.randn(2, 6, 16, 16), dim=1)
+    depth, edges, spread = head(descriptors, means, valid, rects, stride=2.0)
+    torch.testing.assert_close(depth, zone_prior_map(means, valid, rects, (16, 16), 2.0),
+                               rtol=1e-5, atol=1e-6)
+    assert edges.shape == (2, 9) and (spread >= 0).all()
+
+
+def test_planar_head_follows_a_slanted_plane_the_flat_head_cannot():
+    rects = _grid_rects(8, 16)
+    cy, cx = _centres(rects)
+    means = _plane_depth(cy, cx)
+    valid = torch.ones(1, 64, dtype=torch.bool)
+    descriptors = torch.nn.functional.normalize(torch.ones(1, 4, 32, 32), dim=1)
+    rows = (torch.arange(32) + 0.5) * 4.0
+    truth = _plane_depth(rows[:, None], rows[None, :])[None, None]
+    errors = {}
+    for planar in (True, False):
+        head = PlanarSelectHead(temperature=0.0, planar=planar)
+        depth, _, _ = head(descriptors, means, valid, rects, stride=4.0)
+        errors[planar] = ((depth - truth).abs() / truth).mean().item()
+    assert errors[True] < 0.01 and errors[False] > 2 * errors[True]
+
+
+def test_plane_select_scales_exactly_with_the_zone_readings():
+    torch.manual_seed(1)
+    head = PlanarSelectHead(temperature=5.0)
+    rects = _grid_rects(8, 8)
+    means = torch.rand(1, 64) * 2 + 0.5
+    valid = torch.rand(1, 64) > 0.15
+    descriptors = torch.nn.functional.normalize(torch.randn(1, 6, 16, 16), dim=1)
+    depth, _, uncertainty = head(descriptors, means, valid, rects, stride=4.0)
+    scaled, _, scaled_uncertainty = head(descriptors, 2.5 * means, valid, rects, stride=4.0)
+    torch.testing.assert_close(scaled, 2.5 * depth, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(scaled_uncertainty, 2.5 * uncertainty, rtol=1e-4, atol=1e-6)
+    # Never beyond max_ratio of the frame's readings.
+    low, high = means[valid].min(), means[valid].max()
+    assert depth.min() >= low / 2 - 1e-5 and depth.max() <= 2 * high + 1e-5
+
+
+def test_affinity_picks_the_zone_that_looks_like_the_pixel():
+    # Two 16 px zones read 1 m and 3 m; the left zone looks like channel 1 except its
+    # first four columns, which look like the right zone (channel 0).
+    rects = torch.tensor([[[0.0, 0.0, 16.0, 16.0], [0.0, 16.0, 16.0, 32.0]]])
+    means, valid = torch.tensor([[1.0, 3.0]]), torch.ones(1, 2, dtype=torch.bool)
+    descriptors = torch.zeros(1, 2, 16, 32)
+    descriptors[:, 0, :, :4] = 1.0
+    descriptors[:, 1, :, 4:16] = 1.0
+    descriptors[:, 0, :, 16:] = 1.0
+    depth = {}
+    for temperature in (0.0, 20.0):
+        head = PlanarSelectHead(temperature=temperature, planar=False)
+        depth[temperature], _, _ = head(descriptors, means, valid, rects, stride=1.0)
+    # Without affinity the left columns follow their own zone; with it, their look.
+    assert depth[0.0][..., :3].mean() < 1.5
+    assert depth[20.0][..., :3].mean() > 2.5 and depth[20.0][..., 6:12].mean() < 1.5
+
+
+def test_encoder_descriptors_are_unit_vectors_at_the_output_stride():
+    module = EncoderDescriptors((16, 24, 40, 112, 320), strides=(8, 16), out_stride=4)
+    assert module.channels == 152
+    features = [torch.randn(2, c, 64 // s, 96 // s)
+                for c, s in zip((16, 24, 40, 112, 320), (2, 4, 8, 16, 32), strict=True)]
+    out = module(features, (64, 96))
+    assert out.shape == (2, 152, 16, 24)
+    torch.testing.assert_close(out.norm(dim=1), torch.ones(2, 16, 24))
+    with pytest.raises(ValueError, match="descriptor strides"):
+        EncoderDescriptors((16, 24, 40, 112, 320), strides=(6,))
+
+
+def test_descriptor_network_needs_a_selecting_head():
+    from deltar.models import create_model
+
+    with pytest.raises(ValueError, match="decoder 'descriptors'"):
+        create_model("deltar-lite", decoder="descriptors", head="bins")
+    model = create_model("deltar-lite", decoder="descriptors", head="plane_select",
+                         design_size=(64, 96)).eval()
+    rects = _grid_rects(8, 8) * torch.tensor([1.0, 1.5, 1.0, 1.5])
+    hypotheses = torch.rand(1, 64, 16) * 2 + 1
+    out = model(torch.rand(1, 3, 64, 96), hypotheses, rects, torch.ones(1, 64, dtype=torch.bool))
+    assert out["depth"].shape == (1, 1, 32, 48) and out["uncertainty"].shape == (1, 1, 32, 48)
+    assert torch.isfinite(out["depth"]).all()
+    learned = [n for n, p in model.named_parameters() if not n.startswith("image_encoder.")]
+    assert sorted(learned) == ["decoder.channel_weight", "head.temperature"]
+
+
+def test_plane_select_checkpoint_round_trip_keeps_the_design(tmp_path):
+    from deltar.models import create_model
+    from deltar.models.checkpoint import load_checkpoint, save_checkpoint
+
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", decoder="descriptors", head="plane_select",
+                         planar=False, select_temperature=3.0, design_size=(64, 96))
+    with torch.no_grad():
+        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    save_checkpoint(tmp_path / "m.pt", model, "deltar-lite")
+    loaded, preset, _ = load_checkpoint(tmp_path / "m.pt")
+    assert preset == "deltar-lite" and loaded.config["decoder"] == "descriptors"
+    assert loaded.config["planar"] is False and not loaded.head.planar
+    torch.testing.assert_close(loaded.decoder.channel_weight, model.decoder.channel_weight)
+    assert loaded.head.temperature.item() == pytest.approx(3.0)
