@@ -90,7 +90,7 @@ class EncoderDescriptors(nn.Module):
 
 
 def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects: torch.Tensor,
-                neighbourhood: float = 1.6, similarity: float = 0.1, ridge: float = 0.1
+                neighbourhood: float = 1.6, similarity: float = 0.05, ridge: float = 0.1
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Each zone's local plane: inverse-depth slopes fitted to neighbours that read alike.
 

@@ -49,6 +49,23 @@ PRESETS: dict[str, dict[str, Any]] = {
         "cross_heads": 2,
         "self_heads": 2,
     },
+    # For a new room with nothing to train on: the same ImageNet EfficientNet-Lite0
+    # encoder (kept frozen in training), no decoder; each pixel picks among the zones'
+    # local planes by the cosine affinity of the encoder's descriptors (153 learned
+    # numbers; useful untrained with encoder_weights="imagenet"; docs/models.md).
+    "deltar-select": {
+        "backbone": "tf_efficientnet_lite0",
+        "image_mean": (0.5, 0.5, 0.5),
+        "image_std": (0.5, 0.5, 0.5),
+        "zone_scale_norm": True,
+        "decoder": "descriptors",
+        "descriptor_strides": (8, 16),
+        "head": "plane_select",
+        "n_bins": 64,
+        "min_depth": 1e-3,
+        "max_depth": 10.0,
+        "num_hypotheses": 16,
+    },
 }
 
 #: Overrides reproducing each row of the paper's ablation table (Table 4).
