@@ -1,7 +1,9 @@
 """Models shipped inside the package (no download needed).
 
-``default`` is a ``deltar-lite`` network trained on CPU on real indoor RGB-D frames
-with simulated L5 zones (see docs/training.md for the recipe and its validation table).
+``default`` is a ``deltar-select`` network (frozen ImageNet EfficientNet-Lite0
+descriptors choosing among the zones' local planes) trained on CPU on real indoor RGB-D
+frames with simulated L5 zones (docs/training.md: the recipe and its leave-one-scene-out
+tables).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 
 #: Bundled model name -> file inside this package.
-BUNDLED_MODELS: dict[str, str] = {"default": "deltar_lite_default.pt"}
+BUNDLED_MODELS: dict[str, str] = {"default": "deltar_select_default.pt"}
 
 
 def bundled_model_names() -> list[str]:
