@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.nyu import NYU_INTRINSICS, NYUH5Reader, NYULabeledReader
 from deltar.data.procedural import ProceduralReader
 from deltar.data.rgbd import RGBDFrame, open_rgbd

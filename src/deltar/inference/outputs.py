@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, backproject_pixels
 from deltar.io.atomic import atomic_path, write_bytes_atomic
 
 if TYPE_CHECKING:
@@ -127,8 +127,10 @@ def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Back-project a depth map to a coloured point cloud in the camera frame.
 
+    :func:`deltar.camera.backproject_pixels` with the colours of the kept pixels.
+
     Args:
-        depth_m: (H, W) z-depth in metres; pixels that are 0 or not finite are skipped.
+        depth_m: (H, W) z-depth in metres; pixels that are 0 or infinite are skipped.
         intrinsics: intrinsics of the (H, W) image.
         image: optional (H, W, 3) uint8 RGB colours (grey when None).
         stride: keep every ``stride``-th pixel in each direction.
@@ -136,23 +138,12 @@ def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
     Returns:
         points (N, 3) float32 metres (x right, y down, z forward) and colours (N, 3) uint8.
     """
-    depth = _check_depth(depth_m)
-    height, width = depth.shape
-    if (intrinsics.height, intrinsics.width) != (height, width):
-        raise ValueError(f"intrinsics are for {intrinsics.height}x{intrinsics.width}, depth "
-                         f"is {height}x{width}")
-    v, u = np.mgrid[0:height:stride, 0:width:stride]
-    z = depth[v, u]
-    keep = np.isfinite(z) & (z > 0)
-    z, u, v = z[keep], u[keep], v[keep]
-    x = (u - intrinsics.cx) / intrinsics.fx * z
-    y = (v - intrinsics.cy) / intrinsics.fy * z
-    points = np.stack([x, y, z], axis=1).astype(np.float32)
+    points, rows, cols = backproject_pixels(_check_depth(depth_m), intrinsics, stride=stride)
     if image is None:
         colors = np.full((points.shape[0], 3), 200, dtype=np.uint8)
     else:
-        colors = np.asarray(image, dtype=np.uint8)[v, u]
-    return points, colors
+        colors = np.asarray(image, dtype=np.uint8)[rows, cols]
+    return points.astype(np.float32), colors
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
