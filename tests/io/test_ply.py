@@ -67,7 +67,7 @@ def test_bad_files_name_the_file(tmp_path, content, message):
 
 
 def test_missing_file_and_bad_arrays(tmp_path, cloud):
-    with pytest.raises(FileNotFoundError, match="none.ply"):
+    with pytest.raises(FileNotFoundError, match=r"none\.ply"):
         read_ply(tmp_path / "none.ply")
     with pytest.raises(ValueError, match=r"points must be an \(N, 3\) array"):
         write_ply(tmp_path / "x.ply", np.zeros((4, 2)))

@@ -284,26 +284,6 @@ def predict_command(
              "after fixing them")
 
 
-def _simulated_source(spec: str):
-    """'wall:<metres>[:<frames>[:<H>x<W>]]' or any deltar.data.sources spec."""
-    from deltar.inference.wall_test import FlatWallSource
-
-    if spec.startswith("wall:"):
-        parts = spec[len("wall:"):].split(":")
-        try:
-            distance = float(parts[0])
-            frames = int(parts[1]) if len(parts) > 1 else 10
-            height, width = (int(v) for v in parts[2].split("x")) if len(parts) > 2 \
-                else (240, 320)
-        except (ValueError, IndexError) as err:
-            raise ValueError(f"wall source must look like 'wall:1.5', 'wall:1.5:20' or "
-                             f"'wall:1.5:20:240x320', got {spec!r}") from err
-        return FlatWallSource(distance, frames, height, width)
-    from deltar.data.sources import open_source
-
-    return open_source(spec)
-
-
 @app.command("record")
 def record_command(
     out: Path = typer.Argument(..., help="Recording folder (new, or a recording of the same "
@@ -331,6 +311,7 @@ def record_command(
     from deltar.cli.checks import finite, output_folder
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import CaptureLogger, open_viewer
+    from deltar.data.sources import open_source
     from deltar.inference.drivers import (
         HardwareRig,
         OpenCVCamera,
@@ -349,7 +330,7 @@ def record_command(
     try:
         intrinsics = None
         if simulate is not None:
-            rig = SimulatedRig(_simulated_source(simulate), grid=grid, sensor_hz=sensor_hz)
+            rig = SimulatedRig(open_source(simulate), grid=grid, sensor_hz=sensor_hz)
         else:
             calibration = _load_calibration(calib)
             if calibration is None:
@@ -538,7 +519,7 @@ def wall_test_command(
     from rich.table import Table
 
     from deltar.cli.checks import output_folder
-    from deltar.inference.wall_test import wall_test, write_results
+    from deltar.evaluation.wall_test import wall_test, write_results
     from deltar.io.recording import Recording
 
     for folder in recordings:
