@@ -37,5 +37,5 @@ def test_demo_writes_scenes_panels_and_metrics(tmp_path):
     # A second run into the same folder must not overwrite the first.
     again = CliRunner().invoke(app, ["demo", str(out), "--frames", "1", "--size", "96x128"],
                                env={"COLUMNS": "300"})
-    assert again.exit_code != 0
+    assert again.exit_code == 2
     assert "already holds a demo" in again.output

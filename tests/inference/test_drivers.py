@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from deltar.data.flat_wall import FlatWallSource
 from deltar.inference.drivers import (
     DriverAdapter,
     SimulatedRig,
@@ -12,7 +13,6 @@ from deltar.inference.drivers import (
     open_sparkfun,
     open_vl53l5cx_ctypes,
 )
-from deltar.inference.wall_test import FlatWallSource
 from deltar.sensor.zone_frame import Orientation
 
 

@@ -112,57 +112,6 @@ def test_existing_recording_is_not_overwritten(tmp_path):
     assert path.read_bytes() == b"keep"
 
 
-def test_cli_record_simulate_and_predict_save_recordings(tmp_path):
-    rrd = tmp_path / "rec.rrd"
-    result = runner.invoke(app, ["record", str(tmp_path / "rec"), "--simulate",
-                                 "wall:1.2:4:48x64", "--rerun-save", str(rrd)])
-    assert result.exit_code == 0, result.output
-    rows = read_rrd(rrd)
-    # Four camera frames at 30 Hz, each with the latest zone frame and the wall's depth.
-    depth_rows = rows["/world/camera/image/depth"]
-    assert len(depth_rows) == 4
-    np.testing.assert_allclose(_buffer(depth_rows[0], "DepthImage"), 1.2, atol=1e-6)
-    times = [r["time"] for r in rows["/world/camera/image/depth"]]
-    np.testing.assert_allclose(times, np.arange(4) * 1e9 / 30, atol=1)
-    zone_points = rows["/world/camera/tof/zones"]
-    assert len(zone_points) == 4
-    np.testing.assert_allclose(np.array(zone_points[0]["Points3D:positions"])[:, 2], 1.22,
-                               atol=0.021)  # the simulator's 4 cm bins
-    assert "/uncertainty" not in rows  # a recording has no prediction
-    sample = tmp_path / "sample"
-    from deltar.cli.demo import write_predict_sample
-    from deltar.data.procedural import ProceduralReader
-    from deltar.data.simulated import simulate_set
-
-    simulate_set(ProceduralReader(1, 3, 48, 64), tmp_path / "scenes", scene="procedural")
-    write_predict_sample(tmp_path / "scenes" / "data.json", sample)
-    rrd2 = tmp_path / "pred.rrd"
-    result = runner.invoke(app, ["predict", "--image", str(sample / "image.png"), "--zones",
-                                 str(sample / "zones.json"), "--calib", str(sample / "calib.json"),
-                                 "--out", str(tmp_path / "pred"), "--outputs", "npy",
-                                 "--rerun-save", str(rrd2)])
-    assert result.exit_code == 0, result.output
-    rows = read_rrd(rrd2)
-    saved = np.load(tmp_path / "pred" / "image_depth_m.npy")
-    np.testing.assert_allclose(_buffer(rows["/world/camera/image/depth"][0], "DepthImage"), saved)
-
-
-def test_cli_replay_bag_can_view_without_writing_a_bag(tmp_path):
-    from tests.io.test_rosbag import write_input_bag
-
-    write_input_bag(tmp_path / "bag", frames=2)
-    rrd = tmp_path / "bag.rrd"
-    result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
-                                 "deltar-lite", "--rerun-save", str(rrd)])
-    assert result.exit_code == 0, result.output
-    assert "replayed 2 frames" in result.output
-    rows = read_rrd(rrd)
-    assert len(rows["/world/camera/image/depth"]) == 2
-    missing = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
-                                  "deltar-lite"])
-    assert missing.exit_code != 0 and "--out-bag BAG, --rerun or --rerun-save" in missing.output
-
-
 def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):
     import sys
 
@@ -173,24 +122,3 @@ def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):
                                  "--rerun-save", str(tmp_path / "x.rrd")])
     assert result.exit_code == 1 and 'needs the "viewer" extra' in result.output
     assert not (tmp_path / "rec").exists()  # nothing recorded when the viewer is missing
-
-
-def test_cli_replay_folder_views_and_writes(tmp_path):
-    rec = tmp_path / "rec"
-    assert runner.invoke(app, ["record", str(rec), "--simulate", "wall:1.5:6:48x64"]).exit_code == 0
-    rrd = tmp_path / "replay.rrd"
-    result = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite", "--out",
-                                 str(tmp_path / "out"), "--outputs", "npy",
-                                 "--rerun-save", str(rrd)])
-    assert result.exit_code == 0, result.output
-    rows = read_rrd(rrd)
-    saved = sorted((tmp_path / "out").glob("*_depth_m.npy"))
-    assert len(saved) == 3 == len(rows["/world/camera/image/depth"])
-    np.testing.assert_allclose(_buffer(rows["/world/camera/image/depth"][0], "DepthImage"),
-                               np.load(saved[0]))
-    only_view = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite",
-                                    "--rerun-save", str(tmp_path / "v.rrd")])
-    assert only_view.exit_code == 0, only_view.output
-    assert len(read_rrd(tmp_path / "v.rrd")["/world/camera/image/depth"]) == 3
-    nothing = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite"])
-    assert nothing.exit_code != 0 and "give --out DIR" in nothing.output

@@ -23,7 +23,6 @@ from deltar.inference.bag_replay import pair_calibration, replay_bag_to_bag
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.rosbag import (
     BagInput,
-    image_from_msg,
     metric_image_from_msg,
     typestore,
     zone_frame_from_vl53l5cx_ros2,
@@ -200,29 +199,6 @@ def test_point_cloud_holds_back_projected_coloured_points(tmp_path):
     assert data["rgb"][index] == (r << 16) | (g << 8) | b
 
 
-def test_cli_replay_bag_with_the_bundled_model(tmp_path):
-    source = tmp_path / "in_bag"
-    write_input_bag(source, frames=2)
-    out = tmp_path / "depth_bag"
-    result = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag", str(out),
-                                 "--bag-storage", "mcap"])
-    assert result.exit_code == 0, result.output
-    assert "wrote 2 frames" in result.output
-    assert (out / "metadata.yaml").is_file() and list(out.glob("*.mcap"))
-    depth_msgs = read_topic(out, "/deltar/depth")
-    # The bag holds exactly what the estimator predicts for the same inputs.
-    bag = BagInput(source)
-    (pair, rgb), = list(bag.images(bag.pairs()[:1]))
-    expected = DepthEstimator.from_checkpoint("default").predict(
-        rgb, pair.zone_frame, pair_calibration(pair, None)).depth_m
-    np.testing.assert_allclose(metric_image_from_msg(depth_msgs[0][1]), expected, atol=1e-5)
-    again = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag", str(out)])
-    assert again.exit_code == 1 and "refusing to write into existing path" in again.output
-    inside = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag",
-                                 str(source / "out")])
-    assert inside.exit_code == 1 and "inside it" in inside.output
-
-
 def test_missing_tof_topic_is_a_clear_error(tmp_path):
     write_input_bag(tmp_path / "bag", with_tof=False)
     with pytest.raises(ValueError, match=r"no ToF topic \(deltar_msgs/msg/ZoneFrame\)"):
@@ -329,36 +305,6 @@ def test_vl53l5cx_ros2_bag_replays_with_its_topic_named(tmp_path):
                                  "deltar-lite", "--out-bag", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     assert len(read_topic(tmp_path / "out", "/deltar/depth")) == 2
-
-
-def test_record_writes_a_bag_that_replays(tmp_path):
-    bag_path = tmp_path / "rec_bag"
-    result = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate",
-                                 "wall:1.5:6:48x64"])
-    assert result.exit_code == 0, result.output
-    assert "recorded 6 images, 3 zone frames" in result.output
-    images = read_topic(bag_path, "/camera/color/image_raw")
-    infos = read_topic(bag_path, "/camera/color/camera_info")
-    depths = read_topic(bag_path, "/camera/depth/image")
-    zones = read_topic(bag_path, "/tof/zones")
-    assert (len(images), len(infos), len(depths), len(zones)) == (6, 6, 6, 3)
-    assert images[0][1].encoding == "rgb8" and depths[0][1].encoding == "32FC1"
-    np.testing.assert_allclose(metric_image_from_msg(depths[0][1]), 1.5, atol=1e-6)
-    rgb = image_from_msg(images[1][1], "sensor_msgs/msg/Image")
-    assert rgb.shape == (48, 64, 3)
-    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in images]
-    np.testing.assert_allclose(np.diff(stamps), 1e9 / 30, atol=1)  # the 30 Hz camera
-    zone_stamp = zones[0][1].header.stamp
-    assert zone_stamp.sec * 10**9 + zone_stamp.nanosec == stamps[0] + 4_000_000
-    assert zones[0][1].zone_count == 64
-    # Simulated 4 cm bins: a wall at 1.5 m reads 1.5 m (bin centre 1.50).
-    assert np.nanmedian(np.asarray(zones[0][1].distance_m)) == pytest.approx(1.5, abs=0.021)
-    replayed = runner.invoke(app, ["replay", "--bag", str(bag_path), "--preset", "deltar-lite",
-                                   "--out-bag", str(tmp_path / "depth")])
-    assert replayed.exit_code == 0, replayed.output
-    assert "wrote 3 frames" in replayed.output
-    again = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate", "wall:1.5:2"])
-    assert again.exit_code == 1 and "refusing to write into existing path" in again.output
 
 
 def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):

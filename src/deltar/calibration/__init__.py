@@ -1,5 +1,5 @@
-"""Camera intrinsics and ToF-sensor-to-camera calibration."""
+"""ToF-sensor-to-camera calibration (camera intrinsics re-exported from :mod:`deltar.camera`)."""
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 
-__all__ = ["CameraIntrinsics"]
+__all__ = ["ZJU_L5_INTRINSICS", "CameraIntrinsics"]

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.plane import ZonePlaneFit, ransac_plane, zone_centre_points
+from deltar.camera import CameraIntrinsics, backproject
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
 
 #: Smallest singular value (of the stacked unit plane normals in the sensor frame divided
@@ -230,7 +230,7 @@ def mean_zone_to_cloud_distance(observations: Sequence[PlaneObservation],
 
 def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
                     stride: int = 1) -> np.ndarray:
-    """Back-project a depth map into camera-frame points.
+    """Back-project a depth map into camera-frame points (:func:`deltar.camera.backproject`).
 
     Args:
         depth_m: (H, W) z-depth in metres, 0 = invalid; must match the intrinsics size.
@@ -240,19 +240,7 @@ def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
     Returns:
         (N, 3) float64 points in metres (valid pixels only).
     """
-    depth = np.asarray(depth_m, dtype=np.float64)
-    if depth.shape != (intrinsics.height, intrinsics.width):
-        raise ValueError(f"depth_m has shape {depth.shape}, intrinsics are for "
-                         f"{intrinsics.height}x{intrinsics.width}")
-    if not np.all(np.isfinite(depth)):
-        raise ValueError("depth_m has NaN or infinite values; mark invalid pixels with 0")
-    rows, cols = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
-    z = depth[rows, cols]
-    keep = z > 0
-    z, rows, cols = z[keep], rows[keep], cols[keep]
-    x = (cols - intrinsics.cx) / intrinsics.fx * z
-    y = (rows - intrinsics.cy) / intrinsics.fy * z
-    return np.stack([x, y, z], axis=1)
+    return backproject(depth_m, intrinsics, stride=stride)
 
 
 def points_in_sensor_view(points_cam_m: np.ndarray, extrinsics: SensorExtrinsics,

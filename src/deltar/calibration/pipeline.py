@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.extrinsic import (
     PlaneObservation,
     depth_to_points,
@@ -19,6 +18,7 @@ from deltar.calibration.extrinsic import (
 from deltar.calibration.plane import fit_plane_to_zones
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.slam import Trajectory, world_to_camera
+from deltar.camera import CameraIntrinsics
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
 from deltar.sensor.zone_frame import ZoneFrame
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.io.atomic import write_text_atomic
 from deltar.io.json_file import read_json
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, pixel_rays
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_angles_deg
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -40,13 +40,6 @@ def sensor_virtual_camera(grid: int = 8, fov_deg: tuple[float, float] = DEFAULT_
                       intr.fy * angles[:, 2] + intr.cy, intr.fx * angles[:, 3] + intr.cx],
                      axis=1)
     return intr, rects.astype(np.float32)
-
-
-def pixel_rays(intrinsics: CameraIntrinsics) -> np.ndarray:
-    """(H, W, 3) float64 rays ``((u - cx) / fx, (v - cy) / fy, 1)`` with z = 1."""
-    v, u = np.mgrid[0:intrinsics.height, 0:intrinsics.width].astype(np.float64)
-    return np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
-                     np.ones_like(u)], axis=-1)
 
 
 def render_planes_depth(planes_world: np.ndarray, cam_to_world: np.ndarray,

@@ -7,6 +7,15 @@ from pathlib import Path
 import typer
 
 from deltar.cli.main import app
+from deltar.cli.model_options import (
+    MODEL_OPTIONS,
+    CheckpointOption,
+    ModelOptions,
+    OfficialOption,
+    PresetOption,
+    model_options,
+    parse_size,
+)
 from deltar.cli.robotics import (
     BagOption,
     BagStorageOption,
@@ -22,29 +31,10 @@ from deltar.cli.robotics import (
     TofTopicOption,
     TopicPrefixOption,
 )
+from deltar.io.file_pairs import pair_by_stem
 
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
-_ZONE_SUFFIXES = (".json", ".npz")
 _DEFAULT_OUTPUTS = "png16,npy,color,ply,panel"
 
-PresetOption = typer.Option(None, "--preset", help="Model preset (RANDOM weights: for "
-                            "testing the pipeline only).")
-CheckpointOption = typer.Option(None, "--checkpoint", help="deltar checkpoint (.pt) or a "
-                                "bundled model name; the bundled 'default' model when no "
-                                "model option is given.")
-OfficialOption = typer.Option(None, "--official", help="Officially released weights "
-                              "(e.g. nyu.pt).")
-OnnxOption = typer.Option(None, "--onnx", help="ONNX model from 'deltar export' "
-                          "(onnxruntime backend).")
-DeviceOption = typer.Option("cpu", help="Torch device (PyTorch backend).")
-PrecisionOption = typer.Option("float32", help="float32, float16 or bfloat16 (PyTorch).")
-SizeOption = typer.Option(None, "--size", help="Network input size HxW (multiples of 32); "
-                          "default: the image size rounded to multiples of 32.")
-ThreadsOption = typer.Option(None, "--threads", min=1,
-                             help="CPU threads (torch / onnxruntime).")
-FlipOption = typer.Option(False, "--flip", help="Test-time flip averaging: also run the "
-                          "mirrored image and zones and average (2x network time; "
-                          "PyTorch backends).")
 CalibOption = typer.Option(None, "--calib", help="Rig calibration JSON (deltar calibrate).")
 AllowNoZonesOption = typer.Option(False, "--allow-no-zones", help="Write frames without "
                                   "any valid zone as image-only estimates (flagged; metric "
@@ -55,83 +45,6 @@ def _fail(err: Exception) -> None:
     from deltar.cli.errors import fail
 
     fail(err)
-
-
-def _parse_size(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        height, width = (int(v) for v in text.lower().split("x"))
-    except ValueError as err:
-        raise typer.BadParameter(f"size must look like 480x640, got {text!r}",
-                                 param_hint="--size") from err
-    return height, width
-
-
-def _check_model_options(preset, checkpoint, official, onnx, device, precision, size,
-                         flip=False) -> None:
-    """Usage checks of the model options that need no model (run before any work)."""
-    from deltar.inference.estimator import PRECISIONS, SIZE_DIVISOR
-
-    chosen = [name for name, value in (("--preset", preset), ("--checkpoint", checkpoint),
-                                       ("--official", official), ("--onnx", onnx))
-              if value is not None]
-    if len(chosen) > 1:
-        raise typer.BadParameter("give only one of --preset, --checkpoint, --official, "
-                                 f"--onnx (got {chosen})")
-    if flip and onnx is not None:
-        raise typer.BadParameter("--flip needs a PyTorch model (an ONNX file is fixed to "
-                                 "one zone layout)", param_hint="--flip")
-    if precision not in PRECISIONS:
-        raise typer.BadParameter(f"must be one of {', '.join(PRECISIONS)}, got {precision!r}",
-                                 param_hint="--precision")
-    parsed = _parse_size(size)
-    if parsed is not None and (min(parsed) < SIZE_DIVISOR or parsed[0] % SIZE_DIVISOR
-                               or parsed[1] % SIZE_DIVISOR):
-        raise typer.BadParameter(f"must be positive multiples of {SIZE_DIVISOR}, got {size!r}",
-                                 param_hint="--size")
-    if onnx is None and device != "cpu":  # the CPU is always there: no torch import
-        from deltar.cli.checks import torch_device
-
-        torch_device(device)
-
-
-def _build_estimator(preset, checkpoint, official, onnx, device, precision, size, threads,
-                     flip=False):
-    import torch
-
-    from deltar.inference.estimator import DepthEstimator
-
-    _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
-    if all(value is None for value in (preset, checkpoint, official, onnx)):
-        # No model named: the model bundled with the package.
-        from deltar.weights import bundled_model_names
-
-        if "default" not in bundled_model_names():
-            raise typer.BadParameter("this installation has no bundled model; give one of "
-                                     "--preset, --checkpoint, --official, --onnx")
-        checkpoint = "default"
-    if threads:
-        torch.set_num_threads(int(threads))
-    kwargs = {"input_size": _parse_size(size)}
-    if flip:
-        kwargs["flip_average"] = True
-    if onnx is not None:
-        return DepthEstimator.from_onnx(onnx, num_threads=threads, **kwargs)
-    kwargs.update(device=device, precision=precision)
-    if checkpoint is not None:
-        return DepthEstimator.from_checkpoint(checkpoint, **kwargs)
-    if official is not None:
-        return DepthEstimator.from_official(official, **kwargs)
-    import warnings
-
-    from deltar.cli.errors import warn
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        estimator = DepthEstimator.from_preset(preset, **kwargs)
-    warn(f"preset {preset!r} has random, untrained weights: its depth is meaningless")
-    return estimator
 
 
 def _load_calibration(path: Path | None):
@@ -153,23 +66,8 @@ def _parse_outputs(text: str) -> tuple[str, ...]:
     return kinds
 
 
-def pair_by_stem(images_dir: Path, zones_dir: Path) -> tuple[list[tuple[Path, Path]], list[str]]:
-    """Pair image files and zone files by file stem.
-
-    Returns:
-        (pairs sorted by stem, stems that have only an image or only a zone file).
-    """
-    for folder, name in ((images_dir, "--images"), (zones_dir, "--zones-dir")):
-        if not folder.is_dir():
-            raise FileNotFoundError(f"{name} folder not found: {folder}")
-    images = {p.stem: p for p in images_dir.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES}
-    zones = {p.stem: p for p in zones_dir.iterdir() if p.suffix.lower() in _ZONE_SUFFIXES}
-    stems = sorted(images.keys() & zones.keys())
-    unpaired = sorted(images.keys() ^ zones.keys())
-    return [(images[s], zones[s]) for s in stems], unpaired
-
-
 @app.command("predict")
+@model_options
 def predict_command(
     image: Path | None = typer.Option(None, "--image", help="One RGB image."),
     zones: Path | None = typer.Option(None, "--zones", help="Its zone frame (.json/.npz, or "
@@ -179,15 +77,7 @@ def predict_command(
     zones_dir: Path | None = typer.Option(None, "--zones-dir", help="Folder of zone frames."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     calib: Path | None = CalibOption,
-    preset: str | None = PresetOption,
-    checkpoint: Path | None = CheckpointOption,
-    official: Path | None = OfficialOption,
-    onnx: Path | None = OnnxOption,
-    device: str = DeviceOption,
-    precision: str = PrecisionOption,
-    size: str | None = SizeOption,
-    threads: int | None = ThreadsOption,
-    flip: bool = FlipOption,
+    model: ModelOptions = MODEL_OPTIONS,
     outputs: str = typer.Option(_DEFAULT_OUTPUTS, help="Comma list of png16 (uint16 mm), "
                                 "npy (float32 m), color, ply (point cloud), panel."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs (never inputs)."),
@@ -218,7 +108,7 @@ def predict_command(
     if overwrite and skip_existing:
         raise typer.BadParameter("give --overwrite or --skip-existing, not both")
     kinds = _parse_outputs(outputs)
-    _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+    model.check()
     first = None
     if single:
         from deltar.data.rgbd import read_color
@@ -256,8 +146,7 @@ def predict_command(
     if not jobs:
         typer.echo(f"nothing to do: every output exists in {out}")
         return
-    estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                 size, threads, flip)
+    estimator = model.load()
     viewer = open_viewer(rerun, rerun_save)
 
     def show(rgb, prediction) -> None:
@@ -282,26 +171,6 @@ def predict_command(
         fail(f"{len(summary.failed)} of {len(jobs)} frames failed (first: "
              f"{summary.failed[0][0]}: {summary.failed[0][1]}); re-run with --skip-existing "
              "after fixing them")
-
-
-def _simulated_source(spec: str):
-    """'wall:<metres>[:<frames>[:<H>x<W>]]' or any deltar.data.sources spec."""
-    from deltar.inference.wall_test import FlatWallSource
-
-    if spec.startswith("wall:"):
-        parts = spec[len("wall:"):].split(":")
-        try:
-            distance = float(parts[0])
-            frames = int(parts[1]) if len(parts) > 1 else 10
-            height, width = (int(v) for v in parts[2].split("x")) if len(parts) > 2 \
-                else (240, 320)
-        except (ValueError, IndexError) as err:
-            raise ValueError(f"wall source must look like 'wall:1.5', 'wall:1.5:20' or "
-                             f"'wall:1.5:20:240x320', got {spec!r}") from err
-        return FlatWallSource(distance, frames, height, width)
-    from deltar.data.sources import open_source
-
-    return open_source(spec)
 
 
 @app.command("record")
@@ -331,6 +200,7 @@ def record_command(
     from deltar.cli.checks import finite, output_folder
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import CaptureLogger, open_viewer
+    from deltar.data.sources import open_source
     from deltar.inference.drivers import (
         HardwareRig,
         OpenCVCamera,
@@ -349,7 +219,7 @@ def record_command(
     try:
         intrinsics = None
         if simulate is not None:
-            rig = SimulatedRig(_simulated_source(simulate), grid=grid, sensor_hz=sensor_hz)
+            rig = SimulatedRig(open_source(simulate), grid=grid, sensor_hz=sensor_hz)
         else:
             calibration = _load_calibration(calib)
             if calibration is None:
@@ -377,21 +247,14 @@ def record_command(
 
 
 @app.command("replay")
+@model_options
 def replay_command(
     recording: Path | None = typer.Argument(None, help="Recording folder (or give --bag)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (outside the "
                                     "recording)."),
     show: bool = typer.Option(False, help="Show depth live in an OpenCV window instead."),
     calib: Path | None = CalibOption,
-    preset: str | None = PresetOption,
-    checkpoint: Path | None = CheckpointOption,
-    official: Path | None = OfficialOption,
-    onnx: Path | None = OnnxOption,
-    device: str = DeviceOption,
-    precision: str = PrecisionOption,
-    size: str | None = SizeOption,
-    threads: int | None = ThreadsOption,
-    flip: bool = FlipOption,
+    model: ModelOptions = MODEL_OPTIONS,
     outputs: str = typer.Option("png16,npy,color", help="Comma list of output kinds."),
     tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
                                     "seconds."),
@@ -424,11 +287,10 @@ def replay_command(
     if (recording is None) == (bag is None):
         raise typer.BadParameter("give a RECORDING folder or --bag BAG")
     if bag is not None:
-        _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+        model.check()
         try:
             typer.echo(replay_bag_command(
-                bag, lambda: _build_estimator(preset, checkpoint, official, onnx, device,
-                                              precision, size, threads, flip),
+                bag, model.load,
                 _load_calibration(calib), out=out, show=show, out_bag=out_bag,
                 storage=bag_storage, topics=(image_topic, info_topic, tof_topic),
                 tof=(tof_format, tof_orientation, tof_sigma), points=points,
@@ -441,11 +303,10 @@ def replay_command(
     if (out is not None and show) or (out is None and not show and not viewing):
         raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
     kinds = _parse_outputs(outputs)
-    _check_model_options(preset, checkpoint, official, onnx, device, precision, size, flip)
+    model.check()
     total = _check_replay(recording, out, kinds, tolerance, every, limit, overwrite, show)
     calibration = _load_calibration(calib)
-    estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                 size, threads, flip)
+    estimator = model.load()
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
     if out is None:
         items = map(viewer, replay(recording, estimator, calibration=calibration,
@@ -515,19 +376,13 @@ def _show_live(items) -> None:
 
 
 @app.command("wall-test")
+@model_options
 def wall_test_command(
     recordings: list[Path] = typer.Argument(..., help="Recordings facing a flat wall, one "
                                             "per distance."),
     out: Path = typer.Option(..., "--out", help="Folder for wall_test.json/.csv/.png."),
     calib: Path | None = CalibOption,
-    preset: str | None = PresetOption,
-    checkpoint: Path | None = CheckpointOption,
-    official: Path | None = OfficialOption,
-    onnx: Path | None = OnnxOption,
-    device: str = DeviceOption,
-    precision: str = PrecisionOption,
-    size: str | None = SizeOption,
-    threads: int | None = ThreadsOption,
+    model: ModelOptions = MODEL_OPTIONS,
     every: int = typer.Option(1, min=1, help="Use every N-th frame."),
     limit: int | None = typer.Option(None, min=1, help="Frames per recording at most."),
     overwrite: bool = typer.Option(False, help="Replace existing result files."),
@@ -538,15 +393,15 @@ def wall_test_command(
     from rich.table import Table
 
     from deltar.cli.checks import output_folder
-    from deltar.inference.wall_test import wall_test, write_results
+    from deltar.evaluation.wall_test import wall_test, write_results
     from deltar.io.recording import Recording
 
+    model.check()
     for folder in recordings:
         Recording(folder)  # a missing or corrupt recording fails before the model
     output_folder(out, "--out")
     try:
-        estimator = _build_estimator(preset, checkpoint, official, onnx, device, precision,
-                                     size, threads)
+        estimator = model.load()
         results = wall_test(recordings, estimator, calibration=_load_calibration(calib),
                             every=every, limit=limit)
         paths = write_results(out, results, title=estimator.weights, overwrite=overwrite)
@@ -584,9 +439,9 @@ def _layout_rects(source: Path, height: int, width: int):
 @app.command("export")
 def export_command(
     out: Path = typer.Option(..., "--out", help="Output file (.onnx)."),
-    preset: str | None = PresetOption,
-    checkpoint: Path | None = CheckpointOption,
-    official: Path | None = OfficialOption,
+    preset: PresetOption = None,
+    checkpoint: CheckpointOption = None,
+    official: OfficialOption = None,
     format: str = typer.Option("onnx", "--format", help="Export format (onnx)."),
     size: str = typer.Option("480x640", "--size", help="Camera image size HxW; the model's "
                              "fixed input is that rounded to multiples of 32."),
@@ -608,7 +463,7 @@ def export_command(
 
     if format != "onnx":
         raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
-    height, width = _parse_size(size)
+    height, width = parse_size(size)
     output_file(out, "--out", overwrite)
     if layout_from is not None and not layout_from.exists():
         raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "
@@ -617,8 +472,8 @@ def export_command(
         raise typer.BadParameter("--int8 and --calibration DIR go together",
                                  param_hint="--calibration")
     try:
-        estimator = _build_estimator(preset, checkpoint, official, None, "cpu", "float32",
-                                     None, None)
+        estimator = ModelOptions(preset=preset, checkpoint=checkpoint,
+                                 official=official).load()
         rects = None if layout_from is None else _layout_rects(layout_from, height, width)
         metadata = {"deltar_weights": estimator.weights}
         if int8:

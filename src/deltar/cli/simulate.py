@@ -10,7 +10,7 @@ from deltar.cli.main import app
 
 
 def _parse_intrinsics(text: str | None, height: int, width: int):
-    from deltar.calibration.camera import CameraIntrinsics
+    from deltar.camera import CameraIntrinsics
 
     if text is None:
         return None

@@ -19,7 +19,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
 from deltar.io.json_file import read_split_filenames
 

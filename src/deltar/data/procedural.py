@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
 
 #: Focal length as a fraction of the image width (NYU's Kinect: 518.9 px at 640 px).

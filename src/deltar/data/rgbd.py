@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 
 #: Name of the optional per-folder settings file read by :func:`open_rgbd`.
 SIDECAR_NAME = "deltar_rgbd.json"

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
 from deltar.data.transforms import ImageAugmentation, mirror_zone_rects, normalize_image
 from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD

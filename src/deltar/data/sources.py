@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
+from deltar.data.flat_wall import WALL_PREFIX, open_wall_source
 from deltar.data.nyu import NYU_INTRINSICS, NYUH5Reader, NYULabeledReader
 from deltar.data.procedural import ProceduralReader
 from deltar.data.rgbd import RGBDFrame, open_rgbd
@@ -40,7 +41,9 @@ def open_source(spec: str | Path, *, depth_scale: float | None = None,
             - a NYU-Depth V2 labeled ``.mat`` file;
             - a ``.json`` split file of the release's NYU h5 files (``split`` selects the
               list);
-            - ``procedural:<frames>[:<seed>[:<height>x<width>]]`` for procedural rooms.
+            - ``procedural:<frames>[:<seed>[:<height>x<width>]]`` for procedural rooms;
+            - ``wall:<metres>[:<frames>[:<height>x<width>]]`` for a textured flat wall
+              (:mod:`deltar.data.flat_wall`).
         depth_scale: raw depth units per metre; folder sources only.
         intrinsics: camera intrinsics (pixels) overriding the source's own (not for
             procedural sources, which define their camera).
@@ -54,11 +57,12 @@ def open_source(spec: str | Path, *, depth_scale: float | None = None,
         ValueError: the source kind cannot be told or its options are invalid.
     """
     text = str(spec)
-    if text.startswith(PROCEDURAL_PREFIX):
-        if intrinsics is not None or depth_scale is not None:
-            raise ValueError("procedural sources define their own camera and metric depth; "
-                             "intrinsics and depth_scale do not apply")
-        return _procedural(text)
+    for prefix, opener in ((PROCEDURAL_PREFIX, _procedural), (WALL_PREFIX, open_wall_source)):
+        if text.startswith(prefix):
+            if intrinsics is not None or depth_scale is not None:
+                raise ValueError(f"{prefix[:-1]} sources define their own camera and metric "
+                                 "depth; intrinsics and depth_scale do not apply")
+            return opener(text)
     path = Path(spec)
     if path.is_dir():
         return open_rgbd(path, depth_scale=depth_scale, intrinsics=intrinsics)
@@ -71,4 +75,4 @@ def open_source(spec: str | Path, *, depth_scale: float | None = None,
     if path.suffix.lower() == ".json":
         return NYUH5Reader(path, split=split, intrinsics=intrinsics or NYU_INTRINSICS)
     raise ValueError(f"cannot tell what {path} is: expected an RGB-D folder, a NYU .mat, a "
-                     "NYU split .json or 'procedural:<frames>'")
+                     "NYU split .json, 'procedural:<frames>' or 'wall:<metres>'")

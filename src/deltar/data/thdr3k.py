@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.zju_l5 import ZJUL5Sample
 from deltar.io.json_file import read_json, read_split_filenames
 from deltar.sensor.cnh import CNHConfig, zone_frame_from_cnh

@@ -27,7 +27,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.json_file import read_split_filenames
 

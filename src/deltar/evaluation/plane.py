@@ -17,7 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar import camera
+from deltar.camera import CameraIntrinsics, backproject
+
+__all__ = ["Plane", "PlaneMetrics", "backproject", "fit_plane", "pixel_rays", "plane_metrics"]
 
 #: Tukey biweight tuning constant (95 % efficiency for Gaussian noise).
 _TUKEY_C = 4.685
@@ -85,46 +88,11 @@ class PlaneMetrics:
 
 
 def pixel_rays(height: int, width: int, intrinsics: CameraIntrinsics) -> np.ndarray:
-    """Rays ``K^-1 (u, v, 1)`` of every pixel, shape (H, W, 3), z component 1."""
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    return np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
-                     np.ones_like(u)], axis=-1)
+    """Rays ``K^-1 (u, v, 1)`` of every pixel, shape (H, W, 3), z component 1.
 
-
-def _valid_depth(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
-                 mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    depth = np.asarray(depth_m, dtype=np.float64)
-    if depth.ndim != 2:
-        raise ValueError(f"depth_m must be an (H, W) array, got shape {depth.shape}")
-    if np.any(np.isnan(depth)):
-        raise ValueError("depth_m contains NaN; mark invalid pixels with 0")
-    if (intrinsics.height, intrinsics.width) != depth.shape:
-        raise ValueError(f"intrinsics are for {intrinsics.height}x{intrinsics.width} images, "
-                         f"depth_m is {depth.shape[0]}x{depth.shape[1]}")
-    valid = np.isfinite(depth) & (depth > 0)
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != depth.shape:
-            raise ValueError(f"mask must have shape {depth.shape}, got {mask.shape}")
-        valid &= mask
-    return depth, valid
-
-
-def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
-                mask: np.ndarray | None = None) -> np.ndarray:
-    """3D points (camera frame, metres) of the valid pixels of a depth map.
-
-    Args:
-        depth_m: (H, W) depth in metres along the optical axis; 0 = invalid.
-        intrinsics: intrinsics of the (H, W) image.
-        mask: optional (H, W) bool, only pixels where True are used.
-
-    Returns:
-        (N, 3) float64 points (x, y, z), row-major pixel order.
+    :func:`deltar.camera.pixel_rays` with the grid size first.
     """
-    depth, valid = _valid_depth(depth_m, intrinsics, mask)
-    rays = pixel_rays(depth.shape[0], depth.shape[1], intrinsics)
-    return rays[valid] * depth[valid][:, None]
+    return camera.pixel_rays(intrinsics, height, width)
 
 
 def _fit_plane_lsq(points: np.ndarray, weights: np.ndarray) -> Plane:
@@ -221,14 +189,14 @@ def plane_metrics(depth_m: np.ndarray, intrinsics: CameraIntrinsics, *,
         :class:`PlaneMetrics`; inliers are pixels within Tukey's cut-off (4.685 robust
         sigmas) of the plane, the rest are excluded from bias and jitter.
     """
-    depth, valid = _valid_depth(depth_m, intrinsics, mask)
-    count = int(valid.sum())
+    points = backproject(depth_m, intrinsics, mask)
+    count = len(points)
     if count < 3:
         raise ValueError(f"depth_m has {count} valid pixels in the mask; need at least 3")
-    rays = pixel_rays(depth.shape[0], depth.shape[1], intrinsics)[valid]
-    z = depth[valid]
+    z = points[:, 2]
+    rays = points / z[:, None]
     if plane is None:
-        plane, _ = fit_plane(rays * z[:, None], seed=seed)
+        plane, _ = fit_plane(points, seed=seed)
     plane_z = plane.depth_along_rays(rays)
     hits = np.isfinite(plane_z) & (plane_z > 0)
     if not hits.any():

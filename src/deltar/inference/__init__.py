@@ -1,4 +1,10 @@
 """From a real (or simulated) sensor to a depth map: estimator, outputs, record/replay.
 
-Torch is imported only inside functions, so importing this package stays light.
+``load_estimator(source)`` builds an estimator from any model source (bundled name,
+checkpoint, official weights, ONNX file, preset). Torch is imported only inside
+functions, so importing this package stays light.
 """
+
+from deltar.inference.loading import SOURCE_KINDS, load_estimator, resolve_source
+
+__all__ = ["SOURCE_KINDS", "load_estimator", "resolve_source"]

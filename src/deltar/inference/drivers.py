@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.io.zone_file import zone_frame_from_driver_result
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects
 from deltar.sensor.zone_frame import Orientation, ZoneFrame

@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, backproject_pixels
+from deltar.io import ply
 from deltar.io.atomic import atomic_path, write_bytes_atomic
 
 if TYPE_CHECKING:
@@ -127,8 +128,10 @@ def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Back-project a depth map to a coloured point cloud in the camera frame.
 
+    :func:`deltar.camera.backproject_pixels` with the colours of the kept pixels.
+
     Args:
-        depth_m: (H, W) z-depth in metres; pixels that are 0 or not finite are skipped.
+        depth_m: (H, W) z-depth in metres; pixels that are 0 or infinite are skipped.
         intrinsics: intrinsics of the (H, W) image.
         image: optional (H, W, 3) uint8 RGB colours (grey when None).
         stride: keep every ``stride``-th pixel in each direction.
@@ -136,75 +139,36 @@ def depth_to_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
     Returns:
         points (N, 3) float32 metres (x right, y down, z forward) and colours (N, 3) uint8.
     """
-    depth = _check_depth(depth_m)
-    height, width = depth.shape
-    if (intrinsics.height, intrinsics.width) != (height, width):
-        raise ValueError(f"intrinsics are for {intrinsics.height}x{intrinsics.width}, depth "
-                         f"is {height}x{width}")
-    v, u = np.mgrid[0:height:stride, 0:width:stride]
-    z = depth[v, u]
-    keep = np.isfinite(z) & (z > 0)
-    z, u, v = z[keep], u[keep], v[keep]
-    x = (u - intrinsics.cx) / intrinsics.fx * z
-    y = (v - intrinsics.cy) / intrinsics.fy * z
-    points = np.stack([x, y, z], axis=1).astype(np.float32)
+    points, rows, cols = backproject_pixels(_check_depth(depth_m), intrinsics, stride=stride)
     if image is None:
         colors = np.full((points.shape[0], 3), 200, dtype=np.uint8)
     else:
-        colors = np.asarray(image, dtype=np.uint8)[v, u]
-    return points, colors
+        colors = np.asarray(image, dtype=np.uint8)[rows, cols]
+    return points.astype(np.float32), colors
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
               intrinsics: CameraIntrinsics | None = None, *, overwrite: bool = False,
               note: str | None = None) -> Path:
-    """Write a binary little-endian PLY of coloured points (x, y, z float32; r, g, b uchar).
+    """Write a predicted point cloud as binary little-endian PLY (:func:`deltar.io.ply.write_ply`).
 
-    The camera intrinsics, when given, go into a header comment
-    ``comment intrinsics fx fy cx cy width height``; ``note`` into another comment.
+    Args:
+        points: (N, 3) points in metres, camera frame (x right, y down, z forward).
+        colors: (N, 3) uint8 RGB colours.
+        intrinsics: when given, a header comment ``intrinsics fx fy cx cy width height``.
+        note: another header comment (e.g. :data:`IMAGE_ONLY_NOTE`).
     """
-    pts = np.asarray(points, dtype=np.float32)
-    cols = np.asarray(colors, dtype=np.uint8)
-    if pts.ndim != 2 or pts.shape[1] != 3 or cols.shape != pts.shape:
-        raise ValueError(f"points and colors must both be (N, 3), got {pts.shape} and "
-                         f"{cols.shape}")
-    header = ["ply", "format binary_little_endian 1.0", "comment written by deltar",
-              "comment frame camera (x right, y down, z forward), metres"]
+    comments = ["written by deltar", "frame camera (x right, y down, z forward), metres"]
     if intrinsics is not None:
         i = intrinsics
-        header.append(f"comment intrinsics {i.fx!r} {i.fy!r} {i.cx!r} {i.cy!r} {i.width} "
-                      f"{i.height}")
+        comments.append(f"intrinsics {i.fx!r} {i.fy!r} {i.cx!r} {i.cy!r} {i.width} {i.height}")
     if note:
-        header.append(f"comment {' '.join(note.split())}")
-    header += [f"element vertex {pts.shape[0]}", "property float x", "property float y",
-               "property float z", "property uchar red", "property uchar green",
-               "property uchar blue", "end_header"]
-    vertex = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                       ("green", "u1"), ("blue", "u1")])
-    rows = np.empty(pts.shape[0], dtype=vertex)
-    rows["x"], rows["y"], rows["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-    rows["red"], rows["green"], rows["blue"] = cols[:, 0], cols[:, 1], cols[:, 2]
-    data = ("\n".join(header) + "\n").encode("ascii") + rows.tobytes()
-    return write_bytes_atomic(path, data, overwrite=overwrite)
+        comments.append(note)
+    return ply.write_ply(path, points, colors, comments=comments, overwrite=overwrite)
 
 
-def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Read a PLY written by :func:`write_ply`: points (N, 3), colours (N, 3), comments."""
-    raw = Path(path).read_bytes()
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
-        raise ValueError(f"{path}: not a PLY file")
-    lines = raw[:end].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise ValueError(f"{path}: not a binary little-endian PLY")
-    count = next(int(line.split()[2]) for line in lines if line.startswith("element vertex"))
-    vertex = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                       ("green", "u1"), ("blue", "u1")])
-    rows = np.frombuffer(raw[end + len(b"end_header\n"):], dtype=vertex, count=count)
-    points = np.stack([rows["x"], rows["y"], rows["z"]], axis=1)
-    colors = np.stack([rows["red"], rows["green"], rows["blue"]], axis=1)
-    comments = [line[len("comment "):] for line in lines if line.startswith("comment ")]
-    return points, colors, comments
+#: Reads a PLY point cloud: ``points (N, 3), colors (N, 3), comments`` (alias).
+read_ply = ply.read_ply
 
 
 def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPrediction, *,

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.io.recording import RecordingMeta, RecordingWriter
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 

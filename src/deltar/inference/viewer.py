@@ -32,8 +32,8 @@ import numpy as np
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_angles_deg
 
 if TYPE_CHECKING:
-    from deltar.calibration.camera import CameraIntrinsics
     from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
     from deltar.inference.estimator import DepthPrediction
     from deltar.sensor.zone_frame import ZoneFrame
 

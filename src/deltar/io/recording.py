@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.json_file import read_json
 from deltar.io.zone_file import zone_frame_from_dict, zone_frame_to_dict

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.io.recording import nearest_in_time
 from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 
 #: DELTAR's sensor model: 45 x 45 degrees split evenly into the zone grid.
 DEFAULT_FOV_DEG: tuple[float, float] = (45.0, 45.0)

@@ -13,16 +13,17 @@ from deltar.cli.main import app
 from deltar.data.zju_l5 import write_zju_l5
 from deltar.evaluation.baselines import BASELINES
 from deltar.evaluation.metrics import METRIC_KEYS
-
-from .samples import make_sample
+from tests.evaluation.samples import make_sample
 
 # A wide terminal keeps rich from wrapping the table title.
 runner = CliRunner(env={"COLUMNS": "200"})
 
 
 @pytest.fixture
-def data_json(tmp_path: Path, tiny_samples) -> Path:
-    return write_zju_l5(tmp_path / "set", tiny_samples)
+def data_json(tmp_path: Path) -> Path:
+    samples = [make_sample("scene_a/0001", 0), make_sample("scene_a/0002", 1),
+               make_sample("scene_b/0001", 2)]
+    return write_zju_l5(tmp_path / "set", samples)
 
 
 def test_all_methods_table_and_json(data_json: Path, tmp_path: Path) -> None:

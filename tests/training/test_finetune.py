@@ -1,20 +1,15 @@
-"""Fine-tuning on ZJU-L5-layout data from earlier weights, and the ``deltar train`` CLI."""
+"""Fine-tuning on ZJU-L5-layout data from earlier weights (the CLI: tests/cli/test_train.py)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import torch
-from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
 from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
 from deltar.models import create_model
 from deltar.training.module import export_model
 from deltar.training.run import build_system, read_history, train
 
-TINY_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
 TINY_MODEL = {"decoder_channels": [32, 32, 16, 16, 8], "head_channels": 16, "n_bins": 16,
               "head": "bins",
               "design_size": [64, 96]}
@@ -68,35 +63,3 @@ def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_conf
         assert "do not fit the configured model" in str(err)
     else:
         raise AssertionError("mismatching weights were accepted")
-
-
-def _cli(*args):
-    _register_commands()
-    return CliRunner().invoke(app, ["train", *args])
-
-
-def test_cli_prints_the_resolved_config():
-    result = _cli("--config", str(TINY_CONFIG), "-o", "optim.lr=5e-4", "--print-config")
-    assert result.exit_code == 0, result.output
-    assert "lr: 0.0005" in result.output
-
-
-def test_cli_rejects_unknown_override_keys():
-    result = _cli("--config", str(TINY_CONFIG), "-o", "optim.learning_rate=1")
-    assert result.exit_code == 2
-    assert "optim.learning_rate" in result.output
-
-
-def test_cli_resume_takes_no_other_config(tmp_path):
-    result = _cli("--resume", str(tmp_path), "--config", str(TINY_CONFIG))
-    assert result.exit_code == 2
-    assert "--resume" in result.output
-
-
-def test_cli_reports_missing_data_without_a_traceback(tmp_path):
-    missing = tmp_path / "no_such_folder"
-    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"),
-                  "-o", "data.sources.0.kind=rgbd", "-o", f"data.sources.0.path={missing}")
-    assert result.exit_code == 1
-    assert str(missing) in result.output
-    assert not (tmp_path / "run" / "config.yaml").exists()

@@ -1,39 +1,17 @@
-"""Flat-wall scenes and the wall test (hand-computed bias from the 4 cm simulator bins)."""
+"""The wall test (hand-computed bias from the 4 cm simulator bins)."""
 
 from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
-from deltar.evaluation.plane import backproject
+from deltar.data.flat_wall import FlatWallSource
+from deltar.evaluation.wall_test import evaluate_recording, wall_test, write_results
 from deltar.inference.drivers import SimulatedRig
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.record import record
-from deltar.inference.wall_test import (
-    FlatWallSource,
-    evaluate_recording,
-    flat_wall_frame,
-    wall_test,
-    write_results,
-)
 from tests.inference.fakes import ZonePainterNet
-
-
-def test_flat_wall_frame_geometry():
-    frame = flat_wall_frame(2.0, 31, 41)
-    assert frame.depth_m[15, 20] == pytest.approx(2.0)  # the principal point's ray
-    np.testing.assert_allclose(frame.depth_m, 2.0, atol=1e-6)  # fronto-parallel
-    tilted = flat_wall_frame(2.0, 31, 41, tilt_deg=20.0)
-    assert tilted.depth_m[15, 20] == pytest.approx(2.0, abs=1e-6)
-    points = backproject(tilted.depth_m, tilted.intrinsics)
-    centred = points - points.mean(0)
-    normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
-    assert np.abs(centred @ normal).max() < 1e-5  # all points on one plane
-    assert abs(abs(normal[0]) - np.sin(np.deg2rad(20.0))) < 1e-4
-    with pytest.raises(ValueError, match="distance_m"):
-        flat_wall_frame(0.0)
 
 
 def _recording(folder, distance):

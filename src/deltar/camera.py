@@ -1,0 +1,155 @@
+"""The colour camera: pinhole intrinsics and depth back-projection.
+
+A leaf module (it imports nothing of deltar's own), so every package can use it.
+Conventions: pixel centres sit at integer coordinates (``u`` = column, ``v`` = row);
+the camera frame is x right, y down, z forward; depth is z-depth (along the optical
+axis) in metres, and 0 marks an invalid pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of the colour camera, in pixels.
+
+    Attributes:
+        fx, fy: focal lengths in pixels.
+        cx, cy: principal point in pixels (pixel centres at integer coordinates).
+        width, height: image size in pixels the intrinsics refer to.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise ValueError(f"CameraIntrinsics.{name} must be finite, got {value}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"CameraIntrinsics focal lengths must be > 0, got fx={self.fx}, "
+                             f"fy={self.fy}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"CameraIntrinsics size must be positive, got "
+                             f"{self.width}x{self.height}")
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 matrix K (float64)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, height: int, width: int) -> CameraIntrinsics:
+        """Intrinsics for the same camera with the image resized to ``height`` x ``width``."""
+        sx, sy = width / self.width, height / self.height
+        # Pixel centres sit at integer coordinates, so the principal point scales about -0.5.
+        return CameraIntrinsics(self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5,
+                                (self.cy + 0.5) * sy - 0.5, int(width), int(height))
+
+    def cropped(self, top: int, left: int, height: int, width: int) -> CameraIntrinsics:
+        """Intrinsics of the crop starting at pixel (``top``, ``left``) of size height x width."""
+        return CameraIntrinsics(self.fx, self.fy, self.cx - left, self.cy - top,
+                                int(width), int(height))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> CameraIntrinsics:
+        missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(data)
+        if missing:
+            raise ValueError(f"camera intrinsics are missing keys {sorted(missing)}")
+        return cls(float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
+                   int(data["width"]), int(data["height"]))
+
+
+#: The ZJU-L5 test camera (RealSense D435i colour at 480x640), from the DELTAR paper.
+ZJU_L5_INTRINSICS = CameraIntrinsics(611.2, 609.6, 323.4, 244.9, 640, 480)
+
+
+def _check_depth(depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be an (H, W) array, got shape {depth.shape}")
+    if depth.shape != (intrinsics.height, intrinsics.width):
+        raise ValueError(f"depth_m is {depth.shape[0]}x{depth.shape[1]} pixels but the "
+                         f"intrinsics are for {intrinsics.height}x{intrinsics.width} images")
+    if np.isnan(depth).any():
+        raise ValueError("depth_m contains NaN; mark invalid pixels with 0")
+    return depth
+
+
+def pixel_rays(intrinsics: CameraIntrinsics, height: int | None = None,
+               width: int | None = None) -> np.ndarray:
+    """Rays ``K^-1 (u, v, 1) = ((u - cx) / fx, (v - cy) / fy, 1)`` of a pixel grid.
+
+    Args:
+        intrinsics: camera intrinsics (pixels).
+        height, width: grid size in pixels; the intrinsics' image size by default.
+
+    Returns:
+        (H, W, 3) float64 rays with z component 1, so ``depth * ray`` is the point.
+    """
+    height = intrinsics.height if height is None else int(height)
+    width = intrinsics.width if width is None else int(width)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    return np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
+                     np.ones_like(u)], axis=-1)
+
+
+def backproject_pixels(depth_m: np.ndarray, intrinsics: CameraIntrinsics, *,
+                       mask: np.ndarray | None = None, stride: int = 1
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Back-project the valid pixels of a depth map, with the pixels they come from.
+
+    Args:
+        depth_m: (H, W) z-depth in metres; pixels that are 0, negative or infinite are
+            invalid (skipped); NaN is refused.
+        intrinsics: intrinsics of the (H, W) image.
+        mask: optional (H, W) bool, only pixels where True are used.
+        stride: keep every ``stride``-th row and column (from row and column 0).
+
+    Returns:
+        points (N, 3) float64 in metres (camera frame: x right, y down, z forward),
+        and the (N,) row and column indices of their pixels, in row-major order.
+
+    Raises:
+        ValueError: depth_m is not (H, W) of the intrinsics' size, contains NaN, the
+            mask has another shape or the stride is not a positive integer.
+    """
+    depth = _check_depth(depth_m, intrinsics)
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"stride must be a positive integer, got {stride!r}")
+    valid = np.isfinite(depth) & (depth > 0)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != depth.shape:
+            raise ValueError(f"mask must have shape {depth.shape}, got {mask.shape}")
+        valid &= mask
+    rows, cols = np.nonzero(valid[::stride, ::stride])
+    rows, cols = rows * int(stride), cols * int(stride)
+    z = depth[rows, cols]
+    points = np.stack([(cols - intrinsics.cx) / intrinsics.fx * z,
+                       (rows - intrinsics.cy) / intrinsics.fy * z, z], axis=1)
+    return points, rows, cols
+
+
+def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                mask: np.ndarray | None = None, *, stride: int = 1) -> np.ndarray:
+    """3D points (camera frame, metres) of the valid pixels of a depth map.
+
+    The points of :func:`backproject_pixels` (same arguments and errors).
+
+    Returns:
+        (N, 3) float64 points (x, y, z) in metres, row-major pixel order.
+    """
+    return backproject_pixels(depth_m, intrinsics, mask=mask, stride=stride)[0]

@@ -1,0 +1,175 @@
+"""The model options of ``predict``, ``replay`` and ``wall-test``, defined once.
+
+A command takes one parameter ``model: ModelOptions = MODEL_OPTIONS`` and is decorated with
+:func:`model_options`; the decorator puts the nine options in its place (same names
+and help in every command) and hands the command a :class:`ModelOptions`, whose
+:meth:`~ModelOptions.load` is :func:`deltar.inference.load_estimator`. ``export`` uses
+the three weight options alone (:data:`PresetOption`, ...).
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import warnings
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+if TYPE_CHECKING:
+    from deltar.inference.estimator import DepthEstimator
+
+PresetOption = Annotated[str | None, typer.Option(
+    "--preset", help="Model preset (RANDOM weights: for testing the pipeline only).")]
+CheckpointOption = Annotated[Path | None, typer.Option(
+    "--checkpoint", help="deltar checkpoint (.pt) or a bundled model name; the bundled "
+    "'default' model when no model option is given.")]
+OfficialOption = Annotated[Path | None, typer.Option(
+    "--official", help="Officially released weights (e.g. nyu.pt).")]
+OnnxOption = Annotated[Path | None, typer.Option(
+    "--onnx", help="ONNX model from 'deltar export' (onnxruntime backend).")]
+DeviceOption = Annotated[str, typer.Option(help="Torch device (PyTorch backend).")]
+PrecisionOption = Annotated[str, typer.Option(
+    help="float32, float16 or bfloat16 (PyTorch).")]
+SizeOption = Annotated[str | None, typer.Option(
+    "--size", help="Network input size HxW (multiples of 32); default: the image size "
+    "rounded to multiples of 32.")]
+ThreadsOption = Annotated[int | None, typer.Option(
+    "--threads", min=1, help="CPU threads (torch / onnxruntime).")]
+FlipOption = Annotated[bool, typer.Option(
+    "--flip", help="Test-time flip averaging: also run the mirrored image and zones and "
+    "average (2x network time; PyTorch backends).")]
+
+
+def parse_size(text: str | None, option: str = "--size") -> tuple[int, int] | None:
+    """``"480x640"`` -> (480, 640) pixels; None stays None.
+
+    Raises:
+        typer.BadParameter: not ``<int>x<int>``, naming ``option``.
+    """
+    if text is None:
+        return None
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError as err:
+        raise typer.BadParameter(f"size must look like 480x640, got {text!r}",
+                                 param_hint=option) from err
+    return height, width
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """The model chosen on the command line (the CLI's view of ``load_estimator``)."""
+
+    preset: str | None = None
+    checkpoint: Path | None = None
+    official: Path | None = None
+    onnx: Path | None = None
+    device: str = "cpu"
+    precision: str = "float32"
+    size: str | None = None
+    threads: int | None = None
+    flip: bool = False
+
+    def source(self) -> tuple[str | Path | None, str | None]:
+        """``(source, kind)`` for :func:`~deltar.inference.load_estimator`."""
+        for kind in ("preset", "checkpoint", "official", "onnx"):
+            value = getattr(self, kind)
+            if value is not None:
+                return value, kind
+        return None, None
+
+    def check(self) -> None:
+        """Usage checks that need no model (run before any work).
+
+        Raises:
+            typer.BadParameter: two model options, ``--flip`` with ``--onnx``, an unknown
+                precision or a size that is not a multiple of 32 (exit 2).
+            ValueError: a device this machine does not have (exit 1).
+        """
+        from deltar.inference.estimator import PRECISIONS, SIZE_DIVISOR
+
+        chosen = [f"--{kind}" for kind in ("preset", "checkpoint", "official", "onnx")
+                  if getattr(self, kind) is not None]
+        if len(chosen) > 1:
+            raise typer.BadParameter("give only one of --preset, --checkpoint, --official, "
+                                     f"--onnx (got {chosen})")
+        if self.flip and self.onnx is not None:
+            raise typer.BadParameter("--flip needs a PyTorch model (an ONNX file is fixed "
+                                     "to one zone layout)", param_hint="--flip")
+        if self.precision not in PRECISIONS:
+            raise typer.BadParameter(f"must be one of {', '.join(PRECISIONS)}, got "
+                                     f"{self.precision!r}", param_hint="--precision")
+        size = parse_size(self.size)
+        if size is not None and (min(size) < SIZE_DIVISOR or size[0] % SIZE_DIVISOR
+                                 or size[1] % SIZE_DIVISOR):
+            raise typer.BadParameter(f"must be positive multiples of {SIZE_DIVISOR}, got "
+                                     f"{self.size!r}", param_hint="--size")
+        if self.onnx is None and self.device != "cpu":  # the CPU is there: no torch import
+            from deltar.cli.checks import torch_device
+
+            torch_device(self.device)
+
+    def load(self) -> DepthEstimator:
+        """Check, then build the estimator; a preset's random weights get a warning line."""
+        from deltar.cli.errors import warn
+        from deltar.inference.loading import load_estimator
+
+        self.check()
+        source, kind = self.source()
+        if source is None:
+            from deltar.weights import bundled_model_names
+
+            if "default" not in bundled_model_names():
+                raise typer.BadParameter("this installation has no bundled model; give one "
+                                         "of --preset, --checkpoint, --official, --onnx")
+        with warnings.catch_warnings():
+            if kind == "preset":  # said once, below, in the CLI's words
+                warnings.simplefilter("ignore", UserWarning)
+            estimator = load_estimator(source, kind=kind, device=self.device,
+                                       precision=self.precision,
+                                       input_size=parse_size(self.size),
+                                       threads=self.threads, flip_average=self.flip)
+        if kind == "preset":
+            warn(f"preset {self.preset!r} has random, untrained weights: its depth is "
+                 "meaningless")
+        return estimator
+
+
+#: Placeholder default of a command's ``model`` parameter (the decorator replaces it).
+MODEL_OPTIONS = ModelOptions()
+
+#: The typer parameters that stand for a ``model: ModelOptions`` parameter.
+_OPTION_TYPES = {"preset": PresetOption, "checkpoint": CheckpointOption,
+                 "official": OfficialOption, "onnx": OnnxOption, "device": DeviceOption,
+                 "precision": PrecisionOption, "size": SizeOption, "threads": ThreadsOption,
+                 "flip": FlipOption}
+_PARAMETERS = [inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                 default=f.default, annotation=_OPTION_TYPES[f.name])
+               for f in fields(ModelOptions)]
+
+
+def model_options(command):
+    """Replace the command's ``model: ModelOptions`` parameter by the nine model options.
+
+    The options appear where ``model`` stands in the signature; the command receives
+    ``model=ModelOptions(...)``.
+    """
+    signature = inspect.signature(command, eval_str=True)
+    params = list(signature.parameters.values())
+    names = [p.name for p in params]
+    if "model" not in names:
+        raise TypeError(f"{command.__name__} has no 'model' parameter")
+    at = names.index("model")
+    params[at:at + 1] = _PARAMETERS
+
+    @functools.wraps(command)
+    def wrapper(**kwargs):
+        model = ModelOptions(**{p.name: kwargs.pop(p.name) for p in _PARAMETERS})
+        return command(model=model, **kwargs)
+
+    wrapper.__signature__ = signature.replace(parameters=params)
+    wrapper.__annotations__ = {p.name: p.annotation for p in params}
+    return wrapper

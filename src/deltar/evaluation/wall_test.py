@@ -1,0 +1,161 @@
+"""Flat-wall test: bias and jitter of predicted depth on recordings of a flat wall.
+
+For each recording (the rig facing a flat wall at one distance), every replayed frame
+is compared with a plane: the plane fitted robustly to the recording's reference
+depth when it has one (simulated rigs, or a depth camera), else to the evaluated
+depth map itself (then bias measures how far from flat the map is). Both the
+network's depth and the raw sensor (each valid zone's mean painted over its pixels)
+are evaluated on the same pixels, those covered by valid zones, with
+:func:`deltar.evaluation.plane.plane_metrics` (bias = mean absolute error to the plane,
+jitter = standard deviation of the signed error, inliers only). Per recording the
+frame values are averaged; the distance is the median of the valid zone means.
+
+Flat-wall scenes to record (simulated rigs) are :mod:`deltar.data.flat_wall`.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from deltar.camera import backproject
+from deltar.evaluation.plane import fit_plane, plane_metrics
+from deltar.inference.estimator import zone_mean_depth
+from deltar.inference.replay import replay
+from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.sensor.geometry import zone_rects_to_pixel_bounds
+
+if TYPE_CHECKING:
+    from deltar.calibration.rig import RigCalibration
+    from deltar.inference.estimator import DepthEstimator
+
+METHODS = ("network", "zones")
+
+
+@dataclass
+class WallResult:
+    """Flat-wall numbers of one recording (metres).
+
+    Attributes:
+        recording: the recording folder.
+        distance_m: median valid zone mean over the recording.
+        frames: frames evaluated.
+        reference: ``"depth"`` (plane from the recorded depth) or ``"self"``.
+        network_bias_m, network_jitter_m: the estimator's depth.
+        zones_bias_m, zones_jitter_m: the raw zone means.
+    """
+
+    recording: str
+    distance_m: float
+    frames: int
+    reference: str
+    network_bias_m: float
+    network_jitter_m: float
+    zones_bias_m: float
+    zones_jitter_m: float
+
+
+def evaluate_recording(recording: str | os.PathLike, estimator: DepthEstimator, *,
+                       calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
+                       every: int = 1, limit: int | None = None) -> WallResult:
+    """Flat-wall bias and jitter of one recording (see the module docstring).
+
+    Raises:
+        ValueError: no frame could be evaluated (no valid zones, no pairs).
+    """
+
+    values: dict[str, list[tuple[float, float]]] = {m: [] for m in METHODS}
+    distances: list[float] = []
+    reference_kind = "self"
+    for item in replay(recording, estimator, calibration=calibration,
+                       tolerance_s=tolerance_s, every=every, limit=limit):
+        pred = item.prediction
+        size = pred.depth_m.shape
+        mean, _, valid = pred.zone_frame.flat()
+        if not valid.any():
+            continue
+        mask = np.zeros(size, dtype=bool)
+        for y0, x0, y1, x1 in zone_rects_to_pixel_bounds(pred.zone_rects[valid], *size):
+            mask[y0:y1, x0:x1] = True
+        plane = None
+        if item.reference_depth_m is not None and (item.reference_depth_m[mask] > 0).sum() >= 3:
+            plane, _ = fit_plane(backproject(item.reference_depth_m, pred.intrinsics, mask))
+            reference_kind = "depth"
+        zones_map = zone_mean_depth(pred.zone_frame, pred.zone_rects, size)
+        for method, depth in (("network", pred.depth_m), ("zones", zones_map)):
+            metrics = plane_metrics(depth, pred.intrinsics, plane=plane, mask=mask)
+            values[method].append((metrics.bias_m, metrics.jitter_m))
+        distances.append(float(np.median(mean[valid])))
+    if not distances:
+        raise ValueError(f"{recording}: no frame with valid zones and a colour image to "
+                         "evaluate")
+    net = np.mean(values["network"], axis=0)
+    zones = np.mean(values["zones"], axis=0)
+    return WallResult(recording=str(recording), distance_m=float(np.median(distances)),
+                      frames=len(distances), reference=reference_kind,
+                      network_bias_m=float(net[0]), network_jitter_m=float(net[1]),
+                      zones_bias_m=float(zones[0]), zones_jitter_m=float(zones[1]))
+
+
+def wall_test(recordings: Sequence[str | os.PathLike], estimator: DepthEstimator,
+              **kwargs) -> list[WallResult]:
+    """:func:`evaluate_recording` for each recording, sorted by distance."""
+    if not recordings:
+        raise ValueError("give at least one recording")
+    results = [evaluate_recording(r, estimator, **kwargs) for r in recordings]
+    return sorted(results, key=lambda r: r.distance_m)
+
+
+def write_results(out_dir: str | os.PathLike, results: Sequence[WallResult], *,
+                  title: str = "", overwrite: bool = False) -> dict[str, Path]:
+    """Write ``wall_test.json``, ``wall_test.csv`` and the plot ``wall_test.png``.
+
+    Returns:
+        dict kind ("json", "csv", "plot") -> path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    rows = [asdict(r) for r in results]
+    paths = {"json": out / "wall_test.json", "csv": out / "wall_test.csv",
+             "plot": out / "wall_test.png"}
+    write_text_atomic(paths["json"], json.dumps({"title": title, "results": rows}, indent=2)
+                      + "\n", overwrite=overwrite)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["recording"])
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(paths["csv"], buffer.getvalue(), overwrite=overwrite)
+
+    distance = [r.distance_m for r in results]
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    try:
+        for ax, key, label in ((axes[0], "bias", "bias (mean |error|)"),
+                               (axes[1], "jitter", "jitter (std of error)")):
+            for method, marker in (("network", "o-"), ("zones", "s--")):
+                ax.plot(distance, [1000 * getattr(r, f"{method}_{key}_m") for r in results],
+                        marker, label=method)
+            ax.set_xlabel("distance to wall (m)")
+            ax.set_ylabel("mm")
+            ax.set_title(label)
+            ax.grid(alpha=0.3)
+            ax.legend()
+        if title:
+            fig.suptitle(title)
+        fig.tight_layout()
+        with atomic_path(paths["plot"], overwrite=overwrite) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
+    finally:
+        plt.close(fig)
+    return paths

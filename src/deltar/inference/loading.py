@@ -1,0 +1,149 @@
+"""Load a depth estimator from one name or file: :func:`load_estimator`.
+
+The one call behind every ``deltar`` command that runs a model (``predict``, ``replay``,
+``wall-test``, ``export``); it builds the estimator with the public constructors of
+:class:`~deltar.inference.estimator.DepthEstimator`.
+
+A model source is one of (``kind``):
+
+- ``"bundled"``: a model shipped with the package, by name (``"default"``, see
+  :mod:`deltar.weights`); ``source=None`` means the bundled ``"default"``;
+- ``"checkpoint"``: a deltar checkpoint file (``.pt``: a training run's ``model.pt`` or
+  a packaged model; see :mod:`deltar.models.checkpoint`), or a bundled name;
+- ``"official"``: the officially released DELTAR weights (e.g. ``nyu.pt``);
+- ``"onnx"``: an ONNX file written by ``deltar export`` (onnxruntime, CPU, float32);
+- ``"preset"``: a :func:`~deltar.models.create_model` preset with RANDOM weights
+  (pipeline tests and timing only; a ``UserWarning`` says so).
+
+Without ``kind`` the source is told apart in this order: None or a bundled name, an
+existing ``.onnx`` file, another existing file (a checkpoint), a preset name. Official
+weights are files too, so they need ``kind="official"``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from deltar.inference.estimator import PRECISIONS, SIZE_DIVISOR, DepthEstimator
+from deltar.weights import BUNDLED_MODELS, bundled_model_names
+
+#: The kinds of model source :func:`load_estimator` accepts.
+SOURCE_KINDS = ("bundled", "checkpoint", "official", "onnx", "preset")
+#: The bundled model used when no source is given.
+DEFAULT_MODEL = "default"
+
+
+def resolve_source(source: str | os.PathLike | None = None, kind: str | None = None
+                   ) -> tuple[str, str]:
+    """The kind and the name or path of a model source, loading nothing.
+
+    Args:
+        source: a bundled name, a file path or a preset name; None: the bundled default.
+        kind: one of :data:`SOURCE_KINDS`, or None to tell it from ``source``.
+
+    Returns:
+        ``(kind, source)`` with ``source`` as text (a path or a name).
+
+    Raises:
+        ValueError: an unknown ``kind``, or ``kind`` given without a source (other than
+            ``"bundled"``), or a Lightning ``.ckpt`` (package it first).
+        FileNotFoundError: no bundled model in this installation for ``source=None``, or
+            a source that is neither a bundled model, an existing file nor a preset.
+    """
+    if kind is not None and kind not in SOURCE_KINDS:
+        raise ValueError(f"kind must be one of {', '.join(SOURCE_KINDS)}, got {kind!r}")
+    if source is None:
+        if kind not in (None, "bundled"):
+            raise ValueError(f"kind={kind!r} needs a source (a file or a name)")
+        if DEFAULT_MODEL not in bundled_model_names():
+            raise FileNotFoundError("this installation has no bundled model; give a "
+                                    "checkpoint, official weights, an ONNX file or a preset")
+        return "bundled", DEFAULT_MODEL
+    text = os.fspath(source)
+    if Path(text).suffix.lower() == ".ckpt" and kind in (None, "checkpoint"):
+        raise ValueError(f"{text} is a Lightning training checkpoint; use the run's model.pt "
+                         "or package it (deltar.training.package.package_checkpoint)")
+    if kind is not None:
+        return kind, text
+    if text in BUNDLED_MODELS:
+        return "bundled", text
+    path = Path(text)
+    if path.is_file():
+        return ("onnx" if path.suffix.lower() == ".onnx" else "checkpoint"), text
+    from deltar.models import list_presets  # imports torch: only when needed
+
+    if text in list_presets():
+        return "preset", text
+    raise FileNotFoundError(f"model {text!r} is not a bundled model "
+                            f"({', '.join(BUNDLED_MODELS)}), an existing file or a preset "
+                            f"({', '.join(list_presets())})")
+
+
+def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None = None,
+                   device: str = "cpu", precision: str = "float32",
+                   input_size: tuple[int, int] | None = None, threads: int | None = None,
+                   flip_average: bool = False, **estimator_kwargs: Any) -> DepthEstimator:
+    """A :class:`~deltar.inference.estimator.DepthEstimator` from any model source.
+
+    Args:
+        source: a bundled model name, a checkpoint / official-weights / ONNX file, or a
+            preset name; None: the bundled ``"default"`` model (see the module docstring).
+        kind: one of :data:`SOURCE_KINDS`; None tells it from ``source``.
+        device: torch device of the PyTorch backends (``"cpu"``, ``"cuda"``, ...); the
+            ONNX backend always runs on the CPU.
+        precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backends; ONNX
+            runs in float32 only).
+        input_size: fixed network input (height, width) in pixels, multiples of 32; None:
+            the estimator's default for the weights (a checkpoint's design size).
+        threads: CPU threads; sets torch's thread count for the process and the
+            onnxruntime session's. None leaves both at their defaults.
+        flip_average: test-time flip averaging (PyTorch backends only).
+        estimator_kwargs: further :class:`DepthEstimator` arguments (``intrinsics``,
+            ``fov_deg``, ``sampling``, ``max_range_m``, ...).
+
+    Returns:
+        The estimator, ready for ``predict``; ``estimator.weights`` says what was loaded.
+
+    Raises:
+        ValueError: bad arguments (unknown kind or precision, a size not a multiple of
+            32, flip averaging with ONNX) or weights that do not load; messages name the
+            argument or file.
+        FileNotFoundError: a missing file or an unknown name.
+    """
+    kind, text = resolve_source(source, kind)
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if input_size is not None:
+        height, width = (int(v) for v in input_size)
+        if min(height, width) < SIZE_DIVISOR or height % SIZE_DIVISOR or width % SIZE_DIVISOR:
+            raise ValueError(f"input_size must be positive multiples of {SIZE_DIVISOR}, got "
+                             f"{tuple(input_size)}")
+        input_size = (height, width)
+    if threads is not None:
+        if int(threads) < 1:
+            raise ValueError(f"threads must be >= 1, got {threads!r}")
+        import torch
+
+        torch.set_num_threads(int(threads))
+    kwargs: dict[str, Any] = {"input_size": input_size, **estimator_kwargs}
+    if flip_average:
+        kwargs["flip_average"] = True
+    if kind == "onnx":
+        if flip_average:
+            raise ValueError("flip_average needs a PyTorch model (an ONNX file is fixed to "
+                             "one zone layout)")
+        return DepthEstimator.from_onnx(text, num_threads=threads, precision=precision,
+                                        **kwargs)
+    kwargs.update(device=device, precision=precision)
+    if kind == "bundled":
+        if text not in BUNDLED_MODELS:
+            raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
+                                    f"{', '.join(BUNDLED_MODELS)}")
+        return DepthEstimator.from_checkpoint(text, **kwargs)
+    if kind == "checkpoint":
+        return DepthEstimator.from_checkpoint(text, **kwargs)
+    if kind == "official":
+        return DepthEstimator.from_official(text, **kwargs)
+    return DepthEstimator.from_preset(text, **kwargs)

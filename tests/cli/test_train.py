@@ -1,0 +1,40 @@
+"""The ``deltar train`` command: config printing, override and resume checks, errors."""
+
+from __future__ import annotations
+
+from typer.testing import CliRunner
+
+from deltar.cli.main import _register_commands, app
+from tests.training.conftest import TINY_CONFIG
+
+
+def _cli(*args):
+    _register_commands()
+    return CliRunner().invoke(app, ["train", *args])
+
+
+def test_cli_prints_the_resolved_config():
+    result = _cli("--config", str(TINY_CONFIG), "-o", "optim.lr=5e-4", "--print-config")
+    assert result.exit_code == 0, result.output
+    assert "lr: 0.0005" in result.output
+
+
+def test_cli_rejects_unknown_override_keys():
+    result = _cli("--config", str(TINY_CONFIG), "-o", "optim.learning_rate=1")
+    assert result.exit_code == 2
+    assert "optim.learning_rate" in result.output
+
+
+def test_cli_resume_takes_no_other_config(tmp_path):
+    result = _cli("--resume", str(tmp_path), "--config", str(TINY_CONFIG))
+    assert result.exit_code == 2
+    assert "--resume" in result.output
+
+
+def test_cli_reports_missing_data_without_a_traceback(tmp_path):
+    missing = tmp_path / "no_such_folder"
+    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"),
+                  "-o", "data.sources.0.kind=rgbd", "-o", f"data.sources.0.path={missing}")
+    assert result.exit_code == 1
+    assert str(missing) in result.output
+    assert not (tmp_path / "run" / "config.yaml").exists()

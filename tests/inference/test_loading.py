@@ -1,0 +1,93 @@
+"""load_estimator: one call for every model source the CLI offers."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from deltar.inference import load_estimator, resolve_source
+from deltar.inference.estimator import DepthEstimator
+from deltar.models import create_model
+from deltar.models.checkpoint import save_checkpoint
+from deltar.sensor.zone_frame import ZoneFrame
+from deltar.weights import resolve_checkpoint
+
+
+def test_sources_are_told_apart(tmp_path):
+    for name in ("model.onnx", "model.pt"):
+        (tmp_path / name).write_bytes(b"")
+    assert resolve_source() == ("bundled", "default")
+    assert resolve_source("default") == ("bundled", "default")
+    assert resolve_source(tmp_path / "model.onnx") == ("onnx", str(tmp_path / "model.onnx"))
+    assert resolve_source(tmp_path / "model.pt") == ("checkpoint", str(tmp_path / "model.pt"))
+    assert resolve_source("deltar-lite") == ("preset", "deltar-lite")
+    assert resolve_source("nyu.pt", kind="official") == ("official", "nyu.pt")
+
+
+@pytest.mark.parametrize(("source", "kind", "error", "message"), [
+    ("nothing-here", None, FileNotFoundError, "'nothing-here' is not a bundled model "
+     r"\(default\), an existing file or a preset \(.*deltar-lite"),
+    ("run/last.ckpt", None, ValueError, "last.ckpt is a Lightning training checkpoint"),
+    ("default", "weights", ValueError, "kind must be one of bundled, checkpoint"),
+    (None, "onnx", ValueError, "kind='onnx' needs a source"),
+])
+def test_bad_sources_name_the_source(source, kind, error, message):
+    with pytest.raises(error, match=message):
+        resolve_source(source, kind)
+
+
+def test_bundled_default_and_its_file_as_a_checkpoint():
+    bundled = load_estimator()
+    assert isinstance(bundled, DepthEstimator) and "default" in bundled.weights
+    from_file = load_estimator(resolve_checkpoint("default"), input_size=(64, 96))
+    assert from_file.input_size == (64, 96)
+    assert bundled.input_size == tuple(bundled.model.config["design_size"])
+
+
+def test_checkpoint_predicts_like_the_constructor(tmp_path):
+    # A model of its own: estimators fold the batch norms of the model they are given.
+    torch.manual_seed(0)
+    path = tmp_path / "lite.pt"
+    save_checkpoint(path, create_model("deltar-lite", design_size=(64, 96)), "deltar-lite")
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    frame = ZoneFrame(rng.uniform(1, 3, (8, 8)), np.full((8, 8), 0.03), np.ones((8, 8), bool))
+    loaded = load_estimator(path, kind="checkpoint", flip_average=True)
+    direct = DepthEstimator.from_checkpoint(path, flip_average=True)
+    np.testing.assert_array_equal(loaded.predict(image, frame).depth_m,
+                                  direct.predict(image, frame).depth_m)
+    assert loaded.flip_average
+
+
+def test_preset_warns_and_threads_are_set():
+    before = torch.get_num_threads()
+    try:
+        with pytest.warns(UserWarning, match="random, untrained weights"):
+            estimator = load_estimator("deltar-lite", threads=1, input_size=(64, 64))
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+    assert estimator.weights == "deltar-lite (random weights)"
+    assert estimator.input_size == (64, 64)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"precision": "float8"}, "precision must be one of float32, float16, bfloat16"),
+    ({"input_size": (60, 64)}, r"input_size must be positive multiples of 32, got \(60, 64\)"),
+    ({"threads": 0}, "threads must be >= 1"),
+])
+def test_bad_arguments_name_the_argument(kwargs, message):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        with pytest.raises(ValueError, match=message):
+            load_estimator("deltar-lite", **kwargs)
+
+
+def test_onnx_refuses_flip_and_official_needs_the_file(tmp_path):
+    with pytest.raises(ValueError, match="flip_average needs a PyTorch model"):
+        load_estimator(tmp_path / "m.onnx", kind="onnx", flip_average=True)
+    with pytest.raises(FileNotFoundError, match="official weights not found"):
+        load_estimator(tmp_path / "nyu.pt", kind="official")

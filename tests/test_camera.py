@@ -1,0 +1,64 @@
+"""deltar.camera: the one back-projection and its aliases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deltar.camera import CameraIntrinsics, backproject, backproject_pixels, pixel_rays
+
+K = CameraIntrinsics(2.0, 4.0, 0.5, 0.5, 3, 2)
+
+
+def test_backproject_by_hand_skips_invalid_pixels():
+    depth = np.array([[1.0, 0.0, np.inf], [2.0, -1.0, 4.0]])
+    points, rows, cols = backproject_pixels(depth, K)
+    # Pixel (u, v) = (0, 0) at 1 m: x = (0 - 0.5) / 2, y = (0 - 0.5) / 4.
+    np.testing.assert_allclose(points, [[-0.25, -0.125, 1.0], [-0.5, 0.25, 2.0],
+                                        [3.0, 0.5, 4.0]])
+    assert rows.tolist() == [0, 1, 1] and cols.tolist() == [0, 0, 2]
+
+
+def test_points_lie_on_the_pixel_rays():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 3.0, (2, 3))
+    rays = pixel_rays(K)
+    np.testing.assert_allclose(backproject(depth, K), (rays * depth[..., None]).reshape(-1, 3))
+    assert pixel_rays(K, 4, 5).shape == (4, 5, 3)
+
+
+def test_mask_and_stride_select_pixels():
+    depth = np.ones((2, 3))
+    mask = np.array([[True, False, True], [False, False, True]])
+    assert len(backproject(depth, K, mask)) == 3
+    _, rows, cols = backproject_pixels(depth, K, stride=2)
+    assert list(zip(rows.tolist(), cols.tolist(), strict=True)) == [(0, 0), (0, 2)]
+
+
+@pytest.mark.parametrize(("depth", "kwargs", "message"), [
+    (np.ones((3, 3)), {}, "depth_m is 3x3 pixels but the intrinsics are for 2x3"),
+    (np.ones(6), {}, r"depth_m must be an \(H, W\) array"),
+    (np.full((2, 3), np.nan), {}, "NaN"),
+    (np.ones((2, 3)), {"mask": np.ones((2, 2), bool)}, "mask must have shape"),
+    (np.ones((2, 3)), {"stride": 0}, "stride must be a positive integer"),
+])
+def test_bad_input_names_the_argument(depth, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        backproject_pixels(depth, K, **kwargs)
+
+
+def test_old_paths_are_the_same_functions():
+    from deltar.calibration import CameraIntrinsics as from_calibration
+    from deltar.calibration.camera import ZJU_L5_INTRINSICS
+    from deltar.calibration.extrinsic import depth_to_points
+    from deltar.camera import ZJU_L5_INTRINSICS as leaf_intrinsics
+    from deltar.evaluation.plane import backproject as evaluation_backproject
+    from deltar.inference.outputs import depth_to_points as cloud_points
+
+    assert from_calibration is CameraIntrinsics and ZJU_L5_INTRINSICS is leaf_intrinsics
+    assert evaluation_backproject is backproject
+    depth = np.array([[1.0, 0.0, 2.0], [3.0, 4.0, 5.0]])
+    np.testing.assert_array_equal(depth_to_points(depth, K), backproject(depth, K))
+    points, colors = cloud_points(depth, K)
+    np.testing.assert_allclose(points, backproject(depth, K), rtol=1e-6)
+    assert points.dtype == np.float32 and colors.shape == (5, 3)
