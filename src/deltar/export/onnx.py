@@ -8,15 +8,9 @@ at export). The signature is stored in the model's metadata and checked before
 every run, so a layout that does not fit raises a clear error instead of giving
 wrong depth. The nominal geometry at a fixed image size always fits.
 
-Two details of the export:
-
-* ``aten::trunc`` (used to locate the zone window) has no ONNX symbolic in the
-  TorchScript exporter; it is written as ``sign(x) * floor(|x|)``.
-* The resampling matrices are built with an in-place ``index_add_`` on a view, which
-  the tracer drops (the matrices came out as constant zeros). During export they are
-  built with an equivalent one-hot product instead (same values).
-* PyTorch's fused transformer-encoder fast path (mViT head) is switched off during
-  export; it has no ONNX equivalent.
+The network is traced on its own traceable path
+(:meth:`~deltar.models.DeltarNet.set_traceable`: same outputs, operators the tracer
+records); nothing is patched here.
 """
 
 from __future__ import annotations
@@ -72,45 +66,15 @@ def _signature_fits(signature: list[dict], exported: list[dict]) -> bool:
                for s, e in zip(signature, exported, strict=True))
 
 
-def _onehot_scatter_rows(rows: int, cols: int, row_index: torch.Tensor,
-                         col_index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Traceable twin of ``zone_patches._scatter_rows``: (B, rows, cols) matrix.
-
-    Adds ``weight[b, j]`` at ``(row_index[b, j], col_index[b, j])``; indices outside the
-    matrix contribute nothing.
-    """
-    import torch
-
-    row_hot = (row_index[..., None] == torch.arange(rows, device=weight.device))
-    col_hot = (col_index[..., None] == torch.arange(cols, device=weight.device))
-    return torch.einsum("bj,bjr,bjc->brc", weight, row_hot.to(weight.dtype),
-                        col_hot.to(weight.dtype))
-
-
-def _trunc_symbolic(g, x):
-    return g.op("Mul", g.op("Sign", x), g.op("Floor", g.op("Abs", x)))
-
-
 @contextlib.contextmanager
-def _exportable_model_ops() -> Iterator[None]:
-    """Swap in traceable resampling and register ``trunc`` for the export only."""
-    import torch
-
-    from deltar.models import zone_patches
-
-    torch.onnx.register_custom_op_symbolic("aten::trunc", _trunc_symbolic, OPSET)
-    original = zone_patches._scatter_rows
-    zone_patches._scatter_rows = _onehot_scatter_rows
-    # The fused transformer-encoder kernel (used by the mViT head in eval mode) has no
-    # ONNX symbolic; the plain path computes the same.
-    fastpath = torch.backends.mha.get_fastpath_enabled()
-    torch.backends.mha.set_fastpath_enabled(False)
+def _traceable(model: DeltarNet) -> Iterator[None]:
+    """The model on its traceable path for the export, then back as it was."""
+    previous = model.traceable
+    model.set_traceable(True)
     try:
         yield
     finally:
-        torch.backends.mha.set_fastpath_enabled(fastpath)
-        zone_patches._scatter_rows = original
-        torch.onnx.unregister_custom_op_symbolic("aten::trunc", OPSET)
+        model.set_traceable(previous)
 
 
 def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
@@ -200,7 +164,7 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     grid = round(inputs[2].shape[1] ** 0.5)
     signature = layout_signature(inputs[2].numpy(), grid)
     dynamic = {name: {0: "batch"} for name in (*INPUT_NAMES, *OUTPUT_NAMES)}
-    with atomic_path(path, overwrite=overwrite) as tmp, _exportable_model_ops(), \
+    with atomic_path(path, overwrite=overwrite) as tmp, _traceable(model), \
             torch.no_grad(), _quiet_tracer():
         torch.onnx.export(_tuple_outputs(model), inputs, str(tmp), input_names=list(INPUT_NAMES),
                           output_names=list(OUTPUT_NAMES), dynamic_axes=dynamic,

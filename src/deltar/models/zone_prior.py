@@ -14,7 +14,7 @@ import math
 import torch
 from torch import nn
 
-from deltar.models.heads import softmax_moments
+from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs, softmax_moments
 
 #: Depth (metres) used where no zone of the frame is valid.
 NO_ZONE_PRIOR_DEPTH = 2.0
@@ -99,7 +99,7 @@ def zone_prior_map(
     return torch.exp(torch.where(any_valid, log_prior, fallback))
 
 
-class ZoneSelectHead(nn.Module):
+class ZoneSelectHead(DepthHead):
     """Depth as a learned, image-guided choice among the zones' readings (in log depth).
 
     Each pixel takes a softmax-weighted geometric mean of the valid zones' means. The
@@ -133,7 +133,7 @@ class ZoneSelectHead(nn.Module):
 
     def forward(self, features: torch.Tensor, zone_mean_m: torch.Tensor,
                 zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                ) -> HeadOutput:
         """Depth, bin edges and uncertainty.
 
         Args:
@@ -176,10 +176,15 @@ class ZoneSelectHead(nn.Module):
         depth = depth.clamp(self.min_depth, self.max_depth)
         uncertainty = depth * spread.reshape(batch, 1, height, width)
         typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
-        return depth, typical * torch.exp(self.edges)[None], uncertainty
+        return HeadOutput(depth, typical * torch.exp(self.edges)[None], uncertainty)
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The choice among the zones' means (:meth:`forward`)."""
+        return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
+                    zones.stride)
 
 
-class ZonePriorHead(nn.Module):
+class ZonePriorHead(DepthHead):
     """Per-pixel softmax over N log-ratio bins around the zone prior.
 
     Args:
@@ -212,8 +217,7 @@ class ZonePriorHead(nn.Module):
         nn.init.zeros_(self.logits_conv.weight)
         nn.init.zeros_(self.logits_conv.bias)
 
-    def forward(self, features: torch.Tensor, prior_m: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, features: torch.Tensor, prior_m: torch.Tensor) -> HeadOutput:
         """Depth, bin edges and uncertainty.
 
         Args:
@@ -233,4 +237,10 @@ class ZonePriorHead(nn.Module):
         depth = (prior_m * torch.exp(log_ratio)).clamp(self.min_depth, self.max_depth)
         typical = torch.exp(log_prior.mean(dim=(1, 2, 3)))[:, None]
         edges = typical * torch.exp(self.edges)[None]
-        return depth, edges, depth * spread
+        return HeadOutput(depth, edges, depth * spread)
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The refinement (:meth:`forward`) of the zone prior (:func:`zone_prior_map`)."""
+        prior = zone_prior_map(zones.mean_m(features.dtype), zones.valid, zones.rects,
+                               tuple(features.shape[-2:]), zones.stride)
+        return self(features, prior)
