@@ -35,9 +35,6 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 #: Imports against the layering that are known and being removed:
 #: (importing file relative to src/deltar, imported package) -> why it is still there.
 KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {
-    # inference <-> export: the estimator's ONNX backend (OnnxDepthModel) lives in
-    # export; it is being moved out of export on another branch (redesign-a, issue #11).
-    ("inference/estimator.py", "export"): "OnnxDepthModel, being removed on redesign-a",
     # A deprecated alias module forwarding to the wall test's new home; remove with it.
     ("inference/wall_test.py", "evaluation"): "deprecated alias deltar.inference.wall_test",
 }

@@ -93,3 +93,21 @@ def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_pa
     np.testing.assert_allclose(depth[y0 + 2:y1 - 2, x0 + 2:x1 - 2], expected[10], atol=1e-4)
     # ... which is the histogram's, not the Gaussian around the reported distance.
     assert abs(expected[10] - sample.zone_mean_sigma[10, 0]) > 1e-3
+
+
+def test_evaluation_runs_the_size_rule(tmp_path: Path) -> None:
+    """``model:`` runs the network at the size the estimator and export use, not at the
+    design size whatever the image (a square image stays square)."""
+    from deltar.evaluation.model_methods import checkpoint_predictor
+    from deltar.inference.preprocess import network_input_size
+    from tests.evaluation.samples import make_sample
+
+    checkpoint = _untrained_prior_model(tmp_path / "prior.pt")  # design 32x64
+    predictor = checkpoint_predictor(str(checkpoint))
+    for size in ((480, 480), (720, 1280), (16, 4000)):
+        expected = network_input_size(*size, design_size=(32, 64))
+        assert predictor.estimator.network_size_for(size) == expected
+    assert predictor.estimator.network_size_for((480, 480)) == (32, 32)  # not 32x64
+    sample = make_sample("a", 0)
+    depth = predictor(sample)
+    assert depth.shape == sample.depth_m.shape and np.isfinite(depth).all()

@@ -185,3 +185,32 @@ def test_plane_select_network_exports_with_parity(tmp_path):
     assert got["depth"].shape == (2, 1, 32, 48)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
     assert np.abs(got["uncertainty"] - expected["uncertainty"]).max() < DEPTH_TOLERANCE_M
+
+
+@pytest.mark.parametrize("size", [(480, 480), (720, 1280)])
+def test_export_runs_at_the_size_rule_like_the_estimator(tmp_path, rng, size):
+    """A non-4:3 camera: the file's fixed input is the size the estimator runs the model
+    at (aspect kept, design pixel budget, multiples of 32), and both backends agree."""
+    from deltar.export.onnx import export_input_size
+    from deltar.inference.preprocess import network_input_size
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", design_size=(64, 96)).eval()
+    with torch.no_grad():  # a head that is not zero, so the image matters
+        model.head.logits_conv.weight.normal_(0.0, 0.5)
+    path = export_onnx(model, tmp_path / "odd.onnx", *size)
+    assert not model.traceable  # the export leaves the model on its eager path
+    expected = network_input_size(*size, design_size=(64, 96))
+    runner = OnnxDepthModel(path, num_threads=1)
+    assert runner.input_size == export_input_size(model, *size) == expected
+    assert runner.metadata["deltar_input_size"] == f"{expected[0]}x{expected[1]}"
+    assert runner.metadata["deltar_image_size"] == f"{size[0]}x{size[1]}"
+    image = rng.integers(0, 256, size=(*size, 3), dtype=np.uint8)
+    frame = ZoneFrame(rng.uniform(0.5, 3, (8, 8)), rng.uniform(0.01, 0.1, (8, 8)),
+                      np.ones((8, 8), bool))
+    torch_pred = DepthEstimator(model, weights="t", fold_batch_norms=False).predict(image, frame)
+    onnx_pred = DepthEstimator.from_onnx(path, num_threads=1).predict(image, frame)
+    assert torch_pred.network_size == onnx_pred.network_size == expected
+    assert onnx_pred.depth_m.shape == size
+    assert np.abs(torch_pred.depth_m - onnx_pred.depth_m).max() < DEPTH_TOLERANCE_M

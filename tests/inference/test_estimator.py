@@ -36,22 +36,13 @@ def _image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
     return rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
 
 
-def test_network_size_shrinks_large_images_to_the_design_area():
-    # 480x640 for a model trained at 256x320: about 81,920 pixels at the same aspect.
-    assert network_size(480, 640, design_size=(256, 320)) == (256, 320)
-    # 720x1280 for 480x640: scale sqrt(307200 / 921600) = 0.577 -> 415.7 x 739.0.
-    assert network_size(720, 1280, design_size=(480, 640)) == (416, 736)
-    # Never enlarged.
-    assert network_size(240, 320, design_size=(480, 640)) == network_size(240, 320)
+def test_network_size_is_a_deprecated_alias_of_the_size_rule():
+    from deltar.inference.preprocess import network_input_size
 
-
-def test_network_size_rounds_to_nearest_multiple_of_32():
-    assert network_size(480, 640) == (480, 640)
-    assert network_size(60, 90) == (64, 96)
-    assert network_size(47, 49) == (32, 64)
-    assert network_size(10, 10) == (32, 32)
-    with pytest.raises(ValueError, match="positive"):
-        network_size(0, 10)
+    with pytest.warns(DeprecationWarning, match="network_input_size"):
+        assert network_size(480, 480, design_size=(256, 320)) == (288, 288)
+    with pytest.warns(DeprecationWarning):
+        assert network_size(47, 49) == network_input_size(47, 49) == (32, 64)
 
 
 def test_scale_rects_maps_image_bounds_and_centres():

@@ -35,3 +35,46 @@ def test_depth_edges_and_uncertainty_match_numpy(rng, grad):
 def test_unknown_norm_raises():
     with pytest.raises(ValueError, match="bin norm"):
         normalise_bin_widths(torch.zeros(1, 4), "cubic")
+
+
+@pytest.mark.parametrize("head", ["bins", "mvit", "direct", "zone_prior", "zone_select"])
+def test_every_head_has_the_one_interface(head, network_inputs):
+    from deltar.models import create_model
+    from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs
+
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", head=head, design_size=(64, 96)).eval()
+    assert isinstance(model.head, DepthHead)
+    _, hypotheses, rects, valid = network_inputs(batch=2)
+    features = torch.randn(2, model.config["head_channels"], 32, 48)
+    zones = ZoneInputs(hypotheses, valid, rects, stride=2.0)
+    with torch.no_grad():
+        out = model.head.predict(features, zones)
+    assert isinstance(out, HeadOutput)
+    assert out.depth.shape == out.uncertainty.shape == (2, 1, 32, 48)
+    assert out.bin_edges.shape[0] == 2 and out.bin_edges.ndim == 2
+    assert torch.isfinite(out.depth).all() and (out.depth > 0).all()
+    assert (out.uncertainty >= 0).all()
+
+
+def test_network_output_is_the_heads_predict(network_inputs):
+    # DeltarNet hands every head the same ZoneInputs; a head replaced by another
+    # DepthHead is called the same way.
+    from deltar.models import create_model
+    from deltar.models.heads import DepthHead, HeadOutput
+
+    class Constant(DepthHead):
+        def predict(self, features, zones):
+            self.seen = zones
+            depth = torch.full_like(features[:, :1], 1.5)
+            return HeadOutput(depth, zones.hypotheses.new_zeros(features.shape[0], 3),
+                              torch.zeros_like(depth))
+
+    model = create_model("deltar-lite", head="bins", zone_scale_norm=False,
+                         design_size=(64, 96)).eval()
+    model.head = Constant()
+    image, hypotheses, rects, valid = network_inputs(batch=1)
+    with torch.no_grad():
+        out = model(image, hypotheses, rects, valid)
+    assert torch.equal(out["depth"], torch.full_like(out["depth"], 1.5))
+    assert model.head.seen.stride == 2.0 and model.head.seen.rects is rects

@@ -210,3 +210,18 @@ def test_zone_scale_is_the_lower_median_of_valid_zone_means():
                           [False] * 4, [True, True, False, False]])
     hypotheses = means[..., None].expand(4, 4, 3)
     torch.testing.assert_close(zone_scale(hypotheses, valid), torch.tensor([2.0, 5.0, 1.0, 1.0]))
+
+
+@pytest.mark.parametrize("head", ["zone_select", "mvit"])
+def test_traceable_path_gives_the_same_outputs(network_inputs, head):
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", head=head, design_size=(64, 96)).eval()
+    inputs = network_inputs(batch=2)
+    with torch.no_grad():
+        eager = model(*inputs)
+        assert model.set_traceable() is model and model.head.traceable
+        traced = model(*inputs)
+        model.set_traceable(False)
+    assert not model.traceable and not model.head.traceable
+    for key in ("depth", "bin_edges", "uncertainty"):
+        torch.testing.assert_close(traced[key], eager[key], atol=1e-6, rtol=1e-6)

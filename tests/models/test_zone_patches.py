@@ -73,3 +73,22 @@ def test_per_sample_layouts_are_independent(rects_on_grid):
     tokens = both.gather(feature_map)
     tokens[:64] = 0
     assert torch.count_nonzero(both.scatter(tokens, 2)[0]) == 0
+
+
+@pytest.mark.parametrize(("offset", "stride"), [((-13.4, 70.2), 4), ((40.5, -20.25), 16)])
+def test_traceable_matrices_equal_the_eager_ones(offset, stride, rects_on_grid):
+    # The export path (one-hot products, trunc as sign * floor |x|) builds the same
+    # resampling, including windows starting before the map (negative coordinates).
+    rects = torch.stack([rects_on_grid(480, 640, 8, offset=offset, span=(500.0, 460.0)),
+                         rects_on_grid(480, 640, 8, offset=(-offset[1], 3.0))])
+    window = zone_window(rects, stride, 8)
+    assert (window.start < 0).any()
+    size = (480 // stride, 640 // stride)
+    eager = ZonePatchResampler(window, size, torch.float32)
+    traced = ZonePatchResampler(window, size, torch.float32, traceable=True)
+    for name in ("rows_in", "cols_in", "rows_out", "cols_out"):
+        torch.testing.assert_close(getattr(traced, name), getattr(eager, name), atol=0, rtol=0)
+    values = torch.tensor([-2.5, -2.0, -0.4, 0.0, 0.4, 2.0, 2.7])
+    from deltar.models.zone_patches import _trunc
+
+    assert torch.equal(_trunc(values), values.trunc())

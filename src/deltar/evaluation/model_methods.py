@@ -5,8 +5,10 @@
 (float32 or int8) model run by onnxruntime. A ``+flip`` suffix
 (``model:default+flip``) adds test-time flip averaging (not for ``onnx:``). Each runs through
 :class:`~deltar.inference.estimator.DepthEstimator` with the sample's own zone
-rectangles, at the network's design resolution, and its output is resized to the
-ground truth's resolution.
+rectangles, at the network input size the one size rule gives for the sample's image
+(:func:`deltar.inference.preprocess.network_input_size`: aspect kept, the design
+size's pixel budget, multiples of 32; an ONNX file at its exported size), exactly as
+``deltar predict`` runs it, and its output is resized to the ground truth's resolution.
 """
 
 from __future__ import annotations
@@ -26,7 +28,8 @@ class EstimatorPredictor:
     """Evaluation method wrapping a :class:`DepthEstimator`.
 
     Args:
-        estimator: the estimator (its ``input_size`` decides the network resolution).
+        estimator: the estimator (:meth:`DepthEstimator.network_size_for` gives the
+            network resolution).
     """
 
     def __init__(self, estimator: DepthEstimator) -> None:
@@ -43,10 +46,6 @@ class EstimatorPredictor:
         prediction = self.estimator.predict(sample.rgb, sample.zone_frame(),
                                             zone_rects=sample.zone_rects)
         return prediction.depth_m
-
-
-def _design_size(model) -> tuple[int, int]:
-    return tuple(int(v) for v in model.config["design_size"])
 
 
 #: Method-name suffix asking for test-time flip averaging.
@@ -66,19 +65,16 @@ def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
 
     name_or_path, flip = _split_flip(name_or_path)
     model, preset, _ = load_checkpoint(resolve_checkpoint(name_or_path))
-    return EstimatorPredictor(DepthEstimator(model, input_size=_design_size(model),
-                                             weights=f"{preset} ({name_or_path})",
+    return EstimatorPredictor(DepthEstimator(model, weights=f"{preset} ({name_or_path})",
                                              flip_average=flip))
 
 
 def official_predictor(path: str) -> EstimatorPredictor:
-    """``official:PATH[+flip]``: the released weights (e.g. ``nyu.pt``) at 480x640."""
+    """``official:PATH[+flip]``: the released weights (e.g. ``nyu.pt``), design 480x640."""
     from deltar.inference.estimator import DepthEstimator
 
     path, flip = _split_flip(path)
-    estimator = DepthEstimator.from_official(path, flip_average=flip)
-    estimator.input_size = _design_size(estimator.model)
-    return EstimatorPredictor(estimator)
+    return EstimatorPredictor(DepthEstimator.from_official(path, flip_average=flip))
 
 
 def onnx_predictor(path: str) -> EstimatorPredictor:

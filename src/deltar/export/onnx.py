@@ -1,22 +1,19 @@
-"""Export DeltarNet to ONNX and run the exported model with onnxruntime.
+"""Export DeltarNet to ONNX: ``export_onnx`` (run the files with ``OnnxDepthModel``).
 
-The exported graph has a dynamic batch axis and a fixed input size. Parts of the
-zone fusion take their shapes from the zone layout (tokens per zone patch, the
-longest zone window), so the export fixes them too: an ONNX model serves every zone
-layout with the same *layout signature* (same patch sizes, windows no longer than
-at export). The signature is stored in the model's metadata and checked before
-every run, so a layout that does not fit raises a clear error instead of giving
-wrong depth. The nominal geometry at a fixed image size always fits.
+The exported graph has a dynamic batch axis and a fixed input size: the network input
+size of the camera image size by the one size rule
+(:func:`deltar.inference.preprocess.network_input_size`, as ``DepthEstimator`` runs the
+model). Parts of the zone fusion take their shapes from the zone layout (tokens per
+zone patch, the longest zone window), so the export fixes them too: an ONNX model
+serves every zone layout with the same *layout signature* (same patch sizes, windows no
+longer than at export). The signature is stored in the model's metadata and checked
+before every run (:class:`~deltar.inference.onnx_runtime.OnnxDepthModel`), so a layout
+that does not fit raises a clear error instead of giving wrong depth. The nominal
+geometry at a fixed image size always fits.
 
-Two details of the export:
-
-* ``aten::trunc`` (used to locate the zone window) has no ONNX symbolic in the
-  TorchScript exporter; it is written as ``sign(x) * floor(|x|)``.
-* The resampling matrices are built with an in-place ``index_add_`` on a view, which
-  the tracer drops (the matrices came out as constant zeros). During export they are
-  built with an equivalent one-hot product instead (same values).
-* PyTorch's fused transformer-encoder fast path (mViT head) is switched off during
-  export; it has no ONNX equivalent.
+The network is traced on its own traceable path
+(:meth:`~deltar.models.DeltarNet.set_traceable`: same outputs, operators the tracer
+records); nothing is patched here.
 """
 
 from __future__ import annotations
@@ -30,87 +27,28 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from deltar.inference.onnx_runtime import (
+    INPUT_NAMES,
+    OUTPUT_NAMES,
+    SIGNATURE_KEY,
+    OnnxDepthModel,
+    layout_signature,
+    signature_fits,
+)
+
 if TYPE_CHECKING:
     import torch
 
     from deltar.models import DeltarNet
 
-INPUT_NAMES = ("image", "hypotheses", "zone_rects", "zone_valid")
-OUTPUT_NAMES = ("depth", "bin_edges", "uncertainty")
 OPSET = 17
-_SIGNATURE_KEY = "deltar_layout_signature"
+#: Old private names, kept for callers: the runtime side lives in
+#: :mod:`deltar.inference.onnx_runtime`.
+_SIGNATURE_KEY = SIGNATURE_KEY
+_signature_fits = signature_fits
 
-
-def layout_signature(zone_rects: np.ndarray | torch.Tensor, grid: int) -> list[dict]:
-    """The shape-determining numbers of a zone layout at each fusion stride.
-
-    Args:
-        zone_rects: (B, Z, 4) rectangles in network-input pixels.
-        grid: zones per side.
-
-    Returns:
-        One dict per fusion stride: ``stride``, ``patch`` [p_h, p_w] tokens per zone,
-        ``max_length`` [rows, cols] of the longest zone window in feature cells.
-    """
-    import torch
-
-    from deltar.models.decoder import FUSION_STRIDES
-    from deltar.models.zone_patches import zone_window
-
-    rects = torch.as_tensor(np.asarray(zone_rects, dtype=np.float32))
-    out = []
-    for stride in FUSION_STRIDES:
-        window = zone_window(rects, float(stride), grid)
-        out.append({"stride": int(stride), "patch": [int(p) for p in window.patch],
-                    "max_length": [int(v) for v in window.length.amax(0).tolist()]})
-    return out
-
-
-def _signature_fits(signature: list[dict], exported: list[dict]) -> bool:
-    return all(s["patch"] == e["patch"] and s["max_length"][0] <= e["max_length"][0]
-               and s["max_length"][1] <= e["max_length"][1]
-               for s, e in zip(signature, exported, strict=True))
-
-
-def _onehot_scatter_rows(rows: int, cols: int, row_index: torch.Tensor,
-                         col_index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Traceable twin of ``zone_patches._scatter_rows``: (B, rows, cols) matrix.
-
-    Adds ``weight[b, j]`` at ``(row_index[b, j], col_index[b, j])``; indices outside the
-    matrix contribute nothing.
-    """
-    import torch
-
-    row_hot = (row_index[..., None] == torch.arange(rows, device=weight.device))
-    col_hot = (col_index[..., None] == torch.arange(cols, device=weight.device))
-    return torch.einsum("bj,bjr,bjc->brc", weight, row_hot.to(weight.dtype),
-                        col_hot.to(weight.dtype))
-
-
-def _trunc_symbolic(g, x):
-    return g.op("Mul", g.op("Sign", x), g.op("Floor", g.op("Abs", x)))
-
-
-@contextlib.contextmanager
-def _exportable_model_ops() -> Iterator[None]:
-    """Swap in traceable resampling and register ``trunc`` for the export only."""
-    import torch
-
-    from deltar.models import zone_patches
-
-    torch.onnx.register_custom_op_symbolic("aten::trunc", _trunc_symbolic, OPSET)
-    original = zone_patches._scatter_rows
-    zone_patches._scatter_rows = _onehot_scatter_rows
-    # The fused transformer-encoder kernel (used by the mViT head in eval mode) has no
-    # ONNX symbolic; the plain path computes the same.
-    fastpath = torch.backends.mha.get_fastpath_enabled()
-    torch.backends.mha.set_fastpath_enabled(False)
-    try:
-        yield
-    finally:
-        torch.backends.mha.set_fastpath_enabled(fastpath)
-        zone_patches._scatter_rows = original
-        torch.onnx.unregister_custom_op_symbolic("aten::trunc", OPSET)
+__all__ = ["INPUT_NAMES", "OPSET", "OUTPUT_NAMES", "OnnxDepthModel", "example_inputs",
+           "export_input_size", "export_onnx", "layout_signature"]
 
 
 def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
@@ -129,17 +67,28 @@ def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
     return TupleOutputs(model).eval()
 
 
+def export_input_size(model: DeltarNet, height: int, width: int) -> tuple[int, int]:
+    """The fixed (H, W) network input, pixels, of an export for ``height`` x ``width`` images.
+
+    The one size rule (:func:`~deltar.inference.preprocess.network_input_size`) with the
+    model's design size: the size ``DepthEstimator`` runs the model at for such images.
+    """
+    from deltar.inference.preprocess import network_input_size
+
+    return network_input_size(height, width, design_size=model.config.get("design_size"))
+
+
 def example_inputs(model: DeltarNet, height: int, width: int,
                    zone_rects: np.ndarray | None = None,
                    grid: int = 8) -> tuple[torch.Tensor, ...]:
     """Batch-1 network inputs for images of ``height`` x ``width``, as the estimator makes.
 
-    The network input size is :func:`~deltar.inference.estimator.network_size` of the
-    image size (with the model's design size), and the zone layout is mapped to it with
-    :func:`~deltar.inference.estimator.scale_rects`, exactly as ``DepthEstimator`` does.
+    The network input size is :func:`export_input_size` (the one size rule), and the
+    zone layout is mapped to it with :func:`~deltar.inference.preprocess.scale_rects`,
+    exactly as ``DepthEstimator`` does.
 
     Args:
-        model: the network (its ``num_hypotheses``).
+        model: the network (its ``num_hypotheses`` and ``design_size``).
         height, width: camera image size in pixels.
         zone_rects: (Z, 4) layout in image pixels; the nominal geometry when None.
         grid: zones per side for the nominal layout.
@@ -150,14 +99,14 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     """
     import torch
 
-    from deltar.inference.estimator import network_size, nominal_zone_rects, scale_rects
+    from deltar.inference.preprocess import scale_rects
+    from deltar.sensor.placement import nominal_zone_rects
     from deltar.sensor.zone_frame import ZoneFrame
 
     frame = ZoneFrame(mean_m=np.full((grid, grid), 2.0), sigma_m=np.full((grid, grid), 0.05),
                       valid=np.ones((grid, grid), bool))
     rects = nominal_zone_rects(frame, height, width) if zone_rects is None else zone_rects
-    net_height, net_width = network_size(height, width,
-                                         design_size=model.config.get("design_size"))
+    net_height, net_width = export_input_size(model, height, width)
     rects = scale_rects(np.asarray(rects, dtype=np.float32), (height, width),
                         (net_height, net_width))
     zones = rects.shape[0]
@@ -176,7 +125,9 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
         model: the network (any preset); exported in eval mode, float32, on the CPU.
         path: destination ``.onnx`` file.
         height, width: camera image size in pixels; the model's fixed input size is
-            that size rounded to multiples of 32 (as ``DepthEstimator`` resizes).
+            :func:`export_input_size` of it (the one size rule, as ``DepthEstimator``
+            runs the model; stored as ``deltar_input_size`` metadata beside the camera
+            size ``deltar_image_size``).
         zone_rects: (Z, 4) zone layout in image pixels that fixes the layout signature;
             the nominal 8x8 geometry at this size when None.
         overwrite: replace an existing file (default: ``FileExistsError``).
@@ -200,14 +151,16 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     grid = round(inputs[2].shape[1] ** 0.5)
     signature = layout_signature(inputs[2].numpy(), grid)
     dynamic = {name: {0: "batch"} for name in (*INPUT_NAMES, *OUTPUT_NAMES)}
-    with atomic_path(path, overwrite=overwrite) as tmp, _exportable_model_ops(), \
+    net_height, net_width = inputs[0].shape[-2:]
+    with atomic_path(path, overwrite=overwrite) as tmp, _traceable(model), \
             torch.no_grad(), _quiet_tracer():
         torch.onnx.export(_tuple_outputs(model), inputs, str(tmp), input_names=list(INPUT_NAMES),
                           output_names=list(OUTPUT_NAMES), dynamic_axes=dynamic,
                           opset_version=OPSET, dynamo=False)
         proto = onnx.load(str(tmp))
-        extra = {_SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
+        extra = {SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
                  "deltar_image_size": f"{height}x{width}",
+                 "deltar_input_size": f"{net_height}x{net_width}",
                  "deltar_config": json.dumps(model.config, default=list),
                  **(metadata or {})}
         for key, value in extra.items():
@@ -215,6 +168,17 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
             entry.key, entry.value = key, str(value)
         onnx.save(proto, str(tmp))
     return path
+
+
+@contextlib.contextmanager
+def _traceable(model: DeltarNet) -> Iterator[None]:
+    """The model on its traceable path for the export, then back as it was."""
+    previous = model.traceable
+    model.set_traceable(True)
+    try:
+        yield
+    finally:
+        model.set_traceable(previous)
 
 
 @contextlib.contextmanager
@@ -226,104 +190,3 @@ def _quiet_tracer() -> Iterator[None]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         yield
-
-
-class OnnxDepthModel:
-    """An exported DeltarNet run with onnxruntime on the CPU.
-
-    Args:
-        path: the ``.onnx`` file written by :func:`export_onnx`.
-        num_threads: onnxruntime intra-op threads (its default when None).
-        allow_spinning: let onnxruntime's idle worker threads busy-wait for the next
-            run (its default). Off by default here: between runs the pipeline's own
-            work (decoding, resizing) needs those cores.
-
-    Attributes:
-        input_size: (H, W) fixed input size in pixels.
-        num_hypotheses: K hypotheses per zone.
-        grid: zones per side.
-        contract: the exported network's config (``deltar_config`` metadata): its input
-            contract (``image_mean``, ``image_std``, ``hypothesis_sampling``,
-            ``num_hypotheses``, ...); files without it get the release's ImageNet
-            normalisation and inverse-CDF sampling.
-    """
-
-    def __init__(self, path: str | os.PathLike, num_threads: int | None = None,
-                 allow_spinning: bool = False) -> None:
-        import onnxruntime as ort
-
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model not found: {path}")
-        options = ort.SessionOptions()
-        if num_threads:
-            options.intra_op_num_threads = int(num_threads)
-            options.inter_op_num_threads = 1
-        if not allow_spinning:
-            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        try:
-            self.session = ort.InferenceSession(str(path), options,
-                                                providers=["CPUExecutionProvider"])
-        except Exception as err:  # onnxruntime raises its own exception types
-            raise ValueError(f"{path}: cannot load ONNX model: {err}") from err
-        self.path = path
-        names = [i.name for i in self.session.get_inputs()]
-        if names != list(INPUT_NAMES):
-            raise ValueError(f"{path}: inputs are {names}, expected {list(INPUT_NAMES)} "
-                             "(export with deltar export)")
-        meta = self.session.get_modelmeta().custom_metadata_map
-        if _SIGNATURE_KEY not in meta:
-            raise ValueError(f"{path}: no {_SIGNATURE_KEY} metadata (export with deltar export)")
-        self.signature = json.loads(meta[_SIGNATURE_KEY])
-        self.grid = int(meta["deltar_grid"])
-        self.metadata = dict(meta)
-        shapes = {i.name: i.shape for i in self.session.get_inputs()}
-        self.input_size = (int(shapes["image"][2]), int(shapes["image"][3]))
-        self.num_hypotheses = int(shapes["hypotheses"][2])
-        try:
-            config = json.loads(meta.get("deltar_config", "{}"))
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}: unreadable deltar_config metadata: {err}") from err
-        self.contract = {**config, "num_hypotheses": self.num_hypotheses}
-
-    def check_layout(self, zone_rects: np.ndarray) -> None:
-        """Raise ``ValueError`` if a (B, Z, 4) layout does not fit the exported one."""
-        rects = np.asarray(zone_rects, dtype=np.float32)
-        if rects.ndim != 3 or rects.shape[1] != self.grid * self.grid or rects.shape[2] != 4:
-            raise ValueError(f"zone_rects must be (B, {self.grid * self.grid}, 4), got "
-                             f"{rects.shape}")
-        signature = layout_signature(rects, self.grid)
-        if not _signature_fits(signature, self.signature):
-            raise ValueError(f"{self.path}: this zone layout {signature} does not fit the one "
-                             f"the model was exported for {self.signature}; re-export with "
-                             "this layout (deltar export --layout-from) or use the PyTorch "
-                             "backend")
-
-    def run(self, image: np.ndarray, hypotheses: np.ndarray, zone_rects: np.ndarray,
-            zone_valid: np.ndarray) -> dict[str, np.ndarray]:
-        """Run the network; same inputs and outputs as ``DeltarNet.forward`` (numpy).
-
-        Args:
-            image: (B, 3, H, W) float32 normalised, H x W = :attr:`input_size`.
-            hypotheses: (B, Z, K) float32 metres.
-            zone_rects: (B, Z, 4) float32 pixels of the input.
-            zone_valid: (B, Z) bool.
-
-        Returns:
-            dict of ``depth`` (B, 1, H/2, W/2), ``bin_edges`` (B, N + 1) and
-            ``uncertainty`` (B, 1, H/2, W/2), float32 metres.
-        """
-        image = np.asarray(image, dtype=np.float32)
-        if image.ndim != 4 or tuple(image.shape[1:]) != (3, *self.input_size):
-            raise ValueError(f"image must be (B, 3, {self.input_size[0]}, "
-                             f"{self.input_size[1]}), got {image.shape}")
-        hyp = np.asarray(hypotheses, dtype=np.float32)
-        if hyp.ndim != 3 or hyp.shape[2] != self.num_hypotheses or not np.all(np.isfinite(hyp)):
-            raise ValueError(f"hypotheses must be finite (B, Z, {self.num_hypotheses}), got "
-                             f"{hyp.shape}")
-        self.check_layout(zone_rects)
-        feeds = {"image": image, "hypotheses": hyp,
-                 "zone_rects": np.asarray(zone_rects, dtype=np.float32),
-                 "zone_valid": np.asarray(zone_valid, dtype=bool)}
-        outputs = self.session.run(list(OUTPUT_NAMES), feeds)
-        return dict(zip(OUTPUT_NAMES, outputs, strict=True))

@@ -5,7 +5,7 @@ fusion get int8 weights (per output channel) and uint8 activations whose ranges 
 calibrated on real frames; the head, which turns features into per-pixel bin
 probabilities and depth, stays in float32 (its logits feed exponentials, where int8
 steps would show directly as depth steps). The quantised file keeps the float model's
-inputs, outputs and deltar metadata, so :class:`~deltar.export.onnx.OnnxDepthModel`
+inputs, outputs and deltar metadata, so :class:`~deltar.inference.onnx_runtime.OnnxDepthModel`
 and ``DepthEstimator.from_onnx`` run it like any export.
 
 Calibration frames are RGB-D frames whose zone readings are simulated from their depth
@@ -56,7 +56,7 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         float32 metres, ``zone_rects`` (1, Z, 4) float32 pixels, ``zone_valid`` (1, Z) bool.
     """
     from deltar.data.rgbd import open_rgbd
-    from deltar.inference.estimator import scale_rects
+    from deltar.inference.preprocess import scale_rects
     from deltar.sensor.simulate import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
 
@@ -128,7 +128,7 @@ def quantize_onnx(float_path: str | os.PathLike, out_path: str | os.PathLike,
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    from deltar.export.onnx import _SIGNATURE_KEY
+    from deltar.inference.onnx_runtime import SIGNATURE_KEY
     from deltar.io.atomic import atomic_path
 
     float_path, out_path = Path(float_path), Path(out_path)
@@ -142,8 +142,8 @@ def quantize_onnx(float_path: str | os.PathLike, out_path: str | os.PathLike,
         raise ValueError("quantisation needs at least one calibration feed")
     proto = onnx.load(str(float_path))
     metadata = {entry.key: entry.value for entry in proto.metadata_props}
-    if _SIGNATURE_KEY not in metadata:
-        raise ValueError(f"{float_path}: no {_SIGNATURE_KEY} metadata (export with deltar "
+    if SIGNATURE_KEY not in metadata:
+        raise ValueError(f"{float_path}: no {SIGNATURE_KEY} metadata (export with deltar "
                          "export)")
     if QUANT_KEY in metadata:
         raise ValueError(f"{float_path}: already quantised ({metadata[QUANT_KEY]})")

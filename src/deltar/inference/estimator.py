@@ -1,19 +1,24 @@
 """From an RGB image and a zone frame to a full-resolution depth map: ``DepthEstimator``.
 
-The estimator does everything around the network: it places the zones in the image
-(from a :class:`~deltar.calibration.rig.RigCalibration`, or a nominal geometry),
-samples the per-zone depth hypotheses, resizes the image to a size divisible by 32
-(mapping the zone rectangles with it), runs the network (PyTorch or onnxruntime) and
-resizes depth and uncertainty back to the input resolution.
+The estimator runs the pipeline around the network: it places the zones in the image
+(from a :class:`~deltar.calibration.rig.RigCalibration`, or the nominal geometry of
+:mod:`deltar.sensor.placement`), samples the per-zone depth hypotheses, prepares the
+network input by the one size rule of :mod:`deltar.inference.preprocess` (which also
+maps the zone rectangles into the network input and the output back), runs the network
+(PyTorch, optionally flip-averaged by :mod:`deltar.inference.flip`, or onnxruntime via
+:mod:`deltar.inference.onnx_runtime`) and returns depth and uncertainty at the input
+resolution.
 
 Checkpoints (``DepthEstimator.from_checkpoint``) are the format of
 :mod:`deltar.models.checkpoint`; the estimator reads the weights' input contract
 (normalisation, hypothesis sampling and count, design size) from the model's config.
+
+``network_size``, ``scale_rects``, ``check_image``, ``normalise_images`` and
+``nominal_zone_rects`` used to live here; they are importable from here still.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 import warnings
@@ -24,20 +29,32 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
-from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.inference.preprocess import (
+    SIZE_DIVISOR,
+    check_image,
+    check_input_size,
+    network_input_size,
+    normalise_images,
+    resize_to_image,
+    scale_rects,
+)
+from deltar.sensor.geometry import DEFAULT_FOV_DEG
+from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
 if TYPE_CHECKING:
     import torch
 
     from deltar.calibration.rig import RigCalibration
-    from deltar.export.onnx import OnnxDepthModel
+    from deltar.inference.onnx_runtime import OnnxDepthModel
     from deltar.models import DeltarNet
 
-#: The network's input height and width must be multiples of this.
-SIZE_DIVISOR = 32
 PRECISIONS = ("float32", "float16", "bfloat16")
+
+__all__ = ["PRECISIONS", "SIZE_DIVISOR", "DepthEstimator", "DepthPrediction", "check_image",
+           "load_checkpoint", "network_size", "nominal_zone_rects", "normalise_images",
+           "save_checkpoint", "scale_rects", "zone_mean_depth"]
 
 
 @dataclass
@@ -52,6 +69,8 @@ class DepthPrediction:
         zone_frame: the zone frame the prediction used.
         intrinsics: camera intrinsics of the input image (calibrated or nominal).
         zones_used: number of valid zones the network saw (None when unknown).
+        network_size: (h, w) network input size in pixels the image was resized to
+            (:func:`deltar.inference.preprocess.network_input_size`, or the fixed size).
     """
 
     depth_m: np.ndarray
@@ -60,6 +79,7 @@ class DepthPrediction:
     zone_frame: ZoneFrame
     intrinsics: CameraIntrinsics
     zones_used: int | None = None
+    network_size: tuple[int, int] | None = None
 
     @property
     def image_only(self) -> bool:
@@ -73,132 +93,11 @@ class DepthPrediction:
 
 def network_size(height: int, width: int, divisor: int = SIZE_DIVISOR,
                  design_size: tuple[int, int] | None = None) -> tuple[int, int]:
-    """The network input size for an image: each side rounded to the nearest multiple.
-
-    With ``design_size`` (the size a model was trained at), an image with more pixels is
-    first shrunk, keeping its aspect ratio, to about that many pixels: the model then
-    sees objects at the scale it learned (and runs faster). Smaller images are not
-    enlarged.
-
-    Args:
-        height, width: image size in pixels.
-        divisor: required multiple (32 for DeltarNet).
-        design_size: optional (H, W) the model was designed and trained for, pixels.
-
-    Returns:
-        (height, width) in pixels, each a positive multiple of ``divisor``.
-    """
-    if height < 1 or width < 1:
-        raise ValueError(f"image size must be positive, got {height}x{width}")
-    if design_size is not None:
-        scale = math.sqrt(design_size[0] * design_size[1] / (height * width))
-        if scale < 1.0:
-            height, width = height * scale, width * scale
-    return (max(divisor, round(height / divisor) * divisor),
-            max(divisor, round(width / divisor) * divisor))
-
-
-def scale_rects(rects: np.ndarray, from_size: tuple[int, int],
-                to_size: tuple[int, int]) -> np.ndarray:
-    """Map (y0, x0, y1, x1) rectangles from one image size to a resized image.
-
-    Pixel centres sit at integer coordinates, so the image spans ``-0.5 .. size - 0.5``
-    and a coordinate ``c`` maps to ``(c + 0.5) * scale - 0.5``.
-
-    Args:
-        rects: (..., 4) rectangles in pixels of an image of ``from_size`` (H, W).
-        from_size: (H, W) of the source image.
-        to_size: (H, W) of the resized image.
-
-    Returns:
-        (..., 4) float32 rectangles in pixels of the resized image.
-    """
-    rects = np.asarray(rects, dtype=np.float64)
-    sy = to_size[0] / from_size[0]
-    sx = to_size[1] / from_size[1]
-    scale = np.array([sy, sx, sy, sx])
-    return ((rects + 0.5) * scale - 0.5).astype(np.float32)
-
-
-def nominal_zone_rects(frame: ZoneFrame, height: int, width: int,
-                       intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
-                       fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> np.ndarray:
-    """Zone rectangles without a calibration: nominal intrinsics, identity extrinsic.
-
-    Args:
-        frame: the zone frame (its grid and, for placement, each zone's mean).
-        height, width: image size in pixels.
-        intrinsics: nominal camera intrinsics, scaled to the image size.
-        fov_deg: sensor field of view (horizontal, vertical) in degrees.
-
-    Returns:
-        (Z, 4) float32 rectangles (y0, x0, y1, x1) in image pixels.
-    """
-    # With the identity extrinsic there is no parallax: the layout does not depend on
-    # the zone depths, so it is computed once per image size and grid.
-    return _nominal_layout(intrinsics, frame.grid, tuple(fov_deg), height, width).copy()
-
-
-@functools.lru_cache(maxsize=32)
-def _nominal_layout(intrinsics: CameraIntrinsics, grid: int, fov_deg: tuple[float, float],
-                    height: int, width: int) -> np.ndarray:
-    return zone_rects(intrinsics.scaled(height, width), grid, fov_deg=fov_deg, depth_m=1.0)
-
-
-def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
-    """Check an RGB image: (H, W, 3) uint8; return it as a contiguous array.
-
-    Raises:
-        ValueError: naming ``name`` when the image has the wrong shape or dtype.
-    """
-    array = np.asarray(image)
-    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3:
-        raise ValueError(f"{name} must be an (H, W, 3) uint8 RGB image, got shape "
-                         f"{array.shape} and dtype {array.dtype}")
-    if array.shape[0] < 2 or array.shape[1] < 2:
-        raise ValueError(f"{name} is too small: {array.shape[0]}x{array.shape[1]} pixels")
-    return np.ascontiguousarray(array)
-
-
-def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
-                     mean: Sequence[float] | None = None,
-                     std: Sequence[float] | None = None) -> np.ndarray:
-    """Resize RGB images to ``size`` and normalise them for the network.
-
-    Args:
-        images: B images, each (H, W, 3) uint8 RGB.
-        size: (h, w) network input size in pixels.
-        mean, std: per-channel normalisation for images in [0, 1], the network's input
-            contract (``model.config["image_mean"]`` / ``["image_std"]``); ImageNet's
-            when None.
-
-    Returns:
-        (B, 3, h, w) float32, ``(rgb / 255 - mean) / std``.
-    """
-    import cv2
-
-    if mean is None or std is None:
-        from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
-
-        mean, std = IMAGENET_MEAN, IMAGENET_STD
-    height, width = size
-    # One multiply-add per pixel: x * (1 / (255 std)) - mean / std.
-    scale = (1.0 / (255.0 * np.asarray(std))).astype(np.float32)
-    offset = (-np.asarray(mean) / np.asarray(std)).astype(np.float32)
-    out = np.empty((len(images), 3, height, width), dtype=np.float32)
-    for i, image in enumerate(images):
-        if image.shape[:2] != (height, width):
-            shrink = image.shape[0] > height or image.shape[1] > width
-            # Area averaging when shrinking (no aliasing), bilinear when enlarging; both
-            # keep pixel centres at integer coordinates, as scale_rects assumes.
-            image = cv2.resize(image, (width, height),
-                               interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        # Per channel on contiguous planes, written straight into the output: several
-        # times faster than converting the interleaved image and transposing it.
-        for channel, plane in enumerate(cv2.split(np.ascontiguousarray(image))):
-            np.multiply(plane, scale[channel], out=out[i, channel], dtype=np.float32)
-            out[i, channel] += offset[channel]
-    return out
+    """Deprecated name of :func:`deltar.inference.preprocess.network_input_size`."""
+    warnings.warn("deltar.inference.estimator.network_size is deprecated; use "
+                  "deltar.inference.preprocess.network_input_size", DeprecationWarning,
+                  stacklevel=2)
+    return network_input_size(height, width, design_size=design_size, divisor=divisor)
 
 
 def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
@@ -225,12 +124,15 @@ class DepthEstimator:
     Args:
         model: a ``DeltarNet`` (PyTorch backend), or None with ``onnx_model``; it is put
             in eval mode and moved to ``device`` / ``precision`` in place.
-        onnx_model: an :class:`~deltar.export.onnx.OnnxDepthModel` (onnxruntime backend).
+        onnx_model: an :class:`~deltar.inference.onnx_runtime.OnnxDepthModel`
+            (onnxruntime backend).
         device: torch device for the PyTorch backend, e.g. ``"cpu"`` or ``"cuda"``.
         precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backend).
-        input_size: fixed (H, W) network input size in pixels (multiples of 32); by
-            default each image's size, shrunk to about the model's design size when
-            larger (see :func:`network_size`), rounded to multiples of 32.
+        input_size: fixed (H, W) network input size in pixels (multiples of 32), which
+            every image is resized to whatever its aspect; by default the one size rule
+            (:func:`~deltar.inference.preprocess.network_input_size`: each image keeps
+            its aspect, scaled to the model's design-size pixel budget, sides rounded
+            to multiples of 32). An ONNX model runs at its exported size.
         intrinsics: nominal camera intrinsics used without a calibration (scaled to
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
@@ -280,11 +182,7 @@ class DepthEstimator:
                                  f"fixed size {onnx_model.input_size}")
             input_size = onnx_model.input_size
         if input_size is not None:
-            h, w = (int(s) for s in input_size)
-            if h < SIZE_DIVISOR or w < SIZE_DIVISOR or h % SIZE_DIVISOR or w % SIZE_DIVISOR:
-                raise ValueError(f"input_size must be positive multiples of {SIZE_DIVISOR}, "
-                                 f"got {input_size}")
-            input_size = (h, w)
+            input_size = check_input_size(input_size, "input_size")
         self.device = torch.device(device)
         self.dtype = getattr(torch, precision)
         self.precision = precision
@@ -343,14 +241,12 @@ class DepthEstimator:
         Args:
             path: a checkpoint file, or the name of a model bundled with the package
                 (``"default"``, see :mod:`deltar.weights`).
-            kwargs: constructor arguments; ``input_size`` defaults to the network's
-                design size (the resolution it was trained at).
+            kwargs: constructor arguments (without ``input_size`` each image is sized by
+                the one size rule with the checkpoint's design size).
         """
         from deltar.weights import resolve_checkpoint
 
         model, preset, _ = load_checkpoint(resolve_checkpoint(path))
-        if kwargs.get("input_size") is None:
-            kwargs["input_size"] = tuple(int(v) for v in model.config["design_size"])
         return cls(model, weights=f"{preset} from {path}", **kwargs)
 
     @classmethod
@@ -382,15 +278,27 @@ class DepthEstimator:
         """An estimator running an exported ONNX model with onnxruntime (CPU).
 
         ``num_threads`` and ``allow_spinning`` go to
-        :class:`~deltar.export.onnx.OnnxDepthModel`; ``kwargs`` to the constructor.
+        :class:`~deltar.inference.onnx_runtime.OnnxDepthModel`; ``kwargs`` to the
+        constructor.
         """
-        from deltar.export.onnx import OnnxDepthModel
+        from deltar.inference.onnx_runtime import OnnxDepthModel
 
         onnx_model = OnnxDepthModel(path, num_threads=num_threads,
                                     allow_spinning=allow_spinning)
         return cls(onnx_model=onnx_model, weights=f"onnx {path}", **kwargs)
 
     # ------------------------------------------------------------------ prediction
+    def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:
+        """(h, w) network input size in pixels for images of ``image_size`` (H, W).
+
+        The fixed ``input_size`` (or an ONNX model's exported size) when set, else the
+        one size rule (:func:`~deltar.inference.preprocess.network_input_size`) with the
+        model's design size.
+        """
+        if self.input_size is not None:
+            return self.input_size
+        return network_input_size(*image_size, design_size=self.design_size)
+
     def zone_rects_for(self, frame: ZoneFrame, image_size: tuple[int, int],
                        calibration: RigCalibration | None = None) -> np.ndarray:
         """Zone rectangles (Z, 4) in pixels of an image of ``image_size`` (H, W).
@@ -443,7 +351,8 @@ class DepthEstimator:
             dict with ``image`` (B, 3, h, w) normalised, ``hypotheses`` (B, Z, K) metres,
             ``zone_rects`` (B, Z, 4) pixels of the network input, ``zone_valid`` (B, Z)
             bool (torch tensors on the estimator's device) and ``image_rects`` (B, Z, 4)
-            numpy rectangles in input-image pixels, ``image_size`` (H, W).
+            numpy rectangles in input-image pixels, ``image_size`` (H, W) and
+            ``network_size`` (h, w) in pixels (:meth:`network_size_for`).
         """
         import torch
 
@@ -466,7 +375,7 @@ class DepthEstimator:
             if problem is not None:
                 raise ValueError(f"frames[{i}]: {problem}")
         _check_calibration(calibration)
-        net_size = self.input_size or network_size(*size, design_size=self.design_size)
+        net_size = self.network_size_for(size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)
             expected = (len(frames), frames[0].zone_count, 4)
@@ -482,7 +391,7 @@ class DepthEstimator:
         valid = torch.from_numpy(np.stack([f.flat()[2] for f in frames])).to(self.device)
         return {"image": image, "hypotheses": hypotheses.float(),
                 "zone_rects": torch.from_numpy(net_rects).to(self.device), "zone_valid": valid,
-                "image_rects": rects, "image_size": size}
+                "image_rects": rects, "image_size": size, "network_size": net_size}
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
         """Run the network on :meth:`prepare`'s output.
@@ -514,34 +423,11 @@ class DepthEstimator:
         return out["depth"].float(), out["uncertainty"].float()
 
     def _run_flip_averaged(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Average of the network on the inputs and on their left-right mirror.
+        """:func:`~deltar.inference.flip.flip_averaged` of the PyTorch network."""
+        from deltar.inference.flip import flip_averaged
 
-        The mirrored pass sees the mirrored image, zones in mirrored order and
-        mirrored rectangles; its output is flipped back. The uncertainty is that of the
-        equal mixture of the two per-pixel distributions (mean variance plus the
-        variance of the two means).
-        """
-        import torch
-
-        from deltar.data.transforms import mirror_zone_rects
-
-        image, hypotheses = inputs["image"], inputs["hypotheses"]
-        rects, valid = inputs["zone_rects"], inputs["zone_valid"]
-        zones = hypotheses.shape[1]
-        grid = math.isqrt(zones)
-        order = torch.arange(zones).reshape(grid, grid).flip(1).flatten().to(rects.device)
-        width = image.shape[-1]
-        mirrored_rects = torch.from_numpy(np.stack([
-            mirror_zone_rects(r, width, grid) for r in rects.cpu().numpy()])).to(rects.device)
-        depth, spread = self._run_model(
-            torch.cat([image, image.flip(-1)]), torch.cat([hypotheses, hypotheses[:, order]]),
-            torch.cat([rects, mirrored_rects]), torch.cat([valid, valid[:, order]]))
-        batch = image.shape[0]
-        depth_a, depth_b = depth[:batch], depth[batch:].flip(-1)
-        spread_a, spread_b = spread[:batch], spread[batch:].flip(-1)
-        mean = 0.5 * (depth_a + depth_b)
-        variance = 0.5 * (spread_a**2 + spread_b**2) + 0.25 * (depth_a - depth_b) ** 2
-        return mean, variance.sqrt()
+        return flip_averaged(self._run_model, inputs["image"], inputs["hypotheses"],
+                             inputs["zone_rects"], inputs["zone_valid"])
 
     def predict(self, image: np.ndarray | Sequence[np.ndarray],
                 zone_frame: ZoneFrame | Sequence[ZoneFrame],
@@ -571,7 +457,6 @@ class DepthEstimator:
                 range) or a calibration for another resolution.
         """
         import torch
-        import torch.nn.functional as F
 
         single, images, frames = _batch_arguments(image, zone_frame)
         if zone_rects is not None:
@@ -580,8 +465,7 @@ class DepthEstimator:
         inputs = self.prepare(images, frames, calibration, zone_rects)
         depth, uncertainty = self.run_network(inputs)
         size = inputs["image_size"]
-        both = F.interpolate(torch.cat([depth, uncertainty], dim=1), size=size,
-                             mode="bilinear", align_corners=False).cpu().numpy()
+        both = resize_to_image(torch.cat([depth, uncertainty], dim=1), size).cpu().numpy()
         intrinsics = self.image_intrinsics(size, calibration)
         results = []
         for i, frame in enumerate(frames):
@@ -595,7 +479,8 @@ class DepthEstimator:
             results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
                                            zone_rects=inputs["image_rects"][i],
                                            zone_frame=frame, intrinsics=intrinsics,
-                                           zones_used=frame.valid_count))
+                                           zones_used=frame.valid_count,
+                                           network_size=tuple(inputs["network_size"])))
         return results[0] if single else results
 
 

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs
 from deltar.models.zone_prior import (
     _axis_weights,
     _softmax_over_zones,
@@ -141,7 +142,7 @@ def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects:
     return slope_y.masked_fill(~valid, 0.0), slope_x.masked_fill(~valid, 0.0)
 
 
-class PlanarSelectHead(nn.Module):
+class PlanarSelectHead(DepthHead):
     """Depth as an affinity-weighted choice among the zones' local planes (log depth).
 
     Args:
@@ -170,7 +171,7 @@ class PlanarSelectHead(nn.Module):
 
     def forward(self, descriptors: torch.Tensor, zone_mean_m: torch.Tensor,
                 zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                ) -> HeadOutput:
         """Depth, bin edges and uncertainty: the inputs and outputs of
         :meth:`ZoneSelectHead.forward <deltar.models.zone_prior.ZoneSelectHead.forward>`,
         with unit-length pixel descriptors (B, C, h, w) (:class:`EncoderDescriptors`) as
@@ -206,6 +207,11 @@ class PlanarSelectHead(nn.Module):
         spread = (second - log_depth ** 2).clamp_min(0.0).sqrt()
         return selection_outputs(log_depth + centre[:, :, None], spread, valid,
                                  (height, width), self.edges, self.min_depth, self.max_depth)
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The choice among the zones' planes (:meth:`forward`), descriptors as features."""
+        return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
+                    zones.stride)
 
     def _plane_ratio(self, means: torch.Tensor, valid: torch.Tensor, rects: torch.Tensor,
                      size: tuple[int, int], stride: float) -> torch.Tensor:

@@ -1,4 +1,11 @@
-"""Depth heads: adaptive bins (release head and AdaBins mViT) and a direct regressor.
+"""Depth heads: the one head interface, adaptive bins (release head and AdaBins mViT)
+and a direct regressor.
+
+Every head is a :class:`DepthHead`: ``head.predict(features, zones)`` takes the
+decoder's features and the frame's :class:`ZoneInputs` and returns a
+:class:`HeadOutput` (depth, bin edges, uncertainty in metres), so
+:class:`~deltar.models.network.DeltarNet` calls every head the same way. Each head's
+``forward`` keeps its own, narrower inputs (what the head itself computes on).
 
 A bins head predicts, per image, N normalised bin widths over ``[min_depth,
 max_depth]`` and, per pixel, logits of a softmax over the N bins; depth is the expectation of
@@ -7,6 +14,11 @@ distribution (both in metres).
 """
 
 from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -108,7 +120,81 @@ def softmax_moments(logits: torch.Tensor, centres: torch.Tensor
     return mean_shift + reference[:, :, None, None], variance.clamp_min(0).sqrt()
 
 
-class BinsHead(nn.Module):
+class HeadOutput(NamedTuple):
+    """What every head returns (unpacks as ``depth, bin_edges, uncertainty``).
+
+    Attributes:
+        depth: (B, 1, h, w) metres, in the decoder's output grid.
+        bin_edges: (B, N + 1) metres (a head without bins reports its depth range).
+        uncertainty: (B, 1, h, w) metres, the per-pixel standard deviation.
+    """
+
+    depth: torch.Tensor
+    bin_edges: torch.Tensor
+    uncertainty: torch.Tensor
+
+
+@dataclass(frozen=True)
+class ZoneInputs:
+    """The frame's zones as every head receives them (heads read what they need).
+
+    Attributes:
+        hypotheses: (B, Z, K) depth hypotheses per zone, metres (as the network sees
+            them: divided by the frame's scale with ``zone_scale_norm``).
+        valid: (B, Z) bool.
+        rects: (B, Z, 4) (y0, x0, y1, x1) zone rectangles in network-input pixels.
+        stride: network-input pixels per feature cell of the head's input.
+        mean_sigma: optional (B, Z, 2) zone mean and sigma, metres; when None the zone
+            mean is the hypotheses' mean.
+    """
+
+    hypotheses: torch.Tensor
+    valid: torch.Tensor
+    rects: torch.Tensor
+    stride: float
+    mean_sigma: torch.Tensor | None = None
+
+    def mean_m(self, dtype: torch.dtype) -> torch.Tensor:
+        """(B, Z) zone means in metres, as ``dtype``."""
+        mean = self.mean_sigma[..., 0] if self.mean_sigma is not None else \
+            self.hypotheses.mean(dim=2)
+        return mean.to(dtype)
+
+
+class DepthHead(nn.Module):
+    """The interface of every depth head: :meth:`predict`.
+
+    Subclasses implement ``predict`` (and ``forward``, the head's own computation);
+    ``traceable`` is set by :meth:`deltar.models.DeltarNet.set_traceable` for export.
+    """
+
+    traceable: bool = False
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """Depth, bin edges and uncertainty from decoder features.
+
+        Args:
+            features: (B, C, h, w) decoder features.
+            zones: the frame's zones (:class:`ZoneInputs`).
+
+        Returns:
+            The :class:`HeadOutput`, in metres, on the ``h x w`` grid.
+        """
+        raise NotImplementedError
+
+
+class _BinsPredict(DepthHead):
+    """``predict`` of the bins heads: widths and logits from ``forward``, then the bins."""
+
+    min_depth: float
+    max_depth: float
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        widths, logits = self(features)
+        return HeadOutput(*bins_to_depth(widths, logits, self.min_depth, self.max_depth))
+
+
+class BinsHead(_BinsPredict):
     """The release's head: global bin-width regressor plus a per-pixel bin softmax.
 
     Args:
@@ -116,15 +202,19 @@ class BinsHead(nn.Module):
         n_bins: number of depth bins N.
         embedding_dim: width of the range-attention features.
         norm: bin-width normalisation, one of :data:`BIN_NORMS`.
+        min_depth: depth of the first bin edge, metres.
+        max_depth: depth of the last bin edge, metres.
     """
 
     def __init__(
-        self, in_channels: int, n_bins: int = 256, embedding_dim: int = 128, norm: str = "linear"
+        self, in_channels: int, n_bins: int = 256, embedding_dim: int = 128, norm: str = "linear",
+        min_depth: float = 1e-3, max_depth: float = 10.0,
     ) -> None:
         super().__init__()
         if norm not in BIN_NORMS:
             raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
         self.norm = norm
+        self.min_depth, self.max_depth = min_depth, max_depth
         self.range_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=3, padding=1)
         self.global_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=1, bias=False)
         self.width_regressor = nn.Sequential(
@@ -145,7 +235,7 @@ class BinsHead(nn.Module):
         return widths, self.logits_conv(self.range_conv(features))
 
 
-class MiniViTHead(nn.Module):
+class MiniViTHead(_BinsPredict):
     """AdaBins' mini-ViT refinement (the paper's head).
 
     Patch embeddings of the decoder output go through a transformer encoder together
@@ -165,6 +255,11 @@ class MiniViTHead(nn.Module):
         num_heads: transformer heads.
         norm: bin-width normalisation, one of :data:`BIN_NORMS`.
         design_tokens: (rows, cols) of the learned patch-position grid.
+        min_depth: depth of the first bin edge, metres.
+        max_depth: depth of the last bin edge, metres.
+
+    With ``traceable`` set (export), the transformer runs without PyTorch's fused
+    encoder kernel, which has no ONNX equivalent (the plain path computes the same).
     """
 
     def __init__(
@@ -178,11 +273,14 @@ class MiniViTHead(nn.Module):
         num_heads: int = 4,
         norm: str = "linear",
         design_tokens: tuple[int, int] = (15, 20),
+        min_depth: float = 1e-3,
+        max_depth: float = 10.0,
     ) -> None:
         super().__init__()
         if norm not in BIN_NORMS:
             raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
         self.norm = norm
+        self.min_depth, self.max_depth = min_depth, max_depth
         self.patch_size = patch_size
         self.patch_embed = nn.Conv2d(
             in_channels, embedding_dim, kernel_size=patch_size, stride=patch_size
@@ -215,14 +313,26 @@ class MiniViTHead(nn.Module):
         )
         tokens = rearrange(patches + position, "b e h w -> b (h w) e")
         queries = self.queries[None].expand(batch, -1, -1)
-        out = self.transformer(torch.cat([queries, tokens], dim=1))
+        with _plain_transformer() if self.traceable else contextlib.nullcontext():
+            out = self.transformer(torch.cat([queries, tokens], dim=1))
         widths = normalise_bin_widths(self.width_regressor(out[:, 0]), self.norm)
         range_queries = out[:, 1 : self.queries.shape[0]]
         range_maps = torch.einsum("behw,bqe->bqhw", self.pixel_conv(features), range_queries)
         return widths, self.logits_conv(range_maps)
 
 
-class DirectDepthHead(nn.Module):
+@contextlib.contextmanager
+def _plain_transformer() -> Iterator[None]:
+    """Run transformer layers on their plain (traceable) path while tracing."""
+    fastpath = torch.backends.mha.get_fastpath_enabled()
+    torch.backends.mha.set_fastpath_enabled(False)
+    try:
+        yield
+    finally:
+        torch.backends.mha.set_fastpath_enabled(fastpath)
+
+
+class DirectDepthHead(DepthHead):
     """No refinement (ablation): a 3x3 convolution and a sigmoid scaled to the depth range.
 
     Args:
@@ -237,10 +347,14 @@ class DirectDepthHead(nn.Module):
         self.max_depth = max_depth
         self.depth_conv = nn.Conv2d(in_channels, 1, kernel_size=3, padding=1)
 
-    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, features: torch.Tensor) -> HeadOutput:
         """(B, C, h, w) -> depth (B, 1, h, w), edges (B, 2) = range, uncertainty zeros."""
         depth = self.min_depth + (self.max_depth - self.min_depth) * torch.sigmoid(
             self.depth_conv(features)
         )
         edges = features.new_tensor([self.min_depth, self.max_depth]).expand(depth.shape[0], 2)
-        return depth, edges, torch.zeros_like(depth)
+        return HeadOutput(depth, edges, torch.zeros_like(depth))
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The direct regression (the zones are not used)."""
+        return self(features)

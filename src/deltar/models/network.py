@@ -13,9 +13,9 @@ from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead
 from deltar.models.decoder import FUSION_STRIDES, FusionDecoder
 from deltar.models.encoders import DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
-from deltar.models.heads import BinsHead, DirectDepthHead, MiniViTHead, bins_to_depth
+from deltar.models.heads import BinsHead, DepthHead, DirectDepthHead, MiniViTHead, ZoneInputs
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
-from deltar.models.zone_prior import ZonePriorHead, ZoneSelectHead, zone_prior_map
+from deltar.models.zone_prior import ZonePriorHead, ZoneSelectHead
 
 HEADS = ("bins", "mvit", "direct", "zone_prior", "zone_select", "plane_select")
 #: Where the head's features come from: the zone-fusion decoder, or the encoder alone.
@@ -198,13 +198,17 @@ class DeltarNet(nn.Module):
                     point_dim=2 if self.mean_sigma_points else 1,
                     widths=self.decoder.fusion_dims[::-1],
                 )
+        self.traceable = False
+        self.head: DepthHead
         if head == "bins":
-            self.head = BinsHead(head_channels, n_bins, head_channels, bin_norm)
+            self.head = BinsHead(head_channels, n_bins, head_channels, bin_norm,
+                                 min_depth=min_depth, max_depth=max_depth)
         elif head == "mvit":
             half = (design_size[0] // 2, design_size[1] // 2)
             self.head = MiniViTHead(
                 head_channels, n_bins, head_channels, norm=bin_norm,
                 design_tokens=(half[0] // 16, half[1] // 16),
+                min_depth=min_depth, max_depth=max_depth,
             )
         elif head == "zone_select":
             self.head = ZoneSelectHead(head_channels, head_channels, n_bins,
@@ -217,6 +221,21 @@ class DeltarNet(nn.Module):
                                       min_depth=min_depth, max_depth=max_depth)
         else:
             self.head = DirectDepthHead(head_channels, min_depth, max_depth)
+
+    def set_traceable(self, enabled: bool = True) -> DeltarNet:
+        """Switch the network to (or back from) its traceable path, for ONNX export.
+
+        The traceable path computes the same outputs with operators the TorchScript
+        tracer records: the zone resampling matrices are built as one-hot products
+        (see :mod:`~deltar.models.zone_patches`) and the mViT head avoids PyTorch's
+        fused transformer kernel. It uses more memory; leave it off otherwise.
+
+        Returns:
+            The network itself.
+        """
+        self.traceable = bool(enabled)
+        self.head.traceable = self.traceable
+        return self
 
     def forward(
         self,
@@ -274,32 +293,16 @@ class DeltarNet(nn.Module):
             for stride in FUSION_STRIDES:
                 window = zone_window(zone_rects, float(stride), grid)
                 size = (height // stride, width // stride)
-                resamplers.append(ZonePatchResampler(window, size, image.dtype))
+                resamplers.append(ZonePatchResampler(window, size, image.dtype,
+                                                     traceable=self.traceable))
 
         if isinstance(self.decoder, EncoderDescriptors):
             features = self.decoder(image_features, tuple(image.shape[-2:]))
         else:
             features = self.decoder(image_features, zone_features, valid, resamplers)
-        if isinstance(self.head, DirectDepthHead):
-            depth, edges, uncertainty = self.head(features)
-        elif isinstance(self.head, (ZoneSelectHead, PlanarSelectHead)):
-            zone_mean = (zone_mean_sigma[..., 0] if zone_mean_sigma is not None
-                         else hypotheses.mean(dim=2))
-            stride = image.shape[-1] / features.shape[-1]
-            depth, edges, uncertainty = self.head(features, zone_mean.to(features.dtype), valid,
-                                                  zone_rects, stride)
-        elif isinstance(self.head, ZonePriorHead):
-            zone_mean = (zone_mean_sigma[..., 0] if zone_mean_sigma is not None
-                         else hypotheses.mean(dim=2))
-            stride = image.shape[-1] / features.shape[-1]
-            prior = zone_prior_map(zone_mean.to(features.dtype), valid, zone_rects,
-                                   tuple(features.shape[-2:]), stride)
-            depth, edges, uncertainty = self.head(features, prior)
-        else:
-            widths, logits = self.head(features)
-            depth, edges, uncertainty = bins_to_depth(
-                widths, logits, self.min_depth, self.max_depth
-            )
+        zones = ZoneInputs(hypotheses, valid, zone_rects, image.shape[-1] / features.shape[-1],
+                           zone_mean_sigma)
+        depth, edges, uncertainty = self.head.predict(features, zones)
         half = (image.shape[-2] // 2, image.shape[-1] // 2)
         if tuple(depth.shape[-2:]) != half:
             # Heads on coarser features: their output is resized to the contract's

@@ -12,6 +12,10 @@ Both resizes are separable linear maps, so they are built as small per-sample
 matrices (rows x rows and cols x cols) and applied with two batched matrix products:
 every sample of a batch may have its own zone layout, and zones may lie partly or
 wholly outside the image.
+
+The matrices are built with an in-place ``index_add_``, which the TorchScript tracer
+(ONNX export) drops; ``traceable=True`` builds them with an equivalent one-hot product
+instead (same values, more memory), see :meth:`deltar.models.DeltarNet.set_traceable`.
 """
 
 from __future__ import annotations
@@ -55,8 +59,8 @@ def zone_window(zone_rects: torch.Tensor, stride: float, grid: int) -> ZoneWindo
     rects = zone_rects.detach().float()
     scaled = rects / stride
     # ``trunc`` (toward zero), not ``floor``: the release casts to int32 here.
-    start = torch.stack([scaled[..., 0].amin(1), scaled[..., 1].amin(1)], dim=1).trunc()
-    end = torch.stack([scaled[..., 2].amax(1), scaled[..., 3].amax(1)], dim=1).trunc()
+    start = _trunc(torch.stack([scaled[..., 0].amin(1), scaled[..., 1].amin(1)], dim=1))
+    end = _trunc(torch.stack([scaled[..., 2].amax(1), scaled[..., 3].amax(1)], dim=1))
     length = (end - start).clamp_min(1)
     max_height_px = int((rects[..., 2] - rects[..., 0]).amax().item())
     max_width_px = int((rects[..., 3] - rects[..., 1]).amax().item())
@@ -65,6 +69,12 @@ def zone_window(zone_rects: torch.Tensor, stride: float, grid: int) -> ZoneWindo
         max(1, math.ceil(max_width_px / stride)),
     )
     return ZoneWindow(start.long(), length.long(), patch, grid)
+
+
+def _trunc(values: torch.Tensor) -> torch.Tensor:
+    """Round toward zero: exactly ``values.trunc()``, written with operators that export
+    to ONNX (``aten::trunc`` has no ONNX symbolic)."""
+    return torch.sign(values) * torch.floor(torch.abs(values))
 
 
 def _linear_resize_weights(
@@ -96,13 +106,20 @@ def _linear_resize_weights(
 
 
 def _scatter_rows(
-    rows: int, cols: int, row_index: torch.Tensor, col_index: torch.Tensor, weight: torch.Tensor
+    rows: int, cols: int, row_index: torch.Tensor, col_index: torch.Tensor, weight: torch.Tensor,
+    traceable: bool = False,
 ) -> torch.Tensor:
     """Dense (B, rows, cols) matrix with ``weight`` added at (row_index, col_index).
 
     Entries whose column index falls outside ``[0, cols)`` are dropped (they read the
-    zero padding outside the map).
+    zero padding outside the map). ``traceable`` builds the same matrix as a one-hot
+    product, which the ONNX tracer records (it drops the in-place ``index_add_``).
     """
+    if traceable:
+        row_hot = row_index[..., None] == torch.arange(rows, device=weight.device)
+        col_hot = col_index[..., None] == torch.arange(cols, device=weight.device)
+        return torch.einsum("bj,bjr,bjc->brc", weight, row_hot.to(weight.dtype),
+                            col_hot.to(weight.dtype))
     batch = weight.shape[0]
     inside = (col_index >= 0) & (col_index < cols)
     matrix = torch.zeros(batch, rows, cols, dtype=weight.dtype, device=weight.device)
@@ -115,7 +132,8 @@ def _scatter_rows(
     return matrix
 
 
-def gather_matrix(start: torch.Tensor, length: torch.Tensor, out_size: int, map_size: int):
+def gather_matrix(start: torch.Tensor, length: torch.Tensor, out_size: int, map_size: int,
+                  traceable: bool = False):
     """Matrix taking map rows to window rows resized to ``out_size`` (zeros outside).
 
     Args:
@@ -123,6 +141,7 @@ def gather_matrix(start: torch.Tensor, length: torch.Tensor, out_size: int, map_
         length: (B,) window length in cells.
         out_size: resized window length (n * p).
         map_size: map length in cells.
+        traceable: build it with ONNX-traceable operators (same values).
 
     Returns:
         (B, out_size, map_size) float32 matrix.
@@ -130,12 +149,15 @@ def gather_matrix(start: torch.Tensor, length: torch.Tensor, out_size: int, map_
     fixed_out = torch.full_like(length, out_size)
     low, high, weight_high = _linear_resize_weights(length, fixed_out, out_size)
     out_rows = torch.arange(out_size, device=start.device).expand_as(low)
-    first = _scatter_rows(out_size, map_size, out_rows, start[:, None] + low, 1.0 - weight_high)
-    second = _scatter_rows(out_size, map_size, out_rows, start[:, None] + high, weight_high)
+    first = _scatter_rows(out_size, map_size, out_rows, start[:, None] + low, 1.0 - weight_high,
+                          traceable)
+    second = _scatter_rows(out_size, map_size, out_rows, start[:, None] + high, weight_high,
+                           traceable)
     return first + second
 
 
-def scatter_matrix(start: torch.Tensor, length: torch.Tensor, patch_size: int, map_size: int):
+def scatter_matrix(start: torch.Tensor, length: torch.Tensor, patch_size: int, map_size: int,
+                   traceable: bool = False):
     """Matrix taking resized window rows back to map rows (the reverse resize).
 
     Args:
@@ -143,6 +165,7 @@ def scatter_matrix(start: torch.Tensor, length: torch.Tensor, patch_size: int, m
         length: (B,) window length in cells.
         patch_size: resized window length (n * p).
         map_size: map length in cells.
+        traceable: build it with ONNX-traceable operators (same values).
 
     Returns:
         (B, map_size, patch_size) float32 matrix; map rows outside the window are 0.
@@ -158,8 +181,8 @@ def scatter_matrix(start: torch.Tensor, length: torch.Tensor, patch_size: int, m
     low_w = torch.where(keep, 1.0 - weight_high, torch.zeros_like(weight_high))
     high_w = torch.where(keep, weight_high, torch.zeros_like(weight_high))
     # Build the transposed problem (patch rows as "columns") and flip it.
-    first = _scatter_rows(patch_size, map_size, low, map_rows, low_w)
-    second = _scatter_rows(patch_size, map_size, high, map_rows, high_w)
+    first = _scatter_rows(patch_size, map_size, low, map_rows, low_w, traceable)
+    second = _scatter_rows(patch_size, map_size, high, map_rows, high_w, traceable)
     return (first + second).transpose(1, 2)
 
 
@@ -170,18 +193,25 @@ class ZonePatchResampler:
         window: the :class:`ZoneWindow` of this feature map.
         map_size: (H, W) of the feature map in cells.
         dtype: dtype of the features.
+        traceable: build the resampling matrices with ONNX-traceable operators (same
+            values; for export).
     """
 
-    def __init__(self, window: ZoneWindow, map_size: tuple[int, int], dtype: torch.dtype) -> None:
+    def __init__(self, window: ZoneWindow, map_size: tuple[int, int], dtype: torch.dtype,
+                 traceable: bool = False) -> None:
         self.window = window
         n = window.grid
         p_h, p_w = window.patch
         start, length = window.start, window.length
         height, width = map_size
-        self.rows_in = gather_matrix(start[:, 0], length[:, 0], n * p_h, height).to(dtype)
-        self.cols_in = gather_matrix(start[:, 1], length[:, 1], n * p_w, width).to(dtype)
-        self.rows_out = scatter_matrix(start[:, 0], length[:, 0], n * p_h, height).to(dtype)
-        self.cols_out = scatter_matrix(start[:, 1], length[:, 1], n * p_w, width).to(dtype)
+        self.rows_in = gather_matrix(start[:, 0], length[:, 0], n * p_h, height,
+                                     traceable).to(dtype)
+        self.cols_in = gather_matrix(start[:, 1], length[:, 1], n * p_w, width,
+                                     traceable).to(dtype)
+        self.rows_out = scatter_matrix(start[:, 0], length[:, 0], n * p_h, height,
+                                       traceable).to(dtype)
+        self.cols_out = scatter_matrix(start[:, 1], length[:, 1], n * p_w, width,
+                                       traceable).to(dtype)
 
     def gather(self, feature_map: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) map -> (B * Z, p_h * p_w, C) zone patch tokens (zones row-major)."""

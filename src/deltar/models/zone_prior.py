@@ -14,7 +14,7 @@ import math
 import torch
 from torch import nn
 
-from deltar.models.heads import softmax_moments
+from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs, softmax_moments
 
 #: Depth (metres) used where no zone of the frame is valid.
 NO_ZONE_PRIOR_DEPTH = 2.0
@@ -113,7 +113,7 @@ def zone_prior_map(
 
 def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid: torch.Tensor,
                       size: tuple[int, int], log_edges: torch.Tensor, min_depth: float,
-                      max_depth: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                      max_depth: float) -> HeadOutput:
     """The outputs of a zone-selecting head from its per-cell log depth and spread.
 
     Args:
@@ -136,10 +136,10 @@ def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid:
     depth = torch.exp(log_depth).reshape(batch, 1, *size).clamp(min_depth, max_depth)
     uncertainty = depth * spread.reshape(batch, 1, *size)
     typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
-    return depth, typical * torch.exp(log_edges)[None], uncertainty
+    return HeadOutput(depth, typical * torch.exp(log_edges)[None], uncertainty)
 
 
-class ZoneSelectHead(nn.Module):
+class ZoneSelectHead(DepthHead):
     """Depth as a learned, image-guided choice among the zones' readings (in log depth).
 
     Each pixel takes a softmax-weighted geometric mean of the valid zones' means. The
@@ -173,7 +173,7 @@ class ZoneSelectHead(nn.Module):
 
     def forward(self, features: torch.Tensor, zone_mean_m: torch.Tensor,
                 zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                ) -> HeadOutput:
         """Depth, bin edges and uncertainty.
 
         Args:
@@ -212,8 +212,13 @@ class ZoneSelectHead(nn.Module):
         return selection_outputs(log_depth, spread, valid, (height, width), self.edges,
                                  self.min_depth, self.max_depth)
 
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The choice among the zones' means (:meth:`forward`)."""
+        return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
+                    zones.stride)
 
-class ZonePriorHead(nn.Module):
+
+class ZonePriorHead(DepthHead):
     """Per-pixel softmax over N log-ratio bins around the zone prior.
 
     Args:
@@ -246,8 +251,7 @@ class ZonePriorHead(nn.Module):
         nn.init.zeros_(self.logits_conv.weight)
         nn.init.zeros_(self.logits_conv.bias)
 
-    def forward(self, features: torch.Tensor, prior_m: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, features: torch.Tensor, prior_m: torch.Tensor) -> HeadOutput:
         """Depth, bin edges and uncertainty.
 
         Args:
@@ -267,4 +271,10 @@ class ZonePriorHead(nn.Module):
         depth = (prior_m * torch.exp(log_ratio)).clamp(self.min_depth, self.max_depth)
         typical = torch.exp(log_prior.mean(dim=(1, 2, 3)))[:, None]
         edges = typical * torch.exp(self.edges)[None]
-        return depth, edges, depth * spread
+        return HeadOutput(depth, edges, depth * spread)
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The refinement (:meth:`forward`) of the zone prior (:func:`zone_prior_map`)."""
+        prior = zone_prior_map(zones.mean_m(features.dtype), zones.valid, zones.rects,
+                               tuple(features.shape[-2:]), zones.stride)
+        return self(features, prior)

@@ -1,0 +1,66 @@
+"""Test-time flip averaging: a network run on the inputs and on their left-right mirror."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+#: ``run(image, hypotheses, zone_rects, zone_valid) -> (depth, uncertainty)``.
+NetworkRun = Callable[["torch.Tensor", "torch.Tensor", "torch.Tensor", "torch.Tensor"],
+                      "tuple[torch.Tensor, torch.Tensor]"]
+
+
+def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor,
+                  zone_rects: torch.Tensor, zone_valid: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Average of ``run`` on the inputs and on their left-right mirror, in one batch.
+
+    The mirrored pass sees the mirrored image, the zones in mirrored order (zone
+    ``(r, c)`` becomes ``(r, n - 1 - c)``) and mirrored rectangles (columns ``[x0, x1)``
+    become ``[w - x1, w - x0)``); its output is flipped back. The uncertainty is that of
+    the equal mixture of the two per-pixel distributions (mean variance plus the
+    variance of the two means).
+
+    Args:
+        run: the network call, e.g. a ``DeltarNet`` wrapped to return
+            (depth, uncertainty).
+        image: (B, 3, h, w) normalised network input.
+        hypotheses: (B, Z, K) metres; Z = n * n zones, row-major.
+        zone_rects: (B, Z, 4) (y0, x0, y1, x1) in pixels of ``image``.
+        zone_valid: (B, Z) bool.
+
+    Returns:
+        (depth, uncertainty), each (B, 1, h', w') metres in ``run``'s output grid.
+
+    Raises:
+        ValueError: the zone count is not a square grid.
+    """
+    import torch
+
+    from deltar.data.transforms import mirror_zone_rects
+
+    zones = hypotheses.shape[1]
+    grid = math.isqrt(zones)
+    if grid * grid != zones:
+        raise ValueError(f"hypotheses: zone count Z={zones} is not a square grid")
+    order = torch.arange(zones).reshape(grid, grid).flip(1).flatten().to(zone_rects.device)
+    width = image.shape[-1]
+    mirrored_rects = torch.from_numpy(np.stack([
+        mirror_zone_rects(r, width, grid) for r in zone_rects.cpu().numpy()])
+    ).to(zone_rects.device)
+    depth, spread = run(torch.cat([image, image.flip(-1)]),
+                        torch.cat([hypotheses, hypotheses[:, order]]),
+                        torch.cat([zone_rects, mirrored_rects]),
+                        torch.cat([zone_valid, zone_valid[:, order]]))
+    batch = image.shape[0]
+    depth_a, depth_b = depth[:batch], depth[batch:].flip(-1)
+    spread_a, spread_b = spread[:batch], spread[batch:].flip(-1)
+    mean = 0.5 * (depth_a + depth_b)
+    variance = 0.5 * (spread_a**2 + spread_b**2) + 0.25 * (depth_a - depth_b) ** 2
+    return mean, variance.sqrt()

@@ -1,0 +1,148 @@
+"""The one size rule (deltar.inference.preprocess) and what the estimator feeds the network."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from deltar.inference.estimator import DepthEstimator, zone_mean_depth
+from deltar.inference.preprocess import (
+    SIZE_DIVISOR,
+    check_input_size,
+    network_input_size,
+    resize_to_image,
+    scale_rects,
+)
+from deltar.sensor.zone_frame import ZoneFrame
+from tests.inference.fakes import ZonePainterNet
+
+torch.set_num_threads(1)
+
+BUNDLED_DESIGN = (256, 320)
+ODD_SIZES = [(480, 480), (720, 1280), (16, 4000)]
+
+
+def _frame(rng: np.random.Generator) -> ZoneFrame:
+    return ZoneFrame(rng.uniform(0.8, 3.5, (8, 8)), rng.uniform(0.01, 0.1, (8, 8)),
+                     np.ones((8, 8), bool))
+
+
+def test_the_divisor_is_the_networks():
+    from deltar.models.network import SIZE_DIVISOR as NETWORK_DIVISOR
+
+    assert SIZE_DIVISOR == NETWORK_DIVISOR == 32
+
+
+@pytest.mark.parametrize("size, expected", [
+    ((480, 640), (256, 320)),   # the design aspect: exactly the design size
+    ((480, 480), (288, 288)),   # square stays square (not 256x320, distorted)
+    ((720, 1280), (224, 384)),  # 16:9, s = 0.298 -> 214.7 x 381.6
+    ((16, 4000), (32, 4512)),   # a strip: enlarged, the short side clamped at 32
+    ((120, 160), (256, 320)),   # smaller images are enlarged to the design budget
+])
+def test_rule_keeps_aspect_at_the_design_pixel_budget(size, expected):
+    assert network_input_size(*size, design_size=BUNDLED_DESIGN) == expected
+
+
+@pytest.mark.parametrize("size", [(480, 480), (720, 1280), (300, 430), (1080, 1920),
+                                  (61, 97)])
+@pytest.mark.parametrize("design", [(256, 320), (480, 640), (64, 96)])
+def test_rule_distorts_only_by_rounding(size, design):
+    height, width = network_input_size(*size, design_size=design)
+    assert height % 32 == 0 and width % 32 == 0
+    scale = np.sqrt(design[0] * design[1] / (size[0] * size[1]))
+    # Each side is the exactly scaled side rounded to the nearest multiple of 32.
+    assert abs(height - size[0] * scale) <= 16 and abs(width - size[1] * scale) <= 16
+
+
+def test_rule_without_design_size_only_rounds():
+    assert network_input_size(480, 640) == (480, 640)
+    assert network_input_size(60, 90) == (64, 96)
+    assert network_input_size(47, 49) == (32, 64)
+    assert network_input_size(10, 10) == (32, 32)
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: network_input_size(0, 10), "image size"),
+    (lambda: network_input_size(10, 10, design_size=(0, 64)), "design_size"),
+    (lambda: network_input_size(10, 10, design_size=(64,)), "design_size"),
+    (lambda: network_input_size(10, 10, divisor=0), "divisor"),
+    (lambda: check_input_size((60, 96)), "input_size"),
+    (lambda: check_input_size("big", "--size"), "--size"),
+])
+def test_bad_sizes_name_the_argument(call, name):
+    with pytest.raises(ValueError, match=name):
+        call()
+
+
+def test_output_mapping_back_agrees_with_the_rect_mapping():
+    # A step between network pixels 15 and 16 (edge at 15.5) must land, resized back to
+    # the image, where scale_rects puts that coordinate: the same pixel-centre mapping.
+    net = torch.zeros(1, 1, 32, 64)
+    net[..., 16:] = 1.0
+    net[..., 8:, :] += 1.0
+    back = resize_to_image(net, (90, 300))[0, 0].numpy()
+    assert back.shape == (90, 300)
+    _, edge_x, edge_y, _ = scale_rects(np.array([0.0, 15.5, 7.5, 0.0]), (32, 64), (90, 300))
+
+    def crossing(profile: np.ndarray, level: float) -> float:
+        i = int(np.argmax(profile >= level)) - 1
+        return i + (level - profile[i]) / (profile[i + 1] - profile[i])
+
+    assert crossing(back[0], 0.5) == pytest.approx(edge_x, abs=0.01)
+    assert crossing(back[:, 0], 0.5) == pytest.approx(edge_y, abs=0.01)
+
+
+@pytest.mark.parametrize("size", ODD_SIZES)
+def test_estimator_runs_the_rule_on_odd_sizes(lite_model, rng, size):
+    estimator = DepthEstimator(lite_model, weights="test")
+    image = rng.integers(0, 256, (*size, 3), dtype=np.uint8)
+    pred = estimator.predict(image, _frame(rng))
+    expected = network_input_size(*size, design_size=lite_model.config["design_size"])
+    assert pred.network_size == estimator.network_size_for(size) == expected
+    assert pred.depth_m.shape == size and pred.uncertainty_m.shape == size
+    assert np.isfinite(pred.depth_m).all() and np.isfinite(pred.uncertainty_m).all()
+    assert (pred.depth_m > 0).all()
+
+
+@pytest.mark.parametrize("size", [(480, 480), (200, 356)])
+def test_zones_line_up_through_the_rule_on_odd_sizes(rng, size):
+    """A network painting zone means gives back the zone-mean map on non-4:3 images."""
+    painter = ZonePainterNet()
+    painter.config["design_size"] = (64, 96)
+    estimator = DepthEstimator(painter, weights="painter")
+    frame = _frame(rng)
+    pred = estimator.predict(rng.integers(0, 256, (*size, 3), dtype=np.uint8), frame)
+    assert pred.network_size == network_input_size(*size, design_size=(64, 96))
+    expected = zone_mean_depth(frame, pred.zone_rects, size)
+    # Away from zone borders (bilinear resizing mixes neighbours) the values match.
+    border = np.zeros(size, bool)
+    border[1:] |= expected[1:] != expected[:-1]
+    border[:, 1:] |= expected[:, 1:] != expected[:, :-1]
+    margin = 2 * int(np.ceil(max(s / n for s, n in zip(size, pred.network_size,
+                                                       strict=True))))
+    near = torch.nn.functional.max_pool2d(
+        torch.from_numpy(border.astype(np.float32))[None, None], 2 * margin + 1, 1,
+        margin)[0, 0].numpy() > 0
+    interior = ~near & (expected > 0)
+    assert interior.sum() > 0.1 * size[0] * size[1]
+    np.testing.assert_allclose(pred.depth_m[interior], expected[interior], atol=1e-4)
+
+
+def test_fixed_input_size_replaces_the_rule(lite_model, rng):
+    estimator = DepthEstimator(lite_model, weights="test", input_size=(64, 64))
+    pred = estimator.predict(rng.integers(0, 256, (48, 160, 3), dtype=np.uint8), _frame(rng))
+    assert pred.network_size == (64, 64) and pred.depth_m.shape == (48, 160)
+
+
+def test_bundled_model_runs_a_square_image_square():
+    # The issue's case: 480x480 was fed to the bundled model as 256x320 (distorted).
+    from deltar.weights import bundled_model_names
+
+    if "default" not in bundled_model_names():
+        pytest.skip("no bundled model in this installation")
+    estimator = DepthEstimator.from_checkpoint("default")
+    assert estimator.design_size == BUNDLED_DESIGN
+    assert estimator.network_size_for((480, 480)) == (288, 288)
+    assert estimator.network_size_for((480, 640)) == BUNDLED_DESIGN
