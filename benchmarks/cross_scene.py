@@ -1,7 +1,7 @@
 """Leave-one-scene-out: does a recipe beat the classical methods on a room it never saw?
 
 For each of the four scenes in ../shared/data/rgbd: train the recipe (a training config,
-``configs/cross_scene_lite.yaml`` by default) on the three other scenes with
+``configs/cross_scene_select.yaml`` by default) on the three other scenes with
 ``deltar train``, simulate the left-out scene's zones with ``deltar simulate`` (clean,
 and degraded: 20% of the valid zones dropped, 30% of the rest biased by
 N(+0.10, 0.15) m), and score every classical baseline and the trained model on it with
@@ -130,7 +130,7 @@ def table(title: str, rows: dict[str, dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=PROJECT / "configs" /
-                        "cross_scene_lite.yaml", help="the recipe (a deltar train config)")
+                        "cross_scene_select.yaml", help="the recipe (a deltar train config)")
     parser.add_argument("--out", type=Path, required=True, help="working folder")
     parser.add_argument("--folds", nargs="+", choices=sorted(SCENES), default=list(SCENES),
                         help="scenes to leave out (default: all four)")

@@ -127,6 +127,8 @@ def test_record_replay_wall_test_export_end_to_end(tmp_path):
                                    str(tmp_path / "lite.onnx"), "--size", "64x96",
                                    "--layout-from", str(tmp_path / "wall1.01")])
     assert exported.exit_code == 0, exported.output
+    # A random deltar-lite is designed for 480x640: a 64x96 camera runs at that budget.
+    assert "camera 64x96, network 448x672" in exported.output
     onnx_replay = runner.invoke(app, ["replay", str(tmp_path / "wall1.01"), "--out",
                                       str(tmp_path / "onnx"), "--onnx",
                                       str(tmp_path / "lite.onnx"), "--threads", "1"])

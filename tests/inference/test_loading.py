@@ -44,7 +44,9 @@ def test_bundled_default_and_its_file_as_a_checkpoint():
     assert isinstance(bundled, DepthEstimator) and "default" in bundled.weights
     from_file = load_estimator(resolve_checkpoint("default"), input_size=(64, 96))
     assert from_file.input_size == (64, 96)
-    assert bundled.input_size == tuple(bundled.model.config["design_size"])
+    # No fixed size: the size rule gives a 4:3 camera the weights' design size.
+    assert bundled.input_size is None
+    assert bundled.network_size_for((480, 640)) == tuple(bundled.model.config["design_size"])
 
 
 def test_checkpoint_predicts_like_the_constructor(tmp_path):

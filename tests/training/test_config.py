@@ -12,8 +12,8 @@ from deltar.training.config import apply_override, config_from_dict, load_config
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
-@pytest.mark.parametrize("name", ["nyu_official", "cross_scene_lite", "zju_finetune",
-                                  "tiny_test"])
+@pytest.mark.parametrize("name", ["nyu_official", "cross_scene_lite", "cross_scene_select",
+                                  "zju_finetune", "tiny_test"])
 def test_shipped_configs_load_and_round_trip(name):
     config = load_config(CONFIGS / f"{name}.yaml")
     again = config_from_dict(yaml.safe_load(config.to_yaml()))

@@ -34,8 +34,9 @@ DeviceOption = Annotated[str, typer.Option(help="Torch device (PyTorch backend).
 PrecisionOption = Annotated[str, typer.Option(
     help="float32, float16 or bfloat16 (PyTorch).")]
 SizeOption = Annotated[str | None, typer.Option(
-    "--size", help="Network input size HxW (multiples of 32); default: the image size "
-    "rounded to multiples of 32.")]
+    "--size", help="Network input size HxW (multiples of 32); default: the size rule "
+    "(the image's aspect kept at the weights' design pixel count, sides rounded to "
+    "multiples of 32; docs/inference.md).")]
 ThreadsOption = Annotated[int | None, typer.Option(
     "--threads", min=1, help="CPU threads (torch / onnxruntime).")]
 FlipOption = Annotated[bool, typer.Option(

@@ -443,8 +443,10 @@ def export_command(
     checkpoint: CheckpointOption = None,
     official: OfficialOption = None,
     format: str = typer.Option("onnx", "--format", help="Export format (onnx)."),
-    size: str = typer.Option("480x640", "--size", help="Camera image size HxW; the model's "
-                             "fixed input is that rounded to multiples of 32."),
+    size: str = typer.Option("480x640", "--size", help="Camera image size HxW; the file's "
+                             "fixed network input follows the size rule (aspect kept, the "
+                             "weights' design pixel count, sides rounded to multiples of "
+                             "32; docs/inference.md)."),
     layout_from: Path | None = typer.Option(None, "--layout-from", help="Fix the zone "
                                             "layout from a rig calibration JSON or a "
                                             "recording folder (default: nominal 8x8)."),
@@ -486,4 +488,8 @@ def export_command(
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         _fail(err)
     kind = "int8" if int8 else "float32"
-    typer.echo(f"wrote {path} ({kind}, {height}x{width}, weights: {estimator.weights})")
+    from deltar.export.onnx import export_input_size
+
+    net_h, net_w = export_input_size(estimator.model, height, width)
+    typer.echo(f"wrote {path} ({kind}, camera {height}x{width}, network {net_h}x{net_w}, "
+               f"weights: {estimator.weights})")

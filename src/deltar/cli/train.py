@@ -12,7 +12,7 @@ from deltar.cli.main import app
 @app.command("train")
 def train_command(
     config: Path | None = typer.Option(None, "--config", "-c", help="YAML training config "
-                                       "(e.g. configs/cross_scene_lite.yaml)."),
+                                       "(e.g. configs/cross_scene_select.yaml)."),
     override: list[str] | None = typer.Option(None, "--override", "-o", help="Dotted "
                                               "key=value replacing a config entry, e.g. "
                                               "optim.lr=1e-4 (repeatable)."),

@@ -6,6 +6,19 @@ from typing import Any
 
 from deltar.models.network import DeltarNet
 
+#: The CPU presets' encoder and input contract: EfficientNet-Lite0 with the normalisation
+#: of its packaged ImageNet weights, metric scale taken from the zones, 64 bins in 1e-3..10 m.
+_LITE0 = {
+    "backbone": "tf_efficientnet_lite0",
+    "image_mean": (0.5, 0.5, 0.5),
+    "image_std": (0.5, 0.5, 0.5),
+    "zone_scale_norm": True,
+    "n_bins": 64,
+    "min_depth": 1e-3,
+    "max_depth": 10.0,
+    "num_hypotheses": 16,
+}
+
 #: Constructor arguments of each preset (see :class:`DeltarNet` for their meaning).
 PRESETS: dict[str, dict[str, Any]] = {
     # The released architecture: loads the official nyu.pt weights.
@@ -34,17 +47,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # scale, the zone-prior head (starts from the sensor's reading) and the metric scale
     # taken from the zones (see docs/models.md).
     "deltar-lite": {
-        "backbone": "tf_efficientnet_lite0",
-        "image_mean": (0.5, 0.5, 0.5),
-        "image_std": (0.5, 0.5, 0.5),
-        "zone_scale_norm": True,
+        **_LITE0,
         "decoder_channels": (128, 128, 64, 32, 16),
         "head_channels": 32,
         "head": "zone_prior",
-        "n_bins": 64,
-        "min_depth": 1e-3,
-        "max_depth": 10.0,
-        "num_hypotheses": 16,
         "fusion_layers": ("hist2image", "image"),
         "cross_heads": 2,
         "self_heads": 2,
@@ -54,17 +60,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # local planes by the cosine affinity of the encoder's descriptors (153 learned
     # numbers; useful untrained with encoder_weights="imagenet"; docs/models.md).
     "deltar-select": {
-        "backbone": "tf_efficientnet_lite0",
-        "image_mean": (0.5, 0.5, 0.5),
-        "image_std": (0.5, 0.5, 0.5),
-        "zone_scale_norm": True,
+        **_LITE0,
         "decoder": "descriptors",
         "descriptor_strides": (8, 16),
         "head": "plane_select",
-        "n_bins": 64,
-        "min_depth": 1e-3,
-        "max_depth": 10.0,
-        "num_hypotheses": 16,
     },
 }
 
