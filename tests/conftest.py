@@ -45,3 +45,12 @@ def parity_fixture() -> dict:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture
+def tiny_samples():
+    """Three small synthetic ZJU-L5 samples (two scenes) for evaluation tests."""
+    from tests.evaluation.samples import make_sample
+
+    return [make_sample("scene_a/0001", 0), make_sample("scene_a/0002", 1),
+            make_sample("scene_b/0001", 2)]

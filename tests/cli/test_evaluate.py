@@ -20,10 +20,8 @@ runner = CliRunner(env={"COLUMNS": "200"})
 
 
 @pytest.fixture
-def data_json(tmp_path: Path) -> Path:
-    samples = [make_sample("scene_a/0001", 0), make_sample("scene_a/0002", 1),
-               make_sample("scene_b/0001", 2)]
-    return write_zju_l5(tmp_path / "set", samples)
+def data_json(tmp_path: Path, tiny_samples) -> Path:
+    return write_zju_l5(tmp_path / "set", tiny_samples)
 
 
 def test_all_methods_table_and_json(data_json: Path, tmp_path: Path) -> None:

@@ -46,15 +46,17 @@ def test_missing_checkpoint_and_official_files_are_named(tmp_path: Path, tiny_sa
     missing = tmp_path / "nope.pt"
     for option in ("--checkpoint", "--official"):
         result = runner.invoke(app, ["evaluate", option, str(missing), "--data", str(data)])
-        assert result.exit_code != 0
+        # Checked as an option value before any work (docs/errors.md): a usage error.
+        assert result.exit_code == 2, result.output
+        assert "error: Invalid value for --checkpoint/--official" in result.output
         assert "nope.pt" in result.output
 
 
 def test_no_method_at_all_is_an_error(tmp_path: Path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     result = runner.invoke(app, ["evaluate", "--data", str(data)])
-    assert result.exit_code != 0
-    assert "--checkpoint" in result.output
+    assert result.exit_code == 2, result.output
+    assert "error:" in result.output and "--checkpoint" in result.output
 
 
 def test_flip_adds_a_flip_averaged_entry(tmp_path: Path, tiny_samples) -> None:
