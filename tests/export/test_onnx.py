@@ -185,6 +185,14 @@ def test_plane_select_network_exports_with_parity(tmp_path):
     assert got["depth"].shape == (2, 1, 32, 48)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
     assert np.abs(got["uncertainty"] - expected["uncertainty"]).max() < DEPTH_TOLERANCE_M
+    # No zone patches in this graph: any layout of the grid runs (here shrunk and moved,
+    # which a fusion network's file refuses), with the same parity.
+    runner = OnnxDepthModel(path, num_threads=1)
+    moved = _random_inputs(rects * 0.7 + 5.0, 2, 8)
+    runner.check_layout(moved[2].numpy())
+    got = runner.run(*(t.numpy() for t in moved))
+    assert np.abs(got["depth"] - _torch_outputs(model, moved)["depth"]).max() < \
+        DEPTH_TOLERANCE_M
 
 
 @pytest.mark.parametrize("size", [(480, 480), (720, 1280)])

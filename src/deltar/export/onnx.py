@@ -149,7 +149,11 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     model = model.eval().float().cpu()
     inputs = example_inputs(model, height, width, zone_rects)
     grid = round(inputs[2].shape[1] ** 0.5)
-    signature = layout_signature(inputs[2].numpy(), grid)
+    # Only the zone-patch fusion bakes the layout's shape into the graph; a network
+    # without it (e.g. the plane-select one) takes any layout, which an empty signature
+    # records.
+    uses_patches = getattr(model, "distribution_encoder", None) is not None
+    signature = layout_signature(inputs[2].numpy(), grid) if uses_patches else []
     dynamic = {name: {0: "batch"} for name in (*INPUT_NAMES, *OUTPUT_NAMES)}
     net_height, net_width = inputs[0].shape[-2:]
     with atomic_path(path, overwrite=overwrite) as tmp, _traceable(model), \
