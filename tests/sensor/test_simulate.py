@@ -290,3 +290,34 @@ def test_simulate_zone_frame():
     assert frame4.grid == 4
     with pytest.raises(ValueError, match="rects"):
         simulate_zone_frame(depth, training_zone_rects(480, 640, grid=6))
+
+
+@pytest.mark.parametrize("config", [SimulatorConfig(), SimulatorConfig(max_range_m=3.0,
+                                                                         bin_width_m=0.05)])
+def test_compiled_and_pytorch_cell_counts_are_identical(rng, config):
+    # Both paths, on depth that hits bin edges exactly, the range's end, beyond it, zero,
+    # negative and infinite values, with overlapping zones running past the image; one
+    # range a power of two (one product) and one not (product, then division).
+    pytest.importorskip("numba")
+    from deltar.sensor.simulate import zone_histograms
+
+    edges = config.bin_edges_m().numpy().astype(np.float32)
+    depth = rng.uniform(-0.5, config.max_range_m + 0.5, size=(3, 48, 72)).astype(np.float32)
+    depth.reshape(-1)[: edges.size] = edges
+    depth[0, 0, :4] = [0.0, config.max_range_m, np.inf, -np.inf]
+    rects = np.empty((3, 64, 4), dtype=np.float32)
+    rects[..., :2] = rng.uniform(-10, 60, size=(3, 64, 2))
+    rects[..., 2:] = rects[..., :2] + rng.uniform(0, 30, size=(3, 64, 2))
+    depth_t, rects_t = torch.from_numpy(depth), torch.from_numpy(rects)
+    compiled = zone_histograms(depth_t, rects_t, config, compiled=True)
+    reference = zone_histograms(depth_t, rects_t, config, compiled=False)
+    assert torch.equal(compiled, reference) and compiled.sum() > 0
+
+
+def test_compiled_simulator_without_numba_says_how_to_get_it(monkeypatch):
+    from deltar.sensor import compiled
+
+    monkeypatch.setattr(compiled, "cell_count_kernel", lambda: None)
+    with pytest.raises(RuntimeError, match=r"deltar\[fast\]"):
+        compiled.count_cells(np.zeros((2, 2), np.float32), np.zeros(2, np.int64),
+                             np.zeros(2, np.int64), 100, 4.0, np.zeros(404, np.int64))

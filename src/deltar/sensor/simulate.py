@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from deltar.sensor.compiled import cell_count_kernel, count_cells
 from deltar.sensor.zone_frame import ZoneFrame
 
 
@@ -216,7 +217,7 @@ def _cell_boundaries(low: torch.Tensor, high: torch.Tensor, size: int) -> torch.
 
 
 def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
-                    config: SimulatorConfig) -> torch.Tensor:
+                    config: SimulatorConfig, compiled: bool | None = None) -> torch.Tensor:
     """Per-zone depth histograms of a batch: one pass over the pixels for all zones.
 
     The zone bounds cut each image into a grid of cells (rows between consecutive
@@ -229,6 +230,9 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
         depth_m: (B, H, W) depth in metres, 0 = invalid pixel.
         rects: (B, Z, 4) zone rectangles (y0, x0, y1, x1) in pixels.
         config: simulator parameters.
+        compiled: count the cells with the compiled kernel of
+            :mod:`deltar.sensor.compiled` (numba, CPU tensors; identical counts); None
+            uses it when numba is installed and the depth is on the CPU.
 
     Returns:
         (B, Z, bins) float32 pixel counts.
@@ -249,11 +253,12 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     zones = rects.shape[1]
     if per_frame > _MAX_KEYS and zones > 1:
         half = zones // 2
-        return torch.cat([zone_histograms(depth_m, rects[:, :half], config),
-                          zone_histograms(depth_m, rects[:, half:], config)], dim=1)
+        return torch.cat([zone_histograms(depth_m, rects[:, :half], config, compiled),
+                          zone_histograms(depth_m, rects[:, half:], config, compiled)], dim=1)
     chunk = max(1, min(batch, _MAX_KEYS // per_frame))
     if chunk < batch:
-        return torch.cat([zone_histograms(depth_m[i : i + chunk], rects[i : i + chunk], config)
+        return torch.cat([zone_histograms(depth_m[i : i + chunk], rects[i : i + chunk], config,
+                                          compiled)
                           for i in range(0, batch, chunk)])
     device = depth_m.device
     pixels = torch.arange(max(height, width), dtype=torch.int64, device=device)
@@ -262,6 +267,51 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
                                   right=True) - 1
     col_cell = torch.searchsorted(col_bounds, pixels[:width].expand(batch, width),
                                   right=True) - 1
+    if compiled is None:
+        compiled = depth_m.device.type == "cpu" and cell_count_kernel() is not None
+    if compiled:
+        counts = _compiled_cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots,
+                                       config)
+    else:
+        counts = _cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots,
+                              config)
+    # A zone's histogram sums the cells in its row range and column range: with 0/1
+    # membership matrices, one batched product over the rows, then a weighted sum over
+    # the columns. float32 is exact here: every partial sum is a whole number of
+    # pixels below 2**24.
+    cells = counts.to(torch.float32).reshape(batch, cells_y, cells_x * slots)
+    row_in = _cell_membership(row_bounds, y0, y1)  # (B, Z, Ny)
+    col_in = _cell_membership(col_bounds, x0, x1)  # (B, Z, Nx)
+    by_rows = torch.bmm(row_in, cells).reshape(batch, -1, cells_x, slots)
+    zone = torch.einsum("bzcs,bzc->bzs", by_rows, col_in)
+    zone[..., bins - 1] += zone[..., bins]
+    return zone[..., :bins].contiguous()
+
+
+def _compiled_cell_counts(depth_m: torch.Tensor, row_cell: torch.Tensor,
+                          col_cell: torch.Tensor, cells_x: int, per_frame: int, slots: int,
+                          config: SimulatorConfig) -> torch.Tensor:
+    """(B, cells x slots) int64 counts of every frame, one compiled pass per frame."""
+    if depth_m.device.type != "cpu":
+        raise ValueError("the compiled simulator runs on CPU tensors only")
+    batch = depth_m.shape[0]
+    row_base = (row_cell * cells_x * slots).numpy()
+    col_base = (col_cell * slots).numpy()
+    counts = np.zeros((batch, per_frame), dtype=np.int64)
+    depth = depth_m.numpy()
+    for index in range(batch):
+        count_cells(depth[index], row_base[index], col_base[index], config.num_bins,
+                    config.max_range_m, counts[index])
+    return torch.from_numpy(counts)
+
+
+def _cell_counts(depth_m: torch.Tensor, row_cell: torch.Tensor, col_cell: torch.Tensor,
+                 cells_x: int, per_frame: int, slots: int, config: SimulatorConfig
+                 ) -> torch.Tensor:
+    """(B, cells x slots) int64 counts of every frame with PyTorch (``bincount``)."""
+    batch, height, width = depth_m.shape
+    device = depth_m.device
+    pixels = torch.arange(width, dtype=torch.int64, device=device)
     # Neighbouring pixels mostly share a key, and counting the same slot over and over
     # waits on the previous increment: columns take turns over _LANES copies of the
     # histogram, summed afterwards.
@@ -279,17 +329,7 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
         _mark_not_counted(keys, depth_m[index], config, dump)
         lanes = torch.bincount(keys.reshape(-1), minlength=dump + 1)[:dump]
         torch.sum(lanes.reshape(_LANES, per_frame), dim=0, out=counts[index])
-    # A zone's histogram sums the cells in its row range and column range: with 0/1
-    # membership matrices, one batched product over the rows, then a weighted sum over
-    # the columns. float32 is exact here: every partial sum is a whole number of
-    # pixels below 2**24.
-    cells = counts.to(torch.float32).reshape(batch, cells_y, cells_x * slots)
-    row_in = _cell_membership(row_bounds, y0, y1)  # (B, Z, Ny)
-    col_in = _cell_membership(col_bounds, x0, x1)  # (B, Z, Nx)
-    by_rows = torch.bmm(row_in, cells).reshape(batch, -1, cells_x, slots)
-    zone = torch.einsum("bzcs,bzc->bzs", by_rows, col_in)
-    zone[..., bins - 1] += zone[..., bins]
-    return zone[..., :bins].contiguous()
+    return counts
 
 
 def _cell_membership(bounds: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
