@@ -312,6 +312,29 @@ def test_compiled_and_pytorch_cell_counts_are_identical(rng, config):
     compiled = zone_histograms(depth_t, rects_t, config, compiled=True)
     reference = zone_histograms(depth_t, rects_t, config, compiled=False)
     assert torch.equal(compiled, reference) and compiled.sum() > 0
+    # The whole simulation: clusters (ties, the noise floor, ignored bins) and moments.
+    finite = torch.from_numpy(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32))
+    for floor in (0.0, 2.0):
+        cfg = SimulatorConfig(max_range_m=config.max_range_m, bin_width_m=config.bin_width_m,
+                              noise_floor_counts=floor)
+        fast = simulate_zones(finite, rects_t, cfg, compiled=True)
+        slow = simulate_zones(finite, rects_t, cfg, compiled=False)
+        assert torch.equal(fast.histogram, slow.histogram)
+        assert torch.equal(fast.cluster, slow.cluster) and torch.equal(fast.valid, slow.valid)
+        assert 0 < int(fast.valid.sum()) < fast.valid.numel()
+        torch.testing.assert_close(fast.mean_m, slow.mean_m, rtol=0, atol=1e-6)
+        torch.testing.assert_close(fast.sigma_m, slow.sigma_m, rtol=0, atol=1e-6)
+
+
+def test_strongest_cluster_ties_go_to_the_first_run_in_both_paths():
+    pytest.importorskip("numba")
+    depth = np.zeros((20, 20), np.float32)
+    depth[:, :10] = 1.005  # two runs of 200 pixels each: bins 25 and 75 (4 cm bins)
+    depth[:, 10:] = 3.005
+    rects = torch.tensor([[0.0, 0.0, 20.0, 20.0]])
+    for compiled in (True, False):
+        out = simulate_zones(torch.from_numpy(depth), rects, compiled=compiled)
+        assert out.valid.item() and out.mean_m.item() == pytest.approx(1.0, abs=0.03)
 
 
 def test_compiled_simulator_without_numba_says_how_to_get_it(monkeypatch):

@@ -71,3 +71,68 @@ def count_cells(depth_m: np.ndarray, row_base: np.ndarray, col_base: np.ndarray,
     factor = np.float32(bins) if divide else np.float32(bins / float(max_range))
     kernel(np.ascontiguousarray(depth_m, dtype=np.float32), row_base, col_base, factor,
            max_range, bool(divide), int(bins), counts)
+
+
+@functools.cache
+def zone_kernels() -> tuple[Callable, Callable] | None:
+    """The compiled zone-sum and cluster-moment functions, or None without numba."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(nogil=True, cache=False)
+    def sum_zones(cells, row_start, row_stop, col_start, col_stop, out):
+        # cells: (B, Ny, Nx, slots); zone z of frame b covers cell rows
+        # [row_start, row_stop) and columns [col_start, col_stop); the extra last slot
+        # (depth exactly at the range) joins the last bin.
+        batch, zones = row_start.shape
+        slots = cells.shape[3]
+        bins = slots - 1
+        for b in range(batch):
+            for z in range(zones):
+                for i in range(row_start[b, z], row_stop[b, z]):
+                    for j in range(col_start[b, z], col_stop[b, z]):
+                        for k in range(bins):
+                            out[b, z, k] += cells[b, i, j, k]
+                        out[b, z, bins - 1] += cells[b, i, j, bins]
+
+    @numba.njit(nogil=True, cache=False)
+    def cluster_moments(histogram, ignored, floor, centres, cluster, mean, sigma, valid):
+        # The strongest run of consecutive non-empty bins after ignoring the first bins
+        # and subtracting the noise floor (first maximum on ties), and its moments.
+        batch, zones, bins = histogram.shape
+        cleaned = np.zeros(bins, dtype=np.float32)
+        for b in range(batch):
+            for z in range(zones):
+                for k in range(bins):
+                    value = histogram[b, z, k] - floor if k >= ignored else np.float32(0.0)
+                    cleaned[k] = value if value > 0 else np.float32(0.0)
+                best_sum, best_start, best_stop = -1.0, 0, 0
+                k = 0
+                while k < bins:
+                    if cleaned[k] > 0:
+                        start, total = k, 0.0
+                        while k < bins and cleaned[k] > 0:
+                            total += np.float64(cleaned[k])
+                            k += 1
+                        if total > best_sum:
+                            best_sum, best_start, best_stop = total, start, k
+                    else:
+                        k += 1
+                if best_sum <= 0:
+                    continue
+                weight_sum, first = 0.0, 0.0
+                for k in range(best_start, best_stop):
+                    cluster[b, z, k] = cleaned[k]
+                    weight_sum += np.float64(cleaned[k])
+                    first += np.float64(cleaned[k]) * centres[k]
+                centre = first / weight_sum
+                second = 0.0
+                for k in range(best_start, best_stop):
+                    second += np.float64(cleaned[k]) * (centres[k] - centre) ** 2
+                valid[b, z] = True
+                mean[b, z] = centre
+                sigma[b, z] = np.sqrt(second / weight_sum)
+
+    return sum_zones, cluster_moments

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from deltar.sensor.compiled import cell_count_kernel, count_cells
+from deltar.sensor.compiled import count_cells, zone_kernels
 from deltar.sensor.zone_frame import ZoneFrame
 
 
@@ -268,13 +268,16 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     col_cell = torch.searchsorted(col_bounds, pixels[:width].expand(batch, width),
                                   right=True) - 1
     if compiled is None:
-        compiled = depth_m.device.type == "cpu" and cell_count_kernel() is not None
+        compiled = depth_m.device.type == "cpu" and zone_kernels() is not None
     if compiled:
         counts = _compiled_cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots,
                                        config)
     else:
         counts = _cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots,
                               config)
+    if compiled:
+        return _compiled_zone_sums(counts, row_bounds, col_bounds, (y0, x0, y1, x1),
+                                   cells_y, cells_x, slots)
     # A zone's histogram sums the cells in its row range and column range: with 0/1
     # membership matrices, one batched product over the rows, then a weighted sum over
     # the columns. float32 is exact here: every partial sum is a whole number of
@@ -286,6 +289,20 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     zone = torch.einsum("bzcs,bzc->bzs", by_rows, col_in)
     zone[..., bins - 1] += zone[..., bins]
     return zone[..., :bins].contiguous()
+
+
+def _compiled_zone_sums(counts: torch.Tensor, row_bounds: torch.Tensor,
+                        col_bounds: torch.Tensor, bounds: tuple[torch.Tensor, ...],
+                        cells_y: int, cells_x: int, slots: int) -> torch.Tensor:
+    """(B, Z, bins) float32 zone histograms from the cell counts, compiled."""
+    y0, x0, y1, x1 = bounds
+    # Zone bounds are cell bounds: their positions in the sorted bounds are cell indices.
+    rows = [torch.searchsorted(row_bounds, v.contiguous()).numpy() for v in (y0, y1)]
+    cols = [torch.searchsorted(col_bounds, v.contiguous()).numpy() for v in (x0, x1)]
+    cells = counts.numpy().reshape(counts.shape[0], cells_y, cells_x, slots)
+    out = np.zeros((*y0.shape, slots - 1), dtype=np.float32)
+    zone_kernels()[0](cells, rows[0], rows[1], cols[0], cols[1], out)
+    return torch.from_numpy(out)
 
 
 def _compiled_cell_counts(depth_m: torch.Tensor, row_cell: torch.Tensor,
@@ -367,7 +384,8 @@ def strongest_cluster(counts: torch.Tensor) -> torch.Tensor:
 
 
 def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.ndarray,
-                   config: SimulatorConfig | None = None) -> SimulatedZones:
+                   config: SimulatorConfig | None = None, compiled: bool | None = None
+                   ) -> SimulatedZones:
     """Simulate the zone signals a multi-zone ToF sensor would report.
 
     Args:
@@ -376,6 +394,10 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
             map; a (Z, 4) array is shared by the whole batch. Rectangles may run past the
             image: only the pixels inside count.
         config: simulator parameters; ``SimulatorConfig()`` when None.
+        compiled: run the per-pixel counting, the zone sums and the cluster moments in
+            the compiled kernels of :mod:`deltar.sensor.compiled` (numba, CPU; the same
+            counts, moments equal to float rounding); None uses them when numba is
+            installed and the depth is on the CPU.
 
     Returns:
         ``SimulatedZones`` with (B, Z) tensors, or (Z,) for an unbatched ``depth_m``, on
@@ -412,22 +434,26 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
                          f"{depth.shape[0]}")
     boxes = boxes.to(depth.device)
 
-    histogram = zone_histograms(depth, boxes, cfg)
-    cleaned = histogram.clone()
-    cleaned[..., : cfg.ignored_bins] = 0.0
-    cleaned = (cleaned - cfg.noise_floor_counts).clamp(min=0.0)
-    cluster = strongest_cluster(cleaned)
-
+    if compiled is None:
+        compiled = depth.device.type == "cpu" and zone_kernels() is not None
+    histogram = zone_histograms(depth, boxes, cfg, compiled)
     edges = cfg.bin_edges_m().to(depth.device)
     centres = (edges[1:] + edges[:-1]) / 2
-    weights = cluster.to(torch.float64)
-    total = weights.sum(-1)
-    valid = total > 0
-    safe_total = torch.where(valid, total, torch.ones_like(total))
-    mean = (weights * centres).sum(-1) / safe_total
-    variance = (weights * (centres - mean[..., None]) ** 2).sum(-1) / safe_total
-    mean = torch.where(valid, mean, 0.0).to(torch.float32)
-    sigma = torch.where(valid, variance.sqrt(), 0.0).to(torch.float32)
+    if compiled:
+        mean, sigma, valid, cluster = _compiled_moments(histogram, centres, cfg)
+    else:
+        cleaned = histogram.clone()
+        cleaned[..., : cfg.ignored_bins] = 0.0
+        cleaned = (cleaned - cfg.noise_floor_counts).clamp(min=0.0)
+        cluster = strongest_cluster(cleaned)
+        weights = cluster.to(torch.float64)
+        total = weights.sum(-1)
+        valid = total > 0
+        safe_total = torch.where(valid, total, torch.ones_like(total))
+        mean = (weights * centres).sum(-1) / safe_total
+        variance = (weights * (centres - mean[..., None]) ** 2).sum(-1) / safe_total
+        mean = torch.where(valid, mean, 0.0).to(torch.float32)
+        sigma = torch.where(valid, variance.sqrt(), 0.0).to(torch.float32)
 
     out = SimulatedZones(mean_m=mean, sigma_m=sigma, valid=valid, histogram=histogram,
                          cluster=cluster, bin_edges_m=edges.to(torch.float32))
@@ -435,6 +461,21 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
         for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster"):
             setattr(out, name, getattr(out, name)[0])
     return out
+
+
+def _compiled_moments(histogram: torch.Tensor, centres: torch.Tensor, config: SimulatorConfig
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(mean, sigma, valid, cluster) of the strongest clusters, compiled (CPU)."""
+    hist = np.ascontiguousarray(histogram.numpy(), dtype=np.float32)
+    shape = hist.shape[:-1]
+    cluster = np.zeros_like(hist)
+    mean = np.zeros(shape, np.float32)
+    sigma = np.zeros(shape, np.float32)
+    valid = np.zeros(shape, bool)
+    zone_kernels()[1](hist, int(config.ignored_bins), np.float32(config.noise_floor_counts),
+                      centres.numpy().astype(np.float64), cluster, mean, sigma, valid)
+    return (torch.from_numpy(mean), torch.from_numpy(sigma), torch.from_numpy(valid),
+            torch.from_numpy(cluster))
 
 
 def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
