@@ -340,7 +340,7 @@ def test_strongest_cluster_ties_go_to_the_first_run_in_both_paths():
 def test_compiled_simulator_without_numba_says_how_to_get_it(monkeypatch):
     from deltar.sensor import compiled
 
-    monkeypatch.setattr(compiled, "cell_count_kernel", lambda: None)
+    monkeypatch.setattr(compiled, "kernels", lambda: None)
     with pytest.raises(RuntimeError, match=r"deltar\[fast\]"):
-        compiled.count_cells(np.zeros((2, 2), np.float32), np.zeros(2, np.int64),
-                             np.zeros(2, np.int64), 100, 4.0, np.zeros(404, np.int64))
+        compiled.cell_counts(np.zeros((1, 2, 2), np.float32), np.zeros((1, 2), np.int64),
+                             np.zeros((1, 2), np.int64), 404, 100, 4.0)

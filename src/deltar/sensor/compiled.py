@@ -1,25 +1,27 @@
-"""A compiled (numba) kernel for the simulator's per-cell depth histograms, when available.
+"""Compiled (numba) kernels for the zone simulator, when numba is installed.
 
-:func:`~deltar.sensor.simulate.zone_histograms` counts every pixel of a frame into
-(cell, bin) slots. In PyTorch that takes several full-frame passes (bin index, key sums,
-the not-counted mask, a ``bincount``); the kernel here does it in one pass per pixel with
-the same float32 arithmetic, so the counts are identical. It needs ``numba`` (the
-``fast`` extra); without it the PyTorch path runs.
+:func:`~deltar.sensor.simulate.simulate_zones` counts every pixel of a frame into
+(cell, bin) slots, sums each zone's cells and keeps each zone's strongest cluster. In
+PyTorch that takes several full-frame passes (bin index, key sums, the not-counted mask,
+a ``bincount``) and many small tensor operations; the kernels here do each step in one
+loop with the same float32 bin arithmetic, so counts and clusters are identical and the
+moments equal to float rounding. They need ``numba`` (the ``fast`` extra); without it
+the PyTorch path runs.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from types import SimpleNamespace
 
 import numpy as np
 
 
 @functools.cache
-def cell_count_kernel() -> Callable | None:
-    """The compiled counting function, or None when numba is not installed.
-
-    Compiled on first use (about a second), once per process.
+def kernels() -> SimpleNamespace | None:
+    """The compiled functions (``count_cells``, ``sum_zones``, ``cluster_moments``), or
+    None when numba is not installed. Compiled on first use (about a second per
+    function), once per process.
     """
     try:
         import numba
@@ -41,45 +43,6 @@ def cell_count_kernel() -> Callable | None:
                     scaled = top
                 index = int(scaled)  # truncation toward zero, as the PyTorch path
                 counts[base + col_base[j] + index] += 1
-
-    return count_cells
-
-
-def count_cells(depth_m: np.ndarray, row_base: np.ndarray, col_base: np.ndarray,
-                bins: int, max_range_m: float, counts: np.ndarray) -> None:
-    """Add one frame's pixels to ``counts`` in place (the compiled kernel).
-
-    Args:
-        depth_m: (H, W) float32 depth in metres; pixels <= 0 or beyond ``max_range_m``
-            are not counted.
-        row_base: (H,) int64 offset of each row's cells (cell row x cells per row x slots).
-        col_base: (W,) int64 offset of each column's cell (cell column x slots).
-        bins: histogram bins; slot ``bins`` of a cell holds depth exactly at the range.
-        max_range_m: upper end of the histogram, metres.
-        counts: (cells x (bins + 1),) int64 counts, added to.
-
-    Raises:
-        RuntimeError: numba is not installed (check :func:`cell_count_kernel` first).
-    """
-    kernel = cell_count_kernel()
-    if kernel is None:
-        raise RuntimeError("the compiled simulator needs numba: pip install 'deltar[fast]'")
-    max_range = np.float32(max_range_m)
-    divide = np.frexp(max_range)[0] != 0.5
-    # The float32 arithmetic of the PyTorch path: depth * (bins / range) when the range
-    # is a power of two (exact), else (depth * bins) / range.
-    factor = np.float32(bins) if divide else np.float32(bins / float(max_range))
-    kernel(np.ascontiguousarray(depth_m, dtype=np.float32), row_base, col_base, factor,
-           max_range, bool(divide), int(bins), counts)
-
-
-@functools.cache
-def zone_kernels() -> tuple[Callable, Callable] | None:
-    """The compiled zone-sum and cluster-moment functions, or None without numba."""
-    try:
-        import numba
-    except ImportError:
-        return None
 
     @numba.njit(nogil=True, cache=False)
     def sum_zones(cells, row_start, row_stop, col_start, col_stop, out):
@@ -135,4 +98,83 @@ def zone_kernels() -> tuple[Callable, Callable] | None:
                 mean[b, z] = centre
                 sigma[b, z] = np.sqrt(second / weight_sum)
 
-    return sum_zones, cluster_moments
+
+    return SimpleNamespace(count_cells=count_cells, sum_zones=sum_zones,
+                           cluster_moments=cluster_moments)
+
+
+def _kernels() -> SimpleNamespace:
+    found = kernels()
+    if found is None:
+        raise RuntimeError("the compiled simulator needs numba: pip install 'deltar[fast]'")
+    return found
+
+
+def cell_counts(depth_m: np.ndarray, row_base: np.ndarray, col_base: np.ndarray,
+                per_frame: int, bins: int, max_range_m: float) -> np.ndarray:
+    """(B, per_frame) int64 (cell, slot) pixel counts of a batch of depth maps.
+
+    Args:
+        depth_m: (B, H, W) float32 depth in metres; pixels <= 0 or beyond ``max_range_m``
+            are not counted.
+        row_base: (B, H) int64 offset of each row's cells (cell row x cells per row x slots).
+        col_base: (B, W) int64 offset of each column's cell (cell column x slots).
+        per_frame: cells x slots of one frame.
+        bins: histogram bins; slot ``bins`` of a cell holds depth exactly at the range.
+        max_range_m: upper end of the histogram, metres.
+
+    Raises:
+        RuntimeError: numba is not installed (check :func:`kernels` first).
+    """
+    count = _kernels().count_cells
+    max_range = np.float32(max_range_m)
+    divide = np.frexp(max_range)[0] != 0.5
+    # The float32 arithmetic of the PyTorch path: depth * (bins / range) when the range
+    # is a power of two (exact), else (depth * bins) / range.
+    factor = np.float32(bins) if divide else np.float32(bins / float(max_range))
+    depth = np.ascontiguousarray(depth_m, dtype=np.float32)
+    counts = np.zeros((depth.shape[0], per_frame), dtype=np.int64)
+    for frame in range(depth.shape[0]):
+        count(depth[frame], row_base[frame], col_base[frame], factor, max_range, bool(divide),
+              int(bins), counts[frame])
+    return counts
+
+
+def zone_sums(cells: np.ndarray, row_start: np.ndarray, row_stop: np.ndarray,
+              col_start: np.ndarray, col_stop: np.ndarray) -> np.ndarray:
+    """(B, Z, bins) float32 zone histograms: each zone's sum over its cells.
+
+    Args:
+        cells: (B, Ny, Nx, bins + 1) int64 cell counts (the last slot: depth exactly at
+            the range, added to the last bin).
+        row_start, row_stop, col_start, col_stop: (B, Z) int64 half-open cell ranges.
+    """
+    out = np.zeros((*row_start.shape, cells.shape[3] - 1), dtype=np.float32)
+    _kernels().sum_zones(cells, row_start, row_stop, col_start, col_stop, out)
+    return out
+
+
+def cluster_moments(histogram: np.ndarray, ignored_bins: int, noise_floor: float,
+                    centres_m: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each zone's strongest cluster and its moments.
+
+    Args:
+        histogram: (B, Z, bins) float32 zone histograms.
+        ignored_bins: leading bins zeroed first.
+        noise_floor: counts subtracted from every bin, clipped at 0.
+        centres_m: (bins,) bin centres, metres.
+
+    Returns:
+        ``(mean, sigma, valid, cluster)``: (B, Z) float32 metres, (B, Z) float32 metres,
+        (B, Z) bool, (B, Z, bins) float32 counts of the kept run.
+    """
+    hist = np.ascontiguousarray(histogram, dtype=np.float32)
+    cluster = np.zeros_like(hist)
+    mean = np.zeros(hist.shape[:-1], np.float32)
+    sigma = np.zeros(hist.shape[:-1], np.float32)
+    valid = np.zeros(hist.shape[:-1], bool)
+    _kernels().cluster_moments(hist, int(ignored_bins), np.float32(noise_floor),
+                               np.asarray(centres_m, dtype=np.float64), cluster, mean, sigma,
+                               valid)
+    return mean, sigma, valid, cluster

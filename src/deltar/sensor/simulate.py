@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from deltar.sensor.compiled import count_cells, zone_kernels
+from deltar.sensor import compiled as compiled_kernels
 from deltar.sensor.zone_frame import ZoneFrame
 
 
@@ -222,17 +222,17 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
 
     The zone bounds cut each image into a grid of cells (rows between consecutive
     distinct row bounds, columns likewise; 9 x 9 cells for an 8x8 grid of abutting
-    zones). One ``bincount`` over (frame, cell, bin) keys histograms every cell; a zone,
-    being a rectangle of whole cells, is then four look-ups in the 2-D cumulative sum
-    of the cell histograms. Zones may overlap or leave the image.
+    zones). One pass over the pixels histograms every cell (a ``bincount`` over (frame,
+    cell, bin) keys, or the compiled kernel); a zone, being a rectangle of whole cells,
+    is then the sum of its cells. Zones may overlap or leave the image.
 
     Args:
         depth_m: (B, H, W) depth in metres, 0 = invalid pixel.
         rects: (B, Z, 4) zone rectangles (y0, x0, y1, x1) in pixels.
         config: simulator parameters.
-        compiled: count the cells with the compiled kernel of
+        compiled: count and sum the cells with the compiled kernels of
             :mod:`deltar.sensor.compiled` (numba, CPU tensors; identical counts); None
-            uses it when numba is installed and the depth is on the CPU.
+            uses them when numba is installed and the depth is on the CPU.
 
     Returns:
         (B, Z, bins) float32 pixel counts.
@@ -267,17 +267,10 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
                                   right=True) - 1
     col_cell = torch.searchsorted(col_bounds, pixels[:width].expand(batch, width),
                                   right=True) - 1
-    if compiled is None:
-        compiled = depth_m.device.type == "cpu" and zone_kernels() is not None
-    if compiled:
-        counts = _compiled_cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots,
-                                       config)
-    else:
-        counts = _cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots,
-                              config)
-    if compiled:
-        return _compiled_zone_sums(counts, row_bounds, col_bounds, (y0, x0, y1, x1),
-                                   cells_y, cells_x, slots)
+    if _use_compiled(compiled, depth_m):
+        return _compiled_zone_histograms(depth_m, row_cell, col_cell, row_bounds, col_bounds,
+                                         (y0, x0, y1, x1), (cells_y, cells_x, slots), config)
+    counts = _cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots, config)
     # A zone's histogram sums the cells in its row range and column range: with 0/1
     # membership matrices, one batched product over the rows, then a weighted sum over
     # the columns. float32 is exact here: every partial sum is a whole number of
@@ -291,35 +284,32 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
     return zone[..., :bins].contiguous()
 
 
-def _compiled_zone_sums(counts: torch.Tensor, row_bounds: torch.Tensor,
-                        col_bounds: torch.Tensor, bounds: tuple[torch.Tensor, ...],
-                        cells_y: int, cells_x: int, slots: int) -> torch.Tensor:
-    """(B, Z, bins) float32 zone histograms from the cell counts, compiled."""
+def _use_compiled(compiled: bool | None, depth_m: torch.Tensor) -> bool:
+    """Whether to run the compiled kernels: as asked, or (None) when numba is installed
+    and the depth is on the CPU; asking for them with a GPU tensor is an error."""
+    if compiled is None:
+        return depth_m.device.type == "cpu" and compiled_kernels.kernels() is not None
+    if compiled and depth_m.device.type != "cpu":
+        raise ValueError("the compiled simulator runs on CPU tensors only")
+    return bool(compiled)
+
+
+def _compiled_zone_histograms(depth_m: torch.Tensor, row_cell: torch.Tensor,
+                              col_cell: torch.Tensor, row_bounds: torch.Tensor,
+                              col_bounds: torch.Tensor, bounds: tuple[torch.Tensor, ...],
+                              grid: tuple[int, int, int], config: SimulatorConfig
+                              ) -> torch.Tensor:
+    """(B, Z, bins) float32 zone histograms with the compiled kernels (CPU)."""
+    cells_y, cells_x, slots = grid
+    counts = compiled_kernels.cell_counts(
+        depth_m.numpy(), (row_cell * cells_x * slots).numpy(), (col_cell * slots).numpy(),
+        cells_y * cells_x * slots, config.num_bins, config.max_range_m)
     y0, x0, y1, x1 = bounds
     # Zone bounds are cell bounds: their positions in the sorted bounds are cell indices.
     rows = [torch.searchsorted(row_bounds, v.contiguous()).numpy() for v in (y0, y1)]
     cols = [torch.searchsorted(col_bounds, v.contiguous()).numpy() for v in (x0, x1)]
-    cells = counts.numpy().reshape(counts.shape[0], cells_y, cells_x, slots)
-    out = np.zeros((*y0.shape, slots - 1), dtype=np.float32)
-    zone_kernels()[0](cells, rows[0], rows[1], cols[0], cols[1], out)
-    return torch.from_numpy(out)
-
-
-def _compiled_cell_counts(depth_m: torch.Tensor, row_cell: torch.Tensor,
-                          col_cell: torch.Tensor, cells_x: int, per_frame: int, slots: int,
-                          config: SimulatorConfig) -> torch.Tensor:
-    """(B, cells x slots) int64 counts of every frame, one compiled pass per frame."""
-    if depth_m.device.type != "cpu":
-        raise ValueError("the compiled simulator runs on CPU tensors only")
-    batch = depth_m.shape[0]
-    row_base = (row_cell * cells_x * slots).numpy()
-    col_base = (col_cell * slots).numpy()
-    counts = np.zeros((batch, per_frame), dtype=np.int64)
-    depth = depth_m.numpy()
-    for index in range(batch):
-        count_cells(depth[index], row_base[index], col_base[index], config.num_bins,
-                    config.max_range_m, counts[index])
-    return torch.from_numpy(counts)
+    cells = counts.reshape(counts.shape[0], cells_y, cells_x, slots)
+    return torch.from_numpy(compiled_kernels.zone_sums(cells, *rows, *cols))
 
 
 def _cell_counts(depth_m: torch.Tensor, row_cell: torch.Tensor, col_cell: torch.Tensor,
@@ -434,13 +424,14 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
                          f"{depth.shape[0]}")
     boxes = boxes.to(depth.device)
 
-    if compiled is None:
-        compiled = depth.device.type == "cpu" and zone_kernels() is not None
+    compiled = _use_compiled(compiled, depth)
     histogram = zone_histograms(depth, boxes, cfg, compiled)
     edges = cfg.bin_edges_m().to(depth.device)
     centres = (edges[1:] + edges[:-1]) / 2
     if compiled:
-        mean, sigma, valid, cluster = _compiled_moments(histogram, centres, cfg)
+        moments = compiled_kernels.cluster_moments(histogram.numpy(), cfg.ignored_bins,
+                                                   cfg.noise_floor_counts, centres.numpy())
+        mean, sigma, valid, cluster = (torch.from_numpy(array) for array in moments)
     else:
         cleaned = histogram.clone()
         cleaned[..., : cfg.ignored_bins] = 0.0
@@ -461,21 +452,6 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
         for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster"):
             setattr(out, name, getattr(out, name)[0])
     return out
-
-
-def _compiled_moments(histogram: torch.Tensor, centres: torch.Tensor, config: SimulatorConfig
-                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(mean, sigma, valid, cluster) of the strongest clusters, compiled (CPU)."""
-    hist = np.ascontiguousarray(histogram.numpy(), dtype=np.float32)
-    shape = hist.shape[:-1]
-    cluster = np.zeros_like(hist)
-    mean = np.zeros(shape, np.float32)
-    sigma = np.zeros(shape, np.float32)
-    valid = np.zeros(shape, bool)
-    zone_kernels()[1](hist, int(config.ignored_bins), np.float32(config.noise_floor_counts),
-                      centres.numpy().astype(np.float64), cluster, mean, sigma, valid)
-    return (torch.from_numpy(mean), torch.from_numpy(sigma), torch.from_numpy(valid),
-            torch.from_numpy(cluster))
 
 
 def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
