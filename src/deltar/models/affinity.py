@@ -30,8 +30,8 @@ from torch import nn
 
 from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs
 from deltar.models.zone_prior import (
-    _axis_weights,
     _softmax_over_zones,
+    footprint_pool,
     selection_outputs,
     zone_gaussians,
 )
@@ -90,6 +90,16 @@ class EncoderDescriptors(nn.Module):
         return F.normalize(descriptors, dim=1)
 
 
+def _zone_geometry(rects: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Zone centres (B, Z) and the frame's mean zone height and width (B, 1), pixels."""
+    centre_y = 0.5 * (rects[..., 0] + rects[..., 2])
+    centre_x = 0.5 * (rects[..., 1] + rects[..., 3])
+    zone_h = (rects[..., 2] - rects[..., 0]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    zone_w = (rects[..., 3] - rects[..., 1]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    return centre_y, centre_x, zone_h, zone_w
+
+
 def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects: torch.Tensor,
                 neighbourhood: float = 1.6, similarity: float = 0.05, ridge: float = 0.1
                 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -116,11 +126,7 @@ def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects:
         ``(slope_y, slope_x)``: (B, Z) relative inverse-depth change per zone height and
         per zone width (0 for invalid zones).
     """
-    rects = zone_rects.to(zone_mean_m.dtype)
-    centre_y = 0.5 * (rects[..., 0] + rects[..., 2])
-    centre_x = 0.5 * (rects[..., 1] + rects[..., 3])
-    zone_h = (rects[..., 2] - rects[..., 0]).mean(dim=1, keepdim=True).clamp_min(1e-6)
-    zone_w = (rects[..., 3] - rects[..., 1]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    centre_y, centre_x, zone_h, zone_w = _zone_geometry(zone_rects.to(zone_mean_m.dtype))
     dy = (centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None]  # (B, k, j)
     dx = (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None]
     valid = zone_valid.bool()
@@ -181,10 +187,7 @@ class PlanarSelectHead(DepthHead):
         dtype = descriptors.dtype
         valid = zone_valid.bool()
         log_wy, log_wx = zone_gaussians(zone_rects, valid, (height, width), stride, dtype)
-        pooled = torch.einsum("bchz,bhz->bcz",
-                              torch.einsum("bchw,bwz->bchz", descriptors, _axis_weights(log_wx)),
-                              _axis_weights(log_wy))
-        pooled = F.normalize(pooled, dim=1)  # (B, C, Z)
+        pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
         cosine = descriptors.flatten(2).transpose(1, 2) @ pooled  # (B, h*w, Z)
         prior_logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]).flatten(1, 2)
         weights = _softmax_over_zones(prior_logits + self.temperature.to(dtype) * cosine)
@@ -217,14 +220,11 @@ class PlanarSelectHead(DepthHead):
                      size: tuple[int, int], stride: float) -> torch.Tensor:
         """(B, h*w, Z) inverse depth of each zone's plane at each cell, over its reading."""
         slope_y, slope_x = zone_planes(means, valid, rects)
-        zone_h = (rects[..., 2] - rects[..., 0]).mean(dim=1, keepdim=True).clamp_min(1e-6)
-        zone_w = (rects[..., 3] - rects[..., 1]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+        centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
         rows = (torch.arange(size[0], device=rects.device, dtype=rects.dtype) + 0.5) * stride
         cols = (torch.arange(size[1], device=rects.device, dtype=rects.dtype) + 0.5) * stride
-        offset_y = (rows[None, :, None] - 0.5 * (rects[:, None, :, 0] + rects[:, None, :, 2])) \
-            / zone_h[:, None]  # (B, h, Z)
-        offset_x = (cols[None, :, None] - 0.5 * (rects[:, None, :, 1] + rects[:, None, :, 3])) \
-            / zone_w[:, None]  # (B, w, Z)
+        offset_y = (rows[None, :, None] - centre_y[:, None, :]) / zone_h[:, None]  # (B, h, Z)
+        offset_x = (cols[None, :, None] - centre_x[:, None, :]) / zone_w[:, None]  # (B, w, Z)
         ratio = 1.0 + (slope_y[:, None, :] * offset_y)[:, :, None, :] + \
             (slope_x[:, None, :] * offset_x)[:, None, :, :]  # (B, h, w, Z)
         return ratio.clamp(1.0 / self.max_ratio, self.max_ratio).flatten(1, 2)

@@ -66,6 +66,25 @@ def _axis_weights(log_weights: torch.Tensor) -> torch.Tensor:
     return weights / weights.sum(dim=1, keepdim=True)
 
 
+def footprint_pool(features: torch.Tensor, log_wy: torch.Tensor, log_wx: torch.Tensor
+                   ) -> torch.Tensor:
+    """Each zone's features: their average over the zone's Gaussian footprint.
+
+    The footprint is separable, so it is normalised and applied one axis at a time and
+    never formed as an (h, w, Z) tensor.
+
+    Args:
+        features: (B, C, h, w) feature map.
+        log_wy, log_wx: (B, h, Z) and (B, w, Z) log-weights (:func:`zone_gaussians`).
+
+    Returns:
+        (B, C, Z) pooled features.
+    """
+    return torch.einsum("bchz,bhz->bcz",
+                        torch.einsum("bchw,bwz->bchz", features, _axis_weights(log_wx)),
+                        _axis_weights(log_wy))
+
+
 def _softmax_over_zones(logits: torch.Tensor) -> torch.Tensor:
     # Weights below e^-80 of a pixel's largest are raised to it (a change of ~1e-35):
     # exponentials that small are subnormal floats, which CPUs compute many times
@@ -191,12 +210,7 @@ class ZoneSelectHead(DepthHead):
         _, _, height, width = features.shape
         log_wy, log_wx = zone_gaussians(zone_rects, zone_valid, (height, width), stride,
                                         features.dtype)
-        # Each zone's features: the average over its own Gaussian footprint. The
-        # footprint is separable, so it is normalised and applied one axis at a time and
-        # never formed as an (h, w, Z) tensor.
-        pooled = torch.einsum("bchz,bhz->bcz",
-                              torch.einsum("bchw,bwz->bchz", features, _axis_weights(log_wx)),
-                              _axis_weights(log_wy))  # (B, C, Z)
+        pooled = footprint_pool(features, log_wy, log_wx)  # (B, C, Z)
         keys = self.key(pooled.transpose(1, 2))  # (B, Z, D)
         queries = self.query(features).flatten(2).transpose(1, 2)  # (B, h*w, D)
         affinity = (queries @ keys.transpose(1, 2)) * self.scale  # (B, h*w, Z)
