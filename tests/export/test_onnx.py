@@ -32,6 +32,21 @@ def _random_inputs(rects: np.ndarray, batch: int, seed: int):
             valid)
 
 
+def _export_and_run(model, path, seed: int, threads: int):
+    """Export a 64x96 model, run file and model on random inputs at its example layout.
+
+    Returns:
+        (onnx outputs, torch outputs, the layout's (Z, 4) rects, the ONNX runner).
+    """
+    from deltar.export.onnx import example_inputs
+
+    export_onnx(model, path, 64, 96)
+    rects = example_inputs(model, 64, 96)[2][0].numpy()
+    inputs = _random_inputs(rects, 2, seed)
+    runner = OnnxDepthModel(path, num_threads=threads)
+    return runner.run(*(t.numpy() for t in inputs)), _torch_outputs(model, inputs), rects, runner
+
+
 @pytest.fixture(scope="module")
 def lite_export(tmp_path_factory):
     torch.set_num_threads(1)
@@ -140,13 +155,7 @@ def test_other_presets_export_with_parity(preset, tmp_path):
     torch.set_num_threads(2)
     torch.manual_seed(0)
     model = create_model(preset, design_size=(64, 96)).eval()
-    path = export_onnx(model, tmp_path / f"{preset}.onnx", 64, 96)
-    from deltar.export.onnx import example_inputs
-
-    rects = example_inputs(model, 64, 96)[2][0].numpy()
-    inputs = _random_inputs(rects, 2, 3)
-    expected = _torch_outputs(model, inputs)
-    got = OnnxDepthModel(path, num_threads=2).run(*(t.numpy() for t in inputs))
+    got, expected, _, _ = _export_and_run(model, tmp_path / f"{preset}.onnx", 3, threads=2)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
 
 
@@ -156,13 +165,7 @@ def test_zone_select_head_exports_with_parity(tmp_path):
     model = create_model("deltar-lite", head="zone_select", design_size=(64, 96)).eval()
     with torch.no_grad():
         model.head.query.weight.normal_(0.0, 0.5)
-    path = export_onnx(model, tmp_path / "select.onnx", 64, 96)
-    from deltar.export.onnx import example_inputs
-
-    rects = example_inputs(model, 64, 96)[2][0].numpy()
-    inputs = _random_inputs(rects, 2, 5)
-    expected = _torch_outputs(model, inputs)
-    got = OnnxDepthModel(path, num_threads=1).run(*(t.numpy() for t in inputs))
+    got, expected, _, _ = _export_and_run(model, tmp_path / "select.onnx", 5, threads=1)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
 
 
@@ -175,19 +178,12 @@ def test_plane_select_network_exports_with_parity(tmp_path):
                          design_size=(64, 96)).eval()
     with torch.no_grad():
         model.decoder.channel_weight.uniform_(0.5, 1.5)
-    path = export_onnx(model, tmp_path / "plane.onnx", 64, 96)
-    from deltar.export.onnx import example_inputs
-
-    rects = example_inputs(model, 64, 96)[2][0].numpy()
-    inputs = _random_inputs(rects, 2, 7)
-    expected = _torch_outputs(model, inputs)
-    got = OnnxDepthModel(path, num_threads=1).run(*(t.numpy() for t in inputs))
+    got, expected, rects, runner = _export_and_run(model, tmp_path / "plane.onnx", 7, threads=1)
     assert got["depth"].shape == (2, 1, 32, 48)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
     assert np.abs(got["uncertainty"] - expected["uncertainty"]).max() < DEPTH_TOLERANCE_M
     # No zone patches in this graph: any layout of the grid runs (here shrunk and moved,
     # which a fusion network's file refuses), with the same parity.
-    runner = OnnxDepthModel(path, num_threads=1)
     moved = _random_inputs(rects * 0.7 + 5.0, 2, 8)
     runner.check_layout(moved[2].numpy())
     got = runner.run(*(t.numpy() for t in moved))
