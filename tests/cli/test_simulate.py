@@ -51,6 +51,27 @@ def test_folder_source_with_frame_range(shared_data, tmp_path):
     np.testing.assert_array_equal(sample.zone_rects[63], [408, 488, 464, 544])
 
 
+def test_zones_that_see_past_the_range_are_written_as_no_target(shared_data, tmp_path):
+    # The office's window side lies beyond the L5's 4 m: those zones report no target,
+    # in the clean set and, unchanged, in a degraded one (dropping acts on readings).
+    sets = {}
+    for name, extra in (("clean", []), ("degraded", ["--drop-fraction", "0.5"])):
+        result = runner.invoke(app, ["simulate", str(shared_data / "realsense_office"),
+                                     str(tmp_path / name), "--limit", "1",
+                                     "--intrinsics", "615,615,320,240", *extra])
+        assert result.exit_code == 0, result.output
+        (sets[name],) = list(ZJUL5Dataset(tmp_path / name))
+    sample = sets["clean"]
+    flags = sample.zone_no_target
+    assert flags.any() and not (flags & sample.zone_valid).any()
+    for zone in np.flatnonzero(flags):
+        y0, x0, y1, x1 = np.ceil(sample.zone_rects[zone]).astype(int).clip(0)
+        depth = sample.depth_m[y0:y1, x0:x1]
+        assert (depth > 4.0).sum() > ((depth > 0) & (depth <= 4.0)).sum()
+    np.testing.assert_array_equal(sets["degraded"].zone_no_target, flags)
+    assert sets["degraded"].zone_valid.sum() < sample.zone_valid.sum()
+
+
 def test_refuses_non_empty_output_and_bad_options(tmp_path):
     out = tmp_path / "busy"
     out.mkdir()

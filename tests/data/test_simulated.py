@@ -35,8 +35,8 @@ def test_item_contract_on_procedural_frames():
     item = ds[1]
     shapes = {k: tuple(v.shape) for k, v in item.items()}
     assert shapes == {"image": (3, 64, 96), "image_rgb": (64, 96, 3), "depth": (1, 64, 96),
-                      "zone_mean_sigma": (64, 2), "zone_valid": (64,), "zone_rects": (64, 4),
-                      "hypotheses": (64, 8), "intrinsics": (4,)}
+                      "zone_mean_sigma": (64, 2), "zone_valid": (64,), "zone_no_target": (64,),
+                      "zone_rects": (64, 4), "hypotheses": (64, 8), "intrinsics": (4,)}
     assert item["image"].dtype == torch.float32 and item["image_rgb"].dtype == torch.uint8
     assert item["zone_valid"].dtype == torch.bool
     # ImageNet normalisation of the unaugmented image, checked by hand on one pixel.
@@ -69,8 +69,20 @@ def test_flat_wall_gives_bin_centre_and_zero_sigma():
 
 def test_no_depth_gives_invalid_zones():
     item = SimulatedL5Dataset(_ListReader([_frame(np.zeros((32, 32)))]), grid=4)[0]
-    assert not item["zone_valid"].any()
+    assert not item["zone_valid"].any() and not item["zone_no_target"].any()
     assert torch.all(item["zone_mean_sigma"] == 0) and torch.all(item["hypotheses"] == 0)
+
+
+def test_a_scene_scaled_past_the_range_reports_no_target_even_in_dropped_zones():
+    # A wall at 3 m scaled by 2: beyond the 4 m range, every zone reports no target;
+    # the signal augmentation drops only valid zones, so the flags survive it.
+    frames = _ListReader([_frame(np.full((64, 64), 3.0))])
+    item = SimulatedL5Dataset(frames, grid=4, depth_scale_range=(2.0, 2.0),
+                              signal_augmentation=SignalAugmentation(drop_fraction=0.5))[0]
+    assert not item["zone_valid"].any() and bool(item["zone_no_target"].all())
+    near = SimulatedL5Dataset(frames, grid=4, signal_augmentation=SignalAugmentation(
+        drop_fraction=0.5))[0]
+    assert not near["zone_no_target"].any() and 0 < int(near["zone_valid"].sum()) < 16
 
 
 def test_reproducible_per_seed_epoch_and_index():

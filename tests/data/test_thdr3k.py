@@ -30,6 +30,7 @@ def test_sample_is_rotated_masked_and_normalised(tmp_path):
     _, (r, c) = zone_truth(0)
     valid = sample.zone_valid.reshape(8, 8)
     assert not valid[r, c] and valid.sum() == 63  # the no-target zone, nothing else
+    assert np.flatnonzero(sample.zone_no_target).tolist() == [r * 8 + c]
     means = sample.zone_mean_sigma[:, 0].reshape(8, 8)
     # Image orientation: zone (row, col) carries the truth of that place in the image.
     np.testing.assert_allclose(means[valid], truth[valid], atol=1e-6)

@@ -25,6 +25,7 @@ def _sample(rng: np.random.Generator, name: str, height: int = 24, width: int = 
         zone_valid=valid,
         name=name,
         intrinsics=CameraIntrinsics(30.0, 31.0, 15.5, 11.5, width, height),
+        zone_no_target=~valid & (rng.random(zones) > 0.5),
     )
 
 
@@ -49,6 +50,9 @@ def test_round_trip_preserves_every_array(tmp_path, rng):
         np.testing.assert_array_equal(loaded.zone_mean_sigma, original.zone_mean_sigma)
         np.testing.assert_array_equal(loaded.zone_rects, original.zone_rects)
         np.testing.assert_array_equal(loaded.zone_valid, original.zone_valid)
+        np.testing.assert_array_equal(loaded.zone_no_target, original.zone_no_target)
+        np.testing.assert_array_equal(loaded.zone_frame().flat_no_target(),
+                                      original.zone_no_target)
         assert loaded.intrinsics == original.intrinsics
     assert ds[1].grid == 4
 
@@ -74,6 +78,8 @@ def test_reads_release_layout_and_cleans_invalid_depth(tmp_path, rng):
     assert sample.zone_mean_sigma[6].tolist() == [1.5, 1.5]
     # Release files carry no intrinsics: the paper's ZJU-L5 camera is filled in.
     assert sample.intrinsics == ZJU_L5_INTRINSICS
+    # Nor no-target flags: none is known.
+    assert sample.zone_no_target is None and not sample.zone_frame().flat_no_target().any()
 
 
 def test_writer_refuses_to_overwrite(tmp_path, rng):
@@ -131,3 +137,9 @@ def test_sample_validation_names_the_field(rng):
     bad_ms[np.flatnonzero(good.zone_valid)[0], 0] = np.nan
     with pytest.raises(ValueError, match="zone_mean_sigma"):
         ZJUL5Sample(good.rgb, good.depth_m, bad_ms, good.zone_rects, good.zone_valid, "x")
+    with pytest.raises(ValueError, match="zone_no_target must be"):
+        ZJUL5Sample(good.rgb, good.depth_m, good.zone_mean_sigma, good.zone_rects,
+                    good.zone_valid, "x", zone_no_target=np.zeros(16, bool))
+    with pytest.raises(ValueError, match="zone_no_target marks valid zones"):
+        ZJUL5Sample(good.rgb, good.depth_m, good.zone_mean_sigma, good.zone_rects,
+                    good.zone_valid, "x", zone_no_target=good.zone_valid)

@@ -111,6 +111,24 @@ def test_baseline_predictor_ignores_valid_zones_without_distance() -> None:
     assert depth[0, 32] == sample.zone_mean_sigma[2, 0]
 
 
+def test_far_baselines_read_zones_with_no_target_at_the_far_depth() -> None:
+    from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
+
+    sample = make_sample("far", 0)
+    sample.zone_valid[3] = False
+    sample.zone_mean_sigma[3] = 0.0
+    classic = create_predictor("nearest")(sample)
+    assert create_predictor("nearest+far")(sample)[0, 32] == classic[0, 32]  # no flags
+    sample.zone_no_target = np.zeros_like(sample.zone_valid)
+    sample.zone_no_target[3] = True
+    far = create_predictor("nearest+far")(sample)
+    # Zone 3 covers rows 0..7, columns 32..39.
+    assert np.all(far[:8, 32:40] == np.float32(NO_TARGET_DEPTH_M))
+    assert classic[0, 32] == sample.zone_mean_sigma[2, 0]
+    np.testing.assert_array_equal(create_predictor("nearest")(sample), classic)
+    assert "nearest+far" not in resolve_method_names("all")
+
+
 def test_resize_like_release_aligns_corners() -> None:
     from deltar.evaluation.runner import resize_like_release
 

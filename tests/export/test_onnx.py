@@ -58,6 +58,8 @@ def lite_export(tmp_path_factory):
 
 
 def test_lite_parity_and_dynamic_batch(lite_export):
+    # A head without use for the no-target flags: the file has the four inputs only.
+    assert not OnnxDepthModel(lite_export[1], num_threads=1).takes_no_target
     model, path = lite_export
     runner = OnnxDepthModel(path, num_threads=1)
     assert runner.input_size == (64, 96) and runner.num_hypotheses == 16 and runner.grid == 8
@@ -189,6 +191,15 @@ def test_plane_select_network_exports_with_parity(tmp_path):
     got = runner.run(*(t.numpy() for t in moved))
     assert np.abs(got["depth"] - _torch_outputs(model, moved)["depth"]).max() < \
         DEPTH_TOLERANCE_M
+    # Its head reads the no-target flags: the file takes them as a fifth input.
+    assert runner.takes_no_target
+    inputs = _random_inputs(rects, 2, 9)
+    no_target = ~inputs[3]
+    with torch.inference_mode():
+        flagged = model(*inputs, zone_no_target=no_target)["depth"].numpy()
+    got = runner.run(*(t.numpy() for t in inputs), no_target.numpy())
+    assert np.abs(got["depth"] - flagged).max() < DEPTH_TOLERANCE_M
+    assert np.abs(flagged - _torch_outputs(model, inputs)["depth"]).max() > 0.1
 
 
 @pytest.mark.parametrize("size", [(480, 480), (720, 1280)])

@@ -328,3 +328,25 @@ def test_official_estimator_keeps_release_parity(tmp_path, parity_fixture, threa
             assert edge_error < EDGE_TOLERANCE_M, f"{case['name']}: edges {edge_error} m"
     finally:
         torch.set_num_threads(previous)
+
+
+@pytest.mark.parametrize("flip_average", [False, True])
+def test_no_target_zones_of_a_frame_reach_the_plane_select_head(rng, flip_average):
+    from deltar.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96))
+    estimator = DepthEstimator(model, weights="test", flip_average=flip_average)
+    image = _image(rng, 64, 96)
+    valid = np.ones((8, 8), bool)
+    valid[:, 5:] = False  # the right columns see nothing within range
+    mean = np.where(valid, 1.5, 0.0)
+    plain = ZoneFrame(mean_m=mean, sigma_m=np.full((8, 8), 0.02), valid=valid)
+    far = ZoneFrame(mean_m=mean, sigma_m=np.full((8, 8), 0.02), valid=valid,
+                    no_target=~valid)
+    depth_plain = estimator.predict(image, plain).depth_m
+    depth_far = estimator.predict(image, far).depth_m
+    assert np.allclose(depth_plain, 1.5, rtol=0.05)
+    # The no-target side moves toward 5 m; the measured side keeps its reading.
+    assert depth_far[:, -10:].mean() > 3.0
+    np.testing.assert_allclose(depth_far[:, :20], 1.5, rtol=0.1)

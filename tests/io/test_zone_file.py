@@ -39,6 +39,8 @@ def test_round_trip_keeps_every_field(tmp_path, rng, suffix, grid):
     np.testing.assert_allclose(back.sigma_m, frame.sigma_m, atol=1e-6)
     np.testing.assert_array_equal(back.valid, frame.valid)
     np.testing.assert_array_equal(back.status, frame.status)
+    np.testing.assert_array_equal(back.no_target, frame.no_target)
+    assert back.no_target.any()
     np.testing.assert_allclose(back.hist_counts, frame.hist_counts)
     np.testing.assert_allclose(back.hist_edges_m, frame.hist_edges_m, atol=1e-6)
     assert back.timestamp_s == 12.25
@@ -103,6 +105,8 @@ def test_driver_results_object_is_converted():
         (lambda d: d["mean_m"].__setitem__(4, -1.0), "negative"),
         (lambda d: d.update(schema_version=99), "schema_version"),
         (lambda d: d.pop("valid"), "missing keys"),
+        (lambda d: d.update(no_target=[2] * 64), "no_target must hold 64 booleans"),
+        (lambda d: d.update(no_target=[True] * 64), "no_target marks valid zones"),
     ],
 )
 def test_bad_content_names_file_and_problem(tmp_path, rng, edit, message):

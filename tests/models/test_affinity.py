@@ -115,6 +115,63 @@ def test_affinity_picks_the_zone_that_looks_like_the_pixel():
     assert depth[20.0][..., :3].mean() > 2.5 and depth[20.0][..., 6:12].mean() < 1.5
 
 
+def test_zones_with_no_target_offer_the_far_depth_where_the_pixels_look_like_them():
+    # A wall at 2 m on the left half; the right half reported no target. Pixels that look
+    # like the right half go to the no-target depth, an absolute that does not scale
+    # with the readings; without flags the right half extends the wall.
+    rects = _grid_rects(4, 8)
+    cols = _centres(rects)[1]
+    valid = cols < 16
+    far = ~valid
+    means = torch.where(valid, torch.tensor(2.0), torch.tensor(0.0))
+    descriptors = torch.zeros(1, 2, 32, 32)
+    descriptors[:, 0, :, :16] = 1.0
+    descriptors[:, 1, :, 16:] = 1.0
+    head = PlanarSelectHead(temperature=20.0, no_target_depth=5.0)
+    plain, _, _ = head(descriptors, means, valid, rects, stride=1.0)
+    flagged, _, _ = head(descriptors, means, valid, rects, stride=1.0, zone_no_target=far)
+    assert torch.allclose(plain, torch.tensor(2.0), rtol=1e-4)
+    torch.testing.assert_close(flagged[..., :12], torch.full((1, 1, 32, 12), 2.0),
+                               rtol=1e-3, atol=1e-3)
+    torch.testing.assert_close(flagged[..., 20:], torch.full((1, 1, 32, 12), 5.0),
+                               rtol=1e-3, atol=1e-3)
+    # Flags on valid zones change nothing; all-False flags are no flags.
+    same, _, _ = head(descriptors, means, valid, rects, stride=1.0, zone_no_target=valid)
+    torch.testing.assert_close(same, plain)
+    none, _, _ = head(descriptors, means, valid, rects, stride=1.0,
+                      zone_no_target=torch.zeros_like(valid))
+    torch.testing.assert_close(none, plain)
+    # Readings divided by a frame scale: the far depth stays at 5 m once scaled back.
+    scale = torch.tensor([2.0])
+    normalised, _, _ = head(descriptors, means / 2.0, valid, rects, stride=1.0,
+                            zone_no_target=far, zone_scale_m=scale)
+    torch.testing.assert_close(normalised * 2.0, flagged, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="no_target_depth"):
+        PlanarSelectHead(no_target_depth=20.0)
+
+
+def test_network_passes_the_no_target_flags_to_its_head():
+    from deltar.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 64)).eval()
+    image = torch.randn(1, 3, 64, 64)
+    rects = _grid_rects(8, 8)
+    valid = torch.ones(1, 64, dtype=torch.bool)
+    valid[0, 32:] = False
+    hypotheses = torch.where(valid[..., None], torch.linspace(1.4, 1.6, 16), 0.0)
+    with torch.no_grad():
+        plain = model(image, hypotheses, rects, valid)["depth"]
+        flagged = model(image, hypotheses, rects, valid, zone_no_target=~valid)["depth"]
+    # The lower half reported no target: its depth moves toward 5 m, the top stays.
+    assert flagged[..., 24:, :].mean() > plain[..., 24:, :].mean() + 1.0
+    torch.testing.assert_close(flagged[..., :4, :], plain[..., :4, :], rtol=0.05, atol=0.05)
+    with pytest.raises(ValueError, match="zone_no_target"):
+        model(image, hypotheses, rects, valid, zone_no_target=valid[:, :10])
+    with pytest.raises(ValueError, match="zone_no_target"):
+        model(image, hypotheses, rects, valid, zone_no_target=valid.float())
+
+
 def test_encoder_descriptors_are_unit_vectors_at_the_output_stride():
     module = EncoderDescriptors((16, 24, 40, 112, 320), strides=(8, 16), out_stride=4)
     assert module.channels == 152

@@ -85,6 +85,8 @@ def test_zone_frame_from_cnh_masks_stale_zones_and_orients():
     # Orientation applies to every per-zone array alike: compare against rot90 by hand.
     expected_valid = np.rot90(targets.reshape(8, 8) > 0, k=1)
     np.testing.assert_array_equal(frame.valid, expected_valid)
+    # No target detected: the zones report no target, oriented like the rest.
+    np.testing.assert_array_equal(frame.no_target, ~expected_valid)
     expected_mean = np.rot90((distance_mm / 1000).reshape(8, 8), k=1)
     np.testing.assert_allclose(frame.mean_m[frame.valid], expected_mean[frame.valid], rtol=1e-6)
     assert np.all(frame.mean_m[~frame.valid] == 0)

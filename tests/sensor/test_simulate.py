@@ -119,6 +119,26 @@ def test_beyond_range_is_invalid_and_max_range_is_the_last_bin():
     assert valid and mean == pytest.approx(3.98, abs=1e-6)
 
 
+def test_zones_beyond_the_range_report_no_target_and_empty_zones_do_not():
+    depth = torch.zeros(40, 80)
+    depth[:, :20] = 1.5  # a wall in range: valid
+    depth[:, 20:40] = 6.0  # all beyond the range: no target
+    depth[:, 40:52] = 6.0  # mostly beyond, a strip in range too thin for a reading
+    depth[:, 52:60] = 2.0
+    depth[:, 60:80] = 0.0  # no depth at all (a hole): no information, not "far"
+    depth[0, 60:75] = 2.0  # a few in-range pixels, too few for a reading
+    rects = torch.tensor([[0.0, 0.0, 40.0, 20.0], [0.0, 20.0, 40.0, 40.0],
+                          [0.0, 40.0, 2.0, 60.0], [0.0, 60.0, 40.0, 80.0]])
+    out = simulate_zones(depth, rects)
+    assert out.valid.tolist() == [True, False, False, False]
+    assert out.no_target.tolist() == [False, True, True, False]
+    # One rule for a batch and for the zone frame.
+    batch = simulate_zones(depth.expand(2, -1, -1), rects)
+    assert batch.no_target.tolist() == [[False, True, True, False]] * 2
+    frame = simulate_zone_frame(depth.numpy(), np.tile(rects.numpy(), (4, 1)))
+    assert frame.flat_no_target().tolist() == [False, True, True, False] * 4
+
+
 def test_zone_outside_the_image_is_invalid():
     depth = torch.full((48, 64), 1.5)
     rects = torch.tensor([[-30.0, -40.0, -5.0, -10.0],  # above-left of the image

@@ -51,8 +51,26 @@ def test_status_filtering():
     mean_sigma = frame.mean_sigma()
     assert (mean_sigma[[3, 20, 30]] == 0).all()
     assert frame.status.reshape(-1)[3] == 255
+    # Status 255 (and only it) is "no target": nothing within range.
+    assert np.flatnonzero(frame.flat_no_target()).tolist() == [3]
     strict = ZoneFrame.from_driver(distance, sigma, status, valid_status=(5,))
     assert not strict.flat()[2][10]
+
+
+def test_no_target_flags_are_checked_and_default_to_none():
+    mean, valid = np.full((4, 4), 1.0), np.ones((4, 4), bool)
+    valid[0, 0] = False
+    plain = ZoneFrame(mean_m=mean, sigma_m=np.zeros((4, 4)), valid=valid)
+    assert plain.no_target is None and not plain.flat_no_target().any()
+    flags = ~valid
+    frame = ZoneFrame(mean_m=mean, sigma_m=np.zeros((4, 4)), valid=valid, no_target=flags)
+    assert frame.flat_no_target().tolist() == [True] + [False] * 15
+    with pytest.raises(ValueError, match="no_target marks valid zones"):
+        ZoneFrame(mean_m=mean, sigma_m=np.zeros((4, 4)), valid=valid,
+                  no_target=np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="no_target must have shape"):
+        ZoneFrame(mean_m=mean, sigma_m=np.zeros((4, 4)), valid=valid,
+                  no_target=np.zeros((8, 8), bool))
 
 
 def test_orientations_by_hand():

@@ -71,7 +71,8 @@ class SimulatedL5Dataset(Dataset):
 
     Items are dicts of tensors: ``image`` (3, H, W) float32 ImageNet-normalised,
     ``image_rgb`` (H, W, 3) uint8, ``depth`` (1, H, W) float32 metres (0 invalid),
-    ``zone_mean_sigma`` (Z, 2) float32 metres, ``zone_valid`` (Z,) bool, ``zone_rects``
+    ``zone_mean_sigma`` (Z, 2) float32 metres, ``zone_valid`` (Z,) bool,
+    ``zone_no_target`` (Z,) bool (invalid zones with no target in range), ``zone_rects``
     (Z, 4) float32 pixels, ``hypotheses`` (Z, K) float32 metres, ``intrinsics`` (4,) float32
     fx, fy, cx, cy in pixels of the returned image.
     """
@@ -204,6 +205,7 @@ class SimulatedL5Dataset(Dataset):
             "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
             "zone_mean_sigma": torch.stack([mean, sigma], dim=-1).to(torch.float32),
             "zone_valid": valid.to(torch.bool),
+            "zone_no_target": zones.no_target & ~valid.to(torch.bool),
             "zone_rects": torch.from_numpy(rects.astype(np.float32)),
             "hypotheses": hypotheses.to(torch.float32),
             "intrinsics": torch.tensor([intr.fx, intr.fy, intr.cx, intr.cy],
@@ -300,7 +302,8 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
             # A reading biased past the sensor's range is one it does not report.
             valid = valid & (mean > 0) & (mean <= SimulatorConfig().max_range_m)
             mean, sigma = mean * valid, sigma * valid
-            zones = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in (mean, sigma, valid)))
+            zones = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in (mean, sigma, valid)),
+                              no_target=zones.no_target)
         valid_counts.append(int(np.count_nonzero(zones.valid)))
         histogram = {}
         if cnh_config is not None:
@@ -311,6 +314,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         return ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
                            zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
                            zone_valid=zones.valid.reshape(-1),
+                           zone_no_target=zones.flat_no_target(),
                            name=f"{scene}/{frame.name}".replace("\\", "/"),
                            intrinsics=frame.intrinsics, **histogram)
 

@@ -138,7 +138,8 @@ def read_thdr3k_sample(root: str | Path, name: str | None = None, *,
         intrinsics = intrinsics.scaled(height, width)
     return ZJUL5Sample(rgb=rgb, depth_m=depth, zone_mean_sigma=frame.mean_sigma(),
                        zone_rects=thdr3k_zone_rects(height, width),
-                       zone_valid=frame.valid.reshape(-1), name=name or base.name,
+                       zone_valid=frame.valid.reshape(-1),
+                       zone_no_target=frame.flat_no_target(), name=name or base.name,
                        intrinsics=intrinsics, hist_edges_m=frame.hist_edges_m,
                        hist_counts=frame.hist_counts.reshape(64, -1))
 

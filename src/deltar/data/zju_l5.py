@@ -13,7 +13,9 @@ relative to the folder holding it. Each HDF5 file holds:
 Z is 64 (8x8) for the released data; 16 (4x4) is accepted too. Files written by
 :func:`write_zju_l5` also carry the camera intrinsics as attributes ``fx, fy, cx, cy``,
 and, for histogram sensors, optional datasets ``hist_edges_m`` (B + 1,) bin edges in
-metres and ``hist_counts`` (Z, B) per-zone histograms (e.g. ST's CNH).
+metres and ``hist_counts`` (Z, B) per-zone histograms (e.g. ST's CNH), and an optional
+``no_target`` (Z,) bool dataset: invalid zones that reported no target (ST status 255,
+nothing within the sensor's range; ``deltar simulate`` writes it).
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ from deltar.io.json_file import read_split_filenames
 ZONE_COUNTS: tuple[int, ...] = (16, 64)
 _REQUIRED_KEYS: tuple[str, ...] = ("rgb", "depth", "hist_data", "fr", "mask")
 _HISTOGRAM_KEYS: tuple[str, ...] = ("hist_edges_m", "hist_counts")
+#: Optional dataset of this library's files (not in the released ones): (Z,) bool zones
+#: that reported no target (nothing within the sensor's range).
+_NO_TARGET_KEY = "no_target"
 
 
 @dataclass
@@ -54,6 +59,8 @@ class ZJUL5Sample:
         hist_edges_m: optional (B + 1,) float32 histogram bin edges in metres.
         hist_counts: optional (Z, B) float32 per-zone histograms (histogram sensors);
             when present, models sample their depth hypotheses from them.
+        zone_no_target: optional (Z,) bool, invalid zones that reported *no target*
+            (nothing within the sensor's range); the released files do not have it.
     """
 
     rgb: np.ndarray
@@ -65,6 +72,7 @@ class ZJUL5Sample:
     intrinsics: CameraIntrinsics | None = None
     hist_edges_m: np.ndarray | None = None
     hist_counts: np.ndarray | None = None
+    zone_no_target: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.rgb = np.asarray(self.rgb)
@@ -100,6 +108,16 @@ class ZJUL5Sample:
             raise ValueError(f"{where}: zone_mean_sigma must be finite and >= 0 in valid zones")
         if not np.all(np.isfinite(self.zone_rects)):
             raise ValueError(f"{where}: zone_rects must be finite")
+        if self.zone_no_target is not None:
+            flags = np.asarray(self.zone_no_target)
+            if flags.shape != (zones,) or (flags.dtype != bool
+                                           and not np.isin(flags, (0, 1)).all()):
+                raise ValueError(f"{where}: zone_no_target must be ({zones},) bool, got "
+                                 f"{flags.shape} {flags.dtype}")
+            self.zone_no_target = flags.astype(bool)
+            if np.any(self.zone_no_target & self.zone_valid):
+                both = np.flatnonzero(self.zone_no_target & self.zone_valid).tolist()
+                raise ValueError(f"{where}: zone_no_target marks valid zones {both}")
         if (self.hist_edges_m is None) != (self.hist_counts is None):
             raise ValueError(f"{where}: hist_edges_m and hist_counts must be given together")
         if self.hist_counts is not None:
@@ -124,7 +142,7 @@ class ZJUL5Sample:
 
         Mean and sigma (metres) are zero in invalid zones; zones flagged valid but
         reporting no distance (mean <= 0) are invalid, as the classical baselines treat
-        them. The histogram is attached when the sample has one.
+        them. The histogram and the no-target flags are attached when the sample has them.
         """
         from deltar.sensor.zone_frame import ZoneFrame
 
@@ -132,7 +150,7 @@ class ZJUL5Sample:
         return ZoneFrame(mean_m=np.where(valid, self.zone_mean_sigma[:, 0], 0.0),
                          sigma_m=np.where(valid, self.zone_mean_sigma[:, 1], 0.0),
                          valid=valid, hist_edges_m=self.hist_edges_m,
-                         hist_counts=self.hist_counts)
+                         hist_counts=self.hist_counts, no_target=self.zone_no_target)
 
 
 def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | None
@@ -144,7 +162,8 @@ def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | N
             missing = [k for k in _REQUIRED_KEYS if k not in f]
             if missing:
                 raise ValueError(f"ZJU-L5 file {path} is missing datasets {missing}")
-            arrays = {k: f[k][()] for k in (*_REQUIRED_KEYS, *_HISTOGRAM_KEYS) if k in f}
+            arrays = {k: f[k][()] for k in (*_REQUIRED_KEYS, *_HISTOGRAM_KEYS, _NO_TARGET_KEY)
+                      if k in f}
             attrs = {k: f.attrs[k] for k in ("fx", "fy", "cx", "cy") if k in f.attrs}
     except OSError as err:  # h5py raises OSError for truncated / non-HDF5 files
         raise ValueError(f"cannot read ZJU-L5 file {path}: {err}") from err
@@ -173,7 +192,8 @@ def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | N
                            zone_rects=np.asarray(arrays["fr"], dtype=np.float32),
                            zone_valid=valid, name=name, intrinsics=intrinsics,
                            hist_edges_m=arrays.get("hist_edges_m"),
-                           hist_counts=arrays.get("hist_counts"))
+                           hist_counts=arrays.get("hist_counts"),
+                           zone_no_target=arrays.get(_NO_TARGET_KEY))
     except ValueError as err:
         raise ValueError(f"ZJU-L5 file {path}: {err}") from err
 
@@ -267,6 +287,8 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
             if sample.hist_counts is not None:
                 f.create_dataset("hist_edges_m", data=sample.hist_edges_m.astype(np.float32))
                 f.create_dataset("hist_counts", data=sample.hist_counts.astype(np.float32))
+            if sample.zone_no_target is not None:
+                f.create_dataset(_NO_TARGET_KEY, data=sample.zone_no_target.astype(bool))
             if sample.intrinsics is not None:
                 for key in ("fx", "fy", "cx", "cy"):
                     f.attrs[key] = float(getattr(sample.intrinsics, key))

@@ -20,6 +20,7 @@ import numpy as np
 
 from deltar.evaluation.baselines import BASELINES, run_baseline
 from deltar.evaluation.metrics import EmptyFrameError, MetricAccumulator, depth_metrics
+from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
 if TYPE_CHECKING:
     from deltar.data.zju_l5 import ZJUL5Sample
@@ -31,15 +32,23 @@ class Predictor(Protocol):
     def __call__(self, sample: ZJUL5Sample) -> np.ndarray: ...
 
 
+#: Suffix of a baseline's variant that reads zones with no target as ``NO_TARGET_DEPTH_M``.
+NO_TARGET_SUFFIX = "+far"
+
+
 @dataclass(frozen=True)
 class BaselinePredictor:
     """A classical baseline (:func:`~deltar.evaluation.baselines.run_baseline`) as a method.
 
     Attributes:
         baseline: name in :data:`~deltar.evaluation.baselines.BASELINES`.
+        no_target_depth_m: when set, zones that reported no target (the sample's
+            ``zone_no_target``) count as readings at this depth, metres (the
+            ``"<baseline>+far"`` methods); None: they are invalid zones, as classically.
     """
 
     baseline: str
+    no_target_depth_m: float | None = None
 
     def __call__(self, sample: ZJUL5Sample) -> np.ndarray:
         """(H, W) float32 depth in metres from the sample's image and zone means.
@@ -49,6 +58,10 @@ class BaselinePredictor:
         """
         means = sample.zone_mean_sigma[:, 0]
         valid = sample.zone_valid & (means > 0)
+        if self.no_target_depth_m is not None and sample.zone_no_target is not None:
+            far = sample.zone_no_target & ~valid
+            means = np.where(far, self.no_target_depth_m, means)
+            valid = valid | far
         return run_baseline(self.baseline, sample.rgb, means, valid, sample.zone_rects)
 
 
@@ -165,6 +178,9 @@ def create_predictor(name: str) -> Predictor:
 
 for _baseline in BASELINES:
     register_method(_baseline, lambda baseline=_baseline: BaselinePredictor(baseline))
+for _baseline in BASELINES:
+    register_method(_baseline + NO_TARGET_SUFFIX, lambda baseline=_baseline: BaselinePredictor(
+        baseline, NO_TARGET_DEPTH_M))
 
 
 @dataclass

@@ -29,6 +29,7 @@ import numpy as np
 
 from deltar.inference.onnx_runtime import (
     INPUT_NAMES,
+    NO_TARGET_INPUT,
     OUTPUT_NAMES,
     SIGNATURE_KEY,
     OnnxDepthModel,
@@ -60,8 +61,9 @@ def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
             super().__init__()
             self.inner = inner
 
-        def forward(self, image, hypotheses, zone_rects, zone_valid):
-            out = self.inner(image, hypotheses, zone_rects, zone_valid)
+        def forward(self, image, hypotheses, zone_rects, zone_valid, zone_no_target=None):
+            out = self.inner(image, hypotheses, zone_rects, zone_valid,
+                             zone_no_target=zone_no_target)
             return out["depth"], out["bin_edges"], out["uncertainty"]
 
     return TupleOutputs(model).eval()
@@ -95,7 +97,8 @@ def example_inputs(model: DeltarNet, height: int, width: int,
 
     Returns:
         (image (1, 3, h, w) mid-grey, hypotheses (1, Z, K) around 2 m, zone_rects
-        (1, Z, 4) in network-input pixels, zone_valid (1, Z) all True).
+        (1, Z, 4) in network-input pixels, zone_valid (1, Z) all True), and
+        zone_no_target (1, Z) all False for a network whose head uses the flags.
     """
     import torch
 
@@ -112,8 +115,12 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     zones = rects.shape[0]
     k = int(model.config["num_hypotheses"])
     hypotheses = torch.linspace(1.8, 2.2, k).expand(1, zones, k).contiguous()
-    return (torch.zeros(1, 3, net_height, net_width), hypotheses,
-            torch.from_numpy(rects)[None], torch.ones(1, zones, dtype=torch.bool))
+    inputs = (torch.zeros(1, 3, net_height, net_width), hypotheses,
+              torch.from_numpy(rects)[None], torch.ones(1, zones, dtype=torch.bool))
+    if getattr(model, "uses_no_target", False):
+        # The head reads the flags: the export takes them as a fifth input.
+        inputs += (torch.zeros(1, zones, dtype=torch.bool),)
+    return inputs
 
 
 def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: int, *,
@@ -154,11 +161,12 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     # records.
     uses_patches = getattr(model, "distribution_encoder", None) is not None
     signature = layout_signature(inputs[2].numpy(), grid) if uses_patches else []
-    dynamic = {name: {0: "batch"} for name in (*INPUT_NAMES, *OUTPUT_NAMES)}
+    input_names = [*INPUT_NAMES, *((NO_TARGET_INPUT,) if len(inputs) > 4 else ())]
+    dynamic = {name: {0: "batch"} for name in (*input_names, *OUTPUT_NAMES)}
     net_height, net_width = inputs[0].shape[-2:]
     with atomic_path(path, overwrite=overwrite) as tmp, _traceable(model), \
             torch.no_grad(), _quiet_tracer():
-        torch.onnx.export(_tuple_outputs(model), inputs, str(tmp), input_names=list(INPUT_NAMES),
+        torch.onnx.export(_tuple_outputs(model), inputs, str(tmp), input_names=input_names,
                           output_names=list(OUTPUT_NAMES), dynamic_axes=dynamic,
                           opset_version=OPSET, dynamo=False)
         proto = onnx.load(str(tmp))

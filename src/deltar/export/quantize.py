@@ -39,9 +39,9 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
                       ) -> list[dict[str, np.ndarray]]:
     """Network inputs for ``frames`` RGB-D frames spread evenly over ``source``.
 
-    Each frame's zone reading is simulated from its depth (mean and sigma only, as a
-    VL53L5CX reports) on the estimator's zone layout for the image, then prepared
-    exactly as ``estimator.predict`` would.
+    Each frame's zone reading is simulated from its depth (mean, sigma and the
+    no-target flags, as a VL53L5CX reports) on the estimator's zone layout for the
+    image, then prepared exactly as ``estimator.predict`` would.
 
     Args:
         estimator: the estimator of the exported model (its layout and input size).
@@ -80,10 +80,13 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         else:
             rects = scale_rects(np.asarray(zone_rects, dtype=np.float32), rects_size, size)
         zones = simulate_zone_frame(frame.depth_m, rects)
-        reading = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid)
+        reading = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
+                            no_target=zones.no_target)
         inputs = estimator.prepare([frame.image], [reading], zone_rects=rects[None])
-        feeds.append({name: inputs[name].cpu().numpy()
-                      for name in ("image", "hypotheses", "zone_rects", "zone_valid")})
+        names = ["image", "hypotheses", "zone_rects", "zone_valid"]
+        if estimator.onnx_model is not None and estimator.onnx_model.takes_no_target:
+            names.append("zone_no_target")
+        feeds.append({name: inputs[name].cpu().numpy() for name in names})
     return feeds
 
 

@@ -347,6 +347,7 @@ class SimulatedRig:
                                         timestamp_s=image_time + self.sensor_delay_s)
             if not self.with_histogram:
                 zones = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
-                                  timestamp_s=zones.timestamp_s, sensor_model="simulated")
+                                  timestamp_s=zones.timestamp_s, sensor_model="simulated",
+                                  no_target=zones.no_target)
             capture.zone_frame = zones
         return capture

@@ -350,7 +350,8 @@ class DepthEstimator:
         Returns:
             dict with ``image`` (B, 3, h, w) normalised, ``hypotheses`` (B, Z, K) metres,
             ``zone_rects`` (B, Z, 4) pixels of the network input, ``zone_valid`` (B, Z)
-            bool (torch tensors on the estimator's device) and ``image_rects`` (B, Z, 4)
+            bool, ``zone_no_target`` (B, Z) bool (the frames' no-target flags; torch
+            tensors on the estimator's device) and ``image_rects`` (B, Z, 4)
             numpy rectangles in input-image pixels, ``image_size`` (H, W) and
             ``network_size`` (h, w) in pixels (:meth:`network_size_for`).
         """
@@ -389,8 +390,11 @@ class DepthEstimator:
                                                   self.image_std)).to(self.device)
         hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).to(self.device)
         valid = torch.from_numpy(np.stack([f.flat()[2] for f in frames])).to(self.device)
+        no_target = torch.from_numpy(np.stack([f.flat_no_target() for f in frames])
+                                     ).to(self.device)
         return {"image": image, "hypotheses": hypotheses.float(),
                 "zone_rects": torch.from_numpy(net_rects).to(self.device), "zone_valid": valid,
+                "zone_no_target": no_target,
                 "image_rects": rects, "image_size": size, "network_size": net_size}
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -402,24 +406,31 @@ class DepthEstimator:
         import torch
 
         if self.onnx_model is not None:
+            no_target = inputs.get("zone_no_target")
             out = self.onnx_model.run(inputs["image"].cpu().numpy(),
                                       inputs["hypotheses"].cpu().numpy(),
                                       inputs["zone_rects"].cpu().numpy(),
-                                      inputs["zone_valid"].cpu().numpy())
+                                      inputs["zone_valid"].cpu().numpy(),
+                                      None if no_target is None else no_target.cpu().numpy())
             return torch.from_numpy(out["depth"]), torch.from_numpy(out["uncertainty"])
         if self.flip_average:
             return self._run_flip_averaged(inputs)
         return self._run_model(inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
-                               inputs["zone_valid"])
+                               inputs["zone_valid"], inputs.get("zone_no_target"))
 
     def _run_model(self, image: torch.Tensor, hypotheses: torch.Tensor,
-                   zone_rects: torch.Tensor, zone_valid: torch.Tensor
+                   zone_rects: torch.Tensor, zone_valid: torch.Tensor,
+                   zone_no_target: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
         import torch
 
+        # Only networks whose head reads the flags take them (other models, e.g. a
+        # user's own module, keep the four-input call).
+        flags = {"zone_no_target": zone_no_target} if (
+            zone_no_target is not None and getattr(self.model, "uses_no_target", False)) else {}
         with torch.inference_mode():
             out = self.model(image.to(self.dtype), hypotheses.to(self.dtype), zone_rects,
-                             zone_valid)
+                             zone_valid, **flags)
         return out["depth"].float(), out["uncertainty"].float()
 
     def _run_flip_averaged(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -427,7 +438,8 @@ class DepthEstimator:
         from deltar.inference.flip import flip_averaged
 
         return flip_averaged(self._run_model, inputs["image"], inputs["hypotheses"],
-                             inputs["zone_rects"], inputs["zone_valid"])
+                             inputs["zone_rects"], inputs["zone_valid"],
+                             inputs.get("zone_no_target"))
 
     def predict(self, image: np.ndarray | Sequence[np.ndarray],
                 zone_frame: ZoneFrame | Sequence[ZoneFrame],

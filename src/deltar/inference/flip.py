@@ -11,13 +11,14 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-#: ``run(image, hypotheses, zone_rects, zone_valid) -> (depth, uncertainty)``.
-NetworkRun = Callable[["torch.Tensor", "torch.Tensor", "torch.Tensor", "torch.Tensor"],
-                      "tuple[torch.Tensor, torch.Tensor]"]
+#: ``run(image, hypotheses, zone_rects, zone_valid[, zone_no_target]) -> (depth,
+#: uncertainty)``; the fifth argument is passed only when flags are given.
+NetworkRun = Callable[..., "tuple[torch.Tensor, torch.Tensor]"]
 
 
 def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor,
-                  zone_rects: torch.Tensor, zone_valid: torch.Tensor
+                  zone_rects: torch.Tensor, zone_valid: torch.Tensor,
+                  zone_no_target: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Average of ``run`` on the inputs and on their left-right mirror, in one batch.
 
@@ -34,6 +35,7 @@ def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor
         hypotheses: (B, Z, K) metres; Z = n * n zones, row-major.
         zone_rects: (B, Z, 4) (y0, x0, y1, x1) in pixels of ``image``.
         zone_valid: (B, Z) bool.
+        zone_no_target: optional (B, Z) bool no-target flags, mirrored like the zones.
 
     Returns:
         (depth, uncertainty), each (B, 1, h', w') metres in ``run``'s output grid.
@@ -54,10 +56,12 @@ def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor
     mirrored_rects = torch.from_numpy(np.stack([
         mirror_zone_rects(r, width, grid) for r in zone_rects.cpu().numpy()])
     ).to(zone_rects.device)
+    flags = () if zone_no_target is None else (
+        torch.cat([zone_no_target, zone_no_target[:, order]]),)
     depth, spread = run(torch.cat([image, image.flip(-1)]),
                         torch.cat([hypotheses, hypotheses[:, order]]),
                         torch.cat([zone_rects, mirrored_rects]),
-                        torch.cat([zone_valid, zone_valid[:, order]]))
+                        torch.cat([zone_valid, zone_valid[:, order]]), *flags)
     batch = image.shape[0]
     depth_a, depth_b = depth[:batch], depth[batch:].flip(-1)
     spread_a, spread_b = spread[:batch], spread[batch:].flip(-1)

@@ -25,6 +25,8 @@ if TYPE_CHECKING:
     import torch
 
 INPUT_NAMES = ("image", "hypotheses", "zone_rects", "zone_valid")
+#: The optional fifth input of networks whose head uses the no-target flags.
+NO_TARGET_INPUT = "zone_no_target"
 OUTPUT_NAMES = ("depth", "bin_edges", "uncertainty")
 #: Metadata key of the layout signature an ONNX file was exported for.
 SIGNATURE_KEY = "deltar_layout_signature"
@@ -102,9 +104,11 @@ class OnnxDepthModel:
             raise ValueError(f"{path}: cannot load ONNX model: {err}") from err
         self.path = path
         names = [i.name for i in self.session.get_inputs()]
-        if names != list(INPUT_NAMES):
+        if names not in (list(INPUT_NAMES), [*INPUT_NAMES, NO_TARGET_INPUT]):
             raise ValueError(f"{path}: inputs are {names}, expected {list(INPUT_NAMES)} "
-                             "(export with deltar export)")
+                             f"(and optionally {NO_TARGET_INPUT!r}; export with deltar export)")
+        #: Whether the graph takes the (B, Z) bool no-target flags.
+        self.takes_no_target = NO_TARGET_INPUT in names
         meta = self.session.get_modelmeta().custom_metadata_map
         if SIGNATURE_KEY not in meta:
             raise ValueError(f"{path}: no {SIGNATURE_KEY} metadata (export with deltar export)")
@@ -140,7 +144,8 @@ class OnnxDepthModel:
                              "backend")
 
     def run(self, image: np.ndarray, hypotheses: np.ndarray, zone_rects: np.ndarray,
-            zone_valid: np.ndarray) -> dict[str, np.ndarray]:
+            zone_valid: np.ndarray, zone_no_target: np.ndarray | None = None
+            ) -> dict[str, np.ndarray]:
         """Run the network; same inputs and outputs as ``DeltarNet.forward`` (numpy).
 
         Args:
@@ -148,6 +153,8 @@ class OnnxDepthModel:
             hypotheses: (B, Z, K) float32 metres.
             zone_rects: (B, Z, 4) float32 pixels of the input.
             zone_valid: (B, Z) bool.
+            zone_no_target: optional (B, Z) bool no-target flags (all False when None);
+                used by graphs that take them (:attr:`takes_no_target`), else ignored.
 
         Returns:
             dict of ``depth`` (B, 1, H/2, W/2), ``bin_edges`` (B, N + 1) and
@@ -165,5 +172,12 @@ class OnnxDepthModel:
         feeds = {"image": image, "hypotheses": hyp,
                  "zone_rects": np.asarray(zone_rects, dtype=np.float32),
                  "zone_valid": np.asarray(zone_valid, dtype=bool)}
+        if self.takes_no_target:
+            flags = (np.zeros(feeds["zone_valid"].shape, dtype=bool) if zone_no_target is None
+                     else np.asarray(zone_no_target, dtype=bool))
+            if flags.shape != feeds["zone_valid"].shape:
+                raise ValueError(f"zone_no_target must have the shape of zone_valid "
+                                 f"{feeds['zone_valid'].shape}, got {flags.shape}")
+            feeds[NO_TARGET_INPUT] = flags
         outputs = self.session.run(list(OUTPUT_NAMES), feeds)
         return dict(zip(OUTPUT_NAMES, outputs, strict=True))

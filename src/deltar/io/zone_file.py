@@ -6,6 +6,7 @@ JSON layout (``schema_version`` 1), flat row-major lists of ``zone_count`` entri
      "zone_count": 64, "timestamp_s": 12.5,
      "mean_m": [...], "sigma_m": [...], "valid": [...],
      "status": [...],                        # optional, uint8 target status codes
+     "no_target": [...],                     # optional, bools: zones with no target
      "hist_edges_m": [...], "hist_counts": [[...], ...]}   # optional, (B + 1,), (Z, B)
 
 NPZ files hold the same keys as arrays (``schema``/``sensor_model`` as 0-d strings).
@@ -56,6 +57,8 @@ def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
     }
     if frame.status is not None:
         data["status"] = frame.status.reshape(-1).astype(int).tolist()
+    if frame.no_target is not None:
+        data["no_target"] = frame.flat_no_target().tolist()
     if frame.hist_counts is not None:
         data["hist_edges_m"] = frame.hist_edges_m.astype(float).tolist()
         data["hist_counts"] = frame.hist_counts.reshape(frame.zone_count, -1).astype(
@@ -131,6 +134,14 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
         if status.size != count or np.any((status < 0) | (status > 255)) or \
                 np.any(status != np.round(status)):
             raise ValueError(f"{source}: status must hold {count} integer codes in 0..255")
+    no_target = None
+    if data.get("no_target") is not None:
+        no_target = np.asarray(data["no_target"]).reshape(-1)
+        if no_target.size != count or (no_target.dtype != bool and (
+                no_target.dtype.kind not in "iu" or not np.all(np.isin(no_target, (0, 1))))):
+            raise ValueError(f"{source}: no_target must hold {count} booleans (true/false "
+                             "or 1/0)")
+        no_target = no_target.astype(bool)
     edges = counts = None
     if data.get("hist_counts") is not None or data.get("hist_edges_m") is not None:
         edges = _float_array(data.get("hist_edges_m"), source, "hist_edges_m")
@@ -145,7 +156,8 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     try:
         frame = ZoneFrame(mean_m=arrays["mean_m"], sigma_m=arrays["sigma_m"],
                           valid=valid.astype(bool), status=status, hist_edges_m=edges,
-                          hist_counts=counts, timestamp_s=timestamp, sensor_model=sensor_model)
+                          hist_counts=counts, timestamp_s=timestamp, sensor_model=sensor_model,
+                          no_target=no_target)
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from err
     problem = frame.range_error()

@@ -35,6 +35,7 @@ from deltar.models.zone_prior import (
     selection_outputs,
     zone_gaussians,
 )
+from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
 #: Strides (input pixels per cell) the encoder's feature maps have, fine to coarse.
 ENCODER_STRIDES = (2, 4, 8, 16, 32)
@@ -160,13 +161,23 @@ class PlanarSelectHead(DepthHead):
             (extrapolated far from its zone a plane would run off to infinity).
         n_bins: number of entries of the reported ``bin_edges`` (N + 1 edges).
         min_depth, max_depth: output clamp, metres.
+        no_target_depth: depth in metres of the hypothesis a zone that reported *no
+            target* offers (ST status 255: nothing returned within the sensor's range, so
+            the surface is farther than the range); absolute, not scaled with the
+            readings.
     """
 
     def __init__(self, temperature: float = 5.0, planar: bool = True, max_ratio: float = 2.0,
-                 n_bins: int = 64, min_depth: float = 1e-3, max_depth: float = 10.0) -> None:
+                 n_bins: int = 64, min_depth: float = 1e-3, max_depth: float = 10.0,
+                 no_target_depth: float = NO_TARGET_DEPTH_M) -> None:
         super().__init__()
+        self.uses_no_target = True
         if max_ratio <= 1.0:
             raise ValueError(f"max_ratio must be > 1, got {max_ratio}")
+        if not (math.isfinite(no_target_depth) and min_depth < no_target_depth <= max_depth):
+            raise ValueError(f"no_target_depth must lie in ({min_depth}, {max_depth}] m, got "
+                             f"{no_target_depth}")
+        self.no_target_depth = float(no_target_depth)
         self.planar = bool(planar)
         self.max_ratio = float(max_ratio)
         self.min_depth, self.max_depth = min_depth, max_depth
@@ -176,17 +187,26 @@ class PlanarSelectHead(DepthHead):
                              persistent=False)
 
     def forward(self, descriptors: torch.Tensor, zone_mean_m: torch.Tensor,
-                zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float
-                ) -> HeadOutput:
+                zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float,
+                zone_no_target: torch.Tensor | None = None,
+                zone_scale_m: torch.Tensor | None = None) -> HeadOutput:
         """Depth, bin edges and uncertainty: the inputs and outputs of
         :meth:`ZoneSelectHead.forward <deltar.models.zone_prior.ZoneSelectHead.forward>`,
         with unit-length pixel descriptors (B, C, h, w) (:class:`EncoderDescriptors`) as
         the features; the uncertainty is the spread of the chosen planes' log depths.
+
+        ``zone_no_target`` (B, Z) bool, optional: zones that reported no target; each
+        (where not valid) joins the choice with the constant hypothesis
+        ``no_target_depth``. Valid zones alone set the planes and the frame's centre.
+        ``zone_scale_m`` (B,), optional: metres per unit of ``zone_mean_m`` (when the
+        readings were divided by the frame's scale), to place that absolute depth.
         """
         _, _, height, width = descriptors.shape
         dtype = descriptors.dtype
         valid = zone_valid.bool()
-        log_wy, log_wx = zone_gaussians(zone_rects, valid, (height, width), stride, dtype)
+        far = None if zone_no_target is None else zone_no_target.bool() & ~valid
+        chosen = valid if far is None else valid | far
+        log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
         pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
         cosine = descriptors.flatten(2).transpose(1, 2) @ pooled  # (B, h*w, Z)
         prior_logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]).flatten(1, 2)
@@ -198,23 +218,29 @@ class PlanarSelectHead(DepthHead):
         # difference of second moments, which cancels badly on large log depths.
         centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
         log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
+        if far is not None:
+            # Absolute: the range limit does not scale with the scene.
+            log_far = math.log(self.no_target_depth) - centre
+            if zone_scale_m is not None:
+                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
+            log_mean = torch.where(far, log_far.to(dtype), log_mean)
         if self.planar:
             hypotheses = log_mean[:, None, :] - torch.log(
                 self._plane_ratio(means, valid, zone_rects.to(dtype), (height, width), stride))
-            hypotheses = hypotheses.masked_fill(~valid[:, None, :], 0.0)  # (B, h*w, Z)
+            hypotheses = hypotheses.masked_fill(~chosen[:, None, :], 0.0)  # (B, h*w, Z)
             log_depth = (weights * hypotheses).sum(-1, keepdim=True)
             second = (weights * hypotheses ** 2).sum(-1, keepdim=True)
         else:
             log_depth = weights @ log_mean[..., None]
             second = weights @ (log_mean[..., None] ** 2)
         spread = (second - log_depth ** 2).clamp_min(0.0).sqrt()
-        return selection_outputs(log_depth + centre[:, :, None], spread, valid,
+        return selection_outputs(log_depth + centre[:, :, None], spread, chosen,
                                  (height, width), self.edges, self.min_depth, self.max_depth)
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
         """The choice among the zones' planes (:meth:`forward`), descriptors as features."""
         return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
-                    zones.stride)
+                    zones.stride, zones.no_target, zones.scale_m)
 
     def _plane_ratio(self, means: torch.Tensor, valid: torch.Tensor, rects: torch.Tensor,
                      size: tuple[int, int], stride: float) -> torch.Tensor:

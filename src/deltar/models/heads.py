@@ -146,6 +146,10 @@ class ZoneInputs:
         stride: network-input pixels per feature cell of the head's input.
         mean_sigma: optional (B, Z, 2) zone mean and sigma, metres; when None the zone
             mean is the hypotheses' mean.
+        no_target: optional (B, Z) bool, zones that reported *no target* (nothing within
+            the sensor's range); heads that do not use it ignore it.
+        scale_m: optional (B,) metres per unit of ``hypotheses`` and ``mean_sigma`` (the
+            frame's scale with ``zone_scale_norm``; None: they are in metres).
     """
 
     hypotheses: torch.Tensor
@@ -153,6 +157,8 @@ class ZoneInputs:
     rects: torch.Tensor
     stride: float
     mean_sigma: torch.Tensor | None = None
+    no_target: torch.Tensor | None = None
+    scale_m: torch.Tensor | None = None
 
     def mean_m(self, dtype: torch.dtype) -> torch.Tensor:
         """(B, Z) zone means in metres, as ``dtype``."""
@@ -169,6 +175,8 @@ class DepthHead(nn.Module):
     """
 
     traceable: bool = False
+    #: Whether :meth:`predict` reads ``ZoneInputs.no_target`` (an export then takes it).
+    uses_no_target: bool = False
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
         """Depth, bin edges and uncertainty from decoder features.

@@ -16,6 +16,7 @@ from deltar.models.fusion import FUSION_MODES
 from deltar.models.heads import BinsHead, DepthHead, DirectDepthHead, MiniViTHead, ZoneInputs
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
 from deltar.models.zone_prior import ZonePriorHead, ZoneSelectHead
+from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
 HEADS = ("bins", "mvit", "direct", "zone_prior", "zone_select", "plane_select")
 #: Where the head's features come from: the zone-fusion decoder, or the encoder alone.
@@ -85,6 +86,8 @@ class DeltarNet(nn.Module):
         descriptor_strides: encoder strides the descriptors use.
         select_temperature: initial affinity temperature of the "plane_select" head.
         planar: "plane_select" hypotheses are the zones' local planes (else constants).
+        no_target_depth: metres, the "plane_select" hypothesis of a zone that reported no
+            target (beyond the sensor's range), when ``zone_no_target`` is given.
     """
 
     def __init__(
@@ -117,6 +120,7 @@ class DeltarNet(nn.Module):
         descriptor_strides: Sequence[int] = (8, 16),
         select_temperature: float = 5.0,
         planar: bool = True,
+        no_target_depth: float = NO_TARGET_DEPTH_M,
     ) -> None:
         super().__init__()
         _check_choice("head", head, HEADS)
@@ -166,6 +170,7 @@ class DeltarNet(nn.Module):
             "descriptor_strides": tuple(int(v) for v in descriptor_strides),
             "select_temperature": float(select_temperature),
             "planar": bool(planar),
+            "no_target_depth": float(no_target_depth),
         }
         self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth
@@ -215,12 +220,18 @@ class DeltarNet(nn.Module):
                                        min_depth=min_depth, max_depth=max_depth)
         elif head == "plane_select":
             self.head = PlanarSelectHead(select_temperature, planar, n_bins=n_bins,
-                                         min_depth=min_depth, max_depth=max_depth)
+                                         min_depth=min_depth, max_depth=max_depth,
+                                         no_target_depth=no_target_depth)
         elif head == "zone_prior":
             self.head = ZonePriorHead(head_channels, n_bins, head_channels,
                                       min_depth=min_depth, max_depth=max_depth)
         else:
             self.head = DirectDepthHead(head_channels, min_depth, max_depth)
+
+    @property
+    def uses_no_target(self) -> bool:
+        """Whether the head reads ``zone_no_target`` (then an export takes it as input)."""
+        return bool(self.head.uses_no_target)
 
     def set_traceable(self, enabled: bool = True) -> DeltarNet:
         """Switch the network to (or back from) its traceable path, for ONNX export.
@@ -244,6 +255,7 @@ class DeltarNet(nn.Module):
         zone_rects: torch.Tensor,
         zone_valid: torch.Tensor,
         zone_mean_sigma: torch.Tensor | None = None,
+        zone_no_target: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
         """Estimate depth.
 
@@ -258,12 +270,16 @@ class DeltarNet(nn.Module):
             zone_mean_sigma: optional (B, Z, 2) zone mean and sigma in metres, used by
                 the mean/sigma and five-channel variants; if None they are estimated
                 from ``hypotheses`` (their mean and standard deviation).
+            zone_no_target: optional (B, Z) bool, zones whose sensor reported *no target*
+                (ST status 255: nothing within range); the "plane_select" head offers
+                ``no_target_depth`` there, the other heads ignore it.
 
         Returns:
             dict with ``depth`` (B, 1, H/2, W/2) metres, ``bin_edges`` (B, N + 1)
             metres and ``uncertainty`` (B, 1, H/2, W/2) metres.
         """
-        grid = self.validate_inputs(image, hypotheses, zone_rects, zone_valid, zone_mean_sigma)
+        grid = self.validate_inputs(image, hypotheses, zone_rects, zone_valid, zone_mean_sigma,
+                                    zone_no_target)
         valid = zone_valid.bool()
         scale = None
         if self.zone_scale_norm:
@@ -301,7 +317,7 @@ class DeltarNet(nn.Module):
         else:
             features = self.decoder(image_features, zone_features, valid, resamplers)
         zones = ZoneInputs(hypotheses, valid, zone_rects, image.shape[-1] / features.shape[-1],
-                           zone_mean_sigma)
+                           zone_mean_sigma, zone_no_target, scale)
         depth, edges, uncertainty = self.head.predict(features, zones)
         half = (image.shape[-2] // 2, image.shape[-1] // 2)
         if tuple(depth.shape[-2:]) != half:
@@ -325,6 +341,7 @@ class DeltarNet(nn.Module):
         zone_rects: torch.Tensor,
         zone_valid: torch.Tensor,
         zone_mean_sigma: torch.Tensor | None = None,
+        zone_no_target: torch.Tensor | None = None,
     ) -> int:
         """Check shapes and values of the forward inputs; return the zone grid side n.
 
@@ -374,6 +391,13 @@ class DeltarNet(nn.Module):
                 )
             if not torch.isfinite(zone_mean_sigma).all() or (zone_mean_sigma < 0).any():
                 raise ValueError("zone_mean_sigma must be finite and non-negative (metres)")
+        if zone_no_target is not None:
+            if tuple(zone_no_target.shape) != (batch, zones):
+                raise ValueError(f"zone_no_target must be (B={batch}, Z={zones}), got "
+                                 f"{tuple(zone_no_target.shape)}")
+            if zone_no_target.dtype != torch.bool:
+                raise ValueError(f"zone_no_target must be a bool tensor, got "
+                                 f"{zone_no_target.dtype}")
         return grid
 
 

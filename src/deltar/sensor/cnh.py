@@ -24,7 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
+from deltar.sensor.zone_frame import (
+    DEFAULT_VALID_STATUS,
+    NO_TARGET_STATUS,
+    Orientation,
+    ZoneFrame,
+)
 
 #: Distance spanned by one bin of the device histogram, metres. Not given in ST's
 #: public driver headers; this is the value public VL53L8CH host code uses
@@ -153,7 +158,8 @@ def zone_frame_from_cnh(distance_mm: Sequence[float], bin_values: np.ndarray | S
     and, where given, ``nb_target_detected`` is > 0 (the sensor does not clear stale
     distances of zones without a target) and ``target_status`` is in ``valid_status``.
     Without ``range_sigma_mm``, sigma is the spread of the histogram's strongest run
-    of non-empty bins (see :func:`histogram_sigma_m`).
+    of non-empty bins (see :func:`histogram_sigma_m`). Zones with
+    ``nb_target_detected == 0`` or status 255 report *no target* (``frame.no_target``).
 
     Args:
         distance_mm: Z = 16 or 64 distances in millimetres.
@@ -183,8 +189,11 @@ def zone_frame_from_cnh(distance_mm: Sequence[float], bin_values: np.ndarray | S
     hist = normalize_cnh(bin_values, zones, cfg.num_bins)
     mean = distance / 1000.0
     valid = np.isfinite(mean) & (mean > 0) & (hist.sum(1) > 0)
+    no_target = None
     if nb_target_detected is not None:
-        valid &= _flat("nb_target_detected", nb_target_detected, zones) > 0
+        detected = _flat("nb_target_detected", nb_target_detected, zones) > 0
+        valid &= detected
+        no_target = ~detected  # the sensor saw nothing within its range there
     status = None
     if target_status is not None:
         codes = _flat("target_status", target_status, zones)
@@ -192,6 +201,8 @@ def zone_frame_from_cnh(distance_mm: Sequence[float], bin_values: np.ndarray | S
             raise ValueError("target_status must hold integer codes in 0..255")
         status = codes.astype(np.uint8)
         valid &= np.isin(status, np.asarray(valid_status, dtype=np.uint8))
+        from_status = status == NO_TARGET_STATUS
+        no_target = from_status if no_target is None else no_target | from_status
     edges = cfg.edges_m()
     if range_sigma_mm is not None:
         sigma = _flat("range_sigma_mm", range_sigma_mm, zones) / 1000.0
@@ -203,10 +214,13 @@ def zone_frame_from_cnh(distance_mm: Sequence[float], bin_values: np.ndarray | S
     mean_g, sigma_g, valid_g = grids
     status_g = None if status is None else orient.apply(status.reshape(n, n))
     hist_g = orient.apply(hist.reshape(n, n, cfg.num_bins))
+    no_target_g = None if no_target is None else \
+        orient.apply(no_target.reshape(n, n)) & ~valid_g
     return ZoneFrame(mean_m=np.where(valid_g, mean_g, 0.0),
                      sigma_m=np.where(valid_g, sigma_g, 0.0), valid=valid_g,
                      status=status_g, hist_edges_m=edges.astype(np.float32),
-                     hist_counts=hist_g, timestamp_s=timestamp_s, sensor_model=sensor_model)
+                     hist_counts=hist_g, timestamp_s=timestamp_s, sensor_model=sensor_model,
+                     no_target=no_target_g)
 
 
 def histogram_sigma_m(counts: np.ndarray, edges_m: np.ndarray) -> np.ndarray:

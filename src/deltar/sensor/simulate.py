@@ -83,6 +83,9 @@ class SimulatedZones:
         cluster: (B, Z, bins) float32 counts of the kept cluster after the noise floor
             (zero outside it); ``mean_m`` and ``sigma_m`` are its moments.
         bin_edges_m: (bins + 1,) float32 bin edges in metres.
+        no_target: (B, Z) bool, invalid zones that would report *no target* (ST status
+            255): more of their pixels with depth lie beyond ``max_range_m`` than within
+            it. Invalid zones without it carry no information (e.g. no depth at all).
     """
 
     mean_m: torch.Tensor
@@ -91,6 +94,7 @@ class SimulatedZones:
     histogram: torch.Tensor
     cluster: torch.Tensor
     bin_edges_m: torch.Tensor
+    no_target: torch.Tensor
 
 
 def zone_pixel_bounds(rects: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -446,12 +450,42 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
         mean = torch.where(valid, mean, 0.0).to(torch.float32)
         sigma = torch.where(valid, variance.sqrt(), 0.0).to(torch.float32)
 
+    no_target = _no_target(depth, boxes, valid, histogram, cfg)
     out = SimulatedZones(mean_m=mean, sigma_m=sigma, valid=valid, histogram=histogram,
-                         cluster=cluster, bin_edges_m=edges.to(torch.float32))
+                         cluster=cluster, bin_edges_m=edges.to(torch.float32),
+                         no_target=no_target)
     if not batched:
-        for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster"):
+        for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster", "no_target"):
             setattr(out, name, getattr(out, name)[0])
     return out
+
+
+def _no_target(depth: torch.Tensor, rects: torch.Tensor, valid: torch.Tensor,
+               histogram: torch.Tensor, config: SimulatorConfig) -> torch.Tensor:
+    """(B, Z) bool: invalid zones with more pixels beyond the range than within it.
+
+    Counted only for the invalid zones (few in most frames), from the depth map itself:
+    the histogram holds the in-range pixels only.
+    """
+    no_target = torch.zeros_like(valid)
+    candidates = torch.nonzero(~valid).tolist()
+    if not candidates:
+        return no_target
+    bounds = zone_pixel_bounds(rects, depth.shape[-2], depth.shape[-1]).tolist()
+    in_range = histogram.sum(-1).tolist()
+    limit = np.float32(config.max_range_m)
+    # numpy slices cost a few microseconds each, torch's several times more.
+    pixels = depth.numpy() if depth.device.type == "cpu" else depth.cpu().numpy()
+    flags = no_target.numpy() if no_target.device.type == "cpu" else None
+    for b, z in candidates:
+        y0, x0, y1, x1 = bounds[b][z]
+        beyond = np.count_nonzero(pixels[b, y0:y1, x0:x1] > limit)
+        if beyond > in_range[b][z]:
+            if flags is not None:
+                flags[b, z] = True
+            else:
+                no_target[b, z] = True
+    return no_target
 
 
 def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
@@ -467,8 +501,8 @@ def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
         timestamp_s: optional capture time stored in the frame.
 
     Returns:
-        A ``ZoneFrame`` with mean, sigma and validity per zone, and the raw per-zone
-        histogram (``hist_counts``, ``hist_edges_m``).
+        A ``ZoneFrame`` with mean, sigma, validity and the no-target flag per zone, and
+        the raw per-zone histogram (``hist_counts``, ``hist_edges_m``).
     """
     depth = np.asarray(depth_m)
     boxes = np.asarray(rects, dtype=np.float32)
@@ -479,6 +513,7 @@ def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
     zones = simulate_zones(torch.from_numpy(depth.astype(np.float32)), torch.from_numpy(boxes),
                            config)
     return ZoneFrame(mean_m=zones.mean_m.numpy(), sigma_m=zones.sigma_m.numpy(),
-                     valid=zones.valid.numpy(), hist_edges_m=zones.bin_edges_m.numpy(),
+                     valid=zones.valid.numpy(), no_target=zones.no_target.numpy(),
+                     hist_edges_m=zones.bin_edges_m.numpy(),
                      hist_counts=zones.histogram.numpy(), timestamp_s=timestamp_s,
                      sensor_model="simulated")

@@ -11,6 +11,11 @@ import numpy as np
 
 #: Target status codes that ST documents as a valid range (5: valid, 9: valid, large pulse).
 DEFAULT_VALID_STATUS: tuple[int, ...] = (5, 9)
+#: ST's "no target detected": nothing returned within the sensor's range.
+NO_TARGET_STATUS = 255
+#: Where the methods that use the flag place a zone that reported no target, metres:
+#: beyond the 4 m range, at 1.25 times it (a prior, not fitted to any scene).
+NO_TARGET_DEPTH_M = 5.0
 
 SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
 
@@ -66,6 +71,9 @@ class ZoneFrame:
             report one, e.g. ST's CH parts).
         timestamp_s: optional capture time in seconds (any monotonic clock).
         sensor_model: free text, e.g. ``"VL53L5CX"``.
+        no_target: optional (n, n) bool, invalid zones that reported *no target*
+            (nothing within the sensor's range, so the surface is farther away); by
+            default the zones whose ``status`` is 255 (:data:`NO_TARGET_STATUS`), or none.
     """
 
     mean_m: np.ndarray
@@ -77,6 +85,7 @@ class ZoneFrame:
     timestamp_s: float | None = None
     sensor_model: str = "VL53L5CX"
     extra: dict = field(default_factory=dict)
+    no_target: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.mean_m = np.asarray(self.mean_m, dtype=np.float32)
@@ -90,8 +99,14 @@ class ZoneFrame:
             self.valid = self.valid.reshape(n, n) if self.valid.size == n * n else self.valid
             if self.status is not None:
                 self.status = np.asarray(self.status).reshape(n, n)
+            if self.no_target is not None:
+                self.no_target = np.asarray(self.no_target).reshape(n, n)
             if self.hist_counts is not None:
                 self.hist_counts = np.asarray(self.hist_counts).reshape(n, n, -1)
+        if self.no_target is None and self.status is not None:
+            status = np.asarray(self.status)
+            if status.shape == self.valid.shape:
+                self.no_target = (status == NO_TARGET_STATUS) & ~self.valid
         self.validate()
 
     # ------------------------------------------------------------------ checks
@@ -120,6 +135,18 @@ class ZoneFrame:
             if self.status.shape != (n, n):
                 raise ValueError(f"ZoneFrame.status must have shape ({n}, {n}), "
                                  f"got {self.status.shape}")
+        if self.no_target is not None:
+            flags = np.asarray(self.no_target)
+            if flags.dtype != bool and not np.isin(flags, (0, 1)).all():
+                raise ValueError("ZoneFrame.no_target must be boolean")
+            self.no_target = flags.astype(bool)
+            if self.no_target.shape != (n, n):
+                raise ValueError(f"ZoneFrame.no_target must have shape ({n}, {n}), "
+                                 f"got {self.no_target.shape}")
+            if np.any(self.no_target & self.valid):
+                raise ValueError("ZoneFrame.no_target marks valid zones "
+                                 f"{np.argwhere(self.no_target & self.valid).tolist()}; a "
+                                 "zone either reads a distance or reports no target")
         v = self.valid
         if not np.all(np.isfinite(self.mean_m[v])):
             raise ValueError("ZoneFrame.mean_m has NaN or infinite values in valid zones "
@@ -150,6 +177,12 @@ class ZoneFrame:
     def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Row-major flat views: mean (Z,), sigma (Z,), valid (Z,) with Z = n * n."""
         return self.mean_m.reshape(-1), self.sigma_m.reshape(-1), self.valid.reshape(-1)
+
+    def flat_no_target(self) -> np.ndarray:
+        """(Z,) bool row-major no-target flags (all False when the frame has none)."""
+        if self.no_target is None:
+            return np.zeros(self.zone_count, dtype=bool)
+        return self.no_target.reshape(-1)
 
     def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
         """Valid zones whose distance is physically impossible for the sensor.

@@ -193,6 +193,8 @@ class ZJUL5TrainingDataset(Dataset):
         image = sample.rgb.astype(np.float32) / 255.0
         depth, rects = sample.depth_m, sample.zone_rects.copy()
         mean_sigma, valid = sample.zone_mean_sigma.copy(), sample.zone_valid.copy()
+        no_target = (np.zeros_like(valid) if sample.zone_no_target is None
+                     else sample.zone_no_target.copy())
         counts = sample.hist_counts
         intr = sample.intrinsics
         if rng.random() < self.flip_prob:
@@ -201,7 +203,7 @@ class ZJUL5TrainingDataset(Dataset):
             # Mirroring reverses each zone row, so per-zone data are reordered the same way.
             order = np.arange(len(valid)).reshape(sample.grid, sample.grid)[:, ::-1].ravel()
             rects = mirror_zone_rects(rects, width, sample.grid)
-            mean_sigma, valid = mean_sigma[order], valid[order]
+            mean_sigma, valid, no_target = mean_sigma[order], valid[order], no_target[order]
             counts = None if counts is None else counts[order]
             if intr is not None:
                 intr = flip_intrinsics(intr)
@@ -226,6 +228,7 @@ class ZJUL5TrainingDataset(Dataset):
             "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
             "zone_mean_sigma": torch.from_numpy(mean_sigma),
             "zone_valid": valid_t,
+            "zone_no_target": torch.from_numpy(np.ascontiguousarray(no_target)),
             "zone_rects": torch.from_numpy(rects.astype(np.float32)),
             "hypotheses": hypotheses.to(torch.float32),
             "intrinsics": torch.tensor(intrinsics, dtype=torch.float32),

@@ -77,7 +77,9 @@ class DeltarSystem(L.LightningModule):
             The network's outputs: ``depth`` (B, 1, H/2, W/2) metres, ``bin_edges``
             (B, N + 1) metres, ``uncertainty`` (B, 1, H/2, W/2) metres.
         """
-        return self.model(*(batch[key] for key in MODEL_INPUTS))
+        # Batches from other readers may lack the no-target flags: then none is known.
+        return self.model(*(batch[key] for key in MODEL_INPUTS),
+                          zone_no_target=batch.get("zone_no_target"))
 
     def loss(self, pred_m: torch.Tensor, target_m: torch.Tensor) -> torch.Tensor:
         """Scaled SI loss between (B, 1, h, w) predictions and (B, 1, H, W) ground truth.
