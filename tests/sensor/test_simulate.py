@@ -15,6 +15,7 @@ from deltar.sensor import (
     training_zone_rects,
     zone_rects_to_pixel_bounds,
 )
+from deltar.sensor import compiled as compiled_kernels
 from deltar.sensor.simulate import depth_bin_index, strongest_cluster, zone_pixel_bounds
 
 from .loop_reference import simulate_zones_loop
@@ -281,10 +282,15 @@ def test_batch_equals_single_frames_and_shared_rects(rng):
 
 def test_bad_inputs_raise():
     rects = torch.tensor([[0.0, 0.0, 4.0, 4.0]])
-    bad = torch.ones(8, 8)
-    bad[2, 3] = float("nan")
-    with pytest.raises(ValueError, match="depth_m"):
-        simulate_zones(bad, rects)
+    compiled_paths = [False] + ([True] if compiled_kernels.kernels() is not None else [])
+    for compiled in compiled_paths:
+        # Anywhere in the map, inside a zone or not, NaN or infinite.
+        for row, col, value in ((2, 3, float("nan")), (7, 7, float("nan")),
+                                (6, 1, float("inf")), (0, 7, -float("inf"))):
+            bad = torch.ones(8, 8)
+            bad[row, col] = value
+            with pytest.raises(ValueError, match="depth_m has NaN or infinite"):
+                simulate_zones(bad, rects, compiled=compiled)
     with pytest.raises(ValueError, match="depth_m"):
         simulate_zones(torch.ones(8, 8, dtype=torch.int32), rects)
     with pytest.raises(ValueError, match="depth_m"):
@@ -316,7 +322,7 @@ def test_simulate_zone_frame():
                                                                          bin_width_m=0.05)])
 def test_compiled_and_pytorch_cell_counts_are_identical(rng, config):
     # Both paths, on depth that hits bin edges exactly, the range's end, beyond it, zero,
-    # negative and infinite values, with overlapping zones running past the image; one
+    # negative and huge values, with overlapping zones running past the image; one
     # range a power of two (one product) and one not (product, then division).
     pytest.importorskip("numba")
     from deltar.sensor.simulate import zone_histograms
@@ -324,7 +330,7 @@ def test_compiled_and_pytorch_cell_counts_are_identical(rng, config):
     edges = config.bin_edges_m().numpy().astype(np.float32)
     depth = rng.uniform(-0.5, config.max_range_m + 0.5, size=(3, 48, 72)).astype(np.float32)
     depth.reshape(-1)[: edges.size] = edges
-    depth[0, 0, :4] = [0.0, config.max_range_m, np.inf, -np.inf]
+    depth[0, 0, :4] = [0.0, config.max_range_m, 3e38, -3e38]
     rects = np.empty((3, 64, 4), dtype=np.float32)
     rects[..., :2] = rng.uniform(-10, 60, size=(3, 64, 2))
     rects[..., 2:] = rects[..., :2] + rng.uniform(0, 30, size=(3, 64, 2))
@@ -332,6 +338,10 @@ def test_compiled_and_pytorch_cell_counts_are_identical(rng, config):
     compiled = zone_histograms(depth_t, rects_t, config, compiled=True)
     reference = zone_histograms(depth_t, rects_t, config, compiled=False)
     assert torch.equal(compiled, reference) and compiled.sum() > 0
+    depth_t[1, 5, 5] = float("inf")
+    for path in (True, False):
+        with pytest.raises(ValueError, match="NaN or infinite"):
+            zone_histograms(depth_t, rects_t, config, compiled=path)
     # The whole simulation: clusters (ties, the noise floor, ignored bins) and moments.
     finite = torch.from_numpy(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32))
     for floor in (0.0, 2.0):

@@ -30,19 +30,25 @@ def kernels() -> SimpleNamespace | None:
 
     @numba.njit(nogil=True, cache=False)
     def count_cells(depth, row_base, col_base, factor, max_range, divide, bins, counts):
+        # Returns the number of NaN or infinite pixels (which the caller refuses): one
+        # test on the pixels already skipped, cheaper than a separate pass.
         height, width = depth.shape
         top = np.float32(bins + 1)
+        not_finite = 0
         for i in range(height):
             base = row_base[i]
             for j in range(width):
                 d = depth[i, j]
                 if not d > 0 or d > max_range:  # invalid, NaN, or beyond the range
+                    if d != d or d == np.inf or d == -np.inf:
+                        not_finite += 1
                     continue
                 scaled = (d * factor) / max_range if divide else d * factor
                 if scaled > top:
                     scaled = top
                 index = int(scaled)  # truncation toward zero, as the PyTorch path
                 counts[base + col_base[j] + index] += 1
+        return not_finite
 
     @numba.njit(nogil=True, cache=False)
     def sum_zones(cells, row_start, row_stop, col_start, col_stop, out):
@@ -125,6 +131,7 @@ def cell_counts(depth_m: np.ndarray, row_base: np.ndarray, col_base: np.ndarray,
 
     Raises:
         RuntimeError: numba is not installed (check :func:`kernels` first).
+        ValueError: a depth value is NaN or infinite.
     """
     count = _kernels().count_cells
     max_range = np.float32(max_range_m)
@@ -135,8 +142,9 @@ def cell_counts(depth_m: np.ndarray, row_base: np.ndarray, col_base: np.ndarray,
     depth = np.ascontiguousarray(depth_m, dtype=np.float32)
     counts = np.zeros((depth.shape[0], per_frame), dtype=np.int64)
     for frame in range(depth.shape[0]):
-        count(depth[frame], row_base[frame], col_base[frame], factor, max_range, bool(divide),
-              int(bins), counts[frame])
+        if count(depth[frame], row_base[frame], col_base[frame], factor, max_range,
+                 bool(divide), int(bins), counts[frame]):
+            raise ValueError("depth_m has NaN or infinite values; mark invalid pixels with 0.0")
     return counts
 
 

@@ -240,8 +240,17 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
 
     Returns:
         (B, Z, bins) float32 pixel counts.
+
+    Raises:
+        ValueError: NaN or infinite depth (the compiled kernel tests each pixel as it
+            counts; the PyTorch path sums the map first, element-wise only when that
+            sum is not finite).
     """
     depth_m = depth_m.to(torch.float32).contiguous()
+    compiled = _use_compiled(compiled, depth_m)
+    if not compiled and not torch.isfinite(depth_m.sum()) and \
+            not torch.isfinite(depth_m).all():
+        raise ValueError("depth_m has NaN or infinite values; mark invalid pixels with 0.0")
     batch, height, width = depth_m.shape
     bins = config.num_bins
     # Per cell: the bins and one slot for depth exactly at max_range_m (merged into the
@@ -271,7 +280,7 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
                                   right=True) - 1
     col_cell = torch.searchsorted(col_bounds, pixels[:width].expand(batch, width),
                                   right=True) - 1
-    if _use_compiled(compiled, depth_m):
+    if compiled:
         return _compiled_zone_histograms(depth_m, row_cell, col_cell, row_bounds, col_bounds,
                                          (y0, x0, y1, x1), (cells_y, cells_x, slots), config)
     counts = _cell_counts(depth_m, row_cell, col_cell, cells_x, per_frame, slots, config)
@@ -409,9 +418,7 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
     if depth.numel() == 0:
         raise ValueError(f"depth_m is empty: shape {tuple(depth.shape)}")
     depth = depth.to(torch.float32)
-    # A cheap sum first; the element-wise test only runs when the sum is not finite.
-    if not torch.isfinite(depth.sum()) and not torch.isfinite(depth).all():
-        raise ValueError("depth_m has NaN or infinite values; mark invalid pixels with 0.0")
+    compiled = _use_compiled(compiled, depth)
     if boxes.ndim not in (2, 3) or boxes.shape[-1] != 4 or boxes.shape[-2] == 0:
         raise ValueError(f"rects must have shape (B, Z, 4) or (Z, 4), got {tuple(boxes.shape)}")
     if not torch.isfinite(boxes).all():
@@ -428,7 +435,6 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
                          f"{depth.shape[0]}")
     boxes = boxes.to(depth.device)
 
-    compiled = _use_compiled(compiled, depth)
     histogram = zone_histograms(depth, boxes, cfg, compiled)
     edges = cfg.bin_edges_m().to(depth.device)
     centres = (edges[1:] + edges[:-1]) / 2
