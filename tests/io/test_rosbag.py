@@ -316,3 +316,22 @@ def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):
     result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
                                  "deltar-lite", "--out-bag", str(tmp_path / "out")])
     assert result.exit_code == 1 and 'needs the "ros" extra' in result.output
+
+
+def test_no_target_flags_survive_a_bag(tmp_path):
+    from deltar.io.rosbag import BagWriter, read_messages, zone_frame_from_msg
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    valid = np.ones((8, 8), bool)
+    valid[0, :3] = False
+    no_target = np.zeros((8, 8), bool)
+    no_target[0, :2] = True  # zone (0, 2) is invalid for another reason
+    frame = ZoneFrame(mean_m=np.where(valid, 1.5, 0.0), sigma_m=np.full((8, 8), 0.02),
+                      valid=valid, no_target=no_target)
+    with BagWriter(tmp_path / "bag") as writer:
+        writer.add_zone_frame("/tof/zones", 1_000, "tof", frame)
+    ((_, msg),) = read_messages(tmp_path / "bag", "/tof/zones")
+    back = zone_frame_from_msg(msg)
+    np.testing.assert_array_equal(back.valid, valid)
+    np.testing.assert_array_equal(back.no_target, no_target)
+    assert back.status.reshape(-1)[:3].tolist() == [255, 255, 0]

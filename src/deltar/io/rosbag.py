@@ -34,7 +34,12 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics
 from deltar.io.recording import nearest_in_time
-from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
+from deltar.sensor.zone_frame import (
+    DEFAULT_VALID_STATUS,
+    NO_TARGET_STATUS,
+    Orientation,
+    ZoneFrame,
+)
 
 #: The ToF message type shipped with the package.
 ZONE_FRAME_MSGTYPE = "deltar_msgs/msg/ZoneFrame"
@@ -605,16 +610,24 @@ class BagWriter:
 
     def add_zone_frame(self, topic: str, stamp_ns: int, frame_id: str, frame: ZoneFrame,
                        log_ns: int | None = None) -> None:
-        """A :class:`ZoneFrame` as ``deltar_msgs/msg/ZoneFrame``."""
+        """A :class:`ZoneFrame` as ``deltar_msgs/msg/ZoneFrame``.
+
+        A frame without status codes but with no-target flags (e.g. a simulated one) is
+        written with status 5 (valid), 255 (no target) and 0 (anything else), so that
+        the flags survive the message.
+        """
         mean, sigma, valid = frame.flat()
         empty = np.zeros(0, dtype=np.float32)
+        status = frame.status
+        if status is None and frame.no_target is not None:
+            status = np.where(valid, 5, np.where(frame.flat_no_target(), NO_TARGET_STATUS, 0))
         msg = typestore().types[ZONE_FRAME_MSGTYPE](
             header=_header(stamp_ns, frame_id), sensor_model=frame.sensor_model,
             zone_count=frame.zone_count,
             distance_m=np.where(valid, mean, np.nan).astype(np.float32),
             sigma_m=np.where(valid, sigma, 0.0).astype(np.float32),
-            status=(np.zeros(0, np.uint8) if frame.status is None
-                    else frame.status.reshape(-1).astype(np.uint8)),
+            status=(np.zeros(0, np.uint8) if status is None
+                    else status.reshape(-1).astype(np.uint8)),
             valid=valid.astype(bool),
             hist_edges_m=empty if frame.hist_edges_m is None else
             frame.hist_edges_m.astype(np.float32),
