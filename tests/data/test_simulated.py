@@ -73,16 +73,23 @@ def test_no_depth_gives_invalid_zones():
     assert torch.all(item["zone_mean_sigma"] == 0) and torch.all(item["hypotheses"] == 0)
 
 
-def test_a_scene_scaled_past_the_range_reports_no_target_even_in_dropped_zones():
-    # A wall at 3 m scaled by 2: beyond the 4 m range, every zone reports no target;
-    # the signal augmentation drops only valid zones, so the flags survive it.
+def test_a_scene_scaled_past_the_range_reports_no_target_and_dropping_keeps_the_flags():
+    # A wall at 3 m scaled by 2: beyond the 4 m range, every zone reports no target.
     frames = _ListReader([_frame(np.full((64, 64), 3.0))])
-    item = SimulatedL5Dataset(frames, grid=4, depth_scale_range=(2.0, 2.0),
-                              signal_augmentation=SignalAugmentation(drop_fraction=0.5))[0]
+    item = SimulatedL5Dataset(frames, grid=4, depth_scale_range=(2.0, 2.0))[0]
     assert not item["zone_valid"].any() and bool(item["zone_no_target"].all())
-    near = SimulatedL5Dataset(frames, grid=4, signal_augmentation=SignalAugmentation(
+    # Left half at 1.5 m, right half at 6 m: dropping half of the valid (left) zones
+    # leaves them invalid but not "no target"; the right half keeps its flags.
+    depth = np.full((64, 64), 1.5)
+    depth[:, 32:] = 6.0
+    split = _ListReader([_frame(depth)])
+    clean = SimulatedL5Dataset(split, grid=4)[0]
+    dropped = SimulatedL5Dataset(split, grid=4, signal_augmentation=SignalAugmentation(
         drop_fraction=0.5))[0]
-    assert not near["zone_no_target"].any() and 0 < int(near["zone_valid"].sum()) < 16
+    right = torch.arange(16) % 4 >= 2
+    assert torch.equal(clean["zone_valid"], ~right) and torch.equal(clean["zone_no_target"], right)
+    assert 0 < int(dropped["zone_valid"].sum()) < 8
+    assert torch.equal(dropped["zone_no_target"], right)
 
 
 def test_reproducible_per_seed_epoch_and_index():

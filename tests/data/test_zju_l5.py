@@ -143,3 +143,9 @@ def test_sample_validation_names_the_field(rng):
     with pytest.raises(ValueError, match="zone_no_target marks valid zones"):
         ZJUL5Sample(good.rgb, good.depth_m, good.zone_mean_sigma, good.zone_rects,
                     good.zone_valid, "x", zone_no_target=good.zone_valid)
+    # Stored as a grid (as some files store masks): read as the flat row-major flags.
+    grid_flags = np.zeros((8, 8), bool)
+    grid_flags.reshape(-1)[np.flatnonzero(~good.zone_valid)[:1]] = True
+    sample = ZJUL5Sample(good.rgb, good.depth_m, good.zone_mean_sigma, good.zone_rects,
+                         good.zone_valid, "x", zone_no_target=grid_flags)
+    np.testing.assert_array_equal(sample.zone_no_target, grid_flags.reshape(-1))

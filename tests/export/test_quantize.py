@@ -103,3 +103,24 @@ def test_quantize_rejects_bad_input(exported, tmp_path):
         calibration_feeds(DepthEstimator.from_onnx(float_path), shared / "icl_livingroom1", 0)
     with pytest.raises(FileNotFoundError, match="calibration"):
         export_int8(_small_model(), tmp_path / "x.onnx", *SIZE, tmp_path / "no_such_folder")
+
+
+def test_a_file_that_takes_the_no_target_flags_quantises_with_them(tmp_path):
+    # The plane-select network (the bundled model's) takes a fifth input; the real
+    # office frames have zones beyond 4 m, so the feeds carry flags that are set.
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=SIZE).eval()
+    float_path = export_onnx(model, tmp_path / "select.onnx", *SIZE)
+    estimator = DepthEstimator.from_onnx(float_path, num_threads=1)
+    assert estimator.onnx_model.takes_no_target
+    feeds = calibration_feeds(estimator, SHARED_DATA / "realsense_office", frames=2)
+    assert all(set(feed) == {"image", "hypotheses", "zone_rects", "zone_valid",
+                             "zone_no_target"} for feed in feeds)
+    assert any(feed["zone_no_target"].any() for feed in feeds)
+    int8_path = quantize_onnx(float_path, tmp_path / "select-int8.onnx", feeds)
+    runner = OnnxDepthModel(int8_path, num_threads=1)
+    assert runner.takes_no_target
+    out = runner.run(*(feeds[0][k] for k in ("image", "hypotheses", "zone_rects",
+                                               "zone_valid", "zone_no_target")))
+    assert np.all(np.isfinite(out["depth"])) and out["depth"].shape == (1, 1, 32, 48)

@@ -139,3 +139,11 @@ def test_hardware_rig_records_from_opencv_and_a_driver(tmp_path):
     assert [f.flat()[0][0] for f in rec.zone_frames()] == pytest.approx([1.0] * 5)
     with pytest.raises(ValueError, match="cannot open camera"):
         OpenCVCamera(str(tmp_path / "missing.avi"))
+
+
+def test_simulated_rig_reports_zones_beyond_the_range_as_no_target():
+    # A wall at 5 m: past the L5's 4 m, every zone in view reports no target.
+    rig = SimulatedRig(FlatWallSource(5.0, frames=1, height=48, width=64), grid=8)
+    with rig:
+        frame = rig.grab().zone_frame
+    assert not frame.valid.any() and frame.no_target.all()

@@ -335,3 +335,20 @@ def test_no_target_flags_survive_a_bag(tmp_path):
     np.testing.assert_array_equal(back.valid, valid)
     np.testing.assert_array_equal(back.no_target, no_target)
     assert back.status.reshape(-1)[:3].tolist() == [255, 255, 0]
+
+
+def test_no_target_flags_beside_other_status_codes_are_written_as_255(tmp_path):
+    from deltar.io.rosbag import BagWriter, read_messages, zone_frame_from_msg
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    valid = np.ones(16, bool)
+    valid[:2] = False
+    status = np.where(valid, 5, 4).astype(np.uint8)  # zone 0: flagged by a target count
+    frame = ZoneFrame(mean_m=np.where(valid, 1.0, 0.0), sigma_m=np.zeros(16), valid=valid,
+                      status=status, no_target=np.arange(16) == 0)
+    with BagWriter(tmp_path / "bag") as writer:
+        writer.add_zone_frame("/tof/zones", 1_000, "tof", frame)
+    ((_, msg),) = read_messages(tmp_path / "bag", "/tof/zones")
+    back = zone_frame_from_msg(msg)
+    assert back.status.reshape(-1)[:3].tolist() == [255, 4, 5]
+    assert np.flatnonzero(back.flat_no_target()).tolist() == [0]

@@ -146,8 +146,19 @@ def test_zones_with_no_target_offer_the_far_depth_where_the_pixels_look_like_the
     normalised, _, _ = head(descriptors, means / 2.0, valid, rects, stride=1.0,
                             zone_no_target=far, zone_scale_m=scale)
     torch.testing.assert_close(normalised * 2.0, flagged, rtol=1e-5, atol=1e-5)
+    # A close-up frame (readings divided by a 0.3 m scale): still 5 m, not clamped at
+    # the head's limit in the scaled units.
+    close, _, _ = head(descriptors, means / 6.0, valid, rects, stride=1.0, zone_no_target=far,
+                       zone_scale_m=torch.tensor([0.3]))
+    torch.testing.assert_close(close[..., 20:] * 0.3, torch.full((1, 1, 32, 12), 5.0),
+                               rtol=1e-3, atol=1e-3)
     with pytest.raises(ValueError, match="no_target_depth"):
         PlanarSelectHead(no_target_depth=20.0)
+    # None: the flags are ignored (weights saved before them load that way).
+    ignoring = PlanarSelectHead(temperature=20.0, no_target_depth=None)
+    assert not ignoring.uses_no_target
+    same, _, _ = ignoring(descriptors, means, valid, rects, stride=1.0, zone_no_target=far)
+    torch.testing.assert_close(same, plain)
 
 
 def test_network_passes_the_no_target_flags_to_its_head():
@@ -170,6 +181,20 @@ def test_network_passes_the_no_target_flags_to_its_head():
         model(image, hypotheses, rects, valid, zone_no_target=valid[:, :10])
     with pytest.raises(ValueError, match="zone_no_target"):
         model(image, hypotheses, rects, valid, zone_no_target=valid.float())
+
+
+def test_checkpoints_saved_before_the_flags_ignore_them(tmp_path):
+    from deltar.models import create_model
+    from deltar.models.checkpoint import load_checkpoint, save_checkpoint
+
+    model = create_model("deltar-select", design_size=(64, 64))
+    path = save_checkpoint(tmp_path / "new.pt", model, "deltar-select")
+    assert load_checkpoint(path)[0].uses_no_target
+    payload = torch.load(path, weights_only=False)
+    del payload["config"]["no_target_depth"]  # as files written before the flags
+    torch.save(payload, tmp_path / "old.pt")
+    old, _, config = load_checkpoint(tmp_path / "old.pt")
+    assert not old.uses_no_target and config["no_target_depth"] is None
 
 
 def test_encoder_descriptors_are_unit_vectors_at_the_output_stride():

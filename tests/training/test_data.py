@@ -146,7 +146,7 @@ def _zju_set(tmp_path, rng):
         rgb=rng.integers(0, 255, (height, width, 3), dtype=np.uint8),
         depth_m=rng.uniform(0.5, 3.0, (height, width)).astype(np.float32),
         zone_mean_sigma=np.stack([mean, sigma], 1), zone_rects=rects, zone_valid=valid,
-        name="scene/00000")
+        name="scene/00000", zone_no_target=~valid & (np.arange(16) % 4 == 0))
     write_zju_l5(tmp_path / "set", [sample], split="train")
     return ZJUL5Dataset(tmp_path / "set", split="train"), sample
 
@@ -167,6 +167,11 @@ def test_zju_items_use_the_measured_zones_and_flip_consistently(tmp_path, rng):
     np.testing.assert_array_equal(flipped["image_rgb"].numpy(), sample.rgb[:, ::-1])
     order = np.arange(16).reshape(4, 4)[:, ::-1].ravel()
     np.testing.assert_array_equal(flipped["zone_valid"].numpy(), valid[order])
+    # The no-target flags (written to the file, read back) follow their zones.
+    flags = sample.zone_no_target
+    assert flags.any()
+    np.testing.assert_array_equal(plain["zone_no_target"].numpy(), flags)
+    np.testing.assert_array_equal(flipped["zone_no_target"].numpy(), flags[order])
     np.testing.assert_allclose(flipped["hypotheses"].numpy(), plain["hypotheses"].numpy()[order])
     rows = flipped["zone_rects"].numpy()[:, [0, 2]]
     np.testing.assert_array_equal(rows, sample.zone_rects[order][:, [0, 2]])

@@ -158,3 +158,22 @@ def test_mixed_precision_run_keeps_a_float32_loss(tmp_path, tiny_config):
     assert len(losses) == 4 and all(math.isfinite(v) and v > 0 for v in losses)
     state = torch.load(run / "model.pt", weights_only=True)["state_dict"]
     assert all(v.dtype == torch.float32 for v in state.values() if v.is_floating_point())
+
+
+def test_the_system_passes_the_batch_no_target_flags_to_the_network():
+    from tests.models.conftest import make_inputs
+
+    torch.manual_seed(0)
+    select = DeltarSystem("deltar-select", {"design_size": [64, 96]}, OptimConfig(lr=1e-2))
+    select.eval()
+    image, hypotheses, rects, valid = make_inputs(batch=2, height=64, width=96)
+    valid = valid.clone()
+    valid[:, :16] = False
+    hypotheses = hypotheses * valid[..., None]
+    batch = {"image": image, "hypotheses": hypotheses, "zone_rects": rects, "zone_valid": valid}
+    with torch.no_grad():
+        without = select(batch)["depth"]  # a batch from a reader without the flags
+        flagged = select({**batch, "zone_no_target": ~valid})["depth"]
+        direct = select.model(image, hypotheses, rects, valid, zone_no_target=~valid)["depth"]
+    torch.testing.assert_close(flagged, direct)
+    assert (flagged - without).abs().max() > 0.1

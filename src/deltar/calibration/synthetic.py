@@ -217,7 +217,8 @@ def synthetic_rig_frames(
             valid = valid & (rng.random(valid.size) >= invalid_fraction)
             noisy = np.clip(mean + rng.normal(0.0, mean_noise_m, mean.size), 1e-3, None)
             frame = ZoneFrame(np.where(valid, noisy, 0.0), np.where(valid, sigma, 0.0), valid,
-                              timestamp_s=timestamp, sensor_model="simulated")
+                              timestamp_s=timestamp, sensor_model="simulated",
+                              no_target=clean.flat_no_target() & ~valid)
             frames.append(SyntheticRigFrame(frame, depth, pose, int(index)))
     return frames
 

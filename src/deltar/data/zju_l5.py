@@ -110,6 +110,8 @@ class ZJUL5Sample:
             raise ValueError(f"{where}: zone_rects must be finite")
         if self.zone_no_target is not None:
             flags = np.asarray(self.zone_no_target)
+            if flags.size == zones:  # stored as a grid, like some masks
+                flags = flags.reshape(zones)
             if flags.shape != (zones,) or (flags.dtype != bool
                                            and not np.isin(flags, (0, 1)).all()):
                 raise ValueError(f"{where}: zone_no_target must be ({zones},) bool, got "

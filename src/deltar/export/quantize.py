@@ -53,7 +53,8 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
 
     Returns:
         One feed dict per frame: ``image`` (1, 3, h, w) float32, ``hypotheses`` (1, Z, K)
-        float32 metres, ``zone_rects`` (1, Z, 4) float32 pixels, ``zone_valid`` (1, Z) bool.
+        float32 metres, ``zone_rects`` (1, Z, 4) float32 pixels, ``zone_valid`` (1, Z) bool,
+        and ``zone_no_target`` (1, Z) bool for a file that takes the flags.
     """
     from deltar.data.rgbd import open_rgbd
     from deltar.inference.preprocess import scale_rects

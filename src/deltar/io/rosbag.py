@@ -612,15 +612,18 @@ class BagWriter:
                        log_ns: int | None = None) -> None:
         """A :class:`ZoneFrame` as ``deltar_msgs/msg/ZoneFrame``.
 
-        A frame without status codes but with no-target flags (e.g. a simulated one) is
-        written with status 5 (valid), 255 (no target) and 0 (anything else), so that
-        the flags survive the message.
+        A frame's no-target flags are written as status 255; a frame without status
+        codes (e.g. a simulated one) gets 5 (valid), 255 (no target) and 0 (anything
+        else), so that the flags survive the message.
         """
         mean, sigma, valid = frame.flat()
         empty = np.zeros(0, dtype=np.float32)
         status = frame.status
-        if status is None and frame.no_target is not None:
-            status = np.where(valid, 5, np.where(frame.flat_no_target(), NO_TARGET_STATUS, 0))
+        if frame.no_target is not None:
+            flags = frame.flat_no_target()
+            codes = np.where(valid, 5, 0) if status is None else status.reshape(-1)
+            # Flags from elsewhere (e.g. a CNH reading's target count) become status 255.
+            status = np.where(flags, NO_TARGET_STATUS, codes)
         msg = typestore().types[ZONE_FRAME_MSGTYPE](
             header=_header(stamp_ns, frame_id), sensor_model=frame.sensor_model,
             zone_count=frame.zone_count,

@@ -164,20 +164,22 @@ class PlanarSelectHead(DepthHead):
         no_target_depth: depth in metres of the hypothesis a zone that reported *no
             target* offers (ST status 255: nothing returned within the sensor's range, so
             the surface is farther than the range); absolute, not scaled with the
-            readings.
+            readings. None: the head ignores the flags (weights saved before they
+            existed load that way).
     """
 
     def __init__(self, temperature: float = 5.0, planar: bool = True, max_ratio: float = 2.0,
                  n_bins: int = 64, min_depth: float = 1e-3, max_depth: float = 10.0,
-                 no_target_depth: float = NO_TARGET_DEPTH_M) -> None:
+                 no_target_depth: float | None = NO_TARGET_DEPTH_M) -> None:
         super().__init__()
-        self.uses_no_target = True
         if max_ratio <= 1.0:
             raise ValueError(f"max_ratio must be > 1, got {max_ratio}")
-        if not (math.isfinite(no_target_depth) and min_depth < no_target_depth <= max_depth):
+        if no_target_depth is not None and not (
+                math.isfinite(no_target_depth) and min_depth < no_target_depth <= max_depth):
             raise ValueError(f"no_target_depth must lie in ({min_depth}, {max_depth}] m, got "
                              f"{no_target_depth}")
-        self.no_target_depth = float(no_target_depth)
+        self.uses_no_target = no_target_depth is not None
+        self.no_target_depth = None if no_target_depth is None else float(no_target_depth)
         self.planar = bool(planar)
         self.max_ratio = float(max_ratio)
         self.min_depth, self.max_depth = min_depth, max_depth
@@ -204,7 +206,8 @@ class PlanarSelectHead(DepthHead):
         _, _, height, width = descriptors.shape
         dtype = descriptors.dtype
         valid = zone_valid.bool()
-        far = None if zone_no_target is None else zone_no_target.bool() & ~valid
+        far = None if zone_no_target is None or not self.uses_no_target else \
+            zone_no_target.bool() & ~valid
         chosen = valid if far is None else valid | far
         log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
         pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
@@ -234,8 +237,13 @@ class PlanarSelectHead(DepthHead):
             log_depth = weights @ log_mean[..., None]
             second = weights @ (log_mean[..., None] ** 2)
         spread = (second - log_depth ** 2).clamp_min(0.0).sqrt()
+        low, high = self.min_depth, self.max_depth
+        if zone_scale_m is not None:
+            # The clamp is in metres: readings divided by the frame's scale are not.
+            scale = zone_scale_m.to(dtype)
+            low, high = low / scale, high / scale
         return selection_outputs(log_depth + centre[:, :, None], spread, chosen,
-                                 (height, width), self.edges, self.min_depth, self.max_depth)
+                                 (height, width), self.edges, low, high)
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
         """The choice among the zones' planes (:meth:`forward`), descriptors as features."""

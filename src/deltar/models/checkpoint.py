@@ -88,6 +88,9 @@ def model_from_config(preset: str, config: dict[str, Any], format_version: int =
     config = {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
     if format_version < 2:
         config = {**_VERSION_1_CONTRACT, **config}
+    # Weights saved before the no-target flags existed keep the behaviour they were
+    # measured with: they ignore the flags.
+    config.setdefault("no_target_depth", None)
     return create_model(preset, **config)
 
 

@@ -87,7 +87,8 @@ class DeltarNet(nn.Module):
         select_temperature: initial affinity temperature of the "plane_select" head.
         planar: "plane_select" hypotheses are the zones' local planes (else constants).
         no_target_depth: metres, the "plane_select" hypothesis of a zone that reported no
-            target (beyond the sensor's range), when ``zone_no_target`` is given.
+            target (beyond the sensor's range), when ``zone_no_target`` is given; None
+            ignores the flags (checkpoints saved before them load that way).
     """
 
     def __init__(
@@ -120,7 +121,7 @@ class DeltarNet(nn.Module):
         descriptor_strides: Sequence[int] = (8, 16),
         select_temperature: float = 5.0,
         planar: bool = True,
-        no_target_depth: float = NO_TARGET_DEPTH_M,
+        no_target_depth: float | None = NO_TARGET_DEPTH_M,
     ) -> None:
         super().__init__()
         _check_choice("head", head, HEADS)
@@ -170,7 +171,7 @@ class DeltarNet(nn.Module):
             "descriptor_strides": tuple(int(v) for v in descriptor_strides),
             "select_temperature": float(select_temperature),
             "planar": bool(planar),
-            "no_target_depth": float(no_target_depth),
+            "no_target_depth": None if no_target_depth is None else float(no_target_depth),
         }
         self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth

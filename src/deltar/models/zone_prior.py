@@ -131,8 +131,9 @@ def zone_prior_map(
 
 
 def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid: torch.Tensor,
-                      size: tuple[int, int], log_edges: torch.Tensor, min_depth: float,
-                      max_depth: float) -> HeadOutput:
+                      size: tuple[int, int], log_edges: torch.Tensor,
+                      min_depth: float | torch.Tensor, max_depth: float | torch.Tensor
+                      ) -> HeadOutput:
     """The outputs of a zone-selecting head from its per-cell log depth and spread.
 
     Args:
@@ -142,7 +143,8 @@ def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid:
             :data:`NO_ZONE_PRIOR_DEPTH`.
         size: (h, w) of the map.
         log_edges: (N + 1,) log-ratio bin edges reported around the typical depth.
-        min_depth, max_depth: output clamp, metres.
+        min_depth, max_depth: output clamp, in the units of ``log_depth`` (metres, or
+            per-frame (B,) tensors when the readings were divided by a frame scale).
 
     Returns:
         depth (B, 1, h, w) metres, bin_edges (B, N + 1) metres, uncertainty (B, 1, h, w)
@@ -152,7 +154,13 @@ def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid:
     log_depth = torch.where(any_valid, log_depth,
                             torch.full_like(log_depth, math.log(NO_ZONE_PRIOR_DEPTH)))
     batch = log_depth.shape[0]
-    depth = torch.exp(log_depth).reshape(batch, 1, *size).clamp(min_depth, max_depth)
+    depth = torch.exp(log_depth).reshape(batch, 1, *size)
+    if isinstance(min_depth, torch.Tensor) or isinstance(max_depth, torch.Tensor):
+        low = torch.as_tensor(min_depth, dtype=depth.dtype).reshape(-1, 1, 1, 1)
+        high = torch.as_tensor(max_depth, dtype=depth.dtype).reshape(-1, 1, 1, 1)
+        depth = torch.minimum(torch.maximum(depth, low), high)
+    else:
+        depth = depth.clamp(min_depth, max_depth)
     uncertainty = depth * spread.reshape(batch, 1, *size)
     typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
     return HeadOutput(depth, typical * torch.exp(log_edges)[None], uncertainty)

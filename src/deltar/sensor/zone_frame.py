@@ -99,7 +99,7 @@ class ZoneFrame:
             self.valid = self.valid.reshape(n, n) if self.valid.size == n * n else self.valid
             if self.status is not None:
                 self.status = np.asarray(self.status).reshape(n, n)
-            if self.no_target is not None:
+            if self.no_target is not None and np.asarray(self.no_target).size == n * n:
                 self.no_target = np.asarray(self.no_target).reshape(n, n)
             if self.hist_counts is not None:
                 self.hist_counts = np.asarray(self.hist_counts).reshape(n, n, -1)
