@@ -22,6 +22,8 @@ def test_safe_filename() -> None:
 def test_panel_with_invalid_zones_and_missing_ground_truth(tmp_path: Path) -> None:
     sample = make_sample("scene/0001", 0)
     sample.zone_valid[[0, 5]] = False
+    sample.zone_no_target = np.zeros_like(sample.zone_valid)
+    sample.zone_no_target[5] = True  # drawn apart from the other invalid zone
     sample.depth_m[:4] = 0.0
     target = tmp_path / "panels" / "p.png"
     written = save_frame_panel(target, sample, np.full((32, 48), 1.5, np.float32), "m")

@@ -68,11 +68,15 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
     axes[0].imshow(sample.rgb)
     axes[0].set_title(sample.name)
     axes[1].imshow(sample.rgb)
-    axes[1].set_title("zones (green valid, red invalid)")
+    flags = (np.zeros_like(sample.zone_valid) if sample.zone_no_target is None
+             else sample.zone_no_target)
+    axes[1].set_title("zones (green valid, blue no target, red invalid)" if flags.any()
+                      else "zones (green valid, red invalid)")
     means = sample.zone_mean_sigma[:, 0]
-    for (y0, x0, y1, x1), valid, mean in zip(sample.zone_rects, sample.zone_valid, means,
-                                             strict=True):
+    for (y0, x0, y1, x1), valid, far, mean in zip(sample.zone_rects, sample.zone_valid,
+                                                  flags, means, strict=True):
         style = {"edgecolor": "lime", "linestyle": "-"} if valid else \
+            {"edgecolor": "deepskyblue", "linestyle": ":"} if far else \
             {"edgecolor": "red", "linestyle": "--"}
         # Rectangles are in pixel-centre coordinates, as imshow's axes are.
         axes[1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, linewidth=1,
