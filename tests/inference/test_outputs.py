@@ -83,7 +83,10 @@ def test_ply_binary_little_endian_with_intrinsics(tmp_path):
 
 
 def _prediction(rng, height=32, width=48):
-    frame = ZoneFrame(rng.uniform(1, 3, (4, 4)), np.full((4, 4), 0.02), np.ones((4, 4), bool))
+    valid = np.ones((4, 4), bool)
+    valid[0, :2] = False  # one zone with no target, one invalid otherwise: both drawn
+    frame = ZoneFrame(rng.uniform(1, 3, (4, 4)) * valid, np.full((4, 4), 0.02), valid,
+                      no_target=~valid & (np.arange(16).reshape(4, 4) == 0))
     rects = np.array([[r * 8 - 0.5, c * 12 - 0.5, r * 8 + 7.5, c * 12 + 11.5]
                       for r in range(4) for c in range(4)], np.float32)
     return DepthPrediction(depth_m=rng.uniform(1, 3, (height, width)).astype(np.float32),

@@ -198,8 +198,11 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
         axes[0, 0].imshow(image)
         axes[0, 0].set_title("image")
         axes[0, 1].imshow(image)
-        for (y0, x0, y1, x1), value, ok in zip(prediction.zone_rects, mean, valid, strict=True):
+        far_zones = frame.flat_no_target()
+        for (y0, x0, y1, x1), value, ok, far in zip(prediction.zone_rects, mean, valid,
+                                                    far_zones, strict=True):
             style = {"edgecolor": "lime", "linestyle": "-"} if ok else \
+                {"edgecolor": "deepskyblue", "linestyle": ":"} if far else \
                 {"edgecolor": "red", "linestyle": "--"}
             axes[0, 1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False,
                                            linewidth=0.8, **style))
@@ -208,7 +211,8 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
                                 fontsize=5, ha="center", va="center")
         axes[0, 1].set_xlim(-0.5, image.shape[1] - 0.5)
         axes[0, 1].set_ylim(image.shape[0] - 0.5, -0.5)
-        axes[0, 1].set_title("zones (m; red = invalid)")
+        axes[0, 1].set_title("zones (m; blue = no target, red = invalid)" if far_zones.any()
+                             else "zones (m; red = invalid)")
         shown = axes[1, 0].imshow(depth, cmap="turbo", vmin=0.0, vmax=vmax)
         fig.colorbar(shown, ax=axes[1, 0], label="m")
         axes[1, 0].set_title("depth")
