@@ -42,7 +42,8 @@ def _metrics_table(result, title: str):
 def evaluate(
     method: str | None = typer.Option(
         None, "--method", "-m",
-        help="Comma-separated method names, or 'all' for every classical baseline."),
+        help="Comma-separated method names, or 'all' for every classical baseline; "
+             "'<baseline>+far' (e.g. bilinear+far) reads zones with no target at 5 m."),
     checkpoint: list[str] = typer.Option(
         [], "--checkpoint", "-c",
         help="A trained model to evaluate beside the methods: a bundled name ('default') "

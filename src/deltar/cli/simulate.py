@@ -81,8 +81,10 @@ def simulate_command(
 ) -> None:
     """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set.
 
-    With --drop-fraction / --bias-prob the readings are degraded as a real sensor's can
-    be (zones lost, biased means), reproducibly from --seed.
+    Zones whose pixels lie mostly beyond the sensor's 4 m range are written as "no
+    target" (ST status 255), as the sensor reports them. With --drop-fraction /
+    --bias-prob the readings are degraded as a real sensor's can be (zones lost, biased
+    means), reproducibly from --seed; the no-target zones stay.
     """
     import warnings
 
