@@ -473,25 +473,19 @@ def _no_target(depth: torch.Tensor, rects: torch.Tensor, valid: torch.Tensor,
     Counted only for the invalid zones (few in most frames), from the depth map itself:
     the histogram holds the in-range pixels only.
     """
-    no_target = torch.zeros_like(valid)
     candidates = torch.nonzero(~valid).tolist()
     if not candidates:
-        return no_target
+        return torch.zeros_like(valid)
     bounds = zone_pixel_bounds(rects, depth.shape[-2], depth.shape[-1]).tolist()
     in_range = histogram.sum(-1).tolist()
     limit = np.float32(config.max_range_m)
     # numpy slices cost a few microseconds each, torch's several times more.
-    pixels = depth.numpy() if depth.device.type == "cpu" else depth.cpu().numpy()
-    flags = no_target.numpy() if no_target.device.type == "cpu" else None
+    pixels = depth.cpu().numpy()
+    flags = np.zeros(tuple(valid.shape), dtype=bool)
     for b, z in candidates:
         y0, x0, y1, x1 = bounds[b][z]
-        beyond = np.count_nonzero(pixels[b, y0:y1, x0:x1] > limit)
-        if beyond > in_range[b][z]:
-            if flags is not None:
-                flags[b, z] = True
-            else:
-                no_target[b, z] = True
-    return no_target
+        flags[b, z] = np.count_nonzero(pixels[b, y0:y1, x0:x1] > limit) > in_range[b][z]
+    return torch.from_numpy(flags).to(valid.device)
 
 
 def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
