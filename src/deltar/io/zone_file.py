@@ -116,10 +116,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
             raise ValueError(f"{source}: {key} has negative values at zones "
                              f"{np.flatnonzero(arr < 0).tolist()}")
         arrays[key] = arr
-    valid = np.asarray(data["valid"]).reshape(-1)
-    if valid.dtype != bool and (valid.dtype.kind not in "iu" or
-                                not np.all(np.isin(valid, (0, 1)))):
-        raise ValueError(f"{source}: valid must hold booleans (true/false or 1/0)")
+    valid = _bool_array(data["valid"], source, "valid")
     count = arrays["mean_m"].size
     declared = data.get("zone_count", count)
     for key, arr in (("sigma_m", arrays["sigma_m"]), ("valid", valid)):
@@ -136,12 +133,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
             raise ValueError(f"{source}: status must hold {count} integer codes in 0..255")
     no_target = None
     if data.get("no_target") is not None:
-        no_target = np.asarray(data["no_target"]).reshape(-1)
-        if no_target.size != count or (no_target.dtype != bool and (
-                no_target.dtype.kind not in "iu" or not np.all(np.isin(no_target, (0, 1))))):
-            raise ValueError(f"{source}: no_target must hold {count} booleans (true/false "
-                             "or 1/0)")
-        no_target = no_target.astype(bool)
+        no_target = _bool_array(data["no_target"], source, "no_target", count)
     edges = counts = None
     if data.get("hist_counts") is not None or data.get("hist_edges_m") is not None:
         edges = _float_array(data.get("hist_edges_m"), source, "hist_edges_m")
@@ -155,7 +147,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     timestamp = _optional_float(data.get("timestamp_s"), source, "timestamp_s")
     try:
         frame = ZoneFrame(mean_m=arrays["mean_m"], sigma_m=arrays["sigma_m"],
-                          valid=valid.astype(bool), status=status, hist_edges_m=edges,
+                          valid=valid, status=status, hist_edges_m=edges,
                           hist_counts=counts, timestamp_s=timestamp, sensor_model=sensor_model,
                           no_target=no_target)
     except ValueError as err:
@@ -164,6 +156,20 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     if problem is not None:
         raise ValueError(f"{source}: {problem}")
     return frame
+
+
+def _bool_array(values: Any, source: str, key: str, count: int | None = None) -> np.ndarray:
+    """Flat bool array of JSON booleans or 1/0 (``count`` of them when given).
+
+    Raises:
+        ValueError: ``"<source>: <key> must hold [<count>] booleans (true/false or 1/0)"``.
+    """
+    flags = np.asarray(values).reshape(-1)
+    if (count is not None and flags.size != count) or (flags.dtype != bool and (
+            flags.dtype.kind not in "iu" or not np.all(np.isin(flags, (0, 1))))):
+        what = "booleans" if count is None else f"{count} booleans"
+        raise ValueError(f"{source}: {key} must hold {what} (true/false or 1/0)")
+    return flags.astype(bool)
 
 
 def save_zone_frame(path: str | os.PathLike, frame: ZoneFrame, *,
