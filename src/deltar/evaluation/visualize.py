@@ -50,6 +50,8 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
+    from deltar.inference.outputs import zone_outline_style
+
     depth = np.asarray(depth_m, dtype=np.float32)
     if depth.shape != sample.depth_m.shape:
         raise ValueError(f"depth_m shape {depth.shape} does not match the frame "
@@ -75,12 +77,9 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
     means = sample.zone_mean_sigma[:, 0]
     for (y0, x0, y1, x1), valid, far, mean in zip(sample.zone_rects, sample.zone_valid,
                                                   flags, means, strict=True):
-        style = {"edgecolor": "lime", "linestyle": "-"} if valid else \
-            {"edgecolor": "deepskyblue", "linestyle": ":"} if far else \
-            {"edgecolor": "red", "linestyle": "--"}
         # Rectangles are in pixel-centre coordinates, as imshow's axes are.
         axes[1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, linewidth=1,
-                                    **style))
+                                    **zone_outline_style(valid, far)))
         if valid:
             axes[1].text(0.5 * (x0 + x1), 0.5 * (y0 + y1), f"{mean:.2f}", color="white",
                          fontsize=6, ha="center", va="center", clip_on=True)

@@ -171,6 +171,16 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
 read_ply = ply.read_ply
 
 
+def zone_outline_style(valid: bool, no_target: bool) -> dict[str, str]:
+    """Matplotlib edge colour and line style of a zone's outline in a panel: green solid
+    when valid, blue dotted when it reported no target, red dashed otherwise."""
+    if valid:
+        return {"edgecolor": "lime", "linestyle": "-"}
+    if no_target:
+        return {"edgecolor": "deepskyblue", "linestyle": ":"}
+    return {"edgecolor": "red", "linestyle": "--"}
+
+
 def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPrediction, *,
                 title: str = "", overwrite: bool = False) -> Path:
     """Write a four-panel PNG: image, zones over the image, depth, uncertainty (metres).
@@ -201,11 +211,8 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
         far_zones = frame.flat_no_target()
         for (y0, x0, y1, x1), value, ok, far in zip(prediction.zone_rects, mean, valid,
                                                     far_zones, strict=True):
-            style = {"edgecolor": "lime", "linestyle": "-"} if ok else \
-                {"edgecolor": "deepskyblue", "linestyle": ":"} if far else \
-                {"edgecolor": "red", "linestyle": "--"}
             axes[0, 1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False,
-                                           linewidth=0.8, **style))
+                                           linewidth=0.8, **zone_outline_style(ok, far)))
             if ok and frame.grid <= 8:
                 axes[0, 1].text((x0 + x1) / 2, (y0 + y1) / 2, f"{value:.2f}", color="white",
                                 fontsize=5, ha="center", va="center")
