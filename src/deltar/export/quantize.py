@@ -57,6 +57,7 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         and ``zone_no_target`` (1, Z) bool for a file that takes the flags.
     """
     from deltar.data.rgbd import open_rgbd
+    from deltar.inference.onnx_runtime import INPUT_NAMES, NO_TARGET_INPUT
     from deltar.inference.preprocess import scale_rects
     from deltar.sensor.simulate import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
@@ -84,9 +85,9 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         reading = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
                             no_target=zones.no_target)
         inputs = estimator.prepare([frame.image], [reading], zone_rects=rects[None])
-        names = ["image", "hypotheses", "zone_rects", "zone_valid"]
+        names = list(INPUT_NAMES)
         if estimator.onnx_model is not None and estimator.onnx_model.takes_no_target:
-            names.append("zone_no_target")
+            names.append(NO_TARGET_INPUT)
         feeds.append({name: inputs[name].cpu().numpy() for name in names})
     return feeds
 
