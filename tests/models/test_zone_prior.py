@@ -8,7 +8,12 @@ import pytest
 import torch
 
 from deltar.models import create_model
-from deltar.models.zone_prior import NO_ZONE_PRIOR_DEPTH, ZonePriorHead, zone_prior_map
+from deltar.models.zone_prior import (
+    NO_ZONE_PRIOR_DEPTH,
+    ZonePriorHead,
+    footprint_pool,
+    zone_prior_map,
+)
 
 
 def _grid_rects(grid: int, zone_px: int) -> torch.Tensor:
@@ -170,3 +175,20 @@ def test_zone_select_matches_the_dense_footprint_formula_where_weights_underflow
     log_mean = torch.log(means.double()).masked_fill(~valid, 0.0)
     expected = torch.exp(torch.einsum("bhwz,bz->bhw", weights, log_mean))[:, None]
     torch.testing.assert_close(depth.double(), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_footprint_pool_is_the_weighted_mean_over_each_zone_footprint():
+    generator = torch.Generator().manual_seed(4)
+    features = torch.randn(2, 5, 6, 7, generator=generator)
+    log_wy = torch.randn(2, 6, 3, generator=generator)
+    log_wx = torch.randn(2, 7, 3, generator=generator)
+    wy = torch.softmax(log_wy, dim=1)
+    wx = torch.softmax(log_wx, dim=1)
+    footprint = wy[:, :, None, :] * wx[:, None, :, :]  # (B, h, w, Z), sums to 1 per zone
+    expected = torch.einsum("bchw,bhwz->bcz", features.double(), footprint.double())
+    pooled = footprint_pool(features, log_wy, log_wx)
+    torch.testing.assert_close(pooled.double(), expected, rtol=1e-5, atol=1e-6)
+    # Channels-last input (the optimised encoder's layout) gives the same.
+    torch.testing.assert_close(
+        footprint_pool(features.contiguous(memory_format=torch.channels_last), log_wy, log_wx),
+        pooled, rtol=1e-6, atol=1e-7)

@@ -86,9 +86,15 @@ class EncoderDescriptors(nn.Module):
             if tuple(part.shape[-2:]) != size:
                 part = F.interpolate(part, size=size, mode="bilinear", align_corners=False)
             part = part - part.mean(dim=(2, 3), keepdim=True)
-            parts.append(F.normalize(part, dim=1))
+            parts.append(_unit_channels(part))
         descriptors = torch.cat(parts, dim=1) * self.channel_weight[None, :, None, None]
-        return F.normalize(descriptors, dim=1)
+        return _unit_channels(descriptors)
+
+
+def _unit_channels(features: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """``F.normalize(features, dim=1)`` as a sum of squares: on CPU the norm kernel is
+    4x slower on (B, C, h, w) maps laid out channels-first."""
+    return features / (features * features).sum(dim=1, keepdim=True).sqrt().clamp_min(eps)
 
 
 def _zone_geometry(rects: torch.Tensor

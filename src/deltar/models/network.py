@@ -11,7 +11,7 @@ from torch import nn
 
 from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead
 from deltar.models.decoder import FUSION_STRIDES, FusionDecoder
-from deltar.models.encoders import DistributionEncoder, ImageEncoder
+from deltar.models.encoders import FEATURE_STRIDES, DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
 from deltar.models.heads import BinsHead, DepthHead, DirectDepthHead, MiniViTHead, ZoneInputs
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
@@ -180,7 +180,11 @@ class DeltarNet(nn.Module):
         self.mean_sigma_points = distribution_input == "mean_sigma"
 
         in_channels = 5 if self.five_channel else 3
-        self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation)
+        # The descriptor decoder reads the encoder up to its coarsest chosen stride only.
+        levels = len(FEATURE_STRIDES)
+        if decoder == "descriptors" and set(descriptor_strides) <= set(FEATURE_STRIDES):
+            levels = max(FEATURE_STRIDES.index(s) for s in descriptor_strides) + 1
+        self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation, levels)
         self.distribution_encoder = None
         if decoder == "descriptors":
             self.decoder = EncoderDescriptors(self.image_encoder.channels, descriptor_strides)

@@ -77,9 +77,10 @@ def prepare_for_inference(
         model: a :class:`~deltar.models.DeltarNet`.
         fold_encoder: also fold the image encoder's batch norms (not only the decoder's
             and the distribution encoder's).
-        channels_last: convert the decoder's and the head's 4-D weights to channels-last
-            layout (oneDNN's fast path, above all for the head's full-resolution
-            convolutions).
+        channels_last: convert the image encoder's, the decoder's and the head's 4-D
+            weights to channels-last layout (oneDNN's fast path; the encoder's maps then
+            come out channels-last whatever the input's layout: 0.75-0.85x the time of
+            the lite network at 256x320).
 
     Returns:
         The same model, ready for ``torch.inference_mode()``.
@@ -91,7 +92,7 @@ def prepare_for_inference(
         if part is not None:
             fuse_conv_batch_norm(part)
     if channels_last:
-        for name in ("decoder", "head"):
+        for name in ("image_encoder", "decoder", "head"):
             part = getattr(model, name, None)
             if part is not None:
                 part.to(memory_format=torch.channels_last)

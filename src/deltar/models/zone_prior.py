@@ -80,9 +80,13 @@ def footprint_pool(features: torch.Tensor, log_wy: torch.Tensor, log_wx: torch.T
     Returns:
         (B, C, Z) pooled features.
     """
-    return torch.einsum("bchz,bhz->bcz",
-                        torch.einsum("bchw,bwz->bchz", features, _axis_weights(log_wx)),
-                        _axis_weights(log_wy))
+    batch, channels, height, width = features.shape
+    # Columns first as one matrix product, (B, C*h, w) @ (B, w, Z); then rows as a
+    # product and sum: an einsum over (h) with Z shared by both operands runs as Z small
+    # batched products with a copy each, 8x slower on CPU.
+    per_row = features.reshape(batch, channels * height, width) @ _axis_weights(log_wx)
+    per_row = per_row.reshape(batch, channels, height, -1)  # (B, C, h, Z)
+    return (per_row * _axis_weights(log_wy)[:, None]).sum(dim=2)
 
 
 def _softmax_over_zones(logits: torch.Tensor) -> torch.Tensor:
