@@ -184,6 +184,17 @@ def test_plane_select_network_exports_with_parity(tmp_path):
     assert got["depth"].shape == (2, 1, 32, 48)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
     assert np.abs(got["uncertainty"] - expected["uncertainty"]).max() < DEPTH_TOLERANCE_M
+    # The encoder's TensorFlow-"same" stride-2 convolutions carry their padding in the
+    # Conv nodes (no Pad nodes, no shape arithmetic in the encoder), and the model is
+    # left as it was.
+    import onnx
+    from timm.layers import Conv2dSame
+
+    graph = onnx.load(str(tmp_path / "plane.onnx")).graph
+    assert not [n for n in graph.node if n.op_type == "Pad"]
+    assert not [n for n in graph.node if n.op_type == "Shape" and "image_encoder" in n.name]
+    same = [m for m in model.modules() if isinstance(m, Conv2dSame)]
+    assert same and not any("forward" in vars(m) for m in same)
     # No zone patches in this graph: any layout of the grid runs (here shrunk and moved,
     # which a fusion network's file refuses), with the same parity.
     moved = _random_inputs(rects * 0.7 + 5.0, 2, 8)
@@ -229,3 +240,44 @@ def test_export_runs_at_the_size_rule_like_the_estimator(tmp_path, rng, size):
     assert torch_pred.network_size == onnx_pred.network_size == expected
     assert onnx_pred.depth_m.shape == size
     assert np.abs(torch_pred.depth_m - onnx_pred.depth_m).max() < DEPTH_TOLERANCE_M
+
+
+class _Padded(torch.nn.Module):
+    """A zero pad before a convolution (foldable), a reflect pad, a pad feeding an add."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        torch.manual_seed(0)
+        self.conv_a = torch.nn.Conv2d(3, 4, 3, stride=2)
+        self.conv_b = torch.nn.Conv2d(3, 4, 3, stride=2, padding=1)
+
+    def forward(self, x):
+        a = self.conv_a(torch.nn.functional.pad(x, (0, 1, 1, 2)))
+        b = self.conv_b(torch.nn.functional.pad(x, (1, 0, 0, 1), mode="reflect"))
+        c = torch.nn.functional.pad(x, (1, 1, 1, 1)) + 1.0
+        return a, b, c
+
+
+def test_constant_zero_pads_fold_into_the_convolutions_they_feed(tmp_path):
+    import onnx
+    import onnxruntime as ort
+
+    from deltar.export.onnx import _fold_pads_into_convs
+
+    model = _Padded().eval()
+    x = torch.randn(1, 3, 12, 17, generator=torch.Generator().manual_seed(1))
+    path = tmp_path / "pads.onnx"
+    with torch.no_grad():
+        expected = [t.numpy() for t in model(x)]
+        torch.onnx.export(model, (x,), str(path), input_names=["x"], opset_version=17,
+                          dynamo=False)
+    proto = onnx.load(str(path))
+    pads_before = sum(n.op_type == "Pad" for n in proto.graph.node)
+    assert _fold_pads_into_convs(proto.graph) == 1
+    assert sum(n.op_type == "Pad" for n in proto.graph.node) == pads_before - 1
+    onnx.checker.check_model(proto)
+    folded = next(n for n in proto.graph.node if n.op_type == "Conv" and n.input[0] == "x")
+    assert [list(a.ints) for a in folded.attribute if a.name == "pads"] == [[1, 0, 2, 1]]
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    for got, want in zip(session.run(None, {"x": x.numpy()}), expected, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
