@@ -243,19 +243,23 @@ def test_export_runs_at_the_size_rule_like_the_estimator(tmp_path, rng, size):
 
 
 class _Padded(torch.nn.Module):
-    """A zero pad before a convolution (foldable), a reflect pad, a pad feeding an add."""
+    """One foldable zero pad before a convolution, and pads that must stay: reflect mode,
+    a non-zero value, a pad also read by an add, a pad that is a graph output."""
 
     def __init__(self) -> None:
         super().__init__()
         torch.manual_seed(0)
-        self.conv_a = torch.nn.Conv2d(3, 4, 3, stride=2)
-        self.conv_b = torch.nn.Conv2d(3, 4, 3, stride=2, padding=1)
+        self.conv = torch.nn.Conv2d(3, 4, 3, stride=2)
 
     def forward(self, x):
-        a = self.conv_a(torch.nn.functional.pad(x, (0, 1, 1, 2)))
-        b = self.conv_b(torch.nn.functional.pad(x, (1, 0, 0, 1), mode="reflect"))
-        c = torch.nn.functional.pad(x, (1, 1, 1, 1)) + 1.0
-        return a, b, c
+        pad = torch.nn.functional.pad
+        folded = self.conv(pad(x, (0, 1, 1, 2)))
+        reflect = self.conv(pad(x, (1, 0, 0, 1), mode="reflect"))
+        ones = self.conv(pad(x, (1, 1, 0, 0), value=1.0))
+        shared = pad(x, (2, 2, 2, 2))
+        mixed = self.conv(shared).sum() + shared.sum()
+        returned = pad(x, (1, 2, 1, 2))
+        return folded, reflect, ones, mixed, returned, self.conv(returned)
 
 
 def test_constant_zero_pads_fold_into_the_convolutions_they_feed(tmp_path):
@@ -273,11 +277,33 @@ def test_constant_zero_pads_fold_into_the_convolutions_they_feed(tmp_path):
                           dynamo=False)
     proto = onnx.load(str(path))
     pads_before = sum(n.op_type == "Pad" for n in proto.graph.node)
-    assert _fold_pads_into_convs(proto.graph) == 1
+    assert pads_before == 5
+    assert _fold_pads_into_convs(proto) == 1
     assert sum(n.op_type == "Pad" for n in proto.graph.node) == pads_before - 1
     onnx.checker.check_model(proto)
-    folded = next(n for n in proto.graph.node if n.op_type == "Conv" and n.input[0] == "x")
-    assert [list(a.ints) for a in folded.attribute if a.name == "pads"] == [[1, 0, 2, 1]]
+    folded = [n for n in proto.graph.node if n.op_type == "Conv" and n.input[0] == "x"]
+    assert [list(a.ints) for n in folded for a in n.attribute if a.name == "pads"] == \
+        [[1, 0, 2, 1]]
     session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
     for got, want in zip(session.run(None, {"x": x.numpy()}), expected, strict=True):
-        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+def test_a_pad_of_convolution_weights_is_left_alone():
+    import onnx
+    from onnx import TensorProto, helper
+
+    from deltar.export.onnx import _fold_pads_into_convs
+
+    pads = helper.make_tensor("pads", TensorProto.INT64, [8], [0, 0, 0, 0, 0, 0, 1, 1])
+    weight = helper.make_tensor("w", TensorProto.FLOAT, [1, 1, 2, 2], [1.0] * 4)
+    graph = helper.make_graph(
+        [helper.make_node("Pad", ["w", "pads"], ["w_padded"]),
+         helper.make_node("Conv", ["x", "w_padded"], ["y"])], "weights",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 1, 5, 5])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 1, 3, 3])],
+        initializer=[pads, weight])
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    assert _fold_pads_into_convs(proto) == 0
+    assert [n.op_type for n in proto.graph.node] == ["Pad", "Conv"]
+    onnx.checker.check_model(proto)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from deltar.models import create_model
 from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead, zone_planes
 from deltar.models.zone_prior import zone_prior_map
 
@@ -256,3 +257,18 @@ def test_select_preset_trains_only_its_descriptor_weights_and_temperature():
     for name in ("decoder.channel_weight", "head.temperature"):
         grad = dict(model.named_parameters())[name].grad
         assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0, name
+
+
+def test_a_black_frame_trains_without_nan_gradients():
+    # An all-zero image gives all-zero descriptors somewhere: their normalisation must
+    # have finite gradients, or one such frame would poison the learned numbers.
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96)).train()
+    image = torch.zeros(1, 3, 64, 96)
+    hypotheses = torch.full((1, 64, 16), 2.0)
+    ys, xs = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
+    rects = torch.stack([ys * 8, xs * 12, ys * 8 + 8, xs * 12 + 12], -1).reshape(1, 64, 4)
+    out = model(image, hypotheses, rects, torch.ones(1, 64, dtype=torch.bool))
+    out["depth"].log().mean().backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)

@@ -51,9 +51,24 @@ def test_other_unexpected_keys_still_fail(full_and_cut):
         cut.load_state_dict(missing, strict=True)
 
 
-def test_levels_are_checked():
-    with pytest.raises(ValueError, match="levels"):
-        ImageEncoder("tf_efficientnet_lite0", levels=0)
+@pytest.mark.parametrize("levels", [0, 6, 2.5, True])
+def test_levels_are_checked(levels):
+    with pytest.raises(ValueError, match=r"levels must be an integer in 1\.\.5"):
+        ImageEncoder("tf_efficientnet_lite0", levels=levels)
+
+
+def test_a_backbone_timm_cuts_itself_also_loads_whole_weights():
+    # timm builds a ResNet without the layers past the last map asked for; weights
+    # saved with them load strictly, and only those tensors are skipped.
+    torch.manual_seed(0)
+    whole = ImageEncoder("resnet18").eval()
+    cut = ImageEncoder("resnet18", levels=4).eval()
+    assert not any(k.startswith("backbone.layer4.") for k in cut.state_dict())
+    cut.load_state_dict(whole.state_dict(), strict=True)
+    image = torch.randn(1, 3, 64, 96, generator=torch.Generator().manual_seed(2))
+    with torch.inference_mode():
+        for reference, maps in zip(whole(image)[:4], cut(image), strict=True):
+            torch.testing.assert_close(maps, reference, rtol=0, atol=0)
 
 
 def test_descriptor_network_runs_only_the_strides_it_reads():

@@ -69,6 +69,19 @@ def test_create_model_imagenet_fills_the_encoder_and_keeps_the_contract():
                            source["_conv_stem.weight"])
 
 
+def test_imagenet_weights_fill_an_encoder_cut_after_stride_16():
+    # deltar-select reads strides 8 and 16 only: its encoder has Lite0's first five
+    # stages, and the packaged (flat-numbered) weights still map onto them.
+    model = create_model("deltar-select", "imagenet")
+    source = _packaged("tf_efficientnet_lite0")
+    blocks = model.image_encoder.backbone.blocks
+    assert len(blocks) == 5
+    last = blocks[4][-1]  # flat block 10: stages of 1, 2, 2, 3, 3 blocks
+    assert torch.equal(last.conv_pwl.weight, source["_blocks.10._project_conv.weight"])
+    assert torch.equal(model.image_encoder.backbone.conv_stem.weight,
+                       source["_conv_stem.weight"])
+
+
 def test_local_weight_files_in_either_naming(tmp_path):
     source = _packaged("tf_efficientnet_lite0")
     lukemelas = tmp_path / "lite0_lukemelas.pth"

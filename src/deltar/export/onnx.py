@@ -174,7 +174,7 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
                           output_names=list(OUTPUT_NAMES), dynamic_axes=dynamic,
                           opset_version=OPSET, dynamo=False)
         proto = onnx.load(str(tmp))
-        _fold_pads_into_convs(proto.graph)
+        _fold_pads_into_convs(proto)
         extra = {SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
                  "deltar_image_size": f"{height}x{width}",
                  "deltar_input_size": f"{net_height}x{net_width}",
@@ -248,15 +248,16 @@ def _static_same_padding(model: torch.nn.Module, inputs: tuple) -> Iterator[None
             conv.__dict__.pop("forward", None)
 
 
-def _fold_pads_into_convs(graph: onnx.GraphProto) -> int:
+def _fold_pads_into_convs(proto: onnx.ModelProto) -> int:
     """Merge constant zero ``Pad`` nodes into the convolutions they feed, in place.
 
     onnxruntime (1.32) does not fuse a ``Pad`` into the following ``Conv`` by itself,
     while ``Conv`` takes asymmetric padding in its ``pads`` attribute; the pads here
     are constants (:func:`_static_same_padding`), evaluated with onnx's reference
-    evaluator. A ``Pad`` is merged only when its mode is constant with value 0, it pads
-    no batch or channel axis, and every consumer is a ``Conv`` without ``auto_pad``.
-    The arithmetic is the same: zeros outside the image either way.
+    evaluator at the model's opset. A ``Pad`` of the main graph is merged only when its
+    mode is constant with value 0, it pads no batch or channel axis, its output is not a
+    graph output and every consumer is a ``Conv`` without ``auto_pad`` that reads it as
+    its data input only. The arithmetic is the same: zeros outside the image either way.
 
     Returns:
         Number of ``Pad`` nodes removed.
@@ -265,9 +266,12 @@ def _fold_pads_into_convs(graph: onnx.GraphProto) -> int:
     from onnx import helper, numpy_helper
     from onnx.reference import ReferenceEvaluator
 
+    graph = proto.graph
     producers = {out: node for node in graph.node for out in node.output}
     initializers = {init.name: init for init in graph.initializer}
     graph_inputs = {value.name for value in graph.input}
+    graph_outputs = {value.name for value in graph.output}
+    chains: list = []  # nodes computing the merged pads (removed when unused)
 
     def constant(name: str) -> np.ndarray | None:
         """The value of a tensor computed from constants only, or None."""
@@ -286,9 +290,33 @@ def _fold_pads_into_convs(graph: onnx.GraphProto) -> int:
             stack.extend(node.input)
         order = [n for n in graph.node if any(n is m for m in nodes)]
         used = [initializers[i] for n in order for i in n.input if i in initializers]
-        sub = helper.make_graph(order, "pads", [], [helper.make_tensor_value_info(
-            name, onnx.TensorProto.INT64, None)], initializer=used)
-        return np.asarray(ReferenceEvaluator(helper.make_model(sub)).run(None, {})[0])
+        sub = helper.make_graph(order, "constant", [], [helper.make_tensor_value_info(
+            name, onnx.TensorProto.UNDEFINED, None)], initializer=used)
+        try:
+            value = ReferenceEvaluator(helper.make_model(
+                sub, opset_imports=list(proto.opset_import))).run(None, {})[0]
+        except Exception:  # an operator the evaluator lacks: leave this Pad alone
+            return None
+        chains.extend(order)
+        return np.asarray(value)
+
+    def pads_of(pad) -> np.ndarray | None:
+        mode = next((a.s for a in pad.attribute if a.name == "mode"), b"constant")
+        if mode != b"constant" or not 2 <= len(pad.input) <= 3:
+            return None
+        if len(pad.input) == 3 and pad.input[2]:
+            value = constant(pad.input[2])
+            if value is None or np.any(value != 0):
+                return None
+        pads = constant(pad.input[1])
+        if pads is None or pads.shape != (8,) or np.any(pads < 0) or np.any(pads[[0, 1, 4, 5]]):
+            return None
+        return pads
+
+    def plain_conv(node, tensor: str) -> bool:
+        auto_pad = next((a.s for a in node.attribute if a.name == "auto_pad"), b"NOTSET")
+        return (node.op_type == "Conv" and auto_pad in (b"", b"NOTSET")
+                and node.input[0] == tensor and tensor not in node.input[1:])
 
     consumers: dict[str, list] = {}
     for node in graph.node:
@@ -296,19 +324,12 @@ def _fold_pads_into_convs(graph: onnx.GraphProto) -> int:
             consumers.setdefault(name, []).append(node)
     removed = []
     for pad in [n for n in graph.node if n.op_type == "Pad"]:
-        mode = next((a.s for a in pad.attribute if a.name == "mode"), b"constant")
         users = consumers.get(pad.output[0], [])
-        if mode != b"constant" or len(pad.input) < 2 or len(pad.input) > 3 or not users:
+        if not users or pad.output[0] in graph_outputs or \
+                not all(plain_conv(user, pad.output[0]) for user in users):
             continue
-        if len(pad.input) == 3 and pad.input[2]:
-            value = constant(pad.input[2])
-            if value is None or np.any(value != 0):
-                continue
-        pads = constant(pad.input[1])
-        if pads is None or pads.shape != (8,) or np.any(pads < 0) or np.any(pads[[0, 1, 4, 5]]):
-            continue
-        if any(u.op_type != "Conv" or any(a.name == "auto_pad" and a.s not in (b"", b"NOTSET")
-                                         for a in u.attribute) for u in users):
+        pads = pads_of(pad)
+        if pads is None:
             continue
         for conv in users:
             attribute = next((a for a in conv.attribute if a.name == "pads"), None)
@@ -322,11 +343,14 @@ def _fold_pads_into_convs(graph: onnx.GraphProto) -> int:
         removed.append(pad)
     for pad in removed:
         graph.node.remove(pad)
-    # Constants that only fed the removed pads.
-    while True:
-        needed = {name for node in graph.node for name in node.input} | \
-            {value.name for value in graph.output}
-        dead = [n for n in graph.node if not any(out in needed for out in n.output)]
+    # The constant chains that fed only the removed pads (nodes with subgraphs could
+    # read them too: then nothing more is removed, onnxruntime drops dead nodes anyway).
+    has_subgraphs = any(a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS)
+                        for node in graph.node for a in node.attribute)
+    while chains and not has_subgraphs:
+        needed = {name for node in graph.node for name in node.input} | graph_outputs
+        dead = [n for n in chains if any(n is m for m in graph.node)
+                and not any(out in needed for out in n.output)]
         if not dead:
             break
         for node in dead:

@@ -50,7 +50,7 @@ class EncoderDescriptors(nn.Module):
     per channel (learned, 1 at the start) and normalised again.
 
     Args:
-        encoder_channels: channels of the encoder's five maps (strides 2..32).
+        encoder_channels: channels of the encoder's maps, fine to coarse (strides 2, 4, ...).
         strides: which encoder strides to use (from :data:`ENCODER_STRIDES`).
         out_stride: input pixels per output cell.
     """
@@ -73,7 +73,8 @@ class EncoderDescriptors(nn.Module):
         """Encoder maps (B, C_i, H / s_i, W / s_i) -> (B, C, H / out_stride, W / out_stride).
 
         Args:
-            features: the encoder's five maps, fine to coarse.
+            features: the encoder's maps, fine to coarse (up to the coarsest chosen
+                stride at least).
             image_size: (H, W) of the network input, pixels.
 
         Returns:
@@ -92,9 +93,11 @@ class EncoderDescriptors(nn.Module):
 
 
 def _unit_channels(features: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """``F.normalize(features, dim=1)`` as a sum of squares: on CPU the norm kernel is
-    4x slower on (B, C, h, w) maps laid out channels-first."""
-    return features / (features * features).sum(dim=1, keepdim=True).sqrt().clamp_min(eps)
+    """``F.normalize(features, dim=1)`` from a sum of squares: on CPU the norm kernel is
+    4x slower on (B, C, h, w) maps laid out channels-first. The clamp comes before the
+    root, so an all-zero descriptor (a black frame) has a zero, not NaN, gradient."""
+    squares = (features * features).sum(dim=1, keepdim=True)
+    return features * torch.rsqrt(squares.clamp_min(eps * eps))
 
 
 def _zone_geometry(rects: torch.Tensor

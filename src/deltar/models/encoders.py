@@ -25,9 +25,11 @@ class ImageEncoder(nn.Module):
             separate module it did not include; timm >= 0.9 fuses it into ``bn1``,
             so ``False`` removes it to reproduce the release.
         levels: how many maps to return, fine to coarse (strides 2 .. 2^levels); a
-            decoder that reads only the finer ones asks for fewer. Blocks of an
-            EfficientNet-style backbone past the last returned map are removed, not run;
-            their tensors in a state dict saved with them are ignored on loading.
+            decoder that reads only the finer ones asks for fewer. The backbone's layers
+            past the last returned map are not built (timm drops them for most
+            backbones; the blocks of an EfficientNet-style one are cut here); their
+            tensors in a state dict saved with the whole backbone are skipped on
+            loading, any other unexpected or missing tensor still fails a strict load.
     """
 
     def __init__(self, backbone: str, in_channels: int = 3, stem_activation: bool = True,
@@ -35,8 +37,10 @@ class ImageEncoder(nn.Module):
         super().__init__()
         import timm
 
-        if not 1 <= levels <= len(FEATURE_STRIDES):
-            raise ValueError(f"levels must be in 1..{len(FEATURE_STRIDES)}, got {levels}")
+        if isinstance(levels, bool) or not isinstance(levels, int) or \
+                not 1 <= levels <= len(FEATURE_STRIDES):
+            raise ValueError(f"levels must be an integer in 1..{len(FEATURE_STRIDES)}, got "
+                             f"{levels!r}")
         self.backbone = timm.create_model(
             backbone, pretrained=False, features_only=True, in_chans=in_channels,
             out_indices=tuple(range(levels)),
@@ -48,7 +52,20 @@ class ImageEncoder(nn.Module):
                 f"the decoder needs {FEATURE_STRIDES[:levels]}"
             )
         self.channels: tuple[int, ...] = tuple(self.backbone.feature_info.channels())
-        self._unused_prefixes = self._drop_unused_blocks()
+        blocks = getattr(self.backbone, "blocks", None)
+        #: Blocks per stage of the whole backbone (EfficientNet-style ones; None for
+        #: others): the layout that converting flat-numbered pretrained weights needs.
+        self.full_stage_lengths: tuple[int, ...] | None = (
+            tuple(len(stage) for stage in blocks) if isinstance(blocks, nn.Sequential)
+            else None)
+        self._unused_keys: frozenset[str] = frozenset()
+        if levels < len(FEATURE_STRIDES):
+            whole = timm.create_model(backbone, pretrained=False, features_only=True,
+                                      in_chans=in_channels)
+            self._drop_unused_blocks()
+            self._unused_keys = frozenset(
+                f"backbone.{key}" for key in set(whole.state_dict()) -
+                set(self.backbone.state_dict()))
         if not stem_activation:
             stem_norm = getattr(self.backbone, "bn1", None)
             if stem_norm is None or not hasattr(stem_norm, "act"):
@@ -59,32 +76,27 @@ class ImageEncoder(nn.Module):
         """(B, C_in, H, W) image -> ``levels`` maps (B, C_i, H / s_i, W / s_i), s_i = 2, 4, ..."""
         return self.backbone(image)
 
-    def _drop_unused_blocks(self) -> tuple[str, ...]:
+    def _drop_unused_blocks(self) -> None:
         """Cut an EfficientNet-style block list after the last returned map.
 
         timm's features-only EfficientNets run every block whatever maps are asked
-        for; the blocks after the last one returned cost time (at stride 32 the
-        bundled encoder's last stages took ~12 % of its forward) and change nothing.
-
-        Returns:
-            state-dict key prefixes (relative to this module) of the removed blocks.
+        for; the blocks after the last one returned cost time (the bundled encoder's
+        stride-32 stages: over a third of its time at 256x320) and change nothing.
         """
         blocks = getattr(self.backbone, "blocks", None)
         last = self.backbone.feature_info.module_name()[-1]
         if not isinstance(blocks, nn.Sequential) or not last.startswith("blocks."):
-            return ()
+            return
         keep = int(last.split(".")[1]) + 1
-        if keep >= len(blocks):
-            return ()
-        self.backbone.blocks = blocks[:keep]
-        return tuple(f"backbone.blocks.{index}." for index in range(keep, len(blocks)))
+        if keep < len(blocks):
+            self.backbone.blocks = blocks[:keep]
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         # Weights saved with the whole backbone (every checkpoint before the cut) still
-        # load strictly: only the removed blocks' tensors are skipped.
-        for key in [k for k in state_dict if k.startswith(prefix)]:
-            if key[len(prefix):].startswith(self._unused_prefixes or ("\0",)):
-                del state_dict[key]
+        # load strictly: only the tensors of the layers not built are skipped.
+        for key in [k for k in state_dict
+                    if k.startswith(prefix) and k[len(prefix):] in self._unused_keys]:
+            del state_dict[key]
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
 

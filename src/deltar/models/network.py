@@ -182,7 +182,8 @@ class DeltarNet(nn.Module):
         in_channels = 5 if self.five_channel else 3
         # The descriptor decoder reads the encoder up to its coarsest chosen stride only.
         levels = len(FEATURE_STRIDES)
-        if decoder == "descriptors" and set(descriptor_strides) <= set(FEATURE_STRIDES):
+        if decoder == "descriptors" and descriptor_strides and \
+                set(descriptor_strides) <= set(FEATURE_STRIDES):
             levels = max(FEATURE_STRIDES.index(s) for s in descriptor_strides) + 1
         self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation, levels)
         self.distribution_encoder = None

@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +74,8 @@ def pretrained_file(backbone: str) -> Path:
     return path
 
 
-def convert_efficientnet_lite(state_dict: dict[str, torch.Tensor], timm_model: nn.Module
+def convert_efficientnet_lite(state_dict: dict[str, torch.Tensor], timm_model: nn.Module,
+                              stage_lengths: Sequence[int] | None = None
                               ) -> dict[str, torch.Tensor]:
     """Rename an ``efficientnet_pytorch`` EfficientNet-Lite state dict to timm's names.
 
@@ -87,6 +89,10 @@ def convert_efficientnet_lite(state_dict: dict[str, torch.Tensor], timm_model: n
         state_dict: the source tensors (e.g. the packaged ``.pth``).
         timm_model: a timm ``tf_efficientnet_lite*`` (classifier or ``features_only``)
             whose ``blocks`` give the stage layout.
+        stage_lengths: blocks per stage of the whole backbone, when ``timm_model`` was
+            cut after its last used stage (:class:`~deltar.models.encoders.ImageEncoder`
+            with fewer levels); the removed stages' tensors are then converted too, and
+            loading skips them.
 
     Returns:
         A state dict in timm's names (the classifier and head included when present in
@@ -95,7 +101,8 @@ def convert_efficientnet_lite(state_dict: dict[str, torch.Tensor], timm_model: n
     Raises:
         ValueError: a key does not belong to the layout (wrong model or file).
     """
-    stages = [len(stage) for stage in timm_model.blocks]
+    stages = list(stage_lengths) if stage_lengths is not None else \
+        [len(stage) for stage in timm_model.blocks]
     flat_to_timm = [(s, b) for s, count in enumerate(stages) for b in range(count)]
     converted: dict[str, torch.Tensor] = {}
     for key, tensor in state_dict.items():
@@ -169,7 +176,8 @@ def load_encoder_weights(model: nn.Module, weights: str | os.PathLike,
         state, source = _read_state_dict(path), str(path)
     if any(key.startswith("_blocks.") or key.startswith("_conv_stem") for key in state):
         try:
-            state = convert_efficientnet_lite(state, encoder)
+            state = convert_efficientnet_lite(
+                state, encoder, getattr(model.image_encoder, "full_stage_lengths", None))
         except ValueError as err:
             raise ValueError(f"encoder weights from {source} do not fit backbone "
                              f"{backbone!r}: {err}") from err
