@@ -6,10 +6,15 @@ import copy
 
 import pytest
 import torch
+from timm.layers import Conv2dSame
 from torch import nn
 
 from deltar.models import create_model
-from deltar.models.optimize import fuse_conv_batch_norm, prepare_for_inference
+from deltar.models.optimize import (
+    SymmetricSameConv2d,
+    fuse_conv_batch_norm,
+    prepare_for_inference,
+)
 
 
 def _with_random_norm_statistics(model: nn.Module) -> nn.Module:
@@ -34,6 +39,9 @@ def test_folded_channels_last_model_gives_the_same_depth(head, network_inputs):
             model.head.logits_conv.weight.normal_(0.0, 0.1)
     fast = prepare_for_inference(copy.deepcopy(model), fold_encoder=True, channels_last=True)
     assert not any(isinstance(m, nn.BatchNorm2d) for m in fast.decoder.modules())
+    # The encoder's TensorFlow-"same" convolutions no longer copy their input to pad it.
+    assert not any(isinstance(m, Conv2dSame) for m in fast.modules())
+    assert sum(isinstance(m, SymmetricSameConv2d) for m in fast.modules()) == 5
     inputs = network_inputs()
     with torch.inference_mode():
         reference = model(*inputs)
@@ -52,3 +60,26 @@ def test_fold_needs_eval_mode_and_counts_folds():
     assert fuse_conv_batch_norm(block) == 1
     assert isinstance(block[1], nn.Identity)
     torch.testing.assert_close(block(x), expected, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("size", [(16, 20), (15, 20), (16, 19), (15, 17), (2, 3)])
+@pytest.mark.parametrize(("kernel", "stride", "groups"), [(3, 2, 1), (3, 2, 8), (5, 2, 8),
+                                                          (3, 1, 1), (4, 2, 2), (3, 3, 1)])
+def test_symmetric_same_convolution_matches_timm(size, kernel, stride, groups):
+    torch.manual_seed(0)
+    same = Conv2dSame(8, 8, kernel, stride=stride, groups=groups, bias=True).eval()
+    fast = SymmetricSameConv2d(copy.deepcopy(same)).eval()
+    x = torch.randn(2, 8, *size)
+    with torch.no_grad():
+        expected = same(x)
+        got = fast(x)
+        layout = fast.to(memory_format=torch.channels_last)(
+            x.contiguous(memory_format=torch.channels_last))
+    assert got.shape == expected.shape
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(layout, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_symmetric_same_convolution_refuses_dilation():
+    with pytest.raises(ValueError, match="dilation"):
+        SymmetricSameConv2d(Conv2dSame(4, 4, 3, stride=2, dilation=2))
