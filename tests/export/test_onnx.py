@@ -307,3 +307,25 @@ def test_a_pad_of_convolution_weights_is_left_alone():
     assert _fold_pads_into_convs(proto) == 0
     assert [n.op_type for n in proto.graph.node] == ["Pad", "Conv"]
     onnx.checker.check_model(proto)
+
+
+def test_a_model_prepared_for_inference_exports_with_parity(tmp_path):
+    # The estimator's model has its "same" convolutions rewritten
+    # (SymmetricSameConv2d); its export is the same graph, with the same outputs.
+    import onnx
+
+    from deltar.models.optimize import SymmetricSameConv2d, prepare_for_inference
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96)).eval()
+    with torch.no_grad():
+        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    prepare_for_inference(model)
+    assert any(isinstance(m, SymmetricSameConv2d) for m in model.modules())
+    got, expected, _, _ = _export_and_run(model, tmp_path / "prepared.onnx", 11, threads=1)
+    assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
+    graph = onnx.load(str(tmp_path / "prepared.onnx")).graph
+    assert not [n for n in graph.node if n.op_type == "Pad"]
+    assert not any("forward" in vars(m) for m in model.modules()
+                   if isinstance(m, SymmetricSameConv2d))

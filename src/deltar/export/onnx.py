@@ -206,18 +206,22 @@ def _static_same_padding(model: torch.nn.Module, inputs: tuple) -> Iterator[None
     computes its asymmetric zero padding from the input's shape at run time; traced,
     that becomes a chain of shape operators feeding a ``Pad``, which onnxruntime can
     neither fold nor fuse into the convolution (10% of the bundled network's time there).
-    The export's input size is fixed, so each such convolution's input size is recorded
-    in one forward pass and its padding written as constants, which onnxruntime fuses
-    into the convolution. Same arithmetic; the modules are restored afterwards.
+    The inference rewrite :class:`~deltar.models.optimize.SymmetricSameConv2d` (a model
+    prepared for inference) would trace a kernel of unknown shape. The export's input
+    size is fixed, so each such convolution's input size is recorded in one forward pass
+    and it runs as a constant ``Pad`` and a plain convolution of its own weights, which
+    :func:`_fold_pads_into_convs` then merges. Same arithmetic; the modules are restored
+    afterwards.
     """
     import torch.nn.functional as F
+
+    from deltar.models.optimize import SymmetricSameConv2d
 
     try:
         from timm.layers import Conv2dSame
     except ImportError:  # a timm without it has no such convolutions either
-        yield
-        return
-    convs = [m for m in model.modules() if isinstance(m, Conv2dSame)]
+        Conv2dSame = SymmetricSameConv2d
+    convs = [m for m in model.modules() if isinstance(m, (Conv2dSame, SymmetricSameConv2d))]
     sizes: dict[torch.nn.Module, tuple[int, int]] = {}
     hooks = [conv.register_forward_pre_hook(
         lambda module, args: sizes.__setitem__(module, tuple(args[0].shape[-2:])))
