@@ -83,3 +83,19 @@ def test_symmetric_same_convolution_matches_timm(size, kernel, stride, groups):
 def test_symmetric_same_convolution_refuses_dilation():
     with pytest.raises(ValueError, match="dilation"):
         SymmetricSameConv2d(Conv2dSame(4, 4, 3, stride=2, dilation=2))
+
+
+def test_symmetric_same_convolution_per_axis_and_in_half_precision():
+    torch.manual_seed(1)
+    same = Conv2dSame(6, 4, (3, 5), stride=(1, 2), bias=False).eval()
+    fast = SymmetricSameConv2d(same).eval()
+    x = torch.randn(1, 6, 9, 14)
+    with torch.no_grad():
+        torch.testing.assert_close(fast(x), same(x), rtol=1e-5, atol=1e-6)
+        half = x.to(torch.bfloat16)
+        same_half = copy.deepcopy(same).to(torch.bfloat16)
+        torch.testing.assert_close(SymmetricSameConv2d(same_half)(half), same_half(half),
+                                   rtol=2e-2, atol=2e-2)
+    # The rewrite shares the parameters: the same state dict, both ways.
+    assert fast.state_dict().keys() == same.state_dict().keys()
+    assert fast.weight is same.weight

@@ -140,10 +140,12 @@ class DepthEstimator:
             "uniform"); None: the one the weights were trained with
             (``model.config["hypothesis_sampling"]``, or the ONNX file's metadata).
         weights: free text saying where the weights come from (shown by the CLI).
-        fold_batch_norms: apply every inference optimisation in place: fold all batch
-            norms into their convolutions and put the decoder and head in channels-last
-            layout (faster; outputs change only by float rounding: the release's parity
-            fixture still holds, tested). Pass False to keep a model you will go on
+        fold_batch_norms: apply every inference optimisation in place
+            (:func:`~deltar.models.optimize.prepare_for_inference`): fold all batch
+            norms into their convolutions, put the encoder, decoder and head in
+            channels-last layout and run TensorFlow-"same" convolutions without a
+            padding copy (faster; outputs change only by float rounding: the release's
+            parity fixture still holds, tested). Pass False to keep a model you will go on
             training.
         flip_average: test-time augmentation: also run the left-right mirrored image
             with the mirrored zone layout and average the two depth maps (twice the

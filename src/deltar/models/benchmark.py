@@ -97,7 +97,8 @@ def count_gflop(model: torch.nn.Module, inputs: tuple) -> float:
     normalisation are not counted.
 
     Args:
-        model: the network, in the state it will be timed in.
+        model: the network as built (the benchmark counts before the inference
+            rewrites, whose zero-led kernels would add multiplications by zero).
         inputs: its positional inputs.
     """
     from torch.utils.flop_counter import FlopCounterMode
