@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -214,13 +213,10 @@ def _static_same_padding(model: torch.nn.Module, inputs: tuple) -> Iterator[None
     afterwards.
     """
     import torch.nn.functional as F
+    from timm.layers import Conv2dSame, get_same_padding
 
     from deltar.models.optimize import SymmetricSameConv2d
 
-    try:
-        from timm.layers import Conv2dSame
-    except ImportError:  # a timm without it has no such convolutions either
-        Conv2dSame = SymmetricSameConv2d
     convs = [m for m in model.modules() if isinstance(m, (Conv2dSame, SymmetricSameConv2d))]
     sizes: dict[torch.nn.Module, tuple[int, int]] = {}
     hooks = [conv.register_forward_pre_hook(
@@ -240,7 +236,7 @@ def _static_same_padding(model: torch.nn.Module, inputs: tuple) -> Iterator[None
 
     for conv in convs:
         if conv in sizes:
-            pad_h, pad_w = (_same_padding(size, kernel, stride, dilation) for size, kernel,
+            pad_h, pad_w = (get_same_padding(size, kernel, stride, dilation) for size, kernel,
                             stride, dilation in zip(sizes[conv], conv.kernel_size,
                                                     conv.stride, conv.dilation, strict=True))
             conv.forward = functools.partial(
@@ -360,11 +356,6 @@ def _fold_pads_into_convs(proto: onnx.ModelProto) -> int:
         for node in dead:
             graph.node.remove(node)
     return len(removed)
-
-
-def _same_padding(size: int, kernel: int, stride: int, dilation: int) -> int:
-    """Total zero padding of TensorFlow's "same" convolution along one axis, pixels."""
-    return max((math.ceil(size / stride) - 1) * stride + (kernel - 1) * dilation + 1 - size, 0)
 
 
 @contextlib.contextmanager

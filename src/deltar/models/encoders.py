@@ -60,12 +60,14 @@ class ImageEncoder(nn.Module):
             else None)
         self._unused_keys: frozenset[str] = frozenset()
         if levels < len(FEATURE_STRIDES):
-            whole = timm.create_model(backbone, pretrained=False, features_only=True,
-                                      in_chans=in_channels)
-            self._drop_unused_blocks()
+            built = set(self.backbone.state_dict())
+            if self._drop_unused_blocks():
+                whole = built  # timm built every block; the cut removed the unused ones
+            else:  # timm left the unused layers out itself: their names need a whole build
+                whole = set(timm.create_model(backbone, pretrained=False, features_only=True,
+                                              in_chans=in_channels).state_dict())
             self._unused_keys = frozenset(
-                f"backbone.{key}" for key in set(whole.state_dict()) -
-                set(self.backbone.state_dict()))
+                f"backbone.{key}" for key in whole - set(self.backbone.state_dict()))
         if not stem_activation:
             stem_norm = getattr(self.backbone, "bn1", None)
             if stem_norm is None or not hasattr(stem_norm, "act"):
@@ -76,20 +78,25 @@ class ImageEncoder(nn.Module):
         """(B, C_in, H, W) image -> ``levels`` maps (B, C_i, H / s_i, W / s_i), s_i = 2, 4, ..."""
         return self.backbone(image)
 
-    def _drop_unused_blocks(self) -> None:
+    def _drop_unused_blocks(self) -> bool:
         """Cut an EfficientNet-style block list after the last returned map.
 
         timm's features-only EfficientNets run every block whatever maps are asked
         for; the blocks after the last one returned cost time (the bundled encoder's
         stride-32 stages: over a third of its time at 256x320) and change nothing.
+
+        Returns:
+            Whether the backbone is EfficientNet-style (its blocks are cut here, if any
+            follow the last returned map).
         """
         blocks = getattr(self.backbone, "blocks", None)
         last = self.backbone.feature_info.module_name()[-1]
         if not isinstance(blocks, nn.Sequential) or not last.startswith("blocks."):
-            return
+            return False
         keep = int(last.split(".")[1]) + 1
         if keep < len(blocks):
             self.backbone.blocks = blocks[:keep]
+        return True
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         # Weights saved with the whole backbone (every checkpoint before the cut) still

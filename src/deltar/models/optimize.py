@@ -8,7 +8,6 @@
 from __future__ import annotations
 
 import itertools
-import math
 
 import torch
 import torch.nn.functional as F
@@ -96,10 +95,12 @@ class SymmetricSameConv2d(nn.Conv2d):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C_in, H, W) -> (B, C_out, ceil(H / s), ceil(W / s)), TensorFlow "same"."""
+        from timm.layers import get_same_padding
+
         pads, leads = [], []
         for size, kernel, stride in zip(x.shape[-2:], self.kernel_size, self.stride,
                                         strict=True):
-            total = max((math.ceil(size / stride) - 1) * stride + kernel - size, 0)
+            total = get_same_padding(size, kernel, stride, 1)
             after = total - total // 2
             pads.append(after)
             leads.append(after - total // 2)  # 0 or 1
@@ -118,10 +119,8 @@ def use_symmetric_same_convs(model: nn.Module) -> int:
     Returns:
         Number of convolutions replaced.
     """
-    try:
-        from timm.layers import Conv2dSame
-    except ImportError:  # a timm without it has no such convolutions either
-        return 0
+    from timm.layers import Conv2dSame
+
     replaced = 0
     for parent in list(model.modules()):
         for name, child in list(parent.named_children()):
