@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs
 from deltar.models.zone_prior import (
     _softmax_over_zones,
@@ -38,7 +39,19 @@ from deltar.models.zone_prior import (
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
 #: Strides (input pixels per cell) the encoder's feature maps have, fine to coarse.
-ENCODER_STRIDES = (2, 4, 8, 16, 32)
+ENCODER_STRIDES = FEATURE_STRIDES
+
+
+def descriptor_levels(strides: Sequence[int]) -> int:
+    """How many encoder maps, fine to coarse, descriptors at ``strides`` (pixels) read.
+
+    Raises:
+        ValueError: no stride, or one that is not among :data:`ENCODER_STRIDES`.
+    """
+    if not strides or any(s not in ENCODER_STRIDES for s in strides):
+        raise ValueError(f"descriptor strides must be among {ENCODER_STRIDES}, got "
+                         f"{tuple(strides)}")
+    return max(ENCODER_STRIDES.index(s) for s in strides) + 1
 
 
 class EncoderDescriptors(nn.Module):
@@ -58,9 +71,7 @@ class EncoderDescriptors(nn.Module):
     def __init__(self, encoder_channels: Sequence[int], strides: Sequence[int] = (8, 16),
                  out_stride: int = 4) -> None:
         super().__init__()
-        if not strides or any(s not in ENCODER_STRIDES for s in strides):
-            raise ValueError(f"descriptor strides must be among {ENCODER_STRIDES}, got "
-                             f"{tuple(strides)}")
+        descriptor_levels(strides)  # checks them
         if out_stride not in ENCODER_STRIDES:
             raise ValueError(f"out_stride must be one of {ENCODER_STRIDES}, got {out_stride}")
         self.levels = tuple(ENCODER_STRIDES.index(s) for s in strides)

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead
+from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead, descriptor_levels
 from deltar.models.decoder import FUSION_STRIDES, FusionDecoder
 from deltar.models.encoders import FEATURE_STRIDES, DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
@@ -181,10 +181,8 @@ class DeltarNet(nn.Module):
 
         in_channels = 5 if self.five_channel else 3
         # The descriptor decoder reads the encoder up to its coarsest chosen stride only.
-        levels = len(FEATURE_STRIDES)
-        if decoder == "descriptors" and descriptor_strides and \
-                set(descriptor_strides) <= set(FEATURE_STRIDES):
-            levels = max(FEATURE_STRIDES.index(s) for s in descriptor_strides) + 1
+        levels = (descriptor_levels(descriptor_strides) if decoder == "descriptors"
+                  else len(FEATURE_STRIDES))
         self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation, levels)
         self.distribution_encoder = None
         if decoder == "descriptors":
