@@ -150,7 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     summary: dict[str, dict] = {}
     for scene in args.folds:
         model, seconds = train_fold(args.out, template, scene, args.steps)
-        models = {"trained": str(model)}
+        # "trained" is the estimator as users run it (for the plane-select recipe: the
+        # network blended with the colorization fill where it is unsure); "network" is the
+        # network's own depth (the estimator without the blend).
+        models = {"trained": str(model), "network": f"{model}+network"}
         models.update({f"extra:{name}": name for name in args.extra_model})
         summary[scene] = {"train_seconds": seconds}
         for degraded in (False, True):
@@ -171,8 +174,10 @@ def main(argv: list[str] | None = None) -> int:
         report.append(table(f"\n[{condition}] mean over folds {args.folds}", mean_rows))
         for label, group in (("the best classical baseline", BASELINES),
                              ("the best +far baseline", FAR_BASELINES)):
-            report.append(_comparison(label, group, [summary[s][condition] for s in args.folds],
-                                      mean_rows))
+            for row in ("trained", "network"):
+                report.append(_comparison(label, group,
+                                          [summary[s][condition] for s in args.folds],
+                                          mean_rows, row))
         summary[f"mean_{condition}"] = mean_rows
     text = "\n".join(report)
     print(text)
@@ -200,17 +205,18 @@ def markdown(summary: dict, folds: list[str]) -> str:
     return "\n".join(out)
 
 
-def _comparison(label: str, group: tuple[str, ...], folds: list[dict], mean_rows: dict) -> str:
-    """One line: the trained model's REL and RMSE gain over the best of ``group``."""
+def _comparison(label: str, group: tuple[str, ...], folds: list[dict], mean_rows: dict,
+                row: str = "trained") -> str:
+    """One line: the ``row`` method's REL and RMSE gain over the best of ``group``."""
     gains: dict[str, list[float]] = {"rel": [], "rmse": []}
     for rows in folds:
         for key in gains:
-            gains[key].append(1.0 - rows["trained"][key] / min(rows[b][key] for b in group))
+            gains[key].append(1.0 - rows[row][key] / min(rows[b][key] for b in group))
     best = {k: min(mean_rows[b][k] for b in group) for k in gains}
-    return (f"trained vs {label} (+ = trained better), per fold: REL {_percent(gains['rel'])}, "
+    return (f"{row} vs {label} (+ = {row} better), per fold: REL {_percent(gains['rel'])}, "
             f"RMSE {_percent(gains['rmse'])}; on the fold means: REL "
-            f"{100 * (1 - mean_rows['trained']['rel'] / best['rel']):+.1f}%, RMSE "
-            f"{100 * (1 - mean_rows['trained']['rmse'] / best['rmse']):+.1f}%")
+            f"{100 * (1 - mean_rows[row]['rel'] / best['rel']):+.1f}%, RMSE "
+            f"{100 * (1 - mean_rows[row]['rmse'] / best['rmse']):+.1f}%")
 
 
 def _percent(values: list[float]) -> str:

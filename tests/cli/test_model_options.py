@@ -10,8 +10,8 @@ from deltar.cli.main import _register_commands, app
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 
 _register_commands()
-NINE = ["--preset", "--checkpoint", "--official", "--onnx", "--device", "--precision",
-        "--size", "--threads", "--flip"]
+TEN = ["--preset", "--checkpoint", "--official", "--onnx", "--device", "--precision",
+        "--size", "--threads", "--flip", "--network-only"]
 
 
 def _options(command: str) -> dict[str, str]:
@@ -23,10 +23,10 @@ def test_predict_replay_and_wall_test_share_the_nine_options():
     reference = _options("predict")
     for command in ("predict", "replay", "wall-test"):
         options = _options(command)
-        assert [o for o in options if o in NINE] == NINE, command
-        assert {o: options[o] for o in NINE} == {o: reference[o] for o in NINE}
+        assert [o for o in options if o in TEN] == TEN, command
+        assert {o: options[o] for o in TEN} == {o: reference[o] for o in TEN}
     export = _options("export")
-    assert {o: export[o] for o in NINE[:3]} == {o: reference[o] for o in NINE[:3]}
+    assert {o: export[o] for o in TEN[:3]} == {o: reference[o] for o in TEN[:3]}
 
 
 def test_the_command_receives_one_model_object():
@@ -36,13 +36,13 @@ def test_the_command_receives_one_model_object():
     def command(out: str = "x", model: ModelOptions = MODEL_OPTIONS, last: int = 1):
         seen.append((out, model, last))
 
-    command(out="o", last=2, **{name.lstrip("-"): value for name, value in
-                                zip(NINE, [None, "c.pt", None, None, "cpu", "float16", "64x64",
-                                           2, True], strict=True)})
+    command(out="o", last=2, **{name.lstrip("-").replace("-", "_"): value for name, value in
+                                zip(TEN, [None, "c.pt", None, None, "cpu", "float16", "64x64",
+                                           2, True, True], strict=True)})
     out, model, last = seen[0]
     assert (out, last) == ("o", 2)
     assert model == ModelOptions(checkpoint="c.pt", precision="float16", size="64x64",
-                                 threads=2, flip=True)
+                                 threads=2, flip=True, network_only=True)
     assert model.source() == ("c.pt", "checkpoint")
     assert ModelOptions().source() == (None, None)
     with pytest.raises(TypeError, match="has no 'model' parameter"):

@@ -65,6 +65,10 @@ def evaluate(
     flip: bool = typer.Option(False, "--flip", help="Also evaluate each --checkpoint and "
                               "--official model with test-time flip averaging (reported "
                               "as 'model:NAME+flip')."),
+    network: bool = typer.Option(False, "--network", help="Also evaluate each --checkpoint "
+                                 "and --official model without the estimator's confidence "
+                                 "blend with the colorization fill: the network's own depth "
+                                 "(reported as 'model:NAME+network')."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --json "
                                    "file and --save-vis panels."),
 ) -> None:
@@ -88,7 +92,8 @@ def evaluate(
     models = [f"model:{c}" for c in checkpoint]
     if official is not None:
         models.append(f"official:{official}")
-    specs += models + ([f"{m}+flip" for m in models] if flip else [])
+    specs += models + ([f"{m}+flip" for m in models] if flip else []) + \
+        ([f"{m}+network" for m in models] if network else [])
     if not specs:
         raise typer.BadParameter("give --method, --checkpoint or --official",
                                  param_hint="--method")

@@ -1,7 +1,7 @@
 """The model options of ``predict``, ``replay`` and ``wall-test``, defined once.
 
 A command takes one parameter ``model: ModelOptions = MODEL_OPTIONS`` and is decorated with
-:func:`model_options`; the decorator puts the nine options in its place (same names
+:func:`model_options`; the decorator puts the ten options in its place (same names
 and help in every command) and hands the command a :class:`ModelOptions`, whose
 :meth:`~ModelOptions.load` is :func:`deltar.inference.load_estimator`. ``export`` uses
 the three weight options alone (:data:`PresetOption`, ...).
@@ -42,6 +42,10 @@ ThreadsOption = Annotated[int | None, typer.Option(
 FlipOption = Annotated[bool, typer.Option(
     "--flip", help="Test-time flip averaging: also run the mirrored image and zones and "
     "average (2x network time; PyTorch backends).")]
+NetworkOnlyOption = Annotated[bool, typer.Option(
+    "--network-only", help="The network's depth alone, without the confidence blend with "
+    "the colorization fill of the zones that plane-select models (the bundled default) use "
+    "by default: about 25 ms a frame faster, higher RMSE on new rooms (docs/inference.md).")]
 
 
 def parse_size(text: str | None, option: str = "--size") -> tuple[int, int] | None:
@@ -73,6 +77,7 @@ class ModelOptions:
     size: str | None = None
     threads: int | None = None
     flip: bool = False
+    network_only: bool = False
 
     def source(self) -> tuple[str | Path | None, str | None]:
         """``(source, kind)`` for :func:`~deltar.inference.load_estimator`."""
@@ -132,7 +137,8 @@ class ModelOptions:
             estimator = load_estimator(source, kind=kind, device=self.device,
                                        precision=self.precision,
                                        input_size=parse_size(self.size),
-                                       threads=self.threads, flip_average=self.flip)
+                                       threads=self.threads, flip_average=self.flip,
+                                       **({"blend": None} if self.network_only else {}))
         if kind == "preset":
             warn(f"preset {self.preset!r} has random, untrained weights: its depth is "
                  "meaningless")
@@ -146,14 +152,14 @@ MODEL_OPTIONS = ModelOptions()
 _OPTION_TYPES = {"preset": PresetOption, "checkpoint": CheckpointOption,
                  "official": OfficialOption, "onnx": OnnxOption, "device": DeviceOption,
                  "precision": PrecisionOption, "size": SizeOption, "threads": ThreadsOption,
-                 "flip": FlipOption}
+                 "flip": FlipOption, "network_only": NetworkOnlyOption}
 _PARAMETERS = [inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
                                  default=f.default, annotation=_OPTION_TYPES[f.name])
                for f in fields(ModelOptions)]
 
 
 def model_options(command):
-    """Replace the command's ``model: ModelOptions`` parameter by the nine model options.
+    """Replace the command's ``model: ModelOptions`` parameter by the ten model options.
 
     The options appear where ``model`` stands in the signature; the command receives
     ``model=ModelOptions(...)``.

@@ -3,7 +3,10 @@
 ``model:default`` is the bundled model, ``model:runs/x/model.pt`` any deltar checkpoint,
 ``official:nyu.pt`` the officially released weights, ``onnx:model.onnx`` an exported
 (float32 or int8) model run by onnxruntime. A ``+flip`` suffix
-(``model:default+flip``) adds test-time flip averaging (not for ``onnx:``). Each runs through
+(``model:default+flip``) adds test-time flip averaging (not for ``onnx:``); a ``+network``
+suffix (``model:default+network``, also ``onnx:x.onnx+network``) scores the network
+alone, without the estimator's confidence blend with the colorization fill
+(:mod:`deltar.inference.blend`, on by default for plane-select networks). Each runs through
 :class:`~deltar.inference.estimator.DepthEstimator` with the sample's own zone
 rectangles, at the network input size the one size rule gives for the sample's image
 (:func:`deltar.inference.preprocess.network_input_size`: aspect kept, the design
@@ -50,42 +53,54 @@ class EstimatorPredictor:
 
 #: Method-name suffix asking for test-time flip averaging.
 FLIP_SUFFIX = "+flip"
+#: Method-name suffix asking for the network's depth without the confidence blend.
+NETWORK_SUFFIX = "+network"
 
 
-def _split_flip(name: str) -> tuple[str, bool]:
-    if name.endswith(FLIP_SUFFIX):
-        return name[: -len(FLIP_SUFFIX)], True
-    return name, False
+def _split_suffixes(name: str) -> tuple[str, dict[str, object]]:
+    """(name, estimator keyword arguments) from ``+flip`` / ``+network`` suffixes."""
+    options: dict[str, object] = {}
+    while True:
+        if name.endswith(FLIP_SUFFIX):
+            name, options["flip_average"] = name[: -len(FLIP_SUFFIX)], True
+        elif name.endswith(NETWORK_SUFFIX):
+            name, options["blend"] = name[: -len(NETWORK_SUFFIX)], None
+        else:
+            return name, options
 
 
 def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
-    """``model:NAME|PATH[+flip]``: a bundled model name or a deltar checkpoint file."""
+    """``model:NAME|PATH[+flip][+network]``: a bundled model name or a deltar checkpoint."""
     from deltar.inference.estimator import DepthEstimator, load_checkpoint
     from deltar.weights import resolve_checkpoint
 
-    name_or_path, flip = _split_flip(name_or_path)
+    name_or_path, options = _split_suffixes(name_or_path)
     model, preset, _ = load_checkpoint(resolve_checkpoint(name_or_path))
     return EstimatorPredictor(DepthEstimator(model, weights=f"{preset} ({name_or_path})",
-                                             flip_average=flip))
+                                             **options))
 
 
 def official_predictor(path: str) -> EstimatorPredictor:
     """``official:PATH[+flip]``: the released weights (e.g. ``nyu.pt``), design 480x640."""
     from deltar.inference.estimator import DepthEstimator
 
-    path, flip = _split_flip(path)
-    return EstimatorPredictor(DepthEstimator.from_official(path, flip_average=flip))
+    path, options = _split_suffixes(path)
+    return EstimatorPredictor(DepthEstimator.from_official(path, **options))
 
 
 def onnx_predictor(path: str) -> EstimatorPredictor:
-    """``onnx:PATH``: an exported ONNX model (``deltar export``, also ``--int8``).
+    """``onnx:PATH[+network]``: an exported ONNX model (``deltar export``, also ``--int8``).
 
     It runs at its fixed input size; the sample's zone layout must fit the one it was
     exported for (else ``ValueError``; export with that layout).
     """
     from deltar.inference.estimator import DepthEstimator
 
-    return EstimatorPredictor(DepthEstimator.from_onnx(path))
+    path, options = _split_suffixes(path)
+    if "flip_average" in options:
+        raise ValueError(f"onnx:{path}: +flip needs the PyTorch backend (an ONNX model is "
+                         "fixed to one zone layout)")
+    return EstimatorPredictor(DepthEstimator.from_onnx(path, **options))
 
 
 register_method_family("model", checkpoint_predictor)
