@@ -1,10 +1,13 @@
 """Benchmark: end-to-end ``DepthEstimator.predict`` vs the bare network, PyTorch and ONNX.
 
 End to end = PNG decode + zone placement + hypothesis sampling + network + resize of
-depth and uncertainty to the input size; bare = the network call alone on prepared
-inputs. Weights are random (speed does not depend on them). Each ONNX model is
-exported first (not timed). Prints frames per second (medians over the repeats;
-bare and end-to-end runs alternate so that load from other processes hits both alike).
+depth and uncertainty to the input size, and for plane-select networks (the bundled
+``default``) the confidence blend with the colorization fill that the estimator applies
+by default; "no blend" = the same with ``blend=None`` (``--network-only``); bare = the
+network call alone on prepared inputs. Presets run with random weights (speed does not
+depend on them). Each ONNX model is exported first (not timed). Prints frames per second
+(medians over the repeats; the runs alternate so that load from other processes hits
+them alike).
 
     python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
         [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
@@ -33,18 +36,18 @@ from deltar.sensor.zone_frame import ZoneFrame
 from deltar.weights import bundled_model_names, resolve_checkpoint
 
 
-def _interleaved_medians(first, second, repeats: int, warmup: int = 1) -> tuple[float, float]:
-    """Median seconds of two functions timed alternately, so machine load hits both alike."""
+def _interleaved_medians(functions, repeats: int, warmup: int = 1) -> list[float]:
+    """Median seconds of functions timed alternately, so machine load hits them alike."""
     for _ in range(warmup):
-        first()
-        second()
-    times: tuple[list[float], list[float]] = ([], [])
+        for function in functions:
+            function()
+    times: list[list[float]] = [[] for _ in functions]
     for _ in range(repeats):
-        for function, store in ((first, times[0]), (second, times[1])):
+        for function, store in zip(functions, times, strict=True):
             start = time.perf_counter()
             function()
             store.append(time.perf_counter() - start)
-    return statistics.median(times[0]), statistics.median(times[1])
+    return [statistics.median(t) for t in times]
 
 
 def _test_frame(height: int, width: int, seed: int = 0) -> tuple[bytes, ZoneFrame]:
@@ -87,10 +90,21 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         estimator = DepthEstimator(model, weights=f"{preset} (random)")
     png, frame = _test_frame(height, width)
     inputs = estimator.prepare([_decode(png)], [frame])
-    bare, full = _interleaved_medians(lambda: estimator.run_network(inputs),
-                                      lambda: estimator.predict(_decode(png), frame), repeats)
+    blend = estimator.blend
+
+    def network_only():
+        estimator.blend = None
+        try:
+            estimator.predict(_decode(png), frame)
+        finally:
+            estimator.blend = blend
+
+    bare, full, plain = _interleaved_medians(
+        [lambda: estimator.run_network(inputs), lambda: estimator.predict(_decode(png), frame),
+         network_only], repeats)
     return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
-            "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full, "overhead": full / bare - 1.0}
+            "blend": blend is not None, "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full,
+            "no_blend_fps": 1.0 / plain, "overhead": full / bare - 1.0}
 
 
 def main() -> None:
@@ -120,12 +134,13 @@ def main() -> None:
                                       Path(tmp), args.allow_spinning))
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
-             f"{'overhead':>9}"
+             f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9}"
     print(header)
     print("-" * len(header))
     for r in rows:
         print(f"{r['preset']:<16} {r['size']:>8} {r['backend']:>8} {r['bare_fps']:>9.2f} "
-              f"{r['e2e_fps']:>8.2f} {100 * r['overhead']:>8.1f}%")
+              f"{r['e2e_fps']:>8.2f} {'yes' if r['blend'] else 'no':>6} "
+              f"{r['no_blend_fps']:>13.2f} {100 * r['overhead']:>8.1f}%")
 
 
 if __name__ == "__main__":

@@ -113,3 +113,25 @@ def test_evaluation_runs_the_size_rule(tmp_path: Path) -> None:
     sample = make_sample("a", 0)
     depth = predictor(sample)
     assert depth.shape == sample.depth_m.shape and np.isfinite(depth).all()
+
+
+def test_network_adds_the_network_alone_for_a_plane_select_model(tmp_path: Path,
+                                                                 tiny_samples) -> None:
+    """A plane-select checkpoint is scored with the estimator's blend; ``--network`` adds
+    its depth without it, which differs (the untrained network is unsure)."""
+    from deltar.evaluation.model_methods import checkpoint_predictor
+
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    checkpoint = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    out = tmp_path / "metrics.json"
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(checkpoint), "--network",
+                                 "--data", str(data), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(out.read_text())
+    key = f"model:{checkpoint}"
+    assert list(metrics) == [key, f"{key}+network"]
+    assert metrics[key]["rmse"] != metrics[f"{key}+network"]["rmse"]
+    assert checkpoint_predictor(str(checkpoint)).estimator.blend is not None
+    assert checkpoint_predictor(f"{checkpoint}+network").estimator.blend is None

@@ -66,3 +66,9 @@ def test_two_model_options_on_the_command_line_is_a_usage_error(tmp_path):
                                       "--preset", "deltar-lite", "--onnx", "m.onnx"])
     assert result.exit_code == 2
     assert "give only one of --preset, --checkpoint, --official, --onnx" in result.stderr
+
+
+def test_network_only_turns_the_blend_off():
+    """The bundled plane-select model blends by default; --network-only is the network."""
+    assert ModelOptions().load().blend is not None
+    assert ModelOptions(network_only=True).load().blend is None

@@ -249,6 +249,41 @@ def test_colorization_fill_follows_image_regions() -> None:
     assert np.all(np.abs(filled[:, 6:] - 3.0) < 0.05)
 
 
+@pytest.mark.parametrize("shape", [(7, 11), (11, 7), (9, 9)])
+def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> None:
+    """The grid solver's banded LU (either numbering) and its sparse fallback agree."""
+    import scipy.sparse.linalg
+
+    from deltar.evaluation import baselines
+
+    rng = np.random.default_rng(3)
+    gray = rng.random(shape)
+    known = rng.random(shape) < 0.2
+    known[0, 0] = True
+    values = rng.uniform(0.5, 4.0, shape)
+    banded = colorization_fill(gray, values, known)
+    system = baselines._colorization_matrix(gray) + scipy.sparse.diags(
+        known.ravel().astype(float))
+    reference = scipy.sparse.linalg.spsolve(system.tocsc(), (known * values).ravel())
+    np.testing.assert_allclose(banded.ravel(), reference, rtol=1e-9, atol=1e-12)
+    monkeypatch.setattr(baselines, "_MAX_BANDED_ENTRIES", 0)
+    np.testing.assert_allclose(colorization_fill(gray, values, known), banded, rtol=1e-9,
+                               atol=1e-12)
+
+
+def test_colorization_options_are_checked() -> None:
+    from deltar.evaluation.baselines import check_zone_inputs, complete_colorization
+
+    inputs = check_zone_inputs(np.zeros((16, 16, 3), np.uint8), np.ones(4), np.ones(4, bool),
+                               np.array([[0, 0, 8, 8], [0, 8, 8, 16], [8, 0, 16, 8],
+                                         [8, 8, 16, 16]], np.float32))
+    with pytest.raises(ValueError, match="solve_cells"):
+        complete_colorization(inputs, solve_cells=2)
+    with pytest.raises(ValueError, match="seed_side"):
+        complete_colorization(inputs, seed_side=2)
+    np.testing.assert_allclose(complete_colorization(inputs, solve_cells=64), 1.0)
+
+
 def test_colorization_fill_constant_and_errors() -> None:
     rng = np.random.default_rng(5)
     gray = rng.random((8, 9))
