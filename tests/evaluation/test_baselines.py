@@ -12,12 +12,12 @@ import pytest
 from deltar.evaluation.baselines import (
     BASELINES,
     DEFAULT_FALLBACK_DEPTH_M,
-    colorization_fill,
     guided_filter,
     joint_bilateral_filter,
     run_baseline,
 )
 from deltar.evaluation.metrics import depth_metrics
+from deltar.inference.colorization import colorization_fill
 
 
 def grid_rects(grid: int, zone: float, top: float = 0.0, left: float = 0.0) -> np.ndarray:
@@ -254,7 +254,7 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
     """The grid solver's banded LU (either numbering) and its sparse fallback agree."""
     import scipy.sparse.linalg
 
-    from deltar.evaluation import baselines
+    from deltar.inference import colorization as baselines
 
     rng = np.random.default_rng(3)
     gray = rng.random(shape)
@@ -262,7 +262,7 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
     known[0, 0] = True
     values = rng.uniform(0.5, 4.0, shape)
     banded = colorization_fill(gray, values, known)
-    system = baselines._colorization_matrix(gray) + scipy.sparse.diags(
+    system = baselines.colorization_matrix(gray) + scipy.sparse.diags(
         known.ravel().astype(float))
     reference = scipy.sparse.linalg.spsolve(system.tocsc(), (known * values).ravel())
     np.testing.assert_allclose(banded.ravel(), reference, rtol=1e-9, atol=1e-12)

@@ -31,9 +31,9 @@ def _scene(rng: np.random.Generator, height: int = 48, width: int = 64):
 def test_blend_options_are_checked():
     assert ConfidenceBlend() == ConfidenceBlend(8.0, 128.0)
     for bad in (-1.0, float("nan"), float("inf"), "8"):
-        with pytest.raises(ValueError, match="ConfidenceBlend.beta_inside"):
+        with pytest.raises(ValueError, match=r"ConfidenceBlend\.beta_inside"):
             ConfidenceBlend(beta_inside=bad)
-    with pytest.raises(ValueError, match="ConfidenceBlend.beta_outside"):
+    with pytest.raises(ValueError, match=r"ConfidenceBlend\.beta_outside"):
         ConfidenceBlend(beta_outside=-0.5)
 
 

@@ -4,7 +4,8 @@ The plane-select network gives each pixel the depth of the zone planes its image
 descriptors pick. Where the pick is clear its depth is better per pixel than any
 classical method's; where it is unsure (mixed zones at depth edges, and most of what the
 camera sees beyond the sensor's field of view) a wrong pick costs a large error. The
-colorization fill of the zone readings (:func:`deltar.evaluation.baselines.complete_colorization`)
+colorization fill of the zone readings (:func:`deltar.inference.colorization.colorize_zones`,
+the classical ``colorization`` baseline)
 errs differently: it propagates the readings smoothly along the image, so it hedges. The
 blend takes, per pixel,
 
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.evaluation.baselines import run_baseline
+from deltar.inference.colorization import colorize_zones
 
 
 @dataclass(frozen=True)
@@ -113,7 +114,9 @@ def blend_depth(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb: np.nd
         far = np.asarray(zone_far, dtype=bool) & ~valid
         means = np.where(far, far_depth_m, means)
         valid = valid | far
-    fill = run_baseline("colorization", image_rgb, means, valid, zone_rects)
+    fill = colorize_zones(image_rgb, means, valid, zone_rects)
+    if fill is None:  # no valid zone overlaps the image
+        return depth_m.astype(np.float32)
     weight = blend_weight(depth_m, uncertainty_m, zone_grid_mask(zone_rects, depth_m.shape),
                           blend)
     return (weight * depth_m + (1.0 - weight) * fill).astype(np.float32)
