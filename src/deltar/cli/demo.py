@@ -72,4 +72,4 @@ def demo(
     evaluate(method="all", checkpoint=bundled_model_names(), official=None,
              data=scenes / "data.json", split="test",
              json_out=out / "metrics.json", save_vis=out / "panels", limit=None,
-             min_depth=1e-3, max_depth=10.0, flip=False, overwrite=False)
+             min_depth=1e-3, max_depth=10.0, flip=False, network=False, overwrite=False)
