@@ -6,9 +6,11 @@ For each of the four scenes in ../shared/data/rgbd: train the recipe (a training
 and degraded: 20% of the valid zones dropped, 30% of the rest biased by
 N(+0.10, 0.15) m), and score every classical baseline and the trained model on it with
 ``deltar evaluate``, each also in its ``+far`` form (zones that reported no target read
-as 5 m, as the model reads them). Prints each fold's table and the mean over folds, with
-the model's REL and RMSE change against the best classical baseline of each fold and
-against the best ``+far`` one.
+as 5 m, as the model reads them). The model is scored twice: ``trained``, as
+``DepthEstimator`` runs it (for the plane-select recipe: blended with the colorization
+fill where the network is unsure), and ``network``, the network alone (``+network``).
+Prints each fold's table and the mean over folds, with both rows' REL and RMSE change
+against the best classical baseline of each fold and against the best ``+far`` one.
 
     python benchmarks/cross_scene.py --out cross-scene/          # all four folds
     python benchmarks/cross_scene.py --out cs/ --folds floor --steps 100   # a quick look
@@ -108,13 +110,17 @@ def train_fold(out: Path, template: dict, scene: str, steps: int | None) -> tupl
 def evaluate(out: Path, index: Path, models: dict[str, str], tag: str) -> dict[str, dict]:
     """``deltar evaluate`` of every baseline and model on one set; {method: metrics}."""
     result = out / "metrics" / f"{tag}.json"
-    if not result.is_file():
+    wanted = set(BASELINES + FAR_BASELINES) | {f"model:{path}" for path in models.values()}
+    # Metrics kept from an earlier run count only if they hold every method asked for now
+    # (a folder from before the "network" row, say, is evaluated again).
+    stale = result.is_file() and not wanted <= set(json.loads(result.read_text()))
+    if not result.is_file() or stale:
         result.parent.mkdir(parents=True, exist_ok=True)
         args = ["evaluate", "--data", str(index), "--json", str(result),
                 "--method", ",".join(BASELINES + FAR_BASELINES)]
         for path in models.values():
             args += ["--checkpoint", path]
-        deltar(*args)
+        deltar(*args, *(["--overwrite"] if stale else []))
     renamed = {}
     for name, metrics in json.loads(result.read_text()).items():
         for label, path in models.items():

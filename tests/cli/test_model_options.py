@@ -19,7 +19,7 @@ def _options(command: str) -> dict[str, str]:
     return {p.opts[0]: p.help for p in group.commands[command].params}
 
 
-def test_predict_replay_and_wall_test_share_the_nine_options():
+def test_predict_replay_and_wall_test_share_the_ten_options():
     reference = _options("predict")
     for command in ("predict", "replay", "wall-test"):
         options = _options(command)

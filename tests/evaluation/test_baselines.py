@@ -254,7 +254,7 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
     """The grid solver's banded LU (either numbering) and its sparse fallback agree."""
     import scipy.sparse.linalg
 
-    from deltar.inference import colorization as baselines
+    from deltar.inference import colorization
 
     rng = np.random.default_rng(3)
     gray = rng.random(shape)
@@ -262,11 +262,11 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
     known[0, 0] = True
     values = rng.uniform(0.5, 4.0, shape)
     banded = colorization_fill(gray, values, known)
-    system = baselines.colorization_matrix(gray) + scipy.sparse.diags(
+    system = colorization.colorization_matrix(gray) + scipy.sparse.diags(
         known.ravel().astype(float))
     reference = scipy.sparse.linalg.spsolve(system.tocsc(), (known * values).ravel())
     np.testing.assert_allclose(banded.ravel(), reference, rtol=1e-9, atol=1e-12)
-    monkeypatch.setattr(baselines, "_MAX_BANDED_ENTRIES", 0)
+    monkeypatch.setattr(colorization, "_MAX_BANDED_ENTRIES", 0)
     np.testing.assert_allclose(colorization_fill(gray, values, known), banded, rtol=1e-9,
                                atol=1e-12)
 

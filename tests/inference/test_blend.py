@@ -168,3 +168,91 @@ def test_colorization_solve_grid_does_not_depend_on_the_image_size(rng):
     depth_big = run_baseline("colorization", big, frame_mean.ravel(), valid, rects_big)
     depth_small = run_baseline("colorization", small, frame_mean.ravel(), valid, rects_small)
     assert np.abs(depth_big[::2, ::2] - depth_small).mean() < 0.02
+
+
+def test_bad_blend_inputs_name_the_argument(rng):
+    from deltar.inference.colorization import colorize_zones
+
+    image, means, valid, rects = _scene(rng)
+    depth = np.full(image.shape[:2], 2.0, np.float32)
+    unsure = np.full_like(depth, 0.5)
+    cases = [
+        (dict(uncertainty_m=unsure[:-1]), "uncertainty_m"),
+        (dict(depth_m=depth[None]), "depth_m"),
+        (dict(image_rgb=image[:, :-2]), "image_rgb"),
+        (dict(zone_valid=valid[:-1]), "zone_valid"),
+        (dict(blend=(8, 128)), "blend must be a ConfidenceBlend"),
+        (dict(zone_far=np.zeros(16, bool), far_depth_m=float("nan")), "far_depth_m"),
+        (dict(zone_far=np.zeros(5, bool), far_depth_m=5.0), "zone_far"),
+        (dict(zone_rects=rects[:, :3]), "zone_rects"),
+    ]
+    base = dict(depth_m=depth, uncertainty_m=unsure, image_rgb=image, zone_mean_m=means,
+                zone_valid=valid, zone_rects=rects, blend=ConfidenceBlend())
+    for change, message in cases:
+        with pytest.raises(ValueError, match=message):
+            blend_depth(**{**base, **change})
+    for kwargs, message in [(dict(seed_side=3.0), "seed_side"), (dict(seed_side=4), "seed_side"),
+                            (dict(solve_cells=True), "solve_cells")]:
+        with pytest.raises(ValueError, match=message):
+            colorize_zones(image, means, valid, rects, **kwargs)
+    with pytest.raises(ValueError, match="uint8"):
+        colorize_zones(image.astype(np.float32), means, valid, rects)
+    with pytest.raises(ValueError, match="zone_mean_m must be finite"):
+        colorize_zones(image, np.where(valid, np.nan, 1.0), valid, rects)
+    assert ConfidenceBlend(np.float32(8.0)).beta_inside == 8.0
+    with pytest.raises(ValueError, match="beta_inside"):
+        ConfidenceBlend(beta_inside=True)
+
+
+def test_blend_off_the_image_returns_the_network_depth(rng):
+    image, means, valid, rects = _scene(rng)
+    depth = np.full(image.shape[:2], 2.0, np.float32)
+    away = rects + np.float32(1000.0)  # no zone overlaps the image
+    out = blend_depth(depth, np.full_like(depth, 1.0), image, means, valid, away,
+                      ConfidenceBlend())
+    assert out is depth
+
+
+def test_blend_follows_the_flip_averaged_network_and_batches(rng):
+    image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    frame = ZoneFrame(rng.uniform(0.8, 3.0, (8, 8)), np.full((8, 8), 0.02),
+                      np.ones((8, 8), bool))
+    flipped = _select_estimator(flip_average=True).predict(image, frame)
+    expected = blend_depth(flipped.network_depth_m, flipped.uncertainty_m, image,
+                           frame.flat()[0], frame.flat()[2], flipped.zone_rects,
+                           ConfidenceBlend(), zone_far=frame.flat_no_target(), far_depth_m=5.0)
+    np.testing.assert_allclose(flipped.depth_m, expected, rtol=1e-5)
+    # A batch with an image-only frame: that one keeps the network's depth, the other is
+    # blended exactly as alone.
+    empty = ZoneFrame(np.zeros((8, 8)), np.zeros((8, 8)), np.zeros((8, 8), bool))
+    estimator = _select_estimator()
+    with pytest.warns(RuntimeWarning, match="no valid zone"):
+        both = estimator.predict([image, image], [frame, empty])
+    alone = estimator.predict(image, frame)
+    np.testing.assert_allclose(both[0].depth_m, alone.depth_m, rtol=1e-5, atol=1e-6)
+    assert both[1].network_depth_m is None
+
+
+def test_onnx_backend_blends_like_pytorch(rng, tmp_path):
+    pytest.importorskip("onnxruntime")
+    from deltar.export.onnx import export_onnx
+
+    image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    frame = ZoneFrame(rng.uniform(0.8, 3.0, (8, 8)), np.full((8, 8), 0.02),
+                      np.ones((8, 8), bool))
+    torch_estimator = _select_estimator(blend=None)
+    rects = nominal_zone_rects(frame, 64, 96, torch_estimator.intrinsics.scaled(64, 96))
+    export_onnx(torch_estimator.model, tmp_path / "select.onnx", 64, 96, zone_rects=rects)
+    onnx_estimator = DepthEstimator.from_onnx(tmp_path / "select.onnx", num_threads=1)
+    assert onnx_estimator.blend == ConfidenceBlend()
+    got = onnx_estimator.predict(image, frame)
+    reference = _select_estimator().predict(image, frame)
+    np.testing.assert_allclose(got.network_depth_m, reference.network_depth_m, atol=1e-4)
+    np.testing.assert_allclose(got.depth_m, reference.depth_m, atol=1e-4)
+
+
+def test_onnx_refuses_flip_in_evaluation_names():
+    from deltar.evaluation.model_methods import onnx_predictor
+
+    with pytest.raises(ValueError, match=r"\+flip needs the PyTorch backend"):
+        onnx_predictor("model.onnx+flip")

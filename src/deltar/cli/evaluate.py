@@ -66,9 +66,9 @@ def evaluate(
                               "--official model with test-time flip averaging (reported "
                               "as 'model:NAME+flip')."),
     network: bool = typer.Option(False, "--network", help="Also evaluate each --checkpoint "
-                                 "and --official model without the estimator's confidence "
-                                 "blend with the colorization fill: the network's own depth "
-                                 "(reported as 'model:NAME+network')."),
+                                 "model without the estimator's confidence blend with the "
+                                 "colorization fill: the network's own depth (reported as "
+                                 "'model:NAME+network'; the released weights never blend)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --json "
                                    "file and --save-vis panels."),
 ) -> None:
@@ -93,7 +93,7 @@ def evaluate(
     if official is not None:
         models.append(f"official:{official}")
     specs += models + ([f"{m}+flip" for m in models] if flip else []) + \
-        ([f"{m}+network" for m in models] if network else [])
+        ([f"model:{c}+network" for c in checkpoint] if network else [])
     if not specs:
         raise typer.BadParameter("give --method, --checkpoint or --official",
                                  param_hint="--method")

@@ -81,7 +81,8 @@ def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
 
 
 def official_predictor(path: str) -> EstimatorPredictor:
-    """``official:PATH[+flip]``: the released weights (e.g. ``nyu.pt``), design 480x640."""
+    """``official:PATH[+flip][+network]``: the released weights (e.g. ``nyu.pt``), design
+    480x640 (not plane-select, so never blended: ``+network`` changes nothing)."""
     from deltar.inference.estimator import DepthEstimator
 
     path, options = _split_suffixes(path)

@@ -22,11 +22,10 @@ did best on the three other scenes; three of the four folds chose (8, 128).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
-
-from deltar.inference.colorization import colorize_zones
 
 
 @dataclass(frozen=True)
@@ -44,7 +43,8 @@ class ConfidenceBlend:
     def __post_init__(self) -> None:
         for name in ("beta_inside", "beta_outside"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            if isinstance(value, bool) or not (isinstance(value, numbers.Real)
+                                               and math.isfinite(value) and value >= 0):
                 raise ValueError(f"ConfidenceBlend.{name} must be a finite number >= 0, got "
                                  f"{value!r}")
 
@@ -101,22 +101,49 @@ def blend_depth(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb: np.nd
         far_depth_m: depth of a no-target zone, metres (required with ``zone_far``).
 
     Returns:
-        (H, W) float32 blended depth, metres. Without a valid zone the network's depth is
-        returned unchanged (the fill has nothing to propagate).
+        (H, W) float32 blended depth, metres. Without a valid zone overlapping the image
+        the fill has nothing to propagate: ``depth_m`` itself is returned (the same
+        object, so a caller can tell).
+
+    Raises:
+        ValueError: mismatched shapes (naming the argument), ``blend`` not a
+            :class:`ConfidenceBlend`, ``zone_far`` without a finite ``far_depth_m`` > 0,
+            or bad zone arrays (:func:`~deltar.inference.colorization.colorize_zones`).
     """
-    means = np.asarray(zone_mean_m, dtype=np.float64)
+    from deltar.inference.colorization import colorize_zones  # scipy and cv2: on use
+
+    if not isinstance(blend, ConfidenceBlend):
+        raise ValueError(f"blend must be a ConfidenceBlend, got {blend!r}")
+    depth_m = np.asarray(depth_m)
+    shape = depth_m.shape
+    if depth_m.ndim != 2:
+        raise ValueError(f"depth_m must be an (H, W) map, got shape {shape}")
+    if np.shape(uncertainty_m) != shape:
+        raise ValueError(f"uncertainty_m must have depth_m's shape {shape}, got "
+                         f"{np.shape(uncertainty_m)}")
+    if np.shape(image_rgb)[:2] != shape:
+        raise ValueError(f"image_rgb must be (H, W, 3) with depth_m's (H, W) = {shape}, got "
+                         f"{np.shape(image_rgb)}")
+    means = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
+    if np.shape(zone_valid) != means.shape:
+        raise ValueError(f"zone_valid must have zone_mean_m's shape {means.shape}, got "
+                         f"{np.shape(zone_valid)}")
     valid = np.asarray(zone_valid, dtype=bool) & (means > 0)
     if not valid.any():
-        return depth_m.astype(np.float32)
+        return depth_m
     if zone_far is not None:
-        if far_depth_m is None:
-            raise ValueError("far_depth_m is needed with zone_far")
+        if far_depth_m is None or not (math.isfinite(far_depth_m) and far_depth_m > 0):
+            raise ValueError(f"far_depth_m must be a finite depth > 0 (metres) with zone_far, "
+                             f"got {far_depth_m!r}")
+        if np.shape(zone_far) != means.shape:
+            raise ValueError(f"zone_far must have zone_mean_m's shape {means.shape}, got "
+                             f"{np.shape(zone_far)}")
         far = np.asarray(zone_far, dtype=bool) & ~valid
         means = np.where(far, far_depth_m, means)
         valid = valid | far
     fill = colorize_zones(image_rgb, means, valid, zone_rects)
     if fill is None:  # no valid zone overlaps the image
-        return depth_m.astype(np.float32)
+        return depth_m
     weight = blend_weight(depth_m, uncertainty_m, zone_grid_mask(zone_rects, depth_m.shape),
                           blend)
     return (weight * depth_m + (1.0 - weight) * fill).astype(np.float32)

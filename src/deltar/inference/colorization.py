@@ -11,6 +11,7 @@ whatever the image size, then upsampled. The classical ``colorization`` baseline
 from __future__ import annotations
 
 import math
+import numbers
 
 import cv2
 import numpy as np
@@ -27,9 +28,14 @@ COLORIZATION_SEED_SIDE = 3
 def colorization_matrix(gray: np.ndarray) -> scipy.sparse.csr_matrix:
     """Levin et al.'s affinity Laplacian (3x3 windows), as in the NYU toolbox's fill.
 
-    Row p is ``x_p - sum_q w_pq x_q`` with ``w_pq`` proportional to
-    ``exp(-(I_p - I_q)^2 / s_p)``, ``s_p`` = 0.6 x the local intensity variance, bounded
-    below so that the closest neighbour keeps a weight of at least 1 % (and by 2e-6).
+    Args:
+        gray: (h, w) float intensity image in [0, 1].
+
+    Returns:
+        (h*w, h*w) sparse CSR matrix over the pixels in row-major order. Row p is
+        ``x_p - sum_q w_pq x_q`` with ``w_pq`` proportional to ``exp(-(I_p - I_q)^2 / s_p)``,
+        ``s_p`` = 0.6 x the local intensity variance, bounded below so that the closest
+        neighbour keeps a weight of at least 1 % (and by 2e-6).
     """
     height, width = gray.shape
     index = np.arange(height * width).reshape(height, width)
@@ -144,17 +150,34 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
         when no valid zone overlaps the image.
 
     Raises:
-        ValueError: bad ``solve_cells`` / ``seed_side``, or no valid zone.
+        ValueError: bad ``solve_cells`` / ``seed_side``, an image that is not (H, W, 3)
+            uint8, zone arrays of mismatched shapes, no valid zone, or a non-finite or
+            non-positive valid reading (the message names the argument).
     """
-    if solve_cells < 4:
-        raise ValueError(f"solve_cells must be >= 4, got {solve_cells}")
-    if seed_side < 1 or seed_side % 2 == 0:
-        raise ValueError(f"seed_side must be a positive odd number of cells, got {seed_side}")
-    zone_valid = np.asarray(zone_valid, dtype=bool)
-    if not zone_valid.any():
-        raise ValueError("colorize_zones needs at least one valid zone")
-    zone_mean_m = np.asarray(zone_mean_m, dtype=np.float64)
+    if isinstance(solve_cells, bool) or not isinstance(solve_cells, numbers.Integral) \
+            or solve_cells < 4:
+        raise ValueError(f"solve_cells must be an integer >= 4, got {solve_cells!r}")
+    if isinstance(seed_side, bool) or not isinstance(seed_side, numbers.Integral) \
+            or seed_side < 1 or seed_side % 2 == 0:
+        raise ValueError(f"seed_side must be a positive odd integer (cells), got {seed_side!r}")
+    image_rgb = np.asarray(image_rgb)
+    if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
+        raise ValueError(f"image_rgb must be an (H, W, 3) uint8 RGB array, got "
+                         f"{image_rgb.dtype} {image_rgb.shape}")
+    zone_mean_m = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
+    zone_valid = np.asarray(zone_valid, dtype=bool).reshape(-1)
     zone_rects = np.asarray(zone_rects, dtype=np.float64)
+    count = zone_mean_m.size
+    if count == 0 or zone_valid.size != count or zone_rects.shape != (count, 4):
+        raise ValueError(f"zone_mean_m (Z,), zone_valid (Z,) and zone_rects (Z, 4) must "
+                         f"describe the same Z > 0 zones, got {zone_mean_m.shape}, "
+                         f"{zone_valid.shape}, {zone_rects.shape}")
+    if not zone_valid.any():
+        raise ValueError("colorize_zones needs at least one valid zone (zone_valid)")
+    if not (np.all(np.isfinite(zone_mean_m[zone_valid])) and np.all(zone_mean_m[zone_valid] > 0)
+            and np.all(np.isfinite(zone_rects))):
+        raise ValueError("zone_mean_m must be finite and > 0 where zone_valid, and zone_rects "
+                         "finite")
     height, width = image_rgb.shape[0], image_rgb.shape[1]
     scale = min(1.0, math.sqrt(solve_cells / (height * width)))
     small_h = max(2, round(height * scale))

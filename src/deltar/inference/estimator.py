@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
-from deltar.inference.blend import ConfidenceBlend, blend_depth
+from deltar.inference.blend import ConfidenceBlend
 from deltar.inference.preprocess import (
     SIZE_DIVISOR,
     check_image,
@@ -64,8 +64,8 @@ class DepthPrediction:
 
     Attributes:
         depth_m: (H, W) float32 depth in metres at the input image's resolution.
-        uncertainty_m: (H, W) float32 per-pixel standard deviation of the depth
-            distribution in metres.
+        uncertainty_m: (H, W) float32 per-pixel standard deviation of the network's depth
+            distribution in metres (the network's also when ``depth_m`` is blended).
         zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
         zone_frame: the zone frame the prediction used.
         intrinsics: camera intrinsics of the input image (calibrated or nominal).
@@ -513,8 +513,9 @@ class DepthEstimator:
                 spread = np.maximum(spread, depth)
             network_depth = None
             if self.blend is not None and frame.valid_count > 0:
-                network_depth = depth
-                depth = self._blend(depth, spread, images[i], frame, inputs["image_rects"][i])
+                blended = self._blend(depth, spread, images[i], frame, inputs["image_rects"][i])
+                if blended is not depth:  # else no valid zone overlapped the image
+                    network_depth, depth = depth, blended
             results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
                                            zone_rects=inputs["image_rects"][i],
                                            zone_frame=frame, intrinsics=intrinsics,
@@ -526,6 +527,8 @@ class DepthEstimator:
     def _blend(self, depth_m: np.ndarray, uncertainty_m: np.ndarray, image: np.ndarray,
                frame: ZoneFrame, rects: np.ndarray) -> np.ndarray:
         """:func:`~deltar.inference.blend.blend_depth` for one frame (H, W metres)."""
+        from deltar.inference.blend import blend_depth
+
         mean, _, valid = frame.flat()
         far = frame.flat_no_target() if self.no_target_depth_m is not None else None
         return blend_depth(depth_m, uncertainty_m, image, mean, valid, rects, self.blend,
