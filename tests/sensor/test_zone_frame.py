@@ -152,3 +152,16 @@ def test_histogram_fields_validated():
         ZoneFrame(**kwargs, hist_edges_m=edges, hist_counts=-np.ones((4, 4, 100)))
     with pytest.raises(ValueError, match="timestamp_s"):
         ZoneFrame(**kwargs, timestamp_s=float("nan"))
+
+
+def test_no_target_zones_become_far_readings():
+    from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M, no_target_as_readings
+
+    means = np.array([1.0, 0.0, 2.0, 0.0])
+    valid = np.array([True, False, True, False])
+    no_target = np.array([True, True, False, False])  # a valid zone's flag does not count
+    got_means, got_valid = no_target_as_readings(means, valid, no_target)
+    np.testing.assert_array_equal(got_means, [1.0, NO_TARGET_DEPTH_M, 2.0, 0.0])
+    np.testing.assert_array_equal(got_valid, [True, True, True, False])
+    np.testing.assert_array_equal(no_target_as_readings(means, valid, no_target, 7.5)[0],
+                                  [1.0, 7.5, 2.0, 0.0])

@@ -20,7 +20,7 @@ import numpy as np
 
 from deltar.evaluation.baselines import BASELINES, run_baseline
 from deltar.evaluation.metrics import EmptyFrameError, MetricAccumulator, depth_metrics
-from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
+from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M, no_target_as_readings
 
 if TYPE_CHECKING:
     from deltar.data.zju_l5 import ZJUL5Sample
@@ -59,9 +59,8 @@ class BaselinePredictor:
         means = sample.zone_mean_sigma[:, 0]
         valid = sample.zone_valid & (means > 0)
         if self.no_target_depth_m is not None and sample.zone_no_target is not None:
-            far = sample.zone_no_target & ~valid
-            means = np.where(far, self.no_target_depth_m, means)
-            valid = valid | far
+            means, valid = no_target_as_readings(means, valid, sample.zone_no_target,
+                                                 self.no_target_depth_m)
         return run_baseline(self.baseline, sample.rgb, means, valid, sample.zone_rects)
 
 

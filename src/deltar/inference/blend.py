@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deltar.sensor.zone_frame import no_target_as_readings
+
 
 @dataclass(frozen=True)
 class ConfidenceBlend:
@@ -138,9 +140,7 @@ def blend_depth(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb: np.nd
         if np.shape(zone_far) != means.shape:
             raise ValueError(f"zone_far must have zone_mean_m's shape {means.shape}, got "
                              f"{np.shape(zone_far)}")
-        far = np.asarray(zone_far, dtype=bool) & ~valid
-        means = np.where(far, far_depth_m, means)
-        valid = valid | far
+        means, valid = no_target_as_readings(means, valid, zone_far, far_depth_m)
     fill = colorize_zones(image_rgb, means, valid, zone_rects)
     if fill is None:  # no valid zone overlaps the image
         return depth_m

@@ -512,9 +512,9 @@ class DepthEstimator:
                               RuntimeWarning, stacklevel=2)
                 spread = np.maximum(spread, depth)
             network_depth = None
-            if self.blend is not None and frame.valid_count > 0:
+            if self.blend is not None:
                 blended = self._blend(depth, spread, images[i], frame, inputs["image_rects"][i])
-                if blended is not depth:  # else no valid zone overlapped the image
+                if blended is not depth:  # else no valid zone (on the image) to fill from
                     network_depth, depth = depth, blended
             results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
                                            zone_rects=inputs["image_rects"][i],

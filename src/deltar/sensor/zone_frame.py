@@ -17,6 +17,31 @@ NO_TARGET_STATUS = 255
 #: beyond the 4 m range, at 1.25 times it (a prior, not fitted to any scene).
 NO_TARGET_DEPTH_M = 5.0
 
+
+
+def no_target_as_readings(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
+                          zone_no_target: np.ndarray, far_depth_m: float = NO_TARGET_DEPTH_M
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Zones that reported no target, and are not valid, as readings at ``far_depth_m``.
+
+    The rule every method that uses the flag applies to the zone readings (the ``+far``
+    baselines, the estimator's confidence blend).
+
+    Args:
+        zone_mean_m: (Z,) zone readings, metres.
+        zone_valid: (Z,) bool.
+        zone_no_target: (Z,) bool, the zones' no-target flags.
+        far_depth_m: the depth such a zone reads at, metres.
+
+    Returns:
+        ``(mean_m, valid)``: (Z,) float readings with those zones at ``far_depth_m`` and
+        (Z,) bool validity including them.
+    """
+    valid = np.asarray(zone_valid, dtype=bool)
+    far = np.asarray(zone_no_target, dtype=bool) & ~valid
+    return np.where(far, far_depth_m, zone_mean_m), valid | far
+
+
 SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
 
 #: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
