@@ -26,6 +26,15 @@ def _untrained_prior_model(path: Path) -> Path:
     return save_checkpoint(path, model, "deltar-lite", dict(model.config))
 
 
+def _evaluate_checkpoint(tmp_path: Path, data: Path, checkpoint: Path, *options: str) -> dict:
+    """``deltar evaluate --checkpoint CHECKPOINT OPTIONS``; the metrics it wrote."""
+    out = tmp_path / "metrics.json"
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(checkpoint), *options,
+                                 "--data", str(data), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    return json.loads(out.read_text())
+
+
 def test_checkpoint_is_evaluated_beside_the_baselines(tmp_path: Path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     checkpoint = _untrained_prior_model(tmp_path / "prior.pt")
@@ -62,11 +71,7 @@ def test_no_method_at_all_is_an_error(tmp_path: Path, tiny_samples) -> None:
 def test_flip_adds_a_flip_averaged_entry(tmp_path: Path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     checkpoint = _untrained_prior_model(tmp_path / "prior.pt")
-    out = tmp_path / "metrics.json"
-    result = runner.invoke(app, ["evaluate", "--checkpoint", str(checkpoint), "--flip",
-                                 "--data", str(data), "--json", str(out)])
-    assert result.exit_code == 0, result.output
-    metrics = json.loads(out.read_text())
+    metrics = _evaluate_checkpoint(tmp_path, data, checkpoint, "--flip")
     key = f"model:{checkpoint}"
     assert list(metrics) == [key, f"{key}+flip"]
     # The untrained prior is mirror-symmetric in the zones: flipping must not change it.
@@ -125,11 +130,7 @@ def test_network_adds_the_network_alone_for_a_plane_select_model(tmp_path: Path,
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=(32, 64))
     checkpoint = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
-    out = tmp_path / "metrics.json"
-    result = runner.invoke(app, ["evaluate", "--checkpoint", str(checkpoint), "--network",
-                                 "--data", str(data), "--json", str(out)])
-    assert result.exit_code == 0, result.output
-    metrics = json.loads(out.read_text())
+    metrics = _evaluate_checkpoint(tmp_path, data, checkpoint, "--network")
     key = f"model:{checkpoint}"
     assert list(metrics) == [key, f"{key}+network"]
     assert metrics[key]["rmse"] != metrics[f"{key}+network"]["rmse"]
