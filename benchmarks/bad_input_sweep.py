@@ -98,8 +98,8 @@ def _zone_dict(rng, grid=8, low=0.5, high=3.0):
 
 def build_inputs(root: Path) -> Path:
     """Write every input file the cases read into ``root/in``; return that folder."""
-    from deltar.calibration.camera import CameraIntrinsics
     from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
     from deltar.sensor.geometry import SensorExtrinsics
 
     rng = np.random.default_rng(0)
@@ -174,8 +174,8 @@ def build_recordings(inp: Path, cli) -> None:
     """A simulated wall recording, a ZJU-L5 set and a synthetic calibration recording."""
     from scipy.spatial.transform import Rotation
 
-    from deltar.calibration.camera import CameraIntrinsics
     from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+    from deltar.camera import CameraIntrinsics
     from deltar.sensor.geometry import SensorExtrinsics
 
     for args in (["record", str(inp / "rec"), "--simulate", "wall:1.5:4:48x64"],

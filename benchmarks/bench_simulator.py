@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))  # the loop reference lives with the tests
 
 from tests.sensor.loop_reference import simulate_zones_loop  # noqa: E402
 
-from deltar.calibration.camera import ZJU_L5_INTRINSICS  # noqa: E402
+from deltar.camera import ZJU_L5_INTRINSICS  # noqa: E402
 from deltar.sensor import simulate_zones, training_zone_rects, zone_rects  # noqa: E402
 
 FRAME = ROOT.parent / "shared" / "data" / "rgbd" / "7scenes_redkitchen" / "frame-000000.depth.png"

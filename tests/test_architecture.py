@@ -34,10 +34,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 
 #: Imports against the layering that are known and being removed:
 #: (importing file relative to src/deltar, imported package) -> why it is still there.
-KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {
-    # A deprecated alias module forwarding to the wall test's new home; remove with it.
-    ("inference/wall_test.py", "evaluation"): "deprecated alias deltar.inference.wall_test",
-}
+KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {}
 
 
 def _package_of(path: Path) -> str:

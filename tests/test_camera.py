@@ -47,16 +47,10 @@ def test_bad_input_names_the_argument(depth, kwargs, message):
         backproject_pixels(depth, K, **kwargs)
 
 
-def test_old_paths_are_the_same_functions():
-    from deltar.calibration import CameraIntrinsics as from_calibration
-    from deltar.calibration.camera import ZJU_L5_INTRINSICS
+def test_the_point_cloud_writer_back_projects_as_the_camera_does():
     from deltar.calibration.extrinsic import depth_to_points
-    from deltar.camera import ZJU_L5_INTRINSICS as leaf_intrinsics
-    from deltar.evaluation.plane import backproject as evaluation_backproject
     from deltar.inference.outputs import depth_to_points as cloud_points
 
-    assert from_calibration is CameraIntrinsics and ZJU_L5_INTRINSICS is leaf_intrinsics
-    assert evaluation_backproject is backproject
     depth = np.array([[1.0, 0.0, 2.0], [3.0, 4.0, 5.0]])
     np.testing.assert_array_equal(depth_to_points(depth, K), backproject(depth, K))
     points, colors = cloud_points(depth, K)

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.extrinsic import (
     check_plane_diversity,
     depth_to_points,
@@ -15,6 +14,7 @@ from deltar.calibration.extrinsic import (
 )
 from deltar.calibration.pipeline import calibrate_observations, observation_from_frame
 from deltar.calibration.synthetic import synthetic_rig_frames
+from deltar.camera import CameraIntrinsics
 from deltar.sensor.geometry import SensorExtrinsics
 
 CAMERA = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)

@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.extrinsic import depth_to_points, nominal_extrinsics
 from deltar.calibration.pipeline import calibrate_observations, observation_from_frame
 from deltar.calibration.plane import ransac_plane
@@ -27,6 +26,7 @@ from deltar.calibration.synthetic import (
     sensor_pose,
     sensor_virtual_camera,
 )
+from deltar.camera import CameraIntrinsics
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.simulate import simulate_zone_frame
 from deltar.sensor.zone_frame import ZoneFrame

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.extrinsic import nominal_extrinsics
 from deltar.calibration.rig import RigCalibration
+from deltar.camera import CameraIntrinsics
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.zone_frame import ZoneFrame
 

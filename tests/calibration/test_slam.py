@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.extrinsic import nominal_extrinsics
 from deltar.calibration.pipeline import calibrate_recording
 from deltar.calibration.slam import (
@@ -16,6 +15,7 @@ from deltar.calibration.slam import (
     write_ply_points,
 )
 from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+from deltar.camera import CameraIntrinsics
 from deltar.io.recording import Recording
 from deltar.sensor.geometry import SensorExtrinsics
 

@@ -16,9 +16,9 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+from deltar.camera import CameraIntrinsics
 from deltar.cli.main import _register_commands, app
 from deltar.io.zone_file import save_zone_frame, zone_frame_to_dict
 from deltar.sensor.geometry import SensorExtrinsics

@@ -6,10 +6,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.slam import write_ply_points
 from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+from deltar.camera import CameraIntrinsics
 from deltar.cli.main import _register_commands, app
 from deltar.sensor.geometry import SensorExtrinsics
 

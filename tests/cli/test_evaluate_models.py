@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 import deltar.cli.commands  # noqa: F401  (registers the commands)
 from deltar.cli.main import app
 from deltar.data.zju_l5 import write_zju_l5
-from deltar.inference.estimator import save_checkpoint
 from deltar.models import create_model
+from deltar.models.checkpoint import save_checkpoint
 
 runner = CliRunner(env={"COLUMNS": "200"})
 
@@ -23,7 +23,7 @@ def _untrained_prior_model(path: Path) -> Path:
     # An untrained zone-prior head returns the prior interpolated from the zones, so the
     # model's depth is only right if the sample's own zone rectangles reach the network.
     model = create_model("deltar-lite", head="zone_prior", design_size=(32, 64))
-    return save_checkpoint(path, model, "deltar-lite", dict(model.config))
+    return save_checkpoint(path, model, "deltar-lite")
 
 
 def _evaluate_checkpoint(tmp_path: Path, data: Path, checkpoint: Path, *options: str) -> dict:

@@ -93,8 +93,8 @@ def test_predict_bad_inputs_name_file_and_problem(tmp_path, rng, problem, messag
 
 
 def test_predict_refuses_calibration_for_another_resolution(tmp_path, rng):
-    from deltar.calibration.camera import CameraIntrinsics
     from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
     from deltar.sensor.geometry import SensorExtrinsics
 
     image, zones = _inputs(tmp_path / "in", "a", rng)

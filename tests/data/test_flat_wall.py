@@ -38,14 +38,3 @@ def test_wall_source_spec():
     with pytest.raises(ValueError, match="wall sources define their own camera"):
         open_source("wall:1", depth_scale=1000.0)
 
-
-def test_old_module_forwards_with_a_deprecation_warning():
-    from deltar.evaluation import wall_test as moved
-    from deltar.inference import wall_test as old
-
-    with pytest.warns(DeprecationWarning, match="moved to deltar.data.flat_wall"):
-        assert old.FlatWallSource is FlatWallSource
-    with pytest.warns(DeprecationWarning, match="moved to deltar.evaluation.wall_test"):
-        assert old.wall_test is moved.wall_test
-    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
-        old.nothing  # noqa: B018

@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.nyu import NYU_INTRINSICS, NYUH5Reader, NYULabeledReader
 
 SMALL = CameraIntrinsics(5.0, 5.0, 3.5, 2.5, 8, 6)  # 6 rows x 8 columns

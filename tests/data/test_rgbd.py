@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import (
     FolderReader,
     SevenScenesReader,

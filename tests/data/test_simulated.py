@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.procedural import ProceduralReader
 from deltar.data.rgbd import RGBDFrame, open_rgbd
 from deltar.data.simulated import SimulatedL5Dataset

@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.nyu import NYUH5Reader, NYULabeledReader
 from deltar.data.procedural import ProceduralReader
 from deltar.data.rgbd import SevenScenesReader

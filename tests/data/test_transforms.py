@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.data.transforms import ImageAugmentation, flip_intrinsics
 
 INTR = CameraIntrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)

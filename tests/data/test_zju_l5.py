@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.data.zju_l5 import ZJUL5Dataset, ZJUL5Sample, write_zju_l5
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
-from deltar.evaluation.plane import Plane, backproject, fit_plane, pixel_rays, plane_metrics
+from deltar.camera import CameraIntrinsics, backproject
+from deltar.evaluation.plane import Plane, fit_plane, pixel_rays, plane_metrics
 
 K = CameraIntrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from deltar.export.onnx import OnnxDepthModel, export_onnx, layout_signature
+from deltar.export.onnx import export_onnx
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.onnx_runtime import OnnxDepthModel, layout_signature
 from deltar.models import create_model
 from deltar.sensor.zone_frame import ZoneFrame
 

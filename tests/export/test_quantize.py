@@ -7,9 +7,10 @@ import onnx
 import pytest
 import torch
 
-from deltar.export.onnx import OnnxDepthModel, export_onnx
+from deltar.export.onnx import export_onnx
 from deltar.export.quantize import QUANT_KEY, calibration_feeds, export_int8, quantize_onnx
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.onnx_runtime import OnnxDepthModel
 from deltar.models import create_model
 
 from ..conftest import SHARED_DATA

@@ -119,7 +119,7 @@ def test_hardware_rig_records_from_opencv_and_a_driver(tmp_path):
     """The hardware path end to end: a video file as the camera, a fake ULD driver."""
     import cv2
 
-    from deltar.calibration.camera import CameraIntrinsics
+    from deltar.camera import CameraIntrinsics
     from deltar.inference.drivers import HardwareRig, OpenCVCamera
     from deltar.inference.record import record
     from deltar.io.recording import Recording

@@ -6,18 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.rig import RigCalibration
-from deltar.inference.estimator import (
-    DepthEstimator,
-    load_checkpoint,
-    network_size,
-    nominal_zone_rects,
-    save_checkpoint,
-    scale_rects,
-    zone_mean_depth,
-)
+from deltar.camera import CameraIntrinsics
+from deltar.inference.estimator import DepthEstimator, zone_mean_depth
+from deltar.inference.preprocess import scale_rects
+from deltar.models.checkpoint import load_checkpoint, save_checkpoint
 from deltar.sensor.geometry import SensorExtrinsics
+from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 from tests.inference.fakes import ZonePainterNet
 
@@ -34,15 +29,6 @@ def _frame(rng: np.random.Generator, grid: int = 8, invalid: int = 3) -> ZoneFra
 
 def _image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
     return rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
-
-
-def test_network_size_is_a_deprecated_alias_of_the_size_rule():
-    from deltar.inference.preprocess import network_input_size
-
-    with pytest.warns(DeprecationWarning, match="network_input_size"):
-        assert network_size(480, 480, design_size=(256, 320)) == (288, 288)
-    with pytest.warns(DeprecationWarning):
-        assert network_size(47, 49) == network_input_size(47, 49) == (32, 64)
 
 
 def test_scale_rects_maps_image_bounds_and_centres():
@@ -179,9 +165,9 @@ def test_checkpoint_round_trip(tmp_path, rng):
 
     config = {"design_size": (64, 96), "n_bins": 32}
     model = create_model("deltar-lite", **config).eval()
-    path = save_checkpoint(tmp_path / "model.pt", model, "deltar-lite", config)
+    path = save_checkpoint(tmp_path / "model.pt", model, "deltar-lite")
     with pytest.raises(FileExistsError):
-        save_checkpoint(path, model, "deltar-lite", config)
+        save_checkpoint(path, model, "deltar-lite")
     restored, preset, saved_config = load_checkpoint(path)
     assert not restored.training
     assert preset == "deltar-lite" and saved_config == model.config
@@ -289,7 +275,7 @@ def test_flip_average_needs_the_pytorch_backend():
 
 
 def test_normalise_images_is_the_imagenet_formula(rng):
-    from deltar.inference.estimator import normalise_images
+    from deltar.inference.preprocess import normalise_images
     from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 
     images = [_image(rng, 32, 64), _image(rng, 32, 64)]

@@ -6,19 +6,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.inference.estimator import DepthPrediction
 from deltar.inference.outputs import (
     OUTPUT_KINDS,
     colorize,
     depth_to_png16,
     depth_to_points,
-    read_ply,
     write_depth_npy,
     write_depth_png16,
     write_ply,
     write_prediction,
 )
+from deltar.io.ply import read_ply
 from deltar.sensor.zone_frame import ZoneFrame
 
 

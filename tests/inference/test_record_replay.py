@@ -9,8 +9,8 @@ import warnings
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.rig import RigCalibration
+from deltar.camera import CameraIntrinsics
 from deltar.data.flat_wall import FlatWallSource
 from deltar.inference.drivers import SimulatedRig
 from deltar.inference.estimator import DepthEstimator, zone_mean_depth

@@ -9,8 +9,8 @@ from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
 import deltar.cli.commands  # noqa: F401  (registers the commands)
-from deltar.calibration.camera import CameraIntrinsics
 from deltar.calibration.rig import RigCalibration
+from deltar.camera import CameraIntrinsics
 from deltar.cli.main import app
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.viewer import RerunLogger, zone_points_m

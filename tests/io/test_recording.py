@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.io.recording import Recording, RecordingMeta, RecordingWriter
 from deltar.sensor.zone_frame import ZoneFrame
 

@@ -17,7 +17,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from typer.testing import CliRunner
 
 import deltar.cli.commands  # noqa: F401  (registers the commands)
-from deltar.calibration.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics
 from deltar.cli.main import app
 from deltar.inference.bag_replay import pair_calibration, replay_bag_to_bag
 from deltar.inference.estimator import DepthEstimator

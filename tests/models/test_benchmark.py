@@ -41,8 +41,8 @@ def test_matmul_rate_is_positive_and_checks_arguments():
 
 def test_benchmark_reports_flops_and_fraction_with_overrides():
     result = benchmark_preset("deltar-lite", 64, 96, threads=1, repeats=1, warmup=0,
-                              matmul_size=128, overrides={"decoder_block": "separable"})
-    assert result["overrides"] == {"decoder_block": "separable"}
+                              matmul_size=128, overrides={"n_bins": 32})
+    assert result["overrides"] == {"n_bins": 32}
     assert result["gflop"] > 0
     assert result["gflop_s"] == pytest.approx(result["gflop"] / (result["latency_ms_min"] / 1e3),
                                               rel=0.02)

@@ -1,4 +1,4 @@
-"""The deltar checkpoint carries the weights' input contract; old files keep theirs."""
+"""The deltar checkpoint carries the weights' input contract; other versions are refused."""
 
 from __future__ import annotations
 
@@ -12,7 +12,6 @@ from deltar.models.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 
 
 def test_round_trip_keeps_the_input_contract(tmp_path):
@@ -30,21 +29,12 @@ def test_round_trip_keeps_the_input_contract(tmp_path):
         assert torch.equal(restored.state_dict()[name], tensor), name
 
 
-def test_version_1_files_keep_the_contract_they_were_trained_with(tmp_path):
-    # A version-1 file: the network of that time, partial config, no contract keys.
-    torch.manual_seed(0)
-    old = create_model("deltar-lite", backbone="tf_mobilenetv3_large_minimal_100",
-                       design_size=(64, 96), image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD,
-                       zone_scale_norm=False)
-    config = {k: v for k, v in old.config.items()
-              if k not in ("image_mean", "image_std", "zone_scale_norm")}
-    payload = {**checkpoint_payload(old, "deltar-lite"), "format_version": 1, "config": config}
+def test_version_1_files_are_refused(tmp_path):
+    model = create_model("deltar-lite", design_size=(64, 96))
     path = tmp_path / "v1.pt"
-    torch.save(payload, path)
-    _, _, restored = load_checkpoint(path)
-    assert restored["image_mean"] == IMAGENET_MEAN and restored["image_std"] == IMAGENET_STD
-    assert restored["zone_scale_norm"] is False
-    assert restored["backbone"] == "tf_mobilenetv3_large_minimal_100"
+    torch.save({**checkpoint_payload(model, "deltar-lite"), "format_version": 1}, path)
+    with pytest.raises(ValueError, match=r"v1\.pt.*format_version 1"):
+        load_checkpoint(path)
 
 
 def test_foreign_and_future_files_are_refused(tmp_path):

@@ -13,7 +13,7 @@ from deltar.models.heads import bins_to_depth, normalise_bin_widths
 def test_depth_edges_and_uncertainty_match_numpy(rng, grad):
     widths_raw = rng.normal(size=(2, 8)).astype(np.float32)
     logits = rng.normal(scale=3.0, size=(2, 8, 3, 5)).astype(np.float32)
-    widths = normalise_bin_widths(torch.from_numpy(widths_raw), "linear")
+    widths = normalise_bin_widths(torch.from_numpy(widths_raw))
 
     # Independent reference: relu + 0.1, normalise, edges from 0.5 m, softmax expectation.
     w = np.maximum(widths_raw, 0) + 0.1
@@ -30,11 +30,6 @@ def test_depth_edges_and_uncertainty_match_numpy(rng, grad):
     np.testing.assert_allclose(got_edges.numpy(), edges, atol=1e-5)
     np.testing.assert_allclose(got_depth[:, 0].detach().numpy(), depth, atol=1e-5)
     np.testing.assert_allclose(got_std[:, 0].detach().numpy(), std, atol=1e-3)
-
-
-def test_unknown_norm_raises():
-    with pytest.raises(ValueError, match="bin norm"):
-        normalise_bin_widths(torch.zeros(1, 4), "cubic")
 
 
 @pytest.mark.parametrize("head", ["bins", "mvit", "direct", "zone_prior", "zone_select"])

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from deltar.calibration.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.sensor import SensorExtrinsics, zone_angles_deg, zone_rects, zone_rects_to_pixel_bounds
 
 K = ZJU_L5_INTRINSICS

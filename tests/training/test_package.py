@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from deltar.inference.estimator import load_checkpoint
 from deltar.models import create_model
+from deltar.models.checkpoint import load_checkpoint
 from deltar.training.module import export_model
 from deltar.training.package import package_checkpoint
 

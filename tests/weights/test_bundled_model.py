@@ -12,7 +12,8 @@ import torch
 
 from deltar.camera import CameraIntrinsics
 from deltar.data.sources import open_source
-from deltar.inference.estimator import DepthEstimator, load_checkpoint
+from deltar.inference.estimator import DepthEstimator
+from deltar.models.checkpoint import load_checkpoint
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulate import simulate_zone_frame
 from deltar.sensor.zone_frame import ZoneFrame

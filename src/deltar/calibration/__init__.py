@@ -1,5 +1,4 @@
-"""ToF-sensor-to-camera calibration (camera intrinsics re-exported from :mod:`deltar.camera`)."""
+"""ToF-sensor-to-camera calibration: the rig file, board and plane calibration, SLAM maps.
 
-from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
-
-__all__ = ["ZJU_L5_INTRINSICS", "CameraIntrinsics"]
+Camera intrinsics live in :mod:`deltar.camera`.
+"""

@@ -128,7 +128,7 @@ def predict_command(
                                skip_existing=skip_existing)
     calibration = _load_calibration(calib)
     if first is not None:
-        from deltar.inference.estimator import check_image
+        from deltar.inference.preprocess import check_image
 
         check_image(first[0], str(image))
         shape = first[0].shape[:2]
@@ -422,7 +422,7 @@ def wall_test_command(
 def _layout_rects(source: Path, height: int, width: int):
     """Zone rectangles in pixels of a height x width image from a calibration or recording."""
     from deltar.calibration.rig import RigCalibration
-    from deltar.inference.estimator import scale_rects
+    from deltar.inference.preprocess import scale_rects
     from deltar.inference.replay import recording_calibration
     from deltar.io.recording import Recording
 

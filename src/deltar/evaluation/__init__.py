@@ -7,7 +7,7 @@ from deltar.evaluation.metrics import (
     MetricAccumulator,
     depth_metrics,
 )
-from deltar.evaluation.plane import Plane, PlaneMetrics, backproject, fit_plane, plane_metrics
+from deltar.evaluation.plane import Plane, PlaneMetrics, fit_plane, plane_metrics
 from deltar.evaluation.runner import (
     BaselinePredictor,
     EvaluationResult,
@@ -33,7 +33,6 @@ __all__ = [
     "PlaneMetrics",
     "Predictor",
     "available_methods",
-    "backproject",
     "create_predictor",
     "depth_metrics",
     "evaluate_methods",

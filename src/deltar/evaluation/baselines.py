@@ -29,10 +29,9 @@ import cv2
 import numpy as np
 import scipy.ndimage
 
-from deltar.inference.colorization import (  # noqa: F401  (re-exported from its old home)
+from deltar.inference.colorization import (
     COLORIZATION_SEED_SIDE,
     COLORIZATION_SOLVE_CELLS,
-    colorization_fill,
     colorize_zones,
 )
 from deltar.sensor.geometry import zone_rects_to_pixel_bounds

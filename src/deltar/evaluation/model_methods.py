@@ -71,7 +71,8 @@ def _split_suffixes(name: str) -> tuple[str, dict[str, object]]:
 
 def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
     """``model:NAME|PATH[+flip][+network]``: a bundled model name or a deltar checkpoint."""
-    from deltar.inference.estimator import DepthEstimator, load_checkpoint
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.models.checkpoint import load_checkpoint
     from deltar.weights import resolve_checkpoint
 
     name_or_path, options = _split_suffixes(name_or_path)

@@ -20,7 +20,7 @@ import numpy as np
 from deltar import camera
 from deltar.camera import CameraIntrinsics, backproject
 
-__all__ = ["Plane", "PlaneMetrics", "backproject", "fit_plane", "pixel_rays", "plane_metrics"]
+__all__ = ["Plane", "PlaneMetrics", "fit_plane", "pixel_rays", "plane_metrics"]
 
 #: Tukey biweight tuning constant (95 % efficiency for Gaussian noise).
 _TUKEY_C = 4.685

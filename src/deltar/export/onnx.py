@@ -33,9 +33,7 @@ from deltar.inference.onnx_runtime import (
     NO_TARGET_INPUT,
     OUTPUT_NAMES,
     SIGNATURE_KEY,
-    OnnxDepthModel,
     layout_signature,
-    signature_fits,
 )
 
 if TYPE_CHECKING:
@@ -45,13 +43,7 @@ if TYPE_CHECKING:
     from deltar.models import DeltarNet
 
 OPSET = 17
-#: Old private names, kept for callers: the runtime side lives in
-#: :mod:`deltar.inference.onnx_runtime`.
-_SIGNATURE_KEY = SIGNATURE_KEY
-_signature_fits = signature_fits
-
-__all__ = ["INPUT_NAMES", "OPSET", "OUTPUT_NAMES", "OnnxDepthModel", "example_inputs",
-           "export_input_size", "export_onnx", "layout_signature"]
+__all__ = ["OPSET", "example_inputs", "export_input_size", "export_onnx"]
 
 
 def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:

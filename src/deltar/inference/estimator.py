@@ -12,9 +12,6 @@ resolution.
 Checkpoints (``DepthEstimator.from_checkpoint``) are the format of
 :mod:`deltar.models.checkpoint`; the estimator reads the weights' input contract
 (normalisation, hypothesis sampling and count, design size) from the model's config.
-
-``network_size``, ``scale_rects``, ``check_image``, ``normalise_images`` and
-``nominal_zone_rects`` used to live here; they are importable from here still.
 """
 
 from __future__ import annotations
@@ -32,7 +29,6 @@ import numpy as np
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.inference.blend import ConfidenceBlend
 from deltar.inference.preprocess import (
-    SIZE_DIVISOR,
     check_image,
     check_input_size,
     network_input_size,
@@ -53,9 +49,7 @@ if TYPE_CHECKING:
 
 PRECISIONS = ("float32", "float16", "bfloat16")
 
-__all__ = ["PRECISIONS", "SIZE_DIVISOR", "DepthEstimator", "DepthPrediction", "check_image",
-           "load_checkpoint", "network_size", "nominal_zone_rects", "normalise_images",
-           "save_checkpoint", "scale_rects", "zone_mean_depth"]
+__all__ = ["PRECISIONS", "DepthEstimator", "DepthPrediction", "zone_mean_depth"]
 
 
 @dataclass
@@ -94,30 +88,6 @@ class DepthPrediction:
         uncertainty to at least the depth itself (100 %).
         """
         return self.zones_used == 0
-
-
-def network_size(height: int, width: int, divisor: int = SIZE_DIVISOR,
-                 design_size: tuple[int, int] | None = None) -> tuple[int, int]:
-    """Deprecated name of :func:`deltar.inference.preprocess.network_input_size`."""
-    warnings.warn("deltar.inference.estimator.network_size is deprecated; use "
-                  "deltar.inference.preprocess.network_input_size", DeprecationWarning,
-                  stacklevel=2)
-    return network_input_size(height, width, design_size=design_size, divisor=divisor)
-
-
-def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
-                    config: dict[str, Any] | None = None, *, overwrite: bool = False) -> Path:
-    """Write a deltar checkpoint: :func:`deltar.models.checkpoint.save_checkpoint`."""
-    from deltar.models.checkpoint import save_checkpoint as save
-
-    return save(path, model, preset, config, overwrite=overwrite)
-
-
-def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, Any]]:
-    """Read a deltar checkpoint: :func:`deltar.models.checkpoint.load_checkpoint`."""
-    from deltar.models.checkpoint import load_checkpoint as load
-
-    return load(path)
 
 
 class DepthEstimator:
@@ -267,6 +237,7 @@ class DepthEstimator:
             kwargs: constructor arguments (without ``input_size`` each image is sized by
                 the one size rule with the checkpoint's design size).
         """
+        from deltar.models.checkpoint import load_checkpoint
         from deltar.weights import resolve_checkpoint
 
         model, preset, _ = load_checkpoint(resolve_checkpoint(path))

@@ -167,10 +167,6 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray,
     return ply.write_ply(path, points, colors, comments=comments, overwrite=overwrite)
 
 
-#: Reads a PLY point cloud: ``points (N, 3), colors (N, 3), comments`` (alias).
-read_ply = ply.read_ply
-
-
 def zone_outline_style(valid: bool, no_target: bool) -> dict[str, str]:
     """Matplotlib edge colour and line style of a zone's outline in a panel: green solid
     when valid, blue dotted when it reported no target, red dashed otherwise."""

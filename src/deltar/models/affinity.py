@@ -38,20 +38,17 @@ from deltar.models.zone_prior import (
 )
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
-#: Strides (input pixels per cell) the encoder's feature maps have, fine to coarse.
-ENCODER_STRIDES = FEATURE_STRIDES
-
 
 def descriptor_levels(strides: Sequence[int]) -> int:
     """How many encoder maps, fine to coarse, descriptors at ``strides`` (pixels) read.
 
     Raises:
-        ValueError: no stride, or one that is not among :data:`ENCODER_STRIDES`.
+        ValueError: no stride, or one that is not among :data:`FEATURE_STRIDES`.
     """
-    if not strides or any(s not in ENCODER_STRIDES for s in strides):
-        raise ValueError(f"descriptor strides must be among {ENCODER_STRIDES}, got "
+    if not strides or any(s not in FEATURE_STRIDES for s in strides):
+        raise ValueError(f"descriptor strides must be among {FEATURE_STRIDES}, got "
                          f"{tuple(strides)}")
-    return max(ENCODER_STRIDES.index(s) for s in strides) + 1
+    return max(FEATURE_STRIDES.index(s) for s in strides) + 1
 
 
 class EncoderDescriptors(nn.Module):
@@ -64,7 +61,7 @@ class EncoderDescriptors(nn.Module):
 
     Args:
         encoder_channels: channels of the encoder's maps, fine to coarse (strides 2, 4, ...).
-        strides: which encoder strides to use (from :data:`ENCODER_STRIDES`).
+        strides: which encoder strides to use (from :data:`FEATURE_STRIDES`).
         out_stride: input pixels per output cell.
     """
 
@@ -72,9 +69,9 @@ class EncoderDescriptors(nn.Module):
                  out_stride: int = 4) -> None:
         super().__init__()
         descriptor_levels(strides)  # checks them
-        if out_stride not in ENCODER_STRIDES:
-            raise ValueError(f"out_stride must be one of {ENCODER_STRIDES}, got {out_stride}")
-        self.levels = tuple(ENCODER_STRIDES.index(s) for s in strides)
+        if out_stride not in FEATURE_STRIDES:
+            raise ValueError(f"out_stride must be one of {FEATURE_STRIDES}, got {out_stride}")
+        self.levels = tuple(FEATURE_STRIDES.index(s) for s in strides)
         self.out_stride = int(out_stride)
         self.channels = sum(int(encoder_channels[i]) for i in self.levels)
         self.channel_weight = nn.Parameter(torch.ones(self.channels))

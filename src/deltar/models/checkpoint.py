@@ -14,9 +14,8 @@ contract of the weights: ``image_mean`` / ``image_std`` (normalisation), ``desig
 ``zone_scale_norm``. Readers take these from the file, never from a preset's current
 defaults.
 
-Version 1 files (before the contract keys existed) may hold partial overrides; they are
-read with the semantics they were trained with: ImageNet normalisation and no zone
-scale normalisation.
+Files of the first format version (before the contract keys) are refused: no model
+that ships or that a documented command wrote is of that version.
 """
 
 from __future__ import annotations
@@ -27,14 +26,16 @@ from typing import Any
 
 import torch
 
-from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD, DeltarNet
+from deltar.models.network import DeltarNet
 from deltar.models.presets import create_model
 
 CHECKPOINT_FORMAT = "deltar.checkpoint"
 CHECKPOINT_FORMAT_VERSION = 2
-#: Contract keys added in version 2, with the values every version-1 network had.
-_VERSION_1_CONTRACT = {"image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD,
-                       "zone_scale_norm": False}
+#: Constructor options that were removed, with the only value they could take in a file
+#: a documented path wrote (the bundled model and training runs store them): such a key
+#: is dropped; any other value describes a network this deltar cannot build.
+RETIRED_OPTIONS: dict[str, Any] = {"bin_norm": "linear", "decoder_block": "conv",
+                                   "decoder_convs": (2, 2, 2, 2), "decoder_out_kernel": 3}
 
 
 def checkpoint_payload(model: DeltarNet, preset: str) -> dict[str, Any]:
@@ -49,16 +50,14 @@ def checkpoint_payload(model: DeltarNet, preset: str) -> dict[str, Any]:
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
 
 
-def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
-                    config: dict[str, Any] | None = None, *, overwrite: bool = False) -> Path:
+def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str, *,
+                    overwrite: bool = False) -> Path:
     """Write a model as a deltar checkpoint, atomically.
 
     Args:
         path: destination file (``.pt``).
         model: the network; its full ``config`` is stored.
         preset: the preset it was built from (a ``create_model`` name).
-        config: ignored (kept for callers of the version-1 signature: the network's own
-            full config is always stored).
         overwrite: replace an existing file (default: ``FileExistsError``).
 
     Returns:
@@ -66,28 +65,25 @@ def save_checkpoint(path: str | os.PathLike, model: DeltarNet, preset: str,
     """
     from deltar.io.atomic import atomic_path
 
-    del config
     with atomic_path(path, overwrite=overwrite) as tmp:
         torch.save(checkpoint_payload(model, preset), tmp)
     return Path(path)
 
 
-def model_from_config(preset: str, config: dict[str, Any], format_version: int = 2
-                      ) -> DeltarNet:
+def model_from_config(preset: str, config: dict[str, Any]) -> DeltarNet:
     """Rebuild a network (random weights) from a checkpoint's preset and config.
 
     Args:
         preset: the ``create_model`` preset name.
         config: the stored constructor config (lists become tuples).
-        format_version: the file's version; version 1 configs get the version-1 input
-            contract for keys they lack.
 
     Raises:
         ValueError: unknown preset or a config the network does not accept.
     """
     config = {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
-    if format_version < 2:
-        config = {**_VERSION_1_CONTRACT, **config}
+    for key, only in RETIRED_OPTIONS.items():
+        if key in config and config.pop(key) != only:
+            raise ValueError(f"config option {key!r} was removed; only {only!r} is read")
     # Weights saved before the no-target flags existed keep the behaviour they were
     # measured with: they ignore the flags.
     config.setdefault("no_target_depth", None)
@@ -112,14 +108,14 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, 
         raise ValueError(f"{path}: not a deltar checkpoint (expected a dict with format "
                          f"{CHECKPOINT_FORMAT!r}; official weights load with from_official)")
     version = payload.get("format_version")
-    if version not in (1, CHECKPOINT_FORMAT_VERSION):
+    if version != CHECKPOINT_FORMAT_VERSION:
         raise ValueError(f"{path}: unsupported checkpoint format_version {version!r}")
     for key in ("preset", "config", "state_dict"):
         if key not in payload:
             raise ValueError(f"{path}: checkpoint has no {key!r}")
     preset = str(payload["preset"])
     try:
-        model = model_from_config(preset, dict(payload["config"]), version)
+        model = model_from_config(preset, dict(payload["config"]))
         model.load_state_dict(payload["state_dict"])
     except (RuntimeError, ValueError) as err:
         raise ValueError(f"{path}: weights do not fit preset {preset!r}: {err}") from err

@@ -15,52 +15,22 @@ from deltar.models.zone_patches import ZonePatchResampler
 FUSION_STRIDES = (16, 8, 4)
 
 
-#: Convolution units of the decoder's up blocks.
-DECODER_BLOCKS = ("conv", "separable")
-
-
-def conv_unit(in_channels: int, out_channels: int, block: str = "conv") -> list[nn.Module]:
-    """One decoder unit: a 3x3 convolution (or its separable form), BN, LeakyReLU.
-
-    Args:
-        in_channels: input channels.
-        out_channels: output channels.
-        block: "conv" (a full 3x3 convolution) or "separable" (a depthwise 3x3 then a
-            pointwise 1x1 convolution: about ``9 / out_channels + 1 / 9`` of the FLOPs).
-
-    Returns:
-        The modules, in order (the batch norm follows a convolution, so it folds).
-    """
-    if block == "conv":
-        convs = [nn.Conv2d(in_channels, out_channels, kernel_size=3, padding=1)]
-    elif block == "separable":
-        convs = [nn.Conv2d(in_channels, in_channels, kernel_size=3, padding=1,
-                           groups=in_channels, bias=False),
-                 nn.Conv2d(in_channels, out_channels, kernel_size=1)]
-    else:
-        raise ValueError(f"decoder block must be one of {DECODER_BLOCKS}, got {block!r}")
-    return [*convs, nn.BatchNorm2d(out_channels), nn.LeakyReLU()]
-
-
 class UpBlock(nn.Module):
-    """Upsample to the skip map, concatenate it, then ``convs`` x (3x3 conv, BN, LeakyReLU).
+    """Upsample to the skip map, concatenate it, then two (3x3 conv, BN, LeakyReLU).
 
     Args:
         in_channels: channels of the upsampled input plus the skip map.
         out_channels: output channels.
-        block: "conv" or "separable" (see :func:`conv_unit`).
-        convs: number of units (2 in the release).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, block: str = "conv",
-                 convs: int = 2) -> None:
+    def __init__(self, in_channels: int, out_channels: int) -> None:
         super().__init__()
-        if convs < 1:
-            raise ValueError(f"an up block needs at least one convolution, got {convs}")
-        units = conv_unit(in_channels, out_channels, block)
-        for _ in range(convs - 1):
-            units += conv_unit(out_channels, out_channels, block)
-        self.block = nn.Sequential(*units)
+        self.block = nn.Sequential(
+            nn.Conv2d(in_channels, out_channels, kernel_size=3, padding=1),
+            nn.BatchNorm2d(out_channels), nn.LeakyReLU(),
+            nn.Conv2d(out_channels, out_channels, kernel_size=3, padding=1),
+            nn.BatchNorm2d(out_channels), nn.LeakyReLU(),
+        )
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
         """(B, C, h, w) and skip (B, C_s, H, W) -> (B, out_channels, H, W)."""
@@ -83,11 +53,6 @@ class FusionDecoder(nn.Module):
         fusion_kwargs: keyword arguments for every :class:`ZoneImageFusion`
             (``num_hypotheses``, ``layer_order``, ``mode``, heads), or None for no fusion.
         design_size: (H, W) input size the positional encodings are laid out for.
-        block: unit of the up blocks, "conv" (release) or "separable" (see
-            :func:`conv_unit`).
-        convs: units per up block, coarse to fine (strides 16, 8, 4, 2); (2, 2, 2, 2) in
-            the release.
-        out_kernel: kernel size of the output convolution at stride 2 (3 or 1).
     """
 
     def __init__(
@@ -97,22 +62,15 @@ class FusionDecoder(nn.Module):
         out_channels: int = 128,
         fusion_kwargs: dict | None = None,
         design_size: tuple[int, int] = (480, 640),
-        block: str = "conv",
-        convs: Sequence[int] = (2, 2, 2, 2),
-        out_kernel: int = 3,
     ) -> None:
         super().__init__()
         if len(encoder_channels) != 5 or len(decoder_channels) != 5:
             raise ValueError("encoder_channels and decoder_channels need five entries each")
-        if len(convs) != 4:
-            raise ValueError(f"convs needs one count per up block (four), got {tuple(convs)}")
-        if out_kernel not in (1, 3):
-            raise ValueError(f"out_kernel must be 1 or 3, got {out_kernel}")
         enc = list(encoder_channels)[::-1]  # strides 32, 16, 8, 4, 2
         dec = list(decoder_channels)
         self.bottleneck = nn.Conv2d(enc[0], dec[0], kernel_size=1)
         self.up_blocks = nn.ModuleList(
-            UpBlock(dec[i] + enc[i + 1], dec[i + 1], block, convs[i]) for i in range(4)
+            UpBlock(dec[i] + enc[i + 1], dec[i + 1]) for i in range(4)
         )
         self.fusion_dims = tuple(dec[i + 1] // 2 for i in range(3))
         self.uses_fusion = fusion_kwargs is not None
@@ -128,8 +86,7 @@ class FusionDecoder(nn.Module):
                 )
                 for i, stride in enumerate(FUSION_STRIDES)
             )
-        self.out_conv = nn.Conv2d(dec[4], out_channels, kernel_size=out_kernel,
-                                  padding=out_kernel // 2)
+        self.out_conv = nn.Conv2d(dec[4], out_channels, kernel_size=3, padding=1)
 
     def forward(
         self,

@@ -25,23 +25,13 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
-#: How raw bin-width regressions are turned into positive widths summing to one.
-BIN_NORMS = ("linear", "softmax", "sigmoid")
 
-
-def normalise_bin_widths(raw: torch.Tensor, norm: str) -> torch.Tensor:
+def normalise_bin_widths(raw: torch.Tensor) -> torch.Tensor:
     """(B, N) raw regressor output -> (B, N) positive widths summing to 1.
 
-    ``linear`` (the release): ``relu(raw) + 0.1``, then divide by the sum.
+    The release's normalisation: ``relu(raw) + 0.1``, then divide by the sum.
     """
-    if norm == "linear":
-        widths = torch.relu(raw) + 0.1
-    elif norm == "softmax":
-        return torch.softmax(raw, dim=1)
-    elif norm == "sigmoid":
-        widths = torch.sigmoid(raw)
-    else:
-        raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
+    widths = torch.relu(raw) + 0.1
     return widths / widths.sum(dim=1, keepdim=True)
 
 
@@ -209,19 +199,15 @@ class BinsHead(_BinsPredict):
         in_channels: input feature width.
         n_bins: number of depth bins N.
         embedding_dim: width of the range-attention features.
-        norm: bin-width normalisation, one of :data:`BIN_NORMS`.
         min_depth: depth of the first bin edge, metres.
         max_depth: depth of the last bin edge, metres.
     """
 
     def __init__(
-        self, in_channels: int, n_bins: int = 256, embedding_dim: int = 128, norm: str = "linear",
+        self, in_channels: int, n_bins: int = 256, embedding_dim: int = 128,
         min_depth: float = 1e-3, max_depth: float = 10.0,
     ) -> None:
         super().__init__()
-        if norm not in BIN_NORMS:
-            raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
-        self.norm = norm
         self.min_depth, self.max_depth = min_depth, max_depth
         self.range_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=3, padding=1)
         self.global_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=1, bias=False)
@@ -239,7 +225,7 @@ class BinsHead(_BinsPredict):
         # mean(conv1x1(x)) == conv1x1(mean(x)) for a bias-free 1x1 convolution; the
         # right-hand side skips a full-resolution convolution.
         pooled = F.linear(features.mean(dim=(2, 3)), self.global_conv.weight.flatten(1))
-        widths = normalise_bin_widths(self.width_regressor(pooled), self.norm)
+        widths = normalise_bin_widths(self.width_regressor(pooled))
         return widths, self.logits_conv(self.range_conv(features))
 
 
@@ -261,7 +247,6 @@ class MiniViTHead(_BinsPredict):
         patch_size: side of the patch embedding in cells.
         num_layers: transformer layers.
         num_heads: transformer heads.
-        norm: bin-width normalisation, one of :data:`BIN_NORMS`.
         design_tokens: (rows, cols) of the learned patch-position grid.
         min_depth: depth of the first bin edge, metres.
         max_depth: depth of the last bin edge, metres.
@@ -279,15 +264,11 @@ class MiniViTHead(_BinsPredict):
         patch_size: int = 16,
         num_layers: int = 4,
         num_heads: int = 4,
-        norm: str = "linear",
         design_tokens: tuple[int, int] = (15, 20),
         min_depth: float = 1e-3,
         max_depth: float = 10.0,
     ) -> None:
         super().__init__()
-        if norm not in BIN_NORMS:
-            raise ValueError(f"bin norm must be one of {BIN_NORMS}, got {norm!r}")
-        self.norm = norm
         self.min_depth, self.max_depth = min_depth, max_depth
         self.patch_size = patch_size
         self.patch_embed = nn.Conv2d(
@@ -323,7 +304,7 @@ class MiniViTHead(_BinsPredict):
         queries = self.queries[None].expand(batch, -1, -1)
         with _plain_transformer() if self.traceable else contextlib.nullcontext():
             out = self.transformer(torch.cat([queries, tokens], dim=1))
-        widths = normalise_bin_widths(self.width_regressor(out[:, 0]), self.norm)
+        widths = normalise_bin_widths(self.width_regressor(out[:, 0]))
         range_queries = out[:, 1 : self.queries.shape[0]]
         range_maps = torch.einsum("behw,bqe->bqhw", self.pixel_conv(features), range_queries)
         return widths, self.logits_conv(range_maps)

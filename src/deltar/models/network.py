@@ -51,7 +51,6 @@ class DeltarNet(nn.Module):
         n_bins: number of depth bins N.
         min_depth: smallest depth, metres.
         max_depth: largest depth, metres.
-        bin_norm: bin-width normalisation ("linear" in the release).
         num_hypotheses: K hypotheses per zone the model is designed for.
         distribution_input: "hypotheses" (K sampled depths per zone) or "mean_sigma"
             (mean/variance PointNet ablation: one (mean, sigma) point per zone).
@@ -75,10 +74,6 @@ class DeltarNet(nn.Module):
             multiply depth, uncertainty and bin edges by ``s`` afterwards, so that
             scaling every zone reading by ``k`` scales the output by ``k`` (up to the
             ``min_depth``/``max_depth`` clamp). Frames without a valid zone use ``s = 1``.
-        decoder_block: "conv" (release) or "separable" up-block convolutions, and
-        decoder_convs: convolutions per up block, strides 16, 8, 4, 2, and
-        decoder_out_kernel: the stride-2 output convolution's kernel (3 or 1): CPU
-            shapes of the decoder (see :class:`~deltar.models.decoder.FusionDecoder`).
         decoder: "fusion" (the zone-fusion decoder of the paper) or "descriptors" (no
             decoder: the head compares frozen-encoder descriptors,
             :class:`~deltar.models.affinity.EncoderDescriptors`, at stride 4; the zone
@@ -101,7 +96,6 @@ class DeltarNet(nn.Module):
         n_bins: int = 256,
         min_depth: float = 1e-3,
         max_depth: float = 10.0,
-        bin_norm: str = "linear",
         num_hypotheses: int = 16,
         distribution_input: str = "hypotheses",
         image_input: str = "rgb",
@@ -114,9 +108,6 @@ class DeltarNet(nn.Module):
         image_mean: Sequence[float] = IMAGENET_MEAN,
         image_std: Sequence[float] = IMAGENET_STD,
         zone_scale_norm: bool = False,
-        decoder_block: str = "conv",
-        decoder_convs: Sequence[int] = (2, 2, 2, 2),
-        decoder_out_kernel: int = 3,
         decoder: str = "fusion",
         descriptor_strides: Sequence[int] = (8, 16),
         select_temperature: float = 5.0,
@@ -151,7 +142,6 @@ class DeltarNet(nn.Module):
             "n_bins": n_bins,
             "min_depth": min_depth,
             "max_depth": max_depth,
-            "bin_norm": bin_norm,
             "num_hypotheses": num_hypotheses,
             "distribution_input": distribution_input,
             "image_input": image_input,
@@ -164,9 +154,6 @@ class DeltarNet(nn.Module):
             "image_mean": tuple(float(v) for v in image_mean),
             "image_std": tuple(float(v) for v in image_std),
             "zone_scale_norm": bool(zone_scale_norm),
-            "decoder_block": decoder_block,
-            "decoder_convs": tuple(decoder_convs),
-            "decoder_out_kernel": decoder_out_kernel,
             "decoder": decoder,
             "descriptor_strides": tuple(int(v) for v in descriptor_strides),
             "select_temperature": float(select_temperature),
@@ -200,7 +187,7 @@ class DeltarNet(nn.Module):
                 }
             self.decoder = FusionDecoder(
                 self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
-                design_size, decoder_block, decoder_convs, decoder_out_kernel,
+                design_size,
             )
             if not self.five_channel:
                 self.distribution_encoder = DistributionEncoder(
@@ -210,12 +197,12 @@ class DeltarNet(nn.Module):
         self.traceable = False
         self.head: DepthHead
         if head == "bins":
-            self.head = BinsHead(head_channels, n_bins, head_channels, bin_norm,
+            self.head = BinsHead(head_channels, n_bins, head_channels,
                                  min_depth=min_depth, max_depth=max_depth)
         elif head == "mvit":
             half = (design_size[0] // 2, design_size[1] // 2)
             self.head = MiniViTHead(
-                head_channels, n_bins, head_channels, norm=bin_norm,
+                head_channels, n_bins, head_channels,
                 design_tokens=(half[0] // 16, half[1] // 16),
                 min_depth=min_depth, max_depth=max_depth,
             )

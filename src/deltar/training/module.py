@@ -256,18 +256,18 @@ def _load_weights_file(path: str, map_location: str = "cpu",
         prefix = "model."
         state = {k[len(prefix):]: v for k, v in data["state_dict"].items()
                  if k.startswith(prefix)}
-        # The network's full config (with its input contract) since format version 2.
-        version = int(recipe.get("format_version", 1))
-    elif isinstance(data, dict) and {"preset", "state_dict"} <= set(data):
-        # "config" (full constructor config) in current exports, "overrides" in older ones.
-        overrides = data.get("config", data.get("overrides", {}))
-        recipe, state = {"preset": data["preset"], "overrides": overrides}, data["state_dict"]
-        version = int(data.get("format_version", 1))
+        version = recipe.get("format_version")
+    elif isinstance(data, dict) and {"preset", "config", "state_dict"} <= set(data):
+        recipe = {"preset": data["preset"], "overrides": data["config"]}
+        state, version = data["state_dict"], data.get("format_version")
     else:
         raise ValueError(f"{path} is neither a deltar training checkpoint nor a model.pt "
                          "export")
-    overrides = {**recipe.get("overrides", {}), **(model_config or {})}
-    model = model_from_config(recipe["preset"], overrides, version)
+    if version != CHECKPOINT_FORMAT_VERSION:
+        raise ValueError(f"{path}: unsupported checkpoint format_version {version!r} (this "
+                         f"deltar reads version {CHECKPOINT_FORMAT_VERSION})")
+    overrides = {**recipe["overrides"], **(model_config or {})}
+    model = model_from_config(recipe["preset"], overrides)
     model.load_state_dict(state)
     return model, recipe
 
