@@ -25,7 +25,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("models",),
     ("data",),
     ("inference",),
-    ("export",),
+    ("capture", "export"),
     ("evaluation",),
     ("training",),
     ("cli",),

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deltar.data.flat_wall import FlatWallSource
-from deltar.inference.drivers import (
+from deltar.capture.drivers import (
     DriverAdapter,
     SimulatedRig,
     open_circuitpython,
     open_sparkfun,
     open_vl53l5cx_ctypes,
 )
+from deltar.data.flat_wall import FlatWallSource
 from deltar.sensor.zone_frame import Orientation
 
 
@@ -120,8 +120,8 @@ def test_hardware_rig_records_from_opencv_and_a_driver(tmp_path):
     import cv2
 
     from deltar.camera import CameraIntrinsics
-    from deltar.inference.drivers import HardwareRig, OpenCVCamera
-    from deltar.inference.record import record
+    from deltar.capture.drivers import HardwareRig, OpenCVCamera
+    from deltar.capture.record import record
     from deltar.io.recording import Recording
 
     video = tmp_path / "camera.avi"

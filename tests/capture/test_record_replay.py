@@ -11,11 +11,11 @@ import pytest
 
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
+from deltar.capture.drivers import SimulatedRig
+from deltar.capture.record import record
+from deltar.capture.replay import replay, replay_to_folder
 from deltar.data.flat_wall import FlatWallSource
-from deltar.inference.drivers import SimulatedRig
 from deltar.inference.estimator import DepthEstimator, zone_mean_depth
-from deltar.inference.record import record
-from deltar.inference.replay import replay, replay_to_folder
 from deltar.io.recording import Recording
 from deltar.sensor.geometry import SensorExtrinsics
 from tests.inference.fakes import ZonePainterNet

@@ -11,9 +11,9 @@ from typer.testing import CliRunner
 import deltar.cli.commands  # noqa: F401  (registers the commands)
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
+from deltar.capture.viewer import RerunLogger, zone_points_m
 from deltar.cli.main import app
 from deltar.inference.estimator import DepthEstimator
-from deltar.inference.viewer import RerunLogger, zone_points_m
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.zone_frame import ZoneFrame
 from tests.inference.fakes import ZonePainterNet

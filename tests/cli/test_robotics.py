@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from deltar.capture.bag_replay import pair_calibration
 from deltar.cli.main import _register_commands, app
-from deltar.inference.bag_replay import pair_calibration
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.rosbag import BagInput, image_from_msg, metric_image_from_msg
-from tests.inference.test_viewer import _buffer, read_rrd
+from tests.capture.test_viewer import _buffer, read_rrd
 from tests.io.test_rosbag import read_topic, write_input_bag
 
 _register_commands()

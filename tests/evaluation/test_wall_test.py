@@ -6,11 +6,11 @@ import json
 
 import pytest
 
+from deltar.capture.drivers import SimulatedRig
+from deltar.capture.record import record
 from deltar.data.flat_wall import FlatWallSource
 from deltar.evaluation.wall_test import evaluate_recording, wall_test, write_results
-from deltar.inference.drivers import SimulatedRig
 from deltar.inference.estimator import DepthEstimator
-from deltar.inference.record import record
 from tests.inference.fakes import ZonePainterNet
 
 

@@ -18,8 +18,8 @@ from typer.testing import CliRunner
 
 import deltar.cli.commands  # noqa: F401  (registers the commands)
 from deltar.camera import CameraIntrinsics
+from deltar.capture.bag_replay import pair_calibration, replay_bag_to_bag
 from deltar.cli.main import app
-from deltar.inference.bag_replay import pair_calibration, replay_bag_to_bag
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.rosbag import (
     BagInput,

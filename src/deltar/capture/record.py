@@ -20,7 +20,7 @@ from deltar.io.recording import RecordingMeta, RecordingWriter
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 
 if TYPE_CHECKING:
-    from deltar.inference.drivers import Capture
+    from deltar.capture.drivers import Capture
     from deltar.io.rosbag import BagRecordingWriter
 
 
@@ -55,8 +55,8 @@ def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
     Args:
         out: the recording folder (created; appended to if it holds a recording of the
             same camera and sensor).
-        rig: a :class:`~deltar.inference.drivers.SimulatedRig` or
-            :class:`~deltar.inference.drivers.HardwareRig` (``grab()`` returns a
+        rig: a :class:`~deltar.capture.drivers.SimulatedRig` or
+            :class:`~deltar.capture.drivers.HardwareRig` (``grab()`` returns a
             ``Capture`` or None at the end; used as a context manager).
         max_frames: stop after this many camera frames.
         duration_s: stop after this much camera time, seconds.

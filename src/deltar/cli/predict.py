@@ -197,18 +197,18 @@ def record_command(
     rerun_save: Path | None = RerunSaveOption,
 ) -> None:
     """Record camera frames and ToF zone frames with timestamps into a recording folder."""
-    from deltar.cli.checks import finite, output_folder
-    from deltar.cli.progress import ProgressReport
-    from deltar.cli.robotics import CaptureLogger, open_viewer
-    from deltar.data.sources import open_source
-    from deltar.inference.drivers import (
+    from deltar.capture.drivers import (
         HardwareRig,
         OpenCVCamera,
         SimulatedRig,
         open_sparkfun,
         open_vl53l5cx_ctypes,
     )
-    from deltar.inference.record import record
+    from deltar.capture.record import record
+    from deltar.cli.checks import finite, output_folder
+    from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import CaptureLogger, open_viewer
+    from deltar.data.sources import open_source
 
     if grid not in (4, 8):
         raise typer.BadParameter(f"must be 4 or 8, got {grid}", param_hint="--grid")
@@ -280,9 +280,9 @@ def replay_command(
 
     Frames without any valid zone are skipped with a warning unless --allow-no-zones.
     """
+    from deltar.capture.replay import replay, replay_to_folder
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import ReplayViewer, open_viewer, replay_bag_command
-    from deltar.inference.replay import replay, replay_to_folder
 
     if (recording is None) == (bag is None):
         raise typer.BadParameter("give a RECORDING folder or --bag BAG")
@@ -422,8 +422,8 @@ def wall_test_command(
 def _layout_rects(source: Path, height: int, width: int):
     """Zone rectangles in pixels of a height x width image from a calibration or recording."""
     from deltar.calibration.rig import RigCalibration
+    from deltar.capture.replay import recording_calibration
     from deltar.inference.preprocess import scale_rects
-    from deltar.inference.replay import recording_calibration
     from deltar.io.recording import Recording
 
     if source.is_dir():

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import typer
 
 if TYPE_CHECKING:
-    from deltar.inference.viewer import RerunLogger
+    from deltar.capture.viewer import RerunLogger
     from deltar.sensor.zone_frame import Orientation
 
 RerunOption = typer.Option(False, "--rerun", help="Show the frames live in the rerun viewer "
@@ -67,10 +67,10 @@ def parse_orientation(text: str) -> Orientation:
 
 
 def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
-    """A :class:`~deltar.inference.viewer.RerunLogger` when asked for, else None."""
+    """A :class:`~deltar.capture.viewer.RerunLogger` when asked for, else None."""
     if not rerun and rerun_save is None:
         return None
-    from deltar.inference.viewer import RerunLogger
+    from deltar.capture.viewer import RerunLogger
 
     return RerunLogger(rerun_save)
 
@@ -94,7 +94,7 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
     """
     from rich.progress import Progress
 
-    from deltar.inference.bag_replay import replay_bag, replay_bag_to_bag
+    from deltar.capture.bag_replay import replay_bag, replay_bag_to_bag
     from deltar.io.rosbag import BagInput
 
     if out is not None or show:
@@ -141,7 +141,7 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
 class CaptureLogger:
     """Log recorded captures (image, latest zone frame, reference depth) to the viewer.
 
-    Called as ``on_capture(capture, meta)`` by :func:`deltar.inference.record.record`.
+    Called as ``on_capture(capture, meta)`` by :func:`deltar.capture.record.record`.
     """
 
     def __init__(self, viewer: RerunLogger) -> None:
@@ -178,7 +178,7 @@ class ReplayViewer:
         self.viewer = viewer
         self.calibration = calibration
         if viewer is not None and calibration is None:
-            from deltar.inference.replay import recording_calibration
+            from deltar.capture.replay import recording_calibration
             from deltar.io.recording import Recording
 
             self.calibration = recording_calibration(Recording(recording))

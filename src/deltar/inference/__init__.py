@@ -1,4 +1,4 @@
-"""From a real (or simulated) sensor to a depth map: estimator, outputs, record/replay.
+"""From an image and a zone frame to a depth map: the estimator and what it needs.
 
 ``load_estimator(source)`` builds an estimator from any model source (bundled name,
 checkpoint, official weights, ONNX file, preset). Torch is imported only inside

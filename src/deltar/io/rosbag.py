@@ -220,7 +220,7 @@ def zone_frame_from_vl53l5cx_ros2(msg: Any, *, orientation: Orientation | None =
     Args:
         msg: the deserialised image message.
         orientation: how ST's zone order maps onto the camera image (identity when
-            None; ``deltar.inference.drivers`` uses ``Orientation(flip_ud=True)`` for
+            None; ``deltar.capture.drivers`` uses ``Orientation(flip_ud=True)`` for
             the same ULD order).
         sigma_m: sigma given to every valid zone, metres (the node does not publish one;
             0 puts all depth hypotheses at the distance).
