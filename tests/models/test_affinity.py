@@ -6,8 +6,10 @@ import pytest
 import torch
 
 from deltar.models import create_model
-from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead, zone_planes
-from deltar.models.zone_prior import zone_prior_map
+from deltar.models.affinity import EncoderDescriptors
+from deltar.models.decoder import DecoderZones
+from deltar.models.heads.footprints import zone_prior_map
+from deltar.models.heads.plane_select import PlanarSelectHead, zone_planes
 
 
 def _grid_rects(grid: int, zone_px: int) -> torch.Tensor:
@@ -203,7 +205,7 @@ def test_encoder_descriptors_are_unit_vectors_at_the_output_stride():
     assert module.channels == 152
     features = [torch.randn(2, c, 64 // s, 96 // s)
                 for c, s in zip((16, 24, 40, 112, 320), (2, 4, 8, 16, 32), strict=True)]
-    out = module(features, (64, 96))
+    out = module(features, DecoderZones((64, 96)))
     assert out.shape == (2, 152, 16, 24)
     torch.testing.assert_close(out.norm(dim=1), torch.ones(2, 16, 24))
     with pytest.raises(ValueError, match="descriptor strides"):

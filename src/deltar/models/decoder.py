@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -13,6 +14,23 @@ from deltar.models.zone_patches import ZonePatchResampler
 
 #: Strides of the three fused decoder scales, coarse to fine.
 FUSION_STRIDES = (16, 8, 4)
+
+
+class DecoderZones(NamedTuple):
+    """What every decoder takes besides the encoder's maps (each reads what it needs).
+
+    Attributes:
+        image_size: (H, W) of the network input, pixels.
+        features: distribution features for strides 16, 8, 4, (B, Z, K, C_i) each;
+            None without a distribution encoder.
+        valid: (B, Z) bool zone validity; None without fusion.
+        resamplers: zone patch resamplers for strides 16, 8, 4; None without fusion.
+    """
+
+    image_size: tuple[int, int]
+    features: Sequence[torch.Tensor] | None = None
+    valid: torch.Tensor | None = None
+    resamplers: Sequence[ZonePatchResampler] | None = None
 
 
 class UpBlock(nn.Module):
@@ -88,21 +106,14 @@ class FusionDecoder(nn.Module):
             )
         self.out_conv = nn.Conv2d(dec[4], out_channels, kernel_size=3, padding=1)
 
-    def forward(
-        self,
-        image_features: Sequence[torch.Tensor],
-        zone_features: Sequence[torch.Tensor] | None,
-        zone_valid: torch.Tensor | None,
-        resamplers: Sequence[ZonePatchResampler] | None,
-    ) -> torch.Tensor:
+    def forward(self, image_features: Sequence[torch.Tensor], zones: DecoderZones
+                ) -> torch.Tensor:
         """Decode.
 
         Args:
             image_features: five maps (B, C_i, H / s, W / s), s = 2, 4, 8, 16, 32.
-            zone_features: distribution features for strides 16, 8, 4:
-                (B, Z, K, fusion_dims[i]) each; None without fusion.
-            zone_valid: (B, Z) bool; None without fusion.
-            resamplers: zone patch resamplers for strides 16, 8, 4; None without fusion.
+            zones: the zones' distribution features (``fusion_dims[i]`` channels at
+                strides 16, 8, 4), validity and resamplers; unused without fusion.
 
         Returns:
             (B, out_channels, H / 2, W / 2) features.
@@ -113,6 +124,7 @@ class FusionDecoder(nn.Module):
             x = up_block(x, skips[i + 1])
             if i < 3 and self.uses_fusion:
                 reduced = self.reduce[i](x)
-                fused = self.fusions[i](reduced, zone_features[i], zone_valid, resamplers[i])
+                fused = self.fusions[i](reduced, zones.features[i], zones.valid,
+                                        zones.resamplers[i])
                 x = torch.cat([reduced, fused], dim=1)
         return self.out_conv(x)

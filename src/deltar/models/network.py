@@ -3,22 +3,48 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from deltar.models.affinity import EncoderDescriptors, PlanarSelectHead, descriptor_levels
-from deltar.models.decoder import FUSION_STRIDES, FusionDecoder
+from deltar.models.affinity import EncoderDescriptors, descriptor_levels
+from deltar.models.decoder import FUSION_STRIDES, DecoderZones, FusionDecoder
 from deltar.models.encoders import FEATURE_STRIDES, DistributionEncoder, ImageEncoder
 from deltar.models.fusion import FUSION_MODES
-from deltar.models.heads import BinsHead, DepthHead, DirectDepthHead, MiniViTHead, ZoneInputs
+from deltar.models.heads.base import DepthHead, ZoneInputs
+from deltar.models.heads.bins import BinsHead
+from deltar.models.heads.direct import DirectDepthHead
+from deltar.models.heads.mvit import MiniViTHead
+from deltar.models.heads.plane_select import PlanarSelectHead
+from deltar.models.heads.zone_prior import ZonePriorHead
+from deltar.models.heads.zone_select import ZoneSelectHead
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
-from deltar.models.zone_prior import ZonePriorHead, ZoneSelectHead
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
-HEADS = ("bins", "mvit", "direct", "zone_prior", "zone_select", "plane_select")
+#: Each head by name: a builder from (input feature width, the network's config).
+HEADS: dict[str, Callable[[int, dict[str, Any]], DepthHead]] = {
+    "bins": lambda width, c: BinsHead(width, c["n_bins"], width, min_depth=c["min_depth"],
+                                      max_depth=c["max_depth"]),
+    "mvit": lambda width, c: MiniViTHead(
+        width, c["n_bins"], width, min_depth=c["min_depth"], max_depth=c["max_depth"],
+        design_tokens=(c["design_size"][0] // 32, c["design_size"][1] // 32)),
+    "direct": lambda width, c: DirectDepthHead(width, c["min_depth"], c["max_depth"]),
+    "zone_prior": lambda width, c: ZonePriorHead(width, c["n_bins"], width,
+                                                 min_depth=c["min_depth"],
+                                                 max_depth=c["max_depth"]),
+    "zone_select": lambda width, c: ZoneSelectHead(width, width, c["n_bins"],
+                                                   min_depth=c["min_depth"],
+                                                   max_depth=c["max_depth"]),
+    "plane_select": lambda width, c: PlanarSelectHead(
+        c["select_temperature"], c["planar"], n_bins=c["n_bins"], min_depth=c["min_depth"],
+        max_depth=c["max_depth"], no_target_depth=c["no_target_depth"]),
+}
+#: Heads that choose among the zone readings (the only ones the descriptor decoder,
+#: which gives the head no zone information, can feed).
+SELECTING_HEADS = ("zone_select", "plane_select")
 #: Where the head's features come from: the zone-fusion decoder, or the encoder alone.
 DECODERS = ("fusion", "descriptors")
 DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
@@ -40,13 +66,12 @@ class DeltarNet(nn.Module):
             released weights, see :class:`~deltar.models.encoders.ImageEncoder`).
         decoder_channels: five decoder widths; the fusion widths are half of the
             second to fourth, and the PointNet widths are those, fine to coarse.
-        head: "bins" (release), "mvit" (paper's AdaBins refinement), "direct"
-            (no refinement ablation) or "zone_prior" (log-ratio bins around a smooth
-            prior interpolated from the zone means; see
-            :mod:`~deltar.models.zone_prior`) or "zone_select" (an image-guided
-            choice among the zone readings, :class:`~deltar.models.zone_prior.ZoneSelectHead`)
-            or "plane_select" (the zones' local planes chosen by feature affinity,
-            :class:`~deltar.models.affinity.PlanarSelectHead`).
+        head: a name of :data:`HEADS`, one file each under :mod:`deltar.models.heads`:
+            "bins" (release), "mvit" (paper's AdaBins refinement), "direct" (the
+            no-refinement ablation), "zone_prior" (log-ratio bins around a smooth prior
+            from the zone means), "zone_select" (an image-guided choice among the zone
+            readings) or "plane_select" (the zones' local planes chosen by feature
+            affinity).
         head_channels: width of the decoder output fed to the head.
         n_bins: number of depth bins N.
         min_depth: smallest depth, metres.
@@ -115,13 +140,13 @@ class DeltarNet(nn.Module):
         no_target_depth: float | None = NO_TARGET_DEPTH_M,
     ) -> None:
         super().__init__()
-        _check_choice("head", head, HEADS)
+        _check_choice("head", head, tuple(HEADS))
         _check_choice("distribution_input", distribution_input, DISTRIBUTION_INPUTS)
         _check_choice("image_input", image_input, IMAGE_INPUTS)
         _check_choice("fusion", fusion, FUSION_MODES)
         _check_choice("hypothesis_sampling", hypothesis_sampling, SAMPLINGS)
         _check_choice("decoder", decoder, DECODERS)
-        if decoder == "descriptors" and head not in ("zone_select", "plane_select"):
+        if decoder == "descriptors" and head not in SELECTING_HEADS:
             raise ValueError(f"decoder 'descriptors' gives the head no zone information: it "
                              f"needs head 'zone_select' or 'plane_select', got {head!r}")
         if decoder == "descriptors" and image_input != "rgb":
@@ -172,52 +197,30 @@ class DeltarNet(nn.Module):
                   else len(FEATURE_STRIDES))
         self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation, levels)
         self.distribution_encoder = None
+        self.decoder: FusionDecoder | EncoderDescriptors
         if decoder == "descriptors":
             self.decoder = EncoderDescriptors(self.image_encoder.channels, descriptor_strides)
             head_channels = self.decoder.channels
         else:
-            fusion_kwargs = None
-            if not self.five_channel:
-                fusion_kwargs = {
-                    "num_hypotheses": 1 if self.mean_sigma_points else num_hypotheses,
-                    "layer_order": tuple(fusion_layers),
-                    "mode": fusion,
-                    "cross_heads": cross_heads,
-                    "self_heads": self_heads,
-                }
-            self.decoder = FusionDecoder(
-                self.image_encoder.channels, decoder_channels, head_channels, fusion_kwargs,
-                design_size,
-            )
-            if not self.five_channel:
-                self.distribution_encoder = DistributionEncoder(
-                    point_dim=2 if self.mean_sigma_points else 1,
-                    widths=self.decoder.fusion_dims[::-1],
-                )
+            self.decoder, self.distribution_encoder = self._fusion_decoder()
         self.traceable = False
-        self.head: DepthHead
-        if head == "bins":
-            self.head = BinsHead(head_channels, n_bins, head_channels,
-                                 min_depth=min_depth, max_depth=max_depth)
-        elif head == "mvit":
-            half = (design_size[0] // 2, design_size[1] // 2)
-            self.head = MiniViTHead(
-                head_channels, n_bins, head_channels,
-                design_tokens=(half[0] // 16, half[1] // 16),
-                min_depth=min_depth, max_depth=max_depth,
-            )
-        elif head == "zone_select":
-            self.head = ZoneSelectHead(head_channels, head_channels, n_bins,
-                                       min_depth=min_depth, max_depth=max_depth)
-        elif head == "plane_select":
-            self.head = PlanarSelectHead(select_temperature, planar, n_bins=n_bins,
-                                         min_depth=min_depth, max_depth=max_depth,
-                                         no_target_depth=no_target_depth)
-        elif head == "zone_prior":
-            self.head = ZonePriorHead(head_channels, n_bins, head_channels,
-                                      min_depth=min_depth, max_depth=max_depth)
-        else:
-            self.head = DirectDepthHead(head_channels, min_depth, max_depth)
+        self.head: DepthHead = HEADS[head](head_channels, self.config)
+
+    def _fusion_decoder(self) -> tuple[FusionDecoder, DistributionEncoder | None]:
+        """The zone-fusion decoder and the distribution encoder it fuses, from the config."""
+        c = self.config
+        fusion_kwargs = None
+        if not self.five_channel:
+            fusion_kwargs = {"num_hypotheses": 1 if self.mean_sigma_points else
+                             c["num_hypotheses"], "layer_order": c["fusion_layers"],
+                             "mode": c["fusion"], "cross_heads": c["cross_heads"],
+                             "self_heads": c["self_heads"]}
+        decoder = FusionDecoder(self.image_encoder.channels, c["decoder_channels"],
+                                c["head_channels"], fusion_kwargs, c["design_size"])
+        if self.five_channel:
+            return decoder, None
+        return decoder, DistributionEncoder(point_dim=2 if self.mean_sigma_points else 1,
+                                            widths=decoder.fusion_dims[::-1])
 
     @property
     def uses_no_target(self) -> bool:
@@ -287,7 +290,7 @@ class DeltarNet(nn.Module):
             image = torch.cat([image, maps.to(image.dtype)], dim=1)
         image_features = self.image_encoder(image)
 
-        zone_features = resamplers = None
+        decoder_zones = DecoderZones(tuple(image.shape[-2:]))
         if self.distribution_encoder is not None:
             if self.mean_sigma_points:
                 points = (zone_mean_sigma * valid[..., None])[:, :, None, :]
@@ -302,11 +305,9 @@ class DeltarNet(nn.Module):
                 size = (height // stride, width // stride)
                 resamplers.append(ZonePatchResampler(window, size, image.dtype,
                                                      traceable=self.traceable))
-
-        if isinstance(self.decoder, EncoderDescriptors):
-            features = self.decoder(image_features, tuple(image.shape[-2:]))
-        else:
-            features = self.decoder(image_features, zone_features, valid, resamplers)
+            decoder_zones = DecoderZones(tuple(image.shape[-2:]), zone_features, valid,
+                                         resamplers)
+        features = self.decoder(image_features, decoder_zones)
         zones = ZoneInputs(hypotheses, valid, zone_rects, image.shape[-1] / features.shape[-1],
                            zone_mean_sigma, zone_no_target, scale)
         depth, edges, uncertainty = self.head.predict(features, zones)

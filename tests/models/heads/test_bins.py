@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from deltar.models.heads import bins_to_depth, normalise_bin_widths
+from deltar.models.heads.base import bins_to_depth
+from deltar.models.heads.bins import normalise_bin_widths
 
 
 @pytest.mark.parametrize("grad", [True, False])
@@ -35,7 +36,7 @@ def test_depth_edges_and_uncertainty_match_numpy(rng, grad):
 @pytest.mark.parametrize("head", ["bins", "mvit", "direct", "zone_prior", "zone_select"])
 def test_every_head_has_the_one_interface(head, network_inputs):
     from deltar.models import create_model
-    from deltar.models.heads import DepthHead, HeadOutput, ZoneInputs
+    from deltar.models.heads.base import DepthHead, HeadOutput, ZoneInputs
 
     torch.manual_seed(0)
     model = create_model("deltar-lite", head=head, design_size=(64, 96)).eval()
@@ -56,7 +57,7 @@ def test_network_output_is_the_heads_predict(network_inputs):
     # DeltarNet hands every head the same ZoneInputs; a head replaced by another
     # DepthHead is called the same way.
     from deltar.models import create_model
-    from deltar.models.heads import DepthHead, HeadOutput
+    from deltar.models.heads.base import DepthHead, HeadOutput
 
     class Constant(DepthHead):
         def predict(self, features, zones):

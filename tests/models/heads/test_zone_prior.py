@@ -8,12 +8,8 @@ import pytest
 import torch
 
 from deltar.models import create_model
-from deltar.models.zone_prior import (
-    NO_ZONE_PRIOR_DEPTH,
-    ZonePriorHead,
-    footprint_pool,
-    zone_prior_map,
-)
+from deltar.models.heads.footprints import NO_ZONE_PRIOR_DEPTH, footprint_pool, zone_prior_map
+from deltar.models.heads.zone_prior import ZonePriorHead
 
 
 def _grid_rects(grid: int, zone_px: int) -> torch.Tensor:
@@ -91,7 +87,7 @@ def test_network_with_zone_prior_head_trains_toward_the_target():
 
 
 def test_untrained_zone_select_head_is_the_prior_and_stays_within_the_readings():
-    from deltar.models.zone_prior import ZoneSelectHead
+    from deltar.models.heads.zone_select import ZoneSelectHead
 
     torch.manual_seed(0)
     head = ZoneSelectHead(in_channels=8, key_channels=4, n_bins=16)
@@ -118,7 +114,7 @@ def test_untrained_zone_select_head_is_the_prior_and_stays_within_the_readings()
 def test_zone_select_learns_which_zone_a_pixel_belongs_to():
     # Two zones read 1 m and 3 m; the image says the left half belongs to the 3 m zone
     # (its colour): the head must learn to pick by appearance, not by distance.
-    from deltar.models.zone_prior import ZoneSelectHead
+    from deltar.models.heads.zone_select import ZoneSelectHead
 
     torch.manual_seed(0)
     head = ZoneSelectHead(in_channels=2, key_channels=4, n_bins=8)
@@ -148,7 +144,8 @@ def test_zone_select_matches_the_dense_footprint_formula_where_weights_underflow
     # zone's peak (subnormal floats are many times slower); on a map large enough for
     # far zones' Gaussians to underflow, the head must still equal the dense formula:
     # footprint = normalised outer product of the two axes' Gaussians, in float64.
-    from deltar.models.zone_prior import ZoneSelectHead, zone_gaussians
+    from deltar.models.heads.footprints import zone_gaussians
+    from deltar.models.heads.zone_select import ZoneSelectHead
 
     torch.manual_seed(0)
     head = ZoneSelectHead(in_channels=6, key_channels=4, n_bins=8)

@@ -1,0 +1,211 @@
+"""Zone selection by image-feature affinity over planar zone hypotheses.
+
+A depth method with almost nothing to learn, built for the case this library meets
+most: a new room, no training data from it. Per pixel, depth is a softmax-weighted
+geometric mean over the zones of each zone's *local plane* evaluated at that pixel:
+
+- the weights' logits are the zone prior's Gaussian log-weights
+  (:func:`~deltar.models.heads.footprints.zone_gaussians`: near zones first) plus a
+  temperature times the cosine similarity between the pixel's image descriptor and the
+  zone's (its descriptors pooled over its footprint): a pixel takes the depth of the
+  zones that look like it, as a joint bilateral filter does with colours, but with the
+  frozen ImageNet features of the encoder, which tell surfaces apart better than colour;
+- each zone's hypothesis is not a constant but the plane through its reading fitted to
+  its neighbours that read alike (:func:`zone_planes`), so slanted floors and walls keep
+  their slope inside a zone and past the edge of the sensor's field of view.
+
+The metric scale comes from the zones alone: every output is a weighted mean of planes
+anchored at the zone readings, and the planes are fitted on readings relative to each
+zone, so scaling every reading by ``k`` scales the depth by ``k`` exactly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from deltar.models.heads.base import DepthHead, HeadOutput, ZoneInputs
+from deltar.models.heads.footprints import (
+    footprint_pool,
+    selection_outputs,
+    softmax_over_zones,
+    zone_gaussians,
+)
+from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
+
+
+def _zone_geometry(rects: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Zone centres (B, Z) and the frame's mean zone height and width (B, 1), pixels."""
+    centre_y = 0.5 * (rects[..., 0] + rects[..., 2])
+    centre_x = 0.5 * (rects[..., 1] + rects[..., 3])
+    zone_h = (rects[..., 2] - rects[..., 0]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    zone_w = (rects[..., 3] - rects[..., 1]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    return centre_y, centre_x, zone_h, zone_w
+
+
+def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects: torch.Tensor,
+                neighbourhood: float = 1.6, similarity: float = 0.05, ridge: float = 0.1
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each zone's local plane: inverse-depth slopes fitted to neighbours that read alike.
+
+    A plane seen through a pinhole camera has an inverse depth that is affine in the
+    pixel coordinates, so a zone's plane is ``1 / d(p) = (1 / m_k) (1 + a_k v + b_k u)``
+    with (v, u) the pixel's offset from the zone centre in zone heights / widths. The
+    slopes (a_k, b_k) are the weighted least-squares fit, through the zone's own
+    reading, of its valid neighbours (centres within ``neighbourhood`` zone sizes),
+    each weighted by ``exp(-0.5 (log(m_j / m_k) / similarity)^2)`` so that a neighbour
+    across a depth edge does not tilt the plane, with a ridge that pulls the slopes of
+    zones without enough support to zero (a fronto-parallel plane).
+
+    Args:
+        zone_mean_m: (B, Z) zone readings, metres (ignored where not valid).
+        zone_valid: (B, Z) bool.
+        zone_rects: (B, Z, 4) (y0, x0, y1, x1), pixels.
+        neighbourhood: neighbour range, in zone sizes per axis.
+        similarity: log-depth difference at which a neighbour's weight falls to e^-0.5.
+        ridge: regularisation of the slopes (in the units of the weights' sum).
+
+    Returns:
+        ``(slope_y, slope_x)``: (B, Z) relative inverse-depth change per zone height and
+        per zone width (0 for invalid zones).
+    """
+    centre_y, centre_x, zone_h, zone_w = _zone_geometry(zone_rects.to(zone_mean_m.dtype))
+    dy = (centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None]  # (B, k, j)
+    dx = (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None]
+    valid = zone_valid.bool()
+    log_mean = torch.log(zone_mean_m.clamp_min(1e-3))
+    log_ratio = log_mean[:, None, :] - log_mean[:, :, None]  # log(m_j / m_k)
+    near = (dy.abs() < neighbourhood) & (dx.abs() < neighbourhood) & valid[:, None, :]
+    weight = torch.exp(-0.5 * (log_ratio / similarity) ** 2) * near
+    # Relative inverse depth of neighbour j seen from zone k, minus the anchor's 1.
+    target = torch.exp(-log_ratio) - 1.0
+    syy = (weight * dy * dy).sum(-1) + ridge
+    sxx = (weight * dx * dx).sum(-1) + ridge
+    sxy = (weight * dy * dx).sum(-1)
+    ry = (weight * dy * target).sum(-1)
+    rx = (weight * dx * target).sum(-1)
+    # The 2x2 normal equations solved in closed form (exports to plain ONNX ops).
+    det = syy * sxx - sxy * sxy
+    slope_y = (sxx * ry - sxy * rx) / det
+    slope_x = (syy * rx - sxy * ry) / det
+    return slope_y.masked_fill(~valid, 0.0), slope_x.masked_fill(~valid, 0.0)
+
+
+class PlanarSelectHead(DepthHead):
+    """Depth as an affinity-weighted choice among the zones' local planes (log depth).
+
+    Args:
+        temperature: initial weight of the cosine affinity against the Gaussian prior
+            (learned; 0 gives the prior's purely spatial weights).
+        planar: use each zone's plane (:func:`zone_planes`); False uses constant zone
+            readings, as :class:`~deltar.models.heads.zone_select.ZoneSelectHead` does.
+        max_ratio: a plane's depth is clamped to within this factor of its zone reading
+            (extrapolated far from its zone a plane would run off to infinity).
+        n_bins: number of entries of the reported ``bin_edges`` (N + 1 edges).
+        min_depth, max_depth: output clamp, metres.
+        no_target_depth: depth in metres of the hypothesis a zone that reported *no
+            target* offers (ST status 255: nothing returned within the sensor's range, so
+            the surface is farther than the range); absolute, not scaled with the
+            readings. None: the head ignores the flags (weights saved before they
+            existed load that way).
+    """
+
+    def __init__(self, temperature: float = 5.0, planar: bool = True, max_ratio: float = 2.0,
+                 n_bins: int = 64, min_depth: float = 1e-3, max_depth: float = 10.0,
+                 no_target_depth: float | None = NO_TARGET_DEPTH_M) -> None:
+        super().__init__()
+        if max_ratio <= 1.0:
+            raise ValueError(f"max_ratio must be > 1, got {max_ratio}")
+        if no_target_depth is not None and not (
+                math.isfinite(no_target_depth) and min_depth < no_target_depth <= max_depth):
+            raise ValueError(f"no_target_depth must lie in ({min_depth}, {max_depth}] m, got "
+                             f"{no_target_depth}")
+        self.uses_no_target = no_target_depth is not None
+        self.no_target_depth = None if no_target_depth is None else float(no_target_depth)
+        self.planar = bool(planar)
+        self.max_ratio = float(max_ratio)
+        self.min_depth, self.max_depth = min_depth, max_depth
+        self.temperature = nn.Parameter(torch.tensor(float(temperature)))
+        limit = math.log(3.0)
+        self.register_buffer("edges", torch.linspace(-limit, limit, n_bins + 1),
+                             persistent=False)
+
+    def forward(self, descriptors: torch.Tensor, zone_mean_m: torch.Tensor,
+                zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float,
+                zone_no_target: torch.Tensor | None = None,
+                zone_scale_m: torch.Tensor | None = None) -> HeadOutput:
+        """Depth, bin edges and uncertainty: the inputs and outputs of
+        :meth:`~deltar.models.heads.zone_select.ZoneSelectHead.forward`, with unit-length
+        pixel descriptors (B, C, h, w)
+        (:class:`~deltar.models.affinity.EncoderDescriptors`) as the features; the
+        uncertainty is the spread of the chosen planes' log depths.
+
+        ``zone_no_target`` (B, Z) bool, optional: zones that reported no target; each
+        (where not valid) joins the choice with the constant hypothesis
+        ``no_target_depth``. Valid zones alone set the planes and the frame's centre.
+        ``zone_scale_m`` (B,), optional: metres per unit of ``zone_mean_m`` (when the
+        readings were divided by the frame's scale), to place that absolute depth.
+        """
+        _, _, height, width = descriptors.shape
+        dtype = descriptors.dtype
+        valid = zone_valid.bool()
+        far = None if zone_no_target is None or not self.uses_no_target else \
+            zone_no_target.bool() & ~valid
+        chosen = valid if far is None else valid | far
+        log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
+        pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
+        cosine = descriptors.flatten(2).transpose(1, 2) @ pooled  # (B, h*w, Z)
+        prior_logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]).flatten(1, 2)
+        weights = softmax_over_zones(prior_logits + self.temperature.to(dtype) * cosine)
+
+        means = zone_mean_m.to(dtype)
+        log_mean = torch.log(means.clamp_min(1e-3))
+        # Log depths relative to the frame's mean valid reading: the spread below is a
+        # difference of second moments, which cancels badly on large log depths.
+        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
+        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
+        if far is not None:
+            # Absolute: the range limit does not scale with the scene.
+            log_far = math.log(self.no_target_depth) - centre
+            if zone_scale_m is not None:
+                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
+            log_mean = torch.where(far, log_far.to(dtype), log_mean)
+        if self.planar:
+            hypotheses = log_mean[:, None, :] - torch.log(
+                self._plane_ratio(means, valid, zone_rects.to(dtype), (height, width), stride))
+            hypotheses = hypotheses.masked_fill(~chosen[:, None, :], 0.0)  # (B, h*w, Z)
+            log_depth = (weights * hypotheses).sum(-1, keepdim=True)
+            second = (weights * hypotheses ** 2).sum(-1, keepdim=True)
+        else:
+            log_depth = weights @ log_mean[..., None]
+            second = weights @ (log_mean[..., None] ** 2)
+        spread = (second - log_depth ** 2).clamp_min(0.0).sqrt()
+        low, high = self.min_depth, self.max_depth
+        if zone_scale_m is not None:
+            # The clamp is in metres: readings divided by the frame's scale are not.
+            scale = zone_scale_m.to(dtype)
+            low, high = low / scale, high / scale
+        return selection_outputs(log_depth + centre[:, :, None], spread, chosen,
+                                 (height, width), self.edges, low, high)
+
+    def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The choice among the zones' planes (:meth:`forward`), descriptors as features."""
+        return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
+                    zones.stride, zones.no_target, zones.scale_m)
+
+    def _plane_ratio(self, means: torch.Tensor, valid: torch.Tensor, rects: torch.Tensor,
+                     size: tuple[int, int], stride: float) -> torch.Tensor:
+        """(B, h*w, Z) inverse depth of each zone's plane at each cell, over its reading."""
+        slope_y, slope_x = zone_planes(means, valid, rects)
+        centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
+        rows = (torch.arange(size[0], device=rects.device, dtype=rects.dtype) + 0.5) * stride
+        cols = (torch.arange(size[1], device=rects.device, dtype=rects.dtype) + 0.5) * stride
+        offset_y = (rows[None, :, None] - centre_y[:, None, :]) / zone_h[:, None]  # (B, h, Z)
+        offset_x = (cols[None, :, None] - centre_x[:, None, :]) / zone_w[:, None]  # (B, w, Z)
+        ratio = 1.0 + (slope_y[:, None, :] * offset_y)[:, :, None, :] + \
+            (slope_x[:, None, :] * offset_x)[:, None, :, :]  # (B, h, w, Z)
+        return ratio.clamp(1.0 / self.max_ratio, self.max_ratio).flatten(1, 2)
