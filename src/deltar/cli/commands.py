@@ -8,6 +8,7 @@ from deltar.cli import (  # noqa: F401
     calibrate,
     demo,
     evaluate,
+    mapping,
     models,
     predict,
     simulate,

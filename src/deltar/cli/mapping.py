@@ -1,0 +1,208 @@
+"""``deltar map``: a TSDF map (mesh + points) of a recording or a ROS 2 bag."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from deltar.cli.main import app
+from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
+from deltar.cli.robotics import (
+    ImageTopicOption,
+    InfoTopicOption,
+    RerunOption,
+    RerunSaveOption,
+    TofFormatOption,
+    TofOrientationOption,
+    TofSigmaOption,
+    TofTopicOption,
+)
+
+
+def _settings(voxel: float, truncation: float, max_depth: float, max_memory: float):
+    from deltar.mapping.tsdf import MapSettings
+
+    try:
+        return MapSettings(voxel_size_m=voxel, truncation_voxels=truncation,
+                           max_depth_m=max_depth, max_memory_bytes=int(max_memory * 2**20))
+    except ValueError as err:
+        option = {"voxel_size_m": "--voxel", "truncation_voxels": "--truncation",
+                  "max_depth_m": "--max-depth", "max_memory_bytes": "--max-memory"}
+        hint = next((o for k, o in option.items() if k in str(err)), None)
+        raise typer.BadParameter(str(err), param_hint=hint) from err
+
+
+def _check_out(out: Path, recording: Path, overwrite: bool) -> None:
+    from deltar.cli.checks import existing_outputs, output_folder
+
+    resolved, source = out.resolve(), recording.resolve()
+    if resolved == source or source in resolved.parents:
+        raise ValueError(f"--out {out} is inside the input {recording}; choose a folder "
+                         "outside it")
+    output_folder(out, "--out")
+    if not overwrite:
+        existing_outputs(out / name for name in ("mesh.ply", "points.ply", "trajectory.txt",
+                                                 "map.json"))
+
+
+@app.command("map")
+@model_options
+def map_command(
+    recording: Path = typer.Argument(..., help="Recording folder (deltar record) or ROS 2 bag "
+                                     "folder."),
+    out: Path = typer.Option(..., "--out", help="Output folder: mesh.ply, points.ply, "
+                             "trajectory.txt, map.json."),
+    calib: Path | None = typer.Option(None, "--calib", help="Rig calibration JSON (deltar "
+                                      "calibrate)."),
+    model: ModelOptions = MODEL_OPTIONS,
+    method: str | None = typer.Option(None, "--method", help="Depth from a classical "
+                                      "baseline (e.g. colorization) instead of the model, "
+                                      "or 'recorded': the recording's own depth images."),
+    trajectory: Path | None = typer.Option(None, "--trajectory", help="Camera poses as a "
+                                           "TUM file (t tx ty tz qx qy qz qw, camera to "
+                                           "world) for a recording without pose/."),
+    pose_topic: str | None = typer.Option(None, "--pose-topic", help="Bags: a "
+                                          "geometry_msgs/msg/PoseStamped topic of camera "
+                                          "poses (default: /tf when the bag has it)."),
+    odometry: bool = typer.Option(False, "--odometry", help="Use RGB-D odometry even when "
+                                  "poses exist (they then measure its trajectory error)."),
+    voxel: float = typer.Option(0.02, "--voxel", help="Voxel size, metres."),
+    truncation: float = typer.Option(4.0, "--truncation", help="TSDF truncation, voxels."),
+    max_depth: float | None = typer.Option(None, "--max-depth", help="Depth limit, metres "
+                                           "(default: the ToF sensor's range, 4 m for the "
+                                           "L5)."),
+    max_relative_sigma: float = typer.Option(0.15, "--max-relative-sigma", help="Model "
+                                             "pixels whose uncertainty / depth exceeds this "
+                                             "are skipped; below, weight falls linearly."),
+    max_memory: float = typer.Option(2048.0, "--max-memory", help="Memory budget of the "
+                                     "volume, MiB (it never grows past it)."),
+    tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
+                                    "seconds."),
+    pose_tolerance: float = typer.Option(0.05, "--pose-tolerance", min=0.0, help="Largest "
+                                         "gap of a trajectory around a frame, seconds."),
+    every: int = typer.Option(1, min=1, help="Use every N-th frame."),
+    limit: int | None = typer.Option(None, min=1, help="Map at most this many frames."),
+    overwrite: bool = typer.Option(False, help="Replace existing outputs."),
+    image_topic: str | None = ImageTopicOption,
+    info_topic: str | None = InfoTopicOption,
+    tof_topic: str | None = TofTopicOption,
+    tof_format: str = TofFormatOption,
+    tof_orientation: str = TofOrientationOption,
+    tof_sigma: float = TofSigmaOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
+) -> None:
+    """Fuse every frame's depth into a TSDF map (Open3D) and write its mesh and points.
+
+    Each pixel of the model's depth is weighted by its confidence; depth beyond the
+    sensor's range is not used. Poses: the recording's pose/ folder, --trajectory, the
+    bag's /tf or --pose-topic, else RGB-D odometry. Everything is checked (inputs, poses,
+    memory) before the first depth map is made.
+    """
+    from deltar.cli.checks import finite
+    from deltar.cli.errors import warn
+    from deltar.cli.progress import ProgressReport
+    from deltar.mapping.builder import build_map, plan_map
+    from deltar.mapping.frames import DepthSource, FrameSource
+    from deltar.mapping.poses import write_tum_trajectory
+    from deltar.mapping.tsdf import require_open3d
+
+    for value, option in ((voxel, "--voxel"), (truncation, "--truncation"),
+                          (max_relative_sigma, "--max-relative-sigma"),
+                          (max_memory, "--max-memory")):
+        finite(value, option, positive=True)
+    if max_depth is not None:
+        finite(max_depth, "--max-depth", positive=True)
+    if method is not None and model.source()[0] is not None:
+        raise typer.BadParameter("give a model option or --method, not both",
+                                 param_hint="--method")
+    model.check()
+    require_open3d()
+    _check_out(out, recording, overwrite)
+    calibration = None
+    if calib is not None:
+        from deltar.calibration.rig import RigCalibration
+
+        calibration = RigCalibration.load(calib)
+    bag_options = {}
+    if (recording / "metadata.yaml").is_file():
+        from deltar.cli.robotics import parse_orientation
+
+        bag_options = {"image_topic": image_topic, "info_topic": info_topic,
+                       "tof_topic": tof_topic, "tof_format": tof_format,
+                       "tof_orientation": parse_orientation(tof_orientation),
+                       "tof_sigma_m": tof_sigma}
+    source = FrameSource(recording, calibration=calibration, tolerance_s=tolerance,
+                         every=every, limit=limit, bag_options=bag_options)
+    settings = _settings(voxel, truncation, max_depth or source.depth_limit_m(), max_memory)
+    # A bad method name fails here, before the poses and the model.
+    depth = DepthSource(method=method, max_relative_sigma=max_relative_sigma) \
+        if method is not None else None
+    plan = plan_map(source, settings, trajectory=trajectory, pose_topic=pose_topic,
+                    force_odometry=odometry, tolerance_s=pose_tolerance)
+    if plan.skipped_no_pose:
+        warn(f"{plan.skipped_no_pose} of {len(source)} frames have no pose and are left out")
+    typer.echo(f"poses: {plan.pose_source}; {len(plan.frames)} frames; volume: at most "
+               f"{settings.max_blocks} blocks = {settings.max_blocks * _block_mib(settings):.0f}"
+               f" MiB, estimated <= {plan.estimated_blocks * _block_mib(settings):.0f} MiB "
+               f"(voxel {settings.voxel_size_m * 100:g} cm, truncation "
+               f"{settings.truncation_m * 100:g} cm, depth <= {settings.max_depth_m:g} m)")
+    if depth is None:
+        depth = DepthSource(model.load(), max_relative_sigma=max_relative_sigma)
+    viewer = None
+    if rerun or rerun_save is not None:
+        from deltar.mapping.viewer import MapViewer
+
+        viewer = MapViewer(rerun_save)
+    with ProgressReport("mapping", total=len(plan.frames)) as progress:
+
+        def each(frame, pose, depth_m, volume) -> None:
+            if viewer is not None:
+                viewer.log(frame, pose, volume, depth_m)
+            progress.advance()
+
+        result = build_map(source, depth, plan, settings, on_frame=each)
+    if viewer is not None:
+        viewer.close(result.volume)
+    volume = result.volume
+    paths = volume.write(out, overwrite=overwrite)
+    write_tum_trajectory(out / "trajectory.txt", result.times_s, result.poses)
+    bounds = volume.bounds_m()
+    summary = {
+        "input": str(recording), "depth": depth.name, "poses": plan.pose_source,
+        "frames": len(result.poses), "empty_frames": result.empty_frames,
+        "voxel_size_m": settings.voxel_size_m, "truncation_m": settings.truncation_m,
+        "max_depth_m": settings.max_depth_m, "max_relative_sigma": max_relative_sigma,
+        "blocks": volume.block_count, "capacity_blocks": volume.capacity_blocks,
+        "memory_bytes": volume.memory_bytes, "used_bytes": volume.used_bytes,
+        "frames_over_capacity": volume.full_frames,
+        "extent_m": None if bounds is None else (bounds[1] - bounds[0]).round(3).tolist(),
+        "integrate_s": round(result.integrate_s, 3), "depth_s": round(result.depth_s, 3),
+        "odometry": None if result.odometry is None else {
+            "pairs": result.odometry.pairs, "failed": result.odometry.failed,
+            "path_length_m": result.odometry.path_length_m},
+        "ate_m": result.ate_m,
+    }
+    from deltar.io.atomic import write_text_atomic
+
+    write_text_atomic(out / "map.json", json.dumps(summary, indent=2) + "\n")
+    if result.odometry is not None:
+        typer.echo(result.odometry.summary()
+                   + ("" if result.ate_m is None else
+                      f"; trajectory error (ATE) against the given poses {result.ate_m:.3f} m"))
+    extent = "empty" if bounds is None else \
+        " x ".join(f"{v:.2f}" for v in bounds[1] - bounds[0]) + " m"
+    typer.echo(f"volume: {volume.block_count} blocks ({extent}), "
+               f"{volume.used_bytes / 2**20:.1f} MiB used of {volume.memory_bytes / 2**20:.0f} "
+               f"MiB reserved; integration {len(result.poses) / max(result.integrate_s, 1e-9):.1f}"
+               f" frames/s (depth {result.depth_s / max(len(result.poses), 1):.2f} s/frame)")
+    typer.echo(f"wrote {paths['mesh']}, {paths['points']}, {out / 'trajectory.txt'}, "
+               f"{out / 'map.json'}")
+
+
+def _block_mib(settings) -> float:
+    from deltar.mapping.tsdf import block_bytes
+
+    return block_bytes(settings.block_resolution) / 2**20

@@ -1,0 +1,254 @@
+"""Build a map: choose the poses, check everything, then integrate frame by frame.
+
+:func:`plan_map` does every check that needs no depth (poses found and valid and
+covering frames, motion for odometry, the volume's memory estimate) so bad input
+fails before the long part; :func:`build_map` then predicts (or reads) each frame's
+depth and fuses it into a :class:`~deltar.mapping.tsdf.TSDFMap`.
+
+Poses, in this order:
+
+1. the recording's own ``pose/<ns>.txt`` files (:data:`POSE_DIR`, docs/formats.md);
+2. a TUM trajectory file (``trajectory``);
+3. a bag's ``PoseStamped`` topic (``pose_topic``) or its ``/tf`` chain to the camera's
+   frame;
+4. RGB-D odometry on the predicted depth (:mod:`deltar.mapping.odometry`), also when
+   ``force_odometry`` (then the poses above, if any, are the reference its trajectory
+   error is measured against).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from deltar.mapping.frames import DepthSource, FrameSource, MapFrame
+from deltar.mapping.odometry import OdometryReport, RGBDOdometry, check_motion
+from deltar.mapping.poses import (
+    DEFAULT_POSE_TOLERANCE_S,
+    absolute_trajectory_error,
+    match_poses,
+    read_bag_poses,
+    read_pose_folder,
+    read_tum_trajectory,
+)
+from deltar.mapping.tsdf import (
+    INITIAL_BLOCKS,
+    MapSettings,
+    TSDFMap,
+    block_bytes,
+    estimate_blocks,
+)
+
+#: Folder of per-frame poses inside a recording (4x4 camera-to-world, ``<ns>.txt``).
+POSE_DIR = "pose"
+#: Frames sampled evenly for the odometry motion check.
+_MOTION_SAMPLES = 24
+
+
+@dataclass
+class MapPlan:
+    """What :func:`plan_map` decided.
+
+    Attributes:
+        frames: the frames to integrate (with a pose, or all for odometry).
+        poses: (N, 4, 4) camera-to-world poses of ``frames``, None for odometry.
+        pose_source: where the poses come from (text).
+        reference_poses: (N, 4, 4) given poses of ``frames`` when odometry is forced
+            over them (for the trajectory error), else None.
+        capacity_blocks: the volume's first block capacity (it doubles as needed, up to
+            the budget).
+        estimated_blocks: the upper estimate of blocks the map needs
+            (:func:`~deltar.mapping.tsdf.estimate_blocks`).
+        skipped_no_pose: frames left out because no pose covers them.
+    """
+
+    frames: list[MapFrame]
+    poses: np.ndarray | None
+    pose_source: str
+    reference_poses: np.ndarray | None
+    capacity_blocks: int
+    estimated_blocks: int
+    skipped_no_pose: int = 0
+
+
+@dataclass
+class MapResult:
+    """A built map and how it went.
+
+    Attributes:
+        volume: the TSDF map.
+        poses: (N, 4, 4) camera-to-world poses used, one per integrated frame.
+        times_s: (N,) the frames' times, seconds.
+        odometry: the odometry report (None with given poses).
+        ate_m: the odometry's trajectory error against the given poses, metres (None
+            without both).
+        integrate_s: seconds spent in the volume (without depth prediction).
+        depth_s: seconds spent predicting (or reading) depth.
+        empty_frames: frames whose depth had no pixel to integrate.
+    """
+
+    volume: TSDFMap
+    poses: np.ndarray
+    times_s: np.ndarray
+    odometry: OdometryReport | None = None
+    ate_m: float | None = None
+    integrate_s: float = 0.0
+    depth_s: float = 0.0
+    empty_frames: int = 0
+    frame_names: list[str] = field(default_factory=list)
+
+
+def _given_poses(source: FrameSource, trajectory: Path | None, pose_topic: str | None,
+                 tolerance_s: float) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """(poses, covered, description) from the first pose source there is, or None."""
+    names = [f.name for f in source.frames]
+    times = np.array([f.time_s for f in source.frames])
+    own = source.path / POSE_DIR
+    if source.kind == "recording" and own.is_dir():
+        if trajectory is not None:
+            raise ValueError(f"{source.path} has its own poses in {own}; --trajectory "
+                             f"{trajectory} would be ignored: give only one")
+        found = read_pose_folder(own)
+        poses, covered = match_poses(found, times, names, tolerance_s)
+        return poses, covered, f"{own} (recorded poses)"
+    if trajectory is not None:
+        found = read_tum_trajectory(trajectory)
+        poses, covered = match_poses(found, times, names, tolerance_s)
+        return poses, covered, f"{trajectory} (TUM trajectory)"
+    if source.kind == "bag":
+        camera = source.frames[0].camera_frame_id if source.frames else None
+        found = read_bag_poses(source.path, pose_topic=pose_topic, camera_frame=camera)
+        if found is not None:
+            poses, covered = match_poses(found, times, names, tolerance_s)
+            return poses, covered, found.source
+    elif pose_topic is not None:
+        raise ValueError("--pose-topic is for ROS 2 bags; a recording keeps its poses in "
+                         f"{POSE_DIR}/")
+    return None
+
+
+def _sample_images(source: FrameSource, frames: list[MapFrame]) -> list[np.ndarray]:
+    picks = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), _MOTION_SAMPLES))
+                      .round().astype(int))
+    chosen = [frames[i] for i in picks]
+    return [frame.image.copy() for frame in source.load(chosen)]
+
+
+def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | None = None,
+             pose_topic: str | None = None, force_odometry: bool = False,
+             tolerance_s: float = DEFAULT_POSE_TOLERANCE_S) -> MapPlan:
+    """Find the poses and check the input and the memory, before any depth is made.
+
+    Raises:
+        ValueError: no frames; poses that are not rigid transforms or cover no frame; a
+            recording too short or too still for odometry; a map whose single view
+            already exceeds ``settings.max_memory_bytes``, or whose estimate exceeds the
+            machine's available memory (each with its own message).
+    """
+    if not source.frames:
+        raise ValueError(f"{source.path}: no frame to map (no zone frame has a camera image "
+                         "near it)")
+    given = _given_poses(source, trajectory, pose_topic, tolerance_s)
+    frames, poses, reference, skipped = source.frames, None, None, 0
+    description = "RGB-D odometry on the predicted depth"
+    if given is not None:
+        all_poses, covered, where = given
+        skipped = int(np.count_nonzero(~covered))
+        frames = [f for f, ok in zip(source.frames, covered, strict=True) if ok]
+        if force_odometry:
+            reference = all_poses[covered]
+            description += f" (reference for the trajectory error: {where})"
+        else:
+            poses, description = all_poses[covered], where
+    if poses is None:
+        check_motion(_sample_images(source, frames), str(source.path))
+    intrinsics = frames[0].calibration.intrinsics
+    per_frame = _frame_blocks_bound(settings, intrinsics)
+    positions = None if poses is None else poses[:, :3, 3]
+    estimated = estimate_blocks(settings, positions, per_frame, len(frames))
+    unit = block_bytes(settings.block_resolution)
+    if per_frame > settings.max_blocks:
+        raise ValueError(
+            f"one frame's view alone needs up to {per_frame * unit / 2**20:.0f} MiB "
+            f"({per_frame} blocks of {settings.block_size_m * 100:g} cm at voxel "
+            f"{settings.voxel_size_m * 100:g} cm and depth up to {settings.max_depth_m:g} m), "
+            f"more than --max-memory {settings.max_memory_bytes / 2**20:.0f} MiB; use a "
+            "coarser --voxel, a smaller --max-depth or a larger --max-memory")
+    available = available_memory_bytes()
+    if available is not None and min(estimated, settings.max_blocks) * unit > available:
+        raise ValueError(
+            f"the map may need up to {min(estimated, settings.max_blocks) * unit / 2**20:.0f} "
+            f"MiB but this machine has {available / 2**20:.0f} MiB available; lower "
+            "--max-memory, use a coarser --voxel or a smaller --max-depth")
+    capacity = min(INITIAL_BLOCKS, estimated, settings.max_blocks)
+    return MapPlan(frames, poses, description, reference, capacity, estimated, skipped)
+
+
+def available_memory_bytes() -> int | None:
+    """``MemAvailable`` of /proc/meminfo in bytes (None where there is none)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _frame_blocks_bound(settings: MapSettings, intrinsics) -> int:
+    """Blocks a frame can touch: its view filled at the depth limit, counted by Open3D."""
+    probe = TSDFMap(settings, capacity_blocks=1)
+    depth = np.full((intrinsics.height, intrinsics.width), settings.max_depth_m * 0.999,
+                    np.float32)
+    return int(probe.frame_blocks(depth, intrinsics, np.eye(4)).shape[0])
+
+
+def build_map(source: FrameSource, depth: DepthSource, plan: MapPlan, settings: MapSettings,
+              *, on_frame: Callable[[MapFrame, np.ndarray, np.ndarray, TSDFMap], None] | None = None
+              ) -> MapResult:
+    """Predict each planned frame's depth and integrate it.
+
+    Args:
+        source: the frames.
+        depth: the depth source (model, baseline or recorded).
+        plan: from :func:`plan_map`.
+        settings: the map settings.
+        on_frame: called after each frame with (frame, its pose, its (H, W) depth in
+            metres, the map) (progress, viewer).
+
+    Returns:
+        The map with the poses used and the timings.
+    """
+    volume = TSDFMap(settings, capacity_blocks=plan.capacity_blocks)
+    odometry = None
+    if plan.poses is None:
+        odometry = RGBDOdometry(plan.frames[0].calibration.intrinsics, settings.max_depth_m)
+    used, times, names = [], [], []
+    result = MapResult(volume, np.zeros((0, 4, 4)), np.zeros(0))
+    for index, frame in enumerate(source.load(plan.frames)):
+        start = time.perf_counter()
+        depth_m, weight = depth(frame)
+        depth_m = np.where(depth_m <= settings.max_depth_m, depth_m, 0.0).astype(np.float32)
+        result.depth_s += time.perf_counter() - start
+        pose = odometry.step(frame.image, depth_m) if odometry is not None \
+            else plan.poses[index]
+        start = time.perf_counter()
+        updated = volume.integrate(depth_m, frame.image, weight,
+                                   frame.calibration.intrinsics, pose)
+        result.integrate_s += time.perf_counter() - start
+        result.empty_frames += int(updated == 0)
+        used.append(pose)
+        times.append(frame.time_s)
+        names.append(frame.name)
+        if on_frame is not None:
+            on_frame(frame, pose, depth_m, volume)
+    result.poses, result.times_s, result.frame_names = np.stack(used), np.array(times), names
+    if odometry is not None:
+        result.odometry = odometry.report
+        if plan.reference_poses is not None and len(used) >= 2:
+            result.ate_m = absolute_trajectory_error(result.poses, plan.reference_poses)
+    return result

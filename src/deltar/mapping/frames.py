@@ -1,0 +1,240 @@
+"""The frames a map is built from, and their depth: model, classical baseline or recorded.
+
+:func:`open_frames` lists the frames of a recording folder or a ROS 2 bag (a zone frame
+with the colour image nearest in time) without decoding images; :class:`FrameSource`
+then loads them one by one. A :class:`DepthSource` turns a loaded frame into depth
+(metres) and a per-pixel integration weight.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from deltar.sensor.zone_frame import sensor_max_range_m
+
+if TYPE_CHECKING:
+    from deltar.calibration.rig import RigCalibration
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.sensor.zone_frame import ZoneFrame
+
+#: Name of the depth source that reads the recording's own depth images (reference).
+RECORDED = "recorded"
+#: Default largest relative uncertainty (sigma / depth) of an integrated pixel.
+DEFAULT_MAX_RELATIVE_SIGMA = 0.15
+#: Sensor range assumed for sensor models without a known one, metres (the L5's).
+FALLBACK_RANGE_M = 4.0
+
+
+@dataclass
+class MapFrame:
+    """One frame to integrate.
+
+    Attributes:
+        name: the frame's name (a recording's colour image stem, a bag's image stamp).
+        time_s: the colour image's time, seconds.
+        image: (H, W, 3) uint8 RGB (None until loaded).
+        zone_frame: the ToF reading.
+        calibration: the rig calibration its zones are placed with.
+        recorded_depth_m: (H, W) float32 recorded depth in metres (0 invalid) or None.
+        camera_frame_id: a bag image's ``header.frame_id`` (None for recordings).
+    """
+
+    name: str
+    time_s: float
+    image: np.ndarray | None
+    zone_frame: ZoneFrame
+    calibration: RigCalibration
+    recorded_depth_m: np.ndarray | None = None
+    camera_frame_id: str | None = None
+
+
+class FrameSource:
+    """The frames of a recording folder or a ROS 2 bag, listed first, loaded on demand.
+
+    Args:
+        path: a recording folder (``meta.json``) or a ROS 2 bag folder (``metadata.yaml``).
+        calibration: rig calibration; nominal from the recording's metadata or the bag's
+            CameraInfo when None.
+        tolerance_s: largest |image time - zone time| of a pair, seconds.
+        every: use every ``every``-th pair.
+        limit: at most this many frames.
+        bag_options: ``BagInput`` keyword arguments (topics, ToF format) for bags.
+
+    Attributes:
+        frames: the listed :class:`MapFrame` (images not loaded).
+        kind: ``"recording"`` or ``"bag"``.
+        sensor_model: the ToF sensor's model name.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, calibration: RigCalibration | None = None,
+                 tolerance_s: float = 0.02, every: int = 1, limit: int | None = None,
+                 bag_options: dict[str, Any] | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"recording or bag not found: {self.path}")
+        if int(every) < 1:
+            raise ValueError(f"every must be >= 1, got {every}")
+        self.kind = "bag" if (self.path / "metadata.yaml").is_file() else "recording"
+        if self.kind == "bag":
+            self._list_bag(calibration, tolerance_s, bag_options or {})
+        else:
+            self._list_recording(calibration, tolerance_s)
+        selection = list(range(len(self.frames)))[::int(every)][:limit]
+        self.frames = [self.frames[i] for i in selection]
+        self._pairs = [self._pairs[i] for i in selection]
+        models = {f.zone_frame.sensor_model for f in self.frames}
+        self.sensor_model = models.pop() if len(models) == 1 else "VL53L5CX"
+
+    def _list_recording(self, calibration: RigCalibration | None, tolerance_s: float) -> None:
+        from deltar.inference.replay import recording_calibration
+        from deltar.io.recording import Recording
+
+        rec = Recording(self.path)
+        self.recording = rec
+        calib = calibration or recording_calibration(rec)
+        size = (rec.meta.intrinsics.height, rec.meta.intrinsics.width)
+        if (calib.intrinsics.height, calib.intrinsics.width) != size:
+            raise ValueError(f"--calib is for {calib.intrinsics.height}x"
+                             f"{calib.intrinsics.width} images, the recording {self.path} has "
+                             f"{size[0]}x{size[1]}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # skipped pairs are counted by the caller
+            pairs = rec.pairs(tolerance_s=tolerance_s)
+        self.frames = [MapFrame(p.color_path.stem, int(p.color_path.stem) * 1e-9, None,
+                                p.zone_frame, calib) for p in pairs]
+        self._pairs = pairs
+
+    def _list_bag(self, calibration: RigCalibration | None, tolerance_s: float,
+                  options: dict[str, Any]) -> None:
+        from deltar.inference.bag_replay import pair_calibration
+        from deltar.io.rosbag import BagInput
+
+        bag = BagInput(self.path, **options)
+        self.bag = bag
+        pairs = bag.pairs(tolerance_s=tolerance_s)
+        self.frames = [MapFrame(str(p.image_stamp_ns), p.image_stamp_ns / 1e9, None,
+                                p.zone_frame, pair_calibration(p, calibration),
+                                camera_frame_id=p.frame_id or None) for p in pairs]
+        self._pairs = pairs
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def load(self, frames: list[MapFrame] | None = None) -> Iterator[MapFrame]:
+        """Yield ``frames`` (default: all, in order) with their image (and recorded depth).
+
+        A frame's image is released again when the next one is loaded.
+        """
+        wanted = {id(f) for f in (self.frames if frames is None else frames)}
+        chosen = [(p, f) for p, f in zip(self._pairs, self.frames, strict=True)
+                  if id(f) in wanted]
+        if self.kind == "bag":
+            by_pair = {id(p): f for p, f in chosen}
+            for pair, rgb in self.bag.images([p for p, _ in chosen]):
+                frame = by_pair[id(pair)]
+                frame.image = rgb
+                yield frame
+                frame.image = None
+            return
+        for pair, frame in chosen:
+            frame.image = pair.load_color()
+            frame.recorded_depth_m = pair.load_depth() if pair.depth_path is not None \
+                else None
+            yield frame
+            frame.image, frame.recorded_depth_m = None, None
+
+    def depth_limit_m(self) -> float:
+        """The sensor's range in metres (the L5's 4 m for unknown or simulated models)."""
+        limit = sensor_max_range_m(self.sensor_model)
+        return limit if math.isfinite(limit) else FALLBACK_RANGE_M
+
+
+def confidence_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray,
+                      max_relative_sigma: float) -> np.ndarray:
+    """Per-pixel integration weight from the predicted uncertainty.
+
+    ``w = 1 - (sigma / depth) / max_relative_sigma``, clipped to [0, 1]: 1 for a certain
+    pixel, falling linearly to 0 (skipped) at ``max_relative_sigma``.
+
+    Args:
+        depth_m, uncertainty_m: (H, W) depth and its standard deviation, metres.
+        max_relative_sigma: relative sigma at and above which a pixel is skipped.
+
+    Returns:
+        (H, W) float32 weights in [0, 1].
+    """
+    depth = np.asarray(depth_m, dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        relative = np.asarray(uncertainty_m, dtype=np.float32) / depth
+    weight = 1.0 - relative / np.float32(max_relative_sigma)
+    weight[~np.isfinite(weight) | (depth <= 0)] = 0.0
+    return np.clip(weight, 0.0, 1.0).astype(np.float32)
+
+
+class DepthSource:
+    """Depth and weight of a loaded frame.
+
+    Args:
+        estimator: the depth model (None with ``method``).
+        method: a classical baseline's name (:data:`~deltar.evaluation.baselines.BASELINES`)
+            or ``"recorded"`` (the recording's own depth images: a reference), None for
+            the model.
+        max_relative_sigma: pixels of the model whose sigma / depth is above this get
+            weight 0; below, the weight falls linearly (:func:`confidence_weight`).
+            Baselines and recorded depth have no uncertainty: weight 1.
+    """
+
+    def __init__(self, estimator: DepthEstimator | None = None, method: str | None = None,
+                 max_relative_sigma: float = DEFAULT_MAX_RELATIVE_SIGMA) -> None:
+        from deltar.evaluation.baselines import BASELINES
+
+        if (estimator is None) == (method is None):
+            raise ValueError("give a depth estimator or a method, not both")
+        if method is not None and method not in (*BASELINES, RECORDED):
+            raise ValueError(f"--method must be one of {', '.join((*BASELINES, RECORDED))}, "
+                             f"got {method!r}")
+        if not (math.isfinite(max_relative_sigma) and max_relative_sigma > 0):
+            raise ValueError(f"--max-relative-sigma must be > 0, got {max_relative_sigma}")
+        self.estimator = estimator
+        self.method = method
+        self.max_relative_sigma = float(max_relative_sigma)
+
+    @property
+    def name(self) -> str:
+        """What the depth comes from, for messages."""
+        return self.method or self.estimator.weights
+
+    def __call__(self, frame: MapFrame) -> tuple[np.ndarray, np.ndarray | None]:
+        """((H, W) float32 depth in metres, (H, W) float32 weight or None for all 1)."""
+        if frame.image is None:
+            raise ValueError(f"frame {frame.name}: image not loaded")
+        if self.method == RECORDED:
+            if frame.recorded_depth_m is None:
+                raise ValueError(f"frame {frame.name} has no recorded depth image "
+                                 "(--method recorded needs the recording's depth/ folder)")
+            return frame.recorded_depth_m.astype(np.float32), None
+        height, width = frame.image.shape[:2]
+        if self.method is not None:
+            from deltar.evaluation.baselines import run_baseline
+
+            mean, _, valid = frame.zone_frame.flat()
+            rects = frame.calibration.zone_rects_for(frame.zone_frame, (height, width))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # no valid zone: counted by the caller
+                depth = run_baseline(self.method, frame.image, mean, valid & (mean > 0), rects)
+            return depth, None
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*no valid zone")
+            prediction = self.estimator.predict(frame.image, frame.zone_frame,
+                                                frame.calibration)
+        weight = confidence_weight(prediction.depth_m, prediction.uncertainty_m,
+                                   self.max_relative_sigma)
+        return prediction.depth_m, weight

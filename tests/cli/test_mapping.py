@@ -1,0 +1,165 @@
+"""``deltar map`` end to end on a tiny recording, and every bad input's one error line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from deltar.cli.main import _register_commands, app
+from deltar.mapping.poses import write_tum_trajectory
+from tests.mapping.conftest import (
+    SMALL,
+    WALL_Z_M,
+    pose_at,
+    render_wall,
+    write_wall_recording,
+)
+
+_register_commands()
+runner = CliRunner()
+COARSE = ["--voxel", "0.04", "--truncation", "3"]
+
+
+@pytest.fixture
+def wall_recording(tmp_path):
+    return write_wall_recording(tmp_path / "rec")
+
+
+def _run(*args):
+    return runner.invoke(app, ["map", *[str(a) for a in args]])
+
+
+def _error(result, *needles):
+    assert result.exit_code != 0, result.output
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1, result.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    assert "mapping:" not in result.stdout  # failed before the long part
+    return lines[0]
+
+
+def _read_mesh(path):
+    from deltar.mapping.tsdf import require_open3d
+
+    return require_open3d().io.read_triangle_mesh(str(path))
+
+
+def test_map_of_the_recorded_depth_with_the_recordings_poses(wall_recording, tmp_path):
+    out = tmp_path / "map"
+    result = _run(wall_recording, "--out", out, "--method", "recorded", *COARSE)
+    assert result.exit_code == 0, result.output
+    assert "recorded poses" in result.stdout and "volume:" in result.stdout
+    assert "MiB used" in result.stdout
+    vertices = np.asarray(_read_mesh(out / "mesh.ply").vertices)
+    assert np.abs(vertices[:, 2] - WALL_Z_M).max() < 0.02
+    summary = json.loads((out / "map.json").read_text())
+    assert summary["frames"] == 6 and summary["max_depth_m"] == 4.0
+    assert summary["memory_bytes"] >= summary["used_bytes"] > 0
+    trajectory = np.loadtxt(out / "trajectory.txt")
+    assert trajectory.shape == (6, 8)
+    np.testing.assert_allclose(trajectory[:, 1], 0.05 * np.arange(6), atol=1e-6)
+    again = _run(wall_recording, "--out", out, "--method", "recorded", *COARSE)
+    _error(again, "exist")
+
+
+def test_map_with_the_bundled_model_and_a_baseline(wall_recording, tmp_path):
+    result = _run(wall_recording, "--out", tmp_path / "model", *COARSE, "--threads", "1")
+    assert result.exit_code == 0, result.output
+    mesh = _read_mesh(tmp_path / "model" / "mesh.ply")
+    assert len(mesh.triangles) > 0
+    # The zones say 2 m; the model's wall is near it (tolerance: a model, not a ruler).
+    assert np.median(np.asarray(mesh.vertices)[:, 2]) == pytest.approx(WALL_Z_M, abs=0.3)
+    result = _run(wall_recording, "--out", tmp_path / "bilinear", "--method", "bilinear",
+                  *COARSE)
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "bilinear" / "map.json").read_text())["depth"] == "bilinear"
+
+
+def test_a_tum_trajectory_gives_the_poses(wall_recording, tmp_path):
+    shutil.rmtree(wall_recording / "pose")
+    times = 0.05 * np.arange(-1, 8)  # recording frames are at i / 30 s
+    path = write_tum_trajectory(tmp_path / "t.txt", times,
+                                np.stack([pose_at(1.5 * t) for t in times]))
+    result = _run(wall_recording, "--out", tmp_path / "map", "--method", "recorded",
+                  "--trajectory", path, *COARSE)
+    assert result.exit_code == 0, result.output
+    trajectory = np.loadtxt(tmp_path / "map" / "trajectory.txt")
+    np.testing.assert_allclose(trajectory[:, 1], 1.5 * trajectory[:, 0], atol=1e-6)
+
+
+def test_odometry_without_poses_writes_the_map_and_reports_its_error(wall_recording,
+                                                                     tmp_path):
+    result = _run(wall_recording, "--out", tmp_path / "map", "--method", "recorded",
+                  "--odometry", *COARSE)
+    assert result.exit_code == 0, result.output
+    assert "odometry: 5 frame pairs" in result.stdout and "ATE" in result.stdout
+    summary = json.loads((tmp_path / "map" / "map.json").read_text())
+    assert summary["ate_m"] < 0.05  # exact depth, strong texture: it tracks
+    assert (tmp_path / "map" / "mesh.ply").is_file()
+
+
+# ---------------------------------------------------------------------- bad input
+def test_poses_that_are_not_rotations(wall_recording, tmp_path):
+    first = sorted((wall_recording / "pose").iterdir())[0]
+    first.write_text("2 0 0 0\n0 2 0 0\n0 0 2 0\n0 0 0 1\n")
+    _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded"),
+           first.name, "is not a rotation")
+
+
+def test_a_trajectory_that_covers_none_of_the_frames(wall_recording, tmp_path):
+    shutil.rmtree(wall_recording / "pose")
+    path = write_tum_trajectory(tmp_path / "t.txt", np.array([50.0, 51.0]),
+                                np.stack([pose_at(0), pose_at(1)]))
+    _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded",
+                "--trajectory", path), "covers none of the frames", "same clock")
+
+
+def test_trajectory_beside_the_recordings_own_poses(wall_recording, tmp_path):
+    path = write_tum_trajectory(tmp_path / "t.txt", np.array([0.0]), pose_at(0)[None])
+    _error(_run(wall_recording, "--out", tmp_path / "m", "--trajectory", path),
+           "has its own poses", "give only one")
+
+
+def test_too_short_for_odometry(tmp_path):
+    from deltar.mapping.scenes import write_posed_recording
+
+    rec = write_posed_recording(tmp_path / "rec", [(*render_wall(pose_at(0.05 * i)),
+                                                    pose_at(0.05 * i)) for i in range(2)], SMALL)
+    shutil.rmtree(rec / "pose")
+    _error(_run(rec, "--out", tmp_path / "m", "--method", "recorded"),
+           "2 frame(s) is too short for odometry")
+
+
+def test_too_still_for_odometry(tmp_path):
+    from deltar.mapping.scenes import write_posed_recording
+
+    still = pose_at(0.0)
+    rec = write_posed_recording(tmp_path / "rec", [(*render_wall(still), still)] * 4, SMALL)
+    shutil.rmtree(rec / "pose")
+    _error(_run(rec, "--out", tmp_path / "m", "--method", "recorded"),
+           "too still for odometry", "median image change 0.00")
+
+
+def test_a_volume_that_would_exceed_the_memory_budget(wall_recording, tmp_path):
+    _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded",
+                "--voxel", "0.005", "--max-memory", "2"),
+           "one frame's view alone needs up to", "more than --max-memory 2 MiB")
+
+
+def test_usage_errors(wall_recording, tmp_path):
+    result = _run(wall_recording, "--out", tmp_path / "m", "--method", "nope")
+    _error(result, "--method must be one of", "colorization", "recorded")
+    result = _run(wall_recording, "--out", tmp_path / "m", "--method", "bilinear",
+                  "--preset", "deltar-lite")
+    assert result.exit_code == 2 and "not both" in result.output
+    result = _run(wall_recording, "--out", wall_recording / "inside", "--method", "recorded")
+    _error(result, "is inside the input")
+    result = _run(tmp_path / "missing", "--out", tmp_path / "m", "--method", "recorded")
+    _error(result, "not found")
+    result = _run(wall_recording, "--out", tmp_path / "m", "--voxel", "-1")
+    assert result.exit_code == 2 and "--voxel" in result.output
