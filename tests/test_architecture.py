@@ -27,7 +27,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("inference",),
     ("capture", "export"),
     ("evaluation",),
-    ("training",),
+    ("training", "mapping"),
     ("cli",),
     ("__main__",),
 )

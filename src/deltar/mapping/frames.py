@@ -94,7 +94,7 @@ class FrameSource:
         self.sensor_model = models.pop() if len(models) == 1 else "VL53L5CX"
 
     def _list_recording(self, calibration: RigCalibration | None, tolerance_s: float) -> None:
-        from deltar.inference.replay import recording_calibration
+        from deltar.capture.replay import recording_calibration
         from deltar.io.recording import Recording
 
         rec = Recording(self.path)
@@ -114,7 +114,7 @@ class FrameSource:
 
     def _list_bag(self, calibration: RigCalibration | None, tolerance_s: float,
                   options: dict[str, Any]) -> None:
-        from deltar.inference.bag_replay import pair_calibration
+        from deltar.capture.bag_replay import pair_calibration
         from deltar.io.rosbag import BagInput
 
         bag = BagInput(self.path, **options)

@@ -1,6 +1,6 @@
 """The growing map in rerun: camera, its path and the mesh, frame by frame.
 
-Beside what :class:`~deltar.inference.viewer.RerunLogger` logs for a frame (image,
+Beside what :class:`~deltar.capture.viewer.RerunLogger` logs for a frame (image,
 zones, depth under ``world/camera``), ``world/camera`` is placed at the frame's pose,
 ``world/path`` is the camera path so far (a line strip) and ``world/map`` the map's mesh,
 re-extracted every ``mesh_every`` frames and after the last.
@@ -25,7 +25,7 @@ class MapViewer:
     """
 
     def __init__(self, save_path: str | os.PathLike | None = None, mesh_every: int = 10) -> None:
-        from deltar.inference.viewer import RerunLogger
+        from deltar.capture.viewer import RerunLogger
 
         self.logger = RerunLogger(save_path, application_id="deltar map")
         self.rr = self.logger.rr
