@@ -40,6 +40,8 @@ class PlaneObservation:
         cloud_cam_m: (K, 3) the scene points near the sensor's view in the camera frame
             (for the zone-to-cloud distance report); defaults to ``points_cam_m``.
         name: label for messages (e.g. the timestamp).
+        weight: relative weight of the frame in the solve (1 for every depth-image or
+            SLAM frame; board views weigh by their planes' uncertainty).
     """
 
     normal_sensor: np.ndarray
@@ -48,6 +50,7 @@ class PlaneObservation:
     zone_points_sensor_m: np.ndarray
     cloud_cam_m: np.ndarray | None = None
     name: str = ""
+    weight: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -100,15 +103,36 @@ def check_plane_diversity(normals: np.ndarray) -> None:
         raise ValueError(f"only {normals.shape[0]} usable plane frames: record at least three "
                          "planes with different orientations (e.g. two walls and the floor)")
     spread = np.linalg.svd(normals / np.sqrt(normals.shape[0]), compute_uv=False)
+    seen = normal_spread_deg(normals)
+    needed = f"at least {np.degrees(np.arcsin(MIN_NORMAL_SPREAD)):.1f} deg rms is needed"
     if spread[1] < MIN_NORMAL_SPREAD:
         raise ValueError("all planes are parallel as seen from the sensor: record at least "
                          "three planes with different orientations (e.g. two walls and the "
-                         "floor), viewed at 20-40 degrees rather than head-on")
+                         "floor), viewed at 20-40 degrees rather than head-on (the normals "
+                         f"spread {seen[0]:.1f} and {seen[1]:.1f} deg rms about their mean "
+                         f"direction; {needed} in both directions)")
     if spread[2] < MIN_NORMAL_SPREAD:
         raise ValueError("the plane normals all lie in one plane as seen from the sensor "
                          "(e.g. only walls, or the rig only panned left-right), so one "
                          "direction is unconstrained: also record a plane of another "
-                         "orientation, such as the floor, or tilt the rig up and down")
+                         "orientation, such as the floor, or tilt the rig up and down (the "
+                         f"normals spread {seen[0]:.1f} deg rms one way but {seen[1]:.1f} "
+                         f"deg the other; {needed} in both directions)")
+
+
+def normal_spread_deg(normals: np.ndarray) -> tuple[float, float]:
+    """How much plane orientations vary: rms angle (degrees) of the unit normals from their
+    mean direction along the two principal directions across it, largest first.
+
+    ``check_plane_diversity`` needs both above ``degrees(arcsin(MIN_NORMAL_SPREAD))``
+    (5.7 deg rms, about views tilted +-10 deg uniformly).
+
+    Args:
+        normals: (F, 3) unit normals (the sign does not matter).
+    """
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    spread = np.linalg.svd(normals / np.sqrt(max(normals.shape[0], 1)), compute_uv=False)
+    return tuple(float(np.degrees(np.arcsin(min(1.0, v)))) for v in spread[1:3])
 
 
 def solve_extrinsics(
@@ -188,6 +212,7 @@ def _solve_once(frames: list[tuple[PlaneObservation, np.ndarray]], start: Sensor
     plane_n = np.concatenate([np.repeat(np.asarray(o.normal_sensor, float)[None], len(p), 0)
                               for o, p in frames])
     plane_d = np.concatenate([np.full(len(p), float(o.offset_sensor_m)) for o, p in frames])
+    scale = np.sqrt(np.concatenate([np.full(len(p), float(o.weight)) for o, p in frames]))
     inverse = start.inverse()  # camera -> sensor, the direction the residual uses
     rot0 = Rotation.from_matrix(inverse.rotation)
 
@@ -197,7 +222,7 @@ def _solve_once(frames: list[tuple[PlaneObservation, np.ndarray]], start: Sensor
 
     def residuals(x: np.ndarray) -> np.ndarray:
         rot, trans = transform(x)
-        return np.einsum("ij,ij->i", plane_n, points @ rot.T + trans) + plane_d
+        return scale * (np.einsum("ij,ij->i", plane_n, points @ rot.T + trans) + plane_d)
 
     x0 = np.concatenate([np.zeros(3), inverse.translation_m])
     solution = least_squares(residuals, x0, loss=loss, f_scale=loss_scale_m, x_scale="jac")

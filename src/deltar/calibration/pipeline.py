@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -15,7 +15,7 @@ from deltar.calibration.extrinsic import (
     observation_from_points,
     solve_extrinsics,
 )
-from deltar.calibration.plane import fit_plane_to_zones
+from deltar.calibration.plane import ZonePlaneFit, fit_plane_to_zones
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.slam import Trajectory, world_to_camera
 from deltar.camera import CameraIntrinsics
@@ -47,6 +47,40 @@ class CalibrationResult:
     unpaired: int = 0
 
 
+def zone_plane_from_frame(frame: ZoneFrame, *,
+                          fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
+                          min_zone_fraction: float = 0.6, max_incidence_deg: float = 60.0,
+                          name: str = "") -> ZonePlaneFit:
+    """The frame's plane in the sensor frame, refused when one plane does not fill the view.
+
+    Args:
+        frame: the zone frame (means are z-depth in metres).
+        fov_deg: sensor field of view in degrees.
+        min_zone_fraction: fewest valid zones (fraction) that must lie on the plane.
+        max_incidence_deg: largest angle between the plane's normal and the sensor's
+            axis; grazing planes are fitted poorly from zones.
+        name: label for error messages.
+
+    Raises:
+        ValueError: the frame has no usable plane (the message says why).
+    """
+    try:
+        plane = fit_plane_to_zones(frame, fov_deg=fov_deg)
+    except ValueError as err:
+        raise ValueError(f"frame {name}: {err}") from err
+    incidence = float(np.degrees(np.arccos(min(1.0, abs(plane.normal[2])))))
+    if incidence > max_incidence_deg:
+        raise ValueError(f"frame {name}: the plane is seen {incidence:.0f} deg off head-on "
+                         f"(at most {max_incidence_deg:.0f}): view planes more squarely")
+    _, _, valid = frame.flat()
+    fraction = plane.inliers.sum() / max(int(valid.sum()), 1)
+    if fraction < min_zone_fraction:
+        raise ValueError(f"frame {name}: only {fraction:.0%} of the valid zones lie on one "
+                         f"plane (need {min_zone_fraction:.0%}): fill the sensor's view with "
+                         "a flat surface")
+    return plane
+
+
 def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
                            nominal: SensorExtrinsics, *,
                            fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
@@ -74,22 +108,10 @@ def observation_from_frame(frame: ZoneFrame, cloud_cam_m: np.ndarray,
     Raises:
         ValueError: the frame has no usable plane (the message says why).
     """
-    try:
-        plane = fit_plane_to_zones(frame, fov_deg=fov_deg)
-    except ValueError as err:
-        raise ValueError(f"frame {name}: {err}") from err
-    incidence = float(np.degrees(np.arccos(min(1.0, abs(plane.normal[2])))))
-    if incidence > max_incidence_deg:
-        raise ValueError(f"frame {name}: the plane is seen {incidence:.0f} deg off head-on "
-                         f"(at most {max_incidence_deg:.0f}): view planes more squarely")
-    mean, _, valid = frame.flat()
-    fraction = plane.inliers.sum() / max(int(valid.sum()), 1)
-    if fraction < min_zone_fraction:
-        raise ValueError(f"frame {name}: only {fraction:.0%} of the valid zones lie on one "
-                         f"plane (need {min_zone_fraction:.0%}): fill the sensor's view with "
-                         "a flat surface")
-    return observation_from_points(plane, mean, cloud_cam_m, nominal, fov_deg=fov_deg,
-                                   visible_only=visible_only,
+    plane = zone_plane_from_frame(frame, fov_deg=fov_deg, min_zone_fraction=min_zone_fraction,
+                                  max_incidence_deg=max_incidence_deg, name=name)
+    return observation_from_points(plane, frame.flat()[0], cloud_cam_m, nominal,
+                                   fov_deg=fov_deg, visible_only=visible_only,
                                    min_point_fraction=min_point_fraction, name=name)
 
 
@@ -102,13 +124,17 @@ def calibrate_observations(
     fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
     sensor_model: str = "VL53L5CX",
     skipped: Sequence[tuple[str, str]] = (),
+    start: SensorExtrinsics | None = None,
 ) -> CalibrationResult:
     """Solve the extrinsics from plane observations and package the result.
+
+    The robust refinement starts from ``start`` (e.g. a closed-form solution) when
+    given, else from ``nominal``; the "before" distance is always the nominal's.
 
     Raises:
         ValueError: too few or degenerate planes (the message says what to record).
     """
-    solved = solve_extrinsics(observations, nominal)
+    solved = solve_extrinsics(observations, nominal if start is None else start)
     if solved.rejected:
         rejected = set(solved.rejected)
         skipped = [*skipped, *((name, "its plane disagrees with the other frames")
@@ -135,6 +161,7 @@ def calibrate_recording(
     trajectory: Trajectory | None = None,
     slam_points_world: np.ndarray | None = None,
     depth_stride: int = 4,
+    time_offset_s: float = 0.0,
 ) -> CalibrationResult:
     """Calibrate from a ``deltar.io.recording.Recording``.
 
@@ -150,6 +177,8 @@ def calibrate_recording(
         trajectory: camera-to-world poses (SLAM), optional.
         slam_points_world: (N, 3) SLAM map in the world frame, with ``trajectory``.
         depth_stride: use every n-th depth pixel per row and column.
+        time_offset_s: camera clock minus sensor clock (seconds), applied when pairing
+            (and to the SLAM trajectory's times); stored in the calibration.
 
     Returns:
         ``CalibrationResult``; frames without a usable plane are listed in ``skipped``,
@@ -172,7 +201,7 @@ def calibrate_recording(
     if use_slam:
         items = [(f, None) for f in recording.zone_frames()]
     else:
-        items = [(p.zone_frame, p) for p in recording.pairs(tolerance_s)]
+        items = [(p.zone_frame, p) for p in recording.pairs(tolerance_s, time_offset_s)]
         unpaired = len(recording.zone_frames()) - len(items)
         if items and all(pair.depth_path is None for _, pair in items):
             raise ValueError(f"{recording.folder}: no depth image within {tolerance_s} s of "
@@ -182,7 +211,8 @@ def calibrate_recording(
         name = f"t={frame.timestamp_s:.3f}s"
         try:
             if use_slam:
-                pose = trajectory.pose_at(frame.timestamp_s, max_gap_s=max(tolerance_s, 0.1))
+                pose = trajectory.pose_at(frame.timestamp_s + time_offset_s,
+                                          max_gap_s=max(tolerance_s, 0.1))
                 if pose is None:
                     raise ValueError(f"frame {name}: no camera pose near this time")
                 cloud = world_to_camera(slam_points_world, pose)
@@ -201,6 +231,8 @@ def calibrate_recording(
                                     fov_deg=fov, sensor_model=meta.sensor_model,
                                     skipped=skipped)
     result.unpaired = unpaired
+    if time_offset_s:
+        result.calibration = replace(result.calibration, time_offset_s=float(time_offset_s))
     return result
 
 

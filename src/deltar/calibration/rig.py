@@ -6,9 +6,13 @@ JSON layout (``schema_version`` 1)::
      "intrinsics": {"fx": .., "fy": .., "cx": .., "cy": .., "width": .., "height": ..},
      "sensor_model": "VL53L5CX", "grid": 8, "fov_deg": [45.0, 45.0],
      "extrinsics": {"rotation": [[...], [...], [...]], "translation_m": [x, y, z]},
-     "residuals": {"zone_to_cloud_before_m": .., "zone_to_cloud_after_m": .., ...}}
+     "residuals": {"zone_to_cloud_before_m": .., "zone_to_cloud_after_m": .., ...},
+     "distortion": [k1, k2, p1, p2, k3], "time_offset_s": 0.0}
 
 ``extrinsics`` maps sensor to camera coordinates: ``p_cam = R @ p_sensor + t`` (metres).
+``distortion`` (OpenCV's order; empty = pinhole) and ``time_offset_s`` (how far the
+camera's stamps run ahead of the sensor's) are optional: files without them read as
+an undistorted camera on the sensor's clock.
 """
 
 from __future__ import annotations
@@ -47,6 +51,13 @@ class RigCalibration:
         residuals: fit quality numbers (metres), e.g. zone-to-cloud distances.
         date: ISO 8601 UTC time of the calibration.
         schema_version: file schema version.
+        distortion: the colour camera's lens distortion, OpenCV coefficients (k1, k2, p1,
+            p2[, k3[, ...]]); empty for a pinhole camera. With distortion, images are
+            undistorted (:meth:`undistort_image`, same intrinsics) before the zones are
+            placed and depth is predicted.
+        time_offset_s: how far the camera's timestamps run ahead of the sensor's,
+            seconds; pairing matches a zone frame stamped t with the image nearest t +
+            offset.
     """
 
     intrinsics: CameraIntrinsics
@@ -57,8 +68,20 @@ class RigCalibration:
     residuals: dict = field(default_factory=dict)
     date: str = ""
     schema_version: int = RIG_SCHEMA_VERSION
+    distortion: tuple[float, ...] = ()
+    time_offset_s: float = 0.0
 
     def __post_init__(self) -> None:
+        distortion = tuple(float(v) for v in self.distortion)
+        if len(distortion) not in (0, 4, 5, 8, 12, 14) or not all(map(math.isfinite,
+                                                                      distortion)):
+            raise ValueError("RigCalibration.distortion must be 0, 4, 5, 8, 12 or 14 finite "
+                             f"OpenCV coefficients, got {self.distortion}")
+        object.__setattr__(self, "distortion", distortion)
+        if not math.isfinite(float(self.time_offset_s)):
+            raise ValueError(f"RigCalibration.time_offset_s must be finite, got "
+                             f"{self.time_offset_s}")
+        object.__setattr__(self, "time_offset_s", float(self.time_offset_s))
         if self.grid not in (4, 8):
             raise ValueError(f"RigCalibration.grid must be 4 or 8, got {self.grid}")
         fov = tuple(float(f) for f in self.fov_deg)
@@ -107,6 +130,32 @@ class RigCalibration:
         return zone_rects(self.intrinsics, self.grid, fov_deg=self.fov_deg,
                           extrinsics=self.extrinsics, depth_m=depths)
 
+    @property
+    def has_distortion(self) -> bool:
+        """Whether the camera has a non-zero lens distortion."""
+        return any(v != 0.0 for v in self.distortion)
+
+    def undistort_image(self, image: np.ndarray) -> np.ndarray:
+        """The image as the pinhole camera ``intrinsics`` would see it (same K).
+
+        Args:
+            image: (H, W[, C]) image at the calibrated resolution.
+
+        Returns:
+            The undistorted image, same shape and dtype (the input when there is no
+            distortion). Pixels that have no source are black.
+        """
+        if not self.has_distortion:
+            return image
+        import cv2
+
+        image = np.asarray(image)
+        if image.shape[:2] != (self.intrinsics.height, self.intrinsics.width):
+            raise ValueError(f"image is {image.shape[0]}x{image.shape[1]}, the calibration is "
+                             f"for {self.intrinsics.height}x{self.intrinsics.width}")
+        matrix = self.intrinsics.matrix
+        return cv2.undistort(image, matrix, np.asarray(self.distortion), None, matrix)
+
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict:
         return {
@@ -120,6 +169,8 @@ class RigCalibration:
             "extrinsics": {"rotation": self.extrinsics.rotation.tolist(),
                            "translation_m": self.extrinsics.translation_m.tolist()},
             "residuals": {k: float(v) for k, v in self.residuals.items()},
+            "distortion": list(self.distortion),
+            "time_offset_s": self.time_offset_s,
         }
 
     def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
@@ -152,6 +203,8 @@ class RigCalibration:
                 sensor_model=str(data.get("sensor_model", "VL53L5CX")),
                 residuals=residuals,
                 date=str(data.get("date", "")),
+                distortion=tuple(float(v) for v in data.get("distortion", ())),
+                time_offset_s=float(data.get("time_offset_s", 0.0)),
             )
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid calibration: {err}") from err

@@ -190,8 +190,6 @@ def synthetic_rig_frames(
     Returns:
         The frames, timestamps 0, 1, 2, ... seconds.
     """
-    from deltar.sensor.simulate import simulate_zone_frame
-
     rng = np.random.default_rng(seed)
     sensor_cam, rects = sensor_virtual_camera(grid, fov_deg, pixels_per_zone)
     indices = range(len(planes)) if view_planes is None else view_planes
@@ -210,17 +208,35 @@ def synthetic_rig_frames(
             up = (0.0, 0.0, 1.0) if abs(normal[1]) > 0.5 else (0.0, -1.0, 0.0)
             pose = look_at(eye, target, up)
             depth = render_planes_depth(planes, pose, camera)
-            sensor_depth = render_planes_depth(planes, sensor_pose(pose, extrinsics), sensor_cam)
-            timestamp = float(len(frames))
-            clean = simulate_zone_frame(sensor_depth, rects, timestamp_s=timestamp)
-            mean, sigma, valid = clean.flat()
-            valid = valid & (rng.random(valid.size) >= invalid_fraction)
-            noisy = np.clip(mean + rng.normal(0.0, mean_noise_m, mean.size), 1e-3, None)
-            frame = ZoneFrame(np.where(valid, noisy, 0.0), np.where(valid, sigma, 0.0), valid,
-                              timestamp_s=timestamp, sensor_model="simulated",
-                              no_target=clean.flat_no_target() & ~valid)
+            frame = simulated_zone_frame(planes, sensor_pose(pose, extrinsics), sensor_cam,
+                                         rects, float(len(frames)), rng,
+                                         mean_noise_m=mean_noise_m,
+                                         invalid_fraction=invalid_fraction)
             frames.append(SyntheticRigFrame(frame, depth, pose, int(index)))
     return frames
+
+
+def simulated_zone_frame(planes: np.ndarray, sensor_to_world: np.ndarray,
+                         sensor_cam: CameraIntrinsics, rects: np.ndarray, timestamp_s: float,
+                         rng: np.random.Generator, *, mean_noise_m: float = 0.02,
+                         invalid_fraction: float = 0.1) -> ZoneFrame:
+    """The zone frame a sensor at ``sensor_to_world`` (4, 4) reads in a room of ``planes``.
+
+    Zones are simulated (``deltar.sensor.simulate``) from the sensor's z-depth rendered in
+    its virtual camera (:func:`sensor_virtual_camera`), then ``invalid_fraction`` of them
+    are made invalid at random and Gaussian noise of ``mean_noise_m`` (metres) is added to
+    the means.
+    """
+    from deltar.sensor.simulate import simulate_zone_frame
+
+    sensor_depth = render_planes_depth(planes, sensor_to_world, sensor_cam)
+    clean = simulate_zone_frame(sensor_depth, rects, timestamp_s=timestamp_s)
+    mean, sigma, valid = clean.flat()
+    valid = valid & (rng.random(valid.size) >= invalid_fraction)
+    noisy = np.clip(mean + rng.normal(0.0, mean_noise_m, mean.size), 1e-3, None)
+    return ZoneFrame(np.where(valid, noisy, 0.0), np.where(valid, sigma, 0.0), valid,
+                     timestamp_s=timestamp_s, sensor_model="simulated",
+                     no_target=clean.flat_no_target() & ~valid)
 
 
 def write_synthetic_recording(folder, frames: list[SyntheticRigFrame], camera: CameraIntrinsics,

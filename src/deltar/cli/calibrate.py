@@ -35,29 +35,45 @@ def calibrate_command(
     slam_cloud: Path | None = typer.Option(None, help="SLAM map (PLY) instead of depth images."),
     slam_trajectory: Path | None = typer.Option(None, help="Camera trajectory of the SLAM map "
                                                 "(TUM format)."),
+    target: str = typer.Option("", "--target", help="A printed board instead of depth "
+                               "images: charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICT] (squares) "
+                               "or checkerboard:COLSxROWS:SQUARE_M (inner corners), metres."),
+    calibrate_intrinsics: bool = typer.Option(False, "--calibrate-intrinsics", help="With "
+                                              "--target: also estimate the camera "
+                                              "intrinsics and lens distortion from the "
+                                              "board views."),
+    time_offset: str = typer.Option("0", "--time-offset", help="Camera clock minus sensor "
+                                    "clock, seconds, or 'auto' (with --target: estimated "
+                                    "from the board's distance over time)."),
     plot: Path | None = typer.Option(None, help="Folder for before/after zone pictures."),
     overwrite: bool = typer.Option(False, help="Replace an existing --out file."),
 ) -> None:
     """Calibrate the ToF sensor against the camera from frames facing planes.
 
-    Every option and output is checked before the (long) calibration; if the nominal
-    roll guess leaves no consistent set of frames, the other quarter turns are tried
-    and the one that works is suggested.
+    The camera's side comes from depth images, a SLAM map, or (--target) a printed
+    board fixed on a flat surface. Every option and output is checked before the (long)
+    calibration; if the nominal roll guess leaves no consistent set of frames, the other
+    quarter turns are tried and the one that works is suggested.
     """
     import warnings
 
     import numpy as np
-    from scipy.spatial.transform import Rotation
 
     from deltar.calibration.extrinsic import nominal_extrinsics
     from deltar.calibration.pipeline import calibrate_recording
-    from deltar.calibration.rig import RigCalibration
     from deltar.calibration.slam import read_ply_points, read_tum_trajectory
     from deltar.cli.checks import finite, output_file, output_folder
     from deltar.io.recording import Recording
 
     if (slam_cloud is None) != (slam_trajectory is None):
         raise typer.BadParameter("give --slam-cloud and --slam-trajectory together")
+    spec = board_spec_option(target) if target else None
+    if spec is not None and slam_cloud is not None:
+        raise typer.BadParameter("--target calibrates from board images: leave out "
+                                 "--slam-cloud / --slam-trajectory")
+    if calibrate_intrinsics and spec is None:
+        raise typer.BadParameter("--calibrate-intrinsics needs --target (the board views)")
+    offset = time_offset_option(time_offset, allow_auto=spec is not None)
     if out.exists() and not overwrite:
         raise typer.BadParameter(f"{out} exists; pass --overwrite to replace it")
     output_file(out, "--out", overwrite)
@@ -78,6 +94,16 @@ def calibrate_command(
                                   "--overwrite to replace them")
     nominal = nominal_extrinsics(nominal_roll_deg, translation)
     rec = Recording(recording)
+    board = None
+    if spec is not None:
+        from deltar.calibration.board_pipeline import calibrate_recording_with_board
+
+        result, board = calibrate_recording_with_board(
+            rec, spec, nominal, tolerance_s=tolerance_s, time_offset_s=offset,
+            fov_deg=fov_deg, calibrate_intrinsics=calibrate_intrinsics)
+        _report(result, nominal, out, overwrite, tolerance_s, board)
+        _plots(plot, rec, result, nominal, tolerance_s, overwrite)
+        return
     trajectory = points = None
     if slam_cloud is not None:
         points = read_ply_points(slam_cloud)
@@ -87,16 +113,73 @@ def calibrate_command(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped frames are reported below
             return calibrate_recording(rec, guess, tolerance_s=tolerance_s, fov_deg=fov_deg,
-                                       trajectory=trajectory, slam_points_world=points)
+                                       trajectory=trajectory, slam_points_world=points,
+                                       time_offset_s=offset)
 
     try:
         result = run(nominal)
     except ValueError as err:
         raise ValueError(f"{err}{_roll_hint(run, nominal_roll_deg, translation)}") from None
+    _report(result, nominal, out, overwrite, tolerance_s)
+    _plots(plot, rec, result, nominal, tolerance_s, overwrite)
+
+
+def board_spec_option(text: str, option: str = "--target"):
+    """The ``BoardSpec`` of an option's text (usage error naming the option if malformed)."""
+    from deltar.calibration.board import parse_board_spec
+
+    try:
+        return parse_board_spec(text, option)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint=option) from None
+
+
+def time_offset_option(text: str, allow_auto: bool) -> float | str:
+    """``--time-offset``: seconds, or ``"auto"`` where the command can estimate it."""
+    import math
+
+    if text.strip().lower() == "auto":
+        if not allow_auto:
+            raise typer.BadParameter("'auto' needs --target (the offset is estimated from "
+                                     "the board's distance); give SECONDS",
+                                     param_hint="--time-offset")
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise typer.BadParameter(f"must be seconds or 'auto', got {text!r}",
+                                 param_hint="--time-offset") from None
+    if not math.isfinite(value):
+        raise typer.BadParameter(f"must be finite, got {text!r}", param_hint="--time-offset")
+    return value
+
+
+def _report(result, nominal, out: Path, overwrite: bool, tolerance_s: float,
+            board=None) -> None:
+    """Save the calibration and print the report (the same for every path)."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
 
     calib = result.calibration
     calib.save(out, overwrite=overwrite)
     used, skipped = len(result.observations), len(result.skipped)
+    if board is not None:
+        typer.echo(f"board found in {board.views_with_board} of {board.images_searched} "
+                   f"paired images (median pose reprojection {board.pose_rms_px:.2f} px)")
+        if board.time_offset is not None:
+            est = board.time_offset
+            typer.echo(f"time offset (camera - sensor): {est.offset_s * 1000:+.1f} ms, "
+                       f"estimated from {est.samples} zone frames (distance misfit "
+                       f"{100 * est.residual_m:.2f} cm, {100 * est.residual_at_zero_m:.2f} cm "
+                       "with no offset)")
+        elif board.time_offset_s:
+            typer.echo(f"time offset (camera - sensor): {board.time_offset_s * 1000:+.1f} ms")
+        if board.intrinsics_rms_px is not None:
+            k = calib.intrinsics
+            typer.echo(f"intrinsics: fx {k.fx:.2f}, fy {k.fy:.2f}, cx {k.cx:.2f}, cy "
+                       f"{k.cy:.2f} px; distortion " + ", ".join(f"{v:+.4f}" for v in
+                                                                calib.distortion)
+                       + f" (reprojection RMS {board.intrinsics_rms_px:.2f} px)")
     typer.echo(f"frames used: {used}, skipped: {skipped}"
                + (f", zone frames without an image within {tolerance_s} s: {result.unpaired}"
                   if result.unpaired else ""))
@@ -112,15 +195,26 @@ def calibrate_command(
                f"{100 * result.distance_after_m:.2f} cm after")
     typer.echo(f"wrote {out}")
 
+
+def _plots(plot: Path | None, rec, result, nominal, tolerance_s: float,
+           overwrite: bool) -> None:
+    """Before/after zone pictures of three frames (``--plot``)."""
+    import warnings
+
+    import numpy as np
+
+    from deltar.calibration.rig import RigCalibration
+
     if plot is not None:
         from deltar.calibration.plot import plot_zones_before_after
 
+        calib = result.calibration
         nominal_calib = RigCalibration(calib.intrinsics, nominal, calib.grid, calib.fov_deg,
-                                       calib.sensor_model)
+                                       calib.sensor_model, distortion=calib.distortion)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                pairs = rec.pairs(tolerance_s)
+                pairs = rec.pairs(tolerance_s, time_offset_s=calib.time_offset_s)
         except FileNotFoundError as err:
             typer.echo(f"no pictures drawn: {err}")
             pairs = []
@@ -130,7 +224,8 @@ def calibrate_command(
             pair = pairs[index]
             ns = round(pair.zone_frame.timestamp_s * 1e9)
             path = plot_zones_before_after(
-                plot / f"zones_{ns}.png", pair.load_color(), pair.zone_frame, nominal_calib,
+                plot / f"zones_{ns}.png", calib.undistort_image(pair.load_color()),
+                pair.zone_frame, nominal_calib,
                 calib, title=f"t = {pair.zone_frame.timestamp_s:.3f} s", overwrite=overwrite)
             typer.echo(f"wrote {path}")
 

@@ -178,7 +178,8 @@ class RecordingPair:
         zone_frame: the ToF reading.
         color_path: the colour PNG.
         depth_path: the depth PNG, or None when the recording has none near this time.
-        color_offset_s: colour time minus zone time, seconds.
+        color_offset_s: colour stamp minus zone stamp, seconds (including any time
+            offset the pairing applied).
     """
 
     zone_frame: ZoneFrame
@@ -266,25 +267,31 @@ class Recording:
             frames.append(frame)
         return frames
 
-    def pairs(self, tolerance_s: float = 0.02) -> list[RecordingPair]:
+    def pairs(self, tolerance_s: float = 0.02, time_offset_s: float = 0.0
+              ) -> list[RecordingPair]:
         """Pair each zone frame with the nearest colour (and depth) image in time.
 
         Zone frames without a colour image within ``tolerance_s`` are skipped with one
         warning naming how many; depth is attached when one lies within the tolerance.
 
         Args:
-            tolerance_s: largest allowed |image time - zone time| in seconds.
+            tolerance_s: largest allowed |image time - (zone time + offset)| in seconds.
+            time_offset_s: how far the camera's stamps run ahead of the sensor's (seconds):
+                a zone frame stamped t is paired with the images nearest t + offset
+                (``deltar calibrate --time-offset`` estimates it).
 
         Returns:
             The pairs, in time order.
         """
         if not tolerance_s >= 0:
             raise ValueError(f"tolerance_s must be >= 0, got {tolerance_s}")
+        if not np.isfinite(time_offset_s):
+            raise ValueError(f"time_offset_s must be finite, got {time_offset_s}")
         frames = self.zone_frames()
         if not self.color_paths:
             raise FileNotFoundError(f"recording has no colour images in "
                                     f"{self.folder / COLOR_DIR}")
-        times = np.array([f.timestamp_s for f in frames], dtype=np.float64)
+        times = np.array([f.timestamp_s for f in frames], dtype=np.float64) + time_offset_s
         color_idx, color_gap = nearest_in_time(self.color_times_s, times)
         depth_idx, depth_gap = nearest_in_time(self.depth_times_s, times)
         out, skipped = [], 0
@@ -296,7 +303,7 @@ class Recording:
                      if self.depth_paths and depth_gap[i] <= tolerance_s else None)
             ci = color_idx[i]
             out.append(RecordingPair(frame, self.color_paths[ci], depth,
-                                     float(self.color_times_s[ci] - times[i])))
+                                     float(self.color_times_s[ci] - frame.timestamp_s)))
         if skipped:
             warnings.warn(f"{self.folder}: skipped {skipped} of {len(frames)} zone frames with "
                           f"no colour image within {tolerance_s} s", stacklevel=2)

@@ -1,0 +1,517 @@
+"""Sensor-camera calibration with a printed board and no depth camera.
+
+The board is fixed flat on a wall, a door or a table, so the surface the zones see is
+the board's plane. Per colour image OpenCV finds the board and its pose, which gives
+the plane in the camera frame; per zone frame the existing plane fit
+(:func:`deltar.calibration.pipeline.zone_plane_from_frame`) gives it in the sensor
+frame. Plane pairs give the extrinsic in closed form (normals: Kabsch; offsets: linear
+least squares), and the existing robust point-to-plane refinement
+(:func:`deltar.calibration.pipeline.calibrate_observations`) finishes it, so the
+output file and report are those of the depth-image path.
+
+Everything that would make the answer meaningless is refused before the refinement
+(and before camera calibration): too few views with the board, a board spec whose
+scale contradicts the zones, views where the zones miss the board's surface, plane
+orientations that do not vary enough.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from deltar.calibration.board import (
+    BoardDetection,
+    BoardDetector,
+    BoardPose,
+    BoardSpec,
+    board_points_in_view,
+    estimate_board_pose,
+)
+from deltar.calibration.extrinsic import (
+    PlaneObservation,
+    check_plane_diversity,
+    normal_spread_deg,
+)
+from deltar.calibration.pipeline import (
+    CalibrationResult,
+    calibrate_observations,
+    zone_plane_from_frame,
+)
+from deltar.calibration.plane import ZonePlaneFit, zone_centre_points
+from deltar.camera import CameraIntrinsics
+from deltar.sensor.geometry import SensorExtrinsics
+
+#: Fewest views with the board found (and a usable zone plane) for the extrinsic.
+MIN_BOARD_VIEWS = 6
+#: Fewest views with the board for ``calibrate_intrinsics``.
+MIN_INTRINSIC_VIEWS = 10
+#: Allowed ratio between the board's distance from the camera and the zones' distance
+#: to the same surface; outside it the board's printed size is not the spec's.
+MAX_SCALE_RATIO = 1.25
+#: A view's planes agree when the normals (mapped by the closed-form rotation) are within
+#: this many degrees and the offsets within ``PLANE_AGREE_M``.
+PLANE_AGREE_DEG = 8.0
+PLANE_AGREE_M = 0.06
+
+
+@dataclass(frozen=True)
+class TimeOffsetEstimate:
+    """A time offset between the streams estimated from the board's distance.
+
+    Attributes:
+        offset_s: how far the camera's stamps run ahead of the sensor's, seconds.
+        residual_m: median |zone distance - camera distance| (bias removed) at the offset.
+        residual_at_zero_m: the same with no offset.
+        samples: zone frames compared at the offset.
+    """
+
+    offset_s: float
+    residual_m: float
+    residual_at_zero_m: float
+    samples: int
+
+
+@dataclass
+class BoardReport:
+    """What the board path adds to :class:`CalibrationResult`.
+
+    Attributes:
+        images_searched: colour images the board was looked for in.
+        views_with_board: of those, images where it was found.
+        pose_rms_px: median corner reprojection error of the board poses, pixels.
+        time_offset: the estimate when ``time_offset_s="auto"``, else None.
+        time_offset_s: the offset used for pairing, seconds.
+        intrinsics_rms_px: RMS reprojection error of ``cv2.calibrateCamera`` (None when
+            the intrinsics were not calibrated).
+        closed_form: the closed-form extrinsic the refinement started from.
+    """
+
+    images_searched: int
+    views_with_board: int
+    pose_rms_px: float
+    time_offset: TimeOffsetEstimate | None
+    time_offset_s: float
+    intrinsics_rms_px: float | None = None
+    closed_form: SensorExtrinsics | None = None
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+
+def closed_form_extrinsics(normals_sensor: np.ndarray, offsets_sensor_m: np.ndarray,
+                           normals_cam: np.ndarray, offsets_cam_m: np.ndarray,
+                           normal_weights: np.ndarray | None = None,
+                           offset_weights: np.ndarray | None = None) -> SensorExtrinsics:
+    """Sensor-to-camera transform from planes seen by both devices.
+
+    A plane ``n_c . p + d_c = 0`` in the camera frame is ``(R^T n_c) . p + (d_c + n_c . t)
+    = 0`` in the sensor frame, so ``n_c = R n_s`` (the rotation aligning the normals,
+    Kabsch) and ``n_c . t = d_s - d_c`` (linear least squares for t).
+
+    Args:
+        normals_sensor, normals_cam: (F, 3) unit normals, both oriented towards their
+            device (the devices are on the same side of every plane).
+        offsets_sensor_m, offsets_cam_m: (F,) plane offsets d, metres.
+        normal_weights, offset_weights: optional (F,) weights (inverse variances) of the
+            normal and offset equations.
+
+    Returns:
+        ``SensorExtrinsics`` (``p_cam = R p_sensor + t``).
+    """
+    ns = np.asarray(normals_sensor, dtype=np.float64).reshape(-1, 3)
+    nc = np.asarray(normals_cam, dtype=np.float64).reshape(-1, 3)
+    if ns.shape != nc.shape or ns.shape[0] < 3:
+        raise ValueError(f"need at least 3 plane pairs of equal count, got {ns.shape[0]} and "
+                         f"{nc.shape[0]}")
+    wn = np.ones(len(ns)) if normal_weights is None else np.asarray(normal_weights, float)
+    wd = np.ones(len(ns)) if offset_weights is None else np.asarray(offset_weights, float)
+    u, _, vt = np.linalg.svd((ns * wn[:, None]).T @ nc)
+    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rotation = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
+    rhs = np.asarray(offsets_sensor_m, float) - np.asarray(offsets_cam_m, float)
+    root = np.sqrt(wd)
+    translation = np.linalg.lstsq(nc * root[:, None], rhs * root, rcond=None)[0]
+    return SensorExtrinsics(rotation, translation)
+
+
+def estimate_time_offset(image_times_s: np.ndarray, camera_distance_m: np.ndarray,
+                         zone_times_s: np.ndarray, zone_distance_m: np.ndarray, *,
+                         max_offset_s: float = 0.5, step_s: float = 0.002,
+                         min_motion_m: float = 0.03) -> TimeOffsetEstimate:
+    """The camera-minus-sensor clock offset that best lines up the two distance series.
+
+    The camera sees the board's plane at ``camera_distance_m`` over time and the zones
+    see the same plane at ``zone_distance_m``; the two differ by a small constant (the
+    devices are a few cm apart) once the clocks agree. Every candidate offset on a
+    ``step_s`` grid in ``[-max_offset_s, max_offset_s]`` is scored by the median
+    |difference - its median| over zone frames whose shifted time falls between two
+    board detections, and the best is refined by a parabola through its neighbours.
+
+    Args:
+        image_times_s: (N,) increasing image stamps with the board found, seconds.
+        camera_distance_m: (N,) camera-to-plane distances, metres.
+        zone_times_s: (M,) zone frame stamps, seconds.
+        zone_distance_m: (M,) sensor-to-plane distances, metres.
+        max_offset_s: largest offset searched, seconds.
+        step_s: search step, seconds.
+        min_motion_m: the camera distance must vary at least this much (std, metres).
+
+    Raises:
+        ValueError: too few samples, or the distance does not change enough to time it
+            (the message says to move the rig or to pass the offset).
+    """
+    ti = np.asarray(image_times_s, dtype=np.float64)
+    di = np.asarray(camera_distance_m, dtype=np.float64)
+    tz = np.asarray(zone_times_s, dtype=np.float64)
+    dz = np.asarray(zone_distance_m, dtype=np.float64)
+    if ti.size < 10 or tz.size < 10:
+        raise ValueError(f"--time-offset auto needs the board in at least 10 images and 10 "
+                         f"zone frames with a plane, got {ti.size} and {tz.size}: pass "
+                         "--time-offset SECONDS instead")
+    if np.std(di) < min_motion_m:
+        raise ValueError(f"--time-offset auto: the board's distance hardly changes (std "
+                         f"{100 * np.std(di):.1f} cm, need {100 * min_motion_m:.0f} cm): move "
+                         "the rig towards and away from the board while recording, or pass "
+                         "--time-offset SECONDS")
+    gaps = np.diff(ti)
+    max_gap = 3.0 * float(np.median(gaps))
+    candidates = np.arange(-max_offset_s, max_offset_s + step_s / 2, step_s)
+    costs = np.full(candidates.size, np.inf)
+    counts = np.zeros(candidates.size, dtype=np.int64)
+    for k, offset in enumerate(candidates):
+        shifted = tz + offset
+        right = np.searchsorted(ti, shifted)
+        inside = (right > 0) & (right < ti.size)
+        right_c = np.clip(right, 1, ti.size - 1)
+        inside &= (ti[right_c] - ti[right_c - 1]) <= max_gap
+        if inside.sum() < 10:
+            continue
+        diff = dz[inside] - np.interp(shifted[inside], ti, di)
+        costs[k] = float(np.median(np.abs(diff - np.median(diff))))
+        counts[k] = int(inside.sum())
+    enough = counts >= 0.5 * counts.max()
+    costs[~enough] = np.inf
+    if not np.isfinite(costs).any():
+        raise ValueError("--time-offset auto: the zone frames and the board images do not "
+                         "overlap in time: pass --time-offset SECONDS")
+    best = int(np.argmin(costs))
+    offset = float(candidates[best])
+    if 0 < best < candidates.size - 1 and np.all(np.isfinite(costs[best - 1:best + 2])):
+        c0, c1, c2 = costs[best - 1:best + 2]
+        curve = c0 - 2 * c1 + c2
+        if curve > 0:
+            offset += float(np.clip(0.5 * (c0 - c2) / curve, -1, 1)) * step_s
+    zero = int(np.argmin(np.abs(candidates)))
+    return TimeOffsetEstimate(offset, float(costs[best]), float(costs[zero]), int(counts[best]))
+
+
+@dataclass
+class _View:
+    """One zone frame paired with an image where the board was found."""
+
+    name: str
+    plane: ZonePlaneFit | None
+    pose: BoardPose
+    detection: BoardDetection
+    mean_m: np.ndarray
+    reason: str = ""
+
+    def variances(self) -> tuple[float, float]:
+        """(normal direction in rad^2, offset in m^2) variances of the two planes' pair."""
+        n_zone, d_zone = _zone_plane_variances(self.plane)
+        return (n_zone + self.pose.normal_std_rad ** 2, d_zone + self.pose.offset_std_m ** 2)
+
+
+def _zone_plane_variances(plane: ZonePlaneFit, floor_m: float = 0.005) -> tuple[float, float]:
+    """Approximate variances of a zone plane's normal direction (rad^2) and offset (m^2)
+    from the scatter of its inlier points and their residual (at least ``floor_m``)."""
+    points = plane.points_m[plane.inliers]
+    centre = points.mean(axis=0)
+    spread = np.sort(np.linalg.eigvalsh((points - centre).T @ (points - centre)))
+    sigma2 = max(plane.rms_residual_m, floor_m) ** 2
+    normal_var = sigma2 * (1.0 / max(spread[2], 1e-9) + 1.0 / max(spread[1], 1e-9))
+    lateral = centre - (centre @ plane.normal) * plane.normal
+    return normal_var, sigma2 / len(points) + float(lateral @ lateral) * normal_var / 2
+
+
+def _calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrinsics,
+                      max_views: int = 40) -> tuple[CameraIntrinsics, tuple[float, ...], float]:
+    """``cv2.calibrateCamera`` from the board views, starting at ``intrinsics``.
+
+    Estimates fx, fy, cx, cy and the distortion (k1, k2, p1, p2; k3 stays 0, which few
+    views of a flat board cannot pin down). Uses at most ``max_views`` views, evenly
+    spread.
+
+    Returns:
+        The intrinsics, the 5 distortion coefficients and the RMS reprojection error
+        (pixels).
+    """
+    import cv2
+
+    picks = np.unique(np.linspace(0, len(detections) - 1, min(max_views, len(detections)))
+                      .round().astype(int))
+    objects = [detections[i].object_points.reshape(-1, 1, 3) for i in picks]
+    images = [detections[i].image_points.reshape(-1, 1, 2) for i in picks]
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
+    rms, matrix, dist, _, _ = cv2.calibrateCamera(
+        objects, images, (intrinsics.width, intrinsics.height), intrinsics.matrix.copy(),
+        np.zeros(5), flags=flags)
+    calibrated = CameraIntrinsics(float(matrix[0, 0]), float(matrix[1, 1]), float(matrix[0, 2]),
+                                  float(matrix[1, 2]), intrinsics.width, intrinsics.height)
+    return calibrated, tuple(float(v) for v in np.ravel(dist)[:5]), float(rms)
+
+
+def _agreeing(views: list[_View]) -> tuple[SensorExtrinsics | None, np.ndarray]:
+    """Closed-form extrinsic over the views whose two planes agree with it (trimmed).
+
+    Returns:
+        The extrinsic (None with fewer than 3 views) and the (V,) bool mask of views
+        that agree with it.
+    """
+    keep = np.ones(len(views), dtype=bool)
+    if len(views) < 3:
+        return None, np.zeros(len(views), dtype=bool)
+    ns = np.array([v.plane.normal for v in views])
+    ds = np.array([v.plane.offset_m for v in views])
+    nc = np.array([v.pose.normal_cam for v in views])
+    dc = np.array([v.pose.offset_cam_m for v in views])
+    var = np.array([v.variances() for v in views])
+    ext = None
+    for _ in range(len(views)):
+        if keep.sum() < 3:
+            return ext, keep
+        ext = closed_form_extrinsics(ns[keep], ds[keep], nc[keep], dc[keep],
+                                     1 / var[keep, 0], 1 / var[keep, 1])
+        angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ns @ ext.rotation.T, nc),
+                                             -1, 1)))
+        offset = np.abs(ds - dc - nc @ ext.translation_m)
+        bad = ((angle > PLANE_AGREE_DEG) | (offset > PLANE_AGREE_M)) & keep
+        if not bad.any():
+            return ext, keep
+        # Drop the worst view and solve again (one outlier at a time: a bad view pulls
+        # the solution towards itself and can make good views look bad).
+        score = np.where(keep, angle / PLANE_AGREE_DEG + offset / PLANE_AGREE_M, -np.inf)
+        keep[int(np.argmax(score))] = False
+    return ext, keep
+
+
+def calibrate_recording_with_board(
+    recording,
+    spec: BoardSpec,
+    nominal: SensorExtrinsics,
+    *,
+    tolerance_s: float = 0.02,
+    time_offset_s: float | str = 0.0,
+    fov_deg: tuple[float, float] | None = None,
+    intrinsics: CameraIntrinsics | None = None,
+    distortion: tuple[float, ...] = (),
+    calibrate_intrinsics: bool = False,
+    max_offset_s: float = 0.5,
+) -> tuple[CalibrationResult, BoardReport]:
+    """Calibrate from a recording of colour images and zone frames of a board on a surface.
+
+    Args:
+        recording: a ``deltar.io.recording.Recording`` (its depth images are not used).
+        spec: the printed board.
+        nominal: the user's rough guess (the "before" of the report; the solution itself
+            comes from the closed form).
+        tolerance_s: pairing tolerance between a zone frame and an image, seconds.
+        time_offset_s: camera-minus-sensor clock offset in seconds, or ``"auto"`` to
+            estimate it from the board's distance over time.
+        fov_deg: sensor field of view in degrees (default: the recording's).
+        intrinsics: camera intrinsics (default: the recording's).
+        distortion: known lens distortion (OpenCV order), used for the board poses.
+        calibrate_intrinsics: estimate the intrinsics and distortion from the board views
+            (``cv2.calibrateCamera``) after the checks, starting at ``intrinsics``.
+        max_offset_s: largest offset searched by ``"auto"``, seconds.
+
+    Returns:
+        The ``CalibrationResult`` (as the depth path; its calibration carries the
+        intrinsics, distortion and time offset used) and a ``BoardReport``.
+
+    Raises:
+        ValueError: any of the refusals (too few views with the board, a spec whose scale
+            does not match, zones missing the board's surface, too similar plane
+            orientations), with the reason and what to record instead.
+    """
+    meta = recording.meta
+    fov = tuple(fov_deg) if fov_deg is not None else tuple(meta.fov_deg)
+    camera = intrinsics or meta.intrinsics
+    detector = BoardDetector(spec)
+    cache: dict = {}
+
+    def detect(path) -> BoardDetection | None:
+        if path not in cache:
+            import cv2
+
+            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise ValueError(f"{path}: unreadable image")
+            if image.shape != (camera.height, camera.width):
+                raise ValueError(f"{path} is {image.shape[0]}x{image.shape[1]}, the "
+                                 f"intrinsics are for {camera.height}x{camera.width}")
+            cache[path] = detector.detect(image)
+        return cache[path]
+
+    frames = recording.zone_frames()
+    estimate = None
+    if time_offset_s == "auto":
+        found = [(t, d) for t, p in zip(recording.color_times_s, recording.color_paths,
+                                        strict=True) if (d := detect(p)) is not None]
+        _refuse_few_views(detector, recording, len(found), len(recording.color_paths),
+                          MIN_BOARD_VIEWS)
+        cam_t = np.array([t for t, _ in found])
+        cam_d = np.array([estimate_board_pose(d, camera, distortion).offset_cam_m
+                          for _, d in found])
+        zone_t, zone_d = [], []
+        for frame in frames:
+            try:
+                plane = zone_plane_from_frame(frame, fov_deg=fov)
+            except ValueError:
+                continue
+            zone_t.append(frame.timestamp_s)
+            zone_d.append(plane.offset_m)
+        estimate = estimate_time_offset(cam_t, cam_d, np.array(zone_t), np.array(zone_d),
+                                        max_offset_s=max_offset_s)
+        offset = estimate.offset_s
+    else:
+        offset = float(time_offset_s)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # unpaired frames are counted below
+        pairs = recording.pairs(tolerance_s, time_offset_s=offset)
+    unpaired = len(frames) - len(pairs)
+
+    views: list[_View] = []
+    skipped: list[tuple[str, str]] = []
+    searched = 0
+    for pair in pairs:
+        frame = pair.zone_frame
+        name = f"t={frame.timestamp_s:.3f}s"
+        searched += 1
+        detection = detect(pair.color_path)
+        if detection is None:
+            skipped.append((name, f"frame {name}: the board is not found in "
+                                  f"{pair.color_path.name}"))
+            continue
+        pose = estimate_board_pose(detection, camera, distortion)
+        try:
+            plane = zone_plane_from_frame(frame, fov_deg=fov, name=name)
+            reason = ""
+        except ValueError as err:
+            plane, reason = None, str(err)
+        views.append(_View(name, plane, pose, detection, frame.flat()[0], reason))
+    _refuse_few_views(detector, recording, len(views), searched, MIN_BOARD_VIEWS,
+                      paired=True)
+    intrinsics_rms = None
+    if calibrate_intrinsics:
+        # Board poses from intrinsics that are several % off disagree with the zones'
+        # planes, so the camera is calibrated before the views are checked against them.
+        detections = [d for d in cache.values() if d is not None]
+        if len(detections) < MIN_INTRINSIC_VIEWS:
+            raise ValueError(f"--calibrate-intrinsics needs the board in at least "
+                             f"{MIN_INTRINSIC_VIEWS} images, found in {len(detections)}")
+        camera, distortion, intrinsics_rms = _calibrate_camera(detections, camera)
+        for v in views:
+            v.pose = estimate_board_pose(v.detection, camera, distortion)
+    # The board's printed size sets the camera's distances; the zones measure theirs.
+    with_plane = [v for v in views if v.plane is not None]
+    if len(with_plane) >= 3:
+        ratio = float(np.median([v.pose.offset_cam_m / v.plane.offset_m for v in with_plane]))
+        if not 1 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
+            raise ValueError(
+                f"the board spec {spec.text()} does not match what is detected: with "
+                f"{1000 * spec.square_m:g} mm squares the board would be {ratio:.2f} times "
+                "as far from the camera as the zones measure the surface it is on; measure "
+                f"a printed square (about {1000 * spec.square_m / ratio:.1f} mm if the camera "
+                "intrinsics are right) and give that as SQUARE_M (and MARKER_M) in --target")
+    closed, agree = _agreeing(with_plane)
+    good = [v for v, ok in zip(with_plane, agree, strict=True) if ok]
+    missing = len(views) - len(good)
+    if missing > len(views) / 2 or len(good) < MIN_BOARD_VIEWS:
+        reasons = [v.reason for v in views if v.reason][:1] or \
+            ["the zones' plane disagrees with the board's plane"]
+        raise ValueError(
+            f"in {missing} of the {len(views)} views with the board the zones mostly miss "
+            f"the surface the board is fixed on (first: {reasons[0]}), leaving "
+            f"{len(good)} usable views (need {MIN_BOARD_VIEWS}): fix the board flat on a "
+            "wall, door or table that fills the sensor's whole view around it, and keep "
+            "other objects out of that view")
+    for v in views:
+        if v not in good:
+            skipped.append((v.name, v.reason or f"frame {v.name}: the zones' plane disagrees "
+                            "with the board's plane (the zones see another surface)"))
+    normals_sensor = np.array([v.pose.normal_cam for v in good]) @ closed.rotation
+    try:
+        check_plane_diversity(normals_sensor)
+    except ValueError as err:
+        seen = normal_spread_deg(normals_sensor)
+        raise ValueError(
+            f"the board was seen from too few directions: its {len(good)} views give plane "
+            f"orientations (as the sensor sees them) spread {seen[0]:.1f} and {seen[1]:.1f} "
+            f"deg rms, at least 5.7 deg rms is needed both ways (views tilted 15-35 deg "
+            "left, right, up and down, not all head-on): record the board from more "
+            f"directions ({err})") from None
+
+    # The long part: the robust refinement.
+    weights = np.array([_frame_weight(v, fov) for v in good])
+    observations = [_observation(v, closed, fov, w / weights.mean())
+                    for v, w in zip(good, weights, strict=True)]
+    result = calibrate_observations(observations, nominal, camera, grid=meta.grid,
+                                    fov_deg=fov, sensor_model=meta.sensor_model,
+                                    skipped=skipped, start=closed)
+    result.unpaired = unpaired
+    calibration = result.calibration
+    residuals = dict(calibration.residuals)
+    residuals["board_views"] = float(len(views))
+    residuals["board_pose_rms_px"] = float(np.median([v.pose.reprojection_rms_px
+                                                      for v in good]))
+    if intrinsics_rms is not None:
+        residuals["intrinsics_rms_px"] = intrinsics_rms
+    result.calibration = replace(calibration, residuals=residuals,
+                                 distortion=tuple(distortion), time_offset_s=offset)
+    report = BoardReport(searched, len(views), residuals["board_pose_rms_px"], estimate, offset,
+                         intrinsics_rms, closed, skipped)
+    return result, report
+
+
+def _frame_weight(view: _View, fov) -> float:
+    """Inverse variance of the refinement's residuals for this view: the offset's, plus
+    the normal's over the lateral extent of the sensor's view on the plane."""
+    normal_var, offset_var = view.variances()
+    radius = view.plane.offset_m * np.tan(np.deg2rad(max(fov) / 2)) * 0.6
+    return 1.0 / (offset_var + radius ** 2 * normal_var)
+
+
+def _observation(view: _View, extrinsics: SensorExtrinsics, fov,
+                 weight: float = 1.0) -> PlaneObservation:
+    """A view as the refinement's plane observation: the board's plane sampled where the
+    sensor's rays meet it (coarse for the solve, fine for the zone-to-cloud report)."""
+    args = (view.pose.normal_cam, view.pose.offset_cam_m, extrinsics.rotation,
+            extrinsics.translation_m, fov)
+    zones = zone_centre_points(view.mean_m, fov)[view.plane.inliers]
+    # Sample a little beyond the field of view: the nominal guess places the zones
+    # elsewhere, and the report looks for their nearest plane point.
+    wide = (fov[0] + 20.0, fov[1] + 20.0)
+    cloud = board_points_in_view(*args[:4], wide, 160)
+    return PlaneObservation(view.plane.normal, view.plane.offset_m,
+                            board_points_in_view(*args, 24), zones, cloud_cam_m=cloud,
+                            name=view.name, weight=weight)
+
+
+def _refuse_few_views(detector: BoardDetector, recording, found: int, searched: int,
+                      needed: int, paired: bool = False) -> None:
+    """Refuse a recording where the board is found in too few images, saying why."""
+    if found >= needed:
+        return
+    import cv2
+
+    sample = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+              for p in recording.color_paths[::max(1, len(recording.color_paths) // 8)][:8]]
+    hint = detector.diagnose([s for s in sample if s is not None])
+    where = "paired with a zone frame" if paired else "of the recording"
+    advice = (f"the board spec {detector.spec.text()} does not match what is detected: {hint}"
+              if hint else "keep the whole board in view, sharp and evenly lit, 0.4-1.5 m "
+              "from the camera, and check --target")
+    raise ValueError(f"too few views with the board: found in {found} of the {searched} "
+                     f"images {where} (need at least {needed}): {advice}")
