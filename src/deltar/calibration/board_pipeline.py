@@ -63,7 +63,8 @@ class TimeOffsetEstimate:
 
     Attributes:
         offset_s: how far the camera's stamps run ahead of the sensor's, seconds.
-        residual_m: median |zone distance - camera distance| (bias removed) at the offset.
+        residual_m: RMS of zone distance - camera distance (bias removed, worst 10 % left
+            out) at the offset, metres.
         residual_at_zero_m: the same with no offset.
         samples: zone frames compared at the offset.
     """
@@ -137,20 +138,24 @@ def closed_form_extrinsics(normals_sensor: np.ndarray, offsets_sensor_m: np.ndar
 
 def estimate_time_offset(image_times_s: np.ndarray, camera_distance_m: np.ndarray,
                          zone_times_s: np.ndarray, zone_distance_m: np.ndarray, *,
+                         camera_normals: np.ndarray | None = None,
                          max_offset_s: float = 0.5, step_s: float = 0.002,
                          min_motion_m: float = 0.03) -> TimeOffsetEstimate:
     """The camera-minus-sensor clock offset that best lines up the two distance series.
 
     The camera sees the board's plane at ``camera_distance_m`` over time and the zones
-    see the same plane at ``zone_distance_m``; the two differ by a small constant (the
-    devices are a few cm apart) once the clocks agree. Every candidate offset on a
-    ``step_s`` grid in ``[-max_offset_s, max_offset_s]`` is scored by the median
-    |difference - its median| over zone frames whose shifted time falls between two
-    board detections, and the best is refined by a parabola through its neighbours.
+    see the same plane at ``zone_distance_m``. Once the clocks agree the two differ by a
+    constant, or, with ``camera_normals``, by ``n_c . t`` for the unknown sensor
+    position t (plane offsets: ``d_s = d_c + n_c . t``), fitted per candidate. Every
+    candidate offset on a ``step_s`` grid in ``[-max_offset_s, max_offset_s]`` is scored
+    by the RMS of the differences about their median (the worst 10 % left out) over
+    zone frames whose shifted time falls between two board detections, and the best is refined by a
+    parabola through its neighbours.
 
     Args:
         image_times_s: (N,) increasing image stamps with the board found, seconds.
         camera_distance_m: (N,) camera-to-plane distances, metres.
+        camera_normals: optional (N, 3) the plane's unit normals in the camera frame.
         zone_times_s: (M,) zone frame stamps, seconds.
         zone_distance_m: (M,) sensor-to-plane distances, metres.
         max_offset_s: largest offset searched, seconds.
@@ -188,7 +193,14 @@ def estimate_time_offset(image_times_s: np.ndarray, camera_distance_m: np.ndarra
         if inside.sum() < 10:
             continue
         diff = dz[inside] - np.interp(shifted[inside], ti, di)
-        costs[k] = float(np.median(np.abs(diff - np.median(diff))))
+        if camera_normals is not None:
+            normals = np.column_stack([np.interp(shifted[inside], ti, camera_normals[:, j])
+                                       for j in range(3)])
+            diff = diff - normals @ np.linalg.lstsq(normals, diff, rcond=None)[0]
+        # RMS of the differences about their median, the worst 10 % left out (a few
+        # zone planes from another surface must not decide the offset).
+        spread = np.sort(np.abs(diff - np.median(diff)))[:max(1, int(0.9 * diff.size))]
+        costs[k] = float(np.sqrt(np.mean(spread ** 2)))
         counts[k] = int(inside.sum())
     enough = counts >= 0.5 * counts.max()
     costs[~enough] = np.inf
@@ -262,8 +274,12 @@ def _calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrin
     return calibrated, tuple(float(v) for v in np.ravel(dist)[:5]), float(rms)
 
 
-def _agreeing(views: list[_View]) -> tuple[SensorExtrinsics | None, np.ndarray]:
+def _agreeing(views: list[_View], offsets: bool = True
+              ) -> tuple[SensorExtrinsics | None, np.ndarray]:
     """Closed-form extrinsic over the views whose two planes agree with it (trimmed).
+
+    With ``offsets`` False only the normals must agree (a board spec of the wrong scale
+    scales every camera offset but leaves the normals alone).
 
     Returns:
         The extrinsic (None with fewer than 3 views) and the (V,) bool mask of views
@@ -286,6 +302,8 @@ def _agreeing(views: list[_View]) -> tuple[SensorExtrinsics | None, np.ndarray]:
         angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ns @ ext.rotation.T, nc),
                                              -1, 1)))
         offset = np.abs(ds - dc - nc @ ext.translation_m)
+        if not offsets:
+            offset = np.zeros_like(offset)
         bad = ((angle > PLANE_AGREE_DEG) | (offset > PLANE_AGREE_M)) & keep
         if not bad.any():
             return ext, keep
@@ -362,8 +380,8 @@ def calibrate_recording_with_board(
         _refuse_few_views(detector, recording, len(found), len(recording.color_paths),
                           MIN_BOARD_VIEWS)
         cam_t = np.array([t for t, _ in found])
-        cam_d = np.array([estimate_board_pose(d, camera, distortion).offset_cam_m
-                          for _, d in found])
+        poses = [estimate_board_pose(d, camera, distortion) for _, d in found]
+        cam_d = np.array([p.offset_cam_m for p in poses])
         zone_t, zone_d = [], []
         for frame in frames:
             try:
@@ -373,6 +391,7 @@ def calibrate_recording_with_board(
             zone_t.append(frame.timestamp_s)
             zone_d.append(plane.offset_m)
         estimate = estimate_time_offset(cam_t, cam_d, np.array(zone_t), np.array(zone_d),
+                                        camera_normals=np.array([p.normal_cam for p in poses]),
                                         max_offset_s=max_offset_s)
         offset = estimate.offset_s
     else:
@@ -414,29 +433,23 @@ def calibrate_recording_with_board(
         camera, distortion, intrinsics_rms = _calibrate_camera(detections, camera)
         for v in views:
             v.pose = estimate_board_pose(v.detection, camera, distortion)
-    # The board's printed size sets the camera's distances; the zones measure theirs.
+    # Zones that see another surface give planes whose normals disagree with the board's.
     with_plane = [v for v in views if v.plane is not None]
-    if len(with_plane) >= 3:
-        ratio = float(np.median([v.pose.offset_cam_m / v.plane.offset_m for v in with_plane]))
-        if not 1 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
-            raise ValueError(
-                f"the board spec {spec.text()} does not match what is detected: with "
-                f"{1000 * spec.square_m:g} mm squares the board would be {ratio:.2f} times "
-                "as far from the camera as the zones measure the surface it is on; measure "
-                f"a printed square (about {1000 * spec.square_m / ratio:.1f} mm if the camera "
-                "intrinsics are right) and give that as SQUARE_M (and MARKER_M) in --target")
+    _, facing = _agreeing(with_plane, offsets=False)
+    _refuse_missing(views, [v for v, ok in zip(with_plane, facing, strict=True) if ok])
+    # The board's printed size sets the camera's distances; the zones measure theirs.
+    facing_views = [v for v, ok in zip(with_plane, facing, strict=True) if ok]
+    ratio = float(np.median([v.pose.offset_cam_m / v.plane.offset_m for v in facing_views]))
+    if not 1 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
+        raise ValueError(
+            f"the board spec {spec.text()} does not match what is detected: with "
+            f"{1000 * spec.square_m:g} mm squares the board would be {ratio:.2f} times "
+            "as far from the camera as the zones measure the surface it is on; measure "
+            f"a printed square (about {1000 * spec.square_m / ratio:.1f} mm if the camera "
+            "intrinsics are right) and give that as SQUARE_M (and MARKER_M) in --target")
     closed, agree = _agreeing(with_plane)
     good = [v for v, ok in zip(with_plane, agree, strict=True) if ok]
-    missing = len(views) - len(good)
-    if missing > len(views) / 2 or len(good) < MIN_BOARD_VIEWS:
-        reasons = [v.reason for v in views if v.reason][:1] or \
-            ["the zones' plane disagrees with the board's plane"]
-        raise ValueError(
-            f"in {missing} of the {len(views)} views with the board the zones mostly miss "
-            f"the surface the board is fixed on (first: {reasons[0]}), leaving "
-            f"{len(good)} usable views (need {MIN_BOARD_VIEWS}): fix the board flat on a "
-            "wall, door or table that fills the sensor's whole view around it, and keep "
-            "other objects out of that view")
+    _refuse_missing(views, good)
     for v in views:
         if v not in good:
             skipped.append((v.name, v.reason or f"frame {v.name}: the zones' plane disagrees "
@@ -499,6 +512,20 @@ def _observation(view: _View, extrinsics: SensorExtrinsics, fov,
                             name=view.name, weight=weight)
 
 
+def _refuse_missing(views: list[_View], good: list[_View]) -> None:
+    """Refuse when the zones miss the board's surface in most views (or too few are left)."""
+    missing = len(views) - len(good)
+    if missing > len(views) / 2 or len(good) < MIN_BOARD_VIEWS:
+        reasons = [v.reason for v in views if v.reason][:1] or \
+            ["the zones' plane disagrees with the board's plane"]
+        raise ValueError(
+            f"in {missing} of the {len(views)} views with the board the zones mostly miss "
+            f"the surface the board is fixed on (first: {reasons[0]}), leaving "
+            f"{len(good)} usable views (need {MIN_BOARD_VIEWS}): fix the board flat on a "
+            "wall, door or table that fills the sensor's whole view around it, and keep "
+            "other objects out of that view")
+
+
 def _refuse_few_views(detector: BoardDetector, recording, found: int, searched: int,
                       needed: int, paired: bool = False) -> None:
     """Refuse a recording where the board is found in too few images, saying why."""
@@ -508,7 +535,8 @@ def _refuse_few_views(detector: BoardDetector, recording, found: int, searched: 
 
     sample = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
               for p in recording.color_paths[::max(1, len(recording.color_paths) // 8)][:8]]
-    hint = detector.diagnose([s for s in sample if s is not None])
+    # Found in none: the spec may not be what is printed; found in some: it is.
+    hint = detector.diagnose([s for s in sample if s is not None]) if found == 0 else ""
     where = "paired with a zone frame" if paired else "of the recording"
     advice = (f"the board spec {detector.spec.text()} does not match what is detected: {hint}"
               if hint else "keep the whole board in view, sharp and evenly lit, 0.4-1.5 m "

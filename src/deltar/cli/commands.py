@@ -5,6 +5,7 @@ so ``deltar --help`` stays fast.
 """
 
 from deltar.cli import (  # noqa: F401
+    board,
     calibrate,
     demo,
     evaluate,
