@@ -59,7 +59,7 @@ def test_calibrate_with_a_board_then_check_it(board_recording, tmp_path):
     # ... and a bumped one (3 deg, 3 cm) does not.
     bumped = RigCalibration(calib.intrinsics, SensorExtrinsics(
         Rotation.from_euler("x", 3, degrees=True).as_matrix() @ calib.extrinsics.rotation,
-        calib.extrinsics.translation_m + [0, 0, 0.03]))
+        calib.extrinsics.translation_m + np.array([0, 0, 0.03])))
     bumped.save(tmp_path / "bumped.json")
     check = _run("check-calibration", board_recording, "--calib", tmp_path / "bumped.json",
                  "--target", TARGET, "--plot", tmp_path / "check.png")
