@@ -96,3 +96,30 @@ def test_zone_rects_reject_another_resolution_or_grid():
     frame16 = ZoneFrame(np.ones(16), np.zeros(16), np.ones(16, bool))
     with pytest.raises(ValueError, match="grid"):
         calib.zone_rects_for(frame16, (480, 640))
+
+
+def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
+    import cv2
+
+    calib = _calib(distortion=(-0.2, 0.05, 0.0, 0.0, 0.0), time_offset_s=0.04)
+    back = RigCalibration.load(calib.save(tmp_path / "d.json"))
+    assert back.distortion == (-0.2, 0.05, 0.0, 0.0, 0.0) and back.time_offset_s == 0.04
+    # Files without the fields read as a pinhole camera on the sensor's clock.
+    data = json.loads((tmp_path / "d.json").read_text())
+    del data["distortion"], data["time_offset_s"]
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    old = RigCalibration.load(tmp_path / "old.json")
+    assert old.distortion == () and old.time_offset_s == 0.0 and not old.has_distortion
+    # A point seen through the lens lands at its pinhole position after undistorting.
+    image = np.zeros((480, 640), np.uint8)
+    point = np.array([[[0.35, 0.25, 1.0]]])
+    seen = cv2.projectPoints(point, np.zeros(3), np.zeros(3), CAMERA.matrix,
+                             np.array(calib.distortion))[0].ravel()
+    image[round(seen[1]) - 1:round(seen[1]) + 2, round(seen[0]) - 1:round(seen[0]) + 2] = 255
+    fixed = calib.undistort_image(image)
+    rows, cols = np.nonzero(fixed > 100)
+    pinhole = (CAMERA.fx * 0.35 + CAMERA.cx, CAMERA.fy * 0.25 + CAMERA.cy)
+    assert abs(cols.mean() - pinhole[0]) < 1.0 and abs(rows.mean() - pinhole[1]) < 1.0
+    assert old.undistort_image(image) is image
+    with pytest.raises(ValueError, match="distortion must be 0, 4, 5"):
+        _calib(distortion=(0.1, 0.2, 0.3))

@@ -137,3 +137,15 @@ def test_corrupt_zone_line_names_file_and_line(tmp_path):
         warnings.simplefilter("ignore")
         with pytest.raises(ValueError, match=r"zones\.jsonl:2"):
             list(replay(tmp_path / "rec", _estimator()))
+
+
+def test_replay_pairs_with_the_calibrations_time_offset(tmp_path):
+    _record(tmp_path / "rec", frames=8)  # colour 4 ms before each zone frame, 30 Hz
+    meta = Recording(tmp_path / "rec").meta
+    calib = RigCalibration(meta.intrinsics, SensorExtrinsics(), grid=meta.grid,
+                           fov_deg=meta.fov_deg, time_offset_s=0.03)
+    items = list(replay(tmp_path / "rec", _estimator(), calibration=calib))
+    # Zone t pairs with the image nearest t + 30 ms: the next one, 29 ms after.
+    assert all(abs(item.pair.color_offset_s - 0.0293) < 1e-3 for item in items)
+    items = list(replay(tmp_path / "rec", _estimator(), calibration=calib, time_offset_s=0.0))
+    assert all(abs(item.pair.color_offset_s + 0.004) < 1e-6 for item in items)

@@ -122,6 +122,19 @@ def test_calibration_places_zones_and_must_match_resolution(rng):
         estimator.predict(_image(rng, 48, 96), frame, calib)
 
 
+def test_a_calibration_with_distortion_predicts_on_the_undistorted_image(rng):
+    intr = CameraIntrinsics(80.0, 80.0, 47.5, 31.5, 96, 64)
+    calib = RigCalibration(intr, SensorExtrinsics(), distortion=(-0.3, 0.1, 0.0, 0.0))
+    estimator = DepthEstimator(ZonePainterNet(), weights="x")
+    seen = []
+    prepare = estimator.prepare
+    estimator.prepare = lambda images, *a, **k: seen.extend(images) or prepare(images, *a, **k)
+    image = _image(rng, 64, 96)
+    estimator.predict(image, _frame(rng), calib)
+    np.testing.assert_array_equal(seen[0], calib.undistort_image(image))
+    assert np.abs(seen[0].astype(int) - image).mean() > 10  # the lens model did move pixels
+
+
 @pytest.mark.parametrize("bad, match", [
     (np.zeros((64, 96), np.uint8), "image"),
     (np.zeros((64, 96, 3), np.float32), "uint8"),

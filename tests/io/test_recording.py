@@ -119,3 +119,16 @@ def test_missing_pieces_raise_clear_errors(tmp_path):
     (tmp_path / "rec" / "meta.json").write_text("{broken")
     with pytest.raises(ValueError, match=r"meta\.json: corrupt JSON"):
         Recording(tmp_path / "rec")
+
+
+def test_pairs_apply_a_time_offset(tmp_path):
+    """The camera's stamps run 50 ms ahead: zone t pairs with the image at t + 0.05."""
+    _write(tmp_path / "rec", zone_times=[0.0, 0.1, 0.2], color_times=[0.02, 0.05, 0.12, 0.15,
+                                                                      0.22, 0.25])
+    rec = Recording(tmp_path / "rec")
+    plain = rec.pairs(tolerance_s=0.03)
+    shifted = rec.pairs(tolerance_s=0.03, time_offset_s=0.05)
+    assert [round(p.color_offset_s, 3) for p in plain] == [0.02, 0.02, 0.02]
+    assert [round(p.color_offset_s, 3) for p in shifted] == [0.05, 0.05, 0.05]
+    with pytest.raises(ValueError, match="time_offset_s must be finite"):
+        rec.pairs(time_offset_s=float("nan"))

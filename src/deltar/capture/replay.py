@@ -72,7 +72,7 @@ def check_gaps(recording: Recording, pairs: list[RecordingPair]) -> list[tuple[f
 
 def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, *,
            calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
-           every: int = 1, limit: int | None = None,
+           time_offset_s: float | None = None, every: int = 1, limit: int | None = None,
            skip_no_zones: bool = False) -> Iterator[ReplayItem]:
     """Predict depth for each zone frame of a recording that has a colour image near it.
 
@@ -85,6 +85,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         calibration: rig calibration; a nominal one from the recording's metadata when
             None (see :func:`recording_calibration`).
         tolerance_s: largest |image time - zone time| for a pair, seconds.
+        time_offset_s: camera clock minus sensor clock, seconds, applied when pairing
+            (default: the calibration's ``time_offset_s``, 0 without one).
         every: use every ``every``-th pair (>= 1).
         limit: stop after this many predictions.
         skip_no_zones: skip zone frames without any valid zone (with a warning) instead
@@ -106,7 +108,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     if calib_size != meta_size:
         raise ValueError(f"calibration is for {calib_size[0]}x{calib_size[1]} images, the "
                          f"recording {rec.folder} has {meta_size[0]}x{meta_size[1]}")
-    pairs = rec.pairs(tolerance_s=tolerance_s)
+    offset = calib.time_offset_s if time_offset_s is None else float(time_offset_s)
+    pairs = rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
     check_gaps(rec, pairs)
     done = 0
     for pair in pairs[::int(every)]:
@@ -131,7 +134,8 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
                      out_dir: str | os.PathLike, *, kinds: tuple[str, ...] = ("png16", "npy",
                                                                               "color"),
                      calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
-                     every: int = 1, limit: int | None = None, overwrite: bool = False,
+                     time_offset_s: float | None = None, every: int = 1,
+                     limit: int | None = None, overwrite: bool = False,
                      on_item: Callable[[ReplayItem], None] | None = None,
                      skip_no_zones: bool = False) -> list[Path]:
     """Replay a recording and write outputs named by the colour image's time stamp.
@@ -154,7 +158,8 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
                          "choose a folder outside it")
     written: list[Path] = []
     for item in replay(rec, estimator, calibration=calibration, tolerance_s=tolerance_s,
-                       every=every, limit=limit, skip_no_zones=skip_no_zones):
+                       time_offset_s=time_offset_s, every=every, limit=limit,
+                       skip_no_zones=skip_no_zones):
         paths = write_prediction(out, item.pair.color_path.stem, item.image, item.prediction,
                                  kinds=kinds, overwrite=overwrite,
                                  title=f"{item.pair.color_path.name} ({estimator.weights})")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -258,6 +259,9 @@ def replay_command(
     outputs: str = typer.Option("png16,npy,color", help="Comma list of output kinds."),
     tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
                                     "seconds."),
+    time_offset: float | None = typer.Option(None, "--time-offset", help="Camera clock minus "
+                                             "sensor clock, seconds, applied when pairing "
+                                             "(default: the --calib file's, else 0)."),
     every: int = typer.Option(1, min=1, help="Use every N-th frame."),
     limit: int | None = typer.Option(None, min=1, help="Stop after this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
@@ -304,13 +308,19 @@ def replay_command(
         raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
     kinds = _parse_outputs(outputs)
     model.check()
-    total = _check_replay(recording, out, kinds, tolerance, every, limit, overwrite, show)
     calibration = _load_calibration(calib)
+    if time_offset is None:
+        time_offset = calibration.time_offset_s if calibration is not None else 0.0
+    elif not math.isfinite(time_offset):
+        raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
+    total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
+                          overwrite, show)
     estimator = model.load()
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
     if out is None:
         items = map(viewer, replay(recording, estimator, calibration=calibration,
-                                   tolerance_s=tolerance, every=every, limit=limit,
+                                   tolerance_s=tolerance, time_offset_s=time_offset,
+                                   every=every, limit=limit,
                                    skip_no_zones=not allow_no_zones))
         if show:
             _show_live(items)
@@ -327,15 +337,19 @@ def replay_command(
 
         written = replay_to_folder(recording, estimator, out, kinds=kinds,
                                    calibration=calibration, tolerance_s=tolerance,
-                                   every=every, limit=limit, overwrite=overwrite,
+                                   time_offset_s=time_offset, every=every, limit=limit,
+                                   overwrite=overwrite,
                                    on_item=each, skip_no_zones=not allow_no_zones)
     viewer.close()
     typer.echo(f"wrote {len(written)} files to {out}")
 
 
-def _check_replay(recording: Path, out: Path | None, kinds, tolerance: float, every: int,
-                  limit: int | None, overwrite: bool, show: bool) -> int:
-    """Check a replay's recording and outputs before the model; return its frame count."""
+def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float, float],
+                  every: int, limit: int | None, overwrite: bool, show: bool) -> int:
+    """Check a replay's recording and outputs before the model; return its frame count.
+
+    ``pairing`` is (tolerance, time offset) in seconds.
+    """
     import warnings
 
     from deltar.cli.checks import display, existing_outputs, output_folder
@@ -347,7 +361,7 @@ def _check_replay(recording: Path, out: Path | None, kinds, tolerance: float, ev
     rec = Recording(recording)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # replaying warns about skipped frames itself
-        selected = rec.pairs(tolerance_s=tolerance)[::every][:limit]
+        selected = rec.pairs(tolerance_s=pairing[0], time_offset_s=pairing[1])[::every][:limit]
     if out is not None:
         resolved = out.resolve()
         if resolved == rec.folder.resolve() or rec.folder.resolve() in resolved.parents:

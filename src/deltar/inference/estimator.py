@@ -446,7 +446,9 @@ class DepthEstimator:
             image: (H, W, 3) uint8 RGB image, or a list of them (one size).
             zone_frame: the matching ``ZoneFrame`` (or a list, one per image).
             calibration: optional rig calibration for images of its resolution; without
-                it zones are placed with the nominal geometry.
+                it zones are placed with the nominal geometry. A calibration with lens
+                distortion undistorts the images first (same intrinsics): the depth is then
+                for the undistorted image.
             zone_rects: optional (Z, 4) rectangles (or (B, Z, 4) for a batch) in pixels of
                 the input image, replacing the calibrated or nominal placement.
 
@@ -465,6 +467,10 @@ class DepthEstimator:
         import torch
 
         single, images, frames = _batch_arguments(image, zone_frame)
+        if calibration is not None and calibration.has_distortion:
+            # The zones are placed with the pinhole intrinsics: predict on the
+            # undistorted image (same intrinsics), so depth is for that image.
+            images = [calibration.undistort_image(np.asarray(im)) for im in images]
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
