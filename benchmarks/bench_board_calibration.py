@@ -1,0 +1,140 @@
+"""Accuracy of the board calibration (no depth camera) and of the depth-image path.
+
+Synthetic rigs: a 640x480 camera (fx 500, fy 505), an 8x8 sensor rolled 91.5 deg, tilted
+2 and -1.5 deg, 4.6 cm from the camera; a ChArUco 7x5 board (40 mm squares, A4) on a
+wall seen from 0.5-0.9 m, tilted 15-35 deg; 2 cm zone noise, 10 % invalid zones; the
+guess is roll 90 deg, translation 0. Run from the repository root::
+
+    PYTHONPATH=src python benchmarks/bench_board_calibration.py [--part board|intrinsics|
+        refusal|depth] [--seeds 5]
+
+``--part depth`` is the box-room sweep of docs/calibration.md (depth images); run it
+with another checkout's ``src`` first on PYTHONPATH to compare versions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from deltar.calibration.extrinsic import depth_to_points, nominal_extrinsics
+from deltar.camera import CameraIntrinsics
+from deltar.sensor.geometry import SensorExtrinsics
+
+CAMERA = CameraIntrinsics(500.0, 505.0, 322.0, 238.0, 640, 480)
+ROUGH = CameraIntrinsics(540.0, 464.6, 330.0, 230.0, 640, 480)  # fx +8 %, fy -8 %
+DISTORTION = (-0.12, 0.05, 0.001, -0.001)
+TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [91.5, 2.0, -1.5], degrees=True).as_matrix(),
+                        np.array([0.04, -0.02, 0.01]))
+TARGET = "charuco:7x5:0.04:0.03:DICT_5X5_100"
+
+
+def errors(found: SensorExtrinsics, truth: SensorExtrinsics = TRUE) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in millimetres)."""
+    angle = Rotation.from_matrix(found.rotation @ truth.rotation.T).magnitude()
+    return float(np.degrees(angle)), 1000 * float(np.linalg.norm(found.translation_m -
+                                                                 truth.translation_m))
+
+
+def board_run(folder: Path, views: int, seed: int, *, intrinsics: bool = False,
+              tilt: tuple[float, float] = (35.0, 15.0)):
+    from deltar.calibration.board import parse_board_spec
+    from deltar.calibration.board_pipeline import calibrate_recording_with_board
+    from deltar.calibration.synthetic_board import board_view_poses, write_board_recording
+    from deltar.io.recording import Recording
+
+    spec = parse_board_spec(TARGET)
+    poses = board_view_poses(views, distance_m=(0.5, 0.9), tilt_deg=tilt[0],
+                             min_tilt_deg=tilt[1], seed=seed)
+    write_board_recording(folder, TRUE, CAMERA, spec, poses,
+                          recorded_intrinsics=ROUGH if intrinsics else None,
+                          distortion=DISTORTION if intrinsics else (), seed=seed)
+    start = time.perf_counter()
+    result, report = calibrate_recording_with_board(Recording(folder), spec,
+                                                    nominal_extrinsics(90.0),
+                                                    calibrate_intrinsics=intrinsics)
+    return result, report, time.perf_counter() - start
+
+
+def part_board(seeds: int) -> None:
+    print("| views | seed | rotation error (deg) | translation error (mm) | before -> after "
+          "zone-to-cloud (cm) | solve (s) |")
+    print("|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for views in (15, 20, 25):
+            for seed in range(seeds):
+                result, _, took = board_run(Path(tmp) / f"b{views}_{seed}", views, seed)
+                angle, shift = errors(result.calibration.extrinsics)
+                print(f"| {views} | {seed} | {angle:.3f} | {shift:.1f} | "
+                      f"{100 * result.distance_before_m:.2f} -> "
+                      f"{100 * result.distance_after_m:.2f} | {took:.1f} |", flush=True)
+
+
+def part_intrinsics(seeds: int) -> None:
+    print("| seed | fx error (%) | fy error (%) | cx, cy error (px) | k1 | rotation error "
+          "(deg) | translation error (mm) | reprojection RMS (px) |")
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(seeds):
+            result, report, _ = board_run(Path(tmp) / f"i{seed}", 20, seed, intrinsics=True)
+            k = result.calibration.intrinsics
+            angle, shift = errors(result.calibration.extrinsics)
+            print(f"| {seed} | {100 * (k.fx / CAMERA.fx - 1):+.2f} | "
+                  f"{100 * (k.fy / CAMERA.fy - 1):+.2f} | {k.cx - CAMERA.cx:+.1f}, "
+                  f"{k.cy - CAMERA.cy:+.1f} | {result.calibration.distortion[0]:+.3f} | "
+                  f"{angle:.3f} | {shift:.1f} | {report.intrinsics_rms_px:.2f} |", flush=True)
+
+
+def part_refusal() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            board_run(Path(tmp) / "one", 20, 0, tilt=(3.0, 0.0))
+        except ValueError as err:
+            print(f"refused: {err}")
+        else:
+            print("NOT refused")
+
+
+def part_depth(seeds: int) -> None:
+    """The box-room sweep of docs/calibration.md (6 planes x 4 frames, 160x120 depth)."""
+    from deltar.calibration.pipeline import calibrate_observations, observation_from_frame
+    from deltar.calibration.synthetic import synthetic_rig_frames
+
+    cam = CameraIntrinsics(150, 150, 79.5, 59.5, 160, 120)
+    truth = SensorExtrinsics(Rotation.from_euler("zyx", [91.5, 2.0, -1.5], degrees=True)
+                             .as_matrix(), [0.04, -0.02, 0.01])
+    print("| seed | rotation error (deg) | translation error (mm) |")
+    print("|---|---|---|")
+    for seed in range(seeds):
+        frames = synthetic_rig_frames(truth, cam, frames_per_plane=4, seed=seed)
+        obs = [observation_from_frame(f.zone_frame, depth_to_points(f.depth_m, cam, 2),
+                                      nominal_extrinsics(90), name=str(i))
+               for i, f in enumerate(frames)]
+        ext = calibrate_observations(obs, nominal_extrinsics(90), cam).calibration.extrinsics
+        angle, shift = errors(ext, truth)
+        print(f"| {seed} | {angle:.3f} | {shift:.2f} |", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=("board", "intrinsics", "refusal", "depth"),
+                        default="board")
+    parser.add_argument("--seeds", type=int, default=5)
+    args = parser.parse_args()
+    if args.part == "board":
+        part_board(args.seeds)
+    elif args.part == "intrinsics":
+        part_intrinsics(args.seeds)
+    elif args.part == "refusal":
+        part_refusal()
+    else:
+        part_depth(max(args.seeds, 6))
+
+
+if __name__ == "__main__":
+    main()
