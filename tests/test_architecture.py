@@ -145,3 +145,48 @@ def test_architecture_doc_shows_this_graph():
               for dep in line.split(":", 1)[1].split(",") if dep.strip() != "-"}
     assert direct == edges, (f"missing in the doc: {sorted(edges - direct)}; "
                              f"not in the code: {sorted(direct - edges)}")
+
+
+def _module_of(path: Path) -> str:
+    parts = path.relative_to(SRC.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_edges() -> dict[str, set[str]]:
+    """Module -> the deltar modules it imports, function-local imports included.
+
+    ``from deltar.a import b`` counts as importing ``deltar.a.b`` when that is a module,
+    else ``deltar.a``; a package's ``__init__`` is the module ``deltar.a``.
+    """
+    modules = {_module_of(p) for p in SRC.rglob("*.py")}
+    graph: dict[str, set[str]] = defaultdict(set)
+    for path in sorted(SRC.rglob("*.py")):
+        importer = _module_of(path)
+        for name, _ in _imported_modules(ast.parse(path.read_text(), str(path))):
+            target = name if name in modules else name.rsplit(".", 1)[0]
+            while target not in modules and "." in target:
+                target = target.rsplit(".", 1)[0]
+            if target.startswith("deltar") and target != importer and target in modules:
+                graph[importer].add(target)
+    return dict(graph)
+
+
+def test_no_module_cycles():
+    """No two files import each other, directly or through others (lazy imports too).
+
+    A module importing its own package's ``__init__`` counts too: modules import their
+    siblings, never the package that re-exports them.
+    """
+    graph = module_edges()
+    on_cycles = sorted(node for node in graph if node in _reachable(graph, node))
+    assert on_cycles == [], f"modules on an import cycle: {on_cycles}"
+
+
+#: The longest a source file may be, lines: past it a module does more than one thing.
+MAX_SOURCE_LINES = 500
+
+
+def test_no_source_file_is_over_the_limit():
+    long = {path.relative_to(SRC).as_posix(): n for path in SRC.rglob("*.py")
+            if (n := len(path.read_text().splitlines())) > MAX_SOURCE_LINES}
+    assert long == {}, f"split these files (over {MAX_SOURCE_LINES} lines): {long}"

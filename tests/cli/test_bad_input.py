@@ -19,12 +19,11 @@ from typer.testing import CliRunner
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
 from deltar.camera import CameraIntrinsics
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.io.zone_file import save_zone_frame, zone_frame_to_dict
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.zone_frame import ZoneFrame
 
-_register_commands()
 runner = CliRunner()
 LITE = ["--preset", "deltar-lite", "--threads", "1"]
 MODEL_BUILT = "random, untrained weights"

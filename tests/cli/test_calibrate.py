@@ -10,7 +10,7 @@ from deltar.calibration.rig import RigCalibration
 from deltar.calibration.slam import write_ply_points
 from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
 from deltar.camera import CameraIntrinsics
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.sensor.geometry import SensorExtrinsics
 
 CAMERA = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
@@ -19,7 +19,6 @@ TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [92.0, -1.0, 1.5], degrees=Tr
 
 
 def test_calibrate_writes_calibration_report_and_pictures(tmp_path):
-    _register_commands()
     frames = synthetic_rig_frames(TRUE, CAMERA, frames_per_plane=3, mean_noise_m=0.015, seed=5)
     write_synthetic_recording(tmp_path / "rec", frames, CAMERA)
     out = tmp_path / "calib.json"
@@ -42,7 +41,6 @@ def test_calibrate_writes_calibration_report_and_pictures(tmp_path):
 
 
 def test_calibrate_reports_degenerate_recordings(tmp_path):
-    _register_commands()
     frames = synthetic_rig_frames(TRUE, CAMERA, view_planes=(2,), frames_per_plane=4,
                                   tilt_deg=1.0, mean_noise_m=0.0, seed=6)
     write_synthetic_recording(tmp_path / "rec", frames, CAMERA)
@@ -54,14 +52,12 @@ def test_calibrate_reports_degenerate_recordings(tmp_path):
 
 
 def test_calibrate_missing_recording(tmp_path):
-    _register_commands()
     result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "nope"), "--out",
                                       str(tmp_path / "c.json")])
     assert result.exit_code == 1 and "not found" in result.output
 
 
 def test_calibrate_from_a_slam_map(tmp_path):
-    _register_commands()
     frames = synthetic_rig_frames(TRUE, CAMERA, frames_per_plane=3, mean_noise_m=0.015, seed=7)
     write_synthetic_recording(tmp_path / "rec", frames, CAMERA, with_depth=False)
     # The map: points on the room's six faces (5 cm grid); the trajectory: the camera poses.

@@ -6,13 +6,12 @@ import json
 
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 
 METRIC_KEYS = {"d1", "d2", "d3", "rel", "sq_rel", "rmse", "rmse_log", "log10", "silog"}
 
 
 def test_demo_writes_scenes_panels_and_metrics(tmp_path):
-    _register_commands()
     out = tmp_path / "demo"
     result = CliRunner().invoke(app, ["demo", str(out), "--frames", "1", "--size", "96x128"])
     assert result.exit_code == 0, result.output

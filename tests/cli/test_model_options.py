@@ -6,10 +6,9 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 
-_register_commands()
 TEN = ["--preset", "--checkpoint", "--official", "--onnx", "--device", "--precision",
         "--size", "--threads", "--flip", "--network-only"]
 

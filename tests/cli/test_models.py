@@ -8,12 +8,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 
 
 @pytest.fixture(scope="module")
 def runner():
-    _register_commands()
     return CliRunner()
 
 

@@ -9,11 +9,10 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.io.zone_file import save_zone_frame
 from deltar.sensor.zone_frame import ZoneFrame
 
-_register_commands()
 runner = CliRunner()
 LITE = ["--preset", "deltar-lite", "--threads", "1"]
 

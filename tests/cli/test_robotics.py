@@ -11,13 +11,12 @@ import pytest
 from typer.testing import CliRunner
 
 from deltar.capture.bag_replay import pair_calibration
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.rosbag import BagInput, image_from_msg, metric_image_from_msg
 from tests.capture.test_viewer import _buffer, read_rrd
 from tests.io.test_rosbag import read_topic, write_input_bag
 
-_register_commands()
 runner = CliRunner(env={"COLUMNS": "200"})
 
 

@@ -7,12 +7,11 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.data.procedural import render_scene
 from deltar.data.zju_l5 import ZJUL5Dataset
 from deltar.sensor.geometry import zone_rects_to_pixel_bounds
 
-_register_commands()
 runner = CliRunner()
 
 

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from tests.training.conftest import TINY_CONFIG
 
 
 def _cli(*args):
-    _register_commands()
     return CliRunner().invoke(app, ["train", *args])
 
 

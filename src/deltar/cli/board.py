@@ -7,10 +7,8 @@ from pathlib import Path
 import typer
 
 from deltar.cli.calibrate import board_spec_option, time_offset_option
-from deltar.cli.main import app
 
 
-@app.command("calibration-board")
 def calibration_board_command(
     target: str = typer.Option(..., "--target", help="charuco:COLSxROWS:SQUARE_M:MARKER_M"
                                "[:DICT] or checkerboard:COLSxROWS:SQUARE_M (metres)."),
@@ -36,7 +34,6 @@ def calibration_board_command(
                "print at 100 % and measure a square before calibrating")
 
 
-@app.command("check-calibration")
 def check_calibration_command(
     recording: Path = typer.Argument(..., help="Recording folder (meta.json, zones.jsonl, "
                                      "color/, and depth/ unless --target)."),

@@ -6,8 +6,6 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
-
 
 def _floats(text: str, count: int, name: str) -> tuple[float, ...]:
     try:
@@ -19,7 +17,6 @@ def _floats(text: str, count: int, name: str) -> tuple[float, ...]:
     return values
 
 
-@app.command("calibrate")
 def calibrate_command(
     recording: Path = typer.Argument(..., help="Recording folder (meta.json, zones.jsonl, "
                                      "color/, depth/)."),

@@ -11,8 +11,6 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
-
 
 def write_predict_sample(data_json: Path, folder: Path) -> None:
     """Write the first frame of a ZJU-L5-layout set as ``deltar predict`` inputs.
@@ -40,7 +38,6 @@ def write_predict_sample(data_json: Path, folder: Path) -> None:
                    grid=frame.grid).save(folder / "calib.json")
 
 
-@app.command("demo")
 def demo(
     out: Path = typer.Argument(Path("deltar-demo"), help="Output folder (created; must not "
                                "already hold a demo)."),

@@ -1,4 +1,5 @@
-"""``deltar evaluate``: metrics of depth methods on a ZJU-L5- or THDR3K-layout set."""
+"""``deltar evaluate`` (metrics of depth methods on a ZJU-L5- or THDR3K-layout set) and
+``deltar wall-test`` (bias and jitter of an estimator against a flat wall)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
+from deltar.cli.errors import fail
+from deltar.cli.frame_options import CalibOption, load_calibration
+from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions
 
 #: Columns of the paper's ZJU-L5 table (metric key, header, higher is better).
 _TABLE_COLUMNS = (("d1", "δ1 ↑", True), ("d2", "δ2 ↑", True), ("d3", "δ3 ↑", True),
@@ -38,7 +41,6 @@ def _metrics_table(result, title: str):
     return table
 
 
-@app.command("evaluate")
 def evaluate(
     method: str | None = typer.Option(
         None, "--method", "-m",
@@ -150,3 +152,45 @@ def evaluate(
         typer.echo(f"metrics written to {json_out}")
     if save_vis is not None:
         typer.echo(f"visualisations written to {save_vis}")
+
+
+def wall_test_command(
+    recordings: list[Path] = typer.Argument(..., help="Recordings facing a flat wall, one "
+                                            "per distance."),
+    out: Path = typer.Option(..., "--out", help="Folder for wall_test.json/.csv/.png."),
+    calib: Path | None = CalibOption,
+    model: ModelOptions = MODEL_OPTIONS,
+    every: int = typer.Option(1, min=1, help="Use every N-th frame."),
+    limit: int | None = typer.Option(None, min=1, help="Frames per recording at most."),
+    overwrite: bool = typer.Option(False, help="Replace existing result files."),
+) -> None:
+    """Bias and jitter against a robust plane fit, per distance, network vs raw zones."""
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    from deltar.cli.checks import output_folder
+    from deltar.evaluation.wall_test import wall_test, write_results
+    from deltar.io.recording import Recording
+
+    model.check()
+    for folder in recordings:
+        Recording(folder)  # a missing or corrupt recording fails before the model
+    output_folder(out, "--out")
+    try:
+        estimator = model.load()
+        results = wall_test(recordings, estimator, calibration=load_calibration(calib),
+                            every=every, limit=limit)
+        paths = write_results(out, results, title=estimator.weights, overwrite=overwrite)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        fail(err)
+    table = Table(title=escape(f"flat wall ({estimator.weights})"))
+    for column in ("distance m", "frames", "plane from", "net bias mm", "net jitter mm",
+                   "zones bias mm", "zones jitter mm"):
+        table.add_column(column, justify="right")
+    for r in results:
+        table.add_row(f"{r.distance_m:.3f}", str(r.frames), r.reference,
+                      f"{1000 * r.network_bias_m:.1f}", f"{1000 * r.network_jitter_m:.1f}",
+                      f"{1000 * r.zones_bias_m:.1f}", f"{1000 * r.zones_jitter_m:.1f}")
+    Console().print(table)
+    typer.echo(f"wrote {', '.join(str(p) for p in paths.values())}")

@@ -1,9 +1,11 @@
-"""Entry point of the ``deltar`` command: one typer app, commands registered per concern."""
+"""Entry point of the ``deltar`` command: one typer app with the commands of
+:data:`deltar.cli.commands.COMMANDS`."""
 
 from __future__ import annotations
 
 import typer
 
+from deltar.cli.commands import COMMANDS
 from deltar.cli.errors import DeltarGroup
 
 app = typer.Typer(
@@ -20,15 +22,12 @@ def _root() -> None:
     """Dense metric depth from an RGB camera and a multi-zone ToF sensor (DELTAR)."""
 
 
-def _register_commands() -> None:
-    # Each concern's module adds its commands to ``app``; imports stay here so that
-    # ``deltar --help`` lists everything.
-    from deltar.cli import commands  # noqa: F401
+for _name, _command in COMMANDS:
+    app.command(_name)(_command)
 
 
 def main(args: list[str] | None = None) -> None:
     """Run the CLI (``args`` defaults to ``sys.argv[1:]``)."""
-    _register_commands()
     app(args=args)
 
 

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 from deltar.cli.robotics import (
     ImageTopicOption,
@@ -47,7 +46,6 @@ def _check_out(out: Path, recording: Path, overwrite: bool) -> None:
                                                  "map.json"))
 
 
-@app.command("map")
 @model_options
 def map_command(
     recording: Path = typer.Argument(..., help="Recording folder (deltar record) or ROS 2 bag "

@@ -7,8 +7,6 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
-
 
 def _parse_size(text: str) -> tuple[int, int]:
     try:
@@ -20,7 +18,6 @@ def _parse_size(text: str) -> tuple[int, int]:
     return height, width
 
 
-@app.command("check-official")
 def check_official_command(
     fixture: Path = typer.Argument(..., help="Parity fixture (.pt) with 'state_dict' and "
                                    "'cases', as official_parity_fixture_v2.pt."),
@@ -55,7 +52,6 @@ def check_official_command(
         raise typer.Exit(code=1)
 
 
-@app.command("bench")
 def bench_command(
     preset: str = typer.Option("deltar-official", help="Model preset."),
     size: str = typer.Option("480x640", help="Input size HxW (multiples of 32)."),

@@ -6,8 +6,6 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
-
 
 def _parse_intrinsics(text: str | None, height: int, width: int):
     from deltar.camera import CameraIntrinsics
@@ -42,7 +40,6 @@ def _cnh_config(enabled: bool, bins: int | None, span: str | None):
         raise typer.BadParameter(str(err), param_hint="--cnh-range") from err
 
 
-@app.command("simulate")
 def simulate_command(
     src: str = typer.Argument(..., help="RGB-D folder, NYU .mat / split .json, or "
                               "'procedural:<frames>[:<seed>[:<H>x<W>]]'."),

@@ -6,10 +6,7 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.main import app
 
-
-@app.command("train")
 def train_command(
     config: Path | None = typer.Option(None, "--config", "-c", help="YAML training config "
                                        "(e.g. configs/cross_scene_select.yaml)."),

@@ -1,0 +1,245 @@
+"""``deltar record`` and ``deltar replay``: a rig to a recording, a recording to depth."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import typer
+
+from deltar.cli.errors import fail
+from deltar.cli.frame_options import (
+    AllowNoZonesOption,
+    CalibOption,
+    load_calibration,
+    parse_outputs,
+)
+from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
+from deltar.cli.robotics import (
+    BagOption,
+    BagStorageOption,
+    ImageTopicOption,
+    InfoTopicOption,
+    OutBagOption,
+    PointsOption,
+    RerunOption,
+    RerunSaveOption,
+    TofFormatOption,
+    TofOrientationOption,
+    TofSigmaOption,
+    TofTopicOption,
+    TopicPrefixOption,
+)
+
+
+def record_command(
+    out: Path = typer.Argument(..., help="Recording folder (new, or a recording of the same "
+                               "rig to append to)."),
+    simulate: str | None = typer.Option(None, help="No hardware: play this RGB-D source as "
+                                        "camera + simulated sensor ('procedural:20', an "
+                                        "RGB-D folder, or 'wall:<m>[:<frames>[:<H>x<W>]]')."),
+    camera: int = typer.Option(0, help="OpenCV camera index (hardware mode)."),
+    sensor: str = typer.Option("vl53l5cx-ctypes", help="Driver: vl53l5cx-ctypes or sparkfun "
+                               "(hardware mode)."),
+    calib: Path | None = typer.Option(None, "--calib", help="Rig calibration giving the "
+                                      "camera intrinsics (hardware mode)."),
+    grid: int = typer.Option(8, help="Zones per side (4 or 8)."),
+    frames: int | None = typer.Option(None, min=1, help="Stop after this many camera "
+                                      "frames."),
+    duration: float | None = typer.Option(None, help="Stop after this many seconds."),
+    sensor_hz: float = typer.Option(15.0, help="Sensor rate (simulated mode)."),
+    bag: bool = typer.Option(False, "--bag", help="Write OUT as a new ROS 2 bag (camera "
+                             "Image + CameraInfo, depth, deltar_msgs/msg/ZoneFrame)."),
+    bag_storage: str = BagStorageOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
+) -> None:
+    """Record camera frames and ToF zone frames with timestamps into a recording folder."""
+    from deltar.capture.drivers import (
+        HardwareRig,
+        OpenCVCamera,
+        SimulatedRig,
+        open_sparkfun,
+        open_vl53l5cx_ctypes,
+    )
+    from deltar.capture.record import record
+    from deltar.cli.checks import finite, output_folder
+    from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import CaptureLogger, open_viewer
+    from deltar.data.sources import open_source
+
+    if grid not in (4, 8):
+        raise typer.BadParameter(f"must be 4 or 8, got {grid}", param_hint="--grid")
+    finite(sensor_hz, "--sensor-hz", positive=True)
+    if duration is not None:
+        finite(duration, "--duration", positive=True)
+    output_folder(out, "OUT")
+    try:
+        intrinsics = None
+        if simulate is not None:
+            rig = SimulatedRig(open_source(simulate), grid=grid, sensor_hz=sensor_hz)
+        else:
+            calibration = load_calibration(calib)
+            if calibration is None:
+                raise ValueError("hardware recording needs --calib for the camera intrinsics")
+            intrinsics = calibration.intrinsics
+            openers = {"vl53l5cx-ctypes": open_vl53l5cx_ctypes, "sparkfun": open_sparkfun}
+            if sensor not in openers:
+                raise ValueError(f"--sensor must be one of {sorted(openers)}, got {sensor!r}")
+            rig = HardwareRig(OpenCVCamera(camera, (intrinsics.height, intrinsics.width)),
+                              openers[sensor](grid=grid))
+        total = frames or (len(rig.source) if simulate is not None else None)
+        viewer = open_viewer(rerun, rerun_save)
+        with ProgressReport("recording", total=total, unit="images") as progress:
+            summary = record(out, rig, max_frames=frames, duration_s=duration,
+                             intrinsics=intrinsics,
+                             on_step=lambda s: progress.update(s.images),
+                             bag_storage=bag_storage if bag else None,
+                             on_capture=None if viewer is None else CaptureLogger(viewer))
+        if viewer is not None:
+            viewer.close()
+    except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
+        fail(err)
+    typer.echo(f"recorded {summary.images} images, {summary.zone_frames} zone frames, "
+               f"{summary.depth_maps} depth maps over {summary.duration_s:.2f} s into {out}")
+
+
+@model_options
+def replay_command(
+    recording: Path | None = typer.Argument(None, help="Recording folder (or give --bag)."),
+    out: Path | None = typer.Option(None, "--out", help="Output folder (outside the "
+                                    "recording)."),
+    show: bool = typer.Option(False, help="Show depth live in an OpenCV window instead."),
+    calib: Path | None = CalibOption,
+    model: ModelOptions = MODEL_OPTIONS,
+    outputs: str = typer.Option("png16,npy,color", help="Comma list of output kinds."),
+    tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
+                                    "seconds."),
+    time_offset: float | None = typer.Option(None, "--time-offset", help="Camera clock minus "
+                                             "sensor clock, seconds, applied when pairing "
+                                             "(default: the --calib file's, else 0)."),
+    every: int = typer.Option(1, min=1, help="Use every N-th frame."),
+    limit: int | None = typer.Option(None, min=1, help="Stop after this many frames."),
+    overwrite: bool = typer.Option(False, help="Replace existing outputs."),
+    allow_no_zones: bool = AllowNoZonesOption,
+    bag: Path | None = BagOption,
+    out_bag: Path | None = OutBagOption,
+    bag_storage: str = BagStorageOption,
+    image_topic: str | None = ImageTopicOption,
+    info_topic: str | None = InfoTopicOption,
+    tof_topic: str | None = TofTopicOption,
+    tof_format: str = TofFormatOption,
+    tof_orientation: str = TofOrientationOption,
+    tof_sigma: float = TofSigmaOption,
+    points: bool = PointsOption,
+    topic_prefix: str = TopicPrefixOption,
+    rerun: bool = RerunOption,
+    rerun_save: Path | None = RerunSaveOption,
+) -> None:
+    """Pair zone frames with images by nearest timestamp and predict depth for each.
+
+    Frames without any valid zone are skipped with a warning unless --allow-no-zones.
+    """
+    from deltar.capture.replay import replay, replay_to_folder
+    from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import ReplayViewer, open_viewer, replay_bag_command
+
+    if (recording is None) == (bag is None):
+        raise typer.BadParameter("give a RECORDING folder or --bag BAG")
+    if bag is not None:
+        model.check()
+        try:
+            typer.echo(replay_bag_command(
+                bag, model.load,
+                load_calibration(calib), out=out, show=show, out_bag=out_bag,
+                storage=bag_storage, topics=(image_topic, info_topic, tof_topic),
+                tof=(tof_format, tof_orientation, tof_sigma), points=points,
+                prefix=topic_prefix, rerun=rerun, rerun_save=rerun_save,
+                tolerance=tolerance, every=every, limit=limit))
+        except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
+            fail(err)
+        return
+    viewing = rerun or rerun_save is not None
+    if (out is not None and show) or (out is None and not show and not viewing):
+        raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
+    kinds = parse_outputs(outputs)
+    model.check()
+    calibration = load_calibration(calib)
+    if time_offset is None:
+        time_offset = calibration.time_offset_s if calibration is not None else 0.0
+    elif not math.isfinite(time_offset):
+        raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
+    total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
+                          overwrite, show)
+    estimator = model.load()
+    viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
+    if out is None:
+        items = map(viewer, replay(recording, estimator, calibration=calibration,
+                                   tolerance_s=tolerance, time_offset_s=time_offset,
+                                   every=every, limit=limit,
+                                   skip_no_zones=not allow_no_zones))
+        if show:
+            _show_live(items)
+        else:
+            for _ in items:
+                pass
+        viewer.close()
+        return
+    with ProgressReport("replaying", total=total) as progress:
+
+        def each(item) -> None:
+            viewer(item)
+            progress.advance()
+
+        written = replay_to_folder(recording, estimator, out, kinds=kinds,
+                                   calibration=calibration, tolerance_s=tolerance,
+                                   time_offset_s=time_offset, every=every, limit=limit,
+                                   overwrite=overwrite,
+                                   on_item=each, skip_no_zones=not allow_no_zones)
+    viewer.close()
+    typer.echo(f"wrote {len(written)} files to {out}")
+
+
+def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float, float],
+                  every: int, limit: int | None, overwrite: bool, show: bool) -> int:
+    """Check a replay's recording and outputs before the model; return its frame count.
+
+    ``pairing`` is (tolerance, time offset) in seconds.
+    """
+    import warnings
+
+    from deltar.cli.checks import display, existing_outputs, output_folder
+    from deltar.inference.outputs import OUTPUT_KINDS
+    from deltar.io.recording import Recording
+
+    if show:
+        display("--show")
+    rec = Recording(recording)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # replaying warns about skipped frames itself
+        selected = rec.pairs(tolerance_s=pairing[0], time_offset_s=pairing[1])[::every][:limit]
+    if out is not None:
+        resolved = out.resolve()
+        if resolved == rec.folder.resolve() or rec.folder.resolve() in resolved.parents:
+            raise ValueError(f"--out {out} is inside the recording {rec.folder}; choose a "
+                             "folder outside it")
+        output_folder(out, "--out")
+        if not overwrite:
+            existing_outputs(out / f"{p.color_path.stem}{OUTPUT_KINDS[k]}" for p in selected
+                             for k in kinds)
+    return len(selected)
+
+
+def _show_live(items) -> None:
+    import cv2
+    import numpy as np
+
+    from deltar.inference.outputs import colorize
+
+    for item in items:  # the display was checked before the model was built
+        depth = colorize(item.prediction.depth_m, 0.0, 5.0)
+        panel = np.concatenate([item.image, depth], axis=1)
+        cv2.imshow("deltar replay", cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
+        if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
+            break
+    cv2.destroyAllWindows()

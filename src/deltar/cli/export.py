@@ -1,0 +1,91 @@
+"""``deltar export``: a model to an ONNX file (float32 or int8)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from deltar.cli.errors import fail
+from deltar.cli.model_options import (
+    CheckpointOption,
+    ModelOptions,
+    OfficialOption,
+    PresetOption,
+    parse_size,
+)
+
+
+def _layout_rects(source: Path, height: int, width: int):
+    """Zone rectangles in pixels of a height x width image from a calibration or recording."""
+    from deltar.calibration.rig import RigCalibration
+    from deltar.capture.replay import recording_calibration
+    from deltar.inference.preprocess import scale_rects
+    from deltar.io.recording import Recording
+
+    if source.is_dir():
+        calibration = recording_calibration(Recording(source))
+    else:
+        calibration = RigCalibration.load(source)
+    intr = calibration.intrinsics
+    # Zones placed at 2 m; with parallax, other distances may need their own export.
+    rects = calibration.zone_rects_for(2.0, (intr.height, intr.width))
+    return scale_rects(rects, (intr.height, intr.width), (height, width))
+
+
+def export_command(
+    out: Path = typer.Option(..., "--out", help="Output file (.onnx)."),
+    preset: PresetOption = None,
+    checkpoint: CheckpointOption = None,
+    official: OfficialOption = None,
+    format: str = typer.Option("onnx", "--format", help="Export format (onnx)."),
+    size: str = typer.Option("480x640", "--size", help="Camera image size HxW; the file's "
+                             "fixed network input follows the size rule (aspect kept, the "
+                             "weights' design pixel count, sides rounded to multiples of "
+                             "32; docs/inference.md)."),
+    layout_from: Path | None = typer.Option(None, "--layout-from", help="Fix the zone "
+                                            "layout from a rig calibration JSON or a "
+                                            "recording folder (default: nominal 8x8)."),
+    int8: bool = typer.Option(False, "--int8", help="Write a statically quantised int8 "
+                              "model (see docs/inference.md for its measured accuracy)."),
+    calibration: Path | None = typer.Option(None, "--calibration", help="RGB-D folder whose "
+                                            "frames (zones simulated) calibrate --int8."),
+    calibration_frames: int = typer.Option(16, "--calibration-frames", min=1,
+                                           help="Calibration frames for --int8."),
+    overwrite: bool = typer.Option(False, help="Replace an existing file."),
+) -> None:
+    """Export a model to ONNX (dynamic batch, fixed input size and zone layout)."""
+    from deltar.cli.checks import output_file
+    from deltar.export.onnx import export_onnx
+    from deltar.export.quantize import export_int8
+
+    if format != "onnx":
+        raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
+    height, width = parse_size(size)
+    output_file(out, "--out", overwrite)
+    if layout_from is not None and not layout_from.exists():
+        raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "
+                                "recording folder")
+    if int8 != (calibration is not None):
+        raise typer.BadParameter("--int8 and --calibration DIR go together",
+                                 param_hint="--calibration")
+    try:
+        estimator = ModelOptions(preset=preset, checkpoint=checkpoint,
+                                 official=official).load()
+        rects = None if layout_from is None else _layout_rects(layout_from, height, width)
+        metadata = {"deltar_weights": estimator.weights}
+        if int8:
+            path = export_int8(estimator.model, out, height, width, calibration,
+                               frames=calibration_frames, zone_rects=rects,
+                               overwrite=overwrite, metadata=metadata)
+        else:
+            path = export_onnx(estimator.model, out, height, width, zone_rects=rects,
+                               overwrite=overwrite, metadata=metadata)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        fail(err)
+    kind = "int8" if int8 else "float32"
+    from deltar.export.onnx import export_input_size
+
+    net_h, net_w = export_input_size(estimator.model, height, width)
+    typer.echo(f"wrote {path} ({kind}, camera {height}x{width}, network {net_h}x{net_w}, "
+               f"weights: {estimator.weights})")
