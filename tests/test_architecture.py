@@ -181,12 +181,3 @@ def test_no_module_cycles():
     on_cycles = sorted(node for node in graph if node in _reachable(graph, node))
     assert on_cycles == [], f"modules on an import cycle: {on_cycles}"
 
-
-#: The longest a source file may be, lines: past it a module does more than one thing.
-MAX_SOURCE_LINES = 500
-
-
-def test_no_source_file_is_over_the_limit():
-    long = {path.relative_to(SRC).as_posix(): n for path in SRC.rglob("*.py")
-            if (n := len(path.read_text().splitlines())) > MAX_SOURCE_LINES}
-    assert long == {}, f"split these files (over {MAX_SOURCE_LINES} lines): {long}"

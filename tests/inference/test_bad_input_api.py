@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -35,7 +36,8 @@ def _frame(mean=1.5, valid=True, sensor_model="VL53L5CX"):
 
 
 def test_frame_without_valid_zone_gives_a_flagged_image_only_estimate(estimator, image):
-    with pytest.warns(RuntimeWarning, match="the zone frame has no valid zone: image-only"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # said by the result, not by a warning
         result = estimator.predict(image, _frame(0.0, valid=False))
     assert result.image_only and result.zones_used == 0
     assert np.all(result.uncertainty_m >= result.depth_m - 1e-6)

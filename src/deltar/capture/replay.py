@@ -123,9 +123,7 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
                 continue
         image = pair.load_color()
         reference = pair.load_depth() if pair.depth_path is not None else None
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*no valid zone")  # said above
-            prediction = estimator.predict(image, pair.zone_frame, calib)
+        prediction = estimator.predict(image, pair.zone_frame, calib)
         done += 1
         yield ReplayItem(pair, image, prediction, reference)
 

@@ -10,7 +10,7 @@ import typer
 
 from deltar.cli.errors import fail
 from deltar.cli.frame_options import CalibOption, load_calibration
-from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions
+from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 
 #: Columns of the paper's ZJU-L5 table (metric key, header, higher is better).
 _TABLE_COLUMNS = (("d1", "δ1 ↑", True), ("d2", "δ2 ↑", True), ("d3", "δ3 ↑", True),
@@ -154,6 +154,7 @@ def evaluate(
         typer.echo(f"visualisations written to {save_vis}")
 
 
+@model_options
 def wall_test_command(
     recordings: list[Path] = typer.Argument(..., help="Recordings facing a flat wall, one "
                                             "per distance."),

@@ -20,6 +20,8 @@ from deltar.cli.robotics import (
 from deltar.io.file_pairs import pair_by_stem
 
 _DEFAULT_OUTPUTS = "png16,npy,color,ply,panel"
+#: The option that lets frames without a valid zone through, named in the refusal.
+_ALLOW = "--allow-no-zones"
 
 
 @model_options
@@ -49,11 +51,11 @@ def predict_command(
 
     Inputs, calibration and outputs are checked before the network is built.
     """
-    from deltar.cli.checks import output_folder
-    from deltar.cli.errors import warn
-    from deltar.cli.jobs import no_zone_message, plan_jobs, run_jobs
+    from deltar.cli.checks import existing_outputs, output_folder
+    from deltar.cli.errors import fail, format_error, warn
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import open_viewer
+    from deltar.inference.folder import no_zone_message, plan_jobs, run_jobs
 
     single = image is not None or zones is not None
     folder = images is not None or zones_dir is not None
@@ -72,15 +74,16 @@ def predict_command(
         pairs, unpaired = [(image, zones)], []
         first = (read_color(image), load_zone_frame(zones))
         if first[1].valid_count == 0 and not allow_no_zones:
-            raise ValueError(no_zone_message(zones, first[1]))
+            raise ValueError(no_zone_message(zones, first[1], _ALLOW))
     else:
         pairs, unpaired = pair_by_stem(images, zones_dir)
         if not pairs:
             raise ValueError(f"no image in {images} has a zone file with the same stem in "
                              f"{zones_dir}")
     output_folder(out, "--out")
-    jobs, complete = plan_jobs(pairs, out, kinds, overwrite=overwrite,
-                               skip_existing=skip_existing)
+    jobs, complete, existing = plan_jobs(pairs, out, kinds, overwrite=overwrite,
+                                         skip_existing=skip_existing)
+    existing_outputs(existing)
     calibration = load_calibration(calib)
     if first is not None:
         from deltar.inference.preprocess import check_image
@@ -104,25 +107,30 @@ def predict_command(
     estimator = model.load()
     viewer = open_viewer(rerun, rerun_save)
 
-    def show(rgb, prediction) -> None:
-        viewer.log_prediction(rgb, prediction, calibration=calibration,
-                              fov_deg=estimator.fov_deg)
+    def on_prediction(job, rgb, prediction) -> None:
+        if viewer is not None:
+            viewer.log_prediction(rgb, prediction, calibration=calibration,
+                                  fov_deg=estimator.fov_deg)
+        if prediction.image_only:
+            warn(f"{job.image.name}: no valid zone: wrote an image-only estimate "
+                 "(metric scale unknown, uncertainty at least the depth; flagged in the PNG "
+                 "and PLY metadata and the panel)")
 
     with ProgressReport("predicting", total=len(jobs),
                         terminal=None if len(jobs) > 1 else False) as progress:
-        summary = run_jobs(jobs, estimator, out, calibration=calibration,
-                           overwrite=overwrite, keep_going=keep_going,
-                           allow_no_zones=allow_no_zones,
-                           progress=progress if len(jobs) > 1 else None,
-                           first=first if first is not None and jobs else None,
-                           on_prediction=None if viewer is None else show)
+        summary = run_jobs(
+            jobs, estimator, out, calibration=calibration, overwrite=overwrite,
+            keep_going=keep_going, allow_no_zones=allow_no_zones, allow_option=_ALLOW,
+            first=first if first is not None and jobs else None,
+            on_prediction=on_prediction,
+            on_failure=lambda name, err: warn(f"skipped {name}: {format_error(err)}"),
+            on_frame=progress.advance if len(jobs) > 1 else None)
     if viewer is not None:
         viewer.close()
+    image_only = len(summary.image_only)
     typer.echo(f"wrote {summary.written} prediction(s) to {out}"
-               + (f" ({summary.image_only} image-only)" if summary.image_only else ""))
+               + (f" ({image_only} image-only)" if image_only else ""))
     if summary.failed:
-        from deltar.cli.errors import fail
-
-        fail(f"{len(summary.failed)} of {len(jobs)} frames failed (first: "
-             f"{summary.failed[0][0]}: {summary.failed[0][1]}); re-run with --skip-existing "
-             "after fixing them")
+        name, err = summary.failed[0]
+        fail(f"{len(summary.failed)} of {len(jobs)} frames failed (first: {name}: "
+             f"{format_error(err)}); re-run with --skip-existing after fixing them")

@@ -1,7 +1,8 @@
 """Options and helpers for ROS 2 bags and the rerun viewer in ``predict``/``record``/``replay``.
 
 The commands in :mod:`deltar.cli.capture` and :mod:`deltar.cli.predict` declare these
-options and call the helpers; ``rosbags`` and ``rerun`` are imported only when a bag or the viewer is used.
+options and call the helpers; ``rosbags`` and ``rerun`` are imported only when a bag or
+the viewer is used.
 """
 
 from __future__ import annotations

@@ -81,6 +81,12 @@ class DepthPrediction:
     network_depth_m: np.ndarray | None = None
 
     @property
+    def blended(self) -> bool:
+        """True when ``depth_m`` is the confidence blend (``network_depth_m`` is the
+        network's own depth); False when it is the network's depth."""
+        return self.network_depth_m is not None
+
+    @property
     def image_only(self) -> bool:
         """True when no zone was valid: the depth is a guess from the image alone.
 
@@ -452,9 +458,9 @@ class DepthEstimator:
             zone_rects: optional (Z, 4) rectangles (or (B, Z, 4) for a batch) in pixels of
                 the input image, replacing the calibrated or nominal placement.
 
-        A frame with no valid zone gives an image-only estimate: its result has
-        ``zones_used == 0`` (``image_only`` True), its uncertainty is at least the depth
-        itself (the metric scale is unknown) and a ``RuntimeWarning`` says so.
+        A frame with no valid zone gives an image-only estimate: its result says so as a
+        value (``zones_used == 0``, ``image_only`` True) and its uncertainty is at least
+        the depth itself (the metric scale is unknown); nothing is warned.
 
         Returns:
             A :class:`DepthPrediction` (depth and uncertainty in metres at the input
@@ -482,11 +488,7 @@ class DepthEstimator:
         results = []
         for i, frame in enumerate(frames):
             depth, spread = both[i, 0].astype(np.float32), both[i, 1].astype(np.float32)
-            if frame.valid_count == 0:
-                which = "the zone frame" if single else f"zone frame {i} of the batch"
-                warnings.warn(f"{which} has no valid zone: image-only estimate, its metric "
-                              "scale is unknown (uncertainty set to at least the depth)",
-                              RuntimeWarning, stacklevel=2)
+            if frame.valid_count == 0:  # image-only: the metric scale is unknown
                 spread = np.maximum(spread, depth)
             network_depth = None
             if self.blend is not None:

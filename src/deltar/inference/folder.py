@@ -1,27 +1,29 @@
-"""``deltar predict`` over many frames: plan the outputs, resume, keep going past failures.
+"""Depth for a folder of frames: plan the outputs, resume, keep going past failures.
 
-The plan is made before the network is built: existing outputs are refused (unless
-``--overwrite``) or, with ``--skip-existing``, frames whose outputs all exist are left
-out and frames with only some of them (a run stopped in the middle of a frame) write
-the missing ones. While running, a frame that fails stops the run, or with
-``--keep-going`` is reported and skipped; the summary counts the failures.
+:func:`plan_jobs` is made before the network is built: it lists the outputs that exist
+(the caller refuses them, or passes ``overwrite``) or, with ``skip_existing``, leaves
+out frames whose outputs all exist, and frames with only some of them (a run stopped in
+the middle of a frame) write the missing ones. :func:`run_jobs` then predicts and
+writes each frame; a frame that fails stops the run, or with ``keep_going`` is
+reported to ``on_failure`` and skipped. The summary says what happened as values:
+frames written, image-only frames (no valid zone) by name, failures with their errors.
+``deltar predict`` is a thin layer over these two.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-from deltar.cli.errors import USER_ERRORS, format_error, warn
 
 if TYPE_CHECKING:
     from deltar.inference.estimator import DepthEstimator
     from deltar.sensor.zone_frame import ZoneFrame
 
-#: Option that lets frames without a valid zone through as image-only estimates.
-ALLOW_NO_ZONES = "--allow-no-zones"
+#: Errors of one frame's input (bad or missing files, wrong values) that ``keep_going``
+#: skips; anything else is a bug and always stops the run.
+FRAME_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, ImportError)
 
 
 @dataclass(frozen=True)
@@ -45,19 +47,19 @@ class JobSummary:
 
     Attributes:
         written: frames with all their outputs written.
-        skipped_existing: frames left out because their outputs exist.
-        image_only: frames written as image-only estimates (no valid zone).
-        failed: (frame file name, error message) of frames that failed.
+        image_only: file names of the frames written as image-only estimates (no valid
+            zone; metric scale unknown).
+        failed: (image file name, error) of the frames that failed (``keep_going``).
     """
 
     written: int = 0
-    skipped_existing: int = 0
-    image_only: int = 0
-    failed: list[tuple[str, str]] = field(default_factory=list)
+    image_only: list[str] = field(default_factory=list)
+    failed: list[tuple[str, BaseException]] = field(default_factory=list)
 
 
 def plan_jobs(pairs: Sequence[tuple[Path, Path]], out: Path, kinds: Sequence[str], *,
-              overwrite: bool, skip_existing: bool) -> tuple[list[FrameJob], int]:
+              overwrite: bool, skip_existing: bool
+              ) -> tuple[list[FrameJob], int, list[Path]]:
     """The frames to run and the outputs each still needs.
 
     Args:
@@ -68,13 +70,13 @@ def plan_jobs(pairs: Sequence[tuple[Path, Path]], out: Path, kinds: Sequence[str
         skip_existing: keep existing outputs, write only the missing ones.
 
     Returns:
-        (jobs, number of frames whose outputs all exist already).
+        (jobs, number of frames whose outputs all exist already, the existing outputs
+        the jobs would replace: empty with ``overwrite`` or ``skip_existing``; those
+        frames are not among the jobs).
 
     Raises:
         ValueError: an output would replace one of the inputs.
-        FileExistsError: outputs exist and neither ``overwrite`` nor ``skip_existing``.
     """
-    from deltar.cli.checks import existing_outputs
     from deltar.inference.outputs import OUTPUT_KINDS
 
     inputs = {p.resolve() for pair in pairs for p in pair}
@@ -95,29 +97,24 @@ def plan_jobs(pairs: Sequence[tuple[Path, Path]], out: Path, kinds: Sequence[str
                 complete += 1
         else:
             existing += [targets[kind] for kind in present]
-    existing_outputs(existing)
-    return jobs, complete
+    return jobs, complete, existing
 
 
-def no_zone_message(zone_path: Path, frame: ZoneFrame) -> str:
-    """Why a frame without a valid zone is refused, and how to accept it."""
+def no_zone_message(zone_path: Path, frame: ZoneFrame, allow: str = "allow_no_zones") -> str:
+    """Why a frame without a valid zone is refused, and how to accept it (``allow``: the
+    argument or option that does, named in the message)."""
     return (f"{zone_path}: no valid zone (all {frame.zone_count} invalid: error codes, out "
             "of range or flagged invalid), so the depth would be a guess from the image "
-            f"alone; pass {ALLOW_NO_ZONES} to write it as an image-only estimate")
-
-
-def image_only_warning(name: str) -> str:
-    """The warning printed for a frame written as an image-only estimate."""
-    return (f"{name}: no valid zone: wrote an image-only estimate (metric scale unknown, "
-            "uncertainty at least the depth; flagged in the PNG and PLY metadata and the "
-            "panel)")
+            f"alone; pass {allow} to write it as an image-only estimate")
 
 
 def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
              calibration: Any = None, overwrite: bool = False, keep_going: bool = False,
-             allow_no_zones: bool = False, progress: Any = None,
-             first: tuple[Any, ZoneFrame] | None = None,
-             on_prediction: Any = None) -> JobSummary:
+             allow_no_zones: bool = False, first: tuple[Any, ZoneFrame] | None = None,
+             on_prediction: Callable[[FrameJob, Any, Any], None] | None = None,
+             on_failure: Callable[[str, BaseException], None] | None = None,
+             on_frame: Callable[[], None] | None = None,
+             allow_option: str = "allow_no_zones") -> JobSummary:
     """Predict and write every job.
 
     Args:
@@ -126,19 +123,20 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
         out: output folder.
         calibration: optional rig calibration.
         overwrite: replace existing outputs.
-        keep_going: report a failing frame and go on (else its error stops the run).
+        keep_going: skip a frame that fails with one of :data:`FRAME_ERRORS` (else its
+            error stops the run).
         allow_no_zones: write frames without a valid zone as image-only estimates
             (else such a frame fails).
-        progress: optional :class:`~deltar.cli.progress.ProgressReport`.
-        first: the first job's already decoded (image, zone frame), if any.
-        on_prediction: optional ``callable(rgb, prediction)`` called after each written
-            frame (e.g. a live viewer).
+        first: the first job's already decoded (image (H, W, 3) uint8, zone frame).
+        on_prediction: ``callable(job, rgb, prediction)`` after each written frame (e.g.
+            a live viewer; ``prediction.image_only`` says whether it had no valid zone).
+        on_failure: ``callable(image name, error)`` for each skipped frame.
+        on_frame: called after each frame, written or not (e.g. a progress bar).
+        allow_option: how the no-valid-zone refusal names ``allow_no_zones``.
 
     Returns:
         A :class:`JobSummary`.
     """
-    import warnings
-
     from deltar.data.rgbd import read_color
     from deltar.inference.outputs import write_prediction
     from deltar.io.zone_file import load_zone_frame
@@ -151,12 +149,9 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
             else:
                 rgb, frame = read_color(job.image), load_zone_frame(job.zones)
             if frame.valid_count == 0 and not allow_no_zones:
-                raise ValueError(no_zone_message(job.zones, frame))
+                raise ValueError(no_zone_message(job.zones, frame, allow_option))
             try:
-                with warnings.catch_warnings():
-                    # Said once per frame below, in the CLI's words.
-                    warnings.filterwarnings("ignore", message=".*no valid zone")
-                    prediction = estimator.predict(rgb, frame, calibration)
+                prediction = estimator.predict(rgb, frame, calibration)
             except ValueError as err:
                 raise ValueError(f"{job.image.name} with {job.zones.name}: {err}") from err
             write_prediction(out, job.image.stem, rgb, prediction, kinds=job.kinds,
@@ -164,15 +159,15 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
                              title=f"{job.image.name} ({estimator.weights})")
             summary.written += 1
             if on_prediction is not None:
-                on_prediction(rgb, prediction)
+                on_prediction(job, rgb, prediction)
             if prediction.image_only:
-                summary.image_only += 1
-                warn(image_only_warning(job.image.name))
-        except USER_ERRORS as err:
+                summary.image_only.append(job.image.name)
+        except FRAME_ERRORS as err:
             if not keep_going:
                 raise
-            summary.failed.append((job.image.name, format_error(err)))
-            warn(f"skipped {job.image.name}: {format_error(err)}")
-        if progress is not None:
-            progress.advance()
+            summary.failed.append((job.image.name, err))
+            if on_failure is not None:
+                on_failure(job.image.name, err)
+        if on_frame is not None:
+            on_frame()
     return summary
