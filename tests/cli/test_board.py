@@ -14,7 +14,7 @@ from deltar.calibration.board import BoardDetector, parse_board_spec
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.synthetic_board import board_view_poses, write_board_recording
 from deltar.camera import CameraIntrinsics
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.sensor.geometry import SensorExtrinsics
 
 CAMERA = CameraIntrinsics(260.0, 262.0, 161.0, 119.0, 320, 240)
@@ -24,7 +24,6 @@ TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [91.5, 2.0, -1.5], degrees=Tr
 
 
 def _run(*args):
-    _register_commands()
     return CliRunner().invoke(app, [str(a) for a in args])
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from deltar.cli.main import _register_commands, app
+from deltar.cli.main import app
 from deltar.mapping.poses import write_tum_trajectory
 from tests.mapping.conftest import (
     SMALL,
@@ -19,7 +19,6 @@ from tests.mapping.conftest import (
     write_wall_recording,
 )
 
-_register_commands()
 runner = CliRunner()
 COARSE = ["--voxel", "0.04", "--truncation", "3"]
 

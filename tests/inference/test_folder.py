@@ -72,6 +72,6 @@ def test_a_failing_frame_stops_the_run_or_is_reported(tmp_path, frames):
 def test_an_output_that_would_replace_an_input_is_refused(tmp_path, frames):
     # a.png's colour output is a_depth_color.png, the image of another pair.
     clash = _write_frame(frames[0][0].parent, "a_depth_color", np.random.default_rng(1))
-    with pytest.raises(ValueError, match="a_depth_color.png would overwrite an input"):
+    with pytest.raises(ValueError, match=r"a_depth_color\.png would overwrite an input"):
         plan_jobs([frames[0], clash], frames[0][0].parent, ("color",), overwrite=True,
                   skip_existing=False)

@@ -231,10 +231,9 @@ class DepthSource:
                 warnings.simplefilter("ignore")  # no valid zone: counted by the caller
                 depth = run_baseline(self.method, frame.image, mean, valid & (mean > 0), rects)
             return depth, None
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*no valid zone")
-            prediction = self.estimator.predict(frame.image, frame.zone_frame,
-                                                frame.calibration)
+        # A frame without a valid zone is image-only (prediction.image_only); the estimator
+        # says so by value, not by a warning.
+        prediction = self.estimator.predict(frame.image, frame.zone_frame, frame.calibration)
         weight = confidence_weight(prediction.depth_m, prediction.uncertainty_m,
                                    self.max_relative_sigma)
         return prediction.depth_m, weight
