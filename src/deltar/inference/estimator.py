@@ -473,6 +473,7 @@ class DepthEstimator:
         import torch
 
         single, images, frames = _batch_arguments(image, zone_frame)
+        _check_calibration(calibration)  # before it undistorts the images
         if calibration is not None and calibration.has_distortion:
             # The zones are placed with the pinhole intrinsics: predict on the
             # undistorted image (same intrinsics), so depth is for that image.
