@@ -162,3 +162,42 @@ def test_usage_errors(wall_recording, tmp_path):
     _error(result, "not found")
     result = _run(wall_recording, "--out", tmp_path / "m", "--voxel", "-1")
     assert result.exit_code == 2 and "--voxel" in result.output
+
+
+def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
+    pytest.importorskip("rosbags")
+    from scipy.spatial.transform import Rotation
+
+    from deltar.io.recording import RecordingMeta
+    from deltar.io.rosbag import BagRecordingWriter, _header, typestore
+    from deltar.sensor.geometry import zone_rects
+    from deltar.sensor.simulate import simulate_zone_frame
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    types = typestore().types
+    writer = BagRecordingWriter(tmp_path / "bag", RecordingMeta(SMALL))
+    rects = zone_rects(SMALL, 8)
+    for i in range(4):
+        pose, t = pose_at(0.05 * i), 1.0 + i / 30
+        image, depth = render_wall(pose)
+        writer.add_color(t, image)
+        zones = simulate_zone_frame(depth, rects)
+        writer.add_zone_frame(ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid,
+                                        timestamp_s=t + 0.001, no_target=zones.no_target))
+        q = Rotation.from_matrix(pose[:3, :3]).as_quat()
+        msg = types["geometry_msgs/msg/PoseStamped"](
+            header=_header(round(t * 1e9), "map"), pose=types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](x=pose[0, 3], y=0.0, z=0.0),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2],
+                                                                  w=q[3])))
+        writer.writer._write("/camera/pose", "geometry_msgs/msg/PoseStamped", msg,
+                             round(t * 1e9))
+    writer.close()
+    result = _run(tmp_path / "bag", "--out", tmp_path / "map", "--method", "bilinear",
+                  "--pose-topic", "/camera/pose", *COARSE)
+    assert result.exit_code == 0, result.output
+    assert "/camera/pose" in result.stdout
+    trajectory = np.loadtxt(tmp_path / "map" / "trajectory.txt")
+    np.testing.assert_allclose(trajectory[:, 1], 0.05 * np.arange(4), atol=1e-6)
+    vertices = np.asarray(_read_mesh(tmp_path / "map" / "mesh.ply").vertices)
+    assert np.median(vertices[:, 2]) == pytest.approx(WALL_Z_M, abs=0.1)

@@ -318,8 +318,10 @@ class TSDFMap:
         pixel, indices = pixel.index_select(0, selected), indices.index_select(0, selected)
         tsdf_new = torch.clamp(sdf.index_select(0, selected) * (1.0 / truncation), max=1.0)
         w_new = torch.ones_like(tsdf_new) if weight is None else \
-            torch.from_numpy(np.ascontiguousarray(weight)).view(-1).index_select(0, pixel)
-        color_new = torch.from_numpy(np.ascontiguousarray(color_rgb)).view(-1, 3) \
+            torch.from_numpy(np.require(weight, requirements=["C", "W"])).view(-1) \
+            .index_select(0, pixel)
+        # A bag's image buffer is read-only: torch wants a writable array.
+        color_new = torch.from_numpy(np.require(color_rgb, requirements=["C", "W"])).view(-1, 3) \
             .index_select(0, pixel)
         tsdf = from_dlpack(self.grid.attribute("tsdf").to_dlpack()).view(-1)
         weights = from_dlpack(self.grid.attribute("weight").to_dlpack()).view(-1)
