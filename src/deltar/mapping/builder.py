@@ -234,11 +234,13 @@ def build_map(source: FrameSource, depth: DepthSource, plan: MapPlan, settings: 
         depth_m, weight = depth(frame)
         depth_m = np.where(depth_m <= settings.max_depth_m, depth_m, 0.0).astype(np.float32)
         result.depth_s += time.perf_counter() - start
-        pose = odometry.step(frame.image, depth_m) if odometry is not None \
+        # With lens distortion the depth is for the undistorted image (same intrinsics).
+        colour = frame.calibration.undistort_image(frame.image)
+        pose = odometry.step(colour, depth_m) if odometry is not None \
             else plan.poses[index]
         start = time.perf_counter()
-        updated = volume.integrate(depth_m, frame.image, weight,
-                                   frame.calibration.intrinsics, pose)
+        updated = volume.integrate(depth_m, colour, weight, frame.calibration.intrinsics,
+                                   pose)
         result.integrate_s += time.perf_counter() - start
         result.empty_frames += int(updated == 0)
         used.append(pose)

@@ -213,14 +213,20 @@ class DepthSource:
         return self.method or self.estimator.weights
 
     def __call__(self, frame: MapFrame) -> tuple[np.ndarray, np.ndarray | None]:
-        """((H, W) float32 depth in metres, (H, W) float32 weight or None for all 1)."""
+        """((H, W) float32 depth in metres, (H, W) float32 weight or None for all 1).
+
+        With lens distortion in the frame's calibration the depth is for the undistorted
+        image (as the estimator's), same intrinsics.
+        """
         if frame.image is None:
             raise ValueError(f"frame {frame.name}: image not loaded")
         if self.method == RECORDED:
             if frame.recorded_depth_m is None:
                 raise ValueError(f"frame {frame.name} has no recorded depth image "
                                  "(--method recorded needs the recording's depth/ folder)")
-            return frame.recorded_depth_m.astype(np.float32), None
+            # Undistorted like the colour image (bilinear: edges blend a little).
+            depth = frame.calibration.undistort_image(frame.recorded_depth_m)
+            return np.asarray(depth, dtype=np.float32), None
         height, width = frame.image.shape[:2]
         if self.method is not None:
             from deltar.evaluation.baselines import run_baseline
@@ -229,7 +235,8 @@ class DepthSource:
             rects = frame.calibration.zone_rects_for(frame.zone_frame, (height, width))
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # no valid zone: counted by the caller
-                depth = run_baseline(self.method, frame.image, mean, valid & (mean > 0), rects)
+                depth = run_baseline(self.method, frame.calibration.undistort_image(frame.image),
+                                     mean, valid & (mean > 0), rects)
             return depth, None
         # A frame without a valid zone is image-only (prediction.image_only); the estimator
         # says so by value, not by a warning.
