@@ -457,14 +457,14 @@ def calibrate_recording_with_board(
     normals_sensor = np.array([v.pose.normal_cam for v in good]) @ closed.rotation
     try:
         check_plane_diversity(normals_sensor)
-    except ValueError as err:
+    except ValueError:
         seen = normal_spread_deg(normals_sensor)
         raise ValueError(
             f"the board was seen from too few directions: its {len(good)} views give plane "
             f"orientations (as the sensor sees them) spread {seen[0]:.1f} and {seen[1]:.1f} "
             f"deg rms, at least 5.7 deg rms is needed both ways (views tilted 15-35 deg "
             "left, right, up and down, not all head-on): record the board from more "
-            f"directions ({err})") from None
+            "directions") from None
 
     # The long part: the robust refinement.
     weights = np.array([_frame_weight(v, fov) for v in good])
