@@ -106,3 +106,13 @@ def test_time_offset_from_distance_series():
         estimate_time_offset(image_stamps, np.full(image_stamps.size, 0.8), zone_times, zones)
     with pytest.raises(ValueError, match="at least 10 images"):
         estimate_time_offset(image_stamps[:5], camera[:5], zone_times, zones)
+
+
+def test_a_checkerboard_counted_by_squares_is_told_apart():
+    """A 6x4-inner-corner board given as 7x5 (its squares): the hint says so."""
+    printed = parse_board_spec("checkerboard:6x4:0.05")
+    pose = board_view_poses(1, distance_m=(0.6, 0.6), tilt_deg=10, seed=1)[0]
+    image = render_board_image(printed, pose, SMALL)
+    wrong = BoardDetector(parse_board_spec("checkerboard:7x5:0.05"))
+    assert wrong.detect(image) is None
+    assert "a checkerboard with 6x4 inner corners is in the images" in wrong.diagnose([image])
