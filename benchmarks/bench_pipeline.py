@@ -7,7 +7,11 @@ by default; "no blend" = the same with ``blend=None`` (``--network-only``); bare
 network call alone on prepared inputs. Presets run with random weights (speed does not
 depend on them). Each ONNX model is exported first (not timed). Prints frames per second
 (medians over the repeats; the runs alternate so that load from other processes hits
-them alike).
+them alike), and per backend and size the network's counted GFLOP
+(:func:`deltar.models.benchmark.count_gflop`: convolutions and matrix products) and its
+rate as a fraction of a float32 matrix product's measured in the same process with the
+same threads before and after the runs (:func:`deltar.models.benchmark.matmul_gflop_s`,
+the better of the two): ``NN% of matmul`` = GFLOP / median bare network time / that rate.
 
     python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
         [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
@@ -31,6 +35,7 @@ import torch
 from deltar.export.onnx import export_onnx
 from deltar.inference.estimator import DepthEstimator
 from deltar.models import create_model
+from deltar.models.benchmark import count_gflop, matmul_gflop_s
 from deltar.models.checkpoint import load_checkpoint
 from deltar.sensor.zone_frame import ZoneFrame
 from deltar.weights import bundled_model_names, resolve_checkpoint
@@ -79,6 +84,11 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         model = load_checkpoint(resolve_checkpoint(preset))[0]
     else:
         model = create_model(preset).eval()
+    png, frame = _test_frame(height, width)
+    # Counted on the network as built, before any inference rewrite of the estimator.
+    counting = DepthEstimator(model, fold_batch_norms=False).prepare([_decode(png)], [frame])
+    gflop = count_gflop(model, (counting["image"], counting["hypotheses"],
+                                counting["zone_rects"], counting["zone_valid"]))
     if backend == "onnx":
         path = workdir / f"{preset}-{height}x{width}.onnx"
         start = time.perf_counter()
@@ -88,7 +98,6 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
                                              allow_spinning=allow_spinning)
     else:
         estimator = DepthEstimator(model, weights=f"{preset} (random)")
-    png, frame = _test_frame(height, width)
     inputs = estimator.prepare([_decode(png)], [frame])
     blend = estimator.blend
 
@@ -99,12 +108,16 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         finally:
             estimator.blend = blend
 
+    matmul = matmul_gflop_s()
     bare, full, plain = _interleaved_medians(
         [lambda: estimator.run_network(inputs), lambda: estimator.predict(_decode(png), frame),
          network_only], repeats)
+    matmul = max(matmul, matmul_gflop_s())
     return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
             "blend": blend is not None, "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full,
-            "no_blend_fps": 1.0 / plain, "overhead": full / bare - 1.0}
+            "no_blend_fps": 1.0 / plain, "overhead": full / bare - 1.0,
+            "e2e_ratio": bare / full, "gflop": gflop, "matmul_gflop_s": matmul,
+            "matmul_fraction": gflop / bare / matmul}
 
 
 def main() -> None:
@@ -134,13 +147,18 @@ def main() -> None:
                                       Path(tmp), args.allow_spinning))
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
-             f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9}"
+             f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9} {'e2e/bare':>9} " \
+             f"{'GFLOP':>6} {'network rate':>30}"
     print(header)
     print("-" * len(header))
     for r in rows:
         print(f"{r['preset']:<16} {r['size']:>8} {r['backend']:>8} {r['bare_fps']:>9.2f} "
               f"{r['e2e_fps']:>8.2f} {'yes' if r['blend'] else 'no':>6} "
-              f"{r['no_blend_fps']:>13.2f} {100 * r['overhead']:>8.1f}%")
+              f"{r['no_blend_fps']:>13.2f} {100 * r['overhead']:>8.1f}% "
+              f"{r['e2e_ratio']:>8.2f}x {r['gflop']:>6.2f} "
+              f"{r['gflop'] / (1.0 / r['bare_fps']):>6.1f} GFLOP/s, "
+              f"{100 * r['matmul_fraction']:>3.0f}% of matmul "
+              f"({r['matmul_gflop_s']:.0f})")
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
-from deltar.inference.blend import ConfidenceBlend
+from deltar.inference.blend import ConfidenceBlend, blend_with_fill, start_blend_fill
 from deltar.inference.preprocess import (
     check_image,
     check_input_size,
@@ -41,6 +41,8 @@ from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
 if TYPE_CHECKING:
+    from concurrent.futures import Future
+
     import torch
 
     from deltar.calibration.rig import RigCalibration
@@ -482,6 +484,10 @@ class DepthEstimator:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
         inputs = self.prepare(images, frames, calibration, zone_rects)
+        # The blend's fill needs only the image and the zones: it runs while the network
+        # does (a worker thread; both release the GIL).
+        fills = [self._start_fill(images[i], frame, inputs["image_rects"][i])
+                 for i, frame in enumerate(frames)] if self.blend is not None else None
         depth, uncertainty = self.run_network(inputs)
         size = inputs["image_size"]
         both = resize_to_image(torch.cat([depth, uncertainty], dim=1), size).cpu().numpy()
@@ -492,10 +498,11 @@ class DepthEstimator:
             if frame.valid_count == 0:  # image-only: the metric scale is unknown
                 spread = np.maximum(spread, depth)
             network_depth = None
-            if self.blend is not None:
-                blended = self._blend(depth, spread, images[i], frame, inputs["image_rects"][i])
-                if blended is not depth:  # else no valid zone (on the image) to fill from
-                    network_depth, depth = depth, blended
+            fill = fills[i].result() if fills is not None else None
+            if fill is not None:  # else no blend, or no valid zone (on the image) to fill from
+                network_depth = depth
+                depth = blend_with_fill(depth, spread, fill, inputs["image_rects"][i],
+                                        self.blend)
             results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
                                            zone_rects=inputs["image_rects"][i],
                                            zone_frame=frame, intrinsics=intrinsics,
@@ -504,15 +511,12 @@ class DepthEstimator:
                                            network_depth_m=network_depth))
         return results[0] if single else results
 
-    def _blend(self, depth_m: np.ndarray, uncertainty_m: np.ndarray, image: np.ndarray,
-               frame: ZoneFrame, rects: np.ndarray) -> np.ndarray:
-        """:func:`~deltar.inference.blend.blend_depth` for one frame (H, W metres)."""
-        from deltar.inference.blend import blend_depth
-
+    def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray) -> Future:
+        """:func:`~deltar.inference.blend.start_blend_fill` for one frame (H, W metres)."""
         mean, _, valid = frame.flat()
         far = frame.flat_no_target() if self.no_target_depth_m is not None else None
-        return blend_depth(depth_m, uncertainty_m, image, mean, valid, rects, self.blend,
-                           zone_far=far, far_depth_m=self.no_target_depth_m)
+        return start_blend_fill(image, mean, valid, rects, zone_far=far,
+                                far_depth_m=self.no_target_depth_m)
 
 
 _IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"
