@@ -146,3 +146,21 @@ def test_bundled_model_runs_a_square_image_square():
     assert estimator.design_size == BUNDLED_DESIGN
     assert estimator.network_size_for((480, 480)) == (288, 288)
     assert estimator.network_size_for((480, 640)) == BUNDLED_DESIGN
+
+
+@pytest.mark.parametrize("size", [(480, 640), (100, 90), (32, 64)])
+def test_resize_to_image_is_torch_bilinear(size):
+    """OpenCV's resize of CPU float32 maps matches torch's bilinear (align_corners=False)."""
+    import torch.nn.functional as F
+
+    maps = torch.from_numpy(np.random.default_rng(2).uniform(0.3, 5.0, (2, 2, 32, 64))
+                            .astype(np.float32))
+    expected = F.interpolate(maps, size=size, mode="bilinear", align_corners=False)
+    got = resize_to_image(maps, size)
+    assert got.shape == expected.shape and got.dtype == torch.float32
+    np.testing.assert_allclose(got.numpy(), expected.numpy(), rtol=5e-5, atol=1e-6)
+    # Other dtypes take torch's own resize (float64 here, which float32 torch and
+    # OpenCV both meet to a few 1e-5 relative).
+    double = resize_to_image(maps.double(), size)
+    assert double.dtype == torch.float64
+    np.testing.assert_allclose(got.numpy(), double.numpy(), rtol=5e-5)

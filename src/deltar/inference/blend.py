@@ -167,10 +167,11 @@ def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.n
     weight = blend_weight(depth_m, uncertainty_m, zone_grid_mask(zone_rects, depth_m.shape),
                           blend)
     fill_m = np.asarray(fill_m, dtype=np.float32)
-    # fill + w (network - fill): the same mixture with two passes fewer.
-    blended = np.subtract(depth_m, fill_m)
-    blended *= weight
-    blended += fill_m
+    # In place, float32: exactly the network where w = 1 and the fill where w = 0.
+    blended = weight * depth_m
+    np.subtract(np.float32(1.0), weight, out=weight)
+    weight *= fill_m
+    blended += weight
     return blended
 
 

@@ -1,0 +1,75 @@
+"""The colorization fill's solver and the blend's fill on a worker thread."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deltar.inference import colorization
+from deltar.inference.blend import (
+    ConfidenceBlend,
+    blend_fill,
+    blend_weight,
+    blend_with_fill,
+    start_blend_fill,
+    zone_grid_mask,
+)
+from deltar.inference.colorization import colorization_fill
+
+
+@pytest.mark.parametrize("shape", [(12, 17), (17, 12)])
+def test_single_precision_lu_is_refined_to_the_double_precision_solve(shape, monkeypatch):
+    """The float32 LU with float64 refinement and the plain float64 LU give one solution."""
+    rng = np.random.default_rng(11)
+    gray = rng.random(shape)
+    gray[:, shape[1] // 2:] += 0.8  # an edge: weights across it are small
+    known = rng.random(shape) < 0.1
+    known[1, 1] = True
+    values = rng.uniform(0.5, 4.0, shape)
+    refined = colorization_fill(gray, values, known)
+    monkeypatch.setattr(colorization, "_REFINEMENT_STEPS", 0)  # straight to float64
+    double = colorization_fill(gray, values, known)
+    np.testing.assert_allclose(refined, double, rtol=1e-10, atol=1e-12)
+    assert refined.min() >= values[known].min() - 1e-9
+    assert refined.max() <= values[known].max() + 1e-9
+
+
+def _zones(rng: np.random.Generator, height: int = 48, width: int = 64):
+    image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    rows, cols = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
+    zone_h, zone_w = height / 4, width / 4
+    rects = np.stack([rows * zone_h, cols * zone_w, (rows + 1) * zone_h, (cols + 1) * zone_w],
+                     axis=-1).reshape(16, 4).astype(np.float32)
+    means = rng.uniform(0.8, 3.0, 16)
+    valid = rng.random(16) > 0.2
+    far = ~valid & (rng.random(16) > 0.5)
+    return image, means, valid, rects, far
+
+
+def test_the_fill_on_the_worker_thread_is_the_fill(rng):
+    image, means, valid, rects, far = _zones(rng)
+    futures = [start_blend_fill(image, means, valid, rects, far, 5.0) for _ in range(3)]
+    expected = blend_fill(image, means, valid, rects, far, 5.0)
+    for future in futures:
+        np.testing.assert_array_equal(future.result(), expected)
+    assert start_blend_fill(image, means, np.zeros(16, bool), rects).result() is None
+    with pytest.raises(ValueError, match="far_depth_m"):
+        start_blend_fill(image, means, valid, rects, far, None).result()
+
+
+def test_blend_with_fill_is_the_weighted_mixture(rng):
+    image, means, valid, rects, _ = _zones(rng)
+    depth = rng.uniform(1.0, 3.0, image.shape[:2]).astype(np.float32)
+    spread = (0.1 * depth * rng.uniform(0, 2, depth.shape)).astype(np.float32)
+    fill = blend_fill(image, means, valid, rects)
+    blend = ConfidenceBlend(8.0, 128.0)
+    weight = np.exp(-np.where(zone_grid_mask(rects, depth.shape), 8.0, 128.0)
+                    * spread.astype(np.float64) / depth)
+    expected = weight * depth + (1 - weight) * fill
+    got = blend_with_fill(depth, spread, fill, rects, blend)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    np.testing.assert_allclose(blend_weight(depth, spread, zone_grid_mask(rects, depth.shape),
+                                            blend), weight, rtol=1e-6)
+    with pytest.raises(ValueError, match="fill_m"):
+        blend_with_fill(depth, spread, fill[:-1], rects, blend)
