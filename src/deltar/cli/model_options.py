@@ -45,7 +45,7 @@ FlipOption = Annotated[bool, typer.Option(
 NetworkOnlyOption = Annotated[bool, typer.Option(
     "--network-only", help="The network's depth alone, without the confidence blend with "
     "the colorization fill of the zones that plane-select models (the bundled default) use "
-    "by default: 15-20 ms a frame faster, higher RMSE on new rooms (docs/inference.md).")]
+    "by default: a little faster, higher RMSE on new rooms (docs/inference.md).")]
 
 
 def parse_size(text: str | None, option: str = "--size") -> tuple[int, int] | None:

@@ -123,12 +123,13 @@ def _solve_stencil_system(weights: np.ndarray, diagonal: np.ndarray,
         (h, w) float64 solution.
 
     Numbered along the shorter side the matrix is banded (half-bandwidth min(h, w) + 1).
-    The banded LU (LAPACK ``gbsv``, partial pivoting) runs in float32, about twice as
-    fast as in float64, and iterative refinement with float64 residuals brings the
-    solution to float64 accuracy (about two steps; a system too ill-conditioned for
-    that is solved in float64 instead). LAPACK releases the GIL while it factors, so
-    the fill can run beside the network in another thread. A large grid, whose band
-    would not fit in memory, takes SciPy's sparse LU.
+    The banded LU (LAPACK ``gbsv``, partial pivoting) runs in float32, which halves
+    its memory traffic and doubles its SIMD width against float64, and iterative
+    refinement with float64 residuals brings the solution to float64 accuracy (two or
+    three steps; a system too ill-conditioned for that is solved in float64 instead).
+    LAPACK releases the GIL while it factors, so the fill can run beside the network
+    in another thread. A large grid, whose band would not fit in memory, takes SciPy's
+    sparse LU.
     """
     height, width = diagonal.shape
     if height < width:  # number along the columns: the grid transposed, row-major
@@ -217,8 +218,8 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     """Dense depth from zone readings by colorization: seeds at zone centres, filled, upsampled.
 
     The fill is solved on a grid of about ``solve_cells`` cells with the image's aspect
-    (60 x 80 for 480 x 640 or 240 x 320 images), so its result and its cost (15-20 ms)
-    do not depend on the image size. Each valid zone's mean is placed on a square of
+    (60 x 80 for 480 x 640 or 240 x 320 images), so its result and its cost do not
+    depend on the image size. Each valid zone's mean is placed on a square of
     ``seed_side`` x ``seed_side`` cells at its centre (about 3/8 of a zone at 60 x 80 with
     8 x 8 zones): a single cell per zone would leave spikes, as harmonic fills do around
     isolated points. A centre outside the image is moved to the nearest cell inside its

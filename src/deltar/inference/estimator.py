@@ -138,7 +138,8 @@ class DepthEstimator:
             :data:`~deltar.sensor.zone_frame.SENSOR_MAX_RANGE_M`).
         blend: blend the network's depth with the colorization fill of the zones where
             the network is unsure (:class:`~deltar.inference.blend.ConfidenceBlend`;
-            lower RMSE on rooms the model never saw, 15-20 ms a frame on a CPU):
+            lower RMSE on rooms the model never saw; its fill runs on a worker thread
+            while the network does):
             ``"auto"`` (default) does so for plane-select networks (``head ==
             "plane_select"``, e.g. the bundled ``default``), for which it was validated
             leave-one-scene-out, and not for others; a ``ConfidenceBlend`` always; None
