@@ -16,9 +16,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "deltar"
 
 #: Lowest first. A package may import packages of lower layers only; packages of one
-#: layer do not import each other. ``camera`` is the module src/deltar/camera.py.
+#: layer do not import each other. ``camera`` and ``contract`` are the modules
+#: src/deltar/camera.py and src/deltar/contract.py.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("camera", "weights"),
+    ("camera", "contract", "weights"),
     ("sensor",),
     ("io",),
     ("calibration",),

@@ -10,7 +10,7 @@ from deltar.camera import CameraIntrinsics
 from deltar.data.procedural import ProceduralReader
 from deltar.data.rgbd import RGBDFrame, open_rgbd
 from deltar.data.simulated import SimulatedL5Dataset
-from deltar.data.transforms import ImageAugmentation, mirror_zone_rects
+from deltar.data.transforms import ImageAugmentation
 from deltar.sensor.augment import SignalAugmentation
 
 NO_JITTER = dict(max_rotation_deg=0.0, photometric_prob=0.0)
@@ -147,13 +147,6 @@ def test_crop_shifts_fixed_rects_and_intrinsics():
     assert item["zone_rects"][0].tolist() == [10 - top, 10 - left, 20 - top, 20 - left]
     torch.testing.assert_close(item["depth"][0], torch.from_numpy(
         depth[int(top):int(top) + 32, int(left):int(left) + 40]))
-
-
-def test_mirror_zone_rects_by_hand():
-    # Columns [2, 5) = 2, 3, 4 mirror to 7, 6, 5 = [5, 8) in a 10 px image.
-    rects = np.array([[0, 0, 1, 2], [0, 2, 1, 5], [1, 0, 2, 2], [1, 2, 2, 5]], np.float32)
-    np.testing.assert_array_equal(mirror_zone_rects(rects, width=10, grid=2),
-                                  [[0, 5, 1, 8], [0, 8, 1, 10], [1, 5, 2, 8], [1, 8, 2, 10]])
 
 
 def test_real_folder_item(shared_data):

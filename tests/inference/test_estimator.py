@@ -260,8 +260,8 @@ def test_flip_average_keeps_a_mirror_symmetric_prediction(lite_model, rng):
 
 
 def test_flip_average_is_mirror_equivariant(rng):
-    from deltar.data.transforms import mirror_zone_rects
     from deltar.models import create_model
+    from deltar.sensor.geometry import mirror_zone_rects
 
     torch.manual_seed(1)
     model = create_model("deltar-lite", design_size=(64, 96)).eval()
@@ -288,8 +288,8 @@ def test_flip_average_needs_the_pytorch_backend():
 
 
 def test_normalise_images_is_the_imagenet_formula(rng):
+    from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
     from deltar.inference.preprocess import normalise_images
-    from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 
     images = [_image(rng, 32, 64), _image(rng, 32, 64)]
     out = normalise_images(images, (32, 64))

@@ -8,7 +8,6 @@ import torch
 
 from deltar.inference.estimator import DepthEstimator, zone_mean_depth
 from deltar.inference.preprocess import (
-    SIZE_DIVISOR,
     check_input_size,
     network_input_size,
     resize_to_image,
@@ -26,12 +25,6 @@ ODD_SIZES = [(480, 480), (720, 1280), (16, 4000)]
 def _frame(rng: np.random.Generator) -> ZoneFrame:
     return ZoneFrame(rng.uniform(0.8, 3.5, (8, 8)), rng.uniform(0.01, 0.1, (8, 8)),
                      np.ones((8, 8), bool))
-
-
-def test_the_divisor_is_the_networks():
-    from deltar.models.network import SIZE_DIVISOR as NETWORK_DIVISOR
-
-    assert SIZE_DIVISOR == NETWORK_DIVISOR == 32
 
 
 @pytest.mark.parametrize("size, expected", [

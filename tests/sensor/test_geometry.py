@@ -9,6 +9,7 @@ import pytest
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.sensor import SensorExtrinsics, zone_angles_deg, zone_rects, zone_rects_to_pixel_bounds
+from deltar.sensor.geometry import mirror_zone_rects
 
 K = ZJU_L5_INTRINSICS
 HALF_FOV = math.radians(22.5)
@@ -133,3 +134,10 @@ def test_pixel_bounds_by_hand():
     assert bounds.tolist() == [[16, 96, 72, 152], [16, 152, 72, 208], [1, 1, 4, 4],
                                [0, 0, 480, 640], [0, 0, 0, 0], [470, 630, 480, 640]]
     assert zone_rects_to_pixel_bounds(rects.reshape(2, 3, 4), 480, 640).shape == (2, 3, 4)
+
+
+def test_mirror_zone_rects_by_hand():
+    # Columns [2, 5) = 2, 3, 4 mirror to 7, 6, 5 = [5, 8) in a 10 px image.
+    rects = np.array([[0, 0, 1, 2], [0, 2, 1, 5], [1, 0, 2, 2], [1, 2, 2, 5]], np.float32)
+    np.testing.assert_array_equal(mirror_zone_rects(rects, width=10, grid=2),
+                                  [[0, 5, 1, 8], [0, 8, 1, 10], [1, 5, 2, 8], [1, 8, 2, 10]])

@@ -95,8 +95,8 @@ class ModelOptions:
                 precision or a size that is not a multiple of 32 (exit 2).
             ValueError: a device this machine does not have (exit 1).
         """
+        from deltar.contract import SIZE_DIVISOR
         from deltar.inference.estimator import PRECISIONS
-        from deltar.inference.preprocess import SIZE_DIVISOR
 
         chosen = [f"--{kind}" for kind in ("preset", "checkpoint", "official", "onnx")
                   if getattr(self, kind) is not None]

@@ -17,11 +17,11 @@ import torch
 from torch.utils.data import Dataset
 
 from deltar.camera import CameraIntrinsics
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 from deltar.data.rgbd import RGBDFrame
-from deltar.data.transforms import ImageAugmentation, mirror_zone_rects, normalize_image
-from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
+from deltar.data.transforms import ImageAugmentation, normalize_image
 from deltar.sensor.augment import SignalAugmentation, training_zone_rects
-from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, mirror_zone_rects, zone_rects
 from deltar.sensor.sampling import sample_hypotheses
 from deltar.sensor.simulate import SimulatorConfig, simulate_zones
 

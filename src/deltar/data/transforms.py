@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from deltar.camera import CameraIntrinsics
-from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 
 
 @dataclass
@@ -142,31 +142,6 @@ def flip_intrinsics(intrinsics: CameraIntrinsics) -> CameraIntrinsics:
     """Intrinsics of the left-right mirrored image (pixel centres at integers)."""
     return CameraIntrinsics(intrinsics.fx, intrinsics.fy, intrinsics.width - 1 - intrinsics.cx,
                             intrinsics.cy, intrinsics.width, intrinsics.height)
-
-
-def mirror_zone_rects(rects: np.ndarray, width: int, grid: int) -> np.ndarray:
-    """Zone rectangles of a left-right mirrored image, in row-major image order again.
-
-    Zone ``(r, c)`` of the mirrored image is zone ``(r, grid - 1 - c)`` of the original,
-    mirrored about the image centre: pixel column ``x`` goes to ``width - 1 - x``, so the
-    columns ``[x0, x1)`` of a zone become ``[width - x1, width - x0)``.
-
-    Args:
-        rects: (grid * grid, 4) rectangles (y0, x0, y1, x1) in pixels.
-        width: image width in pixels.
-        grid: zones per side.
-
-    Returns:
-        (grid * grid, 4) float32 rectangles.
-    """
-    rects = np.asarray(rects, dtype=np.float32)
-    if rects.shape != (grid * grid, 4):
-        raise ValueError(f"rects must have shape ({grid * grid}, 4), got {rects.shape}")
-    reordered = rects.reshape(grid, grid, 4)[:, ::-1].reshape(-1, 4)
-    out = reordered.copy()
-    out[:, 1] = width - reordered[:, 3]
-    out[:, 3] = width - reordered[:, 1]
-    return out
 
 
 def normalize_image(image: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> np.ndarray:

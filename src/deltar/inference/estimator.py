@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import ConfidenceBlend, blend_with_fill, start_blend_fill
 from deltar.inference.preprocess import (
     check_image,
@@ -156,14 +157,13 @@ class DepthEstimator:
                  blend: ConfidenceBlend | str | None = "auto") -> None:
         import torch
 
-        from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
-
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-        if sampling not in (None, "icdf", "uniform"):
-            raise ValueError(f"sampling must be 'icdf' or 'uniform', got {sampling!r}")
+        if sampling is not None and sampling not in HYPOTHESIS_SAMPLINGS:
+            raise ValueError(f"sampling must be one of {HYPOTHESIS_SAMPLINGS}, got "
+                             f"{sampling!r}")
         if onnx_model is not None:
             if precision != "float32":
                 raise ValueError("the onnxruntime backend runs in float32 only")

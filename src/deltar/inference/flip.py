@@ -45,7 +45,7 @@ def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor
     """
     import torch
 
-    from deltar.data.transforms import mirror_zone_rects
+    from deltar.sensor.geometry import mirror_zone_rects
 
     zones = hypotheses.shape[1]
     grid = math.isqrt(zones)

@@ -26,8 +26,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from deltar.contract import SIZE_DIVISOR
 from deltar.inference.estimator import PRECISIONS, DepthEstimator
-from deltar.inference.preprocess import SIZE_DIVISOR
 from deltar.weights import BUNDLED_MODELS, bundled_model_names
 
 #: The kinds of model source :func:`load_estimator` accepts.

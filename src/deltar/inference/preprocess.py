@@ -32,12 +32,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD, SIZE_DIVISOR
+
 if TYPE_CHECKING:
     import torch
 
-#: The network's input height and width must be multiples of this (the encoder's
-#: coarsest stride, ``deltar.models.network.SIZE_DIVISOR``).
-SIZE_DIVISOR = 32
 
 
 def network_input_size(height: int, width: int,
@@ -149,8 +148,6 @@ def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
     import cv2
 
     if mean is None or std is None:
-        from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
-
         mean, std = IMAGENET_MEAN, IMAGENET_STD
     height, width = size
     # One multiply-add per pixel: x * (1 / (255 std)) - mean / std.

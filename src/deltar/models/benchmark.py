@@ -18,8 +18,8 @@ from pathlib import Path
 
 import torch
 
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 from deltar.io.torch_file import read_torch_file
-from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 from deltar.models.official import load_official_weights
 from deltar.models.optimize import prepare_for_inference
 from deltar.models.presets import create_model

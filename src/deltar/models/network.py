@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD, SIZE_DIVISOR
 from deltar.models.affinity import EncoderDescriptors, descriptor_levels
 from deltar.models.decoder import FUSION_STRIDES, DecoderZones, FusionDecoder
 from deltar.models.encoders import FEATURE_STRIDES, DistributionEncoder, ImageEncoder
@@ -49,12 +50,6 @@ SELECTING_HEADS = ("zone_select", "plane_select")
 DECODERS = ("fusion", "descriptors")
 DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
 IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
-SAMPLINGS = ("icdf", "uniform")
-#: Input size divisor: the encoder's coarsest stride.
-SIZE_DIVISOR = 32
-#: ImageNet statistics (RGB, images in [0, 1]): the release's input normalisation.
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class DeltarNet(nn.Module):
@@ -144,7 +139,7 @@ class DeltarNet(nn.Module):
         _check_choice("distribution_input", distribution_input, DISTRIBUTION_INPUTS)
         _check_choice("image_input", image_input, IMAGE_INPUTS)
         _check_choice("fusion", fusion, FUSION_MODES)
-        _check_choice("hypothesis_sampling", hypothesis_sampling, SAMPLINGS)
+        _check_choice("hypothesis_sampling", hypothesis_sampling, HYPOTHESIS_SAMPLINGS)
         _check_choice("decoder", decoder, DECODERS)
         if decoder == "descriptors" and head not in SELECTING_HEADS:
             raise ValueError(f"decoder 'descriptors' gives the head no zone information: it "

@@ -148,3 +148,28 @@ def zone_rects_to_pixel_bounds(rects: np.ndarray, height: int, width: int) -> np
     x0, x1 = np.clip(r[..., 1], 0, width), np.clip(r[..., 3], 0, width)
     y1, x1 = np.maximum(y1, y0), np.maximum(x1, x0)
     return np.stack([y0, x0, y1, x1], axis=-1).astype(np.int64)
+
+
+def mirror_zone_rects(rects: np.ndarray, width: int, grid: int) -> np.ndarray:
+    """Zone rectangles of a left-right mirrored image, in row-major image order again.
+
+    Zone ``(r, c)`` of the mirrored image is zone ``(r, grid - 1 - c)`` of the original,
+    mirrored about the image centre: pixel column ``x`` goes to ``width - 1 - x``, so the
+    columns ``[x0, x1)`` of a zone become ``[width - x1, width - x0)``.
+
+    Args:
+        rects: (grid * grid, 4) rectangles (y0, x0, y1, x1) in pixels.
+        width: image width in pixels.
+        grid: zones per side.
+
+    Returns:
+        (grid * grid, 4) float32 rectangles.
+    """
+    rects = np.asarray(rects, dtype=np.float32)
+    if rects.shape != (grid * grid, 4):
+        raise ValueError(f"rects must have shape ({grid * grid}, 4), got {rects.shape}")
+    reordered = rects.reshape(grid, grid, 4)[:, ::-1].reshape(-1, 4)
+    out = reordered.copy()
+    out[:, 1] = width - reordered[:, 3]
+    out[:, 3] = width - reordered[:, 1]
+    return out

@@ -18,10 +18,11 @@ import math
 
 import torch
 
+from deltar.contract import HYPOTHESIS_SAMPLINGS
+
 #: Lowest and highest probability used for inverse-CDF sampling (the release's values).
 ICDF_PROBABILITY_MARGIN = 1e-3
 
-SAMPLING_METHODS = ("icdf", "uniform")
 
 
 def icdf_probabilities(num_samples: int, dtype: torch.dtype = torch.float32,
@@ -53,8 +54,8 @@ def sample_hypotheses(mean_m: torch.Tensor, sigma_m: torch.Tensor, valid: torch.
         ValueError: unknown method, shapes that differ, NaN/inf or negative sigma in a
             valid zone.
     """
-    if method not in SAMPLING_METHODS:
-        raise ValueError(f"method must be one of {SAMPLING_METHODS}, got {method!r}")
+    if method not in HYPOTHESIS_SAMPLINGS:
+        raise ValueError(f"method must be one of {HYPOTHESIS_SAMPLINGS}, got {method!r}")
     _check_num_samples(num_samples)
     mean, sigma, valid = _check_zone_inputs(mean_m, sigma_m, valid)
     if not torch.isfinite(mean[valid]).all() or not torch.isfinite(sigma[valid]).all():

@@ -18,13 +18,14 @@ from typing import Any
 
 import yaml
 
+from deltar.contract import HYPOTHESIS_SAMPLINGS
+
 SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5", "thdr3k")
 #: Source kinds with real (recorded) zone readings: no simulated signal.
 ZONE_SET_SOURCE_KINDS: tuple[str, ...] = ("zju_l5", "thdr3k")
 SOURCE_ROLES: tuple[str, ...] = ("train_val", "train", "val")
 HOLDOUT_POSITIONS: tuple[str, ...] = ("end", "start")
 ZONE_LAYOUTS: tuple[str, ...] = ("training", "calibrated")
-SAMPLINGS: tuple[str, ...] = ("icdf", "uniform")
 STRATEGIES: tuple[str, ...] = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_true")
 
 
@@ -240,7 +241,7 @@ class DataConfig:
             _choice(f"{where}.val_zone_layout", self.val_zone_layout, ZONE_LAYOUTS)
         if self.grid not in (4, 8):
             raise ValueError(f"{where}.grid must be 4 or 8, got {self.grid}")
-        _choice(f"{where}.sampling", self.sampling, SAMPLINGS)
+        _choice(f"{where}.sampling", self.sampling, HYPOTHESIS_SAMPLINGS)
         self.image_augmentation.validate(f"{where}.image_augmentation")
         self.signal_augmentation.validate(f"{where}.signal_augmentation")
 

@@ -24,16 +24,16 @@ import torch
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
 from deltar.camera import CameraIntrinsics
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 from deltar.data.rgbd import RGBDFrame
 from deltar.data.transforms import (
     ImageAugmentation,
     flip_intrinsics,
-    mirror_zone_rects,
     normalize_image,
 )
 from deltar.data.zone_sets import open_zone_set
-from deltar.models.network import IMAGENET_MEAN, IMAGENET_STD
 from deltar.sensor.augment import SignalAugmentation
+from deltar.sensor.geometry import mirror_zone_rects
 from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
 from deltar.training.config import ZONE_SET_SOURCE_KINDS, DataConfig, SourceConfig
 
