@@ -136,9 +136,8 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
 def test_image_only_frames_are_not_blended(rng):
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
     frame = ZoneFrame(np.zeros((8, 8)), np.zeros((8, 8)), np.zeros((8, 8), bool))
-    with pytest.warns(RuntimeWarning, match="no valid zone"):
-        result = _select_estimator().predict(image, frame)
-    assert result.network_depth_m is None
+    result = _select_estimator().predict(image, frame)
+    assert result.image_only and not result.blended and result.network_depth_m is None
 
 
 def test_network_suffix_turns_the_blend_off():
@@ -226,8 +225,8 @@ def test_blend_follows_the_flip_averaged_network_and_batches(rng):
     # blended exactly as alone.
     empty = ZoneFrame(np.zeros((8, 8)), np.zeros((8, 8)), np.zeros((8, 8), bool))
     estimator = _select_estimator()
-    with pytest.warns(RuntimeWarning, match="no valid zone"):
-        both = estimator.predict([image, image], [frame, empty])
+    both = estimator.predict([image, image], [frame, empty])
+    assert [b.image_only for b in both] == [False, True]
     alone = estimator.predict(image, frame)
     np.testing.assert_allclose(both[0].depth_m, alone.depth_m, rtol=1e-5, atol=1e-6)
     assert both[1].network_depth_m is None
