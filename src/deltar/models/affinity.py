@@ -85,5 +85,12 @@ def unit_channels(features: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """``F.normalize(features, dim=1)`` from a sum of squares: on CPU the norm kernel is
     4x slower on (B, C, h, w) maps laid out channels-first. The clamp comes before the
     root, so an all-zero descriptor (a black frame) has a zero, not NaN, gradient."""
-    squares = (features * features).sum(dim=1, keepdim=True)
+    squared = features * features
+    if torch.onnx.is_in_onnx_export():
+        # onnxruntime sums over the channels of an NCHW map several times slower than
+        # it runs a 1x1 convolution with one output channel, which is the same sum.
+        ones = torch.ones(1, int(squared.shape[1]), 1, 1, dtype=squared.dtype)
+        squares = F.conv2d(squared, ones)
+    else:
+        squares = squared.sum(dim=1, keepdim=True)
     return features * torch.rsqrt(squares.clamp_min(eps * eps))
