@@ -477,7 +477,7 @@ class DepthEstimator:
 
         single, images, frames = _batch_arguments(image, zone_frame)
         _check_calibration(calibration)  # before it undistorts the images
-        if calibration is not None and calibration.has_distortion:
+        if getattr(calibration, "has_distortion", False):  # other types refused in prepare
             # The zones are placed with the pinhole intrinsics: predict on the
             # undistorted image (same intrinsics), so depth is for that image.
             images = [calibration.undistort_image(np.asarray(im)) for im in images]
