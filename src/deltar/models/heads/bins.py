@@ -15,6 +15,12 @@ from torch import nn
 from deltar.models.heads.base import DepthHead, HeadOutput, ZoneInputs, bins_to_depth
 
 
+def bin_width_regressor(embedding_dim: int, n_bins: int) -> nn.Sequential:
+    """The release's regressor of N raw bin widths from an (B, E) image embedding."""
+    return nn.Sequential(nn.Linear(embedding_dim, 256), nn.LeakyReLU(), nn.Linear(256, 256),
+                         nn.LeakyReLU(), nn.Linear(256, n_bins))
+
+
 def normalise_bin_widths(raw: torch.Tensor) -> torch.Tensor:
     """(B, N) raw regressor output -> (B, N) positive widths summing to 1.
 
@@ -54,13 +60,7 @@ class BinsHead(BinsPredict):
         self.min_depth, self.max_depth = min_depth, max_depth
         self.range_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=3, padding=1)
         self.global_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=1, bias=False)
-        self.width_regressor = nn.Sequential(
-            nn.Linear(embedding_dim, 256),
-            nn.LeakyReLU(),
-            nn.Linear(256, 256),
-            nn.LeakyReLU(),
-            nn.Linear(256, n_bins),
-        )
+        self.width_regressor = bin_width_regressor(embedding_dim, n_bins)
         self.logits_conv = nn.Conv2d(embedding_dim, n_bins, kernel_size=1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
-from deltar.models.heads.bins import BinsPredict, normalise_bin_widths
+from deltar.models.heads.bins import BinsPredict, bin_width_regressor, normalise_bin_widths
 
 
 class MiniViTHead(BinsPredict):
@@ -67,13 +67,7 @@ class MiniViTHead(BinsPredict):
         )
         self.transformer = nn.TransformerEncoder(layer, num_layers, enable_nested_tensor=False)
         self.pixel_conv = nn.Conv2d(in_channels, embedding_dim, kernel_size=3, padding=1)
-        self.width_regressor = nn.Sequential(
-            nn.Linear(embedding_dim, 256),
-            nn.LeakyReLU(),
-            nn.Linear(256, 256),
-            nn.LeakyReLU(),
-            nn.Linear(256, n_bins),
-        )
+        self.width_regressor = bin_width_regressor(embedding_dim, n_bins)
         self.logits_conv = nn.Conv2d(num_queries, n_bins, kernel_size=1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
