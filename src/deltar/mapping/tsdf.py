@@ -345,8 +345,11 @@ class TSDFMap:
         """
         if self.block_count == 0:
             return self._o3d.geometry.TriangleMesh()
-        mesh = self.grid.extract_triangle_mesh(weight_threshold=weight_threshold)
-        return mesh.to_legacy()
+        mesh = self.grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+        if mesh.has_vertex_colors():  # float rounding can leave 1 + 1e-7
+            mesh.vertex_colors = self._o3d.utility.Vector3dVector(
+                np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
+        return mesh
 
     def points(self, weight_threshold: float = MIN_WEIGHT) -> tuple[np.ndarray, np.ndarray]:
         """Surface points of the map: ((N, 3) float64 metres, (N, 3) uint8 RGB)."""
