@@ -10,8 +10,8 @@ same poses and settings:
 - the model's map: the bundled ``default`` on the cabinet (it never saw that scene);
   on the kitchen, which the default trained on, a fold model trained without it
   (``configs/cross_scene_select.yaml`` with the kitchen source removed: ``--kitchen-model``);
-- the same model without its confidence blend with the colorization fill
-  (``--network-only``);
+- the same model with the estimator's confidence blend with the colorization fill
+  (``--blend``; ``deltar map`` fuses the network's own depth by default);
 - every classical baseline's map (``--method NAME``).
 
 Each map's surface points are scored against the reference map's
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         maps_dir = args.out / "maps" / scene
         model = ["--checkpoint", str(args.kitchen_model)] if scene == "kitchen" else []
         runs = {"ground truth": ["--method", "recorded"], "model": model,
-                "model_network_only": [*model, "--network-only"]}
+                "model_blend": [*model, "--blend"]}
         runs |= {name: ["--method", name] for name in args.baselines.split(",")}
         summaries = {name: run_map(recording, maps_dir / name.replace(" ", "_"), extra)
                      for name, extra in runs.items()}

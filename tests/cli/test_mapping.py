@@ -156,6 +156,8 @@ def test_usage_errors(wall_recording, tmp_path):
     result = _run(wall_recording, "--out", tmp_path / "m", "--method", "bilinear",
                   "--preset", "deltar-lite")
     assert result.exit_code == 2 and "not both" in result.output
+    result = _run(wall_recording, "--out", tmp_path / "m", "--blend", "--network-only")
+    assert result.exit_code == 2 and "not both" in result.output
     result = _run(wall_recording, "--out", wall_recording / "inside", "--method", "recorded")
     _error(result, "is inside the input")
     result = _run(tmp_path / "missing", "--out", tmp_path / "m", "--method", "recorded")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -58,6 +59,9 @@ def map_command(
     method: str | None = typer.Option(None, "--method", help="Depth from a classical "
                                       "baseline (e.g. colorization) instead of the model, "
                                       "or 'recorded': the recording's own depth images."),
+    blend: bool = typer.Option(False, "--blend", help="Keep the estimator's confidence "
+                               "blend with the colorization fill (off in maps: the network "
+                               "alone fused into better maps, docs/mapping.md)."),
     trajectory: Path | None = typer.Option(None, "--trajectory", help="Camera poses as a "
                                            "TUM file (t tx ty tz qx qy qz qw, camera to "
                                            "world) for a recording without pose/."),
@@ -94,7 +98,8 @@ def map_command(
 ) -> None:
     """Fuse every frame's depth into a TSDF map (Open3D) and write its mesh and points.
 
-    Each pixel of the model's depth is weighted by its confidence; depth beyond the
+    The model runs without its colorization blend (--blend keeps it). Each pixel of
+    the model's depth is weighted by its confidence; depth beyond the
     sensor's range is not used. Poses: the recording's pose/ folder, --trajectory, the
     bag's /tf or --pose-topic, else RGB-D odometry. Everything is checked (inputs, poses,
     memory) before the first depth map is made.
@@ -116,6 +121,11 @@ def map_command(
     if method is not None and model.source()[0] is not None:
         raise typer.BadParameter("give a model option or --method, not both",
                                  param_hint="--method")
+    if blend and model.network_only:
+        raise typer.BadParameter("give --blend or --network-only, not both",
+                                 param_hint="--blend")
+    # Maps fuse the network's own depth unless --blend (measured: benchmarks/RESULTS.md).
+    model = dataclasses.replace(model, network_only=not blend)
     model.check()
     require_open3d()
     _check_out(out, recording, overwrite)
