@@ -1,20 +1,23 @@
-"""Leave-one-scene-out: does a recipe beat the classical methods on a room it never saw?
+"""Leave scenes out: does a recipe beat the classical methods on rooms it never saw?
 
-For each of the four scenes in ../shared/data/rgbd: train the recipe (a training config,
-``configs/cross_scene_select.yaml`` by default) on the three other scenes with
-``deltar train``, simulate the left-out scene's zones with ``deltar simulate`` (clean,
-and degraded: 20% of the valid zones dropped, 30% of the rest biased by
-N(+0.10, 0.15) m), and score every classical baseline and the trained model on it with
-``deltar evaluate``, each also in its ``+far`` form (zones that reported no target read
-as 5 m, as the model reads them). The model is scored twice: ``trained``, as
+The ten scenes of ../shared/data/rgbd form five folds of two scenes each (a room-scale
+scene with a close-range one, so every fold trains on both kinds). For each fold: train
+the recipe (a training config, ``configs/cross_scene_select.yaml`` by default) on the
+eight other scenes with ``deltar train``, simulate each left-out scene's zones with
+``deltar simulate`` -- clean; degraded (20% of the valid zones dropped, 30% of the rest
+biased by N(+0.10, 0.15) m); and without no-target flags (as the released ZJU-L5 files
+store them) -- and score every classical baseline and the trained model on it with
+``deltar evaluate``, each baseline also in its ``+far`` form (zones that reported no
+target read as 5 m, as the model reads them). The model is scored twice: ``trained``, as
 ``DepthEstimator`` runs it (for the plane-select recipe: blended with the colorization
 fill where the network is unsure), and ``network``, the network alone (``+network``).
-Prints each fold's table and the mean over folds, with both rows' REL and RMSE change
-against the best classical baseline of each fold and against the best ``+far`` one.
+Prints each scene's table and the mean over scenes (each scene weighs the same), with
+both rows' REL and RMSE change against the best classical baseline of each scene and
+against the best ``+far`` one.
 
-    python benchmarks/cross_scene.py --out cross-scene/          # all four folds
-    python benchmarks/cross_scene.py --out cs/ --folds floor --steps 100   # a quick look
-    python benchmarks/cross_scene.py --out cs/ --extra-model default     # + bundled model
+    python benchmarks/cross_scene.py --out cross-scene/           # all five folds
+    python benchmarks/cross_scene.py --out cs/ --folds kitchen-shelf --steps 100  # a look
+    python benchmarks/cross_scene.py --out cs/ --extra-model default      # + bundled model
 
 Each step's output is kept in ``--out`` (test sets, runs, metrics), so an interrupted
 protocol resumes where it stopped; a fold whose ``model.pt`` exists is not retrained.
@@ -35,16 +38,36 @@ import yaml
 PROJECT = Path(__file__).resolve().parents[1]
 DATA = PROJECT.parent / "shared" / "data" / "rgbd"
 
-#: name -> (folder, intrinsics "fx,fy,cx,cy" or None for the folder's own, test-frame step).
+#: name -> (folder, intrinsics "fx,fy,cx,cy" or None for the folder's own, test-frame
+#: step). The steps keep each test set near 50 frames or fewer (neighbouring frames are
+#: near duplicates); every scene weighs the same in the means.
 SCENES: dict[str, tuple[str, str | None, int]] = {
-    "kitchen": ("7scenes_redkitchen", None, 5),
+    "kitchen": ("7scenes_redkitchen", None, 10),
     "office": ("realsense_office", "615,615,320,240", 2),
-    "icl": ("icl_livingroom1", "525,525,319.5,239.5", 3),
+    "icl": ("icl_livingroom1", "525,525,319.5,239.5", 4),
     "floor": ("realsense_floor", "617.25,617.55,317.39,245.98", 1),
+    "cabinet": ("tum_fr3_cabinet", None, 1),
+    "makerspace": ("cmu_makerspace", None, 1),
+    "shelf": ("apc_shelf", None, 1),
+    "totes": ("arc_totes", None, 1),
+    "lab_table": ("graspnet_lab_table", None, 1),
+    "table": ("graspnet_1billion_table", None, 1),
 }
-#: The degraded signal of the protocol: deltar simulate options.
-DEGRADED = ["--drop-fraction", "0.2", "--bias-prob", "0.3", "--bias-mean", "0.10",
-            "--bias-std", "0.15"]
+#: fold name -> the scenes it leaves out; together the folds test every scene once.
+FOLDS: dict[str, tuple[str, ...]] = {
+    "kitchen-shelf": ("kitchen", "shelf"),
+    "office-totes": ("office", "totes"),
+    "icl-lab_table": ("icl", "lab_table"),
+    "floor-table": ("floor", "table"),
+    "cabinet-makerspace": ("cabinet", "makerspace"),
+}
+#: The test conditions: deltar simulate options of each.
+CONDITIONS: dict[str, list[str]] = {
+    "clean": [],
+    "degraded": ["--drop-fraction", "0.2", "--bias-prob", "0.3", "--bias-mean", "0.10",
+                 "--bias-std", "0.15"],
+    "noflags": ["--without-no-target-flags"],
+}
 BASELINES = ("median", "nearest", "bilinear", "bicubic", "guided_filter", "joint_bilateral",
              "colorization")
 #: The same baselines reading the zones that reported no target at 5 m, as the model does:
@@ -60,46 +83,55 @@ def deltar(*args: str) -> None:
     subprocess.run(command, check=True, cwd=PROJECT)
 
 
-def test_set(out: Path, scene: str, degraded: bool) -> Path:
-    """The left-out scene's simulated test set (data.json), made once."""
+def test_set(out: Path, scene: str, condition: str) -> Path:
+    """The left-out scene's simulated test set (data.json) in one condition, made once."""
     folder, intrinsics, step = SCENES[scene]
-    target = out / "sets" / (scene + ("-degraded" if degraded else ""))
+    target = out / "sets" / (scene if condition == "clean" else f"{scene}-{condition}")
     index = target / "data.json"
     if not index.is_file():
         args = ["simulate", str(DATA / folder), str(target), "--step", str(step)]
         if intrinsics:
             args += ["--intrinsics", intrinsics]
-        deltar(*args, *(DEGRADED if degraded else []))
+        deltar(*args, *CONDITIONS[condition])
     return index
 
 
-def fold_config(template: dict, scene: str, steps: int | None) -> dict:
-    """The recipe with the left-out scene removed from its training sources."""
+def has_no_target_flags(index: Path) -> bool:
+    """Whether any frame of a simulated set has a zone flagged as no target."""
+    from deltar.data.zju_l5 import ZJUL5Dataset
+
+    return any(sample.zone_no_target is not None and sample.zone_no_target.any()
+               for sample in ZJUL5Dataset(index))
+
+
+def fold_config(template: dict, fold: str, steps: int | None) -> dict:
+    """The recipe with the fold's left-out scenes removed from its training sources."""
     config = copy.deepcopy(template)
-    folder = SCENES[scene][0]
-    kept = [s for s in config["data"]["sources"] if Path(str(s.get("path", ""))).name != folder]
+    folders = {SCENES[scene][0] for scene in FOLDS[fold]}
+    kept = [s for s in config["data"]["sources"]
+            if Path(str(s.get("path", ""))).name not in folders]
     train = [s for s in kept if s.get("role", "train_val") in ("train", "train_val")]
     if not train:
-        raise SystemExit(f"the recipe has no training source besides {folder}")
+        raise SystemExit(f"the recipe has no training source besides {sorted(folders)}")
     if not any(s.get("role") == "val" for s in kept):
         # Validation is a sanity check only: a few frames of the first training scene.
         kept.append({**train[0], "role": "val", "every": 50})
     config["data"]["sources"] = kept
-    config["name"] = f"{config.get('name', 'run')}-without-{scene}"
+    config["name"] = f"{config.get('name', 'run')}-without-{fold}"
     if steps is not None:
         config["trainer"]["max_steps"] = steps
     return config
 
 
-def train_fold(out: Path, template: dict, scene: str, steps: int | None) -> tuple[Path, float]:
+def train_fold(out: Path, template: dict, fold: str, steps: int | None) -> tuple[Path, float]:
     """Train the fold's model (unless done); return its model.pt and the wall time (s)."""
-    run_dir = out / "runs" / f"without-{scene}"
+    run_dir = out / "runs" / f"without-{fold}"
     model = run_dir / "model.pt"
     if model.is_file():
         return model, float("nan")
-    config_path = out / "configs" / f"without-{scene}.yaml"
+    config_path = out / "configs" / f"without-{fold}.yaml"
     config_path.parent.mkdir(parents=True, exist_ok=True)
-    config_path.write_text(yaml.safe_dump(fold_config(template, scene, steps), sort_keys=False))
+    config_path.write_text(yaml.safe_dump(fold_config(template, fold, steps), sort_keys=False))
     started = time.monotonic()
     # A folder left by an interrupted run resumes from its last checkpoint.
     resume = ["--resume"] if (run_dir / "checkpoints" / "last.ckpt").is_file() else []
@@ -143,8 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, default=PROJECT / "configs" /
                         "cross_scene_select.yaml", help="the recipe (a deltar train config)")
     parser.add_argument("--out", type=Path, required=True, help="working folder")
-    parser.add_argument("--folds", nargs="+", choices=sorted(SCENES), default=list(SCENES),
-                        help="scenes to leave out (default: all four)")
+    parser.add_argument("--folds", nargs="+", choices=sorted(FOLDS), default=list(FOLDS),
+                        help="folds to run (default: all five)")
+    parser.add_argument("--conditions", nargs="+", choices=list(CONDITIONS),
+                        default=list(CONDITIONS), help="test conditions (default: all)")
     parser.add_argument("--steps", type=int, default=None,
                         help="override the recipe's trainer.max_steps")
     parser.add_argument("--extra-model", action="append", default=[], metavar="NAME_OR_PATH",
@@ -153,50 +187,58 @@ def main(argv: list[str] | None = None) -> int:
     template = yaml.safe_load(args.config.read_text())
     args.out.mkdir(parents=True, exist_ok=True)
 
-    summary: dict[str, dict] = {}
-    for scene in args.folds:
-        model, seconds = train_fold(args.out, template, scene, args.steps)
+    summary: dict[str, dict] = {"train_seconds": {}}
+    scenes = [scene for fold in args.folds for scene in FOLDS[fold]]
+    for fold in args.folds:
+        model, seconds = train_fold(args.out, template, fold, args.steps)
+        summary["train_seconds"][fold] = seconds
         # "trained" is the estimator as users run it (for the plane-select recipe: the
         # network blended with the colorization fill where it is unsure); "network" is the
         # network's own depth (the estimator without the blend).
         models = {"trained": str(model), "network": f"{model}+network"}
         models.update({f"extra:{name}": name for name in args.extra_model})
-        summary[scene] = {"train_seconds": seconds}
-        for degraded in (False, True):
-            tag = scene + ("-degraded" if degraded else "")
-            rows = evaluate(args.out, test_set(args.out, scene, degraded), models, tag)
-            summary[scene]["degraded" if degraded else "clean"] = rows
+        for scene in FOLDS[fold]:
+            summary[scene] = {}
+            for condition in args.conditions:
+                index = test_set(args.out, scene, condition)
+                if condition == "noflags" and "clean" in summary[scene] and \
+                        not has_no_target_flags(test_set(args.out, scene, "clean")):
+                    # No zone of the scene reports no target: the same set as clean.
+                    summary[scene][condition] = summary[scene]["clean"]
+                    continue
+                tag = scene if condition == "clean" else f"{scene}-{condition}"
+                summary[scene][condition] = evaluate(args.out, index, models, tag)
 
     report = []
-    for condition in ("clean", "degraded"):
+    for condition in args.conditions:
         mean_rows: dict[str, dict[str, float]] = {}
-        for scene in args.folds:
+        for scene in scenes:
             rows = summary[scene][condition]
             report.append(table(f"\n[{condition}] left out: {scene}", rows))
             for name, metrics in rows.items():
                 for metric in METRICS:
                     mean_rows.setdefault(name, {}).setdefault(metric, 0.0)
-                    mean_rows[name][metric] += metrics[metric] / len(args.folds)
-        report.append(table(f"\n[{condition}] mean over folds {args.folds}", mean_rows))
+                    mean_rows[name][metric] += metrics[metric] / len(scenes)
+        report.append(table(f"\n[{condition}] mean over scenes {scenes}", mean_rows))
         for label, group in (("the best classical baseline", BASELINES),
                              ("the best +far baseline", FAR_BASELINES)):
             for row in ("trained", "network"):
                 report.append(_comparison(label, group,
-                                          [summary[s][condition] for s in args.folds],
+                                          [summary[s][condition] for s in scenes],
                                           mean_rows, row))
         summary[f"mean_{condition}"] = mean_rows
     text = "\n".join(report)
     print(text)
     (args.out / "summary.txt").write_text(text + "\n")
-    (args.out / "summary.md").write_text(markdown(summary, args.folds) + "\n")
+    (args.out / "summary.md").write_text(markdown(summary, scenes, args.conditions) + "\n")
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return 0
 
 
-def markdown(summary: dict, folds: list[str]) -> str:
-    """Markdown tables, one per condition: a row per method, d1 / REL / RMSE per fold."""
+def markdown(summary: dict, folds: list[str], conditions: list[str]) -> str:
+    """Markdown tables, one per condition: a row per method, d1 / REL / RMSE per scene."""
     out = []
-    for condition in ("clean", "degraded"):
+    for condition in conditions:
         names = list(summary[f"mean_{condition}"])
         header = " | ".join(f"{scene} d1 / REL / RMSE" for scene in folds)
         out += [f"{condition}:", "", f"| method | {header} | mean d1 / REL / RMSE |",
@@ -213,15 +255,21 @@ def markdown(summary: dict, folds: list[str]) -> str:
 
 def _comparison(label: str, group: tuple[str, ...], folds: list[dict], mean_rows: dict,
                 row: str = "trained") -> str:
-    """One line: the ``row`` method's REL and RMSE gain over the best of ``group``."""
+    """One line: the ``row`` method's REL and RMSE gain over the best of ``group``.
+
+    Per scene against that scene's best; on the means against the best of the group's
+    rows of the mean over scenes, and the count of scenes better in both.
+    """
     gains: dict[str, list[float]] = {"rel": [], "rmse": []}
     for rows in folds:
         for key in gains:
             gains[key].append(1.0 - rows[row][key] / min(rows[b][key] for b in group))
     best = {k: min(mean_rows[b][k] for b in group) for k in gains}
-    return (f"{row} vs {label} (+ = {row} better), per fold: REL {_percent(gains['rel'])}, "
-            f"RMSE {_percent(gains['rmse'])}; on the fold means: REL "
-            f"{100 * (1 - mean_rows[row]['rel'] / best['rel']):+.1f}%, RMSE "
+    both = sum(rel > 0 and rmse > 0
+               for rel, rmse in zip(gains["rel"], gains["rmse"], strict=True))
+    return (f"{row} vs {label} (+ = {row} better), per scene: REL {_percent(gains['rel'])}, "
+            f"RMSE {_percent(gains['rmse'])}; better in both on {both} of {len(folds)}; on "
+            f"the means: REL {100 * (1 - mean_rows[row]['rel'] / best['rel']):+.1f}%, RMSE "
             f"{100 * (1 - mean_rows[row]['rmse'] / best['rmse']):+.1f}%")
 
 

@@ -162,3 +162,18 @@ def test_sidecar_intrinsics_for_a_tum_folder_with_other_subfolders(tmp_path, rng
         frame = open_rgbd(tmp_path)[0]
     assert frame.intrinsics == CameraIntrinsics(7.0, 7.0, 3.5, 2.5, 8, 6)
     np.testing.assert_allclose(frame.depth_m, 2.0)  # associations only: millimetres
+
+
+def test_per_frame_intrinsics_folder(shared_data):
+    """arc_totes: three cameras in one folder, each frame with its intrinsics/<stem>.txt."""
+    folder = shared_data / "arc_totes"
+    reader = open_rgbd(folder)
+    for index in range(len(reader)):
+        frame = reader[index]
+        expected = np.loadtxt(folder / "intrinsics" / f"{frame.name}.txt")
+        assert (frame.intrinsics.fx, frame.intrinsics.cy) == pytest.approx(
+            (expected[0, 0], expected[1, 2]))
+    assert len({reader[i].intrinsics.cy for i in range(len(reader))}) > 1
+    # Intrinsics given by the caller win over the per-frame files.
+    given = CameraIntrinsics(600.0, 600.0, 320.0, 240.0, width=640, height=480)
+    assert open_rgbd(folder, intrinsics=given)[1].intrinsics == given

@@ -75,6 +75,10 @@ def simulate_command(
                                         "(implies --cnh)."),
     cnh_range: str | None = typer.Option(None, "--cnh-range", help="CNH range 'NEAR:FAR' "
                                          "in metres (implies --cnh)."),
+    no_target_flags: bool = typer.Option(True, "--no-target-flags/--without-no-target-flags",
+                                         help="Write the zones that reported no target "
+                                         "(ST status 255); without: those zones are just "
+                                         "invalid, as the released ZJU-L5 files store them."),
 ) -> None:
     """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set.
 
@@ -129,6 +133,7 @@ def simulate_command(
         index, valid_counts = simulate_set(source, out, indices, grid=grid, layout=layout,
                                            degrade=degrade, seed=seed, cnh_config=cnh_config,
                                            scene=scene, split=split,
+                                           no_target_flags=no_target_flags,
                                            on_frame=progress.advance)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")

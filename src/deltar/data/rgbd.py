@@ -200,6 +200,8 @@ class RGBDReader(Sequence):
 
     Attributes:
         intrinsics: camera intrinsics shared by all frames (set by subclasses).
+        frame_intrinsics: per-frame intrinsics by frame name, for the frames whose own
+            differ from ``intrinsics`` (several cameras in one folder).
     """
 
     def __init__(self, pairs: list[tuple[str, Path, Path, float | None]], depth_scale: float,
@@ -212,6 +214,7 @@ class RGBDReader(Sequence):
         self.depth_scale = float(depth_scale)
         self._pairs = pairs
         self.intrinsics: CameraIntrinsics  # set by subclasses
+        self.frame_intrinsics: dict[str, CameraIntrinsics] = {}
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -235,7 +238,7 @@ class RGBDReader(Sequence):
         if depth.shape != image.shape[:2]:
             raise ValueError(f"colour {color_path} is {image.shape[:2]} but depth {depth_path} "
                              f"is {depth.shape}; they must be registered at the same size")
-        intr = self.intrinsics
+        intr = self.frame_intrinsics.get(name, self.intrinsics)
         if (intr.height, intr.width) != image.shape[:2]:
             raise ValueError(f"colour image {color_path} is {image.shape[:2]}, unlike the "
                              f"dataset's {intr.height}x{intr.width}")
@@ -388,6 +391,9 @@ class FolderReader(RGBDReader):
         intrinsics: camera intrinsics of the colour images.
         color_dir: colour sub-folder name.
         depth_dir: depth sub-folder name.
+        intrinsics_dir: optional sub-folder of per-frame 3x3 camera matrices
+            (``<stem>.txt``, as ``camera-intrinsics.txt``); a frame with such a file uses
+            it instead of ``intrinsics``.
 
     Raises:
         FileNotFoundError: a sub-folder is missing.
@@ -396,7 +402,7 @@ class FolderReader(RGBDReader):
 
     def __init__(self, folder: str | Path, depth_scale: float,
                  intrinsics: CameraIntrinsics, color_dir: str = "color",
-                 depth_dir: str = "depth") -> None:
+                 depth_dir: str = "depth", intrinsics_dir: str | None = None) -> None:
         root = Path(folder)
         color_root, depth_root = root / color_dir, root / depth_dir
         for sub in (color_root, depth_root):
@@ -408,6 +414,11 @@ class FolderReader(RGBDReader):
         super().__init__(pairs, depth_scale, root)
         height, width = self.image_size
         self.intrinsics = _check_intrinsics(intrinsics, height, width, str(root))
+        if intrinsics_dir is not None:
+            for stem, _, _, _ in pairs:
+                k_file = root / intrinsics_dir / f"{stem}.txt"
+                if k_file.is_file():
+                    self.frame_intrinsics[stem] = read_intrinsics_matrix(k_file, height, width)
 
 
 # ---------------------------------------------------------------------- detection
@@ -461,7 +472,8 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
       recording in millimetres (1000). Intrinsics: Kinect defaults with a warning.
     - ``folder`` (``color/`` + ``depth/``): millimetres; intrinsics from
       ``camera-intrinsics.txt`` in the folder if present, else Kinect defaults with a
-      warning.
+      warning; a frame with its own ``intrinsics/<stem>.txt`` uses that one (unless
+      intrinsics are given).
 
     Args:
         path: dataset folder.
@@ -493,6 +505,8 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
             benchmark = (root / "rgb.txt").is_file() and (root / "depth.txt").is_file()
             depth_scale = 5000.0 if benchmark else 1000.0
         return TUMReader(root, depth_scale, intrinsics)
+    # Per-frame matrices (intrinsics/<stem>.txt) apply unless intrinsics were given.
+    frame_dir = "intrinsics" if intrinsics is None and (root / "intrinsics").is_dir() else None
     if intrinsics is None:
         height, width = _first_color_size(root, layout)
         k_file = root / "camera-intrinsics.txt"
@@ -502,7 +516,8 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
             warnings.warn(f"no intrinsics given for {root}; assuming the Kinect default "
                           "(fx = fy = 525 px at 640x480)", stacklevel=2)
             intrinsics = default_intrinsics(height, width)
-    return FolderReader(root, 1000.0 if depth_scale is None else depth_scale, intrinsics)
+    return FolderReader(root, 1000.0 if depth_scale is None else depth_scale, intrinsics,
+                        intrinsics_dir=frame_dir)
 
 
 def _first_color_size(root: Path, layout: str) -> tuple[int, int]:

@@ -249,7 +249,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
                  grid: int = 8, layout: str = "calibrated",
                  degrade: SignalAugmentation | None = None, seed: int = 0,
                  cnh_config=None, scene: str = "scene", split: str = "test",
-                 on_frame=None):
+                 no_target_flags: bool = True, on_frame=None):
     """Simulate L5 readings for RGB-D frames and write them as a ZJU-L5-layout set.
 
     Args:
@@ -267,6 +267,9 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
             compact normalised histograms.
         scene: prefix of the sample names (``scene/frame``).
         split: split name written to ``data.json``.
+        no_target_flags: write the zones that reported no target (``zone_no_target``);
+            ``False`` writes none, as the released ZJU-L5 files store none (those zones
+            are then just invalid).
         on_frame: optional callable called after each frame (progress).
 
     Returns:
@@ -314,7 +317,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         return ZJUL5Sample(rgb=frame.image, depth_m=frame.depth_m,
                            zone_mean_sigma=zones.mean_sigma(), zone_rects=rects,
                            zone_valid=zones.valid.reshape(-1),
-                           zone_no_target=zones.flat_no_target(),
+                           zone_no_target=zones.flat_no_target() if no_target_flags else None,
                            name=f"{scene}/{frame.name}".replace("\\", "/"),
                            intrinsics=frame.intrinsics, **histogram)
 
