@@ -74,6 +74,8 @@ BASELINES = ("median", "nearest", "bilinear", "bicubic", "guided_filter", "joint
 #: what a classical method gains from that flag alone.
 FAR_BASELINES = tuple(name + "+far" for name in BASELINES)
 METRICS = ("d1", "rel", "rmse", "log10")
+#: Uncertainty coverage of the model rows (fractions within one and two sigma).
+COVERAGE = ("within_1sigma", "within_2sigma")
 
 
 def deltar(*args: str) -> None:
@@ -139,34 +141,75 @@ def train_fold(out: Path, template: dict, fold: str, steps: int | None) -> tuple
     return model, time.monotonic() - started
 
 
-def evaluate(out: Path, index: Path, models: dict[str, str], tag: str) -> dict[str, dict]:
-    """``deltar evaluate`` of every baseline and model on one set; {method: metrics}."""
-    result = out / "metrics" / f"{tag}.json"
-    wanted = set(BASELINES + FAR_BASELINES) | {f"model:{path}" for path in models.values()}
-    # Metrics kept from an earlier run count only if they hold every method asked for now
-    # (a folder from before the "network" row, say, is evaluated again).
+def _evaluated(result: Path, args: list[str], wanted: set[str]) -> dict[str, dict]:
+    """Metrics in ``result``, running ``deltar evaluate ARGS --json result`` unless it
+    already holds every method of ``wanted`` (then it is kept: the protocol resumes)."""
     stale = result.is_file() and not wanted <= set(json.loads(result.read_text()))
     if not result.is_file() or stale:
         result.parent.mkdir(parents=True, exist_ok=True)
-        args = ["evaluate", "--data", str(index), "--json", str(result),
-                "--method", ",".join(BASELINES + FAR_BASELINES)]
-        for path in models.values():
-            args += ["--checkpoint", path]
-        deltar(*args, *(["--overwrite"] if stale else []))
-    renamed = {}
-    for name, metrics in json.loads(result.read_text()).items():
-        for label, path in models.items():
-            if name == f"model:{path}":
-                name = label
-        renamed[name] = metrics
-    return renamed
+        deltar(*args, "--json", str(result), *(["--overwrite"] if stale else []))
+    return json.loads(result.read_text())
+
+
+def evaluate(out: Path, index: Path, models: dict[str, str], tag: str) -> dict[str, dict]:
+    """``deltar evaluate`` of every baseline and model on one set; {method: metrics}.
+
+    Baselines and models are kept in two files, so a changed model re-runs only itself.
+    """
+    methods = BASELINES + FAR_BASELINES
+    rows = _evaluated(out / "metrics" / f"{tag}.json",
+                      ["evaluate", "--data", str(index), "--method", ",".join(methods)],
+                      set(methods))
+    rows = {name: rows[name] for name in methods}
+    wanted = {f"model:{path}" for path in models.values()}
+    args = ["evaluate", "--data", str(index)]
+    for path in models.values():
+        args += ["--checkpoint", path]
+    found = _evaluated(out / "metrics" / f"{tag}.models.json", args, wanted)
+    for label, path in models.items():
+        rows[label] = found[f"model:{path}"]
+    return rows
+
+
+def calibration_set(out: Path, scene: str, condition: str, frames: int = 6) -> Path:
+    """A few frames of a training scene (clean or degraded), made once: what a fold's
+    uncertainty calibration is fitted on (the fold's own training scenes only)."""
+    from deltar.data.rgbd import open_rgbd
+
+    folder, intrinsics, _ = SCENES[scene]
+    target = out / "calibration-sets" / (scene if condition == "clean"
+                                         else f"{scene}-{condition}")
+    index = target / "data.json"
+    if not index.is_file():
+        step = max(1, len(open_rgbd(DATA / folder).names) // frames)
+        args = ["simulate", str(DATA / folder), str(target), "--step", str(step),
+                "--limit", str(frames)]
+        if intrinsics:
+            args += ["--intrinsics", intrinsics]
+        deltar(*args, *CONDITIONS[condition])
+    return index
+
+
+def calibrate_fold(out: Path, fold: str, model: Path) -> Path:
+    """The fold's model with its sigma calibrated on its training scenes (made once)."""
+    calibrated = model.with_name("model-calibrated.pt")
+    if not calibrated.is_file():
+        args = ["fit-uncertainty", str(model), "--out", str(calibrated)]
+        for scene in SCENES:
+            if scene not in FOLDS[fold]:
+                for condition in ("clean", "degraded"):
+                    args += ["--data", str(calibration_set(out, scene, condition))]
+        deltar(*args)
+    return calibrated
 
 
 def table(title: str, rows: dict[str, dict]) -> str:
     """A plain-text table of d1 / REL / RMSE / log10, one row per method."""
-    lines = [title, f"{'method':<18}" + "".join(f"{m:>9}" for m in METRICS)]
+    columns = METRICS + COVERAGE
+    lines = [title, f"{'method':<18}" + "".join(f"{m[:9]:>10}" for m in columns)]
     for name, metrics in rows.items():
-        lines.append(f"{name:<18}" + "".join(f"{metrics[m]:>9.3f}" for m in METRICS))
+        lines.append(f"{name:<18}" + "".join(f"{metrics[m]:>10.3f}" if m in metrics else
+                                             f"{'-':>10}" for m in columns))
     return "\n".join(lines)
 
 
@@ -192,6 +235,9 @@ def main(argv: list[str] | None = None) -> int:
     for fold in args.folds:
         model, seconds = train_fold(args.out, template, fold, args.steps)
         summary["train_seconds"][fold] = seconds
+        # Same weights, sigma calibrated on the fold's training scenes: the depth metrics
+        # are the model's, the coverage ones the calibration's.
+        model = calibrate_fold(args.out, fold, model)
         # "trained" is the estimator as users run it (for the plane-select recipe: the
         # network blended with the colorization fill where it is unsure); "network" is the
         # network's own depth (the estimator without the blend).
@@ -216,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
             rows = summary[scene][condition]
             report.append(table(f"\n[{condition}] left out: {scene}", rows))
             for name, metrics in rows.items():
-                for metric in METRICS:
+                for metric in (m for m in METRICS + COVERAGE if m in metrics):
                     mean_rows.setdefault(name, {}).setdefault(metric, 0.0)
                     mean_rows[name][metric] += metrics[metric] / len(scenes)
         report.append(table(f"\n[{condition}] mean over scenes {scenes}", mean_rows))
@@ -235,20 +281,34 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def markdown(summary: dict, folds: list[str], conditions: list[str]) -> str:
-    """Markdown tables, one per condition: a row per method, d1 / REL / RMSE per scene."""
+def markdown(summary: dict, scenes: list[str], conditions: list[str]) -> str:
+    """Markdown tables, one per condition: a row per scene and the mean over scenes;
+    the best classical and ``+far`` baselines (REL / RMSE, which), the model rows
+    (d1 / REL / RMSE) and the calibrated sigma's coverage (within one / two sigma)."""
     out = []
+
+    def best(rows: dict, group: tuple[str, ...], key: str) -> str:
+        name = min(group, key=lambda b: rows[b][key])
+        return f"{rows[name][key]:.3f} ({name})"
+
+    def cells(rows: dict, name: str) -> str:
+        m = rows[name]
+        return f"{m['d1']:.3f} / {m['rel']:.3f} / {m['rmse']:.3f}"
+
     for condition in conditions:
-        names = list(summary[f"mean_{condition}"])
-        header = " | ".join(f"{scene} d1 / REL / RMSE" for scene in folds)
-        out += [f"{condition}:", "", f"| method | {header} | mean d1 / REL / RMSE |",
-                "|---" * (len(folds) + 2) + "|"]
-        for name in names:
-            cells = [summary[scene][condition].get(name) for scene in folds]
-            cells.append(summary[f"mean_{condition}"][name])
-            text = " | ".join("-" if c is None else
-                              f"{c['d1']:.3f} / {c['rel']:.3f} / {c['rmse']:.3f}" for c in cells)
-            out.append(f"| {name} | {text} |")
+        out += [f"{condition}:", "", "| scene | best classical REL | best classical RMSE | "
+                "best +far REL | best +far RMSE | trained d1 / REL / RMSE | network d1 / "
+                "REL / RMSE | trained within 1 / 2 sigma |", "|---" * 8 + "|"]
+        for scene in [*scenes, "mean"]:
+            rows = summary[f"mean_{condition}"] if scene == "mean" else \
+                summary[scene][condition]
+            cover = rows["trained"]
+            coverage = (f"{cover['within_1sigma']:.3f} / {cover['within_2sigma']:.3f}"
+                        if "within_1sigma" in cover else "-")
+            out.append(f"| {scene} | {best(rows, BASELINES, 'rel')} | "
+                       f"{best(rows, BASELINES, 'rmse')} | {best(rows, FAR_BASELINES, 'rel')} "
+                       f"| {best(rows, FAR_BASELINES, 'rmse')} | {cells(rows, 'trained')} | "
+                       f"{cells(rows, 'network')} | {coverage} |")
         out.append("")
     return "\n".join(out)
 

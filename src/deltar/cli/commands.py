@@ -40,4 +40,5 @@ COMMANDS: tuple[tuple[str, Callable[..., None]], ...] = (
     ("export", export.export_command),
     ("simulate", simulate.simulate_command),
     ("train", train.train_command),
+    ("fit-uncertainty", train.fit_uncertainty_command),
 )

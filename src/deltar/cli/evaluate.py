@@ -18,6 +18,10 @@ _TABLE_COLUMNS = (("d1", "δ1 ↑", True), ("d2", "δ2 ↑", True), ("d3", "δ3 
                   ("log10", "log10 ↓", False))
 
 
+#: Columns of methods that give a per-pixel sigma (a calibrated Gaussian: 0.683, 0.954).
+_COVERAGE_COLUMNS = (("within_1sigma", "≤1σ"), ("within_2sigma", "≤2σ"))
+
+
 def _metrics_table(result, title: str):
     """Rich table of the methods side by side, best value per column in bold."""
     from rich.markup import escape
@@ -26,6 +30,10 @@ def _metrics_table(result, title: str):
     table = Table(title=title)
     table.add_column("method")
     for _, header, _ in _TABLE_COLUMNS:
+        table.add_column(header, justify="right")
+    coverage = [(key, header) for key, header in _COVERAGE_COLUMNS
+                if any(key in m for m in result.metrics.values())]
+    for _, header in coverage:
         table.add_column(header, justify="right")
     table.add_column("s/frame", justify="right")
     best = {}
@@ -37,6 +45,7 @@ def _metrics_table(result, title: str):
         for key, _, _ in _TABLE_COLUMNS:
             text = f"{metrics[key]:.3f}"
             cells.append(f"[bold]{text}[/bold]" if metrics[key] == best[key] else text)
+        cells += [f"{metrics[key]:.3f}" if key in metrics else "-" for key, _ in coverage]
         table.add_row(escape(name), *cells, f"{result.seconds_per_frame[name]:.3f}")
     return table
 

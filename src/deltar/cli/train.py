@@ -45,3 +45,51 @@ def train_command(
     # Missing data / weights or an occupied run folder reach the user as one error line.
     folder = train(cfg, run_dir, resume=resume is not None)
     typer.echo(f"run folder: {folder}")
+
+
+def fit_uncertainty_command(
+    checkpoint: str = typer.Argument(..., help="A deltar checkpoint file, or a bundled "
+                                     "name ('default')."),
+    data: list[Path] = typer.Option(..., "--data", help="A set with ground truth "
+                                    "(data.json of a ZJU-L5-layout set, e.g. from deltar "
+                                    "simulate) of the model's TRAINING scenes (repeatable)."),
+    out: Path = typer.Option(..., "--out", help="The calibrated checkpoint to write (a new "
+                             "file)."),
+    frames_per_set: int | None = typer.Option(None, "--frames-per-set", min=1,
+                                              help="At most this many frames of each set, "
+                                              "spread evenly (default: all)."),
+    pixels_per_frame: int = typer.Option(4000, "--pixels-per-frame", min=100,
+                                         help="Random pixels with ground truth per frame."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
+) -> None:
+    """Calibrate a model's per-pixel sigma on frames with ground truth.
+
+    Fits how the estimator turns the network's spread into a sigma that holds 68% of
+    the errors within one sigma and 95% within two (inside and beyond the zone grid),
+    and writes the checkpoint with that calibration; deltar predict and the estimator
+    then return the calibrated sigma.
+    """
+    from deltar.cli.checks import output_file
+    from deltar.cli.progress import ProgressReport
+    from deltar.data.zone_sets import open_zone_set
+    from deltar.training.uncertainty import fit_checkpoint_uncertainty
+
+    output_file(out, "--out", overwrite)
+    try:
+        sets = [open_zone_set(path) for path in data]
+    except (FileNotFoundError, ValueError) as err:
+        raise typer.BadParameter(str(err), param_hint="--data") from err
+    total = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
+                for s in sets)
+    with ProgressReport("fitting uncertainty", total=total) as progress:
+        fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
+                                         pixels_per_frame=pixels_per_frame,
+                                         overwrite=overwrite, on_frame=progress.advance)
+    for name in ("inside", "outside"):
+        region = getattr(fit.calibration, name)
+        raw, new = fit.raw_coverage[name], fit.coverage[name]
+        typer.echo(f"{name} the zone grid ({fit.pixels[name]} pixels): sigma^2 = "
+                   f"({region.spread:.3f} spread)^2 + ({region.floor:.4f} depth)^2 + "
+                   f"({region.disagreement:.3f} |blend move|)^2; within 1/2 sigma "
+                   f"{raw[0]:.1%} / {raw[1]:.1%} raw -> {new[0]:.1%} / {new[1]:.1%}")
+    typer.echo(f"wrote {fit.path} ({fit.frames} frames)")

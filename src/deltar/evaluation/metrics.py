@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -28,6 +28,10 @@ import numpy as np
 METRIC_KEYS: tuple[str, ...] = (
     "d1", "d2", "d3", "rel", "sq_rel", "rmse", "rmse_log", "log10", "silog",
 )
+
+#: Uncertainty metrics of methods that also give a per-pixel sigma
+#: (:func:`coverage_metrics`; a calibrated Gaussian sigma gives 0.683 and 0.954).
+COVERAGE_KEYS: tuple[str, ...] = ("within_1sigma", "within_2sigma")
 
 #: Metrics where higher is better (all others: lower is better).
 HIGHER_IS_BETTER: frozenset[str] = frozenset({"d1", "d2", "d3"})
@@ -106,6 +110,38 @@ def depth_metrics(
     }
 
 
+def coverage_metrics(pred_m: np.ndarray, sigma_m: np.ndarray, gt_m: np.ndarray,
+                     min_depth: float = 1e-3, max_depth: float = 10.0) -> dict[str, float]:
+    """Fractions of a frame's pixels whose error lies within one and two sigma.
+
+    Args:
+        pred_m: predicted depth in metres, e.g. (H, W).
+        sigma_m: its per-pixel standard deviation in metres, same shape.
+        gt_m: ground-truth depth in metres, same shape; pixels count as in
+            :func:`depth_metrics` (ground truth inside the range).
+        min_depth, max_depth: ground-truth range in metres.
+
+    Returns:
+        Dict with the keys of :data:`COVERAGE_KEYS`.
+
+    Raises:
+        ValueError: shapes differ or inputs contain NaN / inf.
+        EmptyFrameError: no pixel has ground truth inside the range.
+    """
+    pred = _as_float_array(pred_m, "pred_m")
+    sigma = _as_float_array(sigma_m, "sigma_m")
+    gt = _as_float_array(gt_m, "gt_m")
+    if not pred.shape == sigma.shape == gt.shape:
+        raise ValueError(f"pred_m, sigma_m and gt_m must have one shape, got {pred.shape}, "
+                         f"{sigma.shape} and {gt.shape}")
+    valid = (gt > min_depth) & (gt < max_depth)
+    if not np.any(valid):
+        raise EmptyFrameError(f"no ground-truth pixel inside ({min_depth}, {max_depth}) m")
+    error = np.abs(pred[valid] - gt[valid])
+    return {"within_1sigma": float(np.mean(error <= sigma[valid])),
+            "within_2sigma": float(np.mean(error <= 2 * sigma[valid]))}
+
+
 class MetricAccumulator:
     """Averages per-frame metrics over frames (each frame weighs the same).
 
@@ -119,13 +155,16 @@ class MetricAccumulator:
         >>> acc.compute()  # doctest: +SKIP
     """
 
-    def __init__(self, min_depth: float = 1e-3, max_depth: float = 10.0) -> None:
+    def __init__(self, min_depth: float = 1e-3, max_depth: float = 10.0,
+                 keys: Sequence[str] = METRIC_KEYS) -> None:
         """Args:
             min_depth, max_depth: ground-truth range in metres, see :func:`depth_metrics`.
+            keys: the metrics averaged (:data:`METRIC_KEYS`, or :data:`COVERAGE_KEYS`).
         """
         self.min_depth = float(min_depth)
         self.max_depth = float(max_depth)
-        self._sums = dict.fromkeys(METRIC_KEYS, 0.0)
+        self.keys = tuple(keys)
+        self._sums = dict.fromkeys(self.keys, 0.0)
         self.count = 0
         self.skipped = 0
 
@@ -151,11 +190,11 @@ class MetricAccumulator:
         return frame
 
     def add(self, frame_metrics: Mapping[str, float]) -> None:
-        """Add metrics already computed for one frame (a dict with all :data:`METRIC_KEYS`)."""
-        missing = set(METRIC_KEYS) - set(frame_metrics)
+        """Add metrics already computed for one frame (a dict with all of ``keys``)."""
+        missing = set(self.keys) - set(frame_metrics)
         if missing:
             raise ValueError(f"frame_metrics is missing keys {sorted(missing)}")
-        values = {key: float(frame_metrics[key]) for key in METRIC_KEYS}
+        values = {key: float(frame_metrics[key]) for key in self.keys}
         bad = [key for key, value in values.items() if not math.isfinite(value)]
         if bad:
             raise ValueError(f"frame_metrics has non-finite values for {bad}")
@@ -172,4 +211,4 @@ class MetricAccumulator:
         if self.count == 0:
             raise ValueError(f"no frame with valid ground truth to average "
                              f"({self.skipped} skipped)")
-        return {key: self._sums[key] / self.count for key in METRIC_KEYS}
+        return {key: self._sums[key] / self.count for key in self.keys}

@@ -18,13 +18,11 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from deltar.evaluation.runner import register_method_family
 
 if TYPE_CHECKING:
     from deltar.data.zju_l5 import ZJUL5Sample
-    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.estimator import DepthEstimator, DepthPrediction
 
 
 class EstimatorPredictor:
@@ -38,17 +36,16 @@ class EstimatorPredictor:
     def __init__(self, estimator: DepthEstimator) -> None:
         self.estimator = estimator
 
-    def __call__(self, sample: ZJUL5Sample) -> np.ndarray:
-        """(H, W) float32 depth in metres for one ZJU-L5 sample.
+    def __call__(self, sample: ZJUL5Sample) -> DepthPrediction:
+        """The estimator's prediction (depth and sigma, (H, W) metres) for one sample.
 
         Hypotheses come from the sample's histogram when it has one (histogram
         sensors, e.g. THDR3K), else from each zone's mean and sigma. Zones flagged valid
         but reporting no distance (mean <= 0) are treated as invalid, as the classical
         baselines treat them.
         """
-        prediction = self.estimator.predict(sample.rgb, sample.zone_frame(),
-                                            zone_rects=sample.zone_rects)
-        return prediction.depth_m
+        return self.estimator.predict(sample.rgb, sample.zone_frame(),
+                                      zone_rects=sample.zone_rects)
 
 
 #: Method-name suffix asking for test-time flip averaging.

@@ -19,7 +19,13 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from deltar.evaluation.baselines import BASELINES, run_baseline
-from deltar.evaluation.metrics import EmptyFrameError, MetricAccumulator, depth_metrics
+from deltar.evaluation.metrics import (
+    COVERAGE_KEYS,
+    EmptyFrameError,
+    MetricAccumulator,
+    coverage_metrics,
+    depth_metrics,
+)
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M, no_target_as_readings
 
 if TYPE_CHECKING:
@@ -27,7 +33,13 @@ if TYPE_CHECKING:
 
 
 class Predictor(Protocol):
-    """A depth method: one sample in, one (H, W) float depth map in metres out."""
+    """A depth method: one sample in, one (H, W) float depth map in metres out.
+
+    A method that also gives a per-pixel sigma returns an object with ``depth_m`` and
+    ``uncertainty_m`` ((H, W) metres, e.g. a
+    :class:`~deltar.inference.estimator.DepthPrediction`) instead; its sigma is then
+    scored too (:func:`~deltar.evaluation.metrics.coverage_metrics`).
+    """
 
     def __call__(self, sample: ZJUL5Sample) -> np.ndarray: ...
 
@@ -187,7 +199,8 @@ class EvaluationResult:
     """Outcome of :func:`evaluate_methods`.
 
     Attributes:
-        metrics: method name -> averaged metrics (keys of ``METRIC_KEYS``).
+        metrics: method name -> averaged metrics (keys of ``METRIC_KEYS``, and of
+            ``COVERAGE_KEYS`` for methods that give a sigma).
         frames: frames evaluated per method (frames with valid ground truth).
         skipped: frames skipped for lack of valid ground truth.
         seconds_per_frame: method name -> mean prediction time in seconds.
@@ -234,15 +247,20 @@ def evaluate_methods(
         raise ValueError(f"limit must be >= 1, got {limit}")
     count = len(samples) if limit is None else min(limit, len(samples))
     accumulators = {name: MetricAccumulator(min_depth, max_depth) for name in predictors}
+    coverages: dict[str, MetricAccumulator] = {}
     seconds = dict.fromkeys(predictors, 0.0)
     result = EvaluationResult()
     for index in range(count):
         sample = samples[index]
         predictions: dict[str, np.ndarray] = {}
+        sigmas: dict[str, np.ndarray] = {}
         for name, predictor in predictors.items():
             start = time.perf_counter()
-            depth = np.asarray(predictor(sample))
+            output = predictor(sample)
             seconds[name] += time.perf_counter() - start
+            if hasattr(output, "uncertainty_m"):
+                sigmas[name] = np.asarray(output.uncertainty_m)
+            depth = np.asarray(getattr(output, "depth_m", output))
             if depth.shape != sample.depth_m.shape:
                 raise ValueError(f"method {name!r} returned shape {depth.shape} for frame "
                                  f"{sample.name!r}, expected {sample.depth_m.shape}")
@@ -253,6 +271,9 @@ def evaluate_methods(
         try:
             frame_metrics = {name: depth_metrics(depth, sample.depth_m, min_depth, max_depth)
                              for name, depth in predictions.items()}
+            frame_coverage = {name: coverage_metrics(predictions[name], sigma, sample.depth_m,
+                                                     min_depth, max_depth)
+                              for name, sigma in sigmas.items()}
         except EmptyFrameError as err:
             warnings.warn(f"skipping frame {sample.name!r}: {err}", RuntimeWarning,
                           stacklevel=2)
@@ -260,6 +281,9 @@ def evaluate_methods(
         else:
             for name, values in frame_metrics.items():
                 accumulators[name].add(values)
+            for name, values in frame_coverage.items():
+                coverages.setdefault(name, MetricAccumulator(min_depth, max_depth,
+                                                             COVERAGE_KEYS)).add(values)
             result.frames += 1
         if on_frame is not None:
             on_frame(index, sample, predictions)
@@ -267,5 +291,7 @@ def evaluate_methods(
         raise ValueError(f"none of the {count} frames has ground truth inside "
                          f"({min_depth}, {max_depth}) m")
     result.metrics = {name: acc.compute() for name, acc in accumulators.items()}
+    for name, acc in coverages.items():
+        result.metrics[name].update(acc.compute())
     result.seconds_per_frame = {name: total / count for name, total in seconds.items()}
     return result

@@ -28,7 +28,12 @@ import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
-from deltar.inference.blend import ConfidenceBlend, blend_with_fill, start_blend_fill
+from deltar.inference.blend import (
+    ConfidenceBlend,
+    blend_with_fill,
+    start_blend_fill,
+    zone_grid_mask,
+)
 from deltar.inference.preprocess import (
     check_image,
     check_input_size,
@@ -37,6 +42,7 @@ from deltar.inference.preprocess import (
     resize_to_image,
     scale_rects,
 )
+from deltar.inference.uncertainty import UncertaintyCalibration
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
@@ -61,8 +67,12 @@ class DepthPrediction:
 
     Attributes:
         depth_m: (H, W) float32 depth in metres at the input image's resolution.
-        uncertainty_m: (H, W) float32 per-pixel standard deviation of the network's depth
-            distribution in metres (the network's also when ``depth_m`` is blended).
+        uncertainty_m: (H, W) float32 per-pixel standard deviation in metres: the
+            calibrated sigma of ``depth_m`` when ``uncertainty_calibrated``
+            (:mod:`deltar.inference.uncertainty`: fitted so that about 68 % of the
+            errors lie within one sigma and 95 % within two), else the spread of the
+            network's own depth distribution (the network's also when ``depth_m`` is
+            blended).
         zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
         zone_frame: the zone frame the prediction used.
         intrinsics: camera intrinsics of the input image (calibrated or nominal).
@@ -72,6 +82,7 @@ class DepthPrediction:
         network_depth_m: (H, W) float32 the network's own depth in metres when
             ``depth_m`` is its confidence blend with the colorization fill
             (:mod:`deltar.inference.blend`); None when ``depth_m`` is the network's.
+        uncertainty_calibrated: whether ``uncertainty_m`` is the calibrated sigma.
     """
 
     depth_m: np.ndarray
@@ -82,6 +93,7 @@ class DepthPrediction:
     zones_used: int | None = None
     network_size: tuple[int, int] | None = None
     network_depth_m: np.ndarray | None = None
+    uncertainty_calibrated: bool = False
 
     @property
     def blended(self) -> bool:
@@ -145,6 +157,12 @@ class DepthEstimator:
             "plane_select"``, e.g. the bundled ``default``), for which it was validated
             leave-one-scene-out, and not for others; a ``ConfidenceBlend`` always; None
             never (the network alone, fastest).
+        uncertainty: how ``uncertainty_m`` is computed
+            (:class:`~deltar.inference.uncertainty.UncertaintyCalibration`): ``"auto"``
+            (default) uses the calibration the weights carry
+            (``config["uncertainty_calibration"]``, fitted with ``deltar
+            fit-uncertainty``) and the network's raw spread when they carry none; a
+            calibration always; None the raw spread.
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -154,7 +172,8 @@ class DepthEstimator:
                  fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str | None = None,
                  weights: str = "unknown", fold_batch_norms: bool = True,
                  flip_average: bool = False, max_range_m: float | None = None,
-                 blend: ConfidenceBlend | str | None = "auto") -> None:
+                 blend: ConfidenceBlend | str | None = "auto",
+                 uncertainty: UncertaintyCalibration | str | None = "auto") -> None:
         import torch
 
         if (model is None) == (onnx_model is None):
@@ -214,6 +233,13 @@ class DepthEstimator:
         elif blend is not None and not isinstance(blend, ConfidenceBlend):
             raise ValueError(f"blend must be 'auto', a ConfidenceBlend or None, got {blend!r}")
         self.blend = blend
+        if uncertainty == "auto":
+            stored = contract.get("uncertainty_calibration")
+            uncertainty = None if stored is None else UncertaintyCalibration.from_dict(stored)
+        elif uncertainty is not None and not isinstance(uncertainty, UncertaintyCalibration):
+            raise ValueError(f"uncertainty must be 'auto', an UncertaintyCalibration or None, "
+                             f"got {uncertainty!r}")
+        self.uncertainty = uncertainty
         # No-target zones join the fill at the depth the network reads them at.
         far = contract.get("no_target_depth")
         self.no_target_depth_m = None if far is None else float(far)
@@ -499,17 +525,25 @@ class DepthEstimator:
             if frame.valid_count == 0:  # image-only: the metric scale is unknown
                 spread = np.maximum(spread, depth)
             network_depth = None
+            rects = inputs["image_rects"][i]
             fill = fills[i].result() if fills is not None else None
             if fill is not None:  # else no blend, or no valid zone (on the image) to fill from
                 network_depth = depth
-                depth = blend_with_fill(depth, spread, fill, inputs["image_rects"][i],
-                                        self.blend)
+                depth = blend_with_fill(depth, spread, fill, rects, self.blend)
+            if self.uncertainty is not None:
+                moved = (np.zeros_like(depth) if network_depth is None
+                         else np.abs(network_depth - depth))
+                calibrated = self.uncertainty.sigma(spread, depth, moved,
+                                                    zone_grid_mask(rects, depth.shape))
+                spread = calibrated if frame.valid_count else np.maximum(calibrated, depth)
             results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
                                            zone_rects=inputs["image_rects"][i],
                                            zone_frame=frame, intrinsics=intrinsics,
                                            zones_used=frame.valid_count,
                                            network_size=tuple(inputs["network_size"]),
-                                           network_depth_m=network_depth))
+                                           network_depth_m=network_depth,
+                                           uncertainty_calibrated=self.uncertainty
+                                           is not None))
         return results[0] if single else results
 
     def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray) -> Future:

@@ -104,6 +104,11 @@ class DeltarNet(nn.Module):
         no_target_depth: metres, the "plane_select" hypothesis of a zone that reported no
             target (beyond the sensor's range), when ``zone_no_target`` is given; None
             ignores the flags (checkpoints saved before them load that way).
+        uncertainty_calibration: output contract, recorded in :attr:`config` (read by the
+            estimator), does not change the network: how the estimator maps this
+            network's spread to a calibrated sigma
+            (:meth:`deltar.inference.uncertainty.UncertaintyCalibration.to_dict`), or
+            None (the spread is returned as it is).
     """
 
     def __init__(
@@ -133,6 +138,7 @@ class DeltarNet(nn.Module):
         select_temperature: float = 5.0,
         planar: bool = True,
         no_target_depth: float | None = NO_TARGET_DEPTH_M,
+        uncertainty_calibration: dict | None = None,
     ) -> None:
         super().__init__()
         _check_choice("head", head, tuple(HEADS))
@@ -179,6 +185,8 @@ class DeltarNet(nn.Module):
             "select_temperature": float(select_temperature),
             "planar": bool(planar),
             "no_target_depth": None if no_target_depth is None else float(no_target_depth),
+            "uncertainty_calibration": None if uncertainty_calibration is None
+            else dict(uncertainty_calibration),
         }
         self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth

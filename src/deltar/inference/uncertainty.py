@@ -1,0 +1,222 @@
+"""Calibrated uncertainty: a per-pixel sigma that means what a Gaussian sigma means.
+
+The network's spread (the standard deviation of the depth distribution its head puts
+on each pixel) ranks pixels by how sure the network is, but its scale is the head's own:
+on unseen rooms about half of the pixels fall within one spread of the truth, where a
+Gaussian's sigma holds 68 %. And once the estimator blends the network's depth with the
+colorization fill (:mod:`deltar.inference.blend`), the spread no longer describes the
+depth that is returned.
+
+:class:`UncertaintyCalibration` maps three per-pixel quantities to the sigma of the
+returned depth, separately inside the zone grid's bounding box and beyond it (where the
+depth is extrapolated):
+
+    sigma^2 = (a * spread)^2 + (b * depth)^2 + (c * |network depth - returned depth|)^2
+
+``spread`` is the network's, ``b * depth`` a relative floor (a zone reading is never
+better than a few percent), and the last term is how far the blend moved the pixel: the
+network and the fill disagree there, so neither is to be trusted fully. Every term is
+metric and scales with the readings, so sigma stays scale-equivariant like the depth.
+
+:func:`fit_uncertainty_calibration` chooses ``(a, b, c)`` per region from pixels of
+frames with ground truth (the training scenes' frames, never the test scenes'): for each
+shape ``(b / a, c / a)`` on a grid and each overall scale that puts 60-80 % of the
+absolute errors within one sigma, the pair whose one- and two-sigma coverages are
+nearest 68.3 % and 95.4 % (misses weighed by 1 / 5 % and 1 / 2.5 %). Depth errors are
+heavier-tailed than a Gaussian's, so no scale gives both exactly; the fit trades a few
+points at one sigma for the two-sigma tail.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Fraction of a Gaussian within one and two standard deviations.
+GAUSSIAN_WITHIN_1 = math.erf(1 / math.sqrt(2))
+GAUSSIAN_WITHIN_2 = math.erf(2 / math.sqrt(2))
+#: Ratios (b / a, c / a) tried by the fit (b: relative floor; c: blend disagreement).
+FLOOR_RATIOS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
+DISAGREEMENT_RATIOS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
+REGIONS = ("inside", "outside")
+
+
+@dataclass(frozen=True)
+class RegionCalibration:
+    """Coefficients of one region (see the module docstring); all >= 0, dimensionless."""
+
+    spread: float
+    floor: float
+    disagreement: float
+
+    def __post_init__(self) -> None:
+        for name in ("spread", "floor", "disagreement"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float))
+                                               and math.isfinite(value) and value >= 0):
+                raise ValueError(f"uncertainty calibration {name} must be a finite number "
+                                 f">= 0, got {value!r}")
+        if self.spread == self.floor == self.disagreement == 0:
+            raise ValueError("uncertainty calibration coefficients are all 0: sigma would be 0")
+
+
+@dataclass(frozen=True)
+class UncertaintyCalibration:
+    """Calibrated sigma inside and beyond the zone grid (module docstring).
+
+    Attributes:
+        inside: coefficients for pixels inside the zone grid's bounding box.
+        outside: coefficients for the pixels beyond it.
+    """
+
+    inside: RegionCalibration
+    outside: RegionCalibration
+
+    def sigma(self, spread_m: np.ndarray, depth_m: np.ndarray, moved_m: np.ndarray,
+              inside: np.ndarray) -> np.ndarray:
+        """(H, W) float32 calibrated sigma in metres.
+
+        Args:
+            spread_m: (H, W) the network's spread, metres.
+            depth_m: (H, W) the returned (possibly blended) depth, metres.
+            moved_m: (H, W) |network depth - returned depth|, metres (0 without a blend).
+            inside: (H, W) bool, True inside the zone grid's bounding box.
+        """
+        out = np.empty(np.shape(depth_m), dtype=np.float32)
+        for region, mask in ((self.inside, inside), (self.outside, ~inside)):
+            out[mask] = np.sqrt((region.spread * spread_m[mask]) ** 2
+                                + (region.floor * depth_m[mask]) ** 2
+                                + (region.disagreement * moved_m[mask]) ** 2)
+        return out
+
+    def to_dict(self) -> dict[str, dict[str, float]]:
+        """Plain floats, for a checkpoint's config or ONNX metadata (JSON)."""
+        return {name: {"spread": r.spread, "floor": r.floor, "disagreement": r.disagreement}
+                for name, r in (("inside", self.inside), ("outside", self.outside))}
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> UncertaintyCalibration:
+        """The inverse of :meth:`to_dict`.
+
+        Raises:
+            ValueError: missing regions or coefficients, or invalid values.
+        """
+        if not isinstance(data, Mapping) or set(data) != set(REGIONS):
+            raise ValueError(f"uncertainty calibration must have regions {list(REGIONS)}, "
+                             f"got {data!r}")
+        regions = {}
+        for name in REGIONS:
+            entry = data[name]
+            keys = ("spread", "floor", "disagreement")
+            if not isinstance(entry, Mapping) or set(entry) != set(keys):
+                raise ValueError(f"uncertainty calibration {name!r} needs keys {list(keys)}, "
+                                 f"got {entry!r}")
+            regions[name] = RegionCalibration(*(entry[key] for key in keys))
+        return cls(**regions)
+
+
+@dataclass
+class CalibrationPixels:
+    """Pixels of frames with ground truth, for :func:`fit_uncertainty_calibration`.
+
+    Every array is (N,) float64 (``inside`` bool): the absolute error of the returned
+    depth (metres), the network's spread (metres), the returned depth (metres), how far
+    the blend moved the pixel (metres) and whether it lies inside the zone grid.
+    """
+
+    error_m: np.ndarray
+    spread_m: np.ndarray
+    depth_m: np.ndarray
+    moved_m: np.ndarray
+    inside: np.ndarray
+
+
+def sample_pixels(error_m: np.ndarray, spread_m: np.ndarray, depth_m: np.ndarray,
+                  moved_m: np.ndarray, inside: np.ndarray, valid: np.ndarray,
+                  count: int, rng: np.random.Generator) -> CalibrationPixels:
+    """Up to ``count`` random valid pixels of one frame (every frame then weighs alike).
+
+    Args:
+        error_m, spread_m, depth_m, moved_m: (H, W) metres (see :class:`CalibrationPixels`).
+        inside: (H, W) bool zone-grid mask.
+        valid: (H, W) bool, pixels with ground truth.
+        count: pixels to keep (all valid ones when fewer).
+        rng: the random generator (fixed seed for a reproducible fit).
+    """
+    index = np.flatnonzero(valid)
+    if index.size > count:
+        index = rng.choice(index, size=count, replace=False)
+    return CalibrationPixels(*(np.asarray(a, dtype=np.float64).reshape(-1)[index]
+                               for a in (error_m, spread_m, depth_m, moved_m)),
+                             inside=np.asarray(inside, dtype=bool).reshape(-1)[index])
+
+
+def concatenate_pixels(parts: Sequence[CalibrationPixels]) -> CalibrationPixels:
+    """One :class:`CalibrationPixels` of several frames' samples."""
+    if not parts:
+        raise ValueError("no calibration pixels")
+    return CalibrationPixels(*(np.concatenate([getattr(p, name) for p in parts])
+                               for name in ("error_m", "spread_m", "depth_m", "moved_m",
+                                            "inside")))
+
+
+def coverage(error_m: np.ndarray, sigma_m: np.ndarray) -> tuple[float, float]:
+    """Fractions of pixels with |error| <= sigma and <= 2 sigma (arrays of one shape)."""
+    error, sigma = np.abs(np.asarray(error_m)), np.asarray(sigma_m)
+    return float(np.mean(error <= sigma)), float(np.mean(error <= 2 * sigma))
+
+
+#: Coverage targets and tolerances of the fit: the scale and shape minimise the squared
+#: misses of 68.3 % (within one sigma, weighed by 1 / 5 %) and 95.4 % (two, 1 / 2.5 %).
+_TARGETS = ((1.0, GAUSSIAN_WITHIN_1, 0.05), (2.0, GAUSSIAN_WITHIN_2, 0.025))
+#: One-sigma coverages the scale search tries (errors are heavier-tailed than a
+#: Gaussian, so the best compromise usually covers a little more than 68.3 % at 1 sigma).
+_LEVELS = np.linspace(0.60, 0.80, 81)
+
+
+def _fit_region(pixels: CalibrationPixels, mask: np.ndarray, min_pixels: int
+                ) -> RegionCalibration:
+    error = pixels.error_m[mask]
+    if error.size < min_pixels:
+        raise ValueError(f"{error.size} calibration pixels in a region, need at least "
+                         f"{min_pixels}: give more frames with ground truth")
+    spread, depth, moved = (getattr(pixels, n)[mask] for n in ("spread_m", "depth_m",
+                                                                "moved_m"))
+    best: tuple[float, RegionCalibration] | None = None
+    for floor in FLOOR_RATIOS:
+        for disagreement in DISAGREEMENT_RATIOS:
+            shape = np.sqrt(spread**2 + (floor * depth) ** 2 + (disagreement * moved) ** 2)
+            if not np.all(shape > 0):
+                continue  # a pixel the shape gives no sigma cannot be covered
+            ratio = np.sort(error / shape)
+            for level in _LEVELS:
+                scale = float(ratio[min(int(level * ratio.size), ratio.size - 1)])
+                if not (math.isfinite(scale) and scale > 0):
+                    continue
+                miss = sum(((np.searchsorted(ratio, k * scale, side="right") / ratio.size
+                             - target) / tolerance) ** 2
+                           for k, target, tolerance in _TARGETS)
+                if best is None or miss < best[0]:
+                    best = (miss, RegionCalibration(scale, scale * floor,
+                                                    scale * disagreement))
+    if best is None:
+        raise ValueError("no calibration fits these pixels (every error or spread is 0)")
+    return best[1]
+
+
+def fit_uncertainty_calibration(pixels: CalibrationPixels, min_pixels: int = 1000
+                                ) -> UncertaintyCalibration:
+    """Fit :class:`UncertaintyCalibration` to pixels with known error (module docstring).
+
+    Args:
+        pixels: pixels of frames with ground truth (training scenes only).
+        min_pixels: fewest pixels a region needs.
+
+    Raises:
+        ValueError: too few pixels in a region, or nothing to fit.
+    """
+    return UncertaintyCalibration(inside=_fit_region(pixels, pixels.inside, min_pixels),
+                                  outside=_fit_region(pixels, ~pixels.inside, min_pixels))
