@@ -54,7 +54,8 @@ def test_zones_that_see_past_the_range_are_written_as_no_target(shared_data, tmp
     # The office's window side lies beyond the L5's 4 m: those zones report no target,
     # in the clean set and, unchanged, in a degraded one (dropping acts on readings).
     sets = {}
-    for name, extra in (("clean", []), ("degraded", ["--drop-fraction", "0.5"])):
+    for name, extra in (("clean", []), ("degraded", ["--drop-fraction", "0.5"]),
+                        ("noflags", ["--without-no-target-flags"])):
         result = runner.invoke(app, ["simulate", str(shared_data / "realsense_office"),
                                      str(tmp_path / name), "--limit", "1",
                                      "--intrinsics", "615,615,320,240", *extra])
@@ -69,6 +70,10 @@ def test_zones_that_see_past_the_range_are_written_as_no_target(shared_data, tmp
         assert (depth > 4.0).sum() > ((depth > 0) & (depth <= 4.0)).sum()
     np.testing.assert_array_equal(sets["degraded"].zone_no_target, flags)
     assert sets["degraded"].zone_valid.sum() < sample.zone_valid.sum()
+    # As the released ZJU-L5 files store them: the same readings, no flags.
+    assert sets["noflags"].zone_no_target is None
+    np.testing.assert_array_equal(sets["noflags"].zone_valid, sample.zone_valid)
+    np.testing.assert_array_equal(sets["noflags"].zone_mean_sigma, sample.zone_mean_sigma)
 
 
 def test_refuses_non_empty_output_and_bad_options(tmp_path):

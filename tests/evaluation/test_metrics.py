@@ -9,9 +9,11 @@ import pytest
 import torch
 
 from deltar.evaluation.metrics import (
+    COVERAGE_KEYS,
     METRIC_KEYS,
     EmptyFrameError,
     MetricAccumulator,
+    coverage_metrics,
     depth_metrics,
 )
 
@@ -127,3 +129,19 @@ def test_accumulator_without_frames_raises() -> None:
 def test_accumulator_add_rejects_incomplete_dict() -> None:
     with pytest.raises(ValueError, match="missing keys"):
         MetricAccumulator().add({"d1": 1.0})
+
+
+def test_coverage_counts_errors_within_one_and_two_sigma() -> None:
+    gt = np.array([[1.0, 2.0, 3.0, 4.0, 0.0]])
+    pred = np.array([[1.05, 2.15, 3.5, 4.0, 9.0]])  # errors 0.05, 0.15, 0.5, 0, (invalid)
+    sigma = np.full_like(gt, 0.1)
+    metrics = coverage_metrics(pred, sigma, gt)
+    assert metrics == {"within_1sigma": pytest.approx(0.5), "within_2sigma": pytest.approx(0.75)}
+    accumulator = MetricAccumulator(keys=COVERAGE_KEYS)
+    accumulator.add(metrics)
+    accumulator.add({"within_1sigma": 1.0, "within_2sigma": 1.0})
+    assert accumulator.compute()["within_1sigma"] == pytest.approx(0.75)
+    with pytest.raises(ValueError, match="one shape"):
+        coverage_metrics(pred, sigma[:, :2], gt)
+    with pytest.raises(EmptyFrameError):
+        coverage_metrics(pred, sigma, np.zeros_like(gt))

@@ -140,3 +140,21 @@ def test_resize_like_release_aligns_corners() -> None:
     assert resized.dtype == np.float32
     with pytest.raises(ValueError, match="depth_m"):
         resize_like_release(np.ones(3), 2, 2)
+
+
+def test_methods_that_give_a_sigma_are_scored_for_coverage() -> None:
+    from types import SimpleNamespace
+
+    samples = [make_sample("a/1", 0), make_sample("a/2", 1)]
+
+    def with_sigma(sample):
+        # Every pixel off by 0.1 m: inside two sigma of 0.06 m, outside one.
+        return SimpleNamespace(depth_m=sample.depth_m + 0.1,
+                               uncertainty_m=np.full_like(sample.depth_m, 0.06))
+
+    result = evaluate_methods(samples, {"sigma": with_sigma, "nearest": create_predictor(
+        "nearest")})
+    assert result.metrics["sigma"]["within_1sigma"] == 0.0
+    assert result.metrics["sigma"]["within_2sigma"] == 1.0
+    assert result.metrics["sigma"]["rmse"] == pytest.approx(0.1, abs=1e-6)
+    assert "within_1sigma" not in result.metrics["nearest"]

@@ -101,7 +101,8 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, frames_per_set: int |
 
 def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Sequence],
                                out: str | os.PathLike, *, frames_per_set: int | None = None,
-                               pixels_per_frame: int = 4000, overwrite: bool = False,
+                               pixels_per_frame: int = 4000, min_pixels: int = 1000,
+                               overwrite: bool = False,
                                on_frame: Callable[[], None] | None = None) -> UncertaintyFit:
     """Fit the calibration of a checkpoint on sets with ground truth; write a new file.
 
@@ -111,6 +112,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
             training scenes).
         out: the new checkpoint (never the input file; written atomically).
         frames_per_set, pixels_per_frame: see :func:`collect_pixels`.
+        min_pixels: fewest pixels each region (inside, beyond the zone grid) needs.
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
 
@@ -131,7 +133,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                                weights=f"{preset} from {source}")
     pixels, frames = collect_pixels(estimator, sets, frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
-    calibration = fit_uncertainty_calibration(pixels)
+    calibration = fit_uncertainty_calibration(pixels, min_pixels)
     regions = {"inside": pixels.inside, "outside": ~pixels.inside}
     sigma = calibration.sigma(pixels.spread_m, pixels.depth_m, pixels.moved_m, pixels.inside)
     fit = UncertaintyFit(
