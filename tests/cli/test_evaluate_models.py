@@ -91,7 +91,7 @@ def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_pa
     write_sample(tmp_path / "s", seed=3, height=64, width=96)
     sample = read_thdr3k_sample(tmp_path / "s")
     estimator = DepthEstimator(ZonePainterNet(), weights="painter", input_size=(64, 96))
-    depth = EstimatorPredictor(estimator)(sample)
+    depth = EstimatorPredictor(estimator)(sample).depth_m
     expected = sample_hypotheses_from_histogram(
         torch.from_numpy(sample.hist_edges_m), torch.from_numpy(sample.hist_counts),
         torch.from_numpy(sample.zone_valid), 16).mean(-1).numpy()
@@ -116,7 +116,7 @@ def test_evaluation_runs_the_size_rule(tmp_path: Path) -> None:
         assert predictor.estimator.network_size_for(size) == expected
     assert predictor.estimator.network_size_for((480, 480)) == (32, 32)  # not 32x64
     sample = make_sample("a", 0)
-    depth = predictor(sample)
+    depth = predictor(sample).depth_m
     assert depth.shape == sample.depth_m.shape and np.isfinite(depth).all()
 
 

@@ -72,7 +72,7 @@ def fit_uncertainty_command(
     from deltar.cli.checks import output_file
     from deltar.cli.progress import ProgressReport
     from deltar.data.zone_sets import open_zone_set
-    from deltar.training.uncertainty import fit_checkpoint_uncertainty
+    from deltar.evaluation.uncertainty import fit_checkpoint_uncertainty
 
     output_file(out, "--out", overwrite)
     try:

@@ -11,10 +11,10 @@ from typer.testing import CliRunner
 import deltar.cli.commands  # noqa: F401  (registers the commands)
 from deltar.cli.main import app
 from deltar.data.zju_l5 import ZJUL5Dataset, write_zju_l5
+from deltar.evaluation.uncertainty import fit_checkpoint_uncertainty
 from deltar.inference.estimator import DepthEstimator
 from deltar.models import create_model
 from deltar.models.checkpoint import load_checkpoint, save_checkpoint
-from deltar.training.uncertainty import fit_checkpoint_uncertainty
 
 runner = CliRunner(env={"COLUMNS": "200"})
 
