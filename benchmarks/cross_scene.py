@@ -246,12 +246,12 @@ def main(argv: list[str] | None = None) -> int:
         for scene in FOLDS[fold]:
             summary[scene] = {}
             for condition in args.conditions:
-                index = test_set(args.out, scene, condition)
                 if condition == "noflags" and "clean" in summary[scene] and \
                         not has_no_target_flags(test_set(args.out, scene, "clean")):
                     # No zone of the scene reports no target: the same set as clean.
                     summary[scene][condition] = summary[scene]["clean"]
                     continue
+                index = test_set(args.out, scene, condition)
                 tag = scene if condition == "clean" else f"{scene}-{condition}"
                 summary[scene][condition] = evaluate(args.out, index, models, tag)
 
