@@ -52,7 +52,7 @@ def test_the_command_receives_one_model_object():
     (ModelOptions(preset="deltar-lite", onnx="m.onnx"), "give only one of --preset"),
     (ModelOptions(onnx="m.onnx", flip=True), "--flip needs a PyTorch model"),
     (ModelOptions(precision="float8"), "must be one of float32, float16, bfloat16"),
-    (ModelOptions(size="100x64"), "must be positive multiples of 32, got '100x64'"),
+    (ModelOptions(size="100x64"), r"--size must be positive multiples of 32, got \(100, 64\)"),
     (ModelOptions(size="big"), "size must look like 480x640, got 'big'"),
 ])
 def test_usage_checks_name_the_option(options, message):

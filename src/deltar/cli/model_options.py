@@ -95,25 +95,22 @@ class ModelOptions:
                 precision or a size that is not a multiple of 32 (exit 2).
             ValueError: a device this machine does not have (exit 1).
         """
-        from deltar.contract import SIZE_DIVISOR
-        from deltar.inference.estimator import PRECISIONS
+        from deltar.inference.estimator import check_backend_options
+        from deltar.inference.preprocess import check_input_size
 
         chosen = [f"--{kind}" for kind in ("preset", "checkpoint", "official", "onnx")
                   if getattr(self, kind) is not None]
         if len(chosen) > 1:
             raise typer.BadParameter("give only one of --preset, --checkpoint, --official, "
                                      f"--onnx (got {chosen})")
-        if self.flip and self.onnx is not None:
-            raise typer.BadParameter("--flip needs a PyTorch model (an ONNX file is fixed "
-                                     "to one zone layout)", param_hint="--flip")
-        if self.precision not in PRECISIONS:
-            raise typer.BadParameter(f"must be one of {', '.join(PRECISIONS)}, got "
-                                     f"{self.precision!r}", param_hint="--precision")
         size = parse_size(self.size)
-        if size is not None and (min(size) < SIZE_DIVISOR or size[0] % SIZE_DIVISOR
-                                 or size[1] % SIZE_DIVISOR):
-            raise typer.BadParameter(f"must be positive multiples of {SIZE_DIVISOR}, got "
-                                     f"{self.size!r}", param_hint="--size")
+        try:  # the library's own checks, named as the options
+            check_backend_options(self.precision, self.flip, self.onnx is not None,
+                                  names=("--precision", "--flip"))
+            if size is not None:
+                check_input_size(size, "--size")
+        except ValueError as err:
+            raise typer.BadParameter(str(err)) from err
         if self.onnx is None and self.device != "cpu":  # the CPU is there: no torch import
             from deltar.cli.checks import torch_device
 

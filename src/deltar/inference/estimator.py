@@ -58,7 +58,29 @@ if TYPE_CHECKING:
 
 PRECISIONS = ("float32", "float16", "bfloat16")
 
-__all__ = ["PRECISIONS", "DepthEstimator", "DepthPrediction", "zone_mean_depth"]
+__all__ = ["PRECISIONS", "DepthEstimator", "DepthPrediction", "check_backend_options",
+           "zone_mean_depth"]
+
+
+def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
+                          names: tuple[str, str] = ("precision", "flip_average")) -> None:
+    """The backend options' checks, defined once for the estimator, ``load_estimator``
+    and the CLI (which name the options ``names``: precision's, flip averaging's).
+
+    Raises:
+        ValueError: an unknown precision, or float16 / bfloat16 or flip averaging with
+            the onnxruntime backend (``onnx``); naming the option.
+    """
+    precision_name, flip_name = names
+    if precision not in PRECISIONS:
+        raise ValueError(f"{precision_name} must be one of {', '.join(PRECISIONS)}, got "
+                         f"{precision!r}")
+    if onnx and precision != "float32":
+        raise ValueError(f"{precision_name}: the onnxruntime backend runs in float32 only")
+    if onnx and flip_average:
+        # An ONNX file is exported for one zone layout; the mirrored one differs.
+        raise ValueError(f"{flip_name} needs a PyTorch model (an ONNX file is fixed to one "
+                         "zone layout)")
 
 
 @dataclass
@@ -178,18 +200,11 @@ class DepthEstimator:
 
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        check_backend_options(precision, flip_average, onnx_model is not None)
         if sampling is not None and sampling not in HYPOTHESIS_SAMPLINGS:
             raise ValueError(f"sampling must be one of {HYPOTHESIS_SAMPLINGS}, got "
                              f"{sampling!r}")
         if onnx_model is not None:
-            if precision != "float32":
-                raise ValueError("the onnxruntime backend runs in float32 only")
-            if flip_average:
-                # An ONNX file is exported for one zone layout; the mirrored one differs.
-                raise ValueError("flip_average needs the PyTorch backend (an ONNX model is "
-                                 "fixed to one zone layout)")
             if input_size is not None and tuple(input_size) != onnx_model.input_size:
                 raise ValueError(f"input_size {input_size} differs from the ONNX model's "
                                  f"fixed size {onnx_model.input_size}")

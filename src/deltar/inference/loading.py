@@ -26,8 +26,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from deltar.contract import SIZE_DIVISOR
-from deltar.inference.estimator import PRECISIONS, DepthEstimator
+from deltar.inference.estimator import DepthEstimator, check_backend_options
+from deltar.inference.preprocess import check_input_size
 from deltar.weights import BUNDLED_MODELS, bundled_model_names
 
 #: The kinds of model source :func:`load_estimator` accepts.
@@ -114,14 +114,9 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
         FileNotFoundError: a missing file or an unknown name.
     """
     kind, text = resolve_source(source, kind)
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    check_backend_options(precision, flip_average, kind == "onnx")
     if input_size is not None:
-        height, width = (int(v) for v in input_size)
-        if min(height, width) < SIZE_DIVISOR or height % SIZE_DIVISOR or width % SIZE_DIVISOR:
-            raise ValueError(f"input_size must be positive multiples of {SIZE_DIVISOR}, got "
-                             f"{tuple(input_size)}")
-        input_size = (height, width)
+        input_size = check_input_size(input_size, "input_size")
     if threads is not None:
         if int(threads) < 1:
             raise ValueError(f"threads must be >= 1, got {threads!r}")
@@ -132,9 +127,6 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
     if flip_average:
         kwargs["flip_average"] = True
     if kind == "onnx":
-        if flip_average:
-            raise ValueError("flip_average needs a PyTorch model (an ONNX file is fixed to "
-                             "one zone layout)")
         return DepthEstimator.from_onnx(text, num_threads=threads, precision=precision,
                                         **kwargs)
     kwargs.update(device=device, precision=precision)
