@@ -19,8 +19,10 @@ def test_demo_writes_scenes_panels_and_metrics(tmp_path):
     assert {"nearest", "bilinear", "guided_filter", "colorization"} <= set(metrics)
     # The bundled model runs beside the baselines, once (no test-time flip here).
     assert "model:default" in metrics and not any("+flip" in name for name in metrics)
-    for values in metrics.values():
-        assert set(values) == METRIC_KEYS
+    for name, values in metrics.items():
+        # The model also gives a per-pixel sigma, scored for its coverage.
+        extra = {"within_1sigma", "within_2sigma"} if name.startswith("model:") else set()
+        assert set(values) == METRIC_KEYS | extra
         assert 0.0 <= values["d1"] <= 1.0 and values["rmse"] > 0
     panels = sorted((out / "panels").rglob("*.png"))
     assert len(panels) == len(metrics)
