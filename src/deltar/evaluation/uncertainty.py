@@ -11,6 +11,7 @@ scenes' frames only: a calibration fitted on the frames it is judged on says not
 
 from __future__ import annotations
 
+import copy
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -128,8 +129,9 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     if out.exists() and out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
-    # A separate copy serves the estimator (it prepares its model for inference).
-    estimator = DepthEstimator(load_checkpoint(source)[0], uncertainty=None,
+    # A copy serves the estimator (it prepares its model for inference in place); the
+    # original is what is saved, so the file is read once.
+    estimator = DepthEstimator(copy.deepcopy(model), uncertainty=None,
                                weights=f"{preset} from {source}")
     pixels, frames = collect_pixels(estimator, sets, frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
