@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from deltar.training.config import load_config
+from deltar.training.config_loading import load_config
 
 TINY_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import lightning as L
 
-from deltar.training.config import load_config
+from deltar.training.config_loading import load_config
 from deltar.training.run import train
 
 TINY_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"

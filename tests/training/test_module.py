@@ -10,7 +10,8 @@ import pytest
 import torch
 import yaml
 
-from deltar.training.config import OptimConfig, config_from_dict
+from deltar.training.config import OptimConfig
+from deltar.training.config_loading import config_from_dict
 from deltar.training.module import DeltarSystem, load_trained_model
 from deltar.training.run import AtomicCheckpointIO, read_history, train
 

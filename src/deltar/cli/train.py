@@ -23,7 +23,7 @@ def train_command(
                                       "config as YAML and exit."),
 ) -> None:
     """Train DELTAR (Lightning): checkpoints, TensorBoard/CSV logs and config in a run folder."""
-    from deltar.training.config import load_config
+    from deltar.training.config_loading import load_config
 
     if resume is not None:
         if config is not None or override or run_dir is not None:

@@ -30,7 +30,8 @@ from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheck
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from deltar.io.atomic import atomic_path, write_text_atomic
-from deltar.training.config import TrainConfig, config_from_dict
+from deltar.training.config import TrainConfig
+from deltar.training.config_loading import config_from_dict
 from deltar.training.data import DeltarDataModule
 from deltar.training.module import DeltarSystem, export_model, initial_weights
 
