@@ -15,9 +15,10 @@ from deltar.capture.drivers import SimulatedRig
 from deltar.capture.record import record
 from deltar.capture.replay import replay, replay_to_folder
 from deltar.data.flat_wall import FlatWallSource
-from deltar.inference.estimator import DepthEstimator, zone_mean_depth
+from deltar.inference.estimator import DepthEstimator
 from deltar.io.recording import Recording
 from deltar.sensor.geometry import SensorExtrinsics
+from deltar.sensor.placement import zone_mean_depth
 from tests.inference.fakes import ZonePainterNet
 
 

@@ -8,11 +8,11 @@ import torch
 
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
-from deltar.inference.estimator import DepthEstimator, zone_mean_depth
+from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import scale_rects
 from deltar.models.checkpoint import load_checkpoint, save_checkpoint
 from deltar.sensor.geometry import SensorExtrinsics
-from deltar.sensor.placement import nominal_zone_rects
+from deltar.sensor.placement import nominal_zone_rects, zone_mean_depth
 from deltar.sensor.zone_frame import ZoneFrame
 from tests.inference.fakes import ZonePainterNet
 
@@ -204,18 +204,6 @@ def test_bad_checkpoints_raise(tmp_path):
         DepthEstimator.from_checkpoint(plain)
     with pytest.raises(FileNotFoundError):
         DepthEstimator.from_official(tmp_path / "nyu.pt")
-
-
-def test_zone_mean_depth_paints_valid_zones_only():
-    frame = ZoneFrame(np.arange(1, 17, dtype=float).reshape(4, 4) / 10, np.zeros((4, 4)),
-                      np.eye(4, dtype=bool))
-    rects = np.array([[r * 2 - 0.5, c * 2 - 0.5, r * 2 + 1.5, c * 2 + 1.5]
-                      for r in range(4) for c in range(4)], dtype=np.float32)
-    out = zone_mean_depth(frame, rects, (8, 8))
-    expected = np.zeros((8, 8), np.float32)
-    for k in range(4):
-        expected[2 * k:2 * k + 2, 2 * k:2 * k + 2] = (k * 4 + k + 1) / 10
-    np.testing.assert_allclose(out, expected)
 
 
 def test_from_official_loads_release_weights(tmp_path, parity_fixture, rng):

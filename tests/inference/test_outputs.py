@@ -7,7 +7,6 @@ import pytest
 from PIL import Image
 
 from deltar.camera import CameraIntrinsics
-from deltar.inference.estimator import DepthPrediction
 from deltar.inference.outputs import (
     OUTPUT_KINDS,
     colorize,
@@ -18,6 +17,7 @@ from deltar.inference.outputs import (
     write_ply,
     write_prediction,
 )
+from deltar.inference.prediction import DepthPrediction
 from deltar.io.ply import read_ply
 from deltar.sensor.zone_frame import ZoneFrame
 

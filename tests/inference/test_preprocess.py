@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from deltar.inference.estimator import DepthEstimator, zone_mean_depth
+from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import (
     check_input_size,
     network_input_size,
     resize_to_image,
     scale_rects,
 )
+from deltar.sensor.placement import zone_mean_depth
 from deltar.sensor.zone_frame import ZoneFrame
 from tests.inference.fakes import ZonePainterNet
 

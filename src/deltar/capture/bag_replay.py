@@ -28,7 +28,8 @@ from deltar.calibration.rig import RigCalibration
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
 
 if TYPE_CHECKING:
-    from deltar.inference.estimator import DepthEstimator, DepthPrediction
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.prediction import DepthPrediction
     from deltar.io.rosbag import BagInput, BagPair
 
 

@@ -21,7 +21,8 @@ from deltar.io.recording import Recording, RecordingPair
 from deltar.sensor.geometry import SensorExtrinsics
 
 if TYPE_CHECKING:
-    from deltar.inference.estimator import DepthEstimator, DepthPrediction
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.prediction import DepthPrediction
 
 #: A gap between zone frames longer than this many median periods is reported.
 GAP_FACTOR = 3.0

@@ -34,7 +34,7 @@ from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_angle
 if TYPE_CHECKING:
     from deltar.calibration.rig import RigCalibration
     from deltar.camera import CameraIntrinsics
-    from deltar.inference.estimator import DepthPrediction
+    from deltar.inference.prediction import DepthPrediction
     from deltar.sensor.zone_frame import ZoneFrame
 
 _EXTRA_HINT = 'the rerun viewer needs the "viewer" extra: pip install "deltar[viewer]"'

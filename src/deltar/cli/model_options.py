@@ -95,7 +95,7 @@ class ModelOptions:
                 precision or a size that is not a multiple of 32 (exit 2).
             ValueError: a device this machine does not have (exit 1).
         """
-        from deltar.inference.estimator import check_backend_options
+        from deltar.inference.checks import check_backend_options
         from deltar.inference.preprocess import check_input_size
 
         chosen = [f"--{kind}" for kind in ("preset", "checkpoint", "official", "onnx")

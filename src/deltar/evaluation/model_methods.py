@@ -22,7 +22,8 @@ from deltar.evaluation.runner import register_method_family
 
 if TYPE_CHECKING:
     from deltar.data.zju_l5 import ZJUL5Sample
-    from deltar.inference.estimator import DepthEstimator, DepthPrediction
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.prediction import DepthPrediction
 
 
 class EstimatorPredictor:

@@ -37,7 +37,7 @@ class Predictor(Protocol):
 
     A method that also gives a per-pixel sigma returns an object with ``depth_m`` and
     ``uncertainty_m`` ((H, W) metres, e.g. a
-    :class:`~deltar.inference.estimator.DepthPrediction`) instead; its sigma is then
+    :class:`~deltar.inference.prediction.DepthPrediction`) instead; its sigma is then
     scored too (:func:`~deltar.evaluation.metrics.coverage_metrics`).
     """
 

@@ -29,9 +29,9 @@ import numpy as np
 from deltar.camera import backproject
 from deltar.capture.replay import replay
 from deltar.evaluation.plane import fit_plane, plane_metrics
-from deltar.inference.estimator import zone_mean_depth
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.sensor.geometry import zone_rects_to_pixel_bounds
+from deltar.sensor.placement import zone_mean_depth
 
 if TYPE_CHECKING:
     from deltar.calibration.rig import RigCalibration

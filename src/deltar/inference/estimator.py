@@ -20,7 +20,6 @@ import math
 import os
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +33,8 @@ from deltar.inference.blend import (
     start_blend_fill,
     zone_grid_mask,
 )
+from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
+from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
     check_image,
     check_input_size,
@@ -56,81 +57,7 @@ if TYPE_CHECKING:
     from deltar.inference.onnx_runtime import OnnxDepthModel
     from deltar.models import DeltarNet
 
-PRECISIONS = ("float32", "float16", "bfloat16")
-
-__all__ = ["PRECISIONS", "DepthEstimator", "DepthPrediction", "check_backend_options",
-           "zone_mean_depth"]
-
-
-def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
-                          names: tuple[str, str] = ("precision", "flip_average")) -> None:
-    """The backend options' checks, defined once for the estimator, ``load_estimator``
-    and the CLI (which name the options ``names``: precision's, flip averaging's).
-
-    Raises:
-        ValueError: an unknown precision, or float16 / bfloat16 or flip averaging with
-            the onnxruntime backend (``onnx``); naming the option.
-    """
-    precision_name, flip_name = names
-    if precision not in PRECISIONS:
-        raise ValueError(f"{precision_name} must be one of {', '.join(PRECISIONS)}, got "
-                         f"{precision!r}")
-    if onnx and precision != "float32":
-        raise ValueError(f"{precision_name}: the onnxruntime backend runs in float32 only")
-    if onnx and flip_average:
-        # An ONNX file is exported for one zone layout; the mirrored one differs.
-        raise ValueError(f"{flip_name} needs a PyTorch model (an ONNX file is fixed to one "
-                         "zone layout)")
-
-
-@dataclass
-class DepthPrediction:
-    """The estimator's result for one image.
-
-    Attributes:
-        depth_m: (H, W) float32 depth in metres at the input image's resolution.
-        uncertainty_m: (H, W) float32 per-pixel standard deviation in metres: the
-            calibrated sigma of ``depth_m`` when ``uncertainty_calibrated``
-            (:mod:`deltar.inference.uncertainty`: fitted so that about 68 % of the
-            errors lie within one sigma and 95 % within two), else the spread of the
-            network's own depth distribution (the network's also when ``depth_m`` is
-            blended).
-        zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
-        zone_frame: the zone frame the prediction used.
-        intrinsics: camera intrinsics of the input image (calibrated or nominal).
-        zones_used: number of valid zones the network saw (None when unknown).
-        network_size: (h, w) network input size in pixels the image was resized to
-            (:func:`deltar.inference.preprocess.network_input_size`, or the fixed size).
-        network_depth_m: (H, W) float32 the network's own depth in metres when
-            ``depth_m`` is its confidence blend with the colorization fill
-            (:mod:`deltar.inference.blend`); None when ``depth_m`` is the network's.
-        uncertainty_calibrated: whether ``uncertainty_m`` is the calibrated sigma.
-    """
-
-    depth_m: np.ndarray
-    uncertainty_m: np.ndarray
-    zone_rects: np.ndarray
-    zone_frame: ZoneFrame
-    intrinsics: CameraIntrinsics
-    zones_used: int | None = None
-    network_size: tuple[int, int] | None = None
-    network_depth_m: np.ndarray | None = None
-    uncertainty_calibrated: bool = False
-
-    @property
-    def blended(self) -> bool:
-        """True when ``depth_m`` is the confidence blend (``network_depth_m`` is the
-        network's own depth); False when it is the network's depth."""
-        return self.network_depth_m is not None
-
-    @property
-    def image_only(self) -> bool:
-        """True when no zone was valid: the depth is a guess from the image alone.
-
-        Its metric scale is then unknown; :meth:`DepthEstimator.predict` sets the
-        uncertainty to at least the depth itself (100 %).
-        """
-        return self.zones_used == 0
+__all__ = ["DepthEstimator"]
 
 
 class DepthEstimator:
@@ -419,7 +346,7 @@ class DepthEstimator:
             problem = frame.range_error(self.max_range_m)
             if problem is not None:
                 raise ValueError(f"frames[{i}]: {problem}")
-        _check_calibration(calibration)
+        check_calibration(calibration)
         net_size = self.network_size_for(size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)
@@ -516,8 +443,8 @@ class DepthEstimator:
         """
         import torch
 
-        single, images, frames = _batch_arguments(image, zone_frame)
-        _check_calibration(calibration)  # before it undistorts the images
+        single, images, frames = batch_arguments(image, zone_frame)
+        check_calibration(calibration)  # before it undistorts the images
         if getattr(calibration, "has_distortion", False):  # other types refused in prepare
             # The zones are placed with the pinhole intrinsics: predict on the
             # undistorted image (same intrinsics), so depth is for that image.
@@ -567,76 +494,3 @@ class DepthEstimator:
         far = frame.flat_no_target() if self.no_target_depth_m is not None else None
         return start_blend_fill(image, mean, valid, rects, zone_far=far,
                                 far_depth_m=self.no_target_depth_m)
-
-
-_IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"
-
-
-def _describe(value: Any) -> str:
-    """A short description of a wrongly typed argument, with a hint where one helps."""
-    kind = type(value).__name__
-    if isinstance(value, (str, os.PathLike)):
-        return (f"a {kind} path {str(value)!r}; read the file first, e.g. with "
-                "deltar.data.rgbd.read_color")
-    if type(value).__module__.startswith("torch"):
-        return (f"a torch {kind} of shape {tuple(getattr(value, 'shape', ()))}; convert "
-                "it with tensor.cpu().numpy() (uint8 RGB, channels last)")
-    return f"a {kind}"
-
-
-def _batch_arguments(image: Any, zone_frame: Any
-                     ) -> tuple[bool, list[np.ndarray], list[ZoneFrame]]:
-    """(single, images, frames) from ``predict``'s arguments, refusing wrong types."""
-    if isinstance(image, np.ndarray):
-        if image.ndim not in (3, 4):
-            raise ValueError(f"{_IMAGE_EXPECTED}, got an array of shape {image.shape}")
-        single = image.ndim == 3
-    elif isinstance(image, (list, tuple)):
-        single = False
-    else:
-        raise ValueError(f"{_IMAGE_EXPECTED}, got {_describe(image)}")
-    images = [image] if single else list(image)
-    if single:
-        if not isinstance(zone_frame, ZoneFrame):
-            raise ValueError("zone_frame must be a ZoneFrame (e.g. from "
-                             "deltar.io.zone_file.load_zone_frame), got "
-                             f"{_describe(zone_frame)}")
-        return True, images, [zone_frame]
-    if not isinstance(zone_frame, (list, tuple)):
-        raise ValueError(f"for a batch of {len(images)} images, zone_frame must be a list of "
-                         f"ZoneFrame, got {_describe(zone_frame)}")
-    return False, images, list(zone_frame)
-
-
-def _check_calibration(calibration: Any) -> None:
-    from deltar.calibration.rig import RigCalibration
-
-    if calibration is not None and not isinstance(calibration, RigCalibration):
-        raise ValueError("calibration must be a RigCalibration (e.g. "
-                         f"RigCalibration.load(path)) or None, got {_describe(calibration)}")
-
-
-def zone_mean_depth(frame: ZoneFrame, rects: np.ndarray, image_size: tuple[int, int]
-                    ) -> np.ndarray:
-    """The raw sensor as a depth map: each valid zone's mean painted over its pixels.
-
-    Args:
-        frame: the zone frame.
-        rects: (Z, 4) zone rectangles in pixels (pixel centres in the half-open rectangle
-            belong to the zone).
-        image_size: (H, W).
-
-    Returns:
-        (H, W) float32 metres, 0 where no valid zone lies.
-    """
-    from deltar.sensor.geometry import zone_rects_to_pixel_bounds
-
-    height, width = image_size
-    out = np.zeros((height, width), dtype=np.float32)
-    mean, _, valid = frame.flat()
-    bounds = zone_rects_to_pixel_bounds(rects, height, width)
-    for (y0, x0, y1, x1), value, ok in zip(bounds, mean, valid, strict=True):
-        if ok:
-            out[y0:y1, x0:x1] = value
-    return out
-

@@ -26,7 +26,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from deltar.inference.estimator import DepthEstimator, check_backend_options
+from deltar.inference.checks import check_backend_options
+from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import check_input_size
 from deltar.weights import BUNDLED_MODELS, bundled_model_names
 

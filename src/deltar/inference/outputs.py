@@ -18,7 +18,7 @@ from deltar.io import ply
 from deltar.io.atomic import atomic_path, write_bytes_atomic
 
 if TYPE_CHECKING:
-    from deltar.inference.estimator import DepthPrediction
+    from deltar.inference.prediction import DepthPrediction
 
 #: Largest depth a 16-bit millimetre PNG can hold, metres.
 PNG16_MAX_M = 65.535

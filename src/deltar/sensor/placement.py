@@ -1,4 +1,5 @@
-"""Nominal zone placement: where the zones fall in an image without a calibration.
+"""Nominal zone placement: where the zones fall in an image without a calibration;
+and the raw sensor painted where its zones fall (:func:`zone_mean_depth`).
 
 Without a :class:`~deltar.calibration.rig.RigCalibration` the zones are placed with
 nominal intrinsics (the ZJU-L5 RealSense camera's, scaled to the image), the sensor's
@@ -14,7 +15,7 @@ import functools
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
-from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, zone_rects, zone_rects_to_pixel_bounds
 from deltar.sensor.zone_frame import ZoneFrame
 
 
@@ -46,3 +47,26 @@ def nominal_zone_rects(frame: ZoneFrame, height: int, width: int,
 def _nominal_layout(intrinsics: CameraIntrinsics, grid: int, fov_deg: tuple[float, float],
                     height: int, width: int) -> np.ndarray:
     return zone_rects(intrinsics.scaled(height, width), grid, fov_deg=fov_deg, depth_m=1.0)
+
+
+def zone_mean_depth(frame: ZoneFrame, rects: np.ndarray, image_size: tuple[int, int]
+                    ) -> np.ndarray:
+    """The raw sensor as a depth map: each valid zone's mean painted over its pixels.
+
+    Args:
+        frame: the zone frame.
+        rects: (Z, 4) zone rectangles in pixels (pixel centres in the half-open rectangle
+            belong to the zone).
+        image_size: (H, W).
+
+    Returns:
+        (H, W) float32 metres, 0 where no valid zone lies.
+    """
+    height, width = image_size
+    out = np.zeros((height, width), dtype=np.float32)
+    mean, _, valid = frame.flat()
+    bounds = zone_rects_to_pixel_bounds(rects, height, width)
+    for (y0, x0, y1, x1), value, ok in zip(bounds, mean, valid, strict=True):
+        if ok:
+            out[y0:y1, x0:x1] = value
+    return out

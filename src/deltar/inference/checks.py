@@ -1,0 +1,101 @@
+"""The estimator's argument checks, each defined once and done at the boundary.
+
+:func:`check_backend_options` is called by the estimator, ``load_estimator`` and the
+CLI's model options; :func:`batch_arguments` and :func:`check_calibration` by
+``DepthEstimator.predict`` / ``prepare`` before any work. Wrong types are refused with a
+hint of what to pass (a path names the reader, a torch tensor the conversion).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from deltar.sensor.zone_frame import ZoneFrame
+
+#: Torch precisions the PyTorch backend runs in.
+PRECISIONS = ("float32", "float16", "bfloat16")
+
+
+def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
+                          names: tuple[str, str] = ("precision", "flip_average")) -> None:
+    """The backend options' checks, defined once for the estimator, ``load_estimator``
+    and the CLI (which name the options ``names``: precision's, flip averaging's).
+
+    Raises:
+        ValueError: an unknown precision, or float16 / bfloat16 or flip averaging with
+            the onnxruntime backend (``onnx``); naming the option.
+    """
+    precision_name, flip_name = names
+    if precision not in PRECISIONS:
+        raise ValueError(f"{precision_name} must be one of {', '.join(PRECISIONS)}, got "
+                         f"{precision!r}")
+    if onnx and precision != "float32":
+        raise ValueError(f"{precision_name}: the onnxruntime backend runs in float32 only")
+    if onnx and flip_average:
+        # An ONNX file is exported for one zone layout; the mirrored one differs.
+        raise ValueError(f"{flip_name} needs a PyTorch model (an ONNX file is fixed to one "
+                         "zone layout)")
+
+
+_IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"
+
+
+def describe_argument(value: Any) -> str:
+    """A short description of a wrongly typed argument, with a hint where one helps."""
+    kind = type(value).__name__
+    if isinstance(value, (str, os.PathLike)):
+        return (f"a {kind} path {str(value)!r}; read the file first, e.g. with "
+                "deltar.data.rgbd.read_color")
+    if type(value).__module__.startswith("torch"):
+        return (f"a torch {kind} of shape {tuple(getattr(value, 'shape', ()))}; convert "
+                "it with tensor.cpu().numpy() (uint8 RGB, channels last)")
+    return f"a {kind}"
+
+
+def batch_arguments(image: Any, zone_frame: Any
+                    ) -> tuple[bool, list[np.ndarray], list[ZoneFrame]]:
+    """(single, images, frames) from ``predict``'s arguments, refusing wrong types.
+
+    Args:
+        image: an (H, W, 3) image array, or a list of them (a 4-D array is a batch).
+        zone_frame: a ``ZoneFrame``, or a list of them for a batch.
+
+    Returns:
+        ``single`` (one image given, not a list), the images as a list and the frames
+        as a list (their contents are checked by ``DepthEstimator.prepare``).
+
+    Raises:
+        ValueError: an argument of the wrong type, naming it and what to pass.
+    """
+    if isinstance(image, np.ndarray):
+        if image.ndim not in (3, 4):
+            raise ValueError(f"{_IMAGE_EXPECTED}, got an array of shape {image.shape}")
+        single = image.ndim == 3
+    elif isinstance(image, (list, tuple)):
+        single = False
+    else:
+        raise ValueError(f"{_IMAGE_EXPECTED}, got {describe_argument(image)}")
+    images = [image] if single else list(image)
+    if single:
+        if not isinstance(zone_frame, ZoneFrame):
+            raise ValueError("zone_frame must be a ZoneFrame (e.g. from "
+                             "deltar.io.zone_file.load_zone_frame), got "
+                             f"{describe_argument(zone_frame)}")
+        return True, images, [zone_frame]
+    if not isinstance(zone_frame, (list, tuple)):
+        raise ValueError(f"for a batch of {len(images)} images, zone_frame must be a list of "
+                         f"ZoneFrame, got {describe_argument(zone_frame)}")
+    return False, images, list(zone_frame)
+
+
+def check_calibration(calibration: Any) -> None:
+    """Refuse a ``calibration`` that is neither a ``RigCalibration`` nor None
+    (``ValueError`` naming what was given)."""
+    from deltar.calibration.rig import RigCalibration
+
+    if calibration is not None and not isinstance(calibration, RigCalibration):
+        raise ValueError("calibration must be a RigCalibration (e.g. RigCalibration.load("
+                         f"path)) or None, got {describe_argument(calibration)}")
