@@ -33,12 +33,14 @@ class CameraIntrinsics:
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
-            value = float(getattr(self, name))
+            value = strict_number(getattr(self, name), f"CameraIntrinsics.{name}")
             if not math.isfinite(value):
                 raise ValueError(f"CameraIntrinsics.{name} must be finite, got {value}")
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"CameraIntrinsics focal lengths must be > 0, got fx={self.fx}, "
                              f"fy={self.fy}")
+        for name in ("width", "height"):
+            strict_integer(getattr(self, name), f"CameraIntrinsics.{name}")
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"CameraIntrinsics size must be positive, got "
                              f"{self.width}x{self.height}")
@@ -65,11 +67,43 @@ class CameraIntrinsics:
 
     @classmethod
     def from_dict(cls, data: dict) -> CameraIntrinsics:
+        """Build from ``{"fx", "fy", "cx", "cy"}`` (pixels) and ``{"width", "height"}``
+        (whole pixels); strings, booleans and fractional sizes are refused.
+
+        Raises:
+            ValueError: naming the key.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"camera intrinsics must be an object, got {type(data).__name__}")
         missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(data)
         if missing:
             raise ValueError(f"camera intrinsics are missing keys {sorted(missing)}")
-        return cls(float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
-                   int(data["width"]), int(data["height"]))
+        return cls(*(strict_number(data[k], k) for k in ("fx", "fy", "cx", "cy")),
+                   *(strict_integer(data[k], k) for k in ("width", "height")))
+
+
+def strict_number(value, name: str) -> float:
+    """A number read from a file as float; strings and booleans are refused, not converted.
+
+    Raises:
+        ValueError: ``"<name> must be a number, got <value>"``.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    return float(value)
+
+
+def strict_integer(value, name: str) -> int:
+    """A whole number read from a file (``8`` or ``8.0``) as int; fractions, infinities,
+    strings and booleans are refused.
+
+    Raises:
+        ValueError: ``"<name> must be an integer, got <value>"``.
+    """
+    number = strict_number(value, name)
+    if not math.isfinite(number) or number != round(number):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    return int(number)
 
 
 #: The ZJU-L5 test camera (RealSense D435i colour at 480x640), from the DELTAR paper.

@@ -414,3 +414,62 @@ def test_zone_dict_round_trip_still_loads(tmp_path):
     from deltar.io.zone_file import load_zone_frame
 
     assert load_zone_frame(tmp_path / "z.json").valid.all()
+
+
+# ------------------------------------------------------------------ round 2: reading boundary
+def test_unreadable_inputs_give_one_line_naming_the_file(inputs, tmp_path, monkeypatch):
+    (inputs / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    save_zone_frame(inputs / "z.npz", ZoneFrame(np.full(64, 1.5), np.full(64, 0.02),
+                                                np.ones(64, bool)))
+    (inputs / "t.npz").write_bytes((inputs / "z.npz").read_bytes()[:40])
+    calib = json.loads(RigCalibration(CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48),
+                                      SensorExtrinsics()).save(tmp_path / "c.json").read_text())
+    calib["intrinsics"]["width"] = float("inf")
+    (tmp_path / "inf.json").write_text(json.dumps(calib))
+    for args, line in (
+            (["--zones", inputs / "deep.json"],
+             f"error: {inputs / 'deep.json'}: cannot read zone frame file: nested too deeply "
+             "to parse"),
+            (["--zones", inputs / "t.npz"],
+             f"error: {inputs / 't.npz'}: cannot read zone frame file: corrupt or truncated "
+             "file (File is not a zip file)"),
+            (["--zones", inputs / "a.json", "--calib", tmp_path / "inf.json"],
+             f"error: {tmp_path / 'inf.json'}: invalid calibration: width must be an "
+             "integer, got inf"),
+            (["--zones", inputs / "a.json", "--calib", tmp_path / "none.json"],
+             f"error: calibration file not found: {tmp_path / 'none.json'}"),
+            (["--zones", inputs / "a.json", "--calib", tmp_path],
+             f"error: calibration file {tmp_path} is a folder, not a file"),
+            (["--zones", inputs / "a.json", "--calib", "/dev/null"],
+             "error: calibration file /dev/null is not a regular file (a device, pipe or "
+             "socket)")):
+        result = _run(["predict", "--image", inputs / "a.png", *args, "--out", tmp_path / "o",
+                       *LITE])
+        assert result.exit_code == 1
+        assert _one_error_line(result) == line
+        assert MODEL_BUILT not in result.output
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    result = _predict(inputs, tmp_path / "o")
+    _one_error_line(result, f"{inputs / 'a.png'}: cannot read colour image: the image is too "
+                    "large to decode safely (Image size (3072 pixels) exceeds limit")
+
+
+def test_image_paths_told_apart(inputs, tmp_path):
+    for path, line in ((inputs, f"error: colour image {inputs} is a folder, not a file"),
+                       ("/dev/null", "error: colour image /dev/null is not a regular file (a "
+                        "device, pipe or socket)"),
+                       (inputs / "none.png", f"error: colour image not found: "
+                        f"{inputs / 'none.png'}")):
+        result = _run(["predict", "--image", path, "--zones", inputs / "a.json", "--out",
+                       tmp_path / "o", *LITE])
+        assert result.exit_code == 1
+        assert _one_error_line(result) == line
+
+
+def test_traceback_switch_shows_the_reading_error_and_its_cause(inputs, tmp_path,
+                                                                monkeypatch):
+    (inputs / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    monkeypatch.setenv("DELTAR_TRACEBACK", "1")
+    result = _predict(inputs, tmp_path / "o", "a.png", "deep.json")
+    assert isinstance(result.exception, ValueError)
+    assert isinstance(result.exception.__cause__, RecursionError)

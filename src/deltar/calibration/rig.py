@@ -20,22 +20,27 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, strict_integer, strict_number
 from deltar.io.atomic import write_text_atomic
+from deltar.io.input_file import reading
 from deltar.io.json_file import read_json
-from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects, zones_in_image
 from deltar.sensor.zone_frame import ZoneFrame
 
 RIG_SCHEMA_NAME = "deltar.rig_calibration"
 RIG_SCHEMA_VERSION = 1
 #: Distance (metres) used to place zones that carry no measurement.
 FALLBACK_ZONE_DEPTH_M = 2.0
+#: Largest sensor-to-camera distance of one rig, metres (sensors sit centimetres from
+#: the lens; a metre or more is a unit mistake, e.g. millimetres written as metres).
+MAX_TRANSLATION_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -92,6 +97,36 @@ class RigCalibration:
         if not self.date:
             object.__setattr__(self, "date", datetime.now(timezone.utc).isoformat(
                 timespec="seconds"))
+        self._check_geometry()
+
+    def _check_geometry(self) -> None:
+        """Refuse a rig that cannot be right: the principal point outside the image, the
+        sensor a metre or more from the camera, or every zone outside the image."""
+        intr = self.intrinsics
+        if not (-0.5 <= intr.cx <= intr.width - 0.5 and -0.5 <= intr.cy <= intr.height - 0.5):
+            raise ValueError(f"the principal point ({intr.cx:g}, {intr.cy:g}) px lies outside "
+                             f"the {intr.width}x{intr.height} image")
+        distance = float(np.linalg.norm(self.extrinsics.translation_m))
+        if distance >= MAX_TRANSLATION_M:
+            raise ValueError(f"the sensor is {distance:.6g} m from the camera (translation_m "
+                             f"{self.extrinsics.translation_m.tolist()}); a rig's sensor sits "
+                             f"within {MAX_TRANSLATION_M:g} m of it (millimetres written as "
+                             "metres?)")
+        inside = self.zones_inside()
+        if not inside.any():
+            raise ValueError(f"all {inside.size} zones fall outside the {intr.width}x"
+                             f"{intr.height} image at {FALLBACK_ZONE_DEPTH_M:g} m; check the "
+                             "extrinsics (rotation, translation), intrinsics and fov_deg")
+
+    def zones_inside(self, depth_m: float = FALLBACK_ZONE_DEPTH_M) -> np.ndarray:
+        """(Z,) bool: the zones whose rectangle at ``depth_m`` metres overlaps the image."""
+        intr = self.intrinsics
+        try:
+            rects = zone_rects(intr, self.grid, fov_deg=self.fov_deg,
+                               extrinsics=self.extrinsics, depth_m=depth_m)
+        except ValueError:  # zones behind the camera
+            return np.zeros(self.grid * self.grid, dtype=bool)
+        return zones_in_image(rects, intr.height, intr.width)
 
     # ------------------------------------------------------------------ zones in the image
     def zone_rects_for(self, frame_or_depths: ZoneFrame | np.ndarray | float,
@@ -190,7 +225,11 @@ class RigCalibration:
                              f"{data.get('schema_version')!r}")
         try:
             extr = data["extrinsics"]
-            residuals = {str(k): float(v) for k, v in data.get("residuals", {}).items()}
+            if not isinstance(data.get("residuals", {}), dict):
+                raise ValueError("residuals must be an object of numbers, got "
+                                 f"{type(data['residuals']).__name__}")
+            residuals = {str(k): strict_number(v, f"residuals.{k}")
+                         for k, v in data.get("residuals", {}).items()}
             if not all(math.isfinite(v) for v in residuals.values()):
                 raise ValueError("residuals must be finite")
             return cls(
@@ -198,18 +237,39 @@ class RigCalibration:
                 extrinsics=SensorExtrinsics(np.asarray(extr["rotation"], dtype=np.float64),
                                             np.asarray(extr["translation_m"],
                                                        dtype=np.float64)),
-                grid=int(data["grid"]),
-                fov_deg=tuple(float(f) for f in data["fov_deg"]),
+                grid=strict_integer(data["grid"], "grid"),
+                fov_deg=tuple(strict_number(f, "fov_deg") for f in data["fov_deg"]),
                 sensor_model=str(data.get("sensor_model", "VL53L5CX")),
                 residuals=residuals,
                 date=str(data.get("date", "")),
-                distortion=tuple(float(v) for v in data.get("distortion", ())),
-                time_offset_s=float(data.get("time_offset_s", 0.0)),
+                distortion=tuple(strict_number(v, "distortion")
+                                 for v in data.get("distortion", ())),
+                time_offset_s=strict_number(data.get("time_offset_s", 0.0), "time_offset_s"),
             )
-        except (KeyError, TypeError, ValueError) as err:
+        except KeyError as err:
+            raise ValueError(f"{source}: invalid calibration: missing {err}") from err
+        except (TypeError, ValueError, OverflowError, AttributeError, IndexError) as err:
             raise ValueError(f"{source}: invalid calibration: {err}") from err
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> RigCalibration:
-        """Read and validate a calibration JSON file."""
-        return cls.from_dict(read_json(path, "calibration file"), str(path))
+        """Read and validate a calibration JSON file.
+
+        Besides :meth:`from_dict`'s checks, a calibration that leaves some zones outside
+        the image (at 2 m) loads with a ``UserWarning`` saying how many remain.
+
+        Raises:
+            FileNotFoundError / IsADirectoryError: the path is missing or a folder.
+            ValueError: naming the file (``InputFileError`` for unreadable content).
+        """
+        with reading(path, "calibration file"):
+            calibration = cls.from_dict(read_json(path, "calibration file"), str(path))
+        inside = calibration.zones_inside()
+        if not inside.all():
+            warnings.warn(f"{path}: only {int(inside.sum())} of {inside.size} zones fall "
+                          f"inside the {calibration.intrinsics.width}x"
+                          f"{calibration.intrinsics.height} image (at "
+                          f"{FALLBACK_ZONE_DEPTH_M:g} m); the others carry no information",
+                          UserWarning, stacklevel=2)
+        return calibration
+

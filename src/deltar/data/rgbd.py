@@ -24,6 +24,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from deltar.camera import CameraIntrinsics
+from deltar.io.input_file import input_file, reading
 
 #: Name of the optional per-folder settings file read by :func:`open_rgbd`.
 SIDECAR_NAME = "deltar_rgbd.json"
@@ -78,18 +79,18 @@ def read_color(path: str | Path) -> np.ndarray:
         ValueError: the file is corrupt or truncated, or holds one channel of more than
             8 bits (a 16-bit or float image is a depth map, not a colour image).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"colour image not found: {path}")
-    try:
-        with Image.open(path) as img:
-            img.load()  # decode now: truncated files raise here, not later
-            if img.mode in _DEPTH_LIKE_MODES:
-                raise ValueError(f"{path} is a single-channel {_DEPTH_LIKE_MODES[img.mode]} "
-                                 "image (a depth map?), not a colour image")
-            return np.asarray(img.convert("RGB"), dtype=np.uint8).copy()
-    except (OSError, UnidentifiedImageError, SyntaxError) as err:
-        raise ValueError(f"cannot decode colour image {path}: {err}") from err
+    path = input_file(path, "colour image")
+    with reading(path, "colour image"):
+        try:
+            with Image.open(path) as img:
+                img.load()  # decode now: truncated files raise here, not later
+                if img.mode in _DEPTH_LIKE_MODES:
+                    raise ValueError(f"{path} is a single-channel "
+                                     f"{_DEPTH_LIKE_MODES[img.mode]} image (a depth map?), "
+                                     "not a colour image")
+                return np.asarray(img.convert("RGB"), dtype=np.uint8).copy()
+        except (OSError, UnidentifiedImageError, SyntaxError) as err:
+            raise ValueError(f"cannot decode colour image {path}: {err}") from err
 
 
 #: Pillow modes of single-channel images deeper than 8 bits, as depth maps are stored.
@@ -111,17 +112,17 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     path = Path(path)
     if not (math.isfinite(depth_scale) and depth_scale > 0):
         raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
-    if not path.is_file():
-        raise FileNotFoundError(f"depth image not found: {path}")
-    try:
-        if path.suffix.lower() == ".npy":
-            raw = np.load(path, allow_pickle=False)
-        else:
-            with Image.open(path) as img:
-                img.load()
-                raw = np.asarray(img)
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as err:
-        raise ValueError(f"cannot decode depth image {path}: {err}") from err
+    input_file(path, "depth image")
+    with reading(path, "depth image"):
+        try:
+            if path.suffix.lower() == ".npy":
+                raw = np.load(path, allow_pickle=False)
+            else:
+                with Image.open(path) as img:
+                    img.load()
+                    raw = np.asarray(img)
+        except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as err:
+            raise ValueError(f"cannot decode depth image {path}: {err}") from err
     if raw.ndim != 2:
         raise ValueError(f"depth image {path} must be single-channel, got shape {raw.shape}")
     invalid = ~np.isfinite(raw) if raw.dtype.kind == "f" else np.zeros(raw.shape, bool)
@@ -134,13 +135,13 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
 
 def _size_of(path: Path) -> tuple[int, int]:
     """(height, width) of an image file, read from its header."""
-    if not path.is_file():
-        raise FileNotFoundError(f"colour image not found: {path}")
-    try:
-        with Image.open(path) as img:
-            return img.height, img.width
-    except (OSError, UnidentifiedImageError) as err:
-        raise ValueError(f"cannot read colour image {path}: {err}") from err
+    input_file(path, "colour image")
+    with reading(path, "colour image"):
+        try:
+            with Image.open(path) as img:
+                return img.height, img.width
+        except (OSError, UnidentifiedImageError) as err:
+            raise ValueError(f"cannot read colour image {path}: {err}") from err
 
 
 def default_intrinsics(height: int, width: int) -> CameraIntrinsics:

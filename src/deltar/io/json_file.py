@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import os
-from pathlib import Path
 from typing import Any
+
+from deltar.io.input_file import InputFileError, input_file, reading
 
 
 def read_json(path: str | os.PathLike, what: str) -> Any:
@@ -16,16 +17,18 @@ def read_json(path: str | os.PathLike, what: str) -> Any:
         what: what the file is, for the error message (e.g. ``"calibration file"``).
 
     Raises:
-        FileNotFoundError: ``"<what> not found: <path>"``.
-        ValueError: ``"<path>: corrupt JSON: ..."`` for unreadable or invalid JSON.
+        FileNotFoundError / IsADirectoryError / InputFileError: the path is missing, a
+            folder or not a regular file (:func:`~deltar.io.input_file.input_file`).
+        InputFileError: ``"<path>: corrupt JSON: ..."`` for invalid JSON, ``"<path>:
+            cannot read <what>: ..."`` for anything else (not UTF-8, nested too deeply,
+            a number beyond any float).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} not found: {path}")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: corrupt JSON: {err}") from err
+    path = input_file(path, what)
+    with reading(path, what):
+        try:
+            return json.loads(path.read_bytes().decode("utf-8"))
+        except json.JSONDecodeError as err:
+            raise InputFileError(path, f"{path}: corrupt JSON: {err}") from err
 
 
 def read_split_filenames(path: str | os.PathLike, split: str, what: str) -> list[str]:

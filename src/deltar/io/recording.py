@@ -22,8 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, strict_integer, strict_number
 from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.input_file import input_file, input_folder, reading
 from deltar.io.json_file import read_json
 from deltar.io.zone_file import zone_frame_from_dict, zone_frame_to_dict
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
@@ -69,8 +70,9 @@ class RecordingMeta:
                              f"{data.get('schema_version')!r}")
         try:
             intr = CameraIntrinsics.from_dict(data["intrinsics"])
-            fov_values = [float(f) for f in data.get("fov_deg", DEFAULT_FOV_DEG)]
-            grid = int(data.get("grid", 8))
+            fov_values = [strict_number(f, "fov_deg") for f in data.get("fov_deg",
+                                                                        DEFAULT_FOV_DEG)]
+            grid = strict_integer(data.get("grid", 8), "grid")
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid recording metadata: {err}") from err
         if grid not in (4, 8) or len(fov_values) != 2:
@@ -221,14 +223,13 @@ class Recording:
     """
 
     def __init__(self, folder: str | os.PathLike) -> None:
-        self.folder = Path(folder)
+        self.folder = input_folder(folder, "recording folder")
         meta_path = self.folder / META_FILE
-        if not self.folder.is_dir():
-            raise FileNotFoundError(f"recording folder not found: {self.folder}")
-        if not meta_path.is_file():
+        if not meta_path.exists():
             raise FileNotFoundError(f"recording has no {META_FILE}: {meta_path}")
-        self.meta = RecordingMeta.from_dict(read_json(meta_path, "recording metadata"),
-                                            str(meta_path))
+        with reading(meta_path, "recording metadata"):
+            self.meta = RecordingMeta.from_dict(read_json(meta_path, "recording metadata"),
+                                                str(meta_path))
         self.color_times_s, self.color_paths = _image_index(self.folder / COLOR_DIR)
         self.depth_times_s, self.depth_paths = _image_index(self.folder / DEPTH_DIR)
 
@@ -239,9 +240,13 @@ class Recording:
     def zone_frames(self) -> list[ZoneFrame]:
         """All zone frames in file order (timestamps strictly increasing, checked)."""
         path = self.zones_path
-        if not path.is_file():
+        if not path.exists():
             raise FileNotFoundError(f"recording has no {ZONES_FILE}: {path}")
-        lines = path.read_text(encoding="utf-8").splitlines()
+        with reading(input_file(path, ZONES_FILE), "zone frames"):
+            return self._read_zone_lines(path)
+
+    def _read_zone_lines(self, path: Path) -> list[ZoneFrame]:
+        lines = path.read_bytes().decode("utf-8").splitlines()
         frames: list[ZoneFrame] = []
         for number, line in enumerate(lines, start=1):
             if not line.strip():

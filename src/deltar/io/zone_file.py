@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_json
 from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame, number_array
 
@@ -209,25 +210,22 @@ def load_zone_frame(path: str | os.PathLike, *, orientation: Orientation | None 
         orientation: for raw driver dumps, how the driver grid maps onto the image.
 
     Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: corrupt file or invalid content; the message names the file.
+        FileNotFoundError / IsADirectoryError: the path is missing or a folder.
+        ValueError: corrupt or truncated file, or invalid content; the message names the
+            file (an :class:`~deltar.io.input_file.InputFileError` when it is unreadable).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"zone frame file not found: {path}")
+    path = input_file(path, "zone frame file")
     suffix = path.suffix.lower()
-    if suffix == ".json":
-        data = read_json(path, "zone frame file")
-        return zone_frame_from_dict(data, source=str(path), orientation=orientation)
-    if suffix == ".npz":
-        try:
+    if suffix not in (".json", ".npz"):
+        raise ValueError(f"{path}: unknown zone frame format (expected .json or .npz)")
+    with reading(path, "zone frame file"):
+        if suffix == ".json":
+            data = read_json(path, "zone frame file")
+        else:
             with np.load(path, allow_pickle=False) as npz:
                 data = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, EOFError) as err:
-            raise ValueError(f"{path}: corrupt NPZ: {err}") from err
-        data = {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
+            data = {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
         return zone_frame_from_dict(data, source=str(path), orientation=orientation)
-    raise ValueError(f"{path}: unknown zone frame format (expected .json or .npz)")
 
 
 def zone_frame_from_driver_result(result: Any, *, orientation: Orientation | None = None,

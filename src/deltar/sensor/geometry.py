@@ -128,6 +128,21 @@ def zone_rects(
     return np.stack([v.min(1), u.min(1), v.max(1), u.max(1)], axis=1).astype(np.float32)
 
 
+def zones_in_image(rects: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Which zone rectangles cover at least one pixel centre of a height x width image.
+
+    Args:
+        rects: (..., 4) rectangles (y0, x0, y1, x1) in pixels.
+        height, width: image size in pixels.
+
+    Returns:
+        (...,) bool, False where a zone lies wholly outside the image (it carries no
+        information about it).
+    """
+    bounds = zone_rects_to_pixel_bounds(rects, height, width)
+    return (bounds[..., 2] > bounds[..., 0]) & (bounds[..., 3] > bounds[..., 1])
+
+
 def zone_rects_to_pixel_bounds(rects: np.ndarray, height: int, width: int) -> np.ndarray:
     """Integer pixel bounds (y0, x0, y1, x1) of the pixels a zone covers, clipped to the image.
 

@@ -1,0 +1,150 @@
+"""Reading a user's file: one boundary for every reader, errors that name the file.
+
+The helpers every reader of an input file uses:
+
+- :func:`input_file` tells the kinds of bad path apart before reading: missing, a
+  folder, or not a regular file (``/dev/null``, a pipe), each with its own message;
+  :func:`input_folder` does the same for an input folder.
+- :func:`reading` wraps the reading and parsing of one file: whatever goes wrong in
+  there (Pillow's decompression-bomb guard, ``RecursionError`` from deeply nested
+  JSON, ``BadZipFile`` / ``EOFError`` from a truncated NPZ, ``UnicodeDecodeError``,
+  ``OverflowError`` / ``TypeError`` / ``AttributeError`` from fields of the wrong kind,
+  h5py's errors) reaches the caller as an :class:`InputFileError` (a ``ValueError``)
+  whose message starts with the file, the original exception chained as its cause.
+
+Exceptions that are not about the file's content (``NameError``, ``AssertionError``,
+``RuntimeError`` other than recursion, ``KeyboardInterrupt`` ...) pass unchanged: an
+internal bug stays a bug, with its traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import struct
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+class InputFileError(ValueError):
+    """A user's file could not be read or holds what the reader cannot accept.
+
+    Attributes:
+        path: the file.
+    """
+
+    def __init__(self, path: str | os.PathLike, message: str) -> None:
+        super().__init__(message)
+        self.path = Path(path)
+
+
+#: What a reader may raise on a file's content (besides Pillow's bomb guard).
+READ_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError, OSError, EOFError, zipfile.BadZipFile, RecursionError, OverflowError,
+    TypeError, AttributeError, LookupError, struct.error, MemoryError, SyntaxError)
+
+
+def input_file(path: str | os.PathLike, what: str) -> Path:
+    """Check that ``path`` is an existing regular file (readable as one).
+
+    Args:
+        path: the file.
+        what: what it is, for the messages (e.g. ``"calibration file"``).
+
+    Returns:
+        ``path`` as a ``Path``.
+
+    Raises:
+        FileNotFoundError: ``"<what> not found: <path>"``.
+        IsADirectoryError: ``"<what> <path> is a folder, not a file"``.
+        InputFileError: ``"<what> <path> is not a regular file (a device, pipe or
+            socket)"``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    if path.is_dir():
+        raise IsADirectoryError(f"{what} {path} is a folder, not a file")
+    if not path.is_file():
+        raise InputFileError(path, f"{what} {path} is not a regular file (a device, pipe or "
+                             "socket)")
+    return path
+
+
+def input_folder(path: str | os.PathLike, what: str) -> Path:
+    """Check that ``path`` is an existing folder.
+
+    Raises:
+        FileNotFoundError: ``"<what> not found: <path>"``.
+        NotADirectoryError: ``"<what> <path> is a file, not a folder"`` (or not a
+            regular file either).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    if not path.is_dir():
+        kind = "a file" if path.is_file() else "not a regular file"
+        raise NotADirectoryError(f"{what} {path} is {kind}, not a folder")
+    return path
+
+
+@contextlib.contextmanager
+def reading(path: str | os.PathLike, what: str) -> Iterator[Path]:
+    """Turn any failure of reading ``path`` into one error naming the file.
+
+    Args:
+        path: the file being read.
+        what: what it is, for the message (e.g. ``"zone frame file"``).
+
+    Yields:
+        ``path`` as a ``Path``.
+
+    Raises:
+        InputFileError: ``"<path>: cannot read <what>: <reason>"`` for the exceptions
+            of :data:`READ_ERRORS` and Pillow's ``DecompressionBombError``; a
+            ``ValueError`` whose message already names the file, and an ``OSError``
+            with a file name (permission denied ...), pass unchanged.
+    """
+    path = Path(path)
+    try:
+        yield path
+    except InputFileError:
+        raise
+    except Exception as err:
+        if not isinstance(err, READ_ERRORS) and not _is_decompression_bomb(err):
+            raise
+        if isinstance(err, (ValueError, OSError)) and not isinstance(
+                err, (UnicodeError, RecursionError)) and (
+                str(path) in str(err) or getattr(err, "filename", None)):
+            raise
+        raise InputFileError(path, f"{path}: cannot read {what}: {read_reason(err)}") from err
+
+
+def read_reason(err: BaseException) -> str:
+    """A short reason for a reader's exception, in the user's terms."""
+    detail = " ".join(str(err).split())
+    if _is_decompression_bomb(err):
+        return f"the image is too large to decode safely ({detail})"
+    if isinstance(err, RecursionError):
+        return "nested too deeply to parse"
+    if isinstance(err, (zipfile.BadZipFile, EOFError)):
+        return f"corrupt or truncated file ({detail or type(err).__name__})"
+    if isinstance(err, UnicodeDecodeError):
+        return (f"not UTF-8 text (byte 0x{err.object[err.start]:02x} at position "
+                f"{err.start})")
+    if isinstance(err, OverflowError):
+        return f"a number is out of range ({detail})"
+    if isinstance(err, MemoryError):
+        return "too large to load into memory"
+    if isinstance(err, (TypeError, AttributeError, LookupError)):
+        return f"a field has the wrong type or shape ({type(err).__name__}: {detail})"
+    return detail or type(err).__name__
+
+
+def _is_decompression_bomb(err: BaseException) -> bool:
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow is a dependency
+        return False
+    return isinstance(err, (Image.DecompressionBombError, Image.DecompressionBombWarning))
