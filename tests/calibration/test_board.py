@@ -7,13 +7,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from deltar.calibration.board import BoardDetector, estimate_board_pose, parse_board_spec
-from deltar.calibration.board_pipeline import closed_form_extrinsics, estimate_time_offset
+from deltar.calibration.board_pipeline import closed_form_extrinsics
 from deltar.calibration.synthetic_board import (
     WALL,
     board_to_world,
     board_view_poses,
     render_board_image,
 )
+from deltar.calibration.time_offset import estimate_time_offset
 from deltar.camera import CameraIntrinsics
 
 SMALL = CameraIntrinsics(260.0, 262.0, 161.0, 119.0, 320, 240)
