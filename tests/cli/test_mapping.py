@@ -171,7 +171,8 @@ def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
     from scipy.spatial.transform import Rotation
 
     from deltar.io.recording import RecordingMeta
-    from deltar.io.rosbag import BagRecordingWriter, _header, typestore
+    from deltar.io.ros_messages import stamped_header, typestore
+    from deltar.io.rosbag_writer import BagRecordingWriter
     from deltar.sensor.geometry import zone_rects
     from deltar.sensor.simulate import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
@@ -188,7 +189,7 @@ def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
                                         timestamp_s=t + 0.001, no_target=zones.no_target))
         q = Rotation.from_matrix(pose[:3, :3]).as_quat()
         msg = types["geometry_msgs/msg/PoseStamped"](
-            header=_header(round(t * 1e9), "map"), pose=types["geometry_msgs/msg/Pose"](
+            header=stamped_header(round(t * 1e9), "map"), pose=types["geometry_msgs/msg/Pose"](
                 position=types["geometry_msgs/msg/Point"](x=pose[0, 3], y=0.0, z=0.0),
                 orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2],
                                                                   w=q[3])))

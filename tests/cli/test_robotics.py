@@ -1,7 +1,7 @@
 """Robot-side commands end to end: ROS 2 bags in and out, rerun recordings of the views.
 
-The bag and rerun helpers are the library tests' (tests/io/test_rosbag.py,
-tests/inference/test_viewer.py).
+The bag and rerun helpers are the library tests' (tests/io/test_rosbag_reader.py,
+tests/capture/test_viewer.py).
 """
 
 from __future__ import annotations
@@ -13,9 +13,10 @@ from typer.testing import CliRunner
 from deltar.capture.bag_replay import pair_calibration
 from deltar.cli.main import app
 from deltar.inference.estimator import DepthEstimator
-from deltar.io.rosbag import BagInput, image_from_msg, metric_image_from_msg
+from deltar.io.ros_messages import image_from_msg, metric_image_from_msg
+from deltar.io.rosbag_reader import BagInput
 from tests.capture.test_viewer import _buffer, read_rrd
-from tests.io.test_rosbag import read_topic, write_input_bag
+from tests.io.test_rosbag_reader import read_topic, write_input_bag
 
 runner = CliRunner(env={"COLUMNS": "200"})
 

@@ -107,7 +107,8 @@ def test_a_gap_in_the_trajectory_covers_nothing_inside_it(tmp_path):
 
 
 def _bag_with_poses(path, *, tf: bool):
-    from deltar.io.rosbag import BagWriter, _header, typestore
+    from deltar.io.ros_messages import stamped_header, typestore
+    from deltar.io.rosbag_writer import BagWriter
 
     types = typestore().types
     with BagWriter(path) as writer:
@@ -118,7 +119,7 @@ def _bag_with_poses(path, *, tf: bool):
             orientation = types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])
             if tf:
                 moving = types["geometry_msgs/msg/TransformStamped"](
-                    header=_header(stamp, "odom"), child_frame_id="base",
+                    header=stamped_header(stamp, "odom"), child_frame_id="base",
                     transform=types["geometry_msgs/msg/Transform"](
                         translation=types["geometry_msgs/msg/Vector3"](x=0.1 * i, y=0.0,
                                                                        z=0.0),
@@ -127,13 +128,13 @@ def _bag_with_poses(path, *, tf: bool):
                               types["tf2_msgs/msg/TFMessage"](transforms=[moving]), stamp)
             else:
                 msg = types["geometry_msgs/msg/PoseStamped"](
-                    header=_header(stamp, "map"),
+                    header=stamped_header(stamp, "map"),
                     pose=types["geometry_msgs/msg/Pose"](position=position,
                                                          orientation=orientation))
                 writer._write("/camera/pose", "geometry_msgs/msg/PoseStamped", msg, stamp)
         if tf:  # the camera sits 0.2 m above the base
             static = types["geometry_msgs/msg/TransformStamped"](
-                header=_header(1_000_000_000, "base"), child_frame_id="camera",
+                header=stamped_header(1_000_000_000, "base"), child_frame_id="camera",
                 transform=types["geometry_msgs/msg/Transform"](
                     translation=types["geometry_msgs/msg/Vector3"](x=0.0, y=-0.2, z=0.0),
                     rotation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,

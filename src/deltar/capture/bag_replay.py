@@ -1,7 +1,7 @@
 """Replay a ROS 2 bag: pair ToF frames with camera images, predict, write a new bag.
 
-The input bag is only read (:class:`deltar.io.rosbag.BagInput`). Outputs go to a new
-bag (:class:`deltar.io.rosbag.BagWriter`), one message set per predicted frame, with
+The input bag is only read (:class:`deltar.io.rosbag_reader.BagInput`). Outputs go to a new
+bag (:class:`deltar.io.rosbag_writer.BagWriter`), one message set per predicted frame, with
 the camera image's header stamp, frame id and bag time:
 
 - ``<prefix>/depth``: ``sensor_msgs/msg/Image`` ``32FC1``, metres, NaN = invalid;
@@ -30,7 +30,7 @@ from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
 if TYPE_CHECKING:
     from deltar.inference.estimator import DepthEstimator
     from deltar.inference.prediction import DepthPrediction
-    from deltar.io.rosbag import BagInput, BagPair
+    from deltar.io.rosbag_reader import BagInput, BagPair
 
 
 @dataclass
@@ -123,7 +123,7 @@ def replay_bag_to_bag(bag: BagInput, estimator: DepthEstimator, out_bag: str | o
         FileExistsError: ``out_bag`` exists.
     """
     from deltar.inference.outputs import depth_to_points
-    from deltar.io.rosbag import OUTPUT_TOPICS, BagWriter
+    from deltar.io.rosbag_writer import OUTPUT_TOPICS, BagWriter
 
     out = Path(out_bag).resolve()
     source = bag.path.resolve()

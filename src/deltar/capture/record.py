@@ -4,7 +4,7 @@ The folder layout is :mod:`deltar.io.recording` (``meta.json``, ``zones.jsonl``,
 ``color/<ns>.png``, optional ``depth/<ns>.png``). Nothing in a recording is ever
 overwritten: recording into an existing folder appends (same camera and sensor), and
 a frame whose file already exists raises ``FileExistsError``. With ``bag_storage`` the
-same items go into a new ROS 2 bag instead (:class:`deltar.io.rosbag.BagRecordingWriter`).
+same items go into a new ROS 2 bag instead (:class:`deltar.io.rosbag_writer.BagRecordingWriter`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from deltar.sensor.geometry import DEFAULT_FOV_DEG
 
 if TYPE_CHECKING:
     from deltar.capture.drivers import Capture
-    from deltar.io.rosbag import BagRecordingWriter
+    from deltar.io.rosbag_writer import BagRecordingWriter
 
 
 @dataclass
@@ -68,7 +68,7 @@ def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
         on_step: called after each step with the running summary (progress display).
         bag_storage: write a new ROS 2 bag at ``out`` instead of a folder, with this
             storage (``"sqlite3"`` or ``"mcap"``; see
-            :class:`deltar.io.rosbag.BagRecordingWriter`).
+            :class:`deltar.io.rosbag_writer.BagRecordingWriter`).
         on_capture: called with each recorded capture and the recording's metadata
             (e.g. a live viewer).
 
@@ -103,7 +103,7 @@ def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
                     if bag_storage is None:
                         writer = RecordingWriter(out, meta)
                     else:
-                        from deltar.io.rosbag import BagRecordingWriter
+                        from deltar.io.rosbag_writer import BagRecordingWriter
 
                         writer = BagRecordingWriter(out, meta, storage=bag_storage)
                 if writer is None:

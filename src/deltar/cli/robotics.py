@@ -96,7 +96,7 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
     from rich.progress import Progress
 
     from deltar.capture.bag_replay import replay_bag, replay_bag_to_bag
-    from deltar.io.rosbag import BagInput
+    from deltar.io.rosbag_reader import BagInput
 
     if out is not None or show:
         raise typer.BadParameter("with --bag, write with --out-bag and/or view with --rerun "

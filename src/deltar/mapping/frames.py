@@ -115,7 +115,7 @@ class FrameSource:
     def _list_bag(self, calibration: RigCalibration | None, tolerance_s: float,
                   options: dict[str, Any]) -> None:
         from deltar.capture.bag_replay import pair_calibration
-        from deltar.io.rosbag import BagInput
+        from deltar.io.rosbag_reader import BagInput
 
         bag = BagInput(self.path, **options)
         self.bag = bag

@@ -299,7 +299,8 @@ def read_bag_poses(path: str | os.PathLike, *, pose_topic: str | None = None,
         ValueError: a named topic that is missing or of another type, a quaternion that
             is not unit length, or a /tf without the camera frame.
     """
-    from deltar.io.rosbag import read_messages, require_rosbags, stamp_to_ns
+    from deltar.io.ros_messages import require_rosbags, stamp_to_ns
+    from deltar.io.rosbag_reader import read_messages
 
     require_rosbags()
     from rosbags.rosbag2 import Reader

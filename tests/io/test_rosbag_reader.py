@@ -1,4 +1,4 @@
-"""ROS 2 bags: read camera + CameraInfo + ToF, predict, write depth bags; record to bags.
+"""Reading ROS 2 bags: camera + CameraInfo + ToF paired, predicted into depth bags.
 
 Input bags are written here with ``rosbags`` directly (not with deltar's writer), read
 by ``deltar replay --bag``; outputs are read back with ``rosbags``' own reader.
@@ -21,13 +21,8 @@ from deltar.camera import CameraIntrinsics
 from deltar.capture.bag_replay import pair_calibration, replay_bag_to_bag
 from deltar.cli.main import app
 from deltar.inference.estimator import DepthEstimator
-from deltar.io.rosbag import (
-    BagInput,
-    metric_image_from_msg,
-    typestore,
-    zone_frame_from_vl53l5cx_ros2,
-)
-from deltar.sensor.zone_frame import Orientation
+from deltar.io.ros_messages import metric_image_from_msg, typestore
+from deltar.io.rosbag_reader import BagInput
 from tests.inference.fakes import ZonePainterNet
 
 runner = CliRunner(env={"COLUMNS": "200"})
@@ -174,31 +169,6 @@ def test_bag_pairs_decode_and_predict_into_a_new_bag(tmp_path, encoding):
         assert np.isnan(uncertainty[~has_depth]).all()
 
 
-def test_point_cloud_holds_back_projected_coloured_points(tmp_path):
-    source = tmp_path / "in_bag"
-    truth = write_input_bag(source, frames=1)
-    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
-    out, _ = replay_bag_to_bag(BagInput(source), estimator, tmp_path / "out", points=True,
-                               point_stride=1, storage="mcap")
-    (_, cloud), = read_topic(out, "/deltar/points")
-    (_, depth_msg), = read_topic(out, "/deltar/depth")
-    depth = metric_image_from_msg(depth_msg)
-    assert [f.name for f in cloud.fields] == ["x", "y", "z", "rgb"]
-    assert cloud.point_step == 16 and cloud.height == 1
-    data = np.asarray(cloud.data, dtype=np.uint8).view(
-        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
-    assert cloud.width == np.isfinite(depth).sum() == data.size
-    # Pick the point of pixel (v, u) by back-projecting it and compare colours.
-    v, u = np.argwhere(np.isfinite(depth))[len(data) // 2]
-    z = depth[v, u]
-    expected = np.array([(u - INTR.cx) / INTR.fx * z, (v - INTR.cy) / INTR.fy * z, z])
-    xyz = np.stack([data["x"], data["y"], data["z"]], axis=1)
-    index = np.argmin(np.linalg.norm(xyz - expected, axis=1))
-    np.testing.assert_allclose(xyz[index], expected, atol=1e-5)
-    r, g, b = truth["rgb"][0][v, u].astype(np.uint32)
-    assert data["rgb"][index] == (r << 16) | (g << 8) | b
-
-
 def test_missing_tof_topic_is_a_clear_error(tmp_path):
     write_input_bag(tmp_path / "bag", with_tof=False)
     with pytest.raises(ValueError, match=r"no ToF topic \(deltar_msgs/msg/ZoneFrame\)"):
@@ -250,28 +220,6 @@ def test_no_camera_info_needs_a_calibration(tmp_path):
         replay_bag_to_bag(bag, DepthEstimator(ZonePainterNet()), tmp_path / "out")
 
 
-def test_vl53l5cx_ros2_distance_image_adapter():
-    store = typestore()
-    values = np.arange(64, dtype=np.float32).reshape(8, 8) / 10 + 0.5
-    values[0, 1] = np.nan  # a zone the driver marked invalid
-    msg = store.types["sensor_msgs/msg/Image"](
-        header=_header(store, T0, "tof"), height=8, width=8, encoding="32FC1",
-        is_bigendian=0, step=32, data=values.astype("<f4").view(np.uint8).reshape(-1))
-    frame = zone_frame_from_vl53l5cx_ros2(msg, orientation=Orientation(flip_ud=True),
-                                          sigma_m=0.03)
-    expected = values[::-1]
-    assert frame.grid == 8 and frame.timestamp_s == pytest.approx(T0 / 1e9)
-    np.testing.assert_array_equal(frame.valid, np.isfinite(expected))
-    np.testing.assert_allclose(frame.mean_m[frame.valid], expected[frame.valid])
-    assert np.all(frame.sigma_m[frame.valid] == pytest.approx(0.03))
-    assert not frame.valid[7, 1]  # row 0 became row 7
-    bad = store.types["sensor_msgs/msg/Image"](
-        header=_header(store, T0, "tof"), height=8, width=8, encoding="16UC1",
-        is_bigendian=0, step=16, data=np.zeros(128, np.uint8))
-    with pytest.raises(ValueError, match="expected a 4x4 or 8x8 32FC1"):
-        zone_frame_from_vl53l5cx_ros2(bad)
-
-
 def test_vl53l5cx_ros2_bag_replays_with_its_topic_named(tmp_path):
     store = typestore()
     path = tmp_path / "bag"
@@ -316,39 +264,3 @@ def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):
     result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
                                  "deltar-lite", "--out-bag", str(tmp_path / "out")])
     assert result.exit_code == 1 and 'needs the "ros" extra' in result.output
-
-
-def test_no_target_flags_survive_a_bag(tmp_path):
-    from deltar.io.rosbag import BagWriter, read_messages, zone_frame_from_msg
-    from deltar.sensor.zone_frame import ZoneFrame
-
-    valid = np.ones((8, 8), bool)
-    valid[0, :3] = False
-    no_target = np.zeros((8, 8), bool)
-    no_target[0, :2] = True  # zone (0, 2) is invalid for another reason
-    frame = ZoneFrame(mean_m=np.where(valid, 1.5, 0.0), sigma_m=np.full((8, 8), 0.02),
-                      valid=valid, no_target=no_target)
-    with BagWriter(tmp_path / "bag") as writer:
-        writer.add_zone_frame("/tof/zones", 1_000, "tof", frame)
-    ((_, msg),) = read_messages(tmp_path / "bag", "/tof/zones")
-    back = zone_frame_from_msg(msg)
-    np.testing.assert_array_equal(back.valid, valid)
-    np.testing.assert_array_equal(back.no_target, no_target)
-    assert back.status.reshape(-1)[:3].tolist() == [255, 255, 0]
-
-
-def test_no_target_flags_beside_other_status_codes_are_written_as_255(tmp_path):
-    from deltar.io.rosbag import BagWriter, read_messages, zone_frame_from_msg
-    from deltar.sensor.zone_frame import ZoneFrame
-
-    valid = np.ones(16, bool)
-    valid[:2] = False
-    status = np.where(valid, 5, 4).astype(np.uint8)  # zone 0: flagged by a target count
-    frame = ZoneFrame(mean_m=np.where(valid, 1.0, 0.0), sigma_m=np.zeros(16), valid=valid,
-                      status=status, no_target=np.arange(16) == 0)
-    with BagWriter(tmp_path / "bag") as writer:
-        writer.add_zone_frame("/tof/zones", 1_000, "tof", frame)
-    ((_, msg),) = read_messages(tmp_path / "bag", "/tof/zones")
-    back = zone_frame_from_msg(msg)
-    assert back.status.reshape(-1)[:3].tolist() == [255, 4, 5]
-    assert np.flatnonzero(back.flat_no_target()).tolist() == [0]

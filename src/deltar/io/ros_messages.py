@@ -1,0 +1,236 @@
+"""ROS 2 messages to and from numpy, with the pure-Python ``rosbags`` library.
+
+The type store (:func:`typestore`: ROS 2 Humble's types with this package's
+``deltar_msgs/msg/ZoneFrame``, defined in ``msg/ZoneFrame.msg`` beside this module),
+stamps, headers, and the decoders of the messages a bag is read from: camera images
+(``sensor_msgs/msg/Image`` in ``rgb8`` / ``bgr8``, ``CompressedImage``), metric images
+(``32FC1``), ``CameraInfo`` and zone frames (``deltar_msgs/msg/ZoneFrame`` or the
+``vl53l5cx_ros2`` driver's 32FC1 image). Reading bags is
+:mod:`deltar.io.rosbag_reader`, writing them :mod:`deltar.io.rosbag_writer`.
+
+All times are integer nanoseconds (``header.stamp``) unless named ``_s`` (seconds).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deltar.camera import CameraIntrinsics
+from deltar.sensor.zone_frame import (
+    DEFAULT_VALID_STATUS,
+    Orientation,
+    ZoneFrame,
+)
+
+#: The ToF message type shipped with the package.
+ZONE_FRAME_MSGTYPE = "deltar_msgs/msg/ZoneFrame"
+#: Where its definition lives (package data).
+ZONE_FRAME_MSG_PATH = Path(__file__).with_name("msg") / "ZoneFrame.msg"
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+_EXTRA_HINT = 'ROS 2 bag support needs the "ros" extra: pip install "deltar[ros]"'
+
+
+def require_rosbags() -> Any:
+    """Import ``rosbags`` or raise ``ImportError`` naming the extra to install."""
+    try:
+        import rosbags.rosbag2
+        import rosbags.typesys
+    except ImportError as err:
+        raise ImportError(f"{_EXTRA_HINT} ({err})") from err
+    return rosbags
+
+
+@functools.lru_cache(maxsize=1)
+def typestore() -> Any:
+    """The ROS 2 Humble type store with ``deltar_msgs/msg/ZoneFrame`` registered."""
+    require_rosbags()
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg(ZONE_FRAME_MSG_PATH.read_text(encoding="utf-8"),
+                                      ZONE_FRAME_MSGTYPE))
+    return store
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/msg/Time`` -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def stamped_header(stamp_ns: int, frame_id: str) -> Any:
+    """A ``std_msgs/msg/Header`` with the stamp ``stamp_ns`` (integer ns) and ``frame_id``."""
+    types = typestore().types
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](
+        sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def image_from_msg(msg: Any, msgtype: str, source: str = "image") -> np.ndarray:
+    """Decode a camera message to (H, W, 3) uint8 RGB.
+
+    Args:
+        msg: a deserialised ``sensor_msgs/msg/Image`` (``rgb8`` or ``bgr8``) or
+            ``sensor_msgs/msg/CompressedImage`` (JPEG, PNG...).
+        msgtype: its type name.
+        source: name used in error messages (e.g. the topic).
+
+    Raises:
+        ValueError: another encoding, a truncated buffer or an undecodable image.
+    """
+    import cv2
+
+    if msgtype == "sensor_msgs/msg/CompressedImage":
+        decoded = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+        if decoded is None:
+            raise ValueError(f"{source}: cannot decode the compressed image "
+                             f"(format {msg.format!r})")
+        return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
+    encoding = str(msg.encoding).lower()
+    if encoding not in ("rgb8", "bgr8"):
+        raise ValueError(f"{source}: image encoding {msg.encoding!r} is not supported; "
+                         "expected rgb8 or bgr8 (or a CompressedImage)")
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if step < 3 * width or data.size < step * height:
+        raise ValueError(f"{source}: image data has {data.size} bytes, expected "
+                         f"{height} rows of step {step} >= {3 * width}")
+    rgb = data[:step * height].reshape(height, step)[:, :3 * width].reshape(height, width, 3)
+    return np.ascontiguousarray(rgb[..., ::-1] if encoding == "bgr8" else rgb)
+
+
+def intrinsics_from_camera_info(msg: Any, image_size: tuple[int, int] | None = None,
+                                source: str = "camera_info") -> CameraIntrinsics:
+    """Camera intrinsics (pixels) from a ``sensor_msgs/msg/CameraInfo``'s K matrix.
+
+    Args:
+        msg: the message.
+        image_size: (height, width) of the images, used when the message leaves them 0.
+        source: name used in error messages.
+
+    Raises:
+        ValueError: a K without positive focal lengths, or a size that differs from
+            ``image_size``.
+    """
+    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+    if k.size != 9 or not np.all(np.isfinite(k)) or k[0] <= 0 or k[4] <= 0:
+        raise ValueError(f"{source}: K must hold positive focal lengths, got {k.tolist()}")
+    height, width = int(msg.height), int(msg.width)
+    if (height, width) == (0, 0) and image_size is not None:
+        height, width = image_size
+    if image_size is not None and (height, width) != tuple(image_size):
+        raise ValueError(f"{source} is for {height}x{width} images, the camera topic has "
+                         f"{image_size[0]}x{image_size[1]}")
+    if np.any(np.asarray(msg.d, dtype=np.float64) != 0):
+        warnings.warn(f"{source}: lens distortion ({msg.distortion_model}) is not "
+                      "corrected; zones are placed with the pinhole model", stacklevel=2)
+    return CameraIntrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]), width, height)
+
+
+def zone_frame_from_msg(msg: Any, source: str = "zones",
+                        valid_status: tuple[int, ...] = DEFAULT_VALID_STATUS) -> ZoneFrame:
+    """A :class:`ZoneFrame` from a ``deltar_msgs/msg/ZoneFrame`` (see its ``.msg``).
+
+    Raises:
+        ValueError: lengths that do not match ``zone_count``, naming the field.
+    """
+    count = int(msg.zone_count)
+    distance = np.asarray(msg.distance_m, dtype=np.float64)
+    if distance.size != count or count not in (16, 64):
+        raise ValueError(f"{source}: zone_count is {count} and distance_m has "
+                         f"{distance.size} entries; expected 16 or 64 of each")
+    arrays = {}
+    for name in ("sigma_m", "status", "valid"):
+        values = np.asarray(getattr(msg, name))
+        if values.size not in (0, count):
+            raise ValueError(f"{source}: {name} has {values.size} entries; expected "
+                             f"{count} or none")
+        arrays[name] = values if values.size else None
+    ok = np.isfinite(distance) & (distance > 0)
+    status = None if arrays["status"] is None else arrays["status"].astype(np.uint8)
+    if arrays["valid"] is not None:
+        valid = arrays["valid"].astype(bool) & ok
+    elif status is not None:
+        valid = ok & np.isin(status, np.asarray(valid_status, dtype=np.uint8))
+    else:
+        valid = ok
+    sigma = np.zeros(count) if arrays["sigma_m"] is None else \
+        arrays["sigma_m"].astype(np.float64)
+    valid &= np.isfinite(sigma) & (sigma >= 0)
+    edges = np.asarray(msg.hist_edges_m, dtype=np.float64)
+    counts = np.asarray(msg.hist_counts, dtype=np.float64)
+    hist = {}
+    if edges.size or counts.size:
+        bins = edges.size - 1
+        if bins < 1 or counts.size != count * bins:
+            raise ValueError(f"{source}: hist_counts has {counts.size} values, expected "
+                             f"zone_count x {max(bins, 0)} bins from hist_edges_m")
+        hist = {"hist_edges_m": edges, "hist_counts": counts.reshape(count, bins)}
+    try:
+        return ZoneFrame(mean_m=np.where(valid, distance, 0.0),
+                         sigma_m=np.where(valid, sigma, 0.0), valid=valid, status=status,
+                         timestamp_s=stamp_to_ns(msg.header.stamp) / 1e9,
+                         sensor_model=str(msg.sensor_model) or "VL53L5CX", **hist)
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from err
+
+
+def zone_frame_from_vl53l5cx_ros2(msg: Any, *, orientation: Orientation | None = None,
+                                  sigma_m: float = 0.0, source: str = "zones") -> ZoneFrame:
+    """A :class:`ZoneFrame` from the ``vl53l5cx_ros2`` driver node's distance image.
+
+    That node (github.com/skhbk/vl53l5cx_ros2) publishes ``~/x<ADDRESS>/image`` as a
+    ``sensor_msgs/msg/Image`` of encoding ``32FC1``, ``resolution`` x ``resolution``
+    (4 or 8) metres in ST's zone order, NaN in zones whose status is not in its
+    ``valid_status`` parameter (when that parameter is set; otherwise every zone's
+    distance is published). It publishes no sigma and no status.
+
+    Args:
+        msg: the deserialised image message.
+        orientation: how ST's zone order maps onto the camera image (identity when
+            None; ``deltar.capture.drivers`` uses ``Orientation(flip_ud=True)`` for
+            the same ULD order).
+        sigma_m: sigma given to every valid zone, metres (the node does not publish one;
+            0 puts all depth hypotheses at the distance).
+        source: name used in error messages.
+
+    Raises:
+        ValueError: another encoding or size.
+    """
+    if str(msg.encoding) != "32FC1" or int(msg.height) != int(msg.width) or \
+            int(msg.width) not in (4, 8):
+        raise ValueError(f"{source}: expected a 4x4 or 8x8 32FC1 distance image, got "
+                         f"{msg.width}x{msg.height} {msg.encoding!r}")
+    n = int(msg.width)
+    dtype = ">f4" if msg.is_bigendian else "<f4"
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if int(msg.step) != 4 * n or data.size != 4 * n * n:
+        raise ValueError(f"{source}: expected {4 * n * n} bytes of data, got {data.size}")
+    distance = data.view(dtype).astype(np.float64).reshape(n, n)
+    if not (np.isfinite(sigma_m) and sigma_m >= 0):
+        raise ValueError(f"sigma_m must be >= 0 metres, got {sigma_m}")
+    orient = orientation or Orientation()
+    distance = orient.apply(distance)
+    valid = np.isfinite(distance) & (distance > 0)
+    return ZoneFrame(mean_m=np.where(valid, distance, 0.0),
+                     sigma_m=np.where(valid, sigma_m, 0.0), valid=valid,
+                     timestamp_s=stamp_to_ns(msg.header.stamp) / 1e9, sensor_model="VL53L5CX")
+
+
+def metric_image_from_msg(msg: Any, source: str = "image") -> np.ndarray:
+    """(H, W) float32 metres from a ``32FC1`` ``sensor_msgs/msg/Image`` (NaN kept)."""
+    if str(msg.encoding) != "32FC1":
+        raise ValueError(f"{source}: expected encoding 32FC1, got {msg.encoding!r}")
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if step < 4 * width or data.size < step * height:
+        raise ValueError(f"{source}: image data has {data.size} bytes, expected "
+                         f"{height} rows of step {step}")
+    rows = data[:step * height].reshape(height, step)[:, :4 * width]
+    return rows.copy().view(">f4" if msg.is_bigendian else "<f4").reshape(height, width) \
+        .astype(np.float32)

@@ -1,0 +1,278 @@
+"""Reading ROS 2 bags: :class:`BagInput` pairs a camera topic with a ToF topic.
+
+A camera topic (``sensor_msgs/msg/Image`` in ``rgb8`` or ``bgr8``, or
+``sensor_msgs/msg/CompressedImage``), its ``sensor_msgs/msg/CameraInfo`` and a ToF
+topic, either this package's ``deltar_msgs/msg/ZoneFrame`` (``msg/ZoneFrame.msg``) or
+the ``sensor_msgs/msg/Image`` (32FC1, 4x4 or 8x8, metres, NaN = invalid) that the
+``vl53l5cx_ros2`` driver node (github.com/skhbk/vl53l5cx_ros2) publishes. Zone frames
+are paired with the image nearest in header stamp. The messages are decoded by
+:mod:`deltar.io.ros_messages`.
+
+All times are integer nanoseconds (``header.stamp``) unless named ``_s`` (seconds).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deltar.camera import CameraIntrinsics
+from deltar.io.recording import nearest_in_time
+from deltar.io.ros_messages import (
+    CAMERA_INFO_TYPE,
+    IMAGE_TYPES,
+    ZONE_FRAME_MSGTYPE,
+    image_from_msg,
+    intrinsics_from_camera_info,
+    require_rosbags,
+    stamp_to_ns,
+    typestore,
+    zone_frame_from_msg,
+    zone_frame_from_vl53l5cx_ros2,
+)
+from deltar.sensor.zone_frame import Orientation, ZoneFrame
+
+#: ToF topic formats :class:`BagInput` reads.
+TOF_FORMATS: tuple[str, ...] = ("deltar", "vl53l5cx_ros2")
+
+
+def _namespace(topic: str) -> str:
+    """``/camera/color/image_raw`` -> ``/camera/color``."""
+    return topic.rsplit("/", 1)[0]
+
+
+@dataclass
+class BagPair:
+    """A ToF frame with the camera image nearest in header stamp.
+
+    Attributes:
+        zone_frame: the reading (``timestamp_s`` = its header stamp in seconds).
+        image_index: position of the image among the camera topic's messages.
+        image_stamp_ns: the image's header stamp.
+        image_log_ns: the image's time in the bag (when it was recorded).
+        frame_id: the image's ``header.frame_id``.
+        intrinsics: from the CameraInfo nearest the image (None without one).
+        offset_s: image stamp minus ToF stamp, seconds.
+    """
+
+    zone_frame: ZoneFrame
+    image_index: int
+    image_stamp_ns: int
+    image_log_ns: int
+    frame_id: str
+    intrinsics: CameraIntrinsics | None
+    offset_s: float
+
+
+class BagInput:
+    """A ROS 2 bag with a camera, its CameraInfo and a ToF topic.
+
+    Topics not given are found by type when exactly one topic has it (camera: Image
+    or CompressedImage; ToF: ``deltar_msgs/msg/ZoneFrame``), or, among several, the one
+    image topic with a CameraInfo beside it (same namespace, the ROS convention) and
+    the CameraInfo beside the image; with ``tof_format="vl53l5cx_ros2"`` the ToF topic
+    must be named.
+
+    Args:
+        path: the bag folder (``metadata.yaml`` and its ``.db3`` / ``.mcap`` files).
+        image_topic, info_topic, tof_topic: topic names (auto-detected when None).
+        tof_format: ``"deltar"`` or ``"vl53l5cx_ros2"`` (see :data:`TOF_FORMATS`).
+        tof_orientation: for ``vl53l5cx_ros2`` only, the zone grid's orientation.
+        tof_sigma_m: for ``vl53l5cx_ros2`` only, the sigma given to its zones.
+
+    Raises:
+        FileNotFoundError: no bag at ``path``.
+        ValueError: an unreadable bag, a missing topic or one of the wrong type, or
+            several candidates (the message lists the topics and how to choose).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, image_topic: str | None = None,
+                 info_topic: str | None = None, tof_topic: str | None = None,
+                 tof_format: str = "deltar", tof_orientation: Orientation | None = None,
+                 tof_sigma_m: float = 0.0) -> None:
+        require_rosbags()
+        from rosbags.rosbag2 import Reader
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"ROS 2 bag not found: {self.path}")
+        if tof_format not in TOF_FORMATS:
+            raise ValueError(f"tof_format must be one of {TOF_FORMATS}, got {tof_format!r}")
+        try:
+            with Reader(self.path) as reader:
+                self.topics = {c.topic: c.msgtype for c in reader.connections}
+        except Exception as err:  # rosbags raises its own error types for bad bags
+            raise ValueError(f"{self.path}: not a readable ROS 2 bag: {err}") from err
+        self.tof_format = tof_format
+        self.tof_orientation = tof_orientation
+        self.tof_sigma_m = float(tof_sigma_m)
+        tof_types = (ZONE_FRAME_MSGTYPE,) if tof_format == "deltar" else \
+            ("sensor_msgs/msg/Image",)
+        if tof_format == "vl53l5cx_ros2" and tof_topic is None:
+            raise ValueError("the vl53l5cx_ros2 format needs the ToF topic named "
+                             "(--tof-topic, e.g. /vl53l5cx/x29/image)")
+        self.tof_topic = self._pick(tof_topic, tof_types, "ToF", "--tof-topic")
+        self.image_topic = self._pick(image_topic, IMAGE_TYPES, "camera", "--image-topic",
+                                      exclude=self.tof_topic)
+        if self.tof_topic == self.image_topic:
+            raise ValueError(f"{self.path}: camera and ToF topic are both {self.tof_topic}")
+        self.info_topic = self._pick(info_topic, (CAMERA_INFO_TYPE,), "CameraInfo",
+                                     "--info-topic", required=False)
+
+    def _pick(self, topic: str | None, types: tuple[str, ...], what: str, option: str,
+              required: bool = True, exclude: str | None = None) -> str | None:
+        """The given topic (checked) or the only topic of one of ``types``."""
+        listing = ", ".join(f"{t} ({m})" for t, m in sorted(self.topics.items())) or "none"
+        if topic is not None:
+            if topic not in self.topics:
+                raise ValueError(f"{self.path}: no topic {topic!r} ({option}); topics: "
+                                 f"{listing}")
+            if self.topics[topic] not in types:
+                raise ValueError(f"{self.path}: topic {topic} is {self.topics[topic]}, "
+                                 f"expected {' or '.join(types)} ({option})")
+            return topic
+        found = sorted(t for t, m in self.topics.items() if m in types and t != exclude)
+        if len(found) > 1:
+            # ROS convention: a camera's CameraInfo sits beside its image topic.
+            beside = [t for t in found if _namespace(t) in self._info_namespaces(what)]
+            found = beside if len(beside) == 1 else found
+        if not found:
+            if not required:
+                return None
+            raise ValueError(f"{self.path}: no {what} topic ({' or '.join(types)}); topics: "
+                             f"{listing}")
+        if len(found) > 1:
+            raise ValueError(f"{self.path}: several {what} topics {found}; choose one with "
+                             f"{option}")
+        return found[0]
+
+    def _info_namespaces(self, what: str) -> set[str]:
+        """Namespaces that the topic being picked should share with its partner."""
+        if what == "camera":
+            return {_namespace(t) for t, m in self.topics.items() if m == CAMERA_INFO_TYPE}
+        if what == "CameraInfo":
+            return {_namespace(self.image_topic)}
+        return set()
+
+    def _deserialize(self, rawdata: bytes, msgtype: str, topic: str) -> Any:
+        try:
+            return typestore().deserialize_cdr(rawdata, msgtype)
+        except Exception as err:  # corrupt message bytes
+            raise ValueError(f"{self.path}: corrupt {msgtype} message on {topic}: {err}") \
+                from err
+
+    def _zone_frame(self, msg: Any) -> ZoneFrame:
+        if self.tof_format == "deltar":
+            return zone_frame_from_msg(msg, source=self.tof_topic)
+        return zone_frame_from_vl53l5cx_ros2(msg, orientation=self.tof_orientation,
+                                             sigma_m=self.tof_sigma_m, source=self.tof_topic)
+
+    def pairs(self, tolerance_s: float = 0.02) -> list[BagPair]:
+        """Pair every ToF frame with the camera image nearest in header stamp.
+
+        ToF frames without an image within ``tolerance_s`` are skipped with one warning;
+        camera images are not decoded here.
+
+        Raises:
+            ValueError: no ToF message, no camera message, or no pair at all (the message
+                gives both stamp ranges).
+        """
+        from rosbags.rosbag2 import Reader
+
+        if not tolerance_s >= 0:
+            raise ValueError(f"tolerance_s must be >= 0, got {tolerance_s}")
+        images: list[tuple[int, int, str, tuple[int, int]]] = []  # stamp, log, frame, size
+        infos: list[tuple[int, Any]] = []
+        frames: list[ZoneFrame] = []
+        with Reader(self.path) as reader:
+            wanted = [c for c in reader.connections
+                      if c.topic in (self.image_topic, self.tof_topic, self.info_topic)]
+            for connection, log_ns, raw in reader.messages(connections=wanted):
+                msg = self._deserialize(raw, connection.msgtype, connection.topic)
+                stamp = stamp_to_ns(msg.header.stamp)
+                if connection.topic == self.image_topic:
+                    size = (int(getattr(msg, "height", 0)), int(getattr(msg, "width", 0)))
+                    images.append((stamp, int(log_ns), str(msg.header.frame_id), size))
+                elif connection.topic == self.tof_topic:
+                    frames.append(self._zone_frame(msg))
+                else:
+                    infos.append((stamp, msg))
+        if not frames:
+            raise ValueError(f"{self.path}: the ToF topic {self.tof_topic} has no messages")
+        if not images:
+            raise ValueError(f"{self.path}: the camera topic {self.image_topic} has no "
+                             "messages")
+        order = np.argsort([i[0] for i in images], kind="stable")
+        image_times = np.array([images[i][0] for i in order], dtype=np.float64) / 1e9
+        info_order = sorted(range(len(infos)), key=lambda i: infos[i][0])
+        info_times = np.array([infos[i][0] for i in info_order], dtype=np.float64) / 1e9
+        tof_times = np.array([f.timestamp_s for f in frames], dtype=np.float64)
+        nearest, gap = nearest_in_time(image_times, tof_times)
+        out: list[BagPair] = []
+        for frame, idx, distance in zip(frames, nearest, gap, strict=True):
+            if distance > tolerance_s:
+                continue
+            index = int(order[idx])
+            stamp, log_ns, frame_id, size = images[index]
+            intrinsics = None
+            if infos:
+                info_idx, _ = nearest_in_time(info_times, np.array([stamp / 1e9]))
+                info = infos[info_order[int(info_idx[0])]][1]
+                intrinsics = intrinsics_from_camera_info(
+                    info, size if size[0] else None, source=self.info_topic)
+            out.append(BagPair(frame, index, stamp, log_ns, frame_id, intrinsics,
+                               stamp / 1e9 - float(frame.timestamp_s)))
+        if not out:
+            raise ValueError(
+                f"{self.path}: no ToF message on {self.tof_topic} has a camera image within "
+                f"{tolerance_s} s (ToF stamps {tof_times.min():.3f}..{tof_times.max():.3f} s, "
+                f"images {image_times.min():.3f}..{image_times.max():.3f} s); check the "
+                "header stamps or raise --tolerance")
+        if len(out) < len(frames):
+            warnings.warn(f"{self.path}: skipped {len(frames) - len(out)} of {len(frames)} ToF "
+                          f"frames with no camera image within {tolerance_s} s", stacklevel=2)
+        return out
+
+    def images(self, pairs: list[BagPair]) -> Iterator[tuple[BagPair, np.ndarray]]:
+        """Decode the camera images of ``pairs`` in bag order: (pair, (H, W, 3) uint8 RGB).
+
+        A pair's image is decoded once even if several pairs share it.
+        """
+        from rosbags.rosbag2 import Reader
+
+        by_index: dict[int, list[BagPair]] = {}
+        for pair in pairs:
+            by_index.setdefault(pair.image_index, []).append(pair)
+        with Reader(self.path) as reader:
+            wanted = [c for c in reader.connections if c.topic == self.image_topic]
+            for index, (connection, _, raw) in enumerate(reader.messages(connections=wanted)):
+                if index not in by_index:
+                    continue
+                msg = self._deserialize(raw, connection.msgtype, connection.topic)
+                rgb = image_from_msg(msg, connection.msgtype, source=self.image_topic)
+                for pair in by_index[index]:
+                    yield pair, rgb
+
+
+def read_messages(path: str | os.PathLike, topic: str) -> list[tuple[int, Any]]:
+    """All messages of one topic as (bag time ns, deserialised message), in bag order.
+
+    Raises:
+        ValueError: the bag has no such topic.
+    """
+    require_rosbags()
+    from rosbags.rosbag2 import Reader
+
+    with Reader(Path(path)) as reader:
+        wanted = [c for c in reader.connections if c.topic == topic]
+        if not wanted:
+            raise ValueError(f"{path}: no topic {topic!r}; topics: "
+                             f"{sorted(c.topic for c in reader.connections)}")
+        return [(int(log_ns), typestore().deserialize_cdr(raw, conn.msgtype))
+                for conn, log_ns, raw in reader.messages(connections=wanted)]
