@@ -211,7 +211,7 @@ def _api(fn_name: str, *args, **kwargs):
     """An API case: estimator.predict(...) with the given arguments."""
 
     def run(inp: Path, out: Path):
-        from deltar.data.rgbd import read_color
+        from deltar.data.rgbd_files import read_color
         from deltar.inference.estimator import DepthEstimator
         from deltar.io.zone_file import load_zone_frame
 

@@ -16,8 +16,6 @@ from deltar.data.rgbd import (
     TUMReader,
     detect_layout,
     open_rgbd,
-    read_color,
-    read_depth,
 )
 
 
@@ -83,15 +81,6 @@ def _write_rgb(path, array):
     Image.fromarray(array).save(path)
 
 
-def test_invalid_depth_values_become_zero(tmp_path):
-    raw = np.array([[0, 1000, 65535], [2500, 5000, 1]], dtype=np.uint16)
-    _write_png16(tmp_path / "d.png", raw)
-    depth = read_depth(tmp_path / "d.png", depth_scale=1000.0)
-    np.testing.assert_allclose(depth, [[0.0, 1.0, 0.0], [2.5, 5.0, 0.001]], rtol=1e-6)
-    np.save(tmp_path / "d.npy", np.array([[np.nan, 2.0], [np.inf, -1.0]], np.float32))
-    np.testing.assert_array_equal(read_depth(tmp_path / "d.npy", 1.0), [[0, 2], [0, 0]])
-
-
 def test_tum_benchmark_lists_are_associated_with_scale_5000(tmp_path, rng):
     for i, t in enumerate((1.00, 2.00)):
         _write_rgb(tmp_path / "rgb" / f"{t:.2f}.png",
@@ -122,20 +111,12 @@ def test_sidecar_sets_scale_and_intrinsics(tmp_path, rng):
     np.testing.assert_allclose(open_rgbd(tmp_path, depth_scale=1000.0)[0].depth_m, 0.3)
 
 
-def test_size_mismatch_and_corrupt_images_name_the_file(tmp_path, rng):
+def test_size_mismatch_names_the_file(tmp_path, rng):
     intr = CameraIntrinsics(10.0, 10.0, 3.5, 2.5, 8, 6)
     _write_rgb(tmp_path / "color" / "a.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
     _write_png16(tmp_path / "depth" / "a.png", np.full((6, 7), 300))
     with pytest.raises(ValueError, match=r"a\.png"):
         FolderReader(tmp_path, 1000.0, intr)[0]
-    good = tmp_path / "good.jpg"
-    _write_rgb(good, rng.integers(0, 256, (64, 64, 3), dtype=np.uint8))
-    truncated = tmp_path / "truncated.jpg"
-    truncated.write_bytes(good.read_bytes()[:200])
-    with pytest.raises(ValueError, match=r"truncated\.jpg"):
-        read_color(truncated)
-    with pytest.raises(FileNotFoundError, match=r"missing\.png"):
-        read_color(tmp_path / "missing.png")
 
 
 def test_unknown_layout_and_missing_intrinsics_file(tmp_path, rng):

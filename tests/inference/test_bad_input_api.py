@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from deltar.data.rgbd import read_color
+from deltar.data.rgbd_files import read_color
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.torch_file import read_torch_file
 from deltar.io.zone_file import load_zone_frame, zone_frame_to_dict

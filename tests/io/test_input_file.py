@@ -11,7 +11,7 @@ from PIL import Image
 
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
-from deltar.data.rgbd import read_color
+from deltar.data.rgbd_files import read_color
 from deltar.io.input_file import InputFileError, input_file, input_folder, reading
 from deltar.io.json_file import read_json
 from deltar.io.recording import Recording

@@ -68,7 +68,7 @@ def predict_command(
     model.check()
     first = None
     if single:
-        from deltar.data.rgbd import read_color
+        from deltar.data.rgbd_files import read_color
         from deltar.io.zone_file import load_zone_frame
 
         pairs, unpaired = [(image, zones)], []

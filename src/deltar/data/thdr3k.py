@@ -100,7 +100,7 @@ def read_thdr3k_sample(root: str | Path, name: str | None = None, *,
         FileNotFoundError: a file of the sample is missing (named).
         ValueError: a corrupt image or JSON, wrong lengths (naming the file and field).
     """
-    from deltar.data.rgbd import read_color, read_depth
+    from deltar.data.rgbd_files import read_color, read_depth
 
     base = Path(root)
     paths = {kind: base.with_name(base.name + suffix) for kind, suffix in SUFFIXES.items()}

@@ -48,7 +48,7 @@ def describe_argument(value: Any) -> str:
     kind = type(value).__name__
     if isinstance(value, (str, os.PathLike)):
         return (f"a {kind} path {str(value)!r}; read the file first, e.g. with "
-                "deltar.data.rgbd.read_color")
+                "deltar.data.rgbd_files.read_color")
     if type(value).__module__.startswith("torch"):
         return (f"a torch {kind} of shape {tuple(getattr(value, 'shape', ()))}; convert "
                 "it with tensor.cpu().numpy() (uint8 RGB, channels last)")

@@ -137,7 +137,7 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
     Returns:
         A :class:`JobSummary`.
     """
-    from deltar.data.rgbd import read_color
+    from deltar.data.rgbd_files import read_color
     from deltar.inference.outputs import write_prediction
     from deltar.io.zone_file import load_zone_frame
 

@@ -1,0 +1,34 @@
+"""Single RGB-D files: depth images in metres with invalid values as 0, colour images
+that are corrupt or missing named in the error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from deltar.data.rgbd_files import read_color, read_depth
+
+
+def _write_png16(path, array):
+    Image.fromarray(array.astype(np.uint16)).save(path)
+
+
+def test_invalid_depth_values_become_zero(tmp_path):
+    raw = np.array([[0, 1000, 65535], [2500, 5000, 1]], dtype=np.uint16)
+    _write_png16(tmp_path / "d.png", raw)
+    depth = read_depth(tmp_path / "d.png", depth_scale=1000.0)
+    np.testing.assert_allclose(depth, [[0.0, 1.0, 0.0], [2.5, 5.0, 0.001]], rtol=1e-6)
+    np.save(tmp_path / "d.npy", np.array([[np.nan, 2.0], [np.inf, -1.0]], np.float32))
+    np.testing.assert_array_equal(read_depth(tmp_path / "d.npy", 1.0), [[0, 2], [0, 0]])
+
+
+def test_corrupt_and_missing_colour_images_name_the_file(tmp_path, rng):
+    good = tmp_path / "good.jpg"
+    Image.fromarray(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)).save(good)
+    truncated = tmp_path / "truncated.jpg"
+    truncated.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(ValueError, match=r"truncated\.jpg"):
+        read_color(truncated)
+    with pytest.raises(FileNotFoundError, match=r"missing\.png"):
+        read_color(tmp_path / "missing.png")
