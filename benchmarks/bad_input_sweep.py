@@ -457,7 +457,7 @@ def cases() -> list[Case]:
              needles=("--show",)),
         Case("replay-no-out", ["replay", rec, *LITE], needles=("--out",)),
         Case("replay-out-inside", ["replay", rec, "--out", f"{rec}/o", *LITE],
-             needles=("inside the recording",)),
+             needles=("inside the input",)),
         Case("replay-corrupt-zones", ["replay", "{in}/rec_corrupt", "--out", "{out}", *LITE],
              needles=("zones.jsonl",)),
         Case("replay-valid", ["replay", rec, "--out", "{out}", *LITE], expect="ok"),

@@ -473,3 +473,65 @@ def test_traceback_switch_shows_the_reading_error_and_its_cause(inputs, tmp_path
     result = _predict(inputs, tmp_path / "o", "a.png", "deep.json")
     assert isinstance(result.exception, ValueError)
     assert isinstance(result.exception.__cause__, RecursionError)
+
+
+# ------------------------------------------------------------------ round 2: outputs vs inputs
+def test_calibrate_never_writes_over_its_recording(calib_recordings, tmp_path):
+    import os
+    import shutil
+
+    rec = tmp_path / "rec"
+    shutil.copytree(calib_recordings / "rec", rec)
+    before = {p: p.read_bytes() for p in (rec / "meta.json", rec / "zones.jsonl")}
+    os.link(rec / "meta.json", tmp_path / "linked.json")
+    for out, line in (
+            (rec / "meta.json", f"error: --out {rec / 'meta.json'} is inside the input {rec}; "
+             "choose a path outside it"),
+            (rec / "zones.jsonl", f"error: --out {rec / 'zones.jsonl'} is inside the input "
+             f"{rec}; choose a path outside it"),
+            (tmp_path / "linked.json", f"error: --out {tmp_path / 'linked.json'} is the input "
+             f"{rec / 'meta.json'} (a link to it); an output never replaces an input "
+             "(whatever --overwrite says): choose another path")):
+        result = _run(["calibrate", rec, "--out", out, "--overwrite"])
+        assert result.exit_code == 1
+        assert _one_error_line(result) == line
+    result = _run(["calibrate", rec, "--out", tmp_path / "c.json", "--plot", rec / "color"])
+    _one_error_line(result, f"--plot {rec / 'color'} is inside the input {rec}")
+    assert {p: p.read_bytes() for p in before} == before
+
+
+def test_evaluate_json_never_replaces_a_frame_or_the_index(tmp_path, zju_set):
+    frame = next(zju_set.parent.rglob("*.h5"))
+    content = frame.read_bytes()
+    for target in (frame, zju_set):
+        result = _run(["evaluate", "--data", zju_set, "--method", "nearest", "--json", target,
+                       "--overwrite"])
+        assert result.exit_code == 1
+        assert _one_error_line(result) == (
+            f"error: --json {target} is the input {target}; an output never replaces an input "
+            "(whatever --overwrite says): choose another path")
+    assert frame.read_bytes() == content
+
+
+def test_export_never_replaces_its_checkpoint_and_wall_test_stays_outside(tmp_path,
+                                                                           recording):
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_bytes(b"weights")
+    result = _run(["export", "--checkpoint", checkpoint, "--out", checkpoint, "--overwrite"])
+    assert result.exit_code == 1
+    _one_error_line(result, f"--out {checkpoint} is the input {checkpoint}")
+    assert checkpoint.read_bytes() == b"weights"
+    result = _run(["wall-test", recording, "--out", recording / "wall", *LITE])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == (f"error: --out {recording / 'wall'} is inside the input "
+                                       f"{recording}; choose a path outside it")
+    assert MODEL_BUILT not in result.output and not (recording / "wall").exists()
+
+
+def test_replay_of_an_empty_recording_is_an_error(recording, tmp_path):
+    (recording / "zones.jsonl").write_text("")
+    result = _run(["replay", recording, "--out", tmp_path / "o", *LITE])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == (f"error: {recording}: nothing to replay: zones.jsonl "
+                                       "holds no zone frame")
+    assert MODEL_BUILT not in result.output

@@ -80,8 +80,9 @@ def test_missing_data_json_names_the_path(tmp_path: Path) -> None:
 def test_refuses_to_overwrite_the_input(data_json: Path) -> None:
     before = data_json.read_text()
     result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data_json),
-                                 "--json", str(data_json)])
-    assert result.exit_code == 2
+                                 "--json", str(data_json), "--overwrite"])
+    assert result.exit_code == 1
+    assert f"--json {data_json} is the input {data_json}" in result.stderr
     assert data_json.read_text() == before
 
 
@@ -110,4 +111,5 @@ def test_thdr3k_layout_is_detected_rotated_and_masked(tmp_path: Path) -> None:
     assert metrics["median"]["rmse"] > 0.3
     refused = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(list_path),
                                   "--json", str(list_path)])
-    assert refused.exit_code != 0 and "refusing to overwrite" in refused.output
+    assert refused.exit_code != 0
+    assert f"--json {list_path} is the input {list_path}" in refused.output

@@ -123,3 +123,23 @@ def test_internal_errors_are_not_disguised(tmp_path):
         raise NameError("a bug")
     with pytest.raises(AssertionError), reading(tmp_path / "x.json", "x"):
         raise AssertionError("a bug")
+
+
+def test_outputs_never_resolve_to_inputs(tmp_path):
+    from deltar.io.input_file import refuse_input_as_output
+
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "meta.json").write_text("{}")
+    (tmp_path / "link.json").symlink_to(rec / "meta.json")
+    os.link(rec / "meta.json", tmp_path / "hard.json")
+    with pytest.raises(ValueError, match=r"^--out .*link\.json is inside the input .*rec; "):
+        refuse_input_as_output(tmp_path / "link.json", [rec], "--out")
+    with pytest.raises(ValueError, match=r"hard\.json is the input .*meta\.json \(a link"):
+        refuse_input_as_output(tmp_path / "hard.json", [rec], "--out")
+    with pytest.raises(ValueError, match=r"^--json .*link\.json is the input .*rec/meta\.json; "):
+        refuse_input_as_output(tmp_path / "link.json", [None, rec / "meta.json"], "--json")
+    with pytest.raises(ValueError, match=r"^OUT .*sub is inside the input "):
+        refuse_input_as_output(rec / "sub", [rec], "OUT", folder=True)
+    # A new file beside the inputs replaces nothing: allowed.
+    assert refuse_input_as_output(rec / "calib.json", [rec], "--out") == rec / "calib.json"

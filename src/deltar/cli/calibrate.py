@@ -60,6 +60,7 @@ def calibrate_command(
     from deltar.calibration.pipeline import calibrate_recording
     from deltar.calibration.slam import read_ply_points, read_tum_trajectory
     from deltar.cli.checks import finite, output_file, output_folder
+    from deltar.io.input_file import refuse_input_as_output
     from deltar.io.recording import Recording
 
     if (slam_cloud is None) != (slam_trajectory is None):
@@ -71,6 +72,8 @@ def calibrate_command(
     if calibrate_intrinsics and spec is None:
         raise typer.BadParameter("--calibrate-intrinsics needs --target (the board views)")
     offset = time_offset_option(time_offset, allow_auto=spec is not None)
+    inputs = (recording, slam_cloud, slam_trajectory)
+    refuse_input_as_output(out, inputs, "--out")
     if out.exists() and not overwrite:
         raise typer.BadParameter(f"{out} exists; pass --overwrite to replace it")
     output_file(out, "--out", overwrite)
@@ -85,6 +88,7 @@ def calibrate_command(
         raise typer.BadParameter(f"must be finite, got {nominal_translation!r}",
                                  param_hint="--nominal-translation")
     if plot is not None:
+        refuse_input_as_output(plot, inputs, "--plot", folder=True)
         output_folder(plot, "--plot")
         if not overwrite and plot.is_dir() and any(plot.glob("zones_*.png")):
             raise FileExistsError(f"--plot {plot} already holds zone pictures; pass "

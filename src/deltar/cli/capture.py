@@ -210,6 +210,7 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
 
     from deltar.cli.checks import display, existing_outputs, output_folder
     from deltar.inference.outputs import OUTPUT_KINDS
+    from deltar.io.input_file import refuse_input_as_output
     from deltar.io.recording import Recording
 
     if show:
@@ -217,12 +218,15 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
     rec = Recording(recording)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # replaying warns about skipped frames itself
-        selected = rec.pairs(tolerance_s=pairing[0], time_offset_s=pairing[1])[::every][:limit]
+        pairs = rec.pairs(tolerance_s=pairing[0], time_offset_s=pairing[1])
+    if not pairs:
+        frames = len(rec.zone_frames())
+        raise ValueError(f"{recording}: nothing to replay: " + (
+            f"none of its {frames} zone frame(s) has a colour image within --tolerance "
+            f"{pairing[0]:g} s" if frames else f"{rec.zones_path.name} holds no zone frame"))
+    selected = pairs[::every][:limit]
     if out is not None:
-        resolved = out.resolve()
-        if resolved == rec.folder.resolve() or rec.folder.resolve() in resolved.parents:
-            raise ValueError(f"--out {out} is inside the recording {rec.folder}; choose a "
-                             "folder outside it")
+        refuse_input_as_output(out, [recording], "--out", folder=True)
         output_folder(out, "--out")
         if not overwrite:
             existing_outputs(out / f"{p.color_path.stem}{OUTPUT_KINDS[k]}" for p in selected

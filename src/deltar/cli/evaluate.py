@@ -97,6 +97,7 @@ def evaluate(
     from deltar.evaluation.runner import create_predictor, evaluate_methods, resolve_method_names
     from deltar.evaluation.visualize import safe_filename, save_frame_panel
     from deltar.io.atomic import write_text_atomic
+    from deltar.io.input_file import refuse_input_as_output
 
     console = Console()
     specs = [m for m in (method or "").split(",") if m.strip()]
@@ -119,13 +120,12 @@ def evaluate(
     if len(dataset) == 0:
         raise typer.BadParameter(f"split {split!r} of {data} lists no frames",
                                  param_hint="--data")
-    index_path = data / "data.json" if data.is_dir() else data
-    if json_out is not None and json_out.resolve() == index_path.resolve():
-        raise typer.BadParameter(f"refusing to overwrite the input {index_path.name}",
-                                 param_hint="--json")
+    inputs = _set_files(dataset, data)
     if json_out is not None:
+        refuse_input_as_output(json_out, inputs, "--json")
         output_file(json_out, "--json", overwrite)
     if save_vis is not None:
+        refuse_input_as_output(save_vis, inputs, "--save-vis", folder=True)
         output_folder(save_vis, "--save-vis")
         used = [save_vis / safe_filename(name) for name in names
                 if (save_vis / safe_filename(name)).is_dir()
@@ -163,6 +163,17 @@ def evaluate(
         typer.echo(f"visualisations written to {save_vis}")
 
 
+def _set_files(dataset, data: Path) -> list[Path]:
+    """The input files of an evaluated set: its index and each frame's file(s)."""
+    index = data / "data.json" if data.is_dir() else data
+    files = [index]
+    for rel in dataset.filenames:
+        frame = dataset.root / rel
+        # ZJU-L5: one .h5 file per frame; THDR3K: files named <frame>_<kind>.<ext>.
+        files += [frame, *frame.parent.glob(f"{frame.name}_*")]
+    return files
+
+
 @model_options
 def wall_test_command(
     recordings: list[Path] = typer.Argument(..., help="Recordings facing a flat wall, one "
@@ -181,11 +192,13 @@ def wall_test_command(
 
     from deltar.cli.checks import output_folder
     from deltar.evaluation.wall_test import wall_test, write_results
+    from deltar.io.input_file import refuse_input_as_output
     from deltar.io.recording import Recording
 
     model.check()
     for folder in recordings:
         Recording(folder)  # a missing or corrupt recording fails before the model
+    refuse_input_as_output(out, [*recordings, calib], "--out", folder=True)
     output_folder(out, "--out")
     try:
         estimator = model.load()

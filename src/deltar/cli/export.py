@@ -58,10 +58,12 @@ def export_command(
     from deltar.cli.checks import output_file
     from deltar.export.onnx import export_onnx
     from deltar.export.quantize import export_int8
+    from deltar.io.input_file import refuse_input_as_output
 
     if format != "onnx":
         raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
     height, width = parse_size(size)
+    refuse_input_as_output(out, [checkpoint, official, layout_from, calibration], "--out")
     output_file(out, "--out", overwrite)
     if layout_from is not None and not layout_from.exists():
         raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "

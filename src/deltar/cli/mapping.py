@@ -36,11 +36,9 @@ def _settings(voxel: float, truncation: float, max_depth: float, max_memory: flo
 
 def _check_out(out: Path, recording: Path, overwrite: bool) -> None:
     from deltar.cli.checks import existing_outputs, output_folder
+    from deltar.io.input_file import refuse_input_as_output
 
-    resolved, source = out.resolve(), recording.resolve()
-    if resolved == source or source in resolved.parents:
-        raise ValueError(f"--out {out} is inside the input {recording}; choose a folder "
-                         "outside it")
+    refuse_input_as_output(out, [recording], "--out", folder=True)
     output_folder(out, "--out")
     if not overwrite:
         existing_outputs(out / name for name in ("mesh.ply", "points.ply", "trajectory.txt",

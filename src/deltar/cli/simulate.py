@@ -95,6 +95,7 @@ def simulate_command(
     from deltar.cli.progress import ProgressReport
     from deltar.data.simulated import simulate_set
     from deltar.data.sources import open_source
+    from deltar.io.input_file import refuse_input_as_output
     from deltar.sensor.augment import SignalAugmentation
 
     if grid not in (4, 8):
@@ -109,6 +110,8 @@ def simulate_command(
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "
                                  "to write into it", param_hint="OUT")
+    refuse_input_as_output(out, [None if src.startswith("procedural:") else Path(src)],
+                           "OUT", folder=True)
     output_folder(out, "OUT")
     try:
         with warnings.catch_warnings():

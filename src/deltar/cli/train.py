@@ -73,7 +73,9 @@ def fit_uncertainty_command(
     from deltar.cli.progress import ProgressReport
     from deltar.data.zone_sets import open_zone_set
     from deltar.evaluation.uncertainty import fit_checkpoint_uncertainty
+    from deltar.io.input_file import refuse_input_as_output
 
+    refuse_input_as_output(out, [Path(checkpoint), *data], "--out")
     output_file(out, "--out", overwrite)
     try:
         sets = [open_zone_set(path) for path in data]

@@ -23,7 +23,7 @@ import contextlib
 import os
 import struct
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 
@@ -148,3 +148,65 @@ def _is_decompression_bomb(err: BaseException) -> bool:
     except ImportError:  # pragma: no cover - Pillow is a dependency
         return False
     return isinstance(err, (Image.DecompressionBombError, Image.DecompressionBombWarning))
+
+
+def refuse_input_as_output(output: str | os.PathLike, inputs: Iterable[str | os.PathLike | None],
+                           option: str, *, folder: bool = False) -> Path:
+    """Refuse an output that would write over (or into) an input of the same command.
+
+    Applies whatever ``--overwrite`` says: no command ever writes over its own input.
+    Paths are compared resolved (symbolic links followed), and with
+    ``os.path.samefile`` where both exist (hard links, bind mounts).
+
+    Args:
+        output: the output file, or folder when ``folder``.
+        inputs: the command's input files and folders (``None`` entries are skipped).
+        option: the option (or argument) naming the output, for the message.
+        folder: the output is a folder: it may not lie inside an input folder either.
+            An output file may lie inside an input folder only as a new file (one that
+            does not exist yet, so no input is replaced).
+
+    Returns:
+        ``output`` as a ``Path``.
+
+    Raises:
+        ValueError: ``"<option> <output> is the input <input>; ..."`` or ``"<option>
+            <output> is inside the input <input>; choose a path outside it"``.
+    """
+    output = Path(output)
+    resolved = output.resolve()
+    for source in inputs:
+        if source is None:
+            continue
+        source = Path(source)
+        origin = source.resolve()
+        if resolved == origin or (output.exists() and source.exists()
+                                  and os.path.samefile(output, source)):
+            raise ValueError(f"{option} {output} is the input {source}; an output never "
+                             "replaces an input (whatever --overwrite says): choose another "
+                             "path")
+        if origin.is_dir() and origin in resolved.parents and (folder or output.exists()):
+            raise ValueError(f"{option} {output} is inside the input {source}; choose a "
+                             "path outside it")
+        if origin.is_dir() and output.is_file():
+            linked = _same_file_in(output, origin)
+            if linked is not None:
+                raise ValueError(f"{option} {output} is the input {linked} (a link to it); "
+                                 "an output never replaces an input (whatever --overwrite "
+                                 "says): choose another path")
+    return output
+
+
+def _same_file_in(path: Path, folder: Path) -> Path | None:
+    """The file under ``folder`` that is ``path`` (a hard link to it), or None."""
+    target = path.stat()
+    if target.st_nlink < 2:
+        return None
+    for root, _, names in os.walk(folder):
+        for name in names:
+            candidate = Path(root) / name
+            with contextlib.suppress(OSError):
+                found = candidate.stat()
+                if (found.st_dev, found.st_ino) == (target.st_dev, target.st_ino):
+                    return candidate
+    return None
