@@ -16,7 +16,8 @@ from deltar.sensor import (
     zone_rects_to_pixel_bounds,
 )
 from deltar.sensor import compiled as compiled_kernels
-from deltar.sensor.simulate import depth_bin_index, strongest_cluster, zone_pixel_bounds
+from deltar.sensor.simulate import strongest_cluster
+from deltar.sensor.zone_histograms import zone_histograms
 
 from .loop_reference import simulate_zones_loop
 
@@ -173,26 +174,6 @@ def test_configurable_parameters():
                                    cfg).valid[0])
 
 
-@pytest.mark.parametrize("kwargs", [dict(bin_width_m=0.0), dict(max_range_m=4.01),
-                                    dict(ignored_bins=-1), dict(noise_floor_counts=-1.0)])
-def test_bad_config_raises(kwargs):
-    with pytest.raises(ValueError):
-        SimulatorConfig(**kwargs)
-
-
-def test_bin_index_matches_torch_histc():
-    gen = torch.Generator().manual_seed(0)
-    edges = torch.arange(101, dtype=torch.float64) * BIN
-    values = torch.cat([edges.float(), (edges + 1e-7).float(), (edges - 1e-7).float(),
-                        torch.rand(20000, generator=gen) * 4.2,
-                        torch.arange(0, 4001, dtype=torch.float32) / 1000.0])
-    values = values[(values > 0) & (values <= 4.0)]
-    index = depth_bin_index(values, SimulatorConfig())
-    expected = torch.stack([torch.histc(v[None], bins=100, min=0, max=4.0).argmax()
-                            for v in values])
-    assert torch.equal(index.long(), expected)
-
-
 def test_strongest_cluster_by_hand():
     # Run totals 7, 8 and 9: the long flat run wins over the highest peak.
     counts = torch.tensor([[0.0, 3, 4, 0, 8, 0, 1, 1, 1, 1, 1, 1, 1, 1, 1],
@@ -202,13 +183,6 @@ def test_strongest_cluster_by_hand():
     assert kept[0].tolist() == [0.0] * 6 + [1.0] * 9
     assert kept[1].tolist() == [0.0, 2] + [0.0] * 13
     assert kept[2].sum() == 0
-
-
-def test_pixel_bounds_match_geometry(rng):
-    rects = rng.uniform(-100, 700, size=(200, 4)).astype(np.float32)
-    rects[:, 2:] = rects[:, :2] + rng.uniform(0, 120, size=(200, 2))
-    ours = zone_pixel_bounds(torch.from_numpy(rects), 480, 640).numpy()
-    assert np.array_equal(ours, zone_rects_to_pixel_bounds(rects, 480, 640))
 
 
 def test_vectorised_equals_per_zone_loop_on_random_zones(rng):
@@ -325,7 +299,6 @@ def test_compiled_and_pytorch_cell_counts_are_identical(rng, config):
     # negative and huge values, with overlapping zones running past the image; one
     # range a power of two (one product) and one not (product, then division).
     pytest.importorskip("numba")
-    from deltar.sensor.simulate import zone_histograms
 
     edges = config.bin_edges_m().numpy().astype(np.float32)
     depth = rng.uniform(-0.5, config.max_range_m + 0.5, size=(3, 48, 72)).astype(np.float32)

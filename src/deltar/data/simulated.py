@@ -23,7 +23,8 @@ from deltar.data.transforms import ImageAugmentation, normalize_image
 from deltar.sensor.augment import SignalAugmentation, training_zone_rects
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, mirror_zone_rects, zone_rects
 from deltar.sensor.sampling import sample_hypotheses
-from deltar.sensor.simulate import SimulatorConfig, simulate_zones
+from deltar.sensor.simulate import simulate_zones
+from deltar.sensor.simulator_config import SimulatorConfig
 
 #: Zone layouts of :func:`simulate_set` (``deltar simulate --layout``).
 SET_LAYOUTS: tuple[str, ...] = ("calibrated", "aligned")

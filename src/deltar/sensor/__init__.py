@@ -21,12 +21,8 @@ from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFram
 if TYPE_CHECKING:
     from deltar.sensor.augment import SignalAugmentation, training_zone_rects
     from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
-    from deltar.sensor.simulate import (
-        SimulatedZones,
-        SimulatorConfig,
-        simulate_zone_frame,
-        simulate_zones,
-    )
+    from deltar.sensor.simulate import SimulatedZones, simulate_zone_frame, simulate_zones
+    from deltar.sensor.simulator_config import SimulatorConfig
 
 _LAZY = {
     "SignalAugmentation": "deltar.sensor.augment",
@@ -34,7 +30,7 @@ _LAZY = {
     "sample_hypotheses": "deltar.sensor.sampling",
     "sample_hypotheses_from_histogram": "deltar.sensor.sampling",
     "SimulatedZones": "deltar.sensor.simulate",
-    "SimulatorConfig": "deltar.sensor.simulate",
+    "SimulatorConfig": "deltar.sensor.simulator_config",
     "simulate_zone_frame": "deltar.sensor.simulate",
     "simulate_zones": "deltar.sensor.simulate",
 }

@@ -273,7 +273,8 @@ def simulate_cnh(depth_m: np.ndarray, rects: np.ndarray,
     """
     import torch
 
-    from deltar.sensor.simulate import SimulatorConfig, zone_histograms
+    from deltar.sensor.simulator_config import SimulatorConfig
+    from deltar.sensor.zone_histograms import zone_histograms
 
     cfg = config or CNHConfig()
     depth = np.asarray(depth_m, dtype=np.float32)
