@@ -1,4 +1,4 @@
-"""The package layering of src/deltar: one-way dependencies, no cycles.
+"""The package layering of src/deltar: one-way dependencies, no cycles, small files.
 
 Every ``import deltar.x`` / ``from deltar.x import`` is counted wherever it stands:
 module level, inside functions and under ``TYPE_CHECKING`` alike, so a function-local
@@ -182,3 +182,15 @@ def test_no_module_cycles():
     on_cycles = sorted(node for node in graph if node in _reachable(graph, node))
     assert on_cycles == [], f"modules on an import cycle: {on_cycles}"
 
+
+
+#: Most lines a source file may have: a file longer than this holds more than one
+#: concept and is split by concern (docs/architecture.md names the modules).
+MAX_FILE_LINES = 500
+
+
+def test_no_source_file_is_over_the_line_limit():
+    sizes = {path.relative_to(SRC).as_posix(): len(path.read_text().splitlines())
+             for path in sorted(SRC.rglob("*.py"))}
+    over = {name: lines for name, lines in sizes.items() if lines > MAX_FILE_LINES}
+    assert over == {}, f"files over {MAX_FILE_LINES} lines (split them by concern): {over}"
