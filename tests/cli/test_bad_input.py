@@ -535,3 +535,81 @@ def test_replay_of_an_empty_recording_is_an_error(recording, tmp_path):
     assert _one_error_line(result) == (f"error: {recording}: nothing to replay: zones.jsonl "
                                        "holds no zone frame")
     assert MODEL_BUILT not in result.output
+
+
+# ------------------------------------------------------------------ round 2: the machine's limits
+def test_thread_counts_beyond_the_machine_are_refused_before_work(inputs, tmp_path):
+    from deltar.io.resources import cpu_count
+
+    limit = 4 * cpu_count()
+    shown = f"must be between 1 and {limit} (4 x the {cpu_count()} CPUs of this machine)"
+    result = _predict(inputs, tmp_path / "o", "a.png", "a.json", "--threads", "1000000")
+    assert result.exit_code == 2
+    _one_error_line(result, f"--threads {shown}, got 1000000")
+    assert MODEL_BUILT not in result.output
+    result = _run(["bench", "--preset", "deltar-lite", "--threads", str(limit + 1)])
+    assert result.exit_code == 2
+    _one_error_line(result, f"--threads {shown}, got {limit + 1}")
+
+
+def test_bench_batch_beyond_the_memory_is_refused(monkeypatch):
+    from deltar.io import resources
+
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: 2**30)
+    result = _run(["bench", "--preset", "deltar-lite", "--size", "480x640", "--batch", "64"])
+    assert result.exit_code == 2
+    assert _one_error_line(result) == (
+        "error: Invalid value: --batch 64 at 480x640 needs about 19,200 MiB, more than the "
+        "1,024 MiB this machine has available; lower --batch or --size (see 'deltar bench "
+        "--help')")
+
+
+@pytest.mark.parametrize("override, message", [
+    ("trainer.max_steps=0", "trainer.max_steps must be >= 1, or -1 for no limit, got 0 (0 "
+     "steps would write an untrained model)"),
+    ("trainer.devices=100000", "trainer.devices is 100000 but this machine has"),
+    ("trainer.num_threads=100000", "trainer.num_threads must be between 1 and"),
+])
+def test_training_configs_the_machine_cannot_run_are_refused(tmp_path, override, message):
+    from pathlib import Path
+
+    config = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
+    result = _run(["train", "--config", config, "--override", override, "--run-dir",
+                   tmp_path / "run"])
+    assert result.exit_code == 2
+    _one_error_line(result, message)
+    assert not (tmp_path / "run").exists()
+
+
+def test_simulate_checks_free_space_and_reports_a_full_disk_in_one_line(tmp_path,
+                                                                       monkeypatch):
+    import os
+    import resource
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from deltar.io import resources
+
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(resources.shutil, "disk_usage",
+                        lambda path: usage._replace(free=1000))
+    result = _run(["simulate", "procedural:3:0:48x64", tmp_path / "s"])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == (f"error: OUT {tmp_path / 's'} (3 frames of 48x64): "
+                                       "needs up to 0.2 MiB but "
+                                       f"{tmp_path} has 0.0 MiB free")
+    assert not (tmp_path / "s").exists()
+
+    # A disk that fills while writing (a file size limit stands in for it): one line.
+    src = str(Path(__file__).resolve().parents[2] / "src")
+    env = {**os.environ, "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    done = subprocess.run(
+        [sys.executable, "-m", "deltar", "simulate", "procedural:2:0:240x320",
+         str(tmp_path / "full")], capture_output=True, text=True, env=env, timeout=300,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000)))
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.splitlines() == [
+        f"error: {tmp_path / 'full' / 'procedural' / 'procedural-0.h5'}: File too large"]
+    assert not list((tmp_path / "full").rglob("*.h5"))

@@ -33,3 +33,17 @@ def test_refuses_to_overwrite_when_asked(tmp_path):
     with pytest.raises(FileExistsError, match=r"input\.txt"):
         write_text_atomic(target, "new", overwrite=False)
     assert target.read_text() == "keep"
+
+
+def test_a_full_disk_is_reported_naming_the_output_and_leaves_nothing(tmp_path):
+    import errno
+
+    import pytest
+
+    from deltar.io.atomic import atomic_path
+
+    target = tmp_path / "out.bin"
+    with pytest.raises(OSError) as caught, atomic_path(target):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert (caught.value.errno, caught.value.filename) == (errno.ENOSPC, str(target))
+    assert list(tmp_path.iterdir()) == []

@@ -92,11 +92,13 @@ class ModelOptions:
 
         Raises:
             typer.BadParameter: two model options, ``--flip`` with ``--onnx``, an unknown
-                precision or a size that is not a multiple of 32 (exit 2).
+                precision, a size that is not a multiple of 32 or more ``--threads`` than
+                the machine can use (exit 2).
             ValueError: a device this machine does not have (exit 1).
         """
         from deltar.inference.checks import check_backend_options
         from deltar.inference.preprocess import check_input_size
+        from deltar.io.resources import check_threads
 
         chosen = [f"--{kind}" for kind in ("preset", "checkpoint", "official", "onnx")
                   if getattr(self, kind) is not None]
@@ -109,6 +111,8 @@ class ModelOptions:
                                   names=("--precision", "--flip"))
             if size is not None:
                 check_input_size(size, "--size")
+            if self.threads is not None:
+                check_threads(self.threads, "--threads")
         except ValueError as err:
             raise typer.BadParameter(str(err)) from err
         if self.onnx is None and self.device != "cpu":  # the CPU is there: no torch import

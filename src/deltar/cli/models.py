@@ -18,6 +18,19 @@ def _parse_size(text: str) -> tuple[int, int]:
     return height, width
 
 
+#: Memory one input pixel of one image takes in a forward pass, bytes: an upper
+#: estimate (deltar-official measured about 0.7 KiB at 256x320, batch 4).
+BENCH_BYTES_PER_PIXEL = 1024
+
+
+def _resource_option(check, *args) -> None:
+    """Run a resource check; its refusal (naming the option) is a usage error."""
+    try:
+        check(*args)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+
+
 def check_official_command(
     fixture: Path = typer.Argument(..., help="Parity fixture (.pt) with 'state_dict' and "
                                    "'cases', as official_parity_fixture_v2.pt."),
@@ -28,12 +41,14 @@ def check_official_command(
     from rich.markup import escape
     from rich.table import Table
 
+    from deltar.io.resources import check_threads
     from deltar.models.benchmark import (
         DEPTH_TOLERANCE_M,
         EDGE_TOLERANCE_M,
         check_official_fixture,
     )
 
+    _resource_option(check_threads, threads, "--threads")
     try:
         results = check_official_fixture(fixture, threads=threads)
     except (FileNotFoundError, ValueError) as error:
@@ -75,6 +90,7 @@ def bench_command(
     from rich.table import Table
 
     from deltar.io.atomic import write_text_atomic
+    from deltar.io.resources import check_memory, check_threads
     from deltar.models.benchmark import benchmark_preset
     from deltar.models.presets import list_presets
 
@@ -83,6 +99,9 @@ def bench_command(
         raise typer.BadParameter(f"unknown preset {preset!r}; known: {list_presets()}")
     if json_out is not None and json_out.exists() and not overwrite:
         raise typer.BadParameter(f"{json_out} exists; pass --overwrite to replace it")
+    _resource_option(check_threads, threads, "--threads")
+    _resource_option(check_memory, BENCH_BYTES_PER_PIXEL * batch * height * width,
+                     f"--batch {batch} at {height}x{width}", "lower --batch or --size")
     result = benchmark_preset(preset, height, width, batch, threads, repeats, warmup, optimize,
                               fold_encoder, channels_last, matmul_size)
     table = Table(title="deltar bench")

@@ -6,6 +6,10 @@ from pathlib import Path
 
 import typer
 
+#: Bytes a simulated frame takes per pixel at most (uint8 RGB + float32 depth, before
+#: compression); zones and metadata are a few KiB more.
+SET_BYTES_PER_PIXEL = 7
+
 
 def _parse_intrinsics(text: str | None, height: int, width: int):
     from deltar.camera import CameraIntrinsics
@@ -96,6 +100,7 @@ def simulate_command(
     from deltar.data.simulated import simulate_set
     from deltar.data.sources import open_source
     from deltar.io.input_file import refuse_input_as_output
+    from deltar.io.resources import check_free_space
     from deltar.sensor.augment import SignalAugmentation
 
     if grid not in (4, 8):
@@ -128,6 +133,9 @@ def simulate_command(
     if not indices:
         raise typer.BadParameter(f"no frames selected from {len(source)} (check --start, "
                                  "--stop, --step)")
+    height, width = source[indices[0]].depth_m.shape
+    check_free_space(out, len(indices) * (SET_BYTES_PER_PIXEL * height * width + 65536),
+                     f"OUT {out} ({len(indices)} frames of {height}x{width})")
     degrade = None
     if drop_fraction > 0 or bias_prob > 0:
         degrade = SignalAugmentation(drop_fraction, bias_prob, bias_mean, bias_std)

@@ -40,11 +40,40 @@ def train_command(
     if print_config:
         typer.echo(cfg.to_yaml())
         return
+    _check_machine(cfg.trainer)
     from deltar.training.run import train
 
     # Missing data / weights or an occupied run folder reach the user as one error line.
     folder = train(cfg, run_dir, resume=resume is not None)
     typer.echo(f"run folder: {folder}")
+
+
+def _check_machine(trainer) -> None:
+    """The config's ``trainer.devices`` and ``num_threads`` against this machine.
+
+    Raises:
+        typer.BadParameter: more devices (CUDA GPUs, or CPU processes) or threads than
+            this machine has, naming the config key.
+    """
+    import torch
+
+    from deltar.io.resources import check_threads, cpu_count
+
+    try:
+        if trainer.num_threads is not None:
+            check_threads(trainer.num_threads, "trainer.num_threads")
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+    if not isinstance(trainer.devices, int):
+        return
+    gpu = trainer.accelerator in ("gpu", "cuda") or (trainer.accelerator == "auto"
+                                                      and torch.cuda.is_available())
+    have = torch.cuda.device_count() if gpu else cpu_count()
+    if trainer.devices > have:
+        kind = "CUDA GPU(s)" if gpu else "CPUs"
+        raise typer.BadParameter(f"trainer.devices is {trainer.devices} but this machine has "
+                                 f"{have} {kind} (trainer.accelerator "
+                                 f"{trainer.accelerator!r})")
 
 
 def fit_uncertainty_command(

@@ -20,6 +20,7 @@ nothing within the sensor's range; ``deltar simulate`` writes it).
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from collections.abc import Iterable, Sequence
@@ -30,7 +31,7 @@ import h5py
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
-from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.atomic import write_bytes_atomic, write_text_atomic
 from deltar.io.json_file import read_split_filenames
 
 #: Zone counts accepted in a ZJU-L5 file (4x4 and 8x8 grids).
@@ -279,7 +280,10 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
             raise ValueError(f"two samples share the name {sample.name!r}")
         seen.add(rel)
         target = out / rel
-        with atomic_path(target, overwrite=False) as tmp, h5py.File(tmp, "w") as f:
+        # HDF5 is built in memory and written in one go: a write error (a full disk) is
+        # then an ordinary OSError of the atomic write, never an HDF5 library failure.
+        buffer = io.BytesIO()
+        with h5py.File(buffer, "w") as f:
             f.create_dataset("rgb", data=sample.rgb, compression="gzip", compression_opts=4)
             f.create_dataset("depth", data=sample.depth_m.astype(np.float32),
                              compression="gzip", compression_opts=4)
@@ -294,6 +298,7 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
             if sample.intrinsics is not None:
                 for key in ("fx", "fy", "cx", "cy"):
                     f.attrs[key] = float(getattr(sample.intrinsics, key))
+        write_bytes_atomic(target, buffer.getvalue(), overwrite=False)
         filenames.append(rel)
     text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
     return write_text_atomic(index_path, text + "\n", overwrite=False)

@@ -29,6 +29,7 @@ from typing import Any
 from deltar.inference.checks import check_backend_options
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import check_input_size
+from deltar.io.resources import check_threads
 from deltar.weights import BUNDLED_MODELS, bundled_model_names
 
 #: The kinds of model source :func:`load_estimator` accepts.
@@ -119,8 +120,7 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
     if input_size is not None:
         input_size = check_input_size(input_size, "input_size")
     if threads is not None:
-        if int(threads) < 1:
-            raise ValueError(f"threads must be >= 1, got {threads!r}")
+        threads = check_threads(threads, "threads")
         import torch
 
         torch.set_num_threads(int(threads))

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+#: Write errors that mean "the disk cannot take it": reported naming the output.
+_DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
 
 
 @contextlib.contextmanager
@@ -31,15 +35,21 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     os.close(fd)
     tmp = Path(tmp_name)
     try:
-        yield tmp
-        # mkstemp creates 0600 files; give the output the permissions of a normal file.
-        umask = os.umask(0)
-        os.umask(umask)
-        if tmp.exists():
-            os.chmod(tmp, 0o666 & ~umask)
-        if not overwrite and final.exists():
-            raise FileExistsError(f"refusing to overwrite existing file: {final}")
-        os.replace(tmp, final)
+        try:
+            yield tmp
+            # mkstemp creates 0600 files; give the output the permissions of a normal file.
+            umask = os.umask(0)
+            os.umask(umask)
+            if tmp.exists():
+                os.chmod(tmp, 0o666 & ~umask)
+            if not overwrite and final.exists():
+                raise FileExistsError(f"refusing to overwrite existing file: {final}")
+            os.replace(tmp, final)
+        except OSError as err:
+            if err.errno not in _DISK_ERRORS:
+                raise
+            # A full, read-only or over-quota disk: say which output, not a temporary name.
+            raise OSError(err.errno, os.strerror(err.errno), str(final)) from err
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.io.resources import available_memory_bytes
 from deltar.mapping.frames import DepthSource, FrameSource, MapFrame
 from deltar.mapping.odometry import OdometryReport, RGBDOdometry, check_motion
 from deltar.mapping.poses import (
@@ -186,17 +187,6 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
             "--max-memory, use a coarser --voxel or a smaller --max-depth")
     capacity = min(INITIAL_BLOCKS, estimated, settings.max_blocks)
     return MapPlan(frames, poses, description, reference, capacity, estimated, skipped)
-
-
-def available_memory_bytes() -> int | None:
-    """``MemAvailable`` of /proc/meminfo in bytes (None where there is none)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
 
 
 def _frame_blocks_bound(settings: MapSettings, intrinsics) -> int:

@@ -392,6 +392,9 @@ class TrainerConfig:
     def validate(self, where: str) -> None:
         if self.max_epochs < 1:
             raise ValueError(f"{where}.max_epochs must be >= 1")
+        if self.max_steps == 0 or self.max_steps < -1:
+            raise ValueError(f"{where}.max_steps must be >= 1, or -1 for no limit, got "
+                             f"{self.max_steps} (0 steps would write an untrained model)")
         _choice(f"{where}.strategy", self.strategy, STRATEGIES)
         if self.checkpoint_every_n_steps < 1 or self.log_every_n_steps < 1:
             raise ValueError(f"{where}.checkpoint_every_n_steps and log_every_n_steps must "
