@@ -2,11 +2,15 @@
 
 Synthetic rigs: a 640x480 camera (fx 500, fy 505), an 8x8 sensor rolled 91.5 deg, tilted
 2 and -1.5 deg, 4.6 cm from the camera; a ChArUco 7x5 board (40 mm squares, A4) on a
-wall seen from 0.5-0.9 m, tilted 15-35 deg; 2 cm zone noise, 10 % invalid zones; the
-guess is roll 90 deg, translation 0. Run from the repository root::
+wall seen from 0.5-0.9 m, tilted 25-45 deg (``--tilt 35,15``: the earlier 15-35); 2 cm
+zone noise, 10 % invalid zones; the guess is roll 90 deg, translation 0. Run from the
+repository root::
 
     PYTHONPATH=src python benchmarks/bench_board_calibration.py [--part board|intrinsics|
-        refusal|depth] [--seeds 5]
+        refusal|depth|bound] [--seeds 5] [--first-seed 0] [--tilt 45,25]
+
+``--part bound`` prints the expected error (the Cramer-Rao bound of
+:mod:`deltar.calibration.board_uncertainty`) of the view geometries, without rendering.
 
 ``--part depth`` is the box-room sweep of docs/calibration.md (depth images); run it
 with another checkout's ``src`` first on PYTHONPATH to compare versions.
@@ -42,7 +46,7 @@ def errors(found: SensorExtrinsics, truth: SensorExtrinsics = TRUE) -> tuple[flo
 
 
 def board_run(folder: Path, views: int, seed: int, *, intrinsics: bool = False,
-              tilt: tuple[float, float] = (35.0, 15.0)):
+              tilt: tuple[float, float] = (45.0, 25.0)):
     from deltar.calibration.board import parse_board_spec
     from deltar.calibration.board_pipeline import calibrate_recording_with_board
     from deltar.calibration.synthetic_board import board_view_poses, write_board_recording
@@ -61,33 +65,82 @@ def board_run(folder: Path, views: int, seed: int, *, intrinsics: bool = False,
     return result, report, time.perf_counter() - start
 
 
-def part_board(seeds: int) -> None:
-    print("| views | seed | rotation error (deg) | translation error (mm) | before -> after "
-          "zone-to-cloud (cm) | solve (s) |")
-    print("|---|---|---|---|---|---|")
+def expected(report) -> str:
+    """The report's expected errors (1 sd) and the chance of missing 0.5 deg or 10 mm."""
+    u = report.uncertainty
+    return (f"{u.rotation_rms_deg:.2f} / {1000 * u.translation_rms_m:.1f} / "
+            f"{100 * u.miss_probability(0.5, 0.010):.0f} %")
+
+
+def part_board(seeds: range, tilt: tuple[float, float]) -> None:
+    print("| views | seed | rotation error (deg) | translation error (mm) | expected (deg / mm "
+          "/ chance of a miss) | before -> after zone-to-cloud (cm) | solve (s) |")
+    print("|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for views in (15, 20, 25):
-            for seed in range(seeds):
-                result, _, took = board_run(Path(tmp) / f"b{views}_{seed}", views, seed)
+            for seed in seeds:
+                result, report, took = board_run(Path(tmp) / f"b{views}_{seed}", views, seed,
+                                                 tilt=tilt)
                 angle, shift = errors(result.calibration.extrinsics)
-                print(f"| {views} | {seed} | {angle:.3f} | {shift:.1f} | "
+                print(f"| {views} | {seed} | {angle:.3f} | {shift:.1f} | {expected(report)} | "
                       f"{100 * result.distance_before_m:.2f} -> "
                       f"{100 * result.distance_after_m:.2f} | {took:.1f} |", flush=True)
 
 
-def part_intrinsics(seeds: int) -> None:
+def part_intrinsics(seeds: range, tilt: tuple[float, float]) -> None:
     print("| seed | fx error (%) | fy error (%) | cx, cy error (px) | k1 | rotation error "
-          "(deg) | translation error (mm) | reprojection RMS (px) |")
-    print("|---|---|---|---|---|---|---|---|")
+          "(deg) | translation error (mm) | expected (deg / mm / chance of a miss) | "
+          "reprojection RMS (px) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in range(seeds):
-            result, report, _ = board_run(Path(tmp) / f"i{seed}", 20, seed, intrinsics=True)
+        for seed in seeds:
+            result, report, _ = board_run(Path(tmp) / f"i{seed}", 20, seed, intrinsics=True,
+                                          tilt=tilt)
             k = result.calibration.intrinsics
             angle, shift = errors(result.calibration.extrinsics)
             print(f"| {seed} | {100 * (k.fx / CAMERA.fx - 1):+.2f} | "
                   f"{100 * (k.fy / CAMERA.fy - 1):+.2f} | {k.cx - CAMERA.cx:+.1f}, "
                   f"{k.cy - CAMERA.cy:+.1f} | {result.calibration.distortion[0]:+.3f} | "
-                  f"{angle:.3f} | {shift:.1f} | {report.intrinsics_rms_px:.2f} |", flush=True)
+                  f"{angle:.3f} | {shift:.1f} | {expected(report)} | "
+                  f"{report.intrinsics_rms_px:.2f} |", flush=True)
+
+
+def part_bound(seeds: range) -> None:
+    """Expected errors of view geometries: true planes, simulated zones, 2 cm noise."""
+    from deltar.calibration.board_uncertainty import extrinsic_uncertainty
+    from deltar.calibration.synthetic import (
+        sensor_pose,
+        sensor_virtual_camera,
+        simulated_zone_frame,
+    )
+    from deltar.calibration.synthetic_board import WALL, board_view_poses
+
+    sensor_cam, rects = sensor_virtual_camera()
+    print("| tilt (deg) | views | expected rotation error, mean over seeds (deg) | expected "
+          "translation error (mm) | chance of missing 0.5 deg or 10 mm |")
+    print("|---|---|---|---|---|")
+    for tilt in ((35.0, 15.0), (40.0, 20.0), (45.0, 25.0)):
+        for views in (15, 20, 25):
+            rows = []
+            for seed in seeds:
+                rng = np.random.default_rng(seed)
+                poses = board_view_poses(views, distance_m=(0.5, 0.9), tilt_deg=tilt[0],
+                                         min_tilt_deg=tilt[1], seed=seed)
+                planes, means, masks = [], [], []
+                for pose in poses:
+                    # The wall in the camera frame; its normal already faces the camera.
+                    planes.append((pose[:3, :3].T @ WALL[0, :3],
+                                   float(WALL[0, :3] @ pose[:3, 3] + WALL[0, 3]), 0.0, 0.0))
+                    frame = simulated_zone_frame(WALL, sensor_pose(pose, TRUE), sensor_cam,
+                                                 rects, 0.0, rng, mean_noise_m=0.0)
+                    means.append(frame.flat()[0])
+                    masks.append(frame.flat()[2])
+                u = extrinsic_uncertainty(planes, means, masks, TRUE, zone_noise_m=0.02)
+                rows.append((u.rotation_rms_deg, 1000 * u.translation_rms_m,
+                             u.miss_probability(0.5, 0.010)))
+            rot, shift, miss = np.mean(rows, axis=0)
+            print(f"| {tilt[1]:g}-{tilt[0]:g} | {views} | {rot:.3f} | {shift:.1f} | "
+                  f"{100 * miss:.0f} % |", flush=True)
 
 
 def part_refusal() -> None:
@@ -122,14 +175,21 @@ def part_depth(seeds: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=("board", "intrinsics", "refusal", "depth"),
+    parser.add_argument("--part", choices=("board", "intrinsics", "refusal", "depth", "bound"),
                         default="board")
     parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--tilt", default="45,25",
+                        help="largest and smallest view tilt off the wall's normal, degrees")
     args = parser.parse_args()
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    tilt = tuple(float(v) for v in args.tilt.split(","))
     if args.part == "board":
-        part_board(args.seeds)
+        part_board(seeds, tilt)
     elif args.part == "intrinsics":
-        part_intrinsics(args.seeds)
+        part_intrinsics(seeds, tilt)
+    elif args.part == "bound":
+        part_bound(seeds)
     elif args.part == "refusal":
         part_refusal()
     else:

@@ -3,6 +3,8 @@ OpenCV's board image: accuracy, the time offset, and every refusal with its mess
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -42,14 +44,41 @@ def small_recording(tmp_path_factory):
 
 
 def test_small_rig_calibrates(small_recording):
-    result, report = calibrate_recording_with_board(small_recording, SPEC, NOMINAL)
+    # 12 views of a small board tilted 15-35 deg: the result warns that more views are
+    # needed for 0.35 deg.
+    with pytest.warns(UserWarning, match=r"the 12 board views leave the extrinsic uncertain: "
+                                         r"the zones' noise \(1\.\d cm\) allows errors of "
+                                         r"about 0\.\d\d deg .* tilted 25-45 deg"):
+        result, report = calibrate_recording_with_board(small_recording, SPEC, NOMINAL)
     angle, shift = _errors(result.calibration.extrinsics)
     assert angle < 1.0 and shift < 0.015
+    expected = report.uncertainty
+    assert expected.zone_noise_m == pytest.approx(0.01, rel=0.2)
+    assert angle < 3 * expected.rotation_rms_deg and shift < 3 * expected.translation_rms_m
+    assert expected.rotation_rms_deg > 0.35
     assert report.views_with_board == 12 and len(result.observations) == 12
     assert result.distance_after_m < result.distance_before_m
     residuals = result.calibration.residuals
     assert residuals["frames_used"] == 12 and residuals["board_views"] == 12
+    assert residuals["rotation_sd_deg"] == expected.rotation_rms_deg
+    assert residuals["translation_sd_m"] == expected.translation_rms_m
     assert result.calibration.time_offset_s == 0.0 and result.calibration.distortion == ()
+
+
+def test_steeper_views_are_expected_to_be_better(tmp_path):
+    """The same rig with views tilted 25-45 deg: a smaller expected error, no warning."""
+    write_board_recording(tmp_path / "rec", TRUE, SMALL, SPEC,
+                          _poses(12, tilt_deg=45.0, min_tilt_deg=25.0), mean_noise_m=0.01,
+                          seed=0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result, report = calibrate_recording_with_board(Recording(tmp_path / "rec"), SPEC,
+                                                        NOMINAL)
+    assert not [w for w in caught if "uncertain" in str(w.message)]
+    expected = report.uncertainty
+    assert expected.rotation_rms_deg < 0.35 and expected.translation_rms_m < 0.005
+    angle, shift = _errors(result.calibration.extrinsics)
+    assert angle < 3 * expected.rotation_rms_deg and shift < 3 * expected.translation_rms_m
 
 
 def test_a_wrong_dictionary_is_refused_with_the_one_seen(small_recording):

@@ -7,7 +7,11 @@ the plane in the camera frame; per zone frame the existing plane fit
 frame. Plane pairs give the extrinsic in closed form (normals: Kabsch; offsets: linear
 least squares), and the existing robust point-to-plane refinement
 (:func:`deltar.calibration.pipeline.calibrate_observations`) finishes it, so the
-output file and report are those of the depth-image path.
+output file and report are those of the depth-image path. The result also carries its
+expected error (:mod:`deltar.calibration.board_uncertainty`): with 2 cm zone noise the
+zones, not the board poses, limit the accuracy, and the roll about the viewing axis most
+(it is seen only through the direction each view is tilted), so too few or too shallow
+views are warned about.
 
 Everything that would make the answer meaningless is refused before the refinement
 (and before camera calibration): too few views with the board, a board spec whose
@@ -30,6 +34,7 @@ from deltar.calibration.board import (
     board_points_in_view,
     estimate_board_pose,
 )
+from deltar.calibration.board_uncertainty import ExtrinsicUncertainty, extrinsic_uncertainty
 from deltar.calibration.extrinsic import (
     PlaneObservation,
     check_plane_diversity,
@@ -56,6 +61,11 @@ MAX_SCALE_RATIO = 1.25
 #: this many degrees and the offsets within ``PLANE_AGREE_M``.
 PLANE_AGREE_DEG = 8.0
 PLANE_AGREE_M = 0.06
+#: Expected errors (1 sd, from the zones' noise) above which the result comes with a
+#: warning to record more views: about 1 in 10 calibrations from such views would miss
+#: 0.5 deg or 10 mm (benchmarks/RESULTS.md, 2026-12-03).
+MAX_EXPECTED_ROTATION_DEG = 0.35
+MAX_EXPECTED_TRANSLATION_M = 0.005
 
 
 @dataclass
@@ -71,6 +81,8 @@ class BoardReport:
         intrinsics_rms_px: RMS reprojection error of ``cv2.calibrateCamera`` (None when
             the intrinsics were not calibrated).
         closed_form: the closed-form extrinsic the refinement started from.
+        uncertainty: the error the zones' noise leaves in the extrinsic (1 sd, the
+            Cramer-Rao bound of :mod:`deltar.calibration.board_uncertainty`).
     """
 
     images_searched: int
@@ -81,6 +93,7 @@ class BoardReport:
     intrinsics_rms_px: float | None = None
     closed_form: SensorExtrinsics | None = None
     skipped: list[tuple[str, str]] = field(default_factory=list)
+    uncertainty: ExtrinsicUncertainty | None = None
 
 
 def closed_form_extrinsics(normals_sensor: np.ndarray, offsets_sensor_m: np.ndarray,
@@ -363,7 +376,7 @@ def calibrate_recording_with_board(
         raise ValueError(
             f"the board was seen from too few directions: its {len(good)} views give plane "
             f"orientations (as the sensor sees them) spread {seen[0]:.1f} and {seen[1]:.1f} "
-            f"deg rms, at least 5.7 deg rms is needed both ways (views tilted 15-35 deg "
+            f"deg rms, at least 5.7 deg rms is needed both ways (views tilted 25-45 deg "
             "left, right, up and down, not all head-on): record the board from more "
             "directions") from None
 
@@ -382,11 +395,34 @@ def calibrate_recording_with_board(
                                                       for v in good]))
     if intrinsics_rms is not None:
         residuals["intrinsics_rms_px"] = intrinsics_rms
+    used = {o.name for o in result.observations}
+    uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov)
+    residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
+    residuals["translation_sd_m"] = uncertainty.translation_rms_m
+    residuals["zone_noise_m"] = uncertainty.zone_noise_m
     result.calibration = replace(calibration, residuals=residuals,
                                  distortion=tuple(distortion), time_offset_s=offset)
     report = BoardReport(searched, len(views), residuals["board_pose_rms_px"], estimate, offset,
-                         intrinsics_rms, closed, skipped)
+                         intrinsics_rms, closed, skipped, uncertainty)
     return result, report
+
+
+def _expected_error(views: list[_View], calibration, fov) -> ExtrinsicUncertainty:
+    """The extrinsic's expected error from the views used; warns when it is large."""
+    uncertainty = extrinsic_uncertainty(
+        [(v.pose.normal_cam, v.pose.offset_cam_m, v.pose.normal_std_rad, v.pose.offset_std_m)
+         for v in views], [v.mean_m for v in views], [v.plane.inliers for v in views],
+        calibration.extrinsics, grid=calibration.grid, fov_deg=fov)
+    rotation, translation = uncertainty.rotation_rms_deg, uncertainty.translation_rms_m
+    if rotation > MAX_EXPECTED_ROTATION_DEG or translation > MAX_EXPECTED_TRANSLATION_M:
+        warnings.warn(
+            f"the {len(views)} board views leave the extrinsic uncertain: the zones' noise "
+            f"({100 * uncertainty.zone_noise_m:.1f} cm) allows errors of about "
+            f"{rotation:.2f} deg and {1000 * translation:.1f} mm (1 sd; at most "
+            f"{MAX_EXPECTED_ROTATION_DEG} deg and {1000 * MAX_EXPECTED_TRANSLATION_M:g} mm "
+            "wanted): record more views, tilted 25-45 deg left, right, up and down",
+            stacklevel=3)
+    return uncertainty
 
 
 def _frame_weight(view: _View, fov) -> float:
