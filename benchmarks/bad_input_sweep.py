@@ -212,12 +212,12 @@ def _api(fn_name: str, *args, **kwargs):
 
     def run(inp: Path, out: Path):
         from deltar.data.rgbd_files import read_color
-        from deltar.inference.estimator import DepthEstimator
+        from deltar.inference.loading import load_estimator
         from deltar.io.zone_file import load_zone_frame
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            estimator = _cached_estimator(DepthEstimator)
+            estimator = _cached_estimator(load_estimator)
         image = read_color(inp / "img.png")
         frame = load_zone_frame(inp / "z.json")
         values = {"image": image, "frame": frame, "inp": inp}
@@ -231,9 +231,9 @@ def _api(fn_name: str, *args, **kwargs):
 _ESTIMATOR = {}
 
 
-def _cached_estimator(cls):
+def _cached_estimator(load_estimator):
     if "lite" not in _ESTIMATOR:
-        _ESTIMATOR["lite"] = cls.from_preset("deltar-lite")
+        _ESTIMATOR["lite"] = load_estimator("deltar-lite", kind="preset")
     return _ESTIMATOR["lite"]
 
 

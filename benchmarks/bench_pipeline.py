@@ -34,6 +34,7 @@ import torch
 
 from deltar.export.onnx import export_onnx
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.onnx_runtime import OnnxDepthModel
 from deltar.models import create_model
 from deltar.models.benchmark import count_gflop, matmul_gflop_s
 from deltar.models.checkpoint import load_checkpoint
@@ -94,8 +95,8 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         start = time.perf_counter()
         export_onnx(model, path, height, width, overwrite=True)
         print(f"  exported {path.name} in {time.perf_counter() - start:.1f} s", flush=True)
-        estimator = DepthEstimator.from_onnx(path, num_threads=threads,
-                                             allow_spinning=allow_spinning)
+        onnx_model = OnnxDepthModel(path, num_threads=threads, allow_spinning=allow_spinning)
+        estimator = DepthEstimator(onnx_model=onnx_model, weights=f"onnx {path}")
     else:
         estimator = DepthEstimator(model, weights=f"{preset} (random)")
     inputs = estimator.prepare([_decode(png)], [frame])

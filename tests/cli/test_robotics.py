@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from deltar.capture.bag_replay import pair_calibration
 from deltar.cli.main import app
-from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.io.ros_messages import image_from_msg, metric_image_from_msg
 from deltar.io.rosbag_reader import BagInput
 from tests.capture.test_viewer import _buffer, read_rrd
@@ -34,7 +34,7 @@ def test_cli_replay_bag_with_the_bundled_model(tmp_path):
     # The bag holds exactly what the estimator predicts for the same inputs.
     bag = BagInput(source)
     (pair, rgb), = list(bag.images(bag.pairs()[:1]))
-    expected = DepthEstimator.from_checkpoint("default").predict(
+    expected = load_estimator("default").predict(
         rgb, pair.zone_frame, pair_calibration(pair, None)).depth_m
     np.testing.assert_allclose(metric_image_from_msg(depth_msgs[0][1]), expected, atol=1e-5)
     again = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag", str(out)])

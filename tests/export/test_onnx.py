@@ -8,6 +8,7 @@ import torch
 
 from deltar.export.onnx import export_onnx
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.inference.onnx_runtime import OnnxDepthModel, layout_signature
 from deltar.models import create_model
 from deltar.sensor.zone_frame import ZoneFrame
@@ -106,10 +107,10 @@ def test_estimator_onnx_backend_matches_pytorch(lite_export, rng):
     frame = ZoneFrame(rng.uniform(0.5, 3, (8, 8)), rng.uniform(0.01, 0.1, (8, 8)),
                       np.ones((8, 8), bool))
     torch_pred = DepthEstimator(model, weights="t").predict(image, frame)
-    onnx_pred = DepthEstimator.from_onnx(path, num_threads=1).predict(image, frame)
+    onnx_pred = load_estimator(path, kind="onnx", threads=1).predict(image, frame)
     assert np.abs(torch_pred.depth_m - onnx_pred.depth_m).max() < DEPTH_TOLERANCE_M
     with pytest.raises(ValueError, match="float32"):
-        DepthEstimator.from_onnx(path, precision="float16")
+        load_estimator(path, kind="onnx", precision="float16")
 
 
 def test_missing_or_foreign_onnx_files(tmp_path):
@@ -237,7 +238,7 @@ def test_export_runs_at_the_size_rule_like_the_estimator(tmp_path, rng, size):
     frame = ZoneFrame(rng.uniform(0.5, 3, (8, 8)), rng.uniform(0.01, 0.1, (8, 8)),
                       np.ones((8, 8), bool))
     torch_pred = DepthEstimator(model, weights="t", fold_batch_norms=False).predict(image, frame)
-    onnx_pred = DepthEstimator.from_onnx(path, num_threads=1).predict(image, frame)
+    onnx_pred = load_estimator(path, kind="onnx", threads=1).predict(image, frame)
     assert torch_pred.network_size == onnx_pred.network_size == expected
     assert onnx_pred.depth_m.shape == size
     assert np.abs(torch_pred.depth_m - onnx_pred.depth_m).max() < DEPTH_TOLERANCE_M

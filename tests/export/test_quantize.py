@@ -9,7 +9,7 @@ import torch
 
 from deltar.export.onnx import export_onnx
 from deltar.export.quantize import QUANT_KEY, calibration_feeds, export_int8, quantize_onnx
-from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.inference.onnx_runtime import OnnxDepthModel
 from deltar.models import create_model
 
@@ -36,7 +36,7 @@ def exported(tmp_path_factory):
     folder = tmp_path_factory.mktemp("int8")
     float_path = export_onnx(_small_model(), folder / "float.onnx", *SIZE,
                              metadata={"deltar_weights": "test"})
-    estimator = DepthEstimator.from_onnx(float_path, num_threads=1)
+    estimator = load_estimator(float_path, kind="onnx", threads=1)
     feeds = calibration_feeds(estimator, shared / "icl_livingroom1", frames=3)
     int8_path = quantize_onnx(float_path, folder / "int8.onnx", feeds)
     return float_path, int8_path, feeds, shared
@@ -79,7 +79,7 @@ def test_int8_model_is_quantised_runs_and_stays_close(exported):
         assert np.isfinite(quantised).all()
         assert 0 < relative.max() and relative.mean() < 0.03
     # The estimator runs it like any export.
-    estimator = DepthEstimator.from_onnx(int8_path, num_threads=1)
+    estimator = load_estimator(int8_path, kind="onnx", threads=1)
     image = np.full((*SIZE, 3), 128, np.uint8)
     from deltar.sensor.zone_frame import ZoneFrame
 
@@ -101,7 +101,7 @@ def test_quantize_rejects_bad_input(exported, tmp_path):
     with pytest.raises(FileExistsError):
         quantize_onnx(float_path, int8_path, feeds)
     with pytest.raises(ValueError, match="frames"):
-        calibration_feeds(DepthEstimator.from_onnx(float_path), shared / "icl_livingroom1", 0)
+        calibration_feeds(load_estimator(float_path, kind="onnx"), shared / "icl_livingroom1", 0)
     with pytest.raises(FileNotFoundError, match="calibration"):
         export_int8(_small_model(), tmp_path / "x.onnx", *SIZE, tmp_path / "no_such_folder")
 
@@ -113,7 +113,7 @@ def test_a_file_that_takes_the_no_target_flags_quantises_with_them(tmp_path):
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=SIZE).eval()
     float_path = export_onnx(model, tmp_path / "select.onnx", *SIZE)
-    estimator = DepthEstimator.from_onnx(float_path, num_threads=1)
+    estimator = load_estimator(float_path, kind="onnx", threads=1)
     assert estimator.onnx_model.takes_no_target
     feeds = calibration_feeds(estimator, SHARED_DATA / "realsense_office", frames=2)
     assert all(set(feed) == {"image", "hypotheses", "zone_rects", "zone_valid",

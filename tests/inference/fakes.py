@@ -1,9 +1,27 @@
-"""A tiny stand-in for DeltarNet with an output that can be predicted by hand."""
+"""Stand-ins for the estimator's tests: a tiny DeltarNet whose output can be predicted
+by hand, random images and zone frames."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
+
+from deltar.sensor.zone_frame import ZoneFrame
+
+
+def random_frame(rng: np.random.Generator, grid: int = 8, invalid: int = 3) -> ZoneFrame:
+    """A grid x grid zone frame, means 0.8-3.5 m, ``invalid`` zones invalid at random."""
+    mean = rng.uniform(0.8, 3.5, size=(grid, grid))
+    sigma = rng.uniform(0.01, 0.1, size=(grid, grid))
+    valid = np.ones((grid, grid), bool)
+    valid.flat[rng.choice(grid * grid, invalid, replace=False)] = False
+    return ZoneFrame(np.where(valid, mean, 0), np.where(valid, sigma, 0), valid)
+
+
+def random_image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """An (height, width, 3) uint8 RGB image of uniform noise."""
+    return rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
 
 
 class ZonePainterNet(nn.Module):

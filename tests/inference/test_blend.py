@@ -9,6 +9,7 @@ import torch
 from deltar.evaluation.baselines import run_baseline
 from deltar.inference.blend import ConfidenceBlend, blend_depth, blend_weight, zone_grid_mask
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -242,7 +243,7 @@ def test_onnx_backend_blends_like_pytorch(rng, tmp_path):
     torch_estimator = _select_estimator(blend=None)
     rects = nominal_zone_rects(frame, 64, 96, torch_estimator.intrinsics.scaled(64, 96))
     export_onnx(torch_estimator.model, tmp_path / "select.onnx", 64, 96, zone_rects=rects)
-    onnx_estimator = DepthEstimator.from_onnx(tmp_path / "select.onnx", num_threads=1)
+    onnx_estimator = load_estimator(tmp_path / "select.onnx", kind="onnx", threads=1)
     assert onnx_estimator.blend == ConfidenceBlend()
     got = onnx_estimator.predict(image, frame)
     reference = _select_estimator().predict(image, frame)
@@ -253,5 +254,5 @@ def test_onnx_backend_blends_like_pytorch(rng, tmp_path):
 def test_onnx_refuses_flip_in_evaluation_names():
     from deltar.evaluation.model_methods import onnx_predictor
 
-    with pytest.raises(ValueError, match=r"\+flip needs the PyTorch backend"):
+    with pytest.raises(ValueError, match=r"\+flip needs a PyTorch model"):
         onnx_predictor("model.onnx+flip")

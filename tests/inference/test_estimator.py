@@ -9,26 +9,14 @@ import torch
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.inference.preprocess import scale_rects
-from deltar.models.checkpoint import load_checkpoint, save_checkpoint
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.placement import nominal_zone_rects, zone_mean_depth
 from deltar.sensor.zone_frame import ZoneFrame
-from tests.inference.fakes import ZonePainterNet
+from tests.inference.fakes import ZonePainterNet, random_frame, random_image
 
 torch.set_num_threads(1)
-
-
-def _frame(rng: np.random.Generator, grid: int = 8, invalid: int = 3) -> ZoneFrame:
-    mean = rng.uniform(0.8, 3.5, size=(grid, grid))
-    sigma = rng.uniform(0.01, 0.1, size=(grid, grid))
-    valid = np.ones((grid, grid), bool)
-    valid.flat[rng.choice(grid * grid, invalid, replace=False)] = False
-    return ZoneFrame(np.where(valid, mean, 0), np.where(valid, sigma, 0), valid)
-
-
-def _image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
-    return rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
 
 
 def test_scale_rects_maps_image_bounds_and_centres():
@@ -47,9 +35,9 @@ def test_resized_zone_rects_line_up_with_the_image(rng, height, width):
 
     150x220 is enlarged to a 160x224 network input, 300x430 shrunk to 288x416.
     """
-    frame = _frame(rng, invalid=0)
+    frame = random_frame(rng, invalid=0)
     estimator = DepthEstimator(ZonePainterNet(), weights="painter")
-    pred = estimator.predict(_image(rng, height, width), frame)
+    pred = estimator.predict(random_image(rng, height, width), frame)
     assert pred.depth_m.shape == (height, width)
     expected = zone_mean_depth(frame, pred.zone_rects, (height, width))
     np.testing.assert_allclose(pred.zone_rects,
@@ -67,8 +55,8 @@ def test_resized_zone_rects_line_up_with_the_image(rng, height, width):
 
 def test_predict_lite_single_and_batch_agree(lite_model, rng):
     estimator = DepthEstimator(lite_model, weights="test")
-    images = [_image(rng, 60, 90) for _ in range(2)]
-    frames = [_frame(rng), _frame(rng)]
+    images = [random_image(rng, 60, 90) for _ in range(2)]
+    frames = [random_frame(rng), random_frame(rng)]
     batch = estimator.predict(images, frames)
     assert isinstance(batch, list) and len(batch) == 2
     for image, frame, pred in zip(images, frames, batch, strict=True):
@@ -81,7 +69,7 @@ def test_predict_lite_single_and_batch_agree(lite_model, rng):
 
 def test_bfloat16_precision_runs(lite_model, rng):
     estimator = DepthEstimator(lite_model, precision="bfloat16", weights="test")
-    pred = estimator.predict(_image(rng, 64, 96), _frame(rng))
+    pred = estimator.predict(random_image(rng, 64, 96), random_frame(rng))
     assert pred.depth_m.dtype == np.float32 and np.isfinite(pred.depth_m).all()
     lite_model.float()  # the session fixture is shared
 
@@ -99,7 +87,7 @@ def test_histogram_frames_are_sampled_from_the_histogram(rng):
 
 
 def test_gaussian_hypotheses_are_icdf_quantiles(rng):
-    frame = _frame(rng, invalid=2)
+    frame = random_frame(rng, invalid=2)
     hyp = DepthEstimator(ZonePainterNet(), weights="x").hypotheses_for(frame).numpy()
     mean, sigma, valid = frame.flat()
     from scipy.stats import norm
@@ -113,13 +101,13 @@ def test_gaussian_hypotheses_are_icdf_quantiles(rng):
 def test_calibration_places_zones_and_must_match_resolution(rng):
     intr = CameraIntrinsics(80.0, 80.0, 47.5, 31.5, 96, 64)
     calib = RigCalibration(intr, SensorExtrinsics(translation_m=np.array([0.03, 0.0, 0.0])))
-    frame = _frame(rng, invalid=0)
+    frame = random_frame(rng, invalid=0)
     estimator = DepthEstimator(ZonePainterNet(), weights="x")
-    pred = estimator.predict(_image(rng, 64, 96), frame, calib)
+    pred = estimator.predict(random_image(rng, 64, 96), frame, calib)
     np.testing.assert_allclose(pred.zone_rects, calib.zone_rects_for(frame, (64, 96)))
     assert pred.intrinsics == intr
     with pytest.raises(ValueError, match="calibrated resolution"):
-        estimator.predict(_image(rng, 48, 96), frame, calib)
+        estimator.predict(random_image(rng, 48, 96), frame, calib)
 
 
 def test_a_calibration_with_distortion_predicts_on_the_undistorted_image(rng):
@@ -129,8 +117,8 @@ def test_a_calibration_with_distortion_predicts_on_the_undistorted_image(rng):
     seen = []
     prepare = estimator.prepare
     estimator.prepare = lambda images, *a, **k: seen.extend(images) or prepare(images, *a, **k)
-    image = _image(rng, 64, 96)
-    estimator.predict(image, _frame(rng), calib)
+    image = random_image(rng, 64, 96)
+    estimator.predict(image, random_frame(rng), calib)
     np.testing.assert_array_equal(seen[0], calib.undistort_image(image))
     assert np.abs(seen[0].astype(int) - image).mean() > 10  # the lens model did move pixels
 
@@ -143,17 +131,19 @@ def test_a_calibration_with_distortion_predicts_on_the_undistorted_image(rng):
 def test_bad_images_raise(bad, match, rng):
     estimator = DepthEstimator(ZonePainterNet(), weights="x")
     with pytest.raises(ValueError, match=match):
-        estimator.predict(bad, _frame(rng))
+        estimator.predict(bad, random_frame(rng))
 
 
 def test_batch_errors_name_the_problem(rng):
     estimator = DepthEstimator(ZonePainterNet(), weights="x")
     with pytest.raises(ValueError, match="one image size"):
-        estimator.predict([_image(rng, 64, 96), _image(rng, 32, 96)], [_frame(rng)] * 2)
+        estimator.predict([random_image(rng, 64, 96), random_image(rng, 32, 96)],
+                          [random_frame(rng)] * 2)
     with pytest.raises(ValueError, match="one zone frame per image"):
-        estimator.predict([_image(rng, 64, 96)] * 2, [_frame(rng)])
+        estimator.predict([random_image(rng, 64, 96)] * 2, [random_frame(rng)])
     with pytest.raises(ValueError, match="grid"):
-        estimator.predict([_image(rng, 64, 96)] * 2, [_frame(rng), _frame(rng, grid=4)])
+        estimator.predict([random_image(rng, 64, 96)] * 2,
+                          [random_frame(rng), random_frame(rng, grid=4)])
 
 
 def test_constructor_options_are_checked(lite_model):
@@ -163,66 +153,6 @@ def test_constructor_options_are_checked(lite_model):
         DepthEstimator(lite_model, input_size=(60, 96))
     with pytest.raises(ValueError, match="exactly one"):
         DepthEstimator()
-
-
-def test_from_preset_warns_about_random_weights():
-    with pytest.warns(UserWarning, match="random"):
-        estimator = DepthEstimator.from_preset("deltar-lite",
-                                               model_config={"design_size": (64, 96)})
-    assert "random" in estimator.weights
-
-
-def test_checkpoint_round_trip(tmp_path, rng):
-    torch.manual_seed(1)
-    from deltar.models import create_model
-
-    config = {"design_size": (64, 96), "n_bins": 32}
-    model = create_model("deltar-lite", **config).eval()
-    path = save_checkpoint(tmp_path / "model.pt", model, "deltar-lite")
-    with pytest.raises(FileExistsError):
-        save_checkpoint(path, model, "deltar-lite")
-    restored, preset, saved_config = load_checkpoint(path)
-    assert not restored.training
-    assert preset == "deltar-lite" and saved_config == model.config
-    assert all(saved_config[key] == value for key, value in config.items())
-    image, frame = _image(rng, 64, 96), _frame(rng)
-    a = DepthEstimator(model, weights="a").predict(image, frame)
-    b = DepthEstimator.from_checkpoint(path).predict(image, frame)
-    np.testing.assert_array_equal(a.depth_m, b.depth_m)
-
-
-def test_bad_checkpoints_raise(tmp_path):
-    with pytest.raises(FileNotFoundError):
-        DepthEstimator.from_checkpoint(tmp_path / "missing.pt")
-    corrupt = tmp_path / "corrupt.pt"
-    corrupt.write_bytes(b"not a torch file")
-    with pytest.raises(ValueError, match=r"corrupt\.pt"):
-        DepthEstimator.from_checkpoint(corrupt)
-    plain = tmp_path / "plain.pt"
-    torch.save({"weights": torch.zeros(1)}, plain)
-    with pytest.raises(ValueError, match="not a deltar checkpoint"):
-        DepthEstimator.from_checkpoint(plain)
-    with pytest.raises(FileNotFoundError):
-        DepthEstimator.from_official(tmp_path / "nyu.pt")
-
-
-def test_from_official_loads_release_weights(tmp_path, parity_fixture, rng):
-    """The fixture's state dict (release names, float16) saved as a file loads cleanly."""
-    fixture = parity_fixture
-    weights = tmp_path / "nyu.pt"
-    torch.save({k: v.float() for k, v in fixture["state_dict"].items()}, weights)
-    # Unfolded, so the stem's weights are the file's own.
-    estimator = DepthEstimator.from_official(weights, fold_batch_norms=False)
-    assert "deltar-official" in estimator.weights
-    stem = estimator.model.image_encoder.backbone.conv_stem.weight
-    np.testing.assert_array_equal(stem.detach().numpy(),
-                                  fixture["state_dict"]["img_encoder.conv0.0.weight"].float())
-    pred = estimator.predict(_image(rng, 64, 96), _frame(rng))
-    assert pred.depth_m.shape == (64, 96) and np.isfinite(pred.depth_m).all()
-    broken = tmp_path / "broken.pt"
-    torch.save({"img_encoder.conv0.0.weight": torch.zeros(1)}, broken)
-    with pytest.raises(ValueError, match=r"broken\.pt"):
-        DepthEstimator.from_official(broken)
 
 
 def _layout(height: int, width: int, grid: int = 8) -> np.ndarray:
@@ -238,7 +168,7 @@ def test_flip_average_keeps_a_mirror_symmetric_prediction(lite_model, rng):
     # The untrained zone-prior head returns the zone prior, which depends on the zone
     # geometry only through mirror-symmetric Gaussians: a correct mirror of rectangles
     # and zone order gives back the same depth; a one-pixel error would not.
-    image, frame = _image(rng, 64, 96), _frame(rng)
+    image, frame = random_image(rng, 64, 96), random_frame(rng)
     rects = _layout(64, 96)
     plain = DepthEstimator(lite_model, weights="test").predict(image, frame, zone_rects=rects)
     flipped = DepthEstimator(lite_model, weights="test", flip_average=True).predict(
@@ -255,7 +185,7 @@ def test_flip_average_is_mirror_equivariant(rng):
     model = create_model("deltar-lite", design_size=(64, 96)).eval()
     with torch.no_grad():  # a head that is not zero, so the image matters
         model.head.logits_conv.weight.normal_(0.0, 0.5)
-    image, frame, rects = _image(rng, 64, 96), _frame(rng), _layout(64, 96)
+    image, frame, rects = random_image(rng, 64, 96), random_frame(rng), _layout(64, 96)
     mirrored_frame = ZoneFrame(frame.mean_m[:, ::-1], frame.sigma_m[:, ::-1],
                                frame.valid[:, ::-1])
     mirrored_rects = mirror_zone_rects(rects, 96, 8)
@@ -279,7 +209,7 @@ def test_normalise_images_is_the_imagenet_formula(rng):
     from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
     from deltar.inference.preprocess import normalise_images
 
-    images = [_image(rng, 32, 64), _image(rng, 32, 64)]
+    images = [random_image(rng, 32, 64), random_image(rng, 32, 64)]
     out = normalise_images(images, (32, 64))
     mean = np.asarray(IMAGENET_MEAN)[:, None, None]
     std = np.asarray(IMAGENET_STD)[:, None, None]
@@ -296,7 +226,7 @@ def test_official_estimator_keeps_release_parity(tmp_path, parity_fixture, threa
 
     weights = tmp_path / "nyu.pt"
     torch.save({k: v.float() for k, v in parity_fixture["state_dict"].items()}, weights)
-    estimator = DepthEstimator.from_official(weights)
+    estimator = load_estimator(weights, kind="official")
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in estimator.model.modules())
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
@@ -324,7 +254,7 @@ def test_no_target_zones_of_a_frame_reach_the_plane_select_head(rng, flip_averag
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=(64, 96))
     estimator = DepthEstimator(model, weights="test", flip_average=flip_average)
-    image = _image(rng, 64, 96)
+    image = random_image(rng, 64, 96)
     valid = np.ones((8, 8), bool)
     valid[:, 5:] = False  # the right columns see nothing within range
     mean = np.where(valid, 1.5, 0.0)

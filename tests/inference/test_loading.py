@@ -11,9 +11,10 @@ import torch
 from deltar.inference import load_estimator, resolve_source
 from deltar.inference.estimator import DepthEstimator
 from deltar.models import create_model
-from deltar.models.checkpoint import save_checkpoint
+from deltar.models.checkpoint import load_checkpoint, save_checkpoint
 from deltar.sensor.zone_frame import ZoneFrame
 from deltar.weights import resolve_checkpoint
+from tests.inference.fakes import random_frame, random_image
 
 
 def test_sources_are_told_apart(tmp_path):
@@ -58,7 +59,7 @@ def test_checkpoint_predicts_like_the_constructor(tmp_path):
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
     frame = ZoneFrame(rng.uniform(1, 3, (8, 8)), np.full((8, 8), 0.03), np.ones((8, 8), bool))
     loaded = load_estimator(path, kind="checkpoint", flip_average=True)
-    direct = DepthEstimator.from_checkpoint(path, flip_average=True)
+    direct = DepthEstimator(load_checkpoint(path)[0], flip_average=True)
     np.testing.assert_array_equal(loaded.predict(image, frame).depth_m,
                                   direct.predict(image, frame).depth_m)
     assert loaded.flip_average
@@ -93,3 +94,54 @@ def test_onnx_refuses_flip_and_official_needs_the_file(tmp_path):
         load_estimator(tmp_path / "m.onnx", kind="onnx", flip_average=True)
     with pytest.raises(FileNotFoundError, match="official weights not found"):
         load_estimator(tmp_path / "nyu.pt", kind="official")
+
+
+def test_checkpoint_round_trip(tmp_path, rng):
+    torch.manual_seed(1)
+    config = {"design_size": (64, 96), "n_bins": 32}
+    model = create_model("deltar-lite", **config).eval()
+    path = save_checkpoint(tmp_path / "model.pt", model, "deltar-lite")
+    with pytest.raises(FileExistsError):
+        save_checkpoint(path, model, "deltar-lite")
+    restored, preset, saved_config = load_checkpoint(path)
+    assert not restored.training
+    assert preset == "deltar-lite" and saved_config == model.config
+    assert all(saved_config[key] == value for key, value in config.items())
+    image, frame = random_image(rng, 64, 96), random_frame(rng)
+    a = DepthEstimator(model, weights="a").predict(image, frame)
+    b = load_estimator(path).predict(image, frame)
+    np.testing.assert_array_equal(a.depth_m, b.depth_m)
+
+
+def test_bad_checkpoints_raise(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_estimator(tmp_path / "missing.pt")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match=r"corrupt\.pt"):
+        load_estimator(corrupt)
+    plain = tmp_path / "plain.pt"
+    torch.save({"weights": torch.zeros(1)}, plain)
+    with pytest.raises(ValueError, match="not a deltar checkpoint"):
+        load_estimator(plain)
+    with pytest.raises(FileNotFoundError):
+        load_estimator(tmp_path / "nyu.pt", kind="official")
+
+
+def test_official_weights_load(tmp_path, parity_fixture, rng):
+    """The fixture's state dict (release names, float16) saved as a file loads cleanly."""
+    fixture = parity_fixture
+    weights = tmp_path / "nyu.pt"
+    torch.save({k: v.float() for k, v in fixture["state_dict"].items()}, weights)
+    # Unfolded, so the stem's weights are the file's own.
+    estimator = load_estimator(weights, kind="official", fold_batch_norms=False)
+    assert "deltar-official" in estimator.weights
+    stem = estimator.model.image_encoder.backbone.conv_stem.weight
+    np.testing.assert_array_equal(stem.detach().numpy(),
+                                  fixture["state_dict"]["img_encoder.conv0.0.weight"].float())
+    pred = estimator.predict(random_image(rng, 64, 96), random_frame(rng))
+    assert pred.depth_m.shape == (64, 96) and np.isfinite(pred.depth_m).all()
+    broken = tmp_path / "broken.pt"
+    torch.save({"img_encoder.conv0.0.weight": torch.zeros(1)}, broken)
+    with pytest.raises(ValueError, match=r"broken\.pt"):
+        load_estimator(broken, kind="official")

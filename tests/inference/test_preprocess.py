@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.inference.preprocess import (
     check_input_size,
     network_input_size,
@@ -136,7 +137,7 @@ def test_bundled_model_runs_a_square_image_square():
 
     if "default" not in bundled_model_names():
         pytest.skip("no bundled model in this installation")
-    estimator = DepthEstimator.from_checkpoint("default")
+    estimator = load_estimator("default")
     assert estimator.design_size == BUNDLED_DESIGN
     assert estimator.network_size_for((480, 480)) == (288, 288)
     assert estimator.network_size_for((480, 640)) == BUNDLED_DESIGN

@@ -12,7 +12,7 @@ import torch
 
 from deltar.camera import CameraIntrinsics
 from deltar.data.sources import open_source
-from deltar.inference.estimator import DepthEstimator
+from deltar.inference.loading import load_estimator
 from deltar.models.checkpoint import load_checkpoint
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulate import simulate_zone_frame
@@ -39,7 +39,7 @@ def test_default_keeps_the_sensor_scale_on_a_real_frame(shared_data):
     frame = open_source(str(shared_data / "realsense_floor"))[3]
     rects = zone_rects(frame.intrinsics, 8)
     zones = simulate_zone_frame(frame.depth_m, rects)
-    estimator = DepthEstimator.from_checkpoint("default")
+    estimator = load_estimator("default")
     depth = estimator.predict(frame.image, zones).depth_m
     readings = zones.mean_m[zones.valid]
     # Every pixel is a mean of zone planes, each within 2x of its reading...
@@ -64,7 +64,7 @@ def test_default_keeps_the_sensor_scale_on_a_real_frame(shared_data):
 
 
 def test_default_runs_large_images_at_its_training_scale(rng):
-    estimator = DepthEstimator.from_checkpoint("default")
+    estimator = load_estimator("default")
     frame = ZoneFrame(np.full((8, 8), 2.0), np.full((8, 8), 0.05), np.ones((8, 8), bool))
     image = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
     inputs = estimator.prepare([image], [frame])
@@ -82,7 +82,7 @@ def test_default_places_zones_with_no_target_beyond_the_range(shared_data):
     rects = zone_rects(frame.intrinsics, 8)
     zones = simulate_zone_frame(frame.depth_m, rects)
     assert zones.no_target.sum() >= 4
-    estimator = DepthEstimator.from_checkpoint("default")
+    estimator = load_estimator("default")
     flagged = estimator.predict(frame.image, ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid,
                                                        no_target=zones.no_target)).depth_m
     plain = estimator.predict(frame.image, ZoneFrame(zones.mean_m, zones.sigma_m,

@@ -6,7 +6,8 @@
 (``model:default+flip``) adds test-time flip averaging (not for ``onnx:``); a ``+network``
 suffix (``model:default+network``, also ``onnx:x.onnx+network``) scores the network
 alone, without the estimator's confidence blend with the colorization fill
-(:mod:`deltar.inference.blend`, on by default for plane-select networks). Each runs through
+(:mod:`deltar.inference.blend`, on by default for plane-select networks). Each is loaded
+by :func:`~deltar.inference.loading.load_estimator` and runs through
 :class:`~deltar.inference.estimator.DepthEstimator` with the sample's own zone
 rectangles, at the network input size the one size rule gives for the sample's image
 (:func:`deltar.inference.preprocess.network_input_size`: aspect kept, the design
@@ -69,23 +70,19 @@ def _split_suffixes(name: str) -> tuple[str, dict[str, object]]:
 
 def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
     """``model:NAME|PATH[+flip][+network]``: a bundled model name or a deltar checkpoint."""
-    from deltar.inference.estimator import DepthEstimator
-    from deltar.models.checkpoint import load_checkpoint
-    from deltar.weights import resolve_checkpoint
+    from deltar.inference.loading import load_estimator
 
     name_or_path, options = _split_suffixes(name_or_path)
-    model, preset, _ = load_checkpoint(resolve_checkpoint(name_or_path))
-    return EstimatorPredictor(DepthEstimator(model, weights=f"{preset} ({name_or_path})",
-                                             **options))
+    return EstimatorPredictor(load_estimator(name_or_path, kind="checkpoint", **options))
 
 
 def official_predictor(path: str) -> EstimatorPredictor:
     """``official:PATH[+flip][+network]``: the released weights (e.g. ``nyu.pt``), design
     480x640 (not plane-select, so never blended: ``+network`` changes nothing)."""
-    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.loading import load_estimator
 
     path, options = _split_suffixes(path)
-    return EstimatorPredictor(DepthEstimator.from_official(path, **options))
+    return EstimatorPredictor(load_estimator(path, kind="official", **options))
 
 
 def onnx_predictor(path: str) -> EstimatorPredictor:
@@ -94,13 +91,14 @@ def onnx_predictor(path: str) -> EstimatorPredictor:
     It runs at its fixed input size; the sample's zone layout must fit the one it was
     exported for (else ``ValueError``; export with that layout).
     """
-    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.checks import check_backend_options
+    from deltar.inference.loading import load_estimator
 
     path, options = _split_suffixes(path)
-    if "flip_average" in options:
-        raise ValueError(f"onnx:{path}: +flip needs the PyTorch backend (an ONNX model is "
-                         "fixed to one zone layout)")
-    return EstimatorPredictor(DepthEstimator.from_onnx(path, **options))
+    # Refused before the file is read, naming the method's suffix.
+    check_backend_options("float32", bool(options.get("flip_average")), True,
+                          names=("precision", f"onnx:{path}: +flip"))
+    return EstimatorPredictor(load_estimator(path, kind="onnx", **options))
 
 
 register_method_family("model", checkpoint_predictor)

@@ -6,7 +6,7 @@ calibrated on real frames; the head, which turns features into per-pixel bin
 probabilities and depth, stays in float32 (its logits feed exponentials, where int8
 steps would show directly as depth steps). The quantised file keeps the float model's
 inputs, outputs and deltar metadata, so :class:`~deltar.inference.onnx_runtime.OnnxDepthModel`
-and ``DepthEstimator.from_onnx`` run it like any export.
+and ``load_estimator(path)`` run it like any export.
 
 Calibration frames are RGB-D frames whose zone readings are simulated from their depth
 with :func:`~deltar.sensor.simulate.simulate_zone_frame` on the layout the model was
@@ -206,7 +206,7 @@ def export_int8(model, path: str | os.PathLike, height: int, width: int,
     import tempfile
 
     from deltar.export.onnx import export_onnx
-    from deltar.inference.estimator import DepthEstimator
+    from deltar.inference.loading import load_estimator
 
     path = Path(path)
     if path.exists() and not overwrite:
@@ -217,7 +217,7 @@ def export_int8(model, path: str | os.PathLike, height: int, width: int,
         float_path = Path(folder) / "float32.onnx"
         export_onnx(model, float_path, height, width, zone_rects=zone_rects,
                     metadata=metadata)
-        estimator = DepthEstimator.from_onnx(float_path)
+        estimator = load_estimator(float_path, kind="onnx")
         feeds = calibration_feeds(estimator, calibration, frames, zone_rects=zone_rects,
                                   rects_size=(height, width))
         return quantize_onnx(float_path, path, feeds, overwrite=overwrite)

@@ -9,18 +9,17 @@ maps the zone rectangles into the network input and the output back), runs the n
 :mod:`deltar.inference.onnx_runtime`) and returns depth and uncertainty at the input
 resolution.
 
-Checkpoints (``DepthEstimator.from_checkpoint``) are the format of
-:mod:`deltar.models.checkpoint`; the estimator reads the weights' input contract
-(normalisation, hypothesis sampling and count, design size) from the model's config.
+An estimator is built from a loaded model; :func:`deltar.inference.loading.load_estimator`
+is the one factory that loads any model source (bundled name, checkpoint, released
+weights, ONNX file, preset) and builds it. The estimator reads the weights' input
+contract (normalisation, hypothesis sampling and count, design size) from the model's
+config (checkpoints: :mod:`deltar.models.checkpoint`) or the ONNX file's metadata.
 """
 
 from __future__ import annotations
 
 import math
-import os
-import warnings
 from collections.abc import Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -63,8 +62,9 @@ __all__ = ["DepthEstimator"]
 class DepthEstimator:
     """Dense metric depth from an RGB image and a multi-zone ToF frame.
 
-    Build one with :meth:`from_preset`, :meth:`from_checkpoint`, :meth:`from_official`
-    or :meth:`from_onnx`, then call :meth:`predict`.
+    Load one with :func:`~deltar.inference.loading.load_estimator` (any model source:
+    ``load_estimator("default")``), or build one around a model object you hold, then
+    call :meth:`predict`.
 
     Args:
         model: a ``DeltarNet`` (PyTorch backend), or None with ``onnx_model``; it is put
@@ -185,78 +185,6 @@ class DepthEstimator:
         # No-target zones join the fill at the depth the network reads them at.
         far = contract.get("no_target_depth")
         self.no_target_depth_m = None if far is None else float(far)
-
-    # ------------------------------------------------------------------ constructors
-    @classmethod
-    def from_preset(cls, preset: str, **kwargs: Any) -> DepthEstimator:
-        """An estimator with a preset's architecture and RANDOM (untrained) weights.
-
-        Useful for testing the pipeline and measuring speed; its depth is meaningless.
-        A ``UserWarning`` says so. ``kwargs`` go to the constructor; ``model_config``
-        (dict) goes to ``create_model``.
-        """
-        from deltar.models import create_model
-
-        config = kwargs.pop("model_config", None) or {}
-        warnings.warn(f"DepthEstimator.from_preset({preset!r}) uses random, untrained "
-                      "weights: the depth it predicts is meaningless", UserWarning,
-                      stacklevel=2)
-        return cls(create_model(preset, **config), weights=f"{preset} (random weights)",
-                   **kwargs)
-
-    @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike, **kwargs: Any) -> DepthEstimator:
-        """An estimator from a deltar checkpoint (see :func:`save_checkpoint`).
-
-        Args:
-            path: a checkpoint file, or the name of a model bundled with the package
-                (``"default"``, see :mod:`deltar.weights`).
-            kwargs: constructor arguments (without ``input_size`` each image is sized by
-                the one size rule with the checkpoint's design size).
-        """
-        from deltar.models.checkpoint import load_checkpoint
-        from deltar.weights import resolve_checkpoint
-
-        model, preset, _ = load_checkpoint(resolve_checkpoint(path))
-        return cls(model, weights=f"{preset} from {path}", **kwargs)
-
-    @classmethod
-    def from_official(cls, path: str | os.PathLike, **kwargs: Any) -> DepthEstimator:
-        """An estimator with the officially released weights (e.g. ``nyu.pt``).
-
-        Raises:
-            FileNotFoundError: no such file.
-            ValueError: the file's weights do not fit the released architecture.
-        """
-        from deltar.models import create_model, load_official_weights
-
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"official weights not found: {path}")
-        model = create_model("deltar-official")
-        try:
-            report = load_official_weights(model, path)
-        except (ValueError, RuntimeError, KeyError) as err:
-            raise ValueError(f"{path}: cannot load official weights: {err}") from err
-        if not report.ok:
-            raise ValueError(f"{path}: official weights did not load cleanly: "
-                             f"{report.summary()}")
-        return cls(model, weights=f"deltar-official from {path}", **kwargs)
-
-    @classmethod
-    def from_onnx(cls, path: str | os.PathLike, num_threads: int | None = None,
-                  allow_spinning: bool = False, **kwargs: Any) -> DepthEstimator:
-        """An estimator running an exported ONNX model with onnxruntime (CPU).
-
-        ``num_threads`` and ``allow_spinning`` go to
-        :class:`~deltar.inference.onnx_runtime.OnnxDepthModel`; ``kwargs`` to the
-        constructor.
-        """
-        from deltar.inference.onnx_runtime import OnnxDepthModel
-
-        onnx_model = OnnxDepthModel(path, num_threads=num_threads,
-                                    allow_spinning=allow_spinning)
-        return cls(onnx_model=onnx_model, weights=f"onnx {path}", **kwargs)
 
     # ------------------------------------------------------------------ prediction
     def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:

@@ -1,8 +1,10 @@
 """Load a depth estimator from one name or file: :func:`load_estimator`.
 
-The one call behind every ``deltar`` command that runs a model (``predict``, ``replay``,
-``wall-test``, ``export``); it builds the estimator with the public constructors of
-:class:`~deltar.inference.estimator.DepthEstimator`.
+The one factory of estimators (as timm's ``create_model``): the Python API, every
+``deltar`` command that runs a model (``predict``, ``replay``, ``wall-test``, ``export``)
+and the ``evaluate`` methods load through it. It loads the weights and builds a
+:class:`~deltar.inference.estimator.DepthEstimator` around them; the estimator's own
+constructor takes a model object already in hand.
 
 A model source is one of (``kind``):
 
@@ -23,14 +25,18 @@ weights are files too, so they need ``kind="official"``.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from deltar.inference.checks import check_backend_options
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import check_input_size
 from deltar.io.resources import check_threads
-from deltar.weights import BUNDLED_MODELS, bundled_model_names
+from deltar.weights import BUNDLED_MODELS, bundled_model_names, resolve_checkpoint
+
+if TYPE_CHECKING:
+    from deltar.models import DeltarNet
 
 #: The kinds of model source :func:`load_estimator` accepts.
 SOURCE_KINDS = ("bundled", "checkpoint", "official", "onnx", "preset")
@@ -128,16 +134,47 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
     if flip_average:
         kwargs["flip_average"] = True
     if kind == "onnx":
-        return DepthEstimator.from_onnx(text, num_threads=threads, precision=precision,
-                                        **kwargs)
+        from deltar.inference.onnx_runtime import OnnxDepthModel
+
+        onnx_model = OnnxDepthModel(text, num_threads=threads)
+        return DepthEstimator(onnx_model=onnx_model, weights=f"onnx {text}",
+                              precision=precision, **kwargs)
     kwargs.update(device=device, precision=precision)
-    if kind == "bundled":
-        if text not in BUNDLED_MODELS:
-            raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
-                                    f"{', '.join(BUNDLED_MODELS)}")
-        return DepthEstimator.from_checkpoint(text, **kwargs)
-    if kind == "checkpoint":
-        return DepthEstimator.from_checkpoint(text, **kwargs)
+    if kind == "bundled" and text not in BUNDLED_MODELS:
+        raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
+                                f"{', '.join(BUNDLED_MODELS)}")
+    if kind in ("bundled", "checkpoint"):
+        from deltar.models.checkpoint import load_checkpoint
+
+        model, preset, _ = load_checkpoint(resolve_checkpoint(text))
+        return DepthEstimator(model, weights=f"{preset} from {text}", **kwargs)
     if kind == "official":
-        return DepthEstimator.from_official(text, **kwargs)
-    return DepthEstimator.from_preset(text, **kwargs)
+        return DepthEstimator(_official_model(Path(text)), weights=f"deltar-official from {text}",
+                              **kwargs)
+    from deltar.models import create_model
+
+    warnings.warn(f"preset {text!r} has random, untrained weights: the depth it predicts "
+                  "is meaningless", UserWarning, stacklevel=2)
+    return DepthEstimator(create_model(text), weights=f"{text} (random weights)", **kwargs)
+
+
+def _official_model(path: Path) -> DeltarNet:
+    """The released architecture with the officially released weights (e.g. ``nyu.pt``).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file's weights do not fit the released architecture.
+    """
+    from deltar.models import create_model, load_official_weights
+
+    if not path.is_file():
+        raise FileNotFoundError(f"official weights not found: {path}")
+    model = create_model("deltar-official")
+    try:
+        report = load_official_weights(model, path)
+    except (ValueError, RuntimeError, KeyError) as err:
+        raise ValueError(f"{path}: cannot load official weights: {err}") from err
+    if not report.ok:
+        raise ValueError(f"{path}: official weights did not load cleanly: "
+                         f"{report.summary()}")
+    return model

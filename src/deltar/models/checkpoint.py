@@ -106,7 +106,7 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[DeltarNet, str, dict[str, 
     payload = read_torch_file(path, "checkpoint", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a deltar checkpoint (expected a dict with format "
-                         f"{CHECKPOINT_FORMAT!r}; official weights load with from_official)")
+                         f"{CHECKPOINT_FORMAT!r}; official weights: kind='official', --official)")
     version = payload.get("format_version")
     if version != CHECKPOINT_FORMAT_VERSION:
         raise ValueError(f"{path}: unsupported checkpoint format_version {version!r}")
