@@ -123,3 +123,31 @@ def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
     assert old.undistort_image(image) is image
     with pytest.raises(ValueError, match="distortion must be 0, 4, 5"):
         _calib(distortion=(0.1, 0.2, 0.3))
+
+
+@pytest.mark.parametrize("intrinsics, extrinsics, message", [
+    (CameraIntrinsics(500.0, 480.0, 900.0, 239.5, 640, 480), None,
+     "the principal point (900, 239.5) px lies outside the 640x480 image"),
+    (CAMERA, SensorExtrinsics(np.eye(3), np.array([20.0, -10.0, 0.0])),
+     "the sensor is 22.3607 m from the camera (translation_m [20.0, -10.0, 0.0]); a rig's "
+     "sensor sits within 1 m of it (millimetres written as metres?)"),
+    (CAMERA, SensorExtrinsics(nominal_extrinsics(0.0, (0, 0, 0)).rotation @ np.array(
+        [[1.0, 0, 0], [0, np.cos(1.2), -np.sin(1.2)], [0, np.sin(1.2), np.cos(1.2)]]),
+        np.zeros(3)),
+     "all 64 zones fall outside the 640x480 image at 2 m; check the extrinsics"),
+], ids=["principal-point", "translation-in-mm", "zones-outside"])
+def test_impossible_rigs_are_refused(intrinsics, extrinsics, message):
+    with pytest.raises(ValueError) as caught:
+        RigCalibration(intrinsics, extrinsics or SensorExtrinsics())
+    assert message in str(caught.value)
+
+
+def test_a_rig_with_zones_partly_outside_loads_with_a_warning(tmp_path):
+    tilted = SensorExtrinsics(np.array([[1.0, 0, 0], [0, np.cos(0.45), -np.sin(0.45)],
+                                        [0, np.sin(0.45), np.cos(0.45)]]), np.zeros(3))
+    path = RigCalibration(CAMERA, tilted).save(tmp_path / "c.json")
+    inside = int(RigCalibration(CAMERA, tilted).zones_inside().sum())
+    assert 0 < inside < 64
+    with pytest.warns(UserWarning, match=rf"c\.json: only {inside} of 64 zones fall inside "
+                      r"the 640x480 image \(at 2 m\); the others carry no information"):
+        RigCalibration.load(path)

@@ -613,3 +613,72 @@ def test_simulate_checks_free_space_and_reports_a_full_disk_in_one_line(tmp_path
     assert done.stderr.splitlines() == [
         f"error: {tmp_path / 'full' / 'procedural' / 'procedural-0.h5'}: File too large"]
     assert not list((tmp_path / "full").rglob("*.h5"))
+
+
+# ------------------------------------------------------------------ round 2: physical validity
+@pytest.mark.parametrize("changes, message", [
+    ({"sigma_m": [1e6] + [0.03] * 63}, "1 valid zone(s) have a sigma larger than the VL53L5CX "
+     "range 4 m (zones [0]: 1e+06 m), which no reading within the range can have; mark such "
+     "zones invalid"),
+    ({"hist_edges_m": [0.0, 1.0, 2.0], "hist_counts": [[0.0, 0.0]] + [[1.0, 2.0]] * 63},
+     "1 valid zone(s) have an all-zero histogram (zones [0]): a zone that counted no photons "
+     "measured no distance; mark such zones invalid"),
+    ({"status": [255] + [5] * 63}, "ZoneFrame zones [0] are valid but their status is 255 "
+     "(no target); a zone either reads a distance or reports no target"),
+    ({"status": [5.5] * 64}, "status must hold 64 integer codes in 0..255"),
+], ids=["sigma-1e6", "zero-histogram", "valid-and-255", "fractional-status"])
+def test_physically_impossible_zone_files_are_refused(inputs, tmp_path, changes, message):
+    zones = _zones(inputs, "odd.json", **changes)
+    result = _predict(inputs, tmp_path / "out", zones=zones.name)
+    assert result.exit_code == 1
+    assert _one_error_line(result) == f"error: {zones}: {message}"
+    assert MODEL_BUILT not in result.output
+
+
+def test_calibration_that_cannot_be_right_is_refused_before_the_model(inputs, tmp_path):
+    calib = RigCalibration(CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48),
+                           SensorExtrinsics()).save(tmp_path / "c.json")
+    data = json.loads(calib.read_text())
+    data["intrinsics"]["cx"] = 640.0
+    (tmp_path / "pp.json").write_text(json.dumps(data))
+    data["intrinsics"]["cx"] = 31.5
+    data["extrinsics"]["translation_m"] = [30.0, 0.0, 0.0]
+    (tmp_path / "mm.json").write_text(json.dumps(data))
+    for name, message in (("pp.json", "the principal point (640, 23.5) px lies outside the "
+                           "64x48 image"),
+                          ("mm.json", "the sensor is 30 m from the camera (translation_m "
+                           "[30.0, 0.0, 0.0]); a rig's sensor sits within 1 m of it "
+                           "(millimetres written as metres?)")):
+        result = _predict(inputs, tmp_path / "out", "a.png", "a.json", "--calib",
+                          tmp_path / name)
+        assert result.exit_code == 1
+        assert _one_error_line(result) == (f"error: {tmp_path / name}: invalid calibration: "
+                                           f"{message}")
+        assert MODEL_BUILT not in result.output
+
+
+def test_evaluate_refuses_zones_beyond_the_sensor_range(tmp_path, zju_set):
+    import h5py
+
+    frame = next(zju_set.parent.rglob("*.h5"))
+    with h5py.File(frame, "r+") as f:
+        zones = f["hist_data"][()]
+        valid = f["mask"][()].reshape(-1)
+        first = int(np.flatnonzero(valid)[0])
+        zones[first, 0] = 1e6
+        f["hist_data"][...] = zones
+    result = _run(["evaluate", "--data", zju_set, "--method", "nearest"])
+    assert result.exit_code == 1
+    _one_error_line(result, f"frame '{frame.parent.name}/{frame.stem}': 1 valid zone(s) read "
+                    "distances outside the VL53L5CX range 0 < d <= 4 m", "1e+06")
+
+
+def test_folder_mode_refuses_two_inputs_with_one_stem(inputs, tmp_path):
+    (inputs / "a.jpg").write_bytes((inputs / "a.png").read_bytes())
+    result = _run(["predict", "--images", inputs, "--zones-dir", inputs, "--out",
+                   tmp_path / "out", *LITE])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == (
+        f"error: {inputs / 'a.jpg'} and {inputs / 'a.png'} are images with the same stem 'a'; "
+        "frames pair by stem, so keep only one of them")
+    assert MODEL_BUILT not in result.output

@@ -142,3 +142,28 @@ def test_torch_file_errors_are_short_and_safe(tmp_path):
     (tmp_path / "text.pt").write_text("e" * 50)
     with pytest.raises(ValueError, match=r"text\.pt: cannot read checkpoint: not a PyTorch file"):
         read_torch_file(tmp_path / "text.pt", "checkpoint", weights_only=True)
+
+
+def test_zone_rectangles_outside_the_image_are_refused_or_counted(estimator, image):
+    frame = _frame()
+    outside = np.tile(np.array([[100.0, 100.0, 110.0, 110.0]], np.float32), (64, 1))
+    with pytest.raises(ValueError, match=r"^frames\[0\]: all 64 valid zones fall outside the "
+                       r"64x48 image; check the calibration"):
+        estimator.predict(image, frame, zone_rects=outside)
+    some = outside.copy()
+    some[:16] = [0.0, 0.0, 6.0, 8.0]
+    with pytest.warns(UserWarning, match=r"frames\[0\]: 48 of 64 valid zones fall outside "
+                      "the 64x48 image; the depth uses the 16 inside"):
+        estimator.predict(image, frame, zone_rects=some)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"sigma_m": np.array([1e6] + [0.02] * 63)}, "have a sigma larger than the VL53L5CX "
+     "range 4 m"),
+    ({"status": np.array([255] + [5] * 63)}, "are valid but their status is 255"),
+])
+def test_physically_impossible_frames_are_refused(estimator, image, changes, message):
+    fields = {"mean_m": np.full(64, 1.5), "sigma_m": np.full(64, 0.02),
+              "valid": np.ones(64, bool), **changes}
+    with pytest.raises(ValueError, match=message):
+        estimator.predict(image, ZoneFrame(**fields))

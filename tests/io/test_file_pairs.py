@@ -25,3 +25,16 @@ def test_missing_folder_is_named(tmp_path):
         pair_by_stem(tmp_path / "nope", tmp_path)
     with pytest.raises(FileNotFoundError, match=r"zone folder not found: .*gone"):
         pair_by_stem(tmp_path, tmp_path / "gone")
+
+
+def test_two_files_with_one_stem_are_refused_naming_both(tmp_path):
+    for name in ("a.png", "a.JPG", "b.png", "a.json", "b.json"):
+        (tmp_path / name).write_bytes(b"x")
+    with pytest.raises(ValueError, match=r"^.*/a\.JPG and .*/a\.png are images with the same "
+                       r"stem 'a'; frames pair by stem, so keep only one of them$"):
+        pair_by_stem(tmp_path, tmp_path)
+    (tmp_path / "a.JPG").unlink()
+    (tmp_path / "b.npz").write_bytes(b"x")
+    with pytest.raises(ValueError, match=r"b\.json and .*b\.npz are zone files with the same "
+                       "stem 'b'"):
+        pair_by_stem(tmp_path, tmp_path)

@@ -165,3 +165,60 @@ def test_no_target_zones_become_far_readings():
     np.testing.assert_array_equal(got_valid, [True, True, True, False])
     np.testing.assert_array_equal(no_target_as_readings(means, valid, no_target, 7.5)[0],
                                   [1.0, 7.5, 2.0, 0.0])
+
+
+# ---------------------------------------------------------------- physical validity
+def _base(**changes):
+    fields = {"mean_m": np.full(64, 1.5), "sigma_m": np.full(64, 0.02),
+              "valid": np.ones(64, bool)}
+    fields.update(changes)
+    return fields
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"mean_m": ["1.5"] * 64}, "ZoneFrame.mean_m must hold numbers, got values of type <U3"),
+    ({"sigma_m": [True] * 64}, "ZoneFrame.sigma_m must hold numbers, got booleans"),
+    ({"valid": ["yes"] * 64}, "ZoneFrame.valid must hold booleans (or 0/1), got values of "
+     "type <U3"),
+    ({"valid": np.full(64, 2)}, "ZoneFrame.valid must hold booleans (or 0/1), got values of "
+     "type int64 other than 0 and 1"),
+    ({"status": np.full(64, 5.5)}, "ZoneFrame.status must hold integer codes in 0..255, "
+     "got 5.5"),
+    ({"status": np.full(64, 300)}, "ZoneFrame.status must hold integer codes in 0..255, "
+     "got 300"),
+    ({"status": np.array([255] + [5] * 63)}, "ZoneFrame zones [0] are valid but their status "
+     "is 255 (no target)"),
+], ids=["strings", "bools", "valid-strings", "valid-2", "fractional-status", "status-300",
+        "valid-and-255"])
+def test_values_are_refused_not_coerced(changes, message):
+    with pytest.raises(ValueError) as caught:
+        ZoneFrame(**_base(**changes))
+    assert message in str(caught.value)
+
+
+def test_physical_errors_name_the_zones():
+    assert ZoneFrame(**_base()).physical_error() is None
+    wide = ZoneFrame(**_base(sigma_m=np.array([1e6] + [0.02] * 63)))
+    assert wide.physical_error() == (
+        "1 valid zone(s) have a sigma larger than the VL53L5CX range 4 m (zones [0]: 1e+06 "
+        "m), which no reading within the range can have; mark such zones invalid")
+    counts = np.ones((64, 3))
+    counts[[2, 7]] = 0
+    empty = ZoneFrame(**_base(hist_edges_m=np.array([0.0, 1.0, 2.0, 3.0]), hist_counts=counts))
+    assert empty.physical_error() == (
+        "2 valid zone(s) have an all-zero histogram (zones [2, 7]): a zone that counted no "
+        "photons measured no distance; mark such zones invalid")
+    far = ZoneFrame(**_base(mean_m=np.array([9.0] + [1.5] * 63)))
+    assert far.physical_error() == far.range_error()
+
+
+def test_driver_status_codes_are_refused_not_truncated_and_wide_sigmas_invalid():
+    with pytest.raises(ValueError, match=r"^target_status must hold integer codes in "
+                       r"0\.\.255, got 5\.5$"):
+        ZoneFrame.from_driver([1500] * 64, [20] * 64, [5.5] * 64)
+    with pytest.warns(RuntimeWarning, match="1 zone.s. with a valid status have a sigma "
+                      "larger than the VL53L5CX's 4 m range .up to 9 m.; marked invalid"):
+        frame = ZoneFrame.from_driver([1500] * 64, [9000] + [20] * 63, [5] * 64)
+    assert frame.valid_count == 63
+    frame = ZoneFrame.from_driver([1500] * 64, [20] * 64, [255] * 64, valid_status=(255,))
+    assert frame.valid_count == 0  # "no target" is never a reading

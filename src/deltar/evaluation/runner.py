@@ -215,6 +215,23 @@ class EvaluationResult:
 FrameCallback = Callable[[int, "ZJUL5Sample", Mapping[str, np.ndarray]], None]
 
 
+def check_sample_zones(sample: ZJUL5Sample) -> None:
+    """Refuse a frame whose zone reading is physically impossible (before scoring it).
+
+    The checks of :meth:`~deltar.sensor.zone_frame.ZoneFrame.physical_error`: valid
+    zones beyond the sensor's range, sigmas larger than it, empty histograms.
+
+    Raises:
+        ValueError: ``"frame '<name>': <problem>"``.
+    """
+    try:
+        problem = sample.zone_frame().physical_error()
+    except ValueError as err:
+        problem = str(err)
+    if problem is not None:
+        raise ValueError(f"frame {sample.name!r}: {problem}")
+
+
 def evaluate_methods(
     samples: Sequence[ZJUL5Sample],
     predictors: Mapping[str, Predictor],
@@ -238,8 +255,9 @@ def evaluate_methods(
         An :class:`EvaluationResult`.
 
     Raises:
-        ValueError: a method returns a map of the wrong shape or with NaN / inf (the
-            message names the method and frame), or no frame has valid ground truth.
+        ValueError: a frame's zones cannot be a real reading (:func:`check_sample_zones`),
+            a method returns a map of the wrong shape or with NaN / inf (the message
+            names the method and frame), or no frame has valid ground truth.
     """
     if not predictors:
         raise ValueError("predictors is empty")
@@ -252,6 +270,7 @@ def evaluate_methods(
     result = EvaluationResult()
     for index in range(count):
         sample = samples[index]
+        check_sample_zones(sample)
         predictions: dict[str, np.ndarray] = {}
         sigmas: dict[str, np.ndarray] = {}
         for name, predictor in predictors.items():

@@ -43,7 +43,7 @@ from deltar.inference.preprocess import (
     scale_rects,
 )
 from deltar.inference.uncertainty import UncertaintyCalibration
-from deltar.sensor.geometry import DEFAULT_FOV_DEG
+from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -271,7 +271,7 @@ class DepthEstimator:
             if frame.grid != frames[0].grid:
                 raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
                                  f"{frames[0].grid}x{frames[0].grid}")
-            problem = frame.range_error(self.max_range_m)
+            problem = frame.physical_error(self.max_range_m)
             if problem is not None:
                 raise ValueError(f"frames[{i}]: {problem}")
         check_calibration(calibration)
@@ -284,6 +284,8 @@ class DepthEstimator:
                                  f"{rects.shape}")
         else:
             rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
+        for i, frame in enumerate(frames):
+            check_zones_in_image(rects[i], frame.flat()[2], size, f"frames[{i}]")
         net_rects = scale_rects(rects, size, net_size)
         image = torch.from_numpy(normalise_images(checked, net_size, self.image_mean,
                                                   self.image_std)).to(self.device)

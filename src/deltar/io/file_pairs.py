@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from deltar.io.input_file import input_folder
+
 #: Image files taken from an images folder (suffix, any case).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
 #: Zone-frame files taken from a zones folder (:mod:`deltar.io.zone_file`).
@@ -24,14 +26,28 @@ def pair_by_stem(images_dir: str | os.PathLike, zones_dir: str | os.PathLike
         or only a zone file, sorted).
 
     Raises:
-        FileNotFoundError: a folder is missing; the message names it.
+        FileNotFoundError / NotADirectoryError: a folder is missing or a file; the
+            message names it.
+        ValueError: two files of one folder share a stem (``a.png`` and ``a.jpg``): which
+            one is meant is unknown, so neither is dropped silently.
     """
-    images_dir, zones_dir = Path(images_dir), Path(zones_dir)
-    for folder, kind in ((images_dir, "image"), (zones_dir, "zone")):
-        if not folder.is_dir():
-            raise FileNotFoundError(f"{kind} folder not found: {folder}")
-    images = {p.stem: p for p in images_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
-    zones = {p.stem: p for p in zones_dir.iterdir() if p.suffix.lower() in ZONE_SUFFIXES}
+    images_dir = input_folder(images_dir, "image folder")
+    zones_dir = input_folder(zones_dir, "zone folder")
+    images = _by_stem(images_dir, IMAGE_SUFFIXES, "images")
+    zones = _by_stem(zones_dir, ZONE_SUFFIXES, "zone files")
     stems = sorted(images.keys() & zones.keys())
     unpaired = sorted(images.keys() ^ zones.keys())
     return [(images[s], zones[s]) for s in stems], unpaired
+
+
+def _by_stem(folder: Path, suffixes: tuple[str, ...], what: str) -> dict[str, Path]:
+    """The files of ``folder`` with one of ``suffixes`` by stem; refuses shared stems."""
+    found: dict[str, Path] = {}
+    for path in sorted(folder.iterdir()):
+        if path.suffix.lower() not in suffixes or not path.is_file():
+            continue
+        if path.stem in found:
+            raise ValueError(f"{found[path.stem]} and {path} are {what} with the same stem "
+                             f"{path.stem!r}; frames pair by stem, so keep only one of them")
+        found[path.stem] = path
+    return found

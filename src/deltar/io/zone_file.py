@@ -153,7 +153,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
                           no_target=no_target)
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from err
-    problem = frame.range_error()
+    problem = frame.physical_error()
     if problem is not None:
         raise ValueError(f"{source}: {problem}")
     return frame

@@ -8,6 +8,7 @@ coordinates to camera coordinates: ``p_cam = R @ p_sensor + t`` (metres).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -141,6 +142,36 @@ def zones_in_image(rects: np.ndarray, height: int, width: int) -> np.ndarray:
     """
     bounds = zone_rects_to_pixel_bounds(rects, height, width)
     return (bounds[..., 2] > bounds[..., 0]) & (bounds[..., 3] > bounds[..., 1])
+
+
+def check_zones_in_image(rects: np.ndarray, valid: np.ndarray, image_size: tuple[int, int],
+                         source: str = "zones") -> None:
+    """Refuse zones that all fall outside the image; warn when some valid ones do.
+
+    Args:
+        rects: (Z, 4) zone rectangles (y0, x0, y1, x1) in pixels.
+        valid: (Z,) bool, the zones that carry a reading.
+        image_size: (height, width) of the image, pixels.
+        source: what the zones belong to, for the messages (e.g. ``"frames[0]"``).
+
+    Raises:
+        ValueError: valid zones exist but none covers a pixel of the image (a depth map
+            from them would be constant): the calibration or rectangles are wrong.
+
+    Warns:
+        UserWarning: some valid zones lie outside the image, saying how many remain.
+    """
+    valid = np.asarray(valid, dtype=bool).reshape(-1)
+    inside = zones_in_image(rects, *image_size) & valid
+    total = int(valid.sum())
+    if total and not inside.any():
+        raise ValueError(f"{source}: all {total} valid zones fall outside the "
+                         f"{image_size[1]}x{image_size[0]} image; check the calibration "
+                         "(extrinsics, intrinsics, fov_deg) or the zone rectangles")
+    if int(inside.sum()) < total:
+        warnings.warn(f"{source}: {total - int(inside.sum())} of {total} valid zones fall "
+                      f"outside the {image_size[1]}x{image_size[0]} image; the depth uses "
+                      f"the {int(inside.sum())} inside", UserWarning, stacklevel=3)
 
 
 def zone_rects_to_pixel_bounds(rects: np.ndarray, height: int, width: int) -> np.ndarray:

@@ -113,9 +113,12 @@ class ZoneFrame:
     no_target: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        self.mean_m = np.asarray(self.mean_m, dtype=np.float32)
-        self.sigma_m = np.asarray(self.sigma_m, dtype=np.float32)
-        self.valid = np.asarray(self.valid, dtype=bool)
+        # Numbers stay numbers: strings and booleans are refused, never converted.
+        self.mean_m = _numbers(self.mean_m, "ZoneFrame.mean_m").astype(np.float32)
+        self.sigma_m = _numbers(self.sigma_m, "ZoneFrame.sigma_m").astype(np.float32)
+        self.valid = _flags(self.valid, "ZoneFrame.valid")
+        if self.status is not None:
+            self.status = status_codes(self.status, "ZoneFrame.status")
         if self.mean_m.ndim == 1:  # flat row-major input
             n = _grid_from_count(self.mean_m.size, "mean_m")
             self.mean_m = self.mean_m.reshape(n, n)
@@ -156,10 +159,16 @@ class ZoneFrame:
                 raise ValueError(f"ZoneFrame.{name} must have shape ({n}, {n}) like mean_m, "
                                  f"got {arr.shape}")
         if self.status is not None:
-            self.status = np.asarray(self.status, dtype=np.uint8)
+            self.status = status_codes(self.status, "ZoneFrame.status")
             if self.status.shape != (n, n):
                 raise ValueError(f"ZoneFrame.status must have shape ({n}, {n}), "
                                  f"got {self.status.shape}")
+            contradiction = np.flatnonzero((self.valid & (self.status == NO_TARGET_STATUS))
+                                           .reshape(-1))
+            if contradiction.size:
+                raise ValueError(f"ZoneFrame zones {contradiction[:5].tolist()} are valid but "
+                                 f"their status is {NO_TARGET_STATUS} (no target); a zone "
+                                 "either reads a distance or reports no target")
         if self.no_target is not None:
             flags = np.asarray(self.no_target)
             if flags.dtype != bool and not np.isin(flags, (0, 1)).all():
@@ -239,6 +248,43 @@ class ZoneFrame:
                 f"range 0 < d <= {limit:g} m (zones {bad[:5].tolist()}{more}: {readings} m); "
                 "mark such zones invalid")
 
+    def physical_error(self, max_range_m: float | None = None) -> str | None:
+        """Why the frame's valid zones cannot be a real reading, or None when they can.
+
+        One place for the physical checks of a reading (besides :meth:`validate`'s
+        consistency checks): a valid zone must read ``0 < d <= range``
+        (:meth:`range_error`), have a sigma no larger than the range (a spread of
+        distances within it cannot be larger), and, with histograms, have counted
+        some photons.
+
+        Args:
+            max_range_m: the largest possible distance in metres; by default the sensor
+                model's (:data:`SENSOR_MAX_RANGE_M`, no limit for unknown models).
+
+        Returns:
+            The first problem, naming the zones (flat row-major indices, at most five)
+            and their values, or None.
+        """
+        problem = self.range_error(max_range_m)
+        if problem is not None:
+            return problem
+        limit = sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        _, sigma, valid = self.flat()
+        wide = np.flatnonzero(valid & (sigma > limit))
+        if wide.size:
+            values = ", ".join(f"{sigma[i]:.6g}" for i in wide[:5])
+            return (f"{wide.size} valid zone(s) have a sigma larger than the {self.sensor_model} "
+                    f"range {limit:g} m (zones {wide[:5].tolist()}: {values} m), which no "
+                    "reading within the range can have; mark such zones invalid")
+        if self.hist_counts is not None:
+            counts = self.hist_counts.reshape(self.zone_count, -1)
+            empty = np.flatnonzero(valid & ~np.any(counts > 0, axis=1))
+            if empty.size:
+                return (f"{empty.size} valid zone(s) have an all-zero histogram (zones "
+                        f"{empty[:5].tolist()}): a zone that counted no photons measured no "
+                        "distance; mark such zones invalid")
+        return None
+
     @property
     def valid_count(self) -> int:
         """Number of valid zones."""
@@ -296,22 +342,22 @@ class ZoneFrame:
                                  f"{n}x{n} grid")
             # Multi-target builds store targets per zone contiguously: keep the first.
             arrays[name] = arr.reshape(zones, -1)[:, 0]
-        status = arrays["target_status"]
-        if np.any(~np.isfinite(status)) or np.any((status < 0) | (status > 255)):
-            raise ValueError("target_status must hold integer codes in 0..255")
-        status = status.astype(np.uint8)
+        status = status_codes(arrays["target_status"], "target_status")
         valid = np.isin(status, np.asarray(valid_status, dtype=np.uint8))
+        valid &= status != NO_TARGET_STATUS
         mean = arrays["distance_mm"] / 1000.0
         sigma = arrays["range_sigma_mm"] / 1000.0
         valid &= np.isfinite(mean) & np.isfinite(sigma) & (mean > 0) & (sigma >= 0)
         # Readings beyond the sensor's range are not measurements: invalid, visibly.
-        far = valid & (mean > sensor_max_range_m(sensor_model))
-        if far.any():
-            warnings.warn(f"{int(far.sum())} zone(s) with a valid status read more than the "
-                          f"{sensor_model}'s {sensor_max_range_m(sensor_model):g} m range "
-                          f"(up to {mean[far].max():.6g} m); marked invalid", RuntimeWarning,
-                          stacklevel=2)
-            valid &= ~far
+        limit = sensor_max_range_m(sensor_model)
+        for far, what, values in ((valid & (mean > limit), "read more than", mean),
+                                  (valid & (sigma > limit), "have a sigma larger than", sigma)):
+            if far.any():
+                warnings.warn(f"{int(far.sum())} zone(s) with a valid status {what} the "
+                              f"{sensor_model}'s {limit:g} m range (up to "
+                              f"{values[far].max():.6g} m); marked invalid", RuntimeWarning,
+                              stacklevel=2)
+                valid &= ~far
         orient = orientation or Orientation()
         mean, sigma, valid, status = (orient.apply(a.reshape(n, n))
                                       for a in (mean, sigma, valid, status))
@@ -354,6 +400,47 @@ def number_array(values, name: str) -> np.ndarray:
         raise ValueError(f"{name} must hold numbers, got {type(bad[0]).__name__} "
                          f"{bad[0]!r}" + (f" and {len(bad) - 1} more" if len(bad) > 1 else ""))
     return np.asarray(flat, dtype=np.float64)
+
+
+def status_codes(values, name: str) -> np.ndarray:
+    """ST target status codes as uint8, refusing what is not an integer in 0..255.
+
+    Fractional codes (``5.5``), codes out of range and non-numbers are refused rather
+    than truncated or wrapped.
+
+    Args:
+        values: array-like of codes.
+        name: what the codes are, for the message.
+
+    Raises:
+        ValueError: ``"<name> must hold integer codes in 0..255, got <value>"``.
+    """
+    codes = _numbers(values, name)
+    bad = ~np.isfinite(codes) | (codes < 0) | (codes > 255) | (codes != np.round(codes))
+    if np.any(bad):
+        raise ValueError(f"{name} must hold integer codes in 0..255, got "
+                         f"{codes[bad].reshape(-1)[0]:g}")
+    return codes.astype(np.uint8)
+
+
+def _numbers(values, name: str) -> np.ndarray:
+    """An array of numbers (any shape), refusing strings, booleans and objects."""
+    array = np.asarray(values)
+    if array.dtype.kind not in "iuf":
+        shown = "booleans" if array.dtype.kind == "b" else f"values of type {array.dtype}"
+        raise ValueError(f"{name} must hold numbers, got {shown}")
+    return array
+
+
+def _flags(values, name: str) -> np.ndarray:
+    """A bool array of booleans or 0/1 numbers, refusing strings and other numbers."""
+    array = np.asarray(values)
+    if array.dtype.kind != "b" and (array.dtype.kind not in "iuf"
+                                    or not np.all(np.isin(array, (0, 1)))):
+        raise ValueError(f"{name} must hold booleans (or 0/1), got values of type "
+                         f"{array.dtype}" + ("" if array.dtype.kind not in "iuf" else
+                                             " other than 0 and 1"))
+    return array.astype(bool)
 
 
 def _grid_from_count(count: int, name: str) -> int:
