@@ -1,11 +1,17 @@
-"""deltar.camera: the one back-projection and its aliases."""
+"""deltar.camera: the one image check and the one back-projection."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from deltar.camera import CameraIntrinsics, backproject, backproject_pixels, pixel_rays
+from deltar.camera import (
+    CameraIntrinsics,
+    backproject,
+    backproject_pixels,
+    check_image,
+    pixel_rays,
+)
 
 K = CameraIntrinsics(2.0, 4.0, 0.5, 0.5, 3, 2)
 
@@ -56,3 +62,22 @@ def test_the_point_cloud_writer_back_projects_as_the_camera_does():
     points, colors = cloud_points(depth, K)
     np.testing.assert_allclose(points, backproject(depth, K), rtol=1e-6)
     assert points.dtype == np.float32 and colors.shape == (5, 3)
+
+
+@pytest.mark.parametrize(("image", "size", "message"), [
+    (np.zeros((4, 5, 3), np.float32), None, r"frame\.png must be an \(H, W, 3\) uint8 RGB"),
+    (np.zeros((4, 5), np.uint8), None, r"got shape \(4, 5\)"),
+    (np.zeros((4, 5, 4), np.uint8), None, "uint8 RGB image"),
+    (np.zeros((1, 5, 3), np.uint8), None, "frame.png is too small: 1x5 pixels"),
+    (np.zeros((4, 5, 3), np.uint8), (4, 6), "frame.png is 4x5 pixels, expected 4x6"),
+])
+def test_check_image_names_the_image_and_what_is_wrong(image, size, message):
+    with pytest.raises(ValueError, match=message):
+        check_image(image, "frame.png", size)
+
+
+def test_check_image_returns_a_contiguous_image():
+    image = np.zeros((4, 10, 3), np.uint8)[:, ::2]
+    checked = check_image(image, size=(4, 5))
+    assert checked.flags.c_contiguous and checked.shape == (4, 5, 3)
+    assert check_image(checked) is checked

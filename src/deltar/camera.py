@@ -1,4 +1,4 @@
-"""The colour camera: pinhole intrinsics and depth back-projection.
+"""The colour camera: its images, pinhole intrinsics and depth back-projection.
 
 A leaf module (it imports nothing of deltar's own), so every package can use it.
 Conventions: pixel centres sit at integer coordinates (``u`` = column, ``v`` = row);
@@ -108,6 +108,35 @@ def strict_integer(value, name: str) -> int:
 
 #: The ZJU-L5 test camera (RealSense D435i colour at 480x640), from the DELTAR paper.
 ZJU_L5_INTRINSICS = CameraIntrinsics(611.2, 609.6, 323.4, 244.9, 640, 480)
+
+
+def check_image(image: np.ndarray, name: str = "image",
+                size: tuple[int, int] | None = None) -> np.ndarray:
+    """Check a colour image: (H, W, 3) uint8 RGB, at least 2x2 pixels, and (H, W) =
+    ``size`` pixels when given. The one image check of the package: readers, writers,
+    baselines and the estimator call it at their boundary.
+
+    Args:
+        image: the image (anything ``np.asarray`` takes).
+        name: what the messages call it (an argument, a file).
+        size: the (height, width) in pixels it must have, or None for any size.
+
+    Returns:
+        The image as a C-contiguous (H, W, 3) uint8 array (no copy when it is one).
+
+    Raises:
+        ValueError: naming ``name``, when the shape, dtype or size is wrong.
+    """
+    array = np.asarray(image)
+    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3:
+        raise ValueError(f"{name} must be an (H, W, 3) uint8 RGB image, got shape "
+                         f"{array.shape} and dtype {array.dtype}")
+    if array.shape[0] < 2 or array.shape[1] < 2:
+        raise ValueError(f"{name} is too small: {array.shape[0]}x{array.shape[1]} pixels")
+    if size is not None and array.shape[:2] != tuple(size):
+        raise ValueError(f"{name} is {array.shape[0]}x{array.shape[1]} pixels, expected "
+                         f"{size[0]}x{size[1]}")
+    return np.ascontiguousarray(array)
 
 
 def _check_depth(depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:

@@ -55,7 +55,7 @@ def predict_command(
     from deltar.cli.errors import fail, format_error, warn
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import open_viewer
-    from deltar.inference.folder import no_zone_message, plan_jobs, run_jobs
+    from deltar.inference.folder import check_valid_zones, plan_jobs, run_jobs
 
     single = image is not None or zones is not None
     folder = images is not None or zones_dir is not None
@@ -73,8 +73,7 @@ def predict_command(
 
         pairs, unpaired = [(image, zones)], []
         first = (read_color(image), load_zone_frame(zones))
-        if first[1].valid_count == 0 and not allow_no_zones:
-            raise ValueError(no_zone_message(zones, first[1], _ALLOW))
+        check_valid_zones(first[1], zones, allow_no_zones, _ALLOW)
     else:
         pairs, unpaired = pair_by_stem(images, zones_dir)
         if not pairs:
@@ -86,7 +85,7 @@ def predict_command(
     existing_outputs(existing)
     calibration = load_calibration(calib)
     if first is not None:
-        from deltar.inference.preprocess import check_image
+        from deltar.camera import check_image
 
         check_image(first[0], str(image))
         shape = first[0].shape[:2]

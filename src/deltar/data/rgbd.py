@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, check_image
 from deltar.data.rgbd_files import (
     color_image_size,
     default_intrinsics,
@@ -59,9 +59,7 @@ class RGBDFrame:
     timestamp_s: float | None = None
 
     def __post_init__(self) -> None:
-        if self.image.dtype != np.uint8 or self.image.ndim != 3 or self.image.shape[2] != 3:
-            raise ValueError(f"RGBDFrame {self.name!r}: image must be (H, W, 3) uint8, got "
-                             f"{self.image.shape} {self.image.dtype}")
+        check_image(self.image, f"RGBDFrame {self.name!r}: image")
         if self.depth_m.shape != self.image.shape[:2]:
             raise ValueError(f"RGBDFrame {self.name!r}: depth size {self.depth_m.shape} differs "
                              f"from the colour size {self.image.shape[:2]}")

@@ -30,7 +30,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.io.atomic import write_bytes_atomic, write_text_atomic
 from deltar.io.json_file import read_split_filenames
 
@@ -86,9 +86,7 @@ class ZJUL5Sample:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field when shapes or values are inconsistent."""
         where = f"ZJUL5Sample {self.name!r}"
-        if self.rgb.dtype != np.uint8 or self.rgb.ndim != 3 or self.rgb.shape[2] != 3:
-            raise ValueError(f"{where}: rgb must be (H, W, 3) uint8, got {self.rgb.shape} "
-                             f"{self.rgb.dtype}")
+        check_image(self.rgb, f"{where}: rgb")
         if self.depth_m.shape != self.rgb.shape[:2]:
             raise ValueError(f"{where}: depth_m shape {self.depth_m.shape} does not match the "
                              f"image size {self.rgb.shape[:2]}")

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 import scipy.ndimage
 
+from deltar.camera import check_image
 from deltar.inference.colorization import (
     COLORIZATION_SEED_SIDE,
     COLORIZATION_SOLVE_CELLS,
@@ -94,10 +95,7 @@ def check_zone_inputs(
     Raises:
         ValueError: a shape, dtype or value is wrong (the message names the argument).
     """
-    image = np.asarray(image_rgb)
-    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise ValueError(f"image_rgb must be an (H, W, 3) uint8 array, got shape "
-                         f"{image.shape} dtype {image.dtype}")
+    image = check_image(image_rgb, "image_rgb")
     mean = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
     valid = np.asarray(zone_valid).reshape(-1)
     if valid.dtype != np.bool_:

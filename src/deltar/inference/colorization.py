@@ -20,6 +20,8 @@ import scipy.linalg.lapack
 import scipy.sparse
 import scipy.sparse.linalg
 
+from deltar.camera import check_image
+
 #: Cells of the colorization solve (60 x 80 for a 4:3 image, whatever its size).
 COLORIZATION_SOLVE_CELLS = 4800
 #: Side, in solve cells, of the square each zone mean is placed on.
@@ -249,10 +251,7 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     if isinstance(seed_side, bool) or not isinstance(seed_side, numbers.Integral) \
             or seed_side < 1 or seed_side % 2 == 0:
         raise ValueError(f"seed_side must be a positive odd integer (cells), got {seed_side!r}")
-    image_rgb = np.asarray(image_rgb)
-    if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
-        raise ValueError(f"image_rgb must be an (H, W, 3) uint8 RGB array, got "
-                         f"{image_rgb.dtype} {image_rgb.shape}")
+    image_rgb = check_image(image_rgb, "image_rgb")
     zone_mean_m = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
     zone_valid = np.asarray(zone_valid, dtype=bool).reshape(-1)
     zone_rects = np.asarray(zone_rects, dtype=np.float64)

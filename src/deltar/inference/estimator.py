@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import (
     ConfidenceBlend,
@@ -35,7 +35,6 @@ from deltar.inference.blend import (
 from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
 from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
-    check_image,
     check_input_size,
     network_input_size,
     normalise_images,

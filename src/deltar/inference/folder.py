@@ -100,12 +100,21 @@ def plan_jobs(pairs: Sequence[tuple[Path, Path]], out: Path, kinds: Sequence[str
     return jobs, complete, existing
 
 
-def no_zone_message(zone_path: Path, frame: ZoneFrame, allow: str = "allow_no_zones") -> str:
-    """Why a frame without a valid zone is refused, and how to accept it (``allow``: the
-    argument or option that does, named in the message)."""
-    return (f"{zone_path}: no valid zone (all {frame.zone_count} invalid: error codes, out "
-            "of range or flagged invalid), so the depth would be a guess from the image "
-            f"alone; pass {allow} to write it as an image-only estimate")
+def check_valid_zones(frame: ZoneFrame, zone_path: Path, allow_no_zones: bool = False,
+                      allow: str = "allow_no_zones") -> None:
+    """Refuse a frame without a valid zone unless ``allow_no_zones``: its depth would be a
+    guess from the image alone. The one such check of a folder run (:func:`run_jobs`,
+    and the CLI on its first frame before loading a model).
+
+    Raises:
+        ValueError: naming the zone file, why and how to accept it (``allow``: the
+            argument or option that does).
+    """
+    if frame.valid_count == 0 and not allow_no_zones:
+        raise ValueError(f"{zone_path}: no valid zone (all {frame.zone_count} invalid: error "
+                         "codes, out of range or flagged invalid), so the depth would be a "
+                         f"guess from the image alone; pass {allow} to write it as an "
+                         "image-only estimate")
 
 
 def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
@@ -148,8 +157,7 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
                 rgb, frame = first
             else:
                 rgb, frame = read_color(job.image), load_zone_frame(job.zones)
-            if frame.valid_count == 0 and not allow_no_zones:
-                raise ValueError(no_zone_message(job.zones, frame, allow_option))
+            check_valid_zones(frame, job.zones, allow_no_zones, allow_option)
             try:
                 prediction = estimator.predict(rgb, frame, calibration)
             except ValueError as err:

@@ -115,21 +115,6 @@ def scale_rects(rects: np.ndarray, from_size: tuple[int, int],
     return ((rects + 0.5) * scale - 0.5).astype(np.float32)
 
 
-def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
-    """Check an RGB image: (H, W, 3) uint8; return it as a contiguous array.
-
-    Raises:
-        ValueError: naming ``name`` when the image has the wrong shape or dtype.
-    """
-    array = np.asarray(image)
-    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3:
-        raise ValueError(f"{name} must be an (H, W, 3) uint8 RGB image, got shape "
-                         f"{array.shape} and dtype {array.dtype}")
-    if array.shape[0] < 2 or array.shape[1] < 2:
-        raise ValueError(f"{name} is too small: {array.shape[0]}x{array.shape[1]} pixels")
-    return np.ascontiguousarray(array)
-
-
 def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
                      mean: Sequence[float] | None = None,
                      std: Sequence[float] | None = None) -> np.ndarray:

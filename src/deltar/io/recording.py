@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics, strict_integer, strict_number
+from deltar.camera import CameraIntrinsics, check_image, strict_integer, strict_number
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.input_file import input_file, input_folder, reading
 from deltar.io.json_file import read_json
@@ -142,11 +142,8 @@ class RecordingWriter:
         """Write ``color/<ns>.png`` from an (H, W, 3) uint8 RGB image of the camera size."""
         import cv2
 
-        image = np.asarray(image_rgb)
         size = (self.meta.intrinsics.height, self.meta.intrinsics.width)
-        if image.dtype != np.uint8 or image.shape != (*size, 3):
-            raise ValueError(f"image_rgb must be {(*size, 3)} uint8, got {image.shape} "
-                             f"{image.dtype}")
+        image = check_image(image_rgb, "image_rgb", size)
         return self._write_png(COLOR_DIR, timestamp_s, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
 
     def add_depth(self, timestamp_s: float, depth_m: np.ndarray) -> Path:

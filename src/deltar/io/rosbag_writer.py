@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, check_image
 from deltar.io.ros_messages import (
     CAMERA_INFO_TYPE,
     ZONE_FRAME_MSGTYPE,
@@ -119,9 +119,7 @@ class BagWriter:
     def add_rgb_image(self, topic: str, stamp_ns: int, frame_id: str, rgb: np.ndarray,
                       log_ns: int | None = None) -> None:
         """An (H, W, 3) uint8 RGB image as ``sensor_msgs/msg/Image`` ``rgb8``."""
-        image = np.ascontiguousarray(rgb, dtype=np.uint8)
-        if image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f"rgb must be (H, W, 3) uint8, got {image.shape}")
+        image = check_image(rgb, "rgb")
         height, width = image.shape[:2]
         msg = typestore().types["sensor_msgs/msg/Image"](
             header=stamped_header(stamp_ns, frame_id), height=height, width=width, encoding="rgb8",
@@ -243,10 +241,7 @@ class BagRecordingWriter:
     def add_color(self, timestamp_s: float, image_rgb: np.ndarray) -> None:
         """An (H, W, 3) uint8 RGB image of the camera size, with its CameraInfo."""
         intr = self.meta.intrinsics
-        image = np.asarray(image_rgb)
-        if image.dtype != np.uint8 or image.shape != (intr.height, intr.width, 3):
-            raise ValueError(f"image_rgb must be {(intr.height, intr.width, 3)} uint8, got "
-                             f"{image.shape} {image.dtype}")
+        image = check_image(image_rgb, "image_rgb", (intr.height, intr.width))
         stamp, frame_id = self._ns(timestamp_s), RECORD_FRAME_IDS["camera"]
         self.writer.add_rgb_image(RECORD_TOPICS["image"], stamp, frame_id, image)
         self.writer.add_camera_info(RECORD_TOPICS["camera_info"], stamp, frame_id, intr)
