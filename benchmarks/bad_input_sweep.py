@@ -66,6 +66,7 @@ class Case:
         early: the problem can be found before building the network.
         setup: called with (inputs, out) before the case runs.
         no_output: paths (relative to out) that must not exist after a failure.
+        group: the class of bad input the case belongs to (counted separately).
     """
 
     name: str
@@ -76,6 +77,7 @@ class Case:
     early: bool = True
     setup: Callable | None = None
     no_output: tuple[str, ...] = ()
+    group: str = ""
 
 
 @dataclass
@@ -556,6 +558,309 @@ def cases() -> list[Case]:
     ]
 
 
+# ---------------------------------------------------------------------------- round 2
+def build_round2_inputs(inp: Path) -> None:
+    """Inputs of :func:`round2_cases`: unreadable files, odd fields, impossible values."""
+    import h5py
+
+    deep = "[" * 50_000 + "]" * 50_000
+    good = json.loads((inp / "z.json").read_text())
+    calib = json.loads((inp / "calib.json").read_text())
+
+    def write(name, content):
+        (inp / name).write_text(content if isinstance(content, str) else json.dumps(content))
+
+    def calib_with(name, **changes):
+        data = json.loads(json.dumps(calib))
+        for key, value in changes.items():
+            section, _, field = key.partition("__")
+            if field:
+                data[section][field] = value
+            else:
+                data[section] = value
+        write(name, data)
+
+    npz = (inp / "z_strings.npz").read_bytes()
+    (inp / "r2_trunc10.npz").write_bytes(npz[:10])
+    write("r2_inf.json", json.dumps(dict(good, mean_m=[1.5] * 63 + [0])).replace(
+        "0]", "1e400]", 1))
+    write("r2_digits.json", '{"mean_m": [' + "1" * 5000 + "]}")
+    (inp / "r2_utf16.json").write_bytes(json.dumps(good).encode("utf-16"))
+    write("r2_deep_calib.json", deep)
+    calib_with("r2_grid_string.json", grid="8")
+    calib_with("r2_fov_null.json", fov_deg=None)
+    calib_with("r2_rot_2x2.json", extrinsics__rotation=[[1, 0], [0, 1]])
+    calib_with("r2_pp_negative.json", intrinsics__cy=-100.0)
+    calib_with("r2_translation_5m.json", extrinsics__translation_m=[5.0, 0.0, 0.0])
+    calib_with("r2_zones_away.json", fov_deg=[1.0, 1.0],
+               extrinsics__rotation=[[1, 0, 0], [0, 0.5, -0.8660254037844386],
+                                     [0, 0.8660254037844386, 0.5]])
+    write("r2_sigma_5m.json", dict(good, sigma_m=[5.0] + [0.03] * 63))
+    write("r2_hist_zero.json", dict(good, hist_edges_m=[0.0, 2.0, 4.0],
+                                    hist_counts=[[0, 0]] * 2 + [[3, 1]] * 62))
+    write("r2_valid_255.json", dict(good, status=[5] * 63 + [255]))
+    write("r2_status_frac.json", dict(good, status=[5.5] * 64))
+    write("r2_status_256.json", dict(good, status=[256] * 64))
+    write("r2_driver_sigma.json", {"distance_mm": [1500] * 64,
+                                   "range_sigma_mm": [10_000_000] + [20] * 63,
+                                   "target_status": [5] * 64})
+    write("r2_driver_status_frac.json", {"distance_mm": [1500] * 64, "range_sigma_mm": [20] * 64,
+                                         "target_status": [5.5] * 64})
+    write("r2_deep.yaml", "a: " + "[" * 50_000 + "]" * 50_000 + "\n")
+    (inp / "r2_binary.yaml").write_bytes(b"\xff\xfe\x00bad")
+    (inp / "r2_folder.pt").mkdir()
+    # Recordings with a broken meta.json / zones.jsonl, or nothing to replay.
+    for name, edit in (("r2_rec_deep_meta", lambda r: (r / "meta.json").write_text(deep)),
+                       ("r2_rec_deep_line", lambda r: (r / "zones.jsonl").write_text(
+                           (r / "zones.jsonl").read_text() + deep + "\n{}\n")),
+                       ("r2_rec_inf_width", lambda r: (r / "meta.json").write_text(
+                           (r / "meta.json").read_text().replace('"width": 64',
+                                                                 '"width": 1e400'))),
+                       ("r2_rec_blank", lambda r: (r / "zones.jsonl").write_text("\n \n"))):
+        shutil.copytree(inp / "rec", inp / name)
+        edit(inp / name)
+    # Sets with an impossible frame, a deep index, a frame whose rgb is a scalar.
+    for name in ("r2_zju_far", "r2_zju_sigma", "r2_zju_scalar_rgb"):
+        shutil.copytree(inp / "zju", inp / name)
+    frame = sorted((inp / "r2_zju_far").rglob("*.h5"))[0]
+    with h5py.File(frame, "r+") as f:
+        zones = f["hist_data"][()]
+        zones[int(np.flatnonzero(f["mask"][()].reshape(-1))[0]), 0] = 50.0
+        f["hist_data"][...] = zones
+    frame = sorted((inp / "r2_zju_sigma").rglob("*.h5"))[0]
+    with h5py.File(frame, "r+") as f:
+        zones = f["hist_data"][()]
+        zones[int(np.flatnonzero(f["mask"][()].reshape(-1))[0]), 1] = 1e6
+        f["hist_data"][...] = zones
+    frame = sorted((inp / "r2_zju_scalar_rgb").rglob("*.h5"))[0]
+    with h5py.File(frame, "r+") as f:
+        del f["rgb"]
+        f["rgb"] = np.uint8(3)
+    write("r2_deep_index.json", deep)
+    # Two inputs with one stem; a folder whose zone files share a stem.
+    for name, files in (("r2_same_stem", ("a.png", "a.jpg")), ("r2_same_zone_stem", ())):
+        folder = inp / name
+        folder.mkdir()
+        shutil.copy(inp / "img.png", folder / "a.png")
+        for extra in files[1:]:
+            shutil.copy(inp / "img.png", folder / extra)
+        shutil.copy(inp / "z.json", folder / "a.json")
+    np.savez(inp / "r2_same_zone_stem" / "a.npz", x=np.zeros(1))
+    (inp / "r2_model.pt").write_bytes(b"weights")
+    (inp / "r2_zones_link.jsonl").symlink_to(inp / "rec" / "zones.jsonl")
+    os.link(inp / "rec" / "meta.json", inp / "r2_meta_hardlink.json")
+
+
+def _r2_api(make):
+    """An API case: ``make(inp)`` must raise (or return) by itself."""
+    return lambda inp, out: make(inp)
+
+
+def _r2_zone_frame(**fields):
+    def make(inp):
+        from deltar.sensor.zone_frame import ZoneFrame
+
+        base = {"mean_m": np.full(64, 1.5), "sigma_m": np.full(64, 0.02),
+                "valid": np.ones(64, bool), **fields}
+        return ZoneFrame(**base)
+
+    return _r2_api(make)
+
+
+def _r2_rig(**changes):
+    def make(inp):
+        from deltar.calibration.rig import RigCalibration
+        from deltar.camera import CameraIntrinsics
+        from deltar.sensor.geometry import SensorExtrinsics
+
+        intr = {"fx": 60.0, "fy": 60.0, "cx": 31.5, "cy": 23.5, "width": 64, "height": 48}
+        intr.update({k: v for k, v in changes.items() if k in intr})
+        return RigCalibration(CameraIntrinsics(**intr),
+                              SensorExtrinsics(np.eye(3), changes.get("t", np.zeros(3))))
+
+    return _r2_api(make)
+
+
+def _r2_threads(inp):
+    from deltar.inference.loading import load_estimator
+
+    return load_estimator("deltar-lite", kind="preset", threads=10**6)
+
+
+def round2_cases() -> list[Case]:
+    """New cases of issue #24's classes, none of them in the tests or the first list."""
+    rec, zju, cal = "{in}/rec", "{in}/zju/data.json", "{in}/calrec"
+    lite_predict = _predict
+    tiny = "tiny_test.yaml"
+    config = str(Path(__file__).resolve().parents[1] / "configs" / tiny)
+
+    def read(name, *args, **kw):
+        return Case(name, *args, group="reading", **kw)
+
+    def path(name, *args, **kw):
+        return Case(name, *args, group="paths", **kw)
+
+    def apart(name, *args, **kw):
+        return Case(name, *args, group="output-input", **kw)
+
+    def machine(name, *args, **kw):
+        return Case(name, *args, group="machine", **kw)
+
+    def physical(name, *args, **kw):
+        return Case(name, *args, group="physical", **kw)
+
+    def other(name, *args, **kw):
+        return Case(name, *args, group="stems-empty-steps", **kw)
+
+    return [
+        read("r2-zones-npz-10-bytes", lite_predict(zones="r2_trunc10.npz"),
+             needles=("r2_trunc10.npz", "corrupt or truncated")),
+        read("r2-zones-1e400", lite_predict(zones="r2_inf.json"),
+             needles=("r2_inf.json", "infinite")),
+        read("r2-zones-5000-digits", lite_predict(zones="r2_digits.json"),
+             needles=("r2_digits.json",)),
+        read("r2-zones-utf16", lite_predict(zones="r2_utf16.json"),
+             needles=("r2_utf16.json", "utf-8")),
+        read("r2-calib-deep", [*lite_predict(), "--calib", "{in}/r2_deep_calib.json"],
+             needles=("r2_deep_calib.json", "nested too deeply")),
+        read("r2-calib-grid-string", [*lite_predict(), "--calib", "{in}/r2_grid_string.json"],
+             needles=("r2_grid_string.json", "grid must be a number")),
+        read("r2-calib-fov-null", [*lite_predict(), "--calib", "{in}/r2_fov_null.json"],
+             needles=("r2_fov_null.json", "invalid calibration")),
+        read("r2-calib-rotation-2x2", [*lite_predict(), "--calib", "{in}/r2_rot_2x2.json"],
+             needles=("r2_rot_2x2.json", "rotation")),
+        read("r2-replay-meta-deep", ["replay", "{in}/r2_rec_deep_meta", "--out", "{out}",
+                                     *LITE], needles=("meta.json", "nested too deeply")),
+        read("r2-replay-zone-line-deep", ["replay", "{in}/r2_rec_deep_line", "--out", "{out}",
+                                          *LITE], needles=("zones.jsonl", "nested too deeply")),
+        read("r2-replay-meta-inf-width", ["replay", "{in}/r2_rec_inf_width", "--out", "{out}",
+                                          *LITE], needles=("meta.json", "width")),
+        read("r2-evaluate-index-deep", ["evaluate", "--data", "{in}/r2_deep_index.json",
+                                        "--method", "nearest"],
+             needles=("r2_deep_index.json", "nested too deeply")),
+        read("r2-evaluate-scalar-rgb", ["evaluate", "--data", "{in}/r2_zju_scalar_rgb/data.json",
+                                        "--method", "nearest"], needles=(".h5",)),
+        read("r2-train-config-deep", ["train", "--config", "{in}/r2_deep.yaml"],
+             needles=("r2_deep.yaml",)),
+        read("r2-train-config-binary", ["train", "--config", "{in}/r2_binary.yaml"],
+             needles=("r2_binary.yaml",)),
+        read("r2-api-load-zone-npz-truncated",
+             _r2_api(lambda inp: __import__("deltar.io.zone_file", fromlist=["x"])
+                     .load_zone_frame(inp / "r2_trunc10.npz")),
+             needles=("r2_trunc10.npz", "corrupt or truncated")),
+        path("r2-zones-a-folder", lite_predict(zones="frames"),
+             needles=("frames", "is a folder, not a file")),
+        path("r2-calib-dev-zero", [*lite_predict(), "--calib", "/dev/zero"],
+             needles=("/dev/zero", "not a regular file")),
+        path("r2-replay-recording-a-file", ["replay", "{in}/outfile", "--out", "{out}", *LITE],
+             needles=("outfile", "is a file, not a folder")),
+        path("r2-calibrate-slam-dev-null", ["calibrate", cal, "--out", "{out}/c.json",
+                                            "--slam-cloud", "/dev/null", "--slam-trajectory",
+                                            "/dev/null"], needles=("/dev/null",)),
+        path("r2-evaluate-data-dev-null", ["evaluate", "--data", "/dev/null", "--method",
+                                           "nearest"], needles=("/dev/null", "regular file")),
+        path("r2-train-config-folder", ["train", "--config", "{in}/empty"],
+             needles=("empty", "folder")),
+        path("r2-checkpoint-a-folder", [*lite_predict()[:-4], "--checkpoint",
+                                        "{in}/r2_folder.pt"], needles=("r2_folder.pt",
+                                                                       "folder")),
+        apart("r2-calibrate-out-symlink-to-zones", ["calibrate", rec, "--out",
+                                                    "{in}/r2_zones_link.jsonl", "--overwrite"],
+              needles=("r2_zones_link.jsonl", "input")),
+        apart("r2-calibrate-out-hardlink-meta", ["calibrate", rec, "--out",
+                                                 "{in}/r2_meta_hardlink.json", "--overwrite"],
+              needles=("r2_meta_hardlink.json", "input")),
+        apart("r2-export-out-is-layout", ["export", "--preset", "deltar-lite", "--layout-from",
+                                          "{in}/calib.json", "--out", "{in}/calib.json",
+                                          "--overwrite"], needles=("calib.json", "input")),
+        apart("r2-fit-uncertainty-out-is-data", ["fit-uncertainty", "{in}/r2_model.pt",
+                                                 "--data", zju, "--out", zju, "--overwrite"],
+              needles=("data.json", "input")),
+        apart("r2-wall-test-out-is-recording", ["wall-test", rec, "--out", rec, *LITE],
+              needles=("--out", "input")),
+        apart("r2-replay-out-in-color", ["replay", rec, "--out", f"{rec}/color", *LITE],
+              needles=("--out", "input")),
+        apart("r2-map-out-inside", ["map", rec, "--out", f"{rec}/map", *LITE],
+              needles=("--out", "input")),
+        machine("r2-replay-threads-huge", ["replay", rec, "--out", "{out}", "--preset",
+                                           "deltar-lite", "--threads", "100000"],
+                needles=("--threads", "cpus")),
+        machine("r2-wall-test-threads-huge", ["wall-test", rec, "--out", "{out}", "--preset",
+                                              "deltar-lite", "--threads", "99999"],
+                needles=("--threads",)),
+        machine("r2-bench-batch-huge", ["bench", "--preset", "deltar-lite", "--batch",
+                                        "1000000"], needles=("--batch", "memory")),
+        machine("r2-check-official-threads-0", ["check-official", "{in}/text.pt", "--threads",
+                                                "0"], needles=("--threads",)),
+        machine("r2-train-devices-1000", ["train", "--config", config, "--override",
+                                          "trainer.devices=1000", "--run-dir", "{out}/run"],
+                needles=("trainer.devices", "this machine")),
+        machine("r2-train-num-threads-huge", ["train", "--config", config, "--override",
+                                              "trainer.num_threads=1000000", "--run-dir",
+                                              "{out}/run"], needles=("trainer.num_threads",)),
+        machine("r2-api-threads-huge", _r2_api(_r2_threads), needles=("threads",)),
+        physical("r2-zones-sigma-5m", lite_predict(zones="r2_sigma_5m.json"),
+                 needles=("r2_sigma_5m.json", "sigma")),
+        physical("r2-zones-hist-zero", lite_predict(zones="r2_hist_zero.json"),
+                 needles=("r2_hist_zero.json", "all-zero histogram")),
+        physical("r2-zones-valid-255", lite_predict(zones="r2_valid_255.json"),
+                 needles=("r2_valid_255.json", "255")),
+        physical("r2-zones-status-5.5", lite_predict(zones="r2_status_frac.json"),
+                 needles=("r2_status_frac.json", "status")),
+        physical("r2-zones-status-256", lite_predict(zones="r2_status_256.json"),
+                 needles=("r2_status_256.json", "status")),
+        physical("r2-driver-status-5.5", lite_predict(zones="r2_driver_status_frac.json"),
+                 needles=("r2_driver_status_frac.json", "target_status")),
+        physical("r2-driver-sigma-10km", lite_predict(zones="r2_driver_sigma.json"),
+                 expect="ok"),
+        physical("r2-calib-principal-point", [*lite_predict(), "--calib",
+                                              "{in}/r2_pp_negative.json"],
+                 needles=("r2_pp_negative.json", "principal point")),
+        physical("r2-calib-translation-5m", [*lite_predict(), "--calib",
+                                             "{in}/r2_translation_5m.json"],
+                 needles=("r2_translation_5m.json", "from the camera")),
+        physical("r2-calib-zones-away", [*lite_predict(), "--calib",
+                                         "{in}/r2_zones_away.json"],
+                 needles=("r2_zones_away.json", "outside the")),
+        physical("r2-evaluate-zone-50m", ["evaluate", "--data",
+                                          "{in}/r2_zju_far/data.json", "--method", "nearest"],
+                 needles=("range",)),
+        physical("r2-evaluate-sigma-1e6", ["evaluate", "--data",
+                                           "{in}/r2_zju_sigma/data.json", "--method",
+                                           "nearest"], needles=("sigma",)),
+        physical("r2-calibrate-nominal-20m", ["calibrate", cal, "--out", "{out}/c.json",
+                                              "--nominal-translation", "20,0,0"],
+                 needles=("--nominal-translation",)),
+        physical("r2-api-zone-strings", _r2_zone_frame(mean_m=["1.5"] * 64),
+                 needles=("mean_m", "numbers")),
+        physical("r2-api-valid-strings", _r2_zone_frame(valid=["no"] * 64),
+                 needles=("valid", "booleans")),
+        physical("r2-api-status-fraction", _r2_zone_frame(status=np.full(64, 9.9)),
+                 needles=("status", "integer")),
+        physical("r2-api-intrinsics-string", _r2_rig(fx="60"), needles=("fx", "number")),
+        physical("r2-api-rig-translation-5m", _r2_rig(t=np.array([0.0, 0.0, 5.0])),
+                 needles=("from the camera",)),
+        physical("r2-api-rig-width-fraction", _r2_rig(width=64.5), needles=("width",)),
+        other("r2-folder-same-image-stem", ["predict", "--images", "{in}/r2_same_stem",
+                                            "--zones-dir", "{in}/r2_same_stem", "--out",
+                                            "{out}", *LITE], needles=("a.jpg", "a.png")),
+        other("r2-folder-same-zone-stem", ["predict", "--images", "{in}/r2_same_zone_stem",
+                                           "--zones-dir", "{in}/r2_same_zone_stem", "--out",
+                                           "{out}", *LITE], needles=("a.json", "a.npz")),
+        other("r2-replay-blank-zones", ["replay", "{in}/r2_rec_blank", "--out", "{out}",
+                                        *LITE], needles=("nothing to replay",)),
+        other("r2-replay-offset-beyond", ["replay", rec, "--out", "{out}", "--time-offset",
+                                          "1000", *LITE], needles=("nothing to replay",
+                                                                    "--tolerance")),
+        other("r2-train-max-steps-negative", ["train", "--config", config, "--override",
+                                              "trainer.max_steps=-5", "--run-dir",
+                                              "{out}/run"], needles=("max_steps",)),
+        other("r2-train-max-steps-0", ["train", "--config", config, "--override",
+                                       "trainer.max_steps=0", "--run-dir", "{out}/run"],
+              needles=("max_steps", "untrained")),
+    ]
+
+
 # ---------------------------------------------------------------------------- running
 def _digest(folder: Path) -> dict[str, str]:
     return {str(p.relative_to(folder)): hashlib.sha1(p.read_bytes()).hexdigest()
@@ -645,9 +950,8 @@ def main(argv: list[str] | None = None) -> int:
     from typer.testing import CliRunner
 
     import deltar
-    from deltar.cli.main import _register_commands, app
+    from deltar.cli.main import app
 
-    _register_commands()
     runner = CliRunner()
 
     def cli(cli_args):
@@ -658,8 +962,10 @@ def main(argv: list[str] | None = None) -> int:
         root = Path(tmp)
         inp = build_inputs(root)
         build_recordings(inp, cli)
+        build_round2_inputs(inp)
         digest = _digest(inp)
-        selected = [c for c in cases() if args.only is None or args.only in c.name]
+        selected = [c for c in (*cases(), *round2_cases())
+                    if args.only is None or args.only in c.name]
         outcomes: dict[str, Outcome] = {}
         for index, case in enumerate(selected):
             outcome = run_case(case, inp, root / "out" / f"{index:03d}", cli, models)
@@ -684,6 +990,12 @@ def main(argv: list[str] | None = None) -> int:
         "clear", "correct", "traceback", "silent", "misleading")))
     print("flags: " + ", ".join(f"{flags.get(k, 0)} {k}" for k in ("late", "partial",
                                                                   "modified")))
+    groups = sorted({c.group for c in selected if c.group})
+    for group in groups:
+        names = [c.name for c in selected if c.group == group]
+        good = sum(outcomes[n].verdict in ("clear", "correct") and not outcomes[n].flags
+                   for n in names)
+        print(f"  {group}: {len(names)} cases, {good} handled, {len(names) - good} not")
     if args.json is not None:
         args.json.write_text(json.dumps({name: {"verdict": o.verdict, "flags": o.flags,
                                                 "seconds": round(o.seconds, 3)}

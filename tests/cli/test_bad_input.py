@@ -559,7 +559,8 @@ def test_bench_batch_beyond_the_memory_is_refused(monkeypatch):
     result = _run(["bench", "--preset", "deltar-lite", "--size", "480x640", "--batch", "64"])
     assert result.exit_code == 2
     assert _one_error_line(result) == (
-        "error: Invalid value: --batch 64 at 480x640 needs about 19,200 MiB, more than the "
+        "error: Invalid value: --batch 64 at 480x640 needs about 19,200 MiB of memory, more "
+        "than the "
         "1,024 MiB this machine has available; lower --batch or --size (see 'deltar bench "
         "--help')")
 

@@ -149,3 +149,14 @@ def test_sample_validation_names_the_field(rng):
     sample = ZJUL5Sample(good.rgb, good.depth_m, good.zone_mean_sigma, good.zone_rects,
                          good.zone_valid, "x", zone_no_target=grid_flags)
     np.testing.assert_array_equal(sample.zone_no_target, grid_flags.reshape(-1))
+
+
+def test_a_frame_with_datasets_of_the_wrong_shape_names_the_file(tmp_path, rng):
+    sample = _sample(rng, "scene/0001")
+    index = write_zju_l5(tmp_path, [sample])
+    frame = tmp_path / "scene" / "0001.h5"
+    with h5py.File(frame, "r+") as f:
+        del f["rgb"]
+        f["rgb"] = np.uint8(3)
+    with pytest.raises(ValueError, match=rf"^{frame}: cannot read ZJU-L5 frame file: "):
+        ZJUL5Dataset(index, intrinsics=None)[0]

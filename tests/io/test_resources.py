@@ -27,8 +27,8 @@ def test_load_estimator_refuses_huge_thread_counts_before_torch():
 
 def test_memory_and_disk_checks(tmp_path, monkeypatch):
     monkeypatch.setattr(resources, "available_memory_bytes", lambda: 2**20)
-    with pytest.raises(ValueError, match=r"^x needs about 2 MiB, more than the 1 MiB this "
-                       "machine has available; lower it$"):
+    with pytest.raises(ValueError, match=r"^x needs about 2 MiB of memory, more than the 1 "
+                       "MiB this machine has available; lower it$"):
         resources.check_memory(2 * 2**20, "x", "lower it")
     resources.check_memory(2**19, "x", "lower it")
     usage = shutil.disk_usage(tmp_path)

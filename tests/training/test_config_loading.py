@@ -62,3 +62,22 @@ def test_missing_and_corrupt_files(tmp_path):
     bad.write_text("optim: [unclosed\n", encoding="utf-8")
     with pytest.raises(ValueError, match="not valid YAML"):
         load_config(bad)
+
+
+def test_unreadable_configs_name_the_file(tmp_path):
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("a: " + "[" * 50_000 + "]" * 50_000 + "\n")
+    with pytest.raises(ValueError, match=r"deep\.yaml: cannot read training config: "):
+        load_config(deep)
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00bad")
+    with pytest.raises(ValueError, match=r"binary\.yaml: cannot read training config: not "
+                       r"UTF-8 text \(byte 0xff at position 0\)$"):
+        load_config(binary)
+    with pytest.raises(IsADirectoryError, match=f"^training config {tmp_path} is a folder, "
+                       "not a file$"):
+        load_config(tmp_path)
+    odd = tmp_path / "odd.yaml"
+    odd.write_text("trainer: 5\n")
+    with pytest.raises(ValueError, match=r"^training config .*odd\.yaml: "):
+        load_config(odd)

@@ -58,6 +58,7 @@ def calibrate_command(
 
     from deltar.calibration.extrinsic import nominal_extrinsics
     from deltar.calibration.pipeline import calibrate_recording
+    from deltar.calibration.rig import MAX_TRANSLATION_M
     from deltar.calibration.slam import read_ply_points, read_tum_trajectory
     from deltar.cli.checks import finite, output_file, output_folder
     from deltar.io.input_file import refuse_input_as_output
@@ -87,6 +88,11 @@ def calibrate_command(
     if not all(np.isfinite(translation)):
         raise typer.BadParameter(f"must be finite, got {nominal_translation!r}",
                                  param_hint="--nominal-translation")
+    if np.linalg.norm(translation) >= MAX_TRANSLATION_M:
+        raise typer.BadParameter(f"the sensor is {np.linalg.norm(translation):g} m from the "
+                                 f"camera, got {nominal_translation!r}; a rig's sensor sits "
+                                 f"within {MAX_TRANSLATION_M:g} m of it (metres, not "
+                                 "millimetres)", param_hint="--nominal-translation")
     if plot is not None:
         refuse_input_as_output(plot, inputs, "--plot", folder=True)
         output_folder(plot, "--plot")

@@ -200,9 +200,10 @@ def wall_test_command(
         Recording(folder)  # a missing or corrupt recording fails before the model
     refuse_input_as_output(out, [*recordings, calib], "--out", folder=True)
     output_folder(out, "--out")
+    calibration = load_calibration(calib)  # a bad --calib fails before the model
     try:
         estimator = model.load()
-        results = wall_test(recordings, estimator, calibration=load_calibration(calib),
+        results = wall_test(recordings, estimator, calibration=calibration,
                             every=every, limit=limit)
         paths = write_results(out, results, title=estimator.weights, overwrite=overwrite)
     except (ValueError, FileNotFoundError, FileExistsError) as err:

@@ -71,10 +71,11 @@ def export_command(
     if int8 != (calibration is not None):
         raise typer.BadParameter("--int8 and --calibration DIR go together",
                                  param_hint="--calibration")
+    # A bad --layout-from fails before the model is built.
+    rects = None if layout_from is None else _layout_rects(layout_from, height, width)
     try:
         estimator = ModelOptions(preset=preset, checkpoint=checkpoint,
                                  official=official).load()
-        rects = None if layout_from is None else _layout_rects(layout_from, height, width)
         metadata = {"deltar_weights": estimator.weights}
         if int8:
             path = export_int8(estimator.model, out, height, width, calibration,

@@ -32,6 +32,7 @@ import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.io.atomic import write_bytes_atomic, write_text_atomic
+from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_split_filenames
 
 #: Zone counts accepted in a ZJU-L5 file (4x4 and 8x8 grids).
@@ -156,8 +157,13 @@ class ZJUL5Sample:
 
 def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | None
                  ) -> ZJUL5Sample:
-    if not path.is_file():
-        raise FileNotFoundError(f"ZJU-L5 frame file not found: {path}")
+    input_file(path, "ZJU-L5 frame file")
+    with reading(path, "ZJU-L5 frame file"):
+        return _decode_sample(path, name, default_intrinsics)
+
+
+def _decode_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | None
+                   ) -> ZJUL5Sample:
     try:
         with h5py.File(path, "r") as f:
             missing = [k for k in _REQUIRED_KEYS if k not in f]

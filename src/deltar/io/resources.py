@@ -67,14 +67,15 @@ def check_memory(need_bytes: float, what: str, advice: str) -> None:
         advice: what to lower, for the message.
 
     Raises:
-        ValueError: ``"<what> needs about <n> MiB, more than the <m> MiB this machine has
+        ValueError: ``"<what> needs about <n> MiB of memory, more than the <m> MiB this machine has
             available; <advice>"`` (nothing is checked where the available memory is
             unknown).
     """
     available = available_memory_bytes()
     if available is not None and need_bytes > available:
-        raise ValueError(f"{what} needs about {need_bytes / 2**20:,.0f} MiB, more than the "
-                         f"{available / 2**20:,.0f} MiB this machine has available; {advice}")
+        raise ValueError(f"{what} needs about {need_bytes / 2**20:,.0f} MiB of memory, more "
+                         f"than the {available / 2**20:,.0f} MiB this machine has available; "
+                         f"{advice}")
 
 
 def check_free_space(folder: str | os.PathLike, need_bytes: float, what: str) -> None:

@@ -17,6 +17,7 @@ from typing import Any
 
 import yaml
 
+from deltar.io.input_file import input_file, reading
 from deltar.training.config import TrainConfig
 
 
@@ -42,23 +43,24 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
         The validated configuration.
 
     Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: invalid YAML, unknown keys or invalid values.
+        FileNotFoundError / IsADirectoryError: the path is missing or a folder.
+        ValueError: invalid YAML, unknown keys or invalid values (an
+            :class:`~deltar.io.input_file.InputFileError` for an unreadable file: not
+            UTF-8, nested too deeply ...).
     """
-    file = Path(path)
-    if not file.is_file():
-        raise FileNotFoundError(f"training config not found: {file}")
-    try:
-        data = yaml.safe_load(file.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as err:
-        raise ValueError(f"training config {file} is not valid YAML: {err}") from err
+    file = input_file(path, "training config")
+    with reading(file, "training config"):
+        try:
+            data = yaml.safe_load(file.read_bytes().decode("utf-8")) or {}
+        except yaml.YAMLError as err:
+            raise ValueError(f"training config {file} is not valid YAML: {err}") from err
     if not isinstance(data, dict):
         raise ValueError(f"training config {file} must be a mapping at the top level")
     for item in overrides:
         apply_override(data, item)
     try:
         return config_from_dict(data)
-    except ValueError as err:
+    except (ValueError, TypeError, AttributeError) as err:
         raise ValueError(f"training config {file}: {err}") from err
 
 
