@@ -338,6 +338,38 @@ def estimate_board_pose(detection: BoardDetection, intrinsics: CameraIntrinsics,
                      float(np.sqrt(max(plane_cov[3, 3], 0.0))))
 
 
+def calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrinsics,
+                     max_views: int = 40) -> tuple[CameraIntrinsics, tuple[float, ...], float]:
+    """``cv2.calibrateCamera`` from the board views, starting at ``intrinsics``.
+
+    Estimates fx, fy, cx, cy and the distortion (k1, k2, p1, p2; k3 stays 0, which few
+    views of a flat board cannot pin down). Uses at most ``max_views`` views, evenly
+    spread.
+
+    Args:
+        detections: the board's corners in each view (at least 3 views).
+        intrinsics: the starting guess (pixels; its size is the images').
+        max_views: most views used.
+
+    Returns:
+        The intrinsics, the 5 distortion coefficients and the RMS reprojection error
+        (pixels).
+    """
+    import cv2
+
+    picks = np.unique(np.linspace(0, len(detections) - 1, min(max_views, len(detections)))
+                      .round().astype(int))
+    objects = [detections[i].object_points.reshape(-1, 1, 3) for i in picks]
+    images = [detections[i].image_points.reshape(-1, 1, 2) for i in picks]
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
+    rms, matrix, dist, _, _ = cv2.calibrateCamera(
+        objects, images, (intrinsics.width, intrinsics.height), intrinsics.matrix.copy(),
+        np.zeros(5), flags=flags)
+    calibrated = CameraIntrinsics(float(matrix[0, 0]), float(matrix[1, 1]), float(matrix[0, 2]),
+                                  float(matrix[1, 2]), intrinsics.width, intrinsics.height)
+    return calibrated, tuple(float(v) for v in np.ravel(dist)[:5]), float(rms)
+
+
 def board_points_in_view(pose_normal: np.ndarray, pose_offset_m: float,
                          sensor_to_cam_rotation: np.ndarray, sensor_to_cam_translation: np.ndarray,
                          fov_deg: tuple[float, float], samples: int) -> np.ndarray:

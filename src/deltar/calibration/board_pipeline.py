@@ -32,6 +32,7 @@ from deltar.calibration.board import (
     BoardPose,
     BoardSpec,
     board_points_in_view,
+    calibrate_camera,
     estimate_board_pose,
 )
 from deltar.calibration.board_uncertainty import ExtrinsicUncertainty, extrinsic_uncertainty
@@ -159,33 +160,6 @@ def _zone_plane_variances(plane: ZonePlaneFit, floor_m: float = 0.005) -> tuple[
     normal_var = sigma2 * (1.0 / max(spread[2], 1e-9) + 1.0 / max(spread[1], 1e-9))
     lateral = centre - (centre @ plane.normal) * plane.normal
     return normal_var, sigma2 / len(points) + float(lateral @ lateral) * normal_var / 2
-
-
-def _calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrinsics,
-                      max_views: int = 40) -> tuple[CameraIntrinsics, tuple[float, ...], float]:
-    """``cv2.calibrateCamera`` from the board views, starting at ``intrinsics``.
-
-    Estimates fx, fy, cx, cy and the distortion (k1, k2, p1, p2; k3 stays 0, which few
-    views of a flat board cannot pin down). Uses at most ``max_views`` views, evenly
-    spread.
-
-    Returns:
-        The intrinsics, the 5 distortion coefficients and the RMS reprojection error
-        (pixels).
-    """
-    import cv2
-
-    picks = np.unique(np.linspace(0, len(detections) - 1, min(max_views, len(detections)))
-                      .round().astype(int))
-    objects = [detections[i].object_points.reshape(-1, 1, 3) for i in picks]
-    images = [detections[i].image_points.reshape(-1, 1, 2) for i in picks]
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
-    rms, matrix, dist, _, _ = cv2.calibrateCamera(
-        objects, images, (intrinsics.width, intrinsics.height), intrinsics.matrix.copy(),
-        np.zeros(5), flags=flags)
-    calibrated = CameraIntrinsics(float(matrix[0, 0]), float(matrix[1, 1]), float(matrix[0, 2]),
-                                  float(matrix[1, 2]), intrinsics.width, intrinsics.height)
-    return calibrated, tuple(float(v) for v in np.ravel(dist)[:5]), float(rms)
 
 
 def _agreeing(views: list[_View], offsets: bool = True
@@ -344,7 +318,7 @@ def calibrate_recording_with_board(
         if len(detections) < MIN_INTRINSIC_VIEWS:
             raise ValueError(f"--calibrate-intrinsics needs the board in at least "
                              f"{MIN_INTRINSIC_VIEWS} images, found in {len(detections)}")
-        camera, distortion, intrinsics_rms = _calibrate_camera(detections, camera)
+        camera, distortion, intrinsics_rms = calibrate_camera(detections, camera)
         for v in views:
             v.pose = estimate_board_pose(v.detection, camera, distortion)
     # Zones that see another surface give planes whose normals disagree with the board's.
