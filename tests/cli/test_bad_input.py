@@ -683,3 +683,12 @@ def test_folder_mode_refuses_two_inputs_with_one_stem(inputs, tmp_path):
         f"error: {inputs / 'a.jpg'} and {inputs / 'a.png'} are images with the same stem 'a'; "
         "frames pair by stem, so keep only one of them")
     assert MODEL_BUILT not in result.output
+
+
+def test_simulated_set_without_any_valid_zone_is_said(tmp_path):
+    result = _run(["simulate", "wall:10:2:48x64", tmp_path / "far"])
+    assert result.exit_code == 0, result.output
+    assert result.stderr.splitlines()[-1] == (
+        "warning: 2 of 2 frames have no valid zone (the scene lies beyond the sensor's range, "
+        "or returns no signal): depth from them has no metric anchor, and methods that need "
+        "zones cannot use them; the set holds no zone reading at all")

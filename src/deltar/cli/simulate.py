@@ -148,6 +148,14 @@ def simulate_command(
                                            on_frame=progress.advance)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")
+    empty = int(np.count_nonzero(np.asarray(valid_counts) == 0))
+    if empty:
+        from deltar.cli.errors import warn
+
+        warn(f"{empty} of {len(indices)} frames have no valid zone (the scene lies beyond the "
+             "sensor's range, or returns no signal): depth from them has no metric anchor, "
+             "and methods that need zones cannot use them"
+             + ("; the set holds no zone reading at all" if empty == len(indices) else ""))
     if cnh_config is not None:
         near, far = cnh_config.range_m
         typer.echo(f"with CNH histograms: {cnh_config.num_bins} bins of "
