@@ -647,6 +647,37 @@ def build_round2_inputs(inp: Path) -> None:
         shutil.copy(inp / "z.json", folder / "a.json")
     np.savez(inp / "r2_same_zone_stem" / "a.npz", x=np.zeros(1))
     (inp / "r2_model.pt").write_bytes(b"weights")
+    # Second batch: more readers and more odd values.
+    text_jpg = inp / "r2b_text.jpg"
+    text_jpg.write_text("not a jpeg\n")
+    png = bytearray((inp / "img.png").read_bytes())
+    png[60:80] = bytes(20)  # damaged chunk data and CRC
+    (inp / "r2b_badcrc.png").write_bytes(bytes(png))
+    np.savez(inp / "r2b_object.npz", mean_m=np.array([{"a": 1}] * 64, dtype=object),
+             sigma_m=np.zeros(64), valid=np.ones(64, bool), schema_version=np.array(1))
+    import zipfile
+
+    with zipfile.ZipFile(inp / "r2b_not_npy.npz", "w") as archive:
+        archive.writestr("mean_m.npy", b"not an array")
+    write("r2b_list.json", [1, 2, 3])
+    write("r2b_null_mean.json", dict(good, mean_m=None))
+    write("r2b_ragged_hist.json", dict(good, hist_edges_m=[0.0, 2.0, 4.0],
+                                       hist_counts=[[1, 1]] * 63 + [[1]]))
+    write("r2b_calib_inf_fx.json", json.dumps(calib).replace('"fx": 60.0', '"fx": 1e400'))
+    calib_with("r2b_calib_distortion_text.json", distortion="abc")
+    calib_with("r2b_calib_residual_null.json", residuals={"a": None})
+    shutil.copytree(inp / "rec", inp / "r2b_rec_grid_frac")
+    meta = inp / "r2b_rec_grid_frac" / "meta.json"
+    meta.write_text(meta.read_text().replace('"grid": 8', '"grid": 8.5'))
+    shutil.copytree(inp / "rec", inp / "r2b_rec_number_line")
+    lines = (inp / "rec" / "zones.jsonl").read_text().splitlines()
+    (inp / "r2b_rec_number_line" / "zones.jsonl").write_text(
+        "\n".join([lines[0], "5", *lines[1:]]) + "\n")
+    (inp / "r2b_traj_utf16.txt").write_bytes("0 0 0 0 0 0 0 1\n".encode("utf-16"))
+    (inp / "r2b_garbage.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n"
+                                          b"element vertex 1000\nproperty float x\n"
+                                          b"property float y\nproperty float z\n"
+                                          b"end_header\n" + bytes(12))
     (inp / "r2_zones_link.jsonl").symlink_to(inp / "rec" / "zones.jsonl")
     os.link(inp / "rec" / "meta.json", inp / "r2_meta_hardlink.json")
 
@@ -841,6 +872,45 @@ def round2_cases() -> list[Case]:
         physical("r2-api-rig-translation-5m", _r2_rig(t=np.array([0.0, 0.0, 5.0])),
                  needles=("from the camera",)),
         physical("r2-api-rig-width-fraction", _r2_rig(width=64.5), needles=("width",)),
+        read("r2b-image-text-as-jpg", lite_predict("r2b_text.jpg"),
+             needles=("r2b_text.jpg", "decode")),
+        read("r2b-image-bad-crc", lite_predict("r2b_badcrc.png"), needles=("r2b_badcrc.png",)),
+        read("r2b-zones-object-npz", lite_predict(zones="r2b_object.npz"),
+             needles=("r2b_object.npz",)),
+        read("r2b-zones-zip-not-npy", lite_predict(zones="r2b_not_npy.npz"),
+             needles=("r2b_not_npy.npz",)),
+        read("r2b-zones-json-list", lite_predict(zones="r2b_list.json"),
+             needles=("r2b_list.json", "object")),
+        read("r2b-zones-null-mean", lite_predict(zones="r2b_null_mean.json"),
+             needles=("r2b_null_mean.json", "mean_m")),
+        read("r2b-zones-ragged-hist", lite_predict(zones="r2b_ragged_hist.json"),
+             needles=("r2b_ragged_hist.json",)),
+        read("r2b-calib-fx-inf", [*lite_predict(), "--calib", "{in}/r2b_calib_inf_fx.json"],
+             needles=("r2b_calib_inf_fx.json", "fx")),
+        read("r2b-calib-distortion-text", [*lite_predict(), "--calib",
+                                           "{in}/r2b_calib_distortion_text.json"],
+             needles=("r2b_calib_distortion_text.json", "distortion")),
+        read("r2b-calib-residual-null", [*lite_predict(), "--calib",
+                                         "{in}/r2b_calib_residual_null.json"],
+             needles=("r2b_calib_residual_null.json", "residuals.a")),
+        read("r2b-replay-grid-fraction", ["replay", "{in}/r2b_rec_grid_frac", "--out", "{out}",
+                                          *LITE], needles=("meta.json", "grid")),
+        read("r2b-replay-number-line", ["replay", "{in}/r2b_rec_number_line", "--out",
+                                        "{out}", *LITE], needles=("zones.jsonl:2",)),
+        read("r2b-map-trajectory-utf16", ["map", rec, "--out", "{out}/m", "--trajectory",
+                                          "{in}/r2b_traj_utf16.txt", *LITE],
+             needles=("r2b_traj_utf16.txt",)),
+        read("r2b-calibrate-garbage-ply", ["calibrate", cal, "--out", "{out}/c.json",
+                                           "--slam-cloud", "{in}/r2b_garbage.ply",
+                                           "--slam-trajectory", "{in}/r2b_traj_utf16.txt"],
+             needles=("r2b_",)),
+        path("r2b-checkpoint-dev-null", [*lite_predict()[:-4], "--checkpoint", "/dev/null"],
+             needles=("/dev/null", "regular file")),
+        path("r2b-check-official-folder", ["check-official", "{in}/empty"],
+             needles=("empty", "folder")),
+        path("r2b-layout-from-dev-null", ["export", "--preset", "deltar-lite", "--out",
+                                          "{out}/m.onnx", "--layout-from", "/dev/null"],
+             needles=("/dev/null", "regular file")),
         other("r2-folder-same-image-stem", ["predict", "--images", "{in}/r2_same_stem",
                                             "--zones-dir", "{in}/r2_same_stem", "--out",
                                             "{out}", *LITE], needles=("a.jpg", "a.png")),

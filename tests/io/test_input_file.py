@@ -143,3 +143,29 @@ def test_outputs_never_resolve_to_inputs(tmp_path):
         refuse_input_as_output(rec / "sub", [rec], "OUT", folder=True)
     # A new file beside the inputs replaces nothing: allowed.
     assert refuse_input_as_output(rec / "calib.json", [rec], "--out") == rec / "calib.json"
+
+
+def test_every_reader_goes_through_the_boundary(tmp_path):
+    from deltar.calibration.slam import read_tum_trajectory as read_slam_trajectory
+    from deltar.io.ply import read_ply
+    from deltar.io.torch_file import read_torch_file
+    from deltar.mapping.poses import read_pose_file, read_tum_trajectory
+    from deltar.weights import resolve_checkpoint
+
+    utf16 = tmp_path / "t.txt"
+    utf16.write_bytes("0 0 0 0 0 0 0 1\n".encode("utf-16"))
+    for read in (read_tum_trajectory, read_slam_trajectory):
+        with pytest.raises(InputFileError, match=r"t\.txt: cannot read trajectory file: not "
+                           r"UTF-8 text \(byte 0xff at position 0\)$"):
+            read(utf16)
+    with pytest.raises(ValueError, match=r"t\.txt: not a 4x4 matrix of numbers: 'utf-8'"):
+        read_pose_file(utf16)
+    ply = tmp_path / "cut.ply"
+    ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\n"
+                    b"property float x\nproperty float y\nproperty float z\nend_header\n")
+    with pytest.raises(ValueError, match=r"cut\.ply"):
+        read_ply(ply)
+    with pytest.raises(IsADirectoryError, match=f"^checkpoint {tmp_path} is a folder"):
+        read_torch_file(resolve_checkpoint(tmp_path), "checkpoint", weights_only=True)
+    with pytest.raises(InputFileError, match=r"^checkpoint /dev/null is not a regular file"):
+        read_torch_file(resolve_checkpoint(os.devnull), "checkpoint", weights_only=True)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.io.input_file import input_file, reading
 from deltar.io.ply import read_ply, write_ply
 
 
@@ -79,13 +80,16 @@ def read_tum_trajectory(path: str | os.PathLike) -> Trajectory:
         ValueError: malformed lines, non-unit quaternions, unsorted or duplicate
             timestamps (the message names the file and line).
     """
+    path = input_file(path, "trajectory file")
+    with reading(path, "trajectory file"):
+        return _parse_tum(path)
+
+
+def _parse_tum(path: Path) -> Trajectory:
     from scipy.spatial.transform import Rotation
 
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"trajectory file not found: {path}")
     times, poses = [], []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for number, line in enumerate(path.read_bytes().decode("utf-8").splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

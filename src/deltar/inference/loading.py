@@ -79,7 +79,7 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
     if text in BUNDLED_MODELS:
         return "bundled", text
     path = Path(text)
-    if path.is_file():
+    if path.exists():  # a folder or a device is refused by the file's reader, by name
         return ("onnx" if path.suffix.lower() == ".onnx" else "checkpoint"), text
     from deltar.models import list_presets  # imports torch: only when needed
 

@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from deltar.io.atomic import write_bytes_atomic
+from deltar.io.input_file import input_file, reading
 
 #: PLY scalar type names -> numpy type codes (without byte order).
 PLY_TYPES = {
@@ -133,17 +134,17 @@ def read_ply(path: str | os.PathLike) -> PlyCloud:
         ValueError: not a PLY, an unsupported format (big-endian, list properties in the
             vertex element), no x/y/z, or truncated data; the message names the file.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"PLY file not found: {path}")
-    raw = path.read_bytes()
-    fmt, comments, elements, body_start = _parse_header(path, raw)
-    table = _vertex_table(path, raw, fmt, elements, body_start)
-    points = np.stack([np.asarray(table[a], dtype=np.float64) for a in "xyz"], axis=1)
-    colors = None
-    if all(c in table for c in _COLOURS):
-        colors = np.stack([np.asarray(table[c]).astype(np.uint8) for c in _COLOURS], axis=1)
-    return PlyCloud(points, colors, comments)
+    path = input_file(path, "PLY file")
+    with reading(path, "PLY file"):
+        raw = path.read_bytes()
+        fmt, comments, elements, body_start = _parse_header(path, raw)
+        table = _vertex_table(path, raw, fmt, elements, body_start)
+        points = np.stack([np.asarray(table[a], dtype=np.float64) for a in "xyz"], axis=1)
+        colors = None
+        if all(c in table for c in _COLOURS):
+            colors = np.stack([np.asarray(table[c]).astype(np.uint8) for c in _COLOURS],
+                              axis=1)
+        return PlyCloud(points, colors, comments)
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None,

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Any
+
+from deltar.io.input_file import input_file
 
 
 def read_torch_file(path: str | os.PathLike, what: str, *, weights_only: bool,
@@ -19,14 +20,13 @@ def read_torch_file(path: str | os.PathLike, what: str, *, weights_only: bool,
         map_location: where tensors are loaded (CPU by default).
 
     Raises:
-        FileNotFoundError: ``"<what> not found: <path>"``.
+        FileNotFoundError / IsADirectoryError: ``"<what> not found: <path>"``, ``"<what>
+            <path> is a folder, not a file"``; ``"... not a regular file"`` (ValueError).
         ValueError: ``"<path>: cannot read <what>: ..."`` for a corrupt or foreign file.
     """
     import torch
 
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} not found: {path}")
+    path = input_file(path, what)
     try:
         return torch.load(path, map_location=map_location, weights_only=weights_only)
     except Exception as err:  # torch raises several types for corrupt files

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.io.input_file import input_file, reading
+
 #: Largest |R^T R - I| (and |det R - 1|) accepted for a pose's rotation block.
 ROTATION_TOLERANCE = 1e-3
 #: Default largest |pose time - frame time| when poses are matched to frames, seconds.
@@ -78,12 +80,13 @@ def read_pose_file(path: str | os.PathLike) -> np.ndarray:
     Raises:
         ValueError: not 16 numbers, or not a rigid transform (naming the file).
     """
-    path = Path(path)
-    try:
-        values = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as err:
-        raise ValueError(f"{path}: not a 4x4 matrix of numbers: {err}") from err
-    return check_pose(values, str(path))
+    path = input_file(path, "pose file")
+    with reading(path, "pose file"):
+        try:
+            values = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        except ValueError as err:
+            raise ValueError(f"{path}: not a 4x4 matrix of numbers: {err}") from err
+        return check_pose(values, str(path))
 
 
 _SEVEN_SCENES_POSE = re.compile(r"^(frame-\d+)\.pose\.txt$")
@@ -148,11 +151,14 @@ def read_tum_trajectory(path: str | os.PathLike) -> Trajectory:
         ValueError: a line that is not 8 numbers, a quaternion that is not unit length,
             times not strictly increasing, or no pose (naming the file and line).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"trajectory file not found: {path}")
+    path = input_file(path, "trajectory file")
+    with reading(path, "trajectory file"):
+        return _parse_tum(path)
+
+
+def _parse_tum(path: Path) -> Trajectory:
     times, poses = [], []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for number, line in enumerate(path.read_bytes().decode("utf-8").splitlines(), start=1):
         text = line.split("#", 1)[0].strip()
         if not text:
             continue

@@ -25,7 +25,7 @@ def resolve_checkpoint(name_or_path: str | Path) -> Path:
     """Path of a checkpoint given a bundled model name (e.g. ``"default"``) or a path.
 
     Raises:
-        FileNotFoundError: neither a bundled model nor an existing file; the message
+        FileNotFoundError: neither a bundled model nor an existing path; the message
             lists the bundled names.
     """
     text = str(name_or_path)
@@ -36,7 +36,7 @@ def resolve_checkpoint(name_or_path: str | Path) -> Path:
                                     f"installation ({path})")
         return path
     path = Path(name_or_path)
-    if not path.is_file():
+    if not path.exists():  # a folder or a device is the reader's to tell apart
         raise FileNotFoundError(f"checkpoint {text!r} is neither a bundled model "
                                 f"({', '.join(BUNDLED_MODELS)}) nor an existing file")
     return path
