@@ -1,4 +1,5 @@
-"""The package layering of src/deltar: one-way dependencies, no cycles, small files.
+"""The package layering of src/deltar: one-way dependencies, no cycles, small files,
+tests that mirror the tree.
 
 Every ``import deltar.x`` / ``from deltar.x import`` is counted wherever it stands:
 module level, inside functions and under ``TYPE_CHECKING`` alike, so a function-local
@@ -194,3 +195,28 @@ def test_no_source_file_is_over_the_line_limit():
              for path in sorted(SRC.rglob("*.py"))}
     over = {name: lines for name, lines in sizes.items() if lines > MAX_FILE_LINES}
     assert over == {}, f"files over {MAX_FILE_LINES} lines (split them by concern): {over}"
+
+
+TESTS = ROOT / "tests"
+
+#: Test files that test no single module, and what they test instead.
+CROSS_CUTTING_TESTS: dict[str, str] = {
+    "test_architecture.py": "the tree itself: layering, cycles, file sizes, this mirror",
+    "cli/test_bad_input.py": "every command's refusal of bad input (one error line, early)",
+    "inference/test_bad_input_api.py": "the Python API's refusal of bad input",
+    "weights/test_bundled_model.py": "the model file the package ships (deltar.weights)",
+}
+
+
+def test_tests_mirror_the_tree():
+    """Each ``tests/<package>/test_<module>.py`` tests ``src/deltar/<package>/<module>.py``."""
+    modules = {p.relative_to(SRC).with_suffix("").as_posix() for p in SRC.rglob("*.py")}
+    stray = []
+    for path in sorted(TESTS.rglob("test_*.py")):
+        rel = path.relative_to(TESTS)
+        if rel.as_posix() in CROSS_CUTTING_TESTS:
+            continue
+        module = rel.with_name(rel.stem.removeprefix("test_")).as_posix()
+        if module not in modules and f"{module}/__init__" not in modules:
+            stray.append(rel.as_posix())
+    assert stray == [], f"test files beside no module (name them test_<module>.py): {stray}"

@@ -1,7 +1,7 @@
 """Run the tiny training and SIGKILL the process when a given step starts.
 
 Usage: ``python killable_run.py RUN_DIR KILL_AT_STEP [key=value ...]``; used by
-test_resume.py to interrupt a run the hard way (no handler, no cleanup).
+test_run.py to interrupt a run the hard way (no handler, no cleanup).
 """
 
 from __future__ import annotations

@@ -1,19 +1,8 @@
-"""The shared CLI error style and the progress lines for logs."""
+"""Progress lines for logs: count, rate and time left, rate-limited."""
 
 from __future__ import annotations
 
-import errno
-
-from deltar.cli.errors import format_error
 from deltar.cli.progress import ProgressReport
-
-
-def test_os_errors_read_as_path_and_reason():
-    err = OSError(errno.ENOTDIR, "Not a directory", "/data/file/sub")
-    assert format_error(err) == "/data/file/sub: Not a directory"
-    assert format_error(ValueError("two\nlines")) == "two lines"
-    assert format_error(ModuleNotFoundError("No module named 'onnx'", name="onnx")) == (
-        "No module named 'onnx': install the optional dependency (see the README's extras)")
 
 
 def test_progress_lines_have_count_rate_and_eta(capsys, monkeypatch):

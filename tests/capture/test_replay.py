@@ -1,8 +1,8 @@
-"""Recording (simulated rig), replay pairing, and bad recordings: gaps, unsorted, corrupt."""
+"""Replay of recordings: pairing by time, outputs, and bad recordings (gaps, unsorted,
+corrupt)."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import warnings
 
@@ -11,52 +11,21 @@ import pytest
 
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
-from deltar.capture.drivers import SimulatedRig
-from deltar.capture.record import record
 from deltar.capture.replay import replay, replay_to_folder
-from deltar.data.flat_wall import FlatWallSource
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.recording import Recording
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.placement import zone_mean_depth
+from tests.capture.test_record import record_wall
 from tests.inference.fakes import ZonePainterNet
-
-
-def _record(folder, frames=8, distance=1.01, sensor_hz=15.0):
-    rig = SimulatedRig(FlatWallSource(distance, frames, 48, 64), sensor_hz=sensor_hz)
-    return record(folder, rig)
-
-
-def _digest(folder):
-    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def _estimator():
     return DepthEstimator(ZonePainterNet(), weights="painter")
 
 
-def test_simulated_recording_layout(tmp_path):
-    summary = _record(tmp_path / "rec", frames=8)
-    assert (summary.images, summary.zone_frames, summary.depth_maps) == (8, 4, 8)
-    rec = Recording(tmp_path / "rec")
-    assert rec.meta.intrinsics.width == 64 and rec.meta.grid == 8
-    assert len(rec.color_paths) == 8 and len(rec.depth_paths) == 8
-    times = [f.timestamp_s for f in rec.zone_frames()]
-    np.testing.assert_allclose(times, np.arange(0, 8, 2) / 30.0 + 0.004)
-
-
-def test_recording_never_overwrites(tmp_path):
-    folder = tmp_path / "rec"
-    _record(folder)
-    before = _digest(folder)
-    with pytest.raises(FileExistsError):
-        _record(folder)  # same clock: the first colour image already exists
-    assert _digest(folder) == before
-
-
 def test_replay_pairs_by_nearest_time_and_predicts(tmp_path):
-    _record(tmp_path / "rec", frames=8)
+    record_wall(tmp_path / "rec", frames=8)
     items = list(replay(tmp_path / "rec", _estimator()))
     assert len(items) == 4
     for item in items:
@@ -71,7 +40,7 @@ def test_replay_pairs_by_nearest_time_and_predicts(tmp_path):
 
 
 def test_replay_writes_outputs_outside_the_recording_only(tmp_path):
-    _record(tmp_path / "rec", frames=4)
+    record_wall(tmp_path / "rec", frames=4)
     written = replay_to_folder(tmp_path / "rec", _estimator(), tmp_path / "out",
                                kinds=("png16", "npy"))
     assert len(written) == 4 and all(p.parent == tmp_path / "out" for p in written)
@@ -80,7 +49,7 @@ def test_replay_writes_outputs_outside_the_recording_only(tmp_path):
 
 
 def test_missing_images_are_skipped_with_a_warning(tmp_path):
-    _record(tmp_path / "rec", frames=8)
+    record_wall(tmp_path / "rec", frames=8)
     rec = Recording(tmp_path / "rec")
     # Remove the colour images next to the second zone frame (frames 2 and 3).
     for path in rec.color_paths[1:4]:
@@ -91,7 +60,7 @@ def test_missing_images_are_skipped_with_a_warning(tmp_path):
 
 
 def test_time_gaps_in_the_zone_stream_are_reported(tmp_path):
-    _record(tmp_path / "rec", frames=16, sensor_hz=30.0)
+    record_wall(tmp_path / "rec", frames=16, sensor_hz=30.0)
     zones = tmp_path / "rec" / "zones.jsonl"
     lines = zones.read_text().splitlines()
     zones.write_text("\n".join(lines[:5] + lines[12:]) + "\n")  # drop 7 frames
@@ -101,7 +70,7 @@ def test_time_gaps_in_the_zone_stream_are_reported(tmp_path):
 
 
 def test_unsorted_timestamps_raise_naming_the_file(tmp_path):
-    _record(tmp_path / "rec", frames=8)
+    record_wall(tmp_path / "rec", frames=8)
     zones = tmp_path / "rec" / "zones.jsonl"
     lines = zones.read_text().splitlines()
     lines[1], lines[2] = lines[2], lines[1]
@@ -111,7 +80,7 @@ def test_unsorted_timestamps_raise_naming_the_file(tmp_path):
 
 
 def test_corrupt_image_raises_naming_the_file(tmp_path):
-    _record(tmp_path / "rec", frames=4)
+    record_wall(tmp_path / "rec", frames=4)
     rec = Recording(tmp_path / "rec")
     bad = rec.color_paths[0]
     bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 20)
@@ -120,14 +89,14 @@ def test_corrupt_image_raises_naming_the_file(tmp_path):
 
 
 def test_calibration_for_another_resolution_is_refused(tmp_path):
-    _record(tmp_path / "rec", frames=4)
+    record_wall(tmp_path / "rec", frames=4)
     calib = RigCalibration(CameraIntrinsics(100, 100, 63.5, 47.5, 128, 96), SensorExtrinsics())
     with pytest.raises(ValueError, match="96x128"):
         list(replay(tmp_path / "rec", _estimator(), calibration=calib))
 
 
 def test_corrupt_zone_line_names_file_and_line(tmp_path):
-    _record(tmp_path / "rec", frames=8)
+    record_wall(tmp_path / "rec", frames=8)
     zones = tmp_path / "rec" / "zones.jsonl"
     lines = zones.read_text().splitlines()
     data = json.loads(lines[1])
@@ -141,7 +110,7 @@ def test_corrupt_zone_line_names_file_and_line(tmp_path):
 
 
 def test_replay_pairs_with_the_calibrations_time_offset(tmp_path):
-    _record(tmp_path / "rec", frames=8)  # colour 4 ms before each zone frame, 30 Hz
+    record_wall(tmp_path / "rec", frames=8)  # colour 4 ms before each zone frame, 30 Hz
     meta = Recording(tmp_path / "rec").meta
     calib = RigCalibration(meta.intrinsics, SensorExtrinsics(), grid=meta.grid,
                            fov_deg=meta.fov_deg, time_offset_s=0.03)

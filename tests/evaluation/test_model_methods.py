@@ -1,0 +1,62 @@
+"""Learned models as evaluation methods: hypotheses from a sample's histograms, the size
+rule."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from deltar.models import create_model
+from deltar.models.checkpoint import save_checkpoint
+
+
+def untrained_prior_checkpoint(path: Path) -> Path:
+    """A deltar-lite checkpoint with an untrained zone-prior head, design 32x64."""
+    torch.manual_seed(0)
+    # An untrained zone-prior head returns the prior interpolated from the zones, so the
+    # model's depth is only right if the sample's own zone rectangles reach the network.
+    model = create_model("deltar-lite", head="zone_prior", design_size=(32, 64))
+    return save_checkpoint(path, model, "deltar-lite")
+
+
+def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_path):
+    """A THDR3K sample carries CNH histograms: the model's hypotheses come from them."""
+    from deltar.data.thdr3k import read_thdr3k_sample
+    from deltar.evaluation.model_methods import EstimatorPredictor
+    from deltar.inference.estimator import DepthEstimator
+    from deltar.sensor.sampling import sample_hypotheses_from_histogram
+    from tests.data.thdr3k_set import write_sample
+    from tests.inference.fakes import ZonePainterNet
+
+    write_sample(tmp_path / "s", seed=3, height=64, width=96)
+    sample = read_thdr3k_sample(tmp_path / "s")
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter", input_size=(64, 96))
+    depth = EstimatorPredictor(estimator)(sample).depth_m
+    expected = sample_hypotheses_from_histogram(
+        torch.from_numpy(sample.hist_edges_m), torch.from_numpy(sample.hist_counts),
+        torch.from_numpy(sample.zone_valid), 16).mean(-1).numpy()
+    # The painter writes each zone's mean hypothesis over the zone (8 px zones here).
+    y0, x0, y1, x1 = sample.zone_rects[10].astype(int)
+    np.testing.assert_allclose(depth[y0 + 2:y1 - 2, x0 + 2:x1 - 2], expected[10], atol=1e-4)
+    # ... which is the histogram's, not the Gaussian around the reported distance.
+    assert abs(expected[10] - sample.zone_mean_sigma[10, 0]) > 1e-3
+
+
+def test_evaluation_runs_the_size_rule(tmp_path: Path) -> None:
+    """``model:`` runs the network at the size the estimator and export use, not at the
+    design size whatever the image (a square image stays square)."""
+    from deltar.evaluation.model_methods import checkpoint_predictor
+    from deltar.inference.preprocess import network_input_size
+    from tests.evaluation.samples import make_sample
+
+    checkpoint = untrained_prior_checkpoint(tmp_path / "prior.pt")  # design 32x64
+    predictor = checkpoint_predictor(str(checkpoint))
+    for size in ((480, 480), (720, 1280), (16, 4000)):
+        expected = network_input_size(*size, design_size=(32, 64))
+        assert predictor.estimator.network_size_for(size) == expected
+    assert predictor.estimator.network_size_for((480, 480)) == (32, 32)  # not 32x64
+    sample = make_sample("a", 0)
+    depth = predictor(sample).depth_m
+    assert depth.shape == sample.depth_m.shape and np.isfinite(depth).all()

@@ -1,0 +1,155 @@
+"""Training runs (deltar.training.run): fine-tuning from earlier weights on ZJU-L5-layout
+data, a run killed mid-epoch resuming on the same loss curve, and DDP over two CPU
+processes (gloo, launched with torchrun as docs/training.md describes). The CLI:
+tests/cli/test_train.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
+from deltar.models import create_model
+from deltar.training.module import export_model
+from deltar.training.run import build_system, read_history, train
+
+HERE = Path(__file__).resolve().parent
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
+TINY_MODEL = {"decoder_channels": [32, 32, 16, 16, 8], "head_channels": 16, "n_bins": 16,
+              "head": "bins",
+              "design_size": [64, 96]}
+
+
+def _write_zju(folder, frames, rng):
+    rects = np.array([[r * 16, c * 24, r * 16 + 16, c * 24 + 24] for r in range(4)
+                      for c in range(4)], dtype=np.float32)
+    samples = []
+    for i in range(frames):
+        depth = rng.uniform(0.8, 3.0, (64, 96)).astype(np.float32)
+        mean = np.array([depth[int(y0):int(y1), int(x0):int(x1)].mean()
+                         for y0, x0, y1, x1 in rects], dtype=np.float32)
+        samples.append(ZJUL5Sample(
+            rgb=rng.integers(0, 255, (64, 96, 3), dtype=np.uint8), depth_m=depth,
+            zone_mean_sigma=np.stack([mean, np.full(16, 0.05, np.float32)], 1),
+            zone_rects=rects, zone_valid=np.ones(16, bool), name=f"scene/{i:05d}"))
+    return write_zju_l5(folder, samples, split="train")
+
+
+def test_finetune_on_zju_layout_starts_from_given_weights(tmp_path, rng, tiny_config):
+    data_json = _write_zju(tmp_path / "zju", 6, rng)
+    torch.manual_seed(123)
+    start = create_model("deltar-lite", **TINY_MODEL)
+    weights = tmp_path / "start.pt"
+    torch.save(export_model(start, "deltar-lite"), weights)
+    config = tiny_config(
+        f"model.init_checkpoint={weights}", "data.sources.0.kind=zju_l5",
+        f"data.sources.0.path={data_json.parent}", "data.sources.0.split=train",
+        "data.sources.0.resize=null", "data.sources.0.holdout_fraction=0.34",
+        "trainer.max_epochs=1", "data.sampling=icdf")
+
+    system = build_system(config)
+    for (name, a), b in zip(system.model.state_dict().items(), start.state_dict().values(),
+                            strict=True):
+        torch.testing.assert_close(a, b, msg=name)
+
+    run = train(config, tmp_path / "run")
+    history = read_history(run / "history" / "rank0.jsonl")
+    assert sorted(history) == [1, 2]  # 4 training frames (last 2 held out), batch 2
+    assert sorted(i for r in history.values() for i in r["indices"]) == [0, 1, 2, 3]
+
+
+def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_config):
+    other = create_model("deltar-lite", **{**TINY_MODEL, "n_bins": 8})
+    weights = tmp_path / "other.pt"
+    torch.save(export_model(other, "deltar-lite"), weights)
+    try:
+        build_system(tiny_config(f"model.init_checkpoint={weights}"))
+    except ValueError as err:
+        assert "do not fit the configured model" in str(err)
+    else:
+        raise AssertionError("mismatching weights were accepted")
+
+
+# 8 training frames, batch 2: 4 steps per epoch, 2 epochs (8 steps).
+@pytest.mark.parametrize(("every", "kill_at", "checkpoint_step"), [
+    (3, 4, 3),  # killed in step 5; newest checkpoint: step 3, in the middle of epoch 0
+    (2, 5, 4),  # killed in step 6; newest checkpoint: step 4, the end of epoch 0
+])
+def test_killed_run_resumes_on_the_same_loss_curve(tmp_path, tiny_config, every, kill_at,
+                                                   checkpoint_step):
+    overrides = (f"trainer.checkpoint_every_n_steps={every}",)
+    config = tiny_config(*overrides)
+    reference = train(config, tmp_path / "uninterrupted")
+
+    killed = tmp_path / "killed"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([sys.executable, str(HERE / "killable_run.py"), str(killed),
+                             str(kill_at), *overrides], env=env, capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == -signal.SIGKILL, result.stderr[-2000:]
+    last = torch.load(killed / "checkpoints" / "last.ckpt", weights_only=False)
+    assert last["global_step"] == checkpoint_step and last["epoch"] == 0
+    assert not (killed / "model.pt").exists()
+    before = read_history(killed / "history" / "rank0.jsonl")
+    assert sorted(before) == list(range(1, kill_at + 1))
+
+    train(config, killed, resume=True)
+
+    expected = read_history(reference / "history" / "rank0.jsonl")
+    resumed = read_history(killed / "history" / "rank0.jsonl")  # later lines win
+    assert sorted(resumed) == sorted(expected) == list(range(1, 9))
+    for step in expected:
+        assert resumed[step]["indices"] == expected[step]["indices"], step
+        assert resumed[step]["loss"] == pytest.approx(expected[step]["loss"], rel=1e-5), step
+    final = [json.loads((run / "history" / "rank0_final.json").read_text(encoding="utf-8"))
+             for run in (reference, killed)]
+    assert final[0] == final[1]  # same step, bit-identical parameters
+
+
+def test_two_processes_share_the_data_and_end_with_identical_weights(tmp_path):
+    deltar = shutil.which("deltar")
+    assert deltar, "the deltar console script is not installed"
+    run = tmp_path / "run"
+    # 8 training frames, 2 per batch and process: 2 steps per epoch, 6 epochs. No
+    # augmentation, so each epoch's mean loss is over the very same inputs.
+    command = [
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+        "--no-python", deltar, "train", "--config", str(CONFIG), "--run-dir", str(run),
+        "-o", "trainer.strategy=ddp", "-o", "trainer.devices=2", "-o", "trainer.max_epochs=6",
+        "-o", "trainer.val_every_n_epochs=6", "-o", "optim.lr=2e-3",
+        "-o", "data.image_augmentation.enabled=false",
+        "-o", "data.signal_augmentation.enabled=false",
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=150,
+                            check=False)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+
+    histories = [read_history(run / "history" / f"rank{r}.jsonl") for r in (0, 1)]
+    assert sorted(histories[0]) == sorted(histories[1]) == list(range(1, 13))
+    for epoch in range(6):
+        shards = [sorted(i for rec in h.values() if rec["epoch"] == epoch
+                         for i in rec["indices"]) for h in histories]
+        # Each process saw a different half of the 8 training frames.
+        assert not set(shards[0]) & set(shards[1])
+        assert sorted(shards[0] + shards[1]) == list(range(8))
+
+    finals = [json.loads((run / "history" / f"rank{r}_final.json").read_text(encoding="utf-8"))
+              for r in (0, 1)]
+    assert finals[0] == finals[1]  # same step count and bit-identical parameters
+
+    def epoch_loss(epoch):
+        return np.mean([rec["loss"] for h in histories for rec in h.values()
+                        if rec["epoch"] == epoch])
+
+    assert epoch_loss(5) < 0.9 * epoch_loss(0)
+    assert (run / "model.pt").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
