@@ -272,9 +272,9 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
 
 
 def test_colorization_options_are_checked() -> None:
-    from deltar.evaluation.baselines import check_zone_inputs, complete_colorization
+    from deltar.evaluation.baselines import check_baseline_inputs, complete_colorization
 
-    inputs = check_zone_inputs(np.zeros((16, 16, 3), np.uint8), np.ones(4), np.ones(4, bool),
+    inputs = check_baseline_inputs(np.zeros((16, 16, 3), np.uint8), np.ones(4), np.ones(4, bool),
                                np.array([[0, 0, 8, 8], [0, 8, 8, 16], [8, 0, 16, 8],
                                          [8, 8, 16, 16]], np.float32))
     with pytest.raises(ValueError, match="solve_cells"):

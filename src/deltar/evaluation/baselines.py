@@ -42,8 +42,8 @@ DEFAULT_FALLBACK_DEPTH_M = 2.0
 
 
 @dataclass(frozen=True)
-class ZoneInputs:
-    """Checked baseline inputs.
+class BaselineInputs:
+    """The checked inputs of the classical baselines (:func:`check_baseline_inputs`).
 
     Attributes:
         image: (H, W, 3) uint8 RGB image.
@@ -75,12 +75,12 @@ class ZoneInputs:
         return float(np.median(sizes))
 
 
-def check_zone_inputs(
+def check_baseline_inputs(
     image_rgb: np.ndarray,
     zone_mean_m: np.ndarray,
     zone_valid: np.ndarray,
     zone_rects: np.ndarray,
-) -> ZoneInputs:
+) -> BaselineInputs:
     """Validate and convert the inputs shared by all baselines.
 
     Args:
@@ -90,7 +90,7 @@ def check_zone_inputs(
         zone_rects: (Z, 4) rectangles (y0, x0, y1, x1) in pixels, row-major zone order.
 
     Returns:
-        The checked inputs as a :class:`ZoneInputs`.
+        The checked inputs as a :class:`BaselineInputs`.
 
     Raises:
         ValueError: a shape, dtype or value is wrong (the message names the argument).
@@ -119,10 +119,10 @@ def check_zone_inputs(
     if not np.all(np.isfinite(valid_means)) or np.any(valid_means <= 0):
         raise ValueError("zone_mean_m must be finite and > 0 for every valid zone")
     mean = np.where(valid, mean, 0.0)
-    return ZoneInputs(image, mean, valid, rects, grid)
+    return BaselineInputs(image, mean, valid, rects, grid)
 
 
-def _fallback(inputs: ZoneInputs, fallback_depth_m: float) -> np.ndarray:
+def _fallback(inputs: BaselineInputs, fallback_depth_m: float) -> np.ndarray:
     warnings.warn(f"no valid zone: returning the constant fallback depth "
                   f"{fallback_depth_m} m", RuntimeWarning, stacklevel=3)
     return np.full((inputs.height, inputs.width), fallback_depth_m, dtype=np.float32)
@@ -146,7 +146,7 @@ def _fractional_index(coords: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return index
 
 
-def _filled_grid(inputs: ZoneInputs) -> np.ndarray:
+def _filled_grid(inputs: BaselineInputs) -> np.ndarray:
     """(grid, grid) zone means with each invalid zone set to its nearest valid zone."""
     values = inputs.mean_m.reshape(inputs.grid, inputs.grid)
     invalid = ~inputs.valid.reshape(inputs.grid, inputs.grid)
@@ -157,7 +157,7 @@ def _filled_grid(inputs: ZoneInputs) -> np.ndarray:
     return values[nearest[0], nearest[1]]
 
 
-def _grid_upsample(inputs: ZoneInputs, interpolation: int) -> np.ndarray:
+def _grid_upsample(inputs: BaselineInputs, interpolation: int) -> np.ndarray:
     """Interpolate the filled zone grid at every pixel (OpenCV remap, edges replicated)."""
     grid = inputs.grid
     centres_y = 0.5 * (inputs.rects[:, 0] + inputs.rects[:, 2]).reshape(grid, grid)
@@ -172,7 +172,7 @@ def _grid_upsample(inputs: ZoneInputs, interpolation: int) -> np.ndarray:
     return cv2.remap(source, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 
-def _nearest_zone_map(inputs: ZoneInputs) -> np.ndarray:
+def _nearest_zone_map(inputs: BaselineInputs) -> np.ndarray:
     """Each pixel takes the value of the valid zone whose rectangle holds its centre.
 
     Pixels no valid zone covers take the value of the nearest covered pixel. Where zone
@@ -195,12 +195,12 @@ def _nearest_zone_map(inputs: ZoneInputs) -> np.ndarray:
     return depth
 
 
-def _valid_range(inputs: ZoneInputs) -> tuple[float, float]:
+def _valid_range(inputs: BaselineInputs) -> tuple[float, float]:
     values = inputs.mean_m[inputs.valid]
     return float(values.min()), float(values.max())
 
 
-def upsample_zone_means(inputs: ZoneInputs, method: str = "bilinear") -> np.ndarray:
+def upsample_zone_means(inputs: BaselineInputs, method: str = "bilinear") -> np.ndarray:
     """Super-resolve the zone-mean map to the image size.
 
     Args:
@@ -334,7 +334,7 @@ def joint_bilateral_filter(source: np.ndarray, guide: np.ndarray, radius: int,
     return numerator / denominator
 
 
-def complete_colorization(inputs: ZoneInputs, solve_cells: int = COLORIZATION_SOLVE_CELLS,
+def complete_colorization(inputs: BaselineInputs, solve_cells: int = COLORIZATION_SOLVE_CELLS,
                           seed_side: int = COLORIZATION_SEED_SIDE) -> np.ndarray:
     """The ``colorization`` baseline: :func:`deltar.inference.colorization.colorize_zones`
     of the checked inputs (``solve_cells`` cells, seeds of ``seed_side`` cells), or the
@@ -348,28 +348,28 @@ def complete_colorization(inputs: ZoneInputs, solve_cells: int = COLORIZATION_SO
     return upsample_zone_means(inputs, "nearest") if depth is None else depth
 
 
-def _guide(inputs: ZoneInputs) -> np.ndarray:
+def _guide(inputs: BaselineInputs) -> np.ndarray:
     return inputs.image.astype(np.float32) / 255.0
 
 
-def _nearest(inputs: ZoneInputs) -> np.ndarray:
+def _nearest(inputs: BaselineInputs) -> np.ndarray:
     return upsample_zone_means(inputs, "nearest")
 
 
-def _bilinear(inputs: ZoneInputs) -> np.ndarray:
+def _bilinear(inputs: BaselineInputs) -> np.ndarray:
     return upsample_zone_means(inputs, "bilinear")
 
 
-def _bicubic(inputs: ZoneInputs) -> np.ndarray:
+def _bicubic(inputs: BaselineInputs) -> np.ndarray:
     return upsample_zone_means(inputs, "bicubic")
 
 
-def _median(inputs: ZoneInputs) -> np.ndarray:
+def _median(inputs: BaselineInputs) -> np.ndarray:
     value = float(np.median(inputs.mean_m[inputs.valid]))
     return np.full((inputs.height, inputs.width), value, dtype=np.float32)
 
 
-def _guided(inputs: ZoneInputs) -> np.ndarray:
+def _guided(inputs: BaselineInputs) -> np.ndarray:
     # Window about half a zone: edges move to image edges within half a zone of the
     # zone boundaries, while zone interiors keep their measured mean.
     radius = max(1, round(0.5 * inputs.pitch_px))
@@ -377,7 +377,7 @@ def _guided(inputs: ZoneInputs) -> np.ndarray:
     return np.clip(depth, *_valid_range(inputs)).astype(np.float32)
 
 
-def _joint_bilateral(inputs: ZoneInputs) -> np.ndarray:
+def _joint_bilateral(inputs: BaselineInputs) -> np.ndarray:
     radius = max(1, round(0.5 * inputs.pitch_px))
     step = max(1, radius // 5)  # about 11 x 11 taps whatever the zone size
     depth = joint_bilateral_filter(_nearest(inputs), _guide(inputs), radius,
@@ -385,11 +385,11 @@ def _joint_bilateral(inputs: ZoneInputs) -> np.ndarray:
     return depth.astype(np.float32)
 
 
-def _colorization(inputs: ZoneInputs) -> np.ndarray:
+def _colorization(inputs: BaselineInputs) -> np.ndarray:
     return complete_colorization(inputs)
 
 
-_BASELINE_FUNCTIONS: dict[str, Callable[[ZoneInputs], np.ndarray]] = {
+_BASELINE_FUNCTIONS: dict[str, Callable[[BaselineInputs], np.ndarray]] = {
     "median": _median,
     "nearest": _nearest,
     "bilinear": _bilinear,
@@ -433,7 +433,7 @@ def run_baseline(
         raise ValueError(f"unknown baseline {name!r}; valid names: {', '.join(BASELINES)}")
     if not (math.isfinite(fallback_depth_m) and fallback_depth_m > 0):
         raise ValueError(f"fallback_depth_m must be finite and > 0, got {fallback_depth_m}")
-    inputs = check_zone_inputs(image_rgb, zone_mean_m, zone_valid, zone_rects)
+    inputs = check_baseline_inputs(image_rgb, zone_mean_m, zone_valid, zone_rects)
     if not inputs.valid.any():
         return _fallback(inputs, fallback_depth_m)
     return _BASELINE_FUNCTIONS[name](inputs).astype(np.float32)

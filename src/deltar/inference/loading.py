@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from deltar.models import DeltarNet
 
 #: The kinds of model source :func:`load_estimator` accepts.
-SOURCE_KINDS = ("bundled", "checkpoint", "official", "onnx", "preset")
+MODEL_SOURCE_KINDS = ("bundled", "checkpoint", "official", "onnx", "preset")
 #: The bundled model used when no source is given.
 DEFAULT_MODEL = "default"
 
@@ -50,7 +50,7 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
 
     Args:
         source: a bundled name, a file path or a preset name; None: the bundled default.
-        kind: one of :data:`SOURCE_KINDS`, or None to tell it from ``source``.
+        kind: one of :data:`MODEL_SOURCE_KINDS`, or None to tell it from ``source``.
 
     Returns:
         ``(kind, source)`` with ``source`` as text (a path or a name).
@@ -61,8 +61,8 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
         FileNotFoundError: no bundled model in this installation for ``source=None``, or
             a source that is neither a bundled model, an existing file nor a preset.
     """
-    if kind is not None and kind not in SOURCE_KINDS:
-        raise ValueError(f"kind must be one of {', '.join(SOURCE_KINDS)}, got {kind!r}")
+    if kind is not None and kind not in MODEL_SOURCE_KINDS:
+        raise ValueError(f"kind must be one of {', '.join(MODEL_SOURCE_KINDS)}, got {kind!r}")
     if source is None:
         if kind not in (None, "bundled"):
             raise ValueError(f"kind={kind!r} needs a source (a file or a name)")
@@ -99,7 +99,7 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
     Args:
         source: a bundled model name, a checkpoint / official-weights / ONNX file, or a
             preset name; None: the bundled ``"default"`` model (see the module docstring).
-        kind: one of :data:`SOURCE_KINDS`; None tells it from ``source``.
+        kind: one of :data:`MODEL_SOURCE_KINDS`; None tells it from ``source``.
         device: torch device of the PyTorch backends (``"cpu"``, ``"cuda"``, ...); the
             ONNX backend always runs on the CPU.
         precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backends; ONNX

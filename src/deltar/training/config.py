@@ -16,7 +16,8 @@ import yaml
 
 from deltar.contract import HYPOTHESIS_SAMPLINGS
 
-SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5", "thdr3k")
+#: The kinds of data source a training configuration can read (``data.sources[].kind``).
+DATA_SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5", "thdr3k")
 #: Source kinds with real (recorded) zone readings: no simulated signal.
 ZONE_SET_SOURCE_KINDS: tuple[str, ...] = ("zju_l5", "thdr3k")
 SOURCE_ROLES: tuple[str, ...] = ("train_val", "train", "val")
@@ -79,7 +80,7 @@ class SourceConfig:
     def validate(self, where: str) -> None:
         if self.every < 1:
             raise ValueError(f"{where}.every must be >= 1, got {self.every}")
-        _choice(f"{where}.kind", self.kind, SOURCE_KINDS)
+        _choice(f"{where}.kind", self.kind, DATA_SOURCE_KINDS)
         _choice(f"{where}.role", self.role, SOURCE_ROLES)
         _choice(f"{where}.holdout_position", self.holdout_position, HOLDOUT_POSITIONS)
         if self.kind == "procedural":
