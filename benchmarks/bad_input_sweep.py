@@ -725,23 +725,11 @@ def round2_cases() -> list[Case]:
     tiny = "tiny_test.yaml"
     config = str(Path(__file__).resolve().parents[1] / "configs" / tiny)
 
-    def read(name, *args, **kw):
-        return Case(name, *args, group="reading", **kw)
+    def grouped(group):
+        return lambda name, *args, **kw: Case(name, *args, group=group, **kw)
 
-    def path(name, *args, **kw):
-        return Case(name, *args, group="paths", **kw)
-
-    def apart(name, *args, **kw):
-        return Case(name, *args, group="output-input", **kw)
-
-    def machine(name, *args, **kw):
-        return Case(name, *args, group="machine", **kw)
-
-    def physical(name, *args, **kw):
-        return Case(name, *args, group="physical", **kw)
-
-    def other(name, *args, **kw):
-        return Case(name, *args, group="stems-empty-steps", **kw)
+    read, path, apart, machine, physical, other = (grouped(group) for group in (
+        "reading", "paths", "output-input", "machine", "physical", "stems-empty-steps"))
 
     return [
         read("r2-zones-npz-10-bytes", lite_predict(zones="r2_trunc10.npz"),
