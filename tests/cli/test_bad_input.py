@@ -692,3 +692,16 @@ def test_simulated_set_without_any_valid_zone_is_said(tmp_path):
         "warning: 2 of 2 frames have no valid zone (the scene lies beyond the sensor's range, "
         "or returns no signal): depth from them has no metric anchor, and methods that need "
         "zones cannot use them; the set holds no zone reading at all")
+
+
+@pytest.mark.parametrize("option, path, line", [
+    ("--official", "{tmp}", "error: official weights {tmp} is a folder, not a file"),
+    ("--onnx", "/dev/null", "error: ONNX model /dev/null is not a regular file (a device, "
+     "pipe or socket)"),
+    ("--checkpoint", "{tmp}", "error: checkpoint {tmp} is a folder, not a file"),
+])
+def test_model_paths_told_apart(inputs, tmp_path, option, path, line):
+    result = _run(["predict", "--image", inputs / "a.png", "--zones", inputs / "a.json",
+                   "--out", tmp_path / "o", option, path.format(tmp=tmp_path)])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == line.format(tmp=tmp_path)

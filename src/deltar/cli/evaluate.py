@@ -115,7 +115,7 @@ def evaluate(
         raise typer.BadParameter(str(err), param_hint="--method") from err
     try:
         dataset = open_zone_set(data, split=split)
-    except (FileNotFoundError, ValueError) as err:
+    except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
     if len(dataset) == 0:
         raise typer.BadParameter(f"split {split!r} of {data} lists no frames",
@@ -135,7 +135,7 @@ def evaluate(
                                   "--overwrite to replace them or choose another folder")
     try:
         predictors = {name: create_predictor(name) for name in names}
-    except (FileNotFoundError, ValueError) as err:
+    except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--checkpoint/--official") from err
     total = len(dataset) if limit is None else min(limit, len(dataset))
 

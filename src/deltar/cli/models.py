@@ -51,7 +51,7 @@ def check_official_command(
     _resource_option(check_threads, threads, "--threads")
     try:
         results = check_official_fixture(fixture, threads=threads)
-    except (FileNotFoundError, ValueError) as error:
+    except (OSError, ValueError) as error:
         raise typer.BadParameter(str(error)) from None
     table = Table(title=escape(f"deltar-official vs release outputs ({fixture.name})"))
     table.add_column("case")

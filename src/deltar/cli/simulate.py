@@ -127,7 +127,7 @@ def simulate_command(
             height, width = source[0].depth_m.shape
             source = open_source(src, depth_scale=depth_scale, split=split,
                                  intrinsics=_parse_intrinsics(intrinsics, height, width))
-    except (FileNotFoundError, ValueError) as err:
+    except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="SRC") from err
     indices = list(range(len(source)))[start:stop:step][:limit]
     if not indices:

@@ -35,7 +35,7 @@ def train_command(
         raise typer.BadParameter("give --config FILE (or --resume RUN_DIR)")
     try:
         cfg = load_config(config, override or ())
-    except (FileNotFoundError, ValueError) as err:
+    except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err)) from err
     if print_config:
         typer.echo(cfg.to_yaml())
@@ -108,7 +108,7 @@ def fit_uncertainty_command(
     output_file(out, "--out", overwrite)
     try:
         sets = [open_zone_set(path) for path in data]
-    except (FileNotFoundError, ValueError) as err:
+    except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
     total = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
                 for s in sets)

@@ -30,6 +30,7 @@ from deltar.data.rgbd_files import (
     read_depth,
     read_intrinsics_matrix,
 )
+from deltar.io.input_file import input_folder
 
 #: Name of the optional per-folder settings file read by :func:`open_rgbd`.
 SIDECAR_NAME = "deltar_rgbd.json"
@@ -162,8 +163,7 @@ class SevenScenesReader(RGBDReader):
     def __init__(self, folder: str | Path, depth_scale: float = 1000.0,
                  intrinsics: CameraIntrinsics | None = None) -> None:
         root = Path(folder)
-        if not root.is_dir():
-            raise FileNotFoundError(f"7-Scenes folder not found: {root}")
+        input_folder(root, "7-Scenes folder")
         pairs = []
         for path in sorted(root.iterdir()):
             match = _SEVEN_SCENES_COLOR.match(path.name)
@@ -259,8 +259,7 @@ class TUMReader(RGBDReader):
                  intrinsics: CameraIntrinsics | None = None,
                  associations: str = "associations.txt") -> None:
         root = Path(folder)
-        if not root.is_dir():
-            raise FileNotFoundError(f"TUM folder not found: {root}")
+        input_folder(root, "TUM folder")
         rows = _tum_rows(root, associations)
         pairs = [(Path(rgb).stem, root / rgb, root / depth, t_rgb)
                  for t_rgb, rgb, _t_depth, depth in rows]
@@ -303,8 +302,7 @@ class FolderReader(RGBDReader):
         root = Path(folder)
         color_root, depth_root = root / color_dir, root / depth_dir
         for sub in (color_root, depth_root):
-            if not sub.is_dir():
-                raise FileNotFoundError(f"image folder not found: {sub}")
+            input_folder(sub, "image folder")
         colors = _stem_map(color_root, _IMAGE_SUFFIXES)
         depths = _stem_map(depth_root, _DEPTH_SUFFIXES)
         pairs = [(stem, colors[stem], depths[stem], None) for stem in colors if stem in depths]
@@ -327,8 +325,7 @@ def detect_layout(folder: str | Path) -> str:
         ValueError: no known layout matches.
     """
     root = Path(folder)
-    if not root.is_dir():
-        raise FileNotFoundError(f"RGB-D folder not found: {root}")
+    input_folder(root, "RGB-D folder")
     if any(_SEVEN_SCENES_COLOR.match(p.name) for p in root.iterdir()):
         return "7scenes"
     if (root / "associations.txt").is_file() or (
@@ -382,8 +379,7 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
         A reader: a sequence of :class:`RGBDFrame`.
     """
     root = Path(path)
-    if not root.is_dir():
-        raise FileNotFoundError(f"RGB-D folder not found: {root}")
+    input_folder(root, "RGB-D folder")
     sidecar = _read_sidecar(root)
     layout = layout or sidecar.get("layout") or detect_layout(root)
     if layout not in LAYOUTS:

@@ -116,8 +116,7 @@ def read_intrinsics_matrix(path: str | Path, height: int, width: int) -> CameraI
         ValueError: it does not hold a valid 3x3 pinhole matrix.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"intrinsics file not found: {path}")
+    input_file(path, "intrinsics file")
     try:
         k = np.loadtxt(path, dtype=np.float64)
     except ValueError as err:

@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from deltar.io.input_file import input_file, input_folder
+
 if TYPE_CHECKING:
     from deltar.inference.estimator import DepthEstimator
 
@@ -137,8 +139,7 @@ def quantize_onnx(float_path: str | os.PathLike, out_path: str | os.PathLike,
     from deltar.io.atomic import atomic_path
 
     float_path, out_path = Path(float_path), Path(out_path)
-    if not float_path.is_file():
-        raise FileNotFoundError(f"ONNX model not found: {float_path}")
+    input_file(float_path, "ONNX model")
     if out_path.resolve() == float_path.resolve():
         raise ValueError(f"out_path must differ from the float model {float_path}")
     if out_path.exists() and not overwrite:
@@ -211,8 +212,7 @@ def export_int8(model, path: str | os.PathLike, height: int, width: int,
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"refusing to overwrite existing file: {path}")
-    if not Path(calibration).is_dir():
-        raise FileNotFoundError(f"calibration RGB-D folder not found: {calibration}")
+    input_folder(calibration, "calibration RGB-D folder")
     with tempfile.TemporaryDirectory(prefix="deltar-int8-") as folder:
         float_path = Path(folder) / "float32.onnx"
         export_onnx(model, float_path, height, width, zone_rects=zone_rects,

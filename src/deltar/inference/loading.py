@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 from deltar.inference.checks import check_backend_options
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import check_input_size
+from deltar.io.input_file import input_file
 from deltar.io.resources import check_threads
 from deltar.weights import BUNDLED_MODELS, bundled_model_names, resolve_checkpoint
 
@@ -167,8 +168,7 @@ def _official_model(path: Path) -> DeltarNet:
     """
     from deltar.models import create_model, load_official_weights
 
-    if not path.is_file():
-        raise FileNotFoundError(f"official weights not found: {path}")
+    input_file(path, "official weights")
     model = create_model("deltar-official")
     try:
         report = load_official_weights(model, path)

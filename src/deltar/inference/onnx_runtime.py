@@ -21,6 +21,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from deltar.io.input_file import input_file
+
 if TYPE_CHECKING:
     import torch
 
@@ -89,8 +91,7 @@ class OnnxDepthModel:
         import onnxruntime as ort
 
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model not found: {path}")
+        input_file(path, "ONNX model")
         options = ort.SessionOptions()
         if num_threads:
             options.intra_op_num_threads = int(num_threads)

