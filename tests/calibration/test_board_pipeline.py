@@ -22,6 +22,8 @@ SPEC = parse_board_spec("charuco:5x4:0.06:0.045:DICT_4X4_50")
 TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [91.5, 2.0, -1.5], degrees=True).as_matrix(),
                         np.array([0.04, -0.02, 0.01]))
 NOMINAL = nominal_extrinsics(90.0)
+#: The guide's views: tilted 25-45 deg.
+STEEP = {"tilt_deg": 45.0, "min_tilt_deg": 25.0}
 
 
 def _errors(found: SensorExtrinsics) -> tuple[float, float]:
@@ -68,7 +70,7 @@ def test_small_rig_calibrates(small_recording):
 def test_steeper_views_are_expected_to_be_better(tmp_path):
     """The same rig with views tilted 25-45 deg: a smaller expected error, no warning."""
     write_board_recording(tmp_path / "rec", TRUE, SMALL, SPEC,
-                          _poses(12, tilt_deg=45.0, min_tilt_deg=25.0), mean_noise_m=0.01,
+                          _poses(12, **STEEP), mean_noise_m=0.01,
                           seed=0)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -150,10 +152,12 @@ def test_time_offset_is_estimated_and_used_for_pairing(tmp_path):
 
 @pytest.mark.slow
 def test_vga_rig_meets_the_accuracy_target(tmp_path):
-    """The issue's target: 2 cm zone noise, 16 views, a roll-90 / zero-translation guess."""
+    """The issue's target: 2 cm zone noise, 15 views tilted 25-45 deg as the guide asks, a
+    roll-90 / zero-translation guess (one seed; benchmarks/RESULTS.md has ten)."""
     camera = CameraIntrinsics(500.0, 505.0, 322.0, 238.0, 640, 480)
     spec = parse_board_spec("charuco:7x5:0.04:0.03:DICT_5X5_100")
-    write_board_recording(tmp_path / "rec", TRUE, camera, spec, _poses(16, seed=0), seed=0)
+    write_board_recording(tmp_path / "rec", TRUE, camera, spec, _poses(15, seed=0, **STEEP),
+                          seed=0)
     result, _ = calibrate_recording_with_board(Recording(tmp_path / "rec"), spec, NOMINAL)
     angle, shift = _errors(result.calibration.extrinsics)
     assert angle < 0.5 and shift < 0.010
@@ -164,7 +168,7 @@ def test_intrinsics_from_8_percent_off(tmp_path):
     camera = CameraIntrinsics(500.0, 505.0, 322.0, 238.0, 640, 480)
     rough = CameraIntrinsics(540.0, 465.0, 330.0, 230.0, 640, 480)
     spec = parse_board_spec("charuco:7x5:0.04:0.03:DICT_5X5_100")
-    write_board_recording(tmp_path / "rec", TRUE, camera, spec, _poses(20, seed=2),
+    write_board_recording(tmp_path / "rec", TRUE, camera, spec, _poses(20, seed=2, **STEEP),
                           recorded_intrinsics=rough, distortion=(-0.12, 0.05, 0.001, -0.001),
                           seed=2)
     result, report = calibrate_recording_with_board(Recording(tmp_path / "rec"), spec, NOMINAL,
