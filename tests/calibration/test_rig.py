@@ -151,3 +151,17 @@ def test_a_rig_with_zones_partly_outside_loads_with_a_warning(tmp_path):
     with pytest.warns(UserWarning, match=rf"c\.json: only {inside} of 64 zones fall inside "
                       r"the 640x480 image \(at 2 m\); the others carry no information"):
         RigCalibration.load(path)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"fov_deg": ("45", "45")}, "RigCalibration.fov_deg must be a number, got '45'"),
+    ({"time_offset_s": "0.1"}, "RigCalibration.time_offset_s must be a number, got '0.1'"),
+    ({"distortion": (True, 0, 0, 0)}, "RigCalibration.distortion must be a number, got True"),
+    ({"grid": True}, "RigCalibration.grid must be 4 or 8 and sensor_model a string"),
+], ids=["fov-strings", "offset-string", "distortion-bool", "grid-bool"])
+def test_api_values_are_refused_not_coerced(kwargs, message):
+    with pytest.raises(ValueError) as caught:
+        RigCalibration(CAMERA, SensorExtrinsics(), **kwargs)
+    assert message in str(caught.value)
+    with pytest.raises(ValueError, match=r"SensorExtrinsics\.translation_m must hold numbers"):
+        SensorExtrinsics(np.eye(3), ["0.1", "0", "0"])

@@ -222,3 +222,16 @@ def test_driver_status_codes_are_refused_not_truncated_and_wide_sigmas_invalid()
     assert frame.valid_count == 63
     frame = ZoneFrame.from_driver([1500] * 64, [20] * 64, [255] * 64, valid_status=(255,))
     assert frame.valid_count == 0  # "no target" is never a reading
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"timestamp_s": "12.5"}, "ZoneFrame.timestamp_s must be a finite number of seconds, got "
+     "'12.5'"),
+    ({"timestamp_s": True}, "ZoneFrame.timestamp_s must be a finite number of seconds, got "
+     "True"),
+    ({"sensor_model": 5}, "ZoneFrame.sensor_model must be a string, got 5"),
+], ids=["timestamp-string", "timestamp-bool", "sensor-model-number"])
+def test_scalar_fields_are_refused_not_coerced(changes, message):
+    with pytest.raises(ValueError) as caught:
+        ZoneFrame(**_base(**changes))
+    assert message in str(caught.value)

@@ -77,19 +77,28 @@ class RigCalibration:
     time_offset_s: float = 0.0
 
     def __post_init__(self) -> None:
-        distortion = tuple(float(v) for v in self.distortion)
+        if not isinstance(self.intrinsics, CameraIntrinsics) or not isinstance(
+                self.extrinsics, SensorExtrinsics):
+            raise ValueError("RigCalibration needs CameraIntrinsics and SensorExtrinsics, got "
+                             f"{type(self.intrinsics).__name__} and "
+                             f"{type(self.extrinsics).__name__}")
+        if isinstance(self.grid, bool) or not isinstance(self.sensor_model, str):
+            raise ValueError(f"RigCalibration.grid must be 4 or 8 and sensor_model a string, "
+                             f"got {self.grid!r} and {self.sensor_model!r}")
+        distortion = tuple(strict_number(v, "RigCalibration.distortion")
+                           for v in self.distortion)
         if len(distortion) not in (0, 4, 5, 8, 12, 14) or not all(map(math.isfinite,
                                                                       distortion)):
             raise ValueError("RigCalibration.distortion must be 0, 4, 5, 8, 12 or 14 finite "
                              f"OpenCV coefficients, got {self.distortion}")
         object.__setattr__(self, "distortion", distortion)
-        if not math.isfinite(float(self.time_offset_s)):
+        if not math.isfinite(strict_number(self.time_offset_s, "RigCalibration.time_offset_s")):
             raise ValueError(f"RigCalibration.time_offset_s must be finite, got "
                              f"{self.time_offset_s}")
         object.__setattr__(self, "time_offset_s", float(self.time_offset_s))
         if self.grid not in (4, 8):
             raise ValueError(f"RigCalibration.grid must be 4 or 8, got {self.grid}")
-        fov = tuple(float(f) for f in self.fov_deg)
+        fov = tuple(strict_number(f, "RigCalibration.fov_deg") for f in self.fov_deg)
         if len(fov) != 2 or not all(0 < f < 180 for f in fov):
             raise ValueError(f"RigCalibration.fov_deg must be two angles in (0, 180), "
                              f"got {self.fov_deg}")

@@ -21,6 +21,7 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
+from deltar.io.input_file import input_file
 from deltar.io.json_file import read_split_filenames
 
 #: NYU-Depth V2 colour camera at 480x640 (fx, fy, cx, cy from the dataset's toolbox).
@@ -43,8 +44,7 @@ def _check_intrinsics(intrinsics: CameraIntrinsics, shape: tuple[int, int],
 
 
 def _open_h5(path: Path, what: str) -> h5py.File:
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} not found: {path}")
+    input_file(path, what)
     try:
         return h5py.File(path, "r")
     except OSError as err:

@@ -32,6 +32,11 @@ class SensorExtrinsics:
     translation_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
+        for name in ("rotation", "translation_m"):
+            kind = np.asarray(getattr(self, name)).dtype.kind
+            if kind not in "iuf":
+                raise ValueError(f"SensorExtrinsics.{name} must hold numbers, got values of "
+                                 f"kind {kind!r} (strings, booleans or objects)")
         rot = np.asarray(self.rotation, dtype=np.float64)
         trans = np.asarray(self.translation_m, dtype=np.float64).reshape(-1)
         if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):

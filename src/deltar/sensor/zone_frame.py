@@ -204,8 +204,15 @@ class ZoneFrame:
                                  f"got {self.hist_counts.shape}")
             if not np.all(np.isfinite(self.hist_counts)) or np.any(self.hist_counts < 0):
                 raise ValueError("ZoneFrame.hist_counts must be finite and >= 0")
-        if self.timestamp_s is not None and not math.isfinite(float(self.timestamp_s)):
-            raise ValueError(f"ZoneFrame.timestamp_s must be finite, got {self.timestamp_s}")
+        if self.timestamp_s is not None and (
+                isinstance(self.timestamp_s, (bool, np.bool_))
+                or not isinstance(self.timestamp_s, (int, float, np.integer, np.floating))
+                or not math.isfinite(float(self.timestamp_s))):
+            raise ValueError(f"ZoneFrame.timestamp_s must be a finite number of seconds, got "
+                             f"{self.timestamp_s!r}")
+        if not isinstance(self.sensor_model, str):
+            raise ValueError(f"ZoneFrame.sensor_model must be a string, got "
+                             f"{self.sensor_model!r}")
 
     # ------------------------------------------------------------------ views
     def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
