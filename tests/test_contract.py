@@ -1,11 +1,13 @@
-"""The input contract's constants agree with the network and the sampler that use them."""
+"""The input contract: its constants agree with the network and the sampler that use them;
+the one image normaliser is the release's formula."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from deltar.contract import HYPOTHESIS_SAMPLINGS, SIZE_DIVISOR
+from deltar.contract import HYPOTHESIS_SAMPLINGS, SIZE_DIVISOR, normalise_image
 
 
 def test_the_size_divisor_is_the_encoders_coarsest_stride():
@@ -29,3 +31,15 @@ def test_an_unknown_sampling_name_is_refused():
     with pytest.raises(ValueError, match="icdf"):
         sample_hypotheses(torch.ones(1), torch.ones(1), torch.ones(1, dtype=torch.bool), 4,
                           "normal")
+
+
+def test_normalisation_is_the_release_formula(parity_fixture):
+    """Bit for bit the release's float32 formula, on a uint8 image and on the same image
+    in [0, 1] (as training hands it over after augmentation)."""
+    image = parity_fixture["cases"][0]["image_rgb_uint8"]
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    expected = (image.permute(2, 0, 1)[None].float() / 255.0 - mean) / std
+    assert torch.equal(torch.from_numpy(normalise_image(image.numpy()))[None], expected)
+    as_float = image.numpy().astype(np.float32) / np.float32(255.0)
+    assert torch.equal(torch.from_numpy(normalise_image(as_float))[None], expected)

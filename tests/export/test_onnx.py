@@ -127,8 +127,9 @@ def test_official_export_reproduces_the_release_outputs(tmp_path, parity_fixture
     matches the release's own outputs on the case's inputs (calibrated rectangles running
     past the image); the two other cases have other layout signatures, which the exported
     model must refuse."""
+    from deltar.contract import normalise_image
     from deltar.models import load_official_weights
-    from deltar.models.benchmark import EDGE_TOLERANCE_M, normalise_image
+    from deltar.models.benchmark import EDGE_TOLERANCE_M
 
     torch.set_num_threads(2)
     model = create_model("deltar-official")
@@ -137,7 +138,8 @@ def test_official_export_reproduces_the_release_outputs(tmp_path, parity_fixture
     case = parity_fixture["cases"][0]
     rects = case["zone_rects_yxyx"].float().numpy()
     path = export_onnx(model, tmp_path / "official.onnx", 480, 640, zone_rects=rects)
-    inputs = (normalise_image(case["image_rgb_uint8"]), case["zone_samples_icdf16"][None].float(),
+    image = torch.from_numpy(normalise_image(case["image_rgb_uint8"].numpy()))[None]
+    inputs = (image, case["zone_samples_icdf16"][None].float(),
               torch.from_numpy(rects)[None], case["zone_valid"][None].bool())
     runner = OnnxDepthModel(path, num_threads=2)
     got = runner.run(*(t.numpy() for t in inputs))

@@ -159,3 +159,17 @@ def test_resize_to_image_is_torch_bilinear(size):
     double = resize_to_image(maps.double(), size)
     assert double.dtype == torch.float64
     np.testing.assert_allclose(got.numpy(), double.numpy(), rtol=5e-5)
+
+
+@pytest.mark.parametrize(("mean", "std"), [(None, None), ((0.5, 0.5, 0.5), (0.5, 0.5, 0.5))])
+def test_normalise_images_is_the_contracts_normaliser_at_the_network_size(rng, mean, std):
+    """The batched, resizing form agrees with the one normaliser (deltar.contract)."""
+    from deltar.contract import IMAGENET_MEAN, IMAGENET_STD, normalise_image
+    from deltar.inference.preprocess import normalise_images
+
+    images = [rng.integers(0, 256, (32, 64, 3), dtype=np.uint8) for _ in range(2)]
+    out = normalise_images(images, (32, 64), mean, std)
+    assert out.shape == (2, 3, 32, 64) and out.dtype == np.float32
+    for got, image in zip(out, images, strict=True):
+        expected = normalise_image(image, mean or IMAGENET_MEAN, std or IMAGENET_STD)
+        np.testing.assert_allclose(got, expected, atol=1e-5)

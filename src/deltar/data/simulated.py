@@ -17,9 +17,9 @@ import torch
 from torch.utils.data import Dataset
 
 from deltar.camera import CameraIntrinsics
-from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD, normalise_image
 from deltar.data.rgbd import RGBDFrame
-from deltar.data.transforms import ImageAugmentation, normalize_image
+from deltar.data.transforms import ImageAugmentation
 from deltar.sensor.augment import SignalAugmentation, training_zone_rects
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, mirror_zone_rects, zone_rects
 from deltar.sensor.sampling import sample_hypotheses
@@ -201,7 +201,7 @@ class SimulatedL5Dataset(Dataset):
         hypotheses = sample_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
         image_rgb = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return {
-            "image": torch.from_numpy(normalize_image(image, self.image_mean, self.image_std)),
+            "image": torch.from_numpy(normalise_image(image, self.image_mean, self.image_std)),
             "image_rgb": torch.from_numpy(image_rgb),
             "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
             "zone_mean_sigma": torch.stack([mean, sigma], dim=-1).to(torch.float32),

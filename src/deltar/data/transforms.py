@@ -14,7 +14,6 @@ import cv2
 import numpy as np
 
 from deltar.camera import CameraIntrinsics
-from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 
 
 @dataclass
@@ -142,14 +141,3 @@ def flip_intrinsics(intrinsics: CameraIntrinsics) -> CameraIntrinsics:
     """Intrinsics of the left-right mirrored image (pixel centres at integers)."""
     return CameraIntrinsics(intrinsics.fx, intrinsics.fy, intrinsics.width - 1 - intrinsics.cx,
                             intrinsics.cy, intrinsics.width, intrinsics.height)
-
-
-def normalize_image(image: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> np.ndarray:
-    """(H, W, 3) RGB in [0, 1] -> (3, H, W) float32 ``(image - mean) / std``.
-
-    ``mean`` and ``std`` are per RGB channel, the network's input contract
-    (``model.config["image_mean"]`` / ``["image_std"]``); ImageNet's by default.
-    """
-    mean = np.asarray(mean, dtype=np.float32)
-    std = np.asarray(std, dtype=np.float32)
-    return ((image - mean) / std).transpose(2, 0, 1).astype(np.float32)

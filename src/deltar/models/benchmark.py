@@ -16,9 +16,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
+from deltar.contract import normalise_image
 from deltar.io.torch_file import read_torch_file
 from deltar.models.official import load_official_weights
 from deltar.models.optimize import prepare_for_inference
@@ -27,16 +28,6 @@ from deltar.models.presets import create_model
 #: Tolerances of the official parity check, metres.
 DEPTH_TOLERANCE_M = 1e-3
 EDGE_TOLERANCE_M = 1e-4
-
-
-def normalise_image(image_rgb_uint8: torch.Tensor) -> torch.Tensor:
-    """(H, W, 3) uint8 RGB -> (1, 3, H, W) float32 ImageNet-normalised network input."""
-    if image_rgb_uint8.ndim != 3 or image_rgb_uint8.shape[-1] != 3:
-        raise ValueError(f"image must be (H, W, 3), got {tuple(image_rgb_uint8.shape)}")
-    image = image_rgb_uint8.permute(2, 0, 1)[None].to(torch.float32) / 255.0
-    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
-    return (image - mean) / std
 
 
 def _status_mb(field: str) -> float | None:
@@ -315,7 +306,7 @@ def _compare_cases(model, cases, path: Path) -> list[ParityResult]:
             raise ValueError(f"{path}: case {index} lacks {missing}")
         with torch.inference_mode():
             out = model(
-                normalise_image(torch.as_tensor(case["image_rgb_uint8"])),
+                torch.from_numpy(normalise_image(np.asarray(case["image_rgb_uint8"])))[None],
                 torch.as_tensor(case["zone_samples_icdf16"]).float()[None],
                 torch.as_tensor(case["zone_rects_yxyx"]).float()[None],
                 torch.as_tensor(case["zone_valid"]).bool()[None],

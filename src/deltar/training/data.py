@@ -24,13 +24,9 @@ import torch
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
 from deltar.camera import CameraIntrinsics
-from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD, normalise_image
 from deltar.data.rgbd import RGBDFrame
-from deltar.data.transforms import (
-    ImageAugmentation,
-    flip_intrinsics,
-    normalize_image,
-)
+from deltar.data.transforms import ImageAugmentation, flip_intrinsics
 from deltar.data.zone_sets import open_zone_set
 from deltar.sensor.augment import SignalAugmentation
 from deltar.sensor.geometry import mirror_zone_rects
@@ -221,7 +217,7 @@ class ZJUL5TrainingDataset(Dataset):
         intrinsics = ([intr.fx, intr.fy, intr.cx, intr.cy] if intr is not None
                       else [float("nan")] * 4)
         return {
-            "image": torch.from_numpy(normalize_image(np.ascontiguousarray(image),
+            "image": torch.from_numpy(normalise_image(np.ascontiguousarray(image),
                                                       self.image_mean, self.image_std)),
             "image_rgb": torch.from_numpy(np.ascontiguousarray(
                 np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8))),
