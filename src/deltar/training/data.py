@@ -1,7 +1,7 @@
 """Training data: datasets from a :class:`DataConfig`, hold-out splits, resumable loading.
 
 Every item is a dict of tensors with the keys of
-:class:`deltar.data.simulated.SimulatedL5Dataset` plus ``index`` (the item's position in
+:class:`deltar.training.datasets.SimulatedL5Dataset` plus ``index`` (the item's position in
 the concatenated dataset, recorded so that data sharding can be audited).
 
 Loading is deterministic and resumable: :class:`ShardedSampler` draws the order of epoch
@@ -21,17 +21,16 @@ import cv2
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler
 
 from deltar.camera import CameraIntrinsics
-from deltar.contract import IMAGENET_MEAN, IMAGENET_STD, normalise_image
+from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 from deltar.data.rgbd import RGBDFrame
-from deltar.data.transforms import ImageAugmentation, flip_intrinsics
+from deltar.data.transforms import ImageAugmentation
 from deltar.data.zone_sets import open_zone_set
 from deltar.sensor.augment import SignalAugmentation
-from deltar.sensor.geometry import mirror_zone_rects
-from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
 from deltar.training.config import ZONE_SET_SOURCE_KINDS, DataConfig, SourceConfig
+from deltar.training.datasets import IndexedConcat, SimulatedL5Dataset, ZJUL5TrainingDataset
 
 
 # ---------------------------------------------------------------------- readers
@@ -151,104 +150,6 @@ def _native_size(source: SourceConfig) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------------- datasets
-class ZJUL5TrainingDataset(Dataset):
-    """Real-zone ZJU-L5 samples as training items (for fine-tuning and validation).
-
-    Hypotheses are sampled from each zone's histogram when the samples carry one
-    (histogram sensors, e.g. THDR3K), else from its measured mean and sigma. The only
-    augmentation is an optional horizontal flip (zone rectangles and their order are
-    mirrored with the image).
-
-    Args:
-        samples: a :class:`~deltar.data.zju_l5.ZJUL5Dataset` or any sequence of samples.
-        num_hypotheses: K per zone.
-        sampling: ``icdf`` or ``uniform``.
-        flip_prob: probability of a horizontal flip.
-        seed: base seed; item ``i`` of epoch ``e`` draws from ``(seed, e, i)``.
-        image_mean, image_std: per-channel image normalisation (the network's contract).
-    """
-
-    def __init__(self, samples: Sequence, num_hypotheses: int = 16, sampling: str = "icdf",
-                 flip_prob: float = 0.0, seed: int = 0,
-                 image_mean: Sequence[float] = IMAGENET_MEAN,
-                 image_std: Sequence[float] = IMAGENET_STD) -> None:
-        self.samples, self.num_hypotheses, self.sampling = samples, num_hypotheses, sampling
-        self.flip_prob, self.seed, self.epoch = flip_prob, int(seed), 0
-        self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
-
-    def set_epoch(self, epoch: int) -> None:
-        """Select the epoch whose random draws ``__getitem__`` reproduces."""
-        self.epoch = int(epoch)
-
-    def __len__(self) -> int:
-        return len(self.samples)
-
-    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        sample = self.samples[index]
-        rng = np.random.default_rng((self.seed, self.epoch, index))
-        image = sample.rgb.astype(np.float32) / 255.0
-        depth, rects = sample.depth_m, sample.zone_rects.copy()
-        mean_sigma, valid = sample.zone_mean_sigma.copy(), sample.zone_valid.copy()
-        no_target = (np.zeros_like(valid) if sample.zone_no_target is None
-                     else sample.zone_no_target.copy())
-        counts = sample.hist_counts
-        intr = sample.intrinsics
-        if rng.random() < self.flip_prob:
-            width = image.shape[1]
-            image, depth = image[:, ::-1], depth[:, ::-1]
-            # Mirroring reverses each zone row, so per-zone data are reordered the same way.
-            order = np.arange(len(valid)).reshape(sample.grid, sample.grid)[:, ::-1].ravel()
-            rects = mirror_zone_rects(rects, width, sample.grid)
-            mean_sigma, valid, no_target = mean_sigma[order], valid[order], no_target[order]
-            counts = None if counts is None else counts[order]
-            if intr is not None:
-                intr = flip_intrinsics(intr)
-        mean_sigma = np.where(valid[:, None], mean_sigma, 0.0).astype(np.float32)
-        mean = torch.from_numpy(mean_sigma[:, 0].copy())
-        sigma = torch.from_numpy(mean_sigma[:, 1].copy())
-        valid_t = torch.from_numpy(valid)
-        if counts is not None:
-            hypotheses = sample_hypotheses_from_histogram(
-                torch.from_numpy(sample.hist_edges_m), torch.from_numpy(counts.copy()),
-                valid_t, self.num_hypotheses)
-        else:
-            hypotheses = sample_hypotheses(mean, sigma, valid_t, self.num_hypotheses,
-                                           self.sampling)
-        intrinsics = ([intr.fx, intr.fy, intr.cx, intr.cy] if intr is not None
-                      else [float("nan")] * 4)
-        return {
-            "image": torch.from_numpy(normalise_image(np.ascontiguousarray(image),
-                                                      self.image_mean, self.image_std)),
-            "image_rgb": torch.from_numpy(np.ascontiguousarray(
-                np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8))),
-            "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
-            "zone_mean_sigma": torch.from_numpy(mean_sigma),
-            "zone_valid": valid_t,
-            "zone_no_target": torch.from_numpy(np.ascontiguousarray(no_target)),
-            "zone_rects": torch.from_numpy(rects.astype(np.float32)),
-            "hypotheses": hypotheses.to(torch.float32),
-            "intrinsics": torch.tensor(intrinsics, dtype=torch.float32),
-        }
-
-
-class IndexedConcat(ConcatDataset):
-    """Concatenated datasets whose items also carry their global ``index``.
-
-    ``set_epoch`` is forwarded to every part that has it.
-    """
-
-    def set_epoch(self, epoch: int) -> None:
-        """Forward the epoch to every dataset that draws per-epoch randomness."""
-        for dataset in self.datasets:
-            if hasattr(dataset, "set_epoch"):
-                dataset.set_epoch(epoch)
-
-    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        item = dict(super().__getitem__(index))
-        item["index"] = torch.tensor(int(index), dtype=torch.int64)
-        return item
-
-
 def build_datasets(config: DataConfig, seed: int = 0,
                    image_mean: Sequence[float] = IMAGENET_MEAN,
                    image_std: Sequence[float] = IMAGENET_STD,
@@ -273,8 +174,6 @@ def build_datasets(config: DataConfig, seed: int = 0,
         FileNotFoundError: a source path does not exist.
         ValueError: a source is empty or too small to split.
     """
-    from deltar.data.simulated import SimulatedL5Dataset
-
     image_aug = None
     if config.image_augmentation.enabled:
         aug = config.image_augmentation

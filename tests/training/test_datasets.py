@@ -1,4 +1,5 @@
-"""SimulatedL5Dataset: item contract, simulated values, seeding, augmentation geometry."""
+"""The training Datasets: SimulatedL5Dataset (item contract, simulated values, seeding,
+augmentation geometry) and ZJUL5TrainingDataset (measured zones, flips)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,10 @@ import torch
 from deltar.camera import CameraIntrinsics
 from deltar.data.procedural import ProceduralReader
 from deltar.data.rgbd import RGBDFrame, open_rgbd
-from deltar.data.simulated import SimulatedL5Dataset
 from deltar.data.transforms import ImageAugmentation
+from deltar.data.zju_l5 import ZJUL5Dataset, ZJUL5Sample, write_zju_l5
 from deltar.sensor.augment import SignalAugmentation
+from deltar.training.datasets import SimulatedL5Dataset, ZJUL5TrainingDataset
 
 NO_JITTER = dict(max_rotation_deg=0.0, photometric_prob=0.0)
 
@@ -204,7 +206,7 @@ def test_depth_scale_augmentation_scales_ground_truth_and_zones_together():
 
 
 def test_layout_jitter_moves_the_rectangles_not_the_readings():
-    from deltar.data.simulated import perturb_layout
+    from deltar.training.datasets import perturb_layout
 
     reader = _ListReader([_frame(_two_plane_depth())])
     plain = SimulatedL5Dataset(reader, grid=4, fov_deg=(60.0, 45.0))[0]
@@ -235,3 +237,55 @@ def test_normalisation_follows_the_given_contract():
     torch.testing.assert_close(half["image"][:, 10, 20].double(), (rgb - 0.5) / 0.5, atol=3e-3,
                                rtol=0)
     assert not torch.allclose(half["image"], imagenet["image"])
+
+
+def _zju_set(tmp_path, rng):
+    grid, height, width = 4, 32, 48
+    rects = np.array([[r * 8, c * 12, r * 8 + 8, c * 12 + 12] for r in range(grid)
+                      for c in range(grid)], dtype=np.float32)
+    mean = rng.uniform(0.5, 3.0, 16).astype(np.float32)
+    sigma = rng.uniform(0.01, 0.1, 16).astype(np.float32)
+    valid = rng.random(16) > 0.2
+    sample = ZJUL5Sample(
+        rgb=rng.integers(0, 255, (height, width, 3), dtype=np.uint8),
+        depth_m=rng.uniform(0.5, 3.0, (height, width)).astype(np.float32),
+        zone_mean_sigma=np.stack([mean, sigma], 1), zone_rects=rects, zone_valid=valid,
+        name="scene/00000", zone_no_target=~valid & (np.arange(16) % 4 == 0))
+    write_zju_l5(tmp_path / "set", [sample], split="train")
+    return ZJUL5Dataset(tmp_path / "set", split="train"), sample
+
+
+def test_zju_items_use_the_measured_zones_and_flip_consistently(tmp_path, rng):
+    samples, sample = _zju_set(tmp_path, rng)
+    plain = ZJUL5TrainingDataset(samples, num_hypotheses=5, sampling="uniform")[0]
+    flipped = ZJUL5TrainingDataset(samples, num_hypotheses=5, sampling="uniform",
+                                   flip_prob=1.0)[0]
+    valid = sample.zone_valid
+    np.testing.assert_array_equal(plain["zone_valid"].numpy(), valid)
+    # Uniform sampling spans mean +- 3 sigma in 5 steps: the middle one is the mean.
+    np.testing.assert_allclose(plain["hypotheses"][valid, 2].numpy(),
+                               sample.zone_mean_sigma[valid, 0], rtol=1e-6)
+    assert torch.all(plain["hypotheses"][~torch.from_numpy(valid)] == 0)
+    # Flipped: the image is mirrored and zone (r, c) is the original zone (r, 3 - c),
+    # whose rectangle is mirrored about the image width (48 px).
+    np.testing.assert_array_equal(flipped["image_rgb"].numpy(), sample.rgb[:, ::-1])
+    order = np.arange(16).reshape(4, 4)[:, ::-1].ravel()
+    np.testing.assert_array_equal(flipped["zone_valid"].numpy(), valid[order])
+    # The no-target flags (written to the file, read back) follow their zones.
+    flags = sample.zone_no_target
+    assert flags.any()
+    np.testing.assert_array_equal(plain["zone_no_target"].numpy(), flags)
+    np.testing.assert_array_equal(flipped["zone_no_target"].numpy(), flags[order])
+    np.testing.assert_allclose(flipped["hypotheses"].numpy(), plain["hypotheses"].numpy()[order])
+    rows = flipped["zone_rects"].numpy()[:, [0, 2]]
+    np.testing.assert_array_equal(rows, sample.zone_rects[order][:, [0, 2]])
+
+
+def test_flipped_zone_rects_cover_the_mirrored_pixels(tmp_path, rng):
+    samples, sample = _zju_set(tmp_path, rng)
+    flipped = ZJUL5TrainingDataset(samples, num_hypotheses=5, flip_prob=1.0)[0]
+    order = np.arange(16).reshape(4, 4)[:, ::-1].ravel()
+    # Zone [0, 12) holds pixel columns 0..11; mirrored in a 48 px image: 36..47 = [36, 48).
+    rect = flipped["zone_rects"].numpy()
+    np.testing.assert_allclose(rect[:, 1], 48 - sample.zone_rects[order, 3])
+    np.testing.assert_allclose(rect[:, 3], 48 - sample.zone_rects[order, 1])
