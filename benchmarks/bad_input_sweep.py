@@ -563,6 +563,10 @@ def build_round2_inputs(inp: Path) -> None:
     """Inputs of :func:`round2_cases`: unreadable files, odd fields, impossible values."""
     import h5py
 
+    from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
+    from deltar.sensor.geometry import SensorExtrinsics
+
     deep = "[" * 50_000 + "]" * 50_000
     good = json.loads((inp / "z.json").read_text())
     calib = json.loads((inp / "calib.json").read_text())
@@ -673,6 +677,11 @@ def build_round2_inputs(inp: Path) -> None:
     lines = (inp / "rec" / "zones.jsonl").read_text().splitlines()
     (inp / "r2b_rec_number_line" / "zones.jsonl").write_text(
         "\n".join([lines[0], "5", *lines[1:]]) + "\n")
+    RigCalibration(CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48), SensorExtrinsics(),
+                   grid=4).save(inp / "r2c_calib_grid4.json")
+    write("r2c_zone_count_text.json", dict(good, zone_count="64"))
+    write("r2c_driver_mixed.json", {"distance_mm": [1500] * 16, "range_sigma_mm": [20] * 64,
+                                    "target_status": [5] * 64})
     (inp / "r2b_traj_utf16.txt").write_bytes("0 0 0 0 0 0 0 1\n".encode("utf-16"))
     (inp / "r2b_garbage.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n"
                                           b"element vertex 1000\nproperty float x\n"
@@ -899,6 +908,57 @@ def round2_cases() -> list[Case]:
         path("r2b-layout-from-dev-null", ["export", "--preset", "deltar-lite", "--out",
                                           "{out}/m.onnx", "--layout-from", "/dev/null"],
              needles=("/dev/null", "regular file")),
+        Case("r2c-calib-grid-4-for-8x8-zones", [*lite_predict(), "--calib",
+                                                "{in}/r2c_calib_grid4.json"],
+             needles=("--calib", "grid"), group="physical"),
+        Case("r2c-replay-calib-640", ["replay", rec, "--out", "{out}", "--calib",
+                                      "{in}/calib_640.json", *LITE],
+             needles=("--calib", "480x640"), group="physical"),
+        read("r2c-zone-count-text", lite_predict(zones="r2c_zone_count_text.json"),
+             needles=("r2c_zone_count_text.json", "zone_count must be an integer")),
+        physical("r2c-driver-mixed-lengths", lite_predict(zones="r2c_driver_mixed.json"),
+                 needles=("r2c_driver_mixed.json", "same length")),
+        Case("r2c-replay-offset-nan", ["replay", rec, "--out", "{out}", "--time-offset", "nan",
+                                       *LITE], needles=("--time-offset",), group="options"),
+        Case("r2c-evaluate-depth-range-inverted", ["evaluate", "--data", zju, "--method",
+                                                   "nearest", "--min-depth", "5",
+                                                   "--max-depth", "1"],
+             needles=("--min-depth",), group="options"),
+        Case("r2c-evaluate-min-depth-nan", ["evaluate", "--data", zju, "--method", "nearest",
+                                            "--min-depth", "nan"], needles=("--min-depth",),
+             group="options"),
+        Case("r2c-simulate-bias-nan", ["simulate", "procedural:2:0:48x64", "{out}/s",
+                                       "--bias-mean", "nan", "--bias-prob", "0.5"],
+             needles=("--bias-mean",), group="options"),
+        Case("r2c-simulate-cnh-range-inverted", ["simulate", "procedural:2:0:48x64", "{out}/s",
+                                                 "--cnh-range", "4:0.2"],
+             needles=("--cnh-range",), group="options"),
+        Case("r2c-record-wall-negative", ["record", "{out}/r", "--simulate", "wall:-1"],
+             needles=("--simulate", "wall:-1"), group="options"),
+        Case("r2c-record-wall-1e9", ["record", "{out}/r", "--simulate", "wall:1e9:2:48x64"],
+             needles=("--simulate", "65.535"), group="physical", no_output=("r",)),
+        Case("r2c-demo-frames-0", ["demo", "{out}/d", "--frames", "0"],
+             needles=("--frames",), group="options"),
+        Case("r2c-export-size-1x1", ["export", "--preset", "deltar-lite", "--out",
+                                     "{out}/m.onnx", "--size", "1x1"],
+             needles=("--size",), group="options", no_output=("m.onnx",)),
+        Case("r2c-map-voxel-0", ["map", rec, "--out", "{out}/m", "--voxel", "0", *LITE],
+             needles=("--voxel",), group="options"),
+        Case("r2c-train-lr-negative", ["train", "--config", config, "--override",
+                                       "optim.lr=-1", "--run-dir", "{out}/run"],
+             needles=("optim.lr",), group="options"),
+        Case("r2c-train-batch-0", ["train", "--config", config, "--override",
+                                   "data.batch_size=0", "--run-dir", "{out}/run"],
+             needles=("data.batch_size",), group="options"),
+        Case("r2c-calibrate-tolerance-inf", ["calibrate", cal, "--out", "{out}/c.json",
+                                             "--tolerance-s", "inf"],
+             needles=("--tolerance-s",), group="options"),
+        Case("r2c-bench-repeats-0", ["bench", "--repeats", "0"], needles=("--repeats",),
+             group="options"),
+        Case("r2c-fit-uncertainty-pixels-10", ["fit-uncertainty", "default", "--data", zju,
+                                               "--out", "{out}/u.pt", "--pixels-per-frame",
+                                               "10"], needles=("--pixels-per-frame",),
+             group="options"),
         other("r2-folder-same-image-stem", ["predict", "--images", "{in}/r2_same_stem",
                                             "--zones-dir", "{in}/r2_same_stem", "--out",
                                             "{out}", *LITE], needles=("a.jpg", "a.png")),

@@ -705,3 +705,49 @@ def test_model_paths_told_apart(inputs, tmp_path, option, path, line):
                    "--out", tmp_path / "o", option, path.format(tmp=tmp_path)])
     assert result.exit_code == 1
     assert _one_error_line(result) == line.format(tmp=tmp_path)
+
+
+def test_mismatches_and_option_values_named_before_work(inputs, tmp_path, recording, zju_set):
+    calib4 = RigCalibration(CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48), SensorExtrinsics(),
+                            grid=4).save(tmp_path / "c4.json")
+    calib640 = RigCalibration(CameraIntrinsics(500, 500, 319.5, 239.5, 640, 480),
+                              SensorExtrinsics()).save(tmp_path / "c640.json")
+    _zones(inputs, "count.json", zone_count="64")
+    (inputs / "mixed.json").write_text(json.dumps({
+        "distance_mm": [1500] * 16, "range_sigma_mm": [20] * 64, "target_status": [5] * 64}))
+    for args, code, line in (
+            (["predict", "--image", inputs / "a.png", "--zones", inputs / "a.json", "--out",
+              tmp_path / "o", "--calib", calib4, *LITE], 1,
+             f"error: {inputs / 'a.json'} has a 8x8 zone grid but --calib {calib4} is for 4x4"),
+            (["replay", recording, "--out", tmp_path / "o", "--calib", calib640, *LITE], 1,
+             f"error: --calib {calib640} is for 480x640 images, the recording {recording} has "
+             "48x64; recalibrate at the recording's size"),
+            (["predict", "--image", inputs / "a.png", "--zones", inputs / "count.json", "--out",
+              tmp_path / "o", *LITE], 1,
+             f"error: {inputs / 'count.json'}: zone_count must be an integer, got '64'"),
+            (["predict", "--image", inputs / "a.png", "--zones", inputs / "mixed.json", "--out",
+              tmp_path / "o", *LITE], 1,
+             f"error: {inputs / 'mixed.json'}: invalid driver output: distance_mm, "
+             "range_sigma_mm and target_status must have the same length (one entry per zone "
+             "and target), got [16, 64, 64]"),
+            (["evaluate", "--data", zju_set, "--method", "nearest", "--min-depth", "5",
+              "--max-depth", "1"], 2,
+             "error: Invalid value for --min-depth/--max-depth: need 0 < --min-depth < "
+             "--max-depth (metres, finite), got 5 and 1 (see 'deltar evaluate --help')"),
+            (["simulate", "procedural:2:0:48x64", tmp_path / "s", "--bias-mean", "nan"], 2,
+             "error: Invalid value for --bias-mean: must be a finite number, got nan (see "
+             "'deltar simulate --help')"),
+            (["record", tmp_path / "r", "--simulate", "wall:-1"], 1,
+             "error: --simulate wall:-1: distance_m must be > 0, got -1.0"),
+            (["record", tmp_path / "r", "--simulate", "wall:1e9:2:48x64"], 1,
+             "error: --simulate wall:1e9:2:48x64: depths up to 1e+09 m do not fit a "
+             "recording's depth images (16-bit millimetres, at most 65.535 m)"),
+            (["export", "--preset", "deltar-lite", "--out", tmp_path / "m.onnx", "--size",
+              "1x1"], 2,
+             "error: Invalid value for --size: each side must be at least 8 pixels, got '1x1' "
+             "(see 'deltar export --help')")):
+        result = _run(args)
+        assert result.exit_code == code, (args, result.output)
+        assert _one_error_line(result) == line
+        assert MODEL_BUILT not in result.output
+    assert not (tmp_path / "r").exists() and not (tmp_path / "m.onnx").exists()

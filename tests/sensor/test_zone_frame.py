@@ -235,3 +235,9 @@ def test_scalar_fields_are_refused_not_coerced(changes, message):
     with pytest.raises(ValueError) as caught:
         ZoneFrame(**_base(**changes))
     assert message in str(caught.value)
+
+
+def test_driver_lists_of_different_lengths_are_refused():
+    with pytest.raises(ValueError, match=r"must have the same length \(one entry per zone and "
+                       r"target\), got \[16, 64, 64\]$"):
+        ZoneFrame.from_driver([1500] * 16, [20] * 64, [5] * 64)

@@ -31,6 +31,9 @@ from deltar.cli.robotics import (
     TopicPrefixOption,
 )
 
+#: Largest depth a recording's 16-bit millimetre depth images hold, metres.
+MAX_RECORDED_DEPTH_M = 65.535
+
 
 def record_command(
     out: Path = typer.Argument(..., help="Recording folder (new, or a recording of the same "
@@ -77,7 +80,16 @@ def record_command(
     try:
         intrinsics = None
         if simulate is not None:
-            rig = SimulatedRig(open_source(simulate), grid=grid, sensor_hz=sensor_hz)
+            try:
+                source = open_source(simulate)
+                deepest = float(source[0].depth_m.max()) if len(source) else 0.0
+            except ValueError as err:
+                raise ValueError(f"--simulate {simulate}: {err}") from None
+            if deepest > MAX_RECORDED_DEPTH_M:
+                raise ValueError(f"--simulate {simulate}: depths up to {deepest:g} m do not fit "
+                                 "a recording's depth images (16-bit millimetres, at most "
+                                 f"{MAX_RECORDED_DEPTH_M} m)")
+            rig = SimulatedRig(source, grid=grid, sensor_hz=sensor_hz)
         else:
             calibration = load_calibration(calib)
             if calibration is None:
@@ -171,6 +183,7 @@ def replay_command(
         raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
     total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
                           overwrite, show)
+    _check_calibration_fits(calibration, calib, recording)
     estimator = model.load()
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
     if out is None:
@@ -232,6 +245,23 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
             existing_outputs(out / f"{p.color_path.stem}{OUTPUT_KINDS[k]}" for p in selected
                              for k in kinds)
     return len(selected)
+
+
+def _check_calibration_fits(calibration, calib: Path | None, recording: Path) -> None:
+    """``--calib`` against the recording's image size and zone grid, before the model."""
+    if calibration is None:
+        return
+    from deltar.io.recording import Recording
+
+    meta = Recording(recording).meta
+    intr = calibration.intrinsics
+    if (intr.height, intr.width) != (meta.intrinsics.height, meta.intrinsics.width):
+        raise ValueError(f"--calib {calib} is for {intr.height}x{intr.width} images, the "
+                         f"recording {recording} has {meta.intrinsics.height}x"
+                         f"{meta.intrinsics.width}; recalibrate at the recording's size")
+    if calibration.grid != meta.grid:
+        raise ValueError(f"--calib {calib} is for a {calibration.grid}x{calibration.grid} zone "
+                         f"grid, the recording {recording} has {meta.grid}x{meta.grid}")
 
 
 def _show_live(items) -> None:

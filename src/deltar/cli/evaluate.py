@@ -109,6 +109,10 @@ def evaluate(
     if not specs:
         raise typer.BadParameter("give --method, --checkpoint or --official",
                                  param_hint="--method")
+    if not 0 < min_depth < max_depth < float("inf"):
+        raise typer.BadParameter(f"need 0 < --min-depth < --max-depth (metres, finite), got "
+                                 f"{min_depth:g} and {max_depth:g}",
+                                 param_hint="--min-depth/--max-depth")
     try:
         names = resolve_method_names(specs)
     except ValueError as err:

@@ -12,7 +12,6 @@ from deltar.cli.model_options import (
     ModelOptions,
     OfficialOption,
     PresetOption,
-    parse_size,
 )
 
 
@@ -62,7 +61,9 @@ def export_command(
 
     if format != "onnx":
         raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
-    height, width = parse_size(size)
+    from deltar.cli.checks import image_size
+
+    height, width = image_size(size, "--size")
     refuse_input_as_output(out, [checkpoint, official, layout_from, calibration], "--out")
     output_file(out, "--out", overwrite)
     if layout_from is not None and not layout_from.exists():

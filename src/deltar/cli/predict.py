@@ -88,6 +88,9 @@ def predict_command(
         from deltar.camera import check_image
 
         check_image(first[0], str(image))
+        if calibration is not None and calibration.grid != first[1].grid:
+            raise ValueError(f"{zones} has a {first[1].grid}x{first[1].grid} zone grid but "
+                             f"--calib {calib} is for {calibration.grid}x{calibration.grid}")
         shape = first[0].shape[:2]
         if calibration is not None and shape != (calibration.intrinsics.height,
                                                  calibration.intrinsics.width):

@@ -95,7 +95,7 @@ def simulate_command(
 
     import numpy as np
 
-    from deltar.cli.checks import output_folder
+    from deltar.cli.checks import finite, output_folder
     from deltar.cli.progress import ProgressReport
     from deltar.data.simulated import simulate_set
     from deltar.data.sources import open_source
@@ -111,6 +111,8 @@ def simulate_command(
         raise typer.BadParameter(f"--layout must be one of {SET_LAYOUTS}, got {layout!r}")
     if step < 1 or start < 0 or (limit is not None and limit < 1):
         raise typer.BadParameter("--start must be >= 0, --step and --limit >= 1")
+    finite(bias_mean, "--bias-mean")
+    finite(bias_std, "--bias-std")
     cnh_config = _cnh_config(cnh, cnh_bins, cnh_range)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "

@@ -120,6 +120,8 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     valid = _bool_array(data["valid"], source, "valid")
     count = arrays["mean_m"].size
     declared = data.get("zone_count", count)
+    if isinstance(declared, (bool, np.bool_)) or not isinstance(declared, (int, np.integer)):
+        raise ValueError(f"{source}: zone_count must be an integer, got {declared!r}")
     for key, arr in (("sigma_m", arrays["sigma_m"]), ("valid", valid)):
         if arr.size != count:
             raise ValueError(f"{source}: {key} has {arr.size} zones but mean_m has {count}")

@@ -338,6 +338,10 @@ class ZoneFrame:
         for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
                              ("target_status", target_status)):
             arrays[name] = number_array(values, name)
+        sizes = [arr.size for arr in arrays.values()]
+        if len(set(sizes)) > 1:
+            raise ValueError("distance_mm, range_sigma_mm and target_status must have the same "
+                             f"length (one entry per zone and target), got {sizes}")
         n = grid if grid is not None else _grid_from_count(arrays["distance_mm"].size,
                                                            "distance_mm")
         if n not in SUPPORTED_GRIDS:
