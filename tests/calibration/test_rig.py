@@ -91,11 +91,19 @@ def test_zone_rects_from_a_frame_use_each_zone_depth():
 
 def test_zone_rects_reject_another_resolution_or_grid():
     calib = _calib()
-    with pytest.raises(ValueError, match="does not match the calibrated resolution 480x640"):
+    with pytest.raises(ValueError, match="is for the calibrated resolution 480x640"):
         calib.zone_rects_for(2.0, (240, 320))
     frame16 = ZoneFrame(np.ones(16), np.zeros(16), np.ones(16, bool))
     with pytest.raises(ValueError, match="grid"):
         calib.zone_rects_for(frame16, (480, 640))
+
+
+def test_image_size_check_names_the_images_and_the_calibration():
+    calib = _calib()
+    calib.check_image_size((480, 640))
+    with pytest.raises(ValueError, match=r"^the recording r is 240x320 pixels but --calib c\.json "
+                                         r"is for the calibrated resolution 480x640"):
+        calib.check_image_size((240, 320), "the recording r", "--calib c.json")
 
 
 def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):

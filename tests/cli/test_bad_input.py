@@ -720,8 +720,8 @@ def test_mismatches_and_option_values_named_before_work(inputs, tmp_path, record
               tmp_path / "o", "--calib", calib4, *LITE], 1,
              f"error: {inputs / 'a.json'} has a 8x8 zone grid but --calib {calib4} is for 4x4"),
             (["replay", recording, "--out", tmp_path / "o", "--calib", calib640, *LITE], 1,
-             f"error: --calib {calib640} is for 480x640 images, the recording {recording} has "
-             "48x64; recalibrate at the recording's size"),
+             f"error: the recording {recording} is 48x64 pixels but --calib {calib640} is for "
+             "the calibrated resolution 480x640; resize the images or recalibrate"),
             (["predict", "--image", inputs / "a.png", "--zones", inputs / "count.json", "--out",
               tmp_path / "o", *LITE], 1,
              f"error: {inputs / 'count.json'}: zone_count must be an integer, got '64'"),

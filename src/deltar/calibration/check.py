@@ -157,10 +157,8 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
     """
     meta = recording.meta
     intr = calibration.intrinsics
-    if (intr.height, intr.width) != (meta.intrinsics.height, meta.intrinsics.width):
-        raise ValueError(f"the calibration is for {intr.height}x{intr.width} images, the "
-                         f"recording {recording.folder} has {meta.intrinsics.height}x"
-                         f"{meta.intrinsics.width}")
+    calibration.check_image_size((meta.intrinsics.height, meta.intrinsics.width),
+                                 f"the recording {recording.folder}")
     if calibration.grid != meta.grid:
         raise ValueError(f"the calibration is for a {calibration.grid}x{calibration.grid} "
                          f"grid, the recording has {meta.grid}x{meta.grid}")

@@ -138,6 +138,28 @@ class RigCalibration:
         return zones_in_image(rects, intr.height, intr.width)
 
     # ------------------------------------------------------------------ zones in the image
+    def check_image_size(self, image_size: tuple[int, int], what: str = "image_size",
+                         calibration: str = "the calibration") -> None:
+        """Refuse images of another size than the calibrated resolution: the intrinsics,
+        and so the zone placement, hold for that size only. The one such check of the
+        package (zone placement, undistortion, predict, replay, maps, calibration checks).
+
+        Args:
+            image_size: (height, width) of the images in pixels.
+            what: how the message names the images (an argument, a file, a recording).
+            calibration: how it names the calibration (e.g. ``--calib calib.json``).
+
+        Raises:
+            ValueError: ``"<what> is HxW pixels but <calibration> is for the calibrated
+                resolution HxW; resize the images or recalibrate"``.
+        """
+        height, width = (int(s) for s in image_size)
+        intr = self.intrinsics
+        if (height, width) != (intr.height, intr.width):
+            raise ValueError(f"{what} is {height}x{width} pixels but {calibration} is for the "
+                             f"calibrated resolution {intr.height}x{intr.width}; resize the "
+                             "images or recalibrate")
+
     def zone_rects_for(self, frame_or_depths: ZoneFrame | np.ndarray | float,
                        image_size: tuple[int, int]) -> np.ndarray:
         """Zone rectangles in the image, placed with each zone's measured distance.
@@ -156,10 +178,7 @@ class RigCalibration:
             ValueError: image size differs from the calibration's, or bad distances.
         """
         height, width = (int(s) for s in image_size)
-        if (height, width) != (self.intrinsics.height, self.intrinsics.width):
-            raise ValueError(f"image_size {height}x{width} does not match the calibrated "
-                             f"resolution {self.intrinsics.height}x{self.intrinsics.width}; "
-                             "resize the image or recalibrate")
+        self.check_image_size((height, width))
         zones = self.grid * self.grid
         if isinstance(frame_or_depths, ZoneFrame):
             if frame_or_depths.grid != self.grid:
@@ -194,9 +213,7 @@ class RigCalibration:
         import cv2
 
         image = np.asarray(image)
-        if image.shape[:2] != (self.intrinsics.height, self.intrinsics.width):
-            raise ValueError(f"image is {image.shape[0]}x{image.shape[1]}, the calibration is "
-                             f"for {self.intrinsics.height}x{self.intrinsics.width}")
+        self.check_image_size(image.shape[:2], "image")
         matrix = self.intrinsics.matrix
         return cv2.undistort(image, matrix, np.asarray(self.distortion), None, matrix)
 

@@ -104,11 +104,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         raise ValueError(f"every must be >= 1, got {every}")
     rec = recording if isinstance(recording, Recording) else Recording(recording)
     calib = calibration or recording_calibration(rec)
-    meta_size = (rec.meta.intrinsics.height, rec.meta.intrinsics.width)
-    calib_size = (calib.intrinsics.height, calib.intrinsics.width)
-    if calib_size != meta_size:
-        raise ValueError(f"calibration is for {calib_size[0]}x{calib_size[1]} images, the "
-                         f"recording {rec.folder} has {meta_size[0]}x{meta_size[1]}")
+    calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
+                           f"the recording {rec.folder}")
     offset = calib.time_offset_s if time_offset_s is None else float(time_offset_s)
     pairs = rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
     check_gaps(rec, pairs)

@@ -254,11 +254,8 @@ def _check_calibration_fits(calibration, calib: Path | None, recording: Path) ->
     from deltar.io.recording import Recording
 
     meta = Recording(recording).meta
-    intr = calibration.intrinsics
-    if (intr.height, intr.width) != (meta.intrinsics.height, meta.intrinsics.width):
-        raise ValueError(f"--calib {calib} is for {intr.height}x{intr.width} images, the "
-                         f"recording {recording} has {meta.intrinsics.height}x"
-                         f"{meta.intrinsics.width}; recalibrate at the recording's size")
+    calibration.check_image_size((meta.intrinsics.height, meta.intrinsics.width),
+                                 f"the recording {recording}", f"--calib {calib}")
     if calibration.grid != meta.grid:
         raise ValueError(f"--calib {calib} is for a {calibration.grid}x{calibration.grid} zone "
                          f"grid, the recording {recording} has {meta.grid}x{meta.grid}")

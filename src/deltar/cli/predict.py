@@ -91,13 +91,8 @@ def predict_command(
         if calibration is not None and calibration.grid != first[1].grid:
             raise ValueError(f"{zones} has a {first[1].grid}x{first[1].grid} zone grid but "
                              f"--calib {calib} is for {calibration.grid}x{calibration.grid}")
-        shape = first[0].shape[:2]
-        if calibration is not None and shape != (calibration.intrinsics.height,
-                                                 calibration.intrinsics.width):
-            intr = calibration.intrinsics
-            raise ValueError(f"{image} is {shape[0]}x{shape[1]} pixels but --calib {calib} is "
-                             f"for the calibrated resolution {intr.height}x{intr.width}; "
-                             "resize the image or recalibrate")
+        if calibration is not None:
+            calibration.check_image_size(first[0].shape[:2], str(image), f"--calib {calib}")
     if unpaired:
         warn(f"{len(unpaired)} files without a partner are left out: "
              f"{unpaired[:5]}{' ...' if len(unpaired) > 5 else ''}")

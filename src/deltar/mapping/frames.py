@@ -100,11 +100,8 @@ class FrameSource:
         rec = Recording(self.path)
         self.recording = rec
         calib = calibration or recording_calibration(rec)
-        size = (rec.meta.intrinsics.height, rec.meta.intrinsics.width)
-        if (calib.intrinsics.height, calib.intrinsics.width) != size:
-            raise ValueError(f"--calib is for {calib.intrinsics.height}x"
-                             f"{calib.intrinsics.width} images, the recording {self.path} has "
-                             f"{size[0]}x{size[1]}")
+        calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
+                               f"the recording {self.path}", "--calib")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped pairs are counted by the caller
             pairs = rec.pairs(tolerance_s=tolerance_s)
