@@ -109,11 +109,36 @@ def test_steeper_views_pin_the_roll_down():
     assert _bound(_poses(15), normal_sd=0.01).rotation_rms_deg > steep.rotation_rms_deg
 
 
+def test_a_shared_camera_error_moves_the_solution_with_it():
+    """Every board plane turned by the same small angle about the camera's axis (as an
+    error in the camera parameters would): the solution turns with it, so the bound grows
+    by that angle's variance along (rotation about z, z x t)."""
+    poses = _poses(10, seed=2)
+    planes = _wall_planes(poses)
+    means = [predicted_zone_depth(n, d, TRUE, RAYS) for n, d, _, _ in planes]
+    masks = [np.ones(64, dtype=bool)] * len(planes)
+    z = np.array([0.0, 0.0, 1.0])
+    turning = [np.append(np.cross(z, n), 0.0)[:, None] for n, _, _, _ in planes]  # (4, 1)
+    alone = extrinsic_uncertainty(planes, means, masks, TRUE, zone_noise_m=0.02)
+    sd = np.deg2rad(0.3)
+    shared = extrinsic_uncertainty(planes, means, masks, TRUE, zone_noise_m=0.02,
+                                   plane_sensitivity=turning,
+                                   camera_covariance=np.array([[sd ** 2]]))
+    follow = np.concatenate([z, np.cross(z, TRUE.translation_m)])
+    np.testing.assert_allclose(shared.covariance - alone.covariance,
+                               sd ** 2 * np.outer(follow, follow), atol=1e-3 * sd ** 2)
+    assert shared.rotation_sd_deg[2] == pytest.approx(np.hypot(alone.rotation_sd_deg[2], 0.3),
+                                                      rel=1e-3)
+
+
 def test_bad_input_is_refused():
     poses = _poses(3)
     planes = _wall_planes(poses)
     with pytest.raises(ValueError, match="one entry per view"):
         extrinsic_uncertainty(planes, [np.ones(64)] * 2, [np.ones(64, bool)] * 3, TRUE)
+    with pytest.raises(ValueError, match="plane_sensitivity must have one entry per view"):
+        extrinsic_uncertainty(planes, [np.ones(64)] * 3, [np.ones(64, bool)] * 3, TRUE,
+                              plane_sensitivity=[np.zeros((4, 4))])
     one = [planes[0]] * 3
     with pytest.raises(ValueError, match="undetermined"):
         extrinsic_uncertainty(one, [np.ones(64)] * 3, [np.ones(64, bool)] * 3, TRUE,

@@ -339,7 +339,8 @@ def estimate_board_pose(detection: BoardDetection, intrinsics: CameraIntrinsics,
 
 
 def calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrinsics,
-                     max_views: int = 40) -> tuple[CameraIntrinsics, tuple[float, ...], float]:
+                     max_views: int = 40
+                     ) -> tuple[CameraIntrinsics, tuple[float, ...], float, np.ndarray]:
     """``cv2.calibrateCamera`` from the board views, starting at ``intrinsics``.
 
     Estimates fx, fy, cx, cy and the distortion (k1, k2, p1, p2; k3 stays 0, which few
@@ -352,8 +353,8 @@ def calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrins
         max_views: most views used.
 
     Returns:
-        The intrinsics, the 5 distortion coefficients and the RMS reprojection error
-        (pixels).
+        The intrinsics, the 5 distortion coefficients, the RMS reprojection error (pixels)
+        and (4,) OpenCV's standard deviations of fx, fy, cx, cy (pixels).
     """
     import cv2
 
@@ -362,12 +363,13 @@ def calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrins
     objects = [detections[i].object_points.reshape(-1, 1, 3) for i in picks]
     images = [detections[i].image_points.reshape(-1, 1, 2) for i in picks]
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
-    rms, matrix, dist, _, _ = cv2.calibrateCamera(
+    rms, matrix, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
         objects, images, (intrinsics.width, intrinsics.height), intrinsics.matrix.copy(),
         np.zeros(5), flags=flags)
     calibrated = CameraIntrinsics(float(matrix[0, 0]), float(matrix[1, 1]), float(matrix[0, 2]),
                                   float(matrix[1, 2]), intrinsics.width, intrinsics.height)
-    return calibrated, tuple(float(v) for v in np.ravel(dist)[:5]), float(rms)
+    return (calibrated, tuple(float(v) for v in np.ravel(dist)[:5]), float(rms),
+            np.ravel(std)[:4].astype(np.float64))
 
 
 def board_points_in_view(pose_normal: np.ndarray, pose_offset_m: float,

@@ -310,7 +310,7 @@ def calibrate_recording_with_board(
         views.append(_View(name, plane, pose, detection, frame.flat()[0], reason))
     _refuse_few_views(detector, recording, len(views), searched, MIN_BOARD_VIEWS,
                       paired=True)
-    intrinsics_rms = None
+    intrinsics_rms = intrinsics_sd = None
     if calibrate_intrinsics:
         # Board poses from intrinsics that are several % off disagree with the zones'
         # planes, so the camera is calibrated before the views are checked against them.
@@ -318,7 +318,7 @@ def calibrate_recording_with_board(
         if len(detections) < MIN_INTRINSIC_VIEWS:
             raise ValueError(f"--calibrate-intrinsics needs the board in at least "
                              f"{MIN_INTRINSIC_VIEWS} images, found in {len(detections)}")
-        camera, distortion, intrinsics_rms = calibrate_camera(detections, camera)
+        camera, distortion, intrinsics_rms, intrinsics_sd = calibrate_camera(detections, camera)
         for v in views:
             v.pose = estimate_board_pose(v.detection, camera, distortion)
     # Zones that see another surface give planes whose normals disagree with the board's.
@@ -370,7 +370,8 @@ def calibrate_recording_with_board(
     if intrinsics_rms is not None:
         residuals["intrinsics_rms_px"] = intrinsics_rms
     used = {o.name for o in result.observations}
-    uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov)
+    uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov,
+                                  intrinsics_sd, distortion)
     residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
     residuals["translation_sd_m"] = uncertainty.translation_rms_m
     residuals["zone_noise_m"] = uncertainty.zone_noise_m
@@ -381,12 +382,19 @@ def calibrate_recording_with_board(
     return result, report
 
 
-def _expected_error(views: list[_View], calibration, fov) -> ExtrinsicUncertainty:
-    """The extrinsic's expected error from the views used; warns when it is large."""
+def _expected_error(views: list[_View], calibration, fov, intrinsics_sd=None,
+                    distortion=()) -> ExtrinsicUncertainty:
+    """The extrinsic's expected error from the views used (with the error of calibrated
+    intrinsics, ``intrinsics_sd`` of fx, fy, cx, cy in pixels); warns when it is large."""
+    sensitivity = None
+    if intrinsics_sd is not None:
+        sensitivity = [_plane_sensitivity(v, calibration.intrinsics, distortion) for v in views]
     uncertainty = extrinsic_uncertainty(
         [(v.pose.normal_cam, v.pose.offset_cam_m, v.pose.normal_std_rad, v.pose.offset_std_m)
          for v in views], [v.mean_m for v in views], [v.plane.inliers for v in views],
-        calibration.extrinsics, grid=calibration.grid, fov_deg=fov)
+        calibration.extrinsics, grid=calibration.grid, fov_deg=fov,
+        plane_sensitivity=sensitivity,
+        camera_covariance=None if intrinsics_sd is None else np.diag(intrinsics_sd ** 2))
     rotation, translation = uncertainty.rotation_rms_deg, uncertainty.translation_rms_m
     if rotation > MAX_EXPECTED_ROTATION_DEG or translation > MAX_EXPECTED_TRANSLATION_M:
         warnings.warn(
@@ -397,6 +405,24 @@ def _expected_error(views: list[_View], calibration, fov) -> ExtrinsicUncertaint
             "wanted): record more views, tilted 25-45 deg left, right, up and down",
             stacklevel=3)
     return uncertainty
+
+
+def _plane_sensitivity(view: _View, camera: CameraIntrinsics, distortion,
+                       step_px: float = 0.5) -> np.ndarray:
+    """(4, 4) derivative of the view's board plane (normal, offset in metres) with
+    respect to fx, fy, cx, cy (pixels), by solving its pose again with each moved."""
+    columns = []
+    for k in range(4):
+        planes = []
+        for sign in (1.0, -1.0):
+            values = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+            values[k] += sign * step_px
+            pose = estimate_board_pose(view.detection, replace(camera, fx=values[0],
+                                                               fy=values[1], cx=values[2],
+                                                               cy=values[3]), distortion)
+            planes.append(np.append(pose.normal_cam, pose.offset_cam_m))
+        columns.append((planes[0] - planes[1]) / (2 * step_px))
+    return np.stack(columns, axis=1)
 
 
 def _frame_weight(view: _View, fov) -> float:

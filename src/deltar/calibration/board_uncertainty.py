@@ -6,7 +6,9 @@ plane over a grid of rays inside the zone's cell (the footprint model). The zone
 is the robust spread of measured minus predicted means, and the Fisher information of
 all views' zones about the six extrinsic parameters, with each view's board-plane
 uncertainty (:class:`deltar.calibration.board.BoardPose`) folded into its zones'
-covariance, gives the covariance of any unbiased estimate: the Cramer-Rao bound. The
+covariance, gives the covariance of any unbiased estimate: the Cramer-Rao bound. When the
+camera intrinsics were calibrated from the same views, their error (which moves every
+view's plane together) is propagated to the solution and added. The
 board path's estimate is close to it on synthetic rigs (benchmarks/RESULTS.md), so the
 bound is the error to expect, and it says when more or steeper views are needed.
 
@@ -127,7 +129,10 @@ def extrinsic_uncertainty(planes_cam: Sequence[tuple[np.ndarray, float, float, f
                           extrinsics: SensorExtrinsics, *,
                           grid: int = 8,
                           fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
-                          zone_noise_m: float | None = None) -> ExtrinsicUncertainty:
+                          zone_noise_m: float | None = None,
+                          plane_sensitivity: Sequence[np.ndarray] | None = None,
+                          camera_covariance: np.ndarray | None = None,
+                          ) -> ExtrinsicUncertainty:
     """The covariance of the extrinsic that the views' zone readings allow (Cramer-Rao).
 
     Args:
@@ -140,6 +145,12 @@ def extrinsic_uncertainty(planes_cam: Sequence[tuple[np.ndarray, float, float, f
         grid, fov_deg: zones per side and the sensor's field of view (degrees).
         zone_noise_m: the zones' noise (metres); default: the residuals' robust spread
             (1.4826 x their median absolute deviation), at least ``MIN_ZONE_NOISE_M``.
+        plane_sensitivity: per view, (4, P) derivative of its board plane (normal x, y,
+            z and offset in metres) with respect to P camera parameters shared by all
+            views (e.g. fx, fy, cx, cy in pixels).
+        camera_covariance: (P, P) covariance of those parameters. An error in them moves
+            every view's plane together, which more views do not average away; its
+            effect on the solution is added to the bound (first order).
 
     Returns:
         ``ExtrinsicUncertainty``.
@@ -147,6 +158,9 @@ def extrinsic_uncertainty(planes_cam: Sequence[tuple[np.ndarray, float, float, f
     Raises:
         ValueError: mismatched lengths, or views that leave the extrinsic undetermined.
     """
+    if plane_sensitivity is not None and len(plane_sensitivity) != len(planes_cam):
+        raise ValueError(f"plane_sensitivity must have one entry per view, got "
+                         f"{len(plane_sensitivity)} for {len(planes_cam)}")
     if not len(planes_cam) == len(zone_means_m) == len(zone_masks):
         raise ValueError(f"planes_cam, zone_means_m and zone_masks must have one entry per "
                          f"view, got {len(planes_cam)}, {len(zone_means_m)}, "
@@ -171,19 +185,34 @@ def extrinsic_uncertainty(planes_cam: Sequence[tuple[np.ndarray, float, float, f
         plane_jac = np.stack([(depth(np.zeros(6), step * e) - depth(np.zeros(6), -step * e))
                               / (2 * step) for e in np.eye(3)], axis=1)
         plane_cov = np.diag([normal_sd ** 2 / 2, normal_sd ** 2 / 2, offset_sd ** 2])
-        per_view.append((residual, jac, plane_jac @ plane_cov @ plane_jac.T))
-    residuals = np.concatenate([r for r, _, _ in per_view])
+        shared = None
+        if plane_sensitivity is not None:
+            # d(zone means) / d(normal x, y, z, offset), then through the camera parameters.
+            raw = np.stack([(predicted_zone_depth(normal + step * e[:3], offset + step * e[3],
+                                                  extrinsics, use)
+                             - predicted_zone_depth(normal - step * e[:3],
+                                                    offset - step * e[3], extrinsics, use))
+                            / (2 * step) for e in np.eye(4)], axis=1)
+            shared = raw @ np.asarray(plane_sensitivity[len(per_view)], dtype=np.float64)
+        per_view.append((residual, jac, plane_jac @ plane_cov @ plane_jac.T, shared))
+    residuals = np.concatenate([r for r, *_ in per_view])
     if zone_noise_m is None:
         spread = 1.4826 * np.median(np.abs(residuals - np.median(residuals)))
         zone_noise_m = max(float(spread), MIN_ZONE_NOISE_M)
     information = np.zeros((6, 6))
-    for residual, jac, plane_part in per_view:
+    coupling = 0.0  # sum of J^T C^-1 (d zone means / d camera parameters), (6, P)
+    for residual, jac, plane_part, shared in per_view:
         cov = zone_noise_m ** 2 * np.eye(len(residual)) + plane_part
         information += jac.T @ np.linalg.solve(cov, jac)
+        if shared is not None:
+            coupling = coupling + jac.T @ np.linalg.solve(cov, shared)
     if np.linalg.cond(information) > 1e12:
         raise ValueError("the views leave the extrinsic undetermined (too few or too "
                          "similar planes)")
     covariance = np.linalg.inv(information)
+    if plane_sensitivity is not None and camera_covariance is not None:
+        moved = covariance @ coupling  # how the solution follows the camera parameters
+        covariance = covariance + moved @ np.asarray(camera_covariance, float) @ moved.T
     sd = np.sqrt(np.diag(covariance))
     return ExtrinsicUncertainty(np.degrees(sd[:3]), sd[3:], float(zone_noise_m),
                                 int(residuals.size), covariance)
