@@ -751,3 +751,27 @@ def test_mismatches_and_option_values_named_before_work(inputs, tmp_path, record
         assert _one_error_line(result) == line
         assert MODEL_BUILT not in result.output
     assert not (tmp_path / "r").exists() and not (tmp_path / "m.onnx").exists()
+
+
+def test_wall_test_refuses_a_recording_given_twice_and_text_is_no_checkpoint(recording,
+                                                                            tmp_path):
+    result = _run(["wall-test", recording, recording, "--out", tmp_path / "o", *LITE])
+    assert result.exit_code == 2
+    assert _one_error_line(result) == (
+        f"error: Invalid value for RECORDINGS: {recording} is given more than once; each "
+        "recording is one wall distance (see 'deltar wall-test --help')")
+    text = tmp_path / "data.json"
+    text.write_text('{"test": []}\n')
+    result = _run(["export", "--checkpoint", text, "--out", tmp_path / "m.onnx"])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == (f"error: {text}: cannot read checkpoint: not a PyTorch "
+                                       "file, or a corrupt or truncated one")
+
+
+def test_a_bag_that_is_not_one_fails_before_the_model(tmp_path):
+    (tmp_path / "notes.txt").write_text("not a bag\n")
+    result = _run(["replay", "--bag", tmp_path / "notes.txt", "--out-bag", tmp_path / "b",
+                   *LITE])
+    assert result.exit_code == 1
+    _one_error_line(result, f"{tmp_path / 'notes.txt'}: not a readable ROS 2 bag")
+    assert MODEL_BUILT not in result.output and not (tmp_path / "b").exists()

@@ -200,6 +200,12 @@ def wall_test_command(
     from deltar.io.recording import Recording
 
     model.check()
+    resolved = [folder.resolve() for folder in recordings]
+    twice = next((folder for folder, path in zip(recordings, resolved, strict=True)
+                  if resolved.count(path) > 1), None)
+    if twice is not None:
+        raise typer.BadParameter(f"{twice} is given more than once; each recording is one "
+                                 "wall distance", param_hint="RECORDINGS")
     for folder in recordings:
         Recording(folder)  # a missing or corrupt recording fails before the model
     refuse_input_as_output(out, [*recordings, calib], "--out", folder=True)

@@ -103,13 +103,13 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
                                  "/ --rerun-save (not --out / --show)")
     if out_bag is None and not rerun and rerun_save is None:
         raise typer.BadParameter("give --out-bag BAG, --rerun or --rerun-save FILE")
-    estimator = build_estimator()
     image_topic, info_topic, tof_topic = topics
     tof_format, tof_orientation, tof_sigma = tof
     bag_input = BagInput(bag, image_topic=image_topic, info_topic=info_topic,
                          tof_topic=tof_topic, tof_format=tof_format,
                          tof_orientation=parse_orientation(tof_orientation),
                          tof_sigma_m=tof_sigma)
+    estimator = build_estimator()  # after the bag is opened: a bad bag fails first
     viewer = open_viewer(rerun, rerun_save)
     kwargs = {"calibration": calibration, "tolerance_s": tolerance, "every": every,
               "limit": limit}

@@ -42,6 +42,8 @@ def _reason(err: Exception) -> str:
     import re
 
     text = str(err)
+    if "Unsupported operand" in text:  # not a pickle stream at all (a text file ...)
+        return "not a PyTorch file, or a corrupt or truncated one"
     if "Weights only load failed" in text:
         found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
         names = f" (it refers to {found.group(1)})" if found else ""
