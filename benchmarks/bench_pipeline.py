@@ -88,8 +88,8 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
     png, frame = _test_frame(height, width)
     # Counted on the network as built, before any inference rewrite of the estimator.
     counting = DepthEstimator(model, fold_batch_norms=False).prepare([_decode(png)], [frame])
-    gflop = count_gflop(model, (counting["image"], counting["hypotheses"],
-                                counting["zone_rects"], counting["zone_valid"]))
+    gflop = count_gflop(model, tuple(torch.from_numpy(counting[name]) for name in
+                                     ("image", "hypotheses", "zone_rects", "zone_valid")))
     if backend == "onnx":
         path = workdir / f"{preset}-{height}x{width}.onnx"
         start = time.perf_counter()

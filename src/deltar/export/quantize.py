@@ -90,7 +90,7 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         names = list(INPUT_NAMES)
         if estimator.onnx_model is not None and estimator.onnx_model.takes_no_target:
             names.append(NO_TARGET_INPUT)
-        feeds.append({name: inputs[name].cpu().numpy() for name in names})
+        feeds.append({name: inputs[name] for name in names})
     return feeds
 
 

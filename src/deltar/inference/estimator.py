@@ -246,12 +246,13 @@ class DepthEstimator:
                 calibrated or nominal placement.
 
         Returns:
-            dict with ``image`` (B, 3, h, w) normalised, ``hypotheses`` (B, Z, K) metres,
-            ``zone_rects`` (B, Z, 4) pixels of the network input, ``zone_valid`` (B, Z)
-            bool, ``zone_no_target`` (B, Z) bool (the frames' no-target flags; torch
-            tensors on the estimator's device) and ``image_rects`` (B, Z, 4)
-            numpy rectangles in input-image pixels, ``image_size`` (H, W) and
-            ``network_size`` (h, w) in pixels (:meth:`network_size_for`).
+            dict of numpy arrays, the network inputs (:meth:`run_network` takes them as
+            they are): ``image`` (B, 3, h, w) float32 normalised, ``hypotheses`` (B, Z, K)
+            float32 metres, ``zone_rects`` (B, Z, 4) float32 pixels of the network input,
+            ``zone_valid`` (B, Z) bool, ``zone_no_target`` (B, Z) bool (the frames'
+            no-target flags); and ``image_rects`` (B, Z, 4) rectangles in input-image
+            pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in pixels
+            (:meth:`network_size_for`).
         """
         import torch
 
@@ -286,37 +287,42 @@ class DepthEstimator:
         for i, frame in enumerate(frames):
             check_zones_in_image(rects[i], frame.flat()[2], size, f"frames[{i}]")
         net_rects = scale_rects(rects, size, net_size)
-        image = torch.from_numpy(normalise_images(checked, net_size, self.image_mean,
-                                                  self.image_std)).to(self.device)
-        hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).to(self.device)
-        valid = torch.from_numpy(np.stack([f.flat()[2] for f in frames])).to(self.device)
-        no_target = torch.from_numpy(np.stack([f.flat_no_target() for f in frames])
-                                     ).to(self.device)
-        return {"image": image, "hypotheses": hypotheses.float(),
-                "zone_rects": torch.from_numpy(net_rects).to(self.device), "zone_valid": valid,
-                "zone_no_target": no_target,
+        hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).float().numpy()
+        return {"image": normalise_images(checked, net_size, self.image_mean, self.image_std),
+                "hypotheses": hypotheses, "zone_rects": net_rects,
+                "zone_valid": np.stack([f.flat()[2] for f in frames]),
+                "zone_no_target": np.stack([f.flat_no_target() for f in frames]),
                 "image_rects": rects, "image_size": size, "network_size": net_size}
 
-    def run_network(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Run the network on :meth:`prepare`'s output.
+    def run_network(self, inputs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """Run the network on :meth:`prepare`'s output: the one backend interface, numpy
+        arrays in and out whichever backend runs (onnxruntime takes them as they are; the
+        PyTorch model gets them as tensors on the estimator's device).
+
+        Args:
+            inputs: :meth:`prepare`'s dict (``image``, ``hypotheses``, ``zone_rects``,
+                ``zone_valid`` and optionally ``zone_no_target`` are read).
 
         Returns:
-            (depth, uncertainty), each (B, 1, h/2, w/2) float32 tensors in metres.
+            (depth, uncertainty), each (B, 1, h/2, w/2) float32 numpy arrays in metres.
         """
+        no_target = inputs.get("zone_no_target")
+        if self.onnx_model is not None:
+            out = self.onnx_model.run(inputs["image"], inputs["hypotheses"],
+                                      inputs["zone_rects"], inputs["zone_valid"], no_target)
+            return out["depth"], out["uncertainty"]
         import torch
 
-        if self.onnx_model is not None:
-            no_target = inputs.get("zone_no_target")
-            out = self.onnx_model.run(inputs["image"].cpu().numpy(),
-                                      inputs["hypotheses"].cpu().numpy(),
-                                      inputs["zone_rects"].cpu().numpy(),
-                                      inputs["zone_valid"].cpu().numpy(),
-                                      None if no_target is None else no_target.cpu().numpy())
-            return torch.from_numpy(out["depth"]), torch.from_numpy(out["uncertainty"])
+        tensors = [None if array is None else torch.from_numpy(np.asarray(array)).to(self.device)
+                   for array in (inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
+                                 inputs["zone_valid"], no_target)]
         if self.flip_average:
-            return self._run_flip_averaged(inputs)
-        return self._run_model(inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
-                               inputs["zone_valid"], inputs.get("zone_no_target"))
+            from deltar.inference.flip import flip_averaged
+
+            depth, uncertainty = flip_averaged(self._run_model, *tensors)
+        else:
+            depth, uncertainty = self._run_model(*tensors)
+        return depth.cpu().numpy(), uncertainty.cpu().numpy()
 
     def _run_model(self, image: torch.Tensor, hypotheses: torch.Tensor,
                    zone_rects: torch.Tensor, zone_valid: torch.Tensor,
@@ -332,14 +338,6 @@ class DepthEstimator:
             out = self.model(image.to(self.dtype), hypotheses.to(self.dtype), zone_rects,
                              zone_valid, **flags)
         return out["depth"].float(), out["uncertainty"].float()
-
-    def _run_flip_averaged(self, inputs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        """:func:`~deltar.inference.flip.flip_averaged` of the PyTorch network."""
-        from deltar.inference.flip import flip_averaged
-
-        return flip_averaged(self._run_model, inputs["image"], inputs["hypotheses"],
-                             inputs["zone_rects"], inputs["zone_valid"],
-                             inputs.get("zone_no_target"))
 
     def predict(self, image: np.ndarray | Sequence[np.ndarray],
                 zone_frame: ZoneFrame | Sequence[ZoneFrame],
@@ -370,7 +368,6 @@ class DepthEstimator:
             ValueError: bad image, zone frame (e.g. valid zones outside the sensor's
                 range) or a calibration for another resolution.
         """
-        import torch
 
         single, images, frames = batch_arguments(image, zone_frame)
         check_calibration(calibration)  # before it undistorts the images
@@ -388,7 +385,7 @@ class DepthEstimator:
                  for i, frame in enumerate(frames)] if self.blend is not None else None
         depth, uncertainty = self.run_network(inputs)
         size = inputs["image_size"]
-        both = resize_to_image(torch.cat([depth, uncertainty], dim=1), size).cpu().numpy()
+        both = resize_to_image(np.concatenate([depth, uncertainty], axis=1), size)
         intrinsics = self.image_intrinsics(size, calibration)
         results = []
         for i, frame in enumerate(frames):
