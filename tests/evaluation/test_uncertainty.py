@@ -47,6 +47,25 @@ def test_fit_writes_a_checkpoint_the_estimator_calibrates_with(tmp_path, tiny_sa
         fit_checkpoint_uncertainty(source, [ZJUL5Dataset(data)], source, overwrite=True)
 
 
+def test_fit_of_a_plane_select_model_fits_its_blend_first(tmp_path, tiny_samples) -> None:
+    from deltar.inference.blend import DEFAULT_BLEND, ConfidenceBlend
+
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    fit = fit_checkpoint_uncertainty(source, [ZJUL5Dataset(data)], tmp_path / "cal.pt",
+                                     min_pixels=100)
+    assert fit.blend is not None and fit.blend != DEFAULT_BLEND
+    # The fit minimises a smoothed relative error: no worse than either side on its pixels.
+    rel = fit.relative_error
+    assert rel["blend"] <= min(rel["network"], rel["fill"]) * 1.02
+    _, _, config = load_checkpoint(fit.path)
+    assert ConfidenceBlend.from_dict(config["confidence_blend"]) == fit.blend
+    estimator = DepthEstimator(load_checkpoint(fit.path)[0])
+    assert estimator.blend == fit.blend and estimator.uncertainty == fit.calibration
+
+
 def test_cli_fits_and_refuses_bad_arguments(tmp_path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     source = _checkpoint(tmp_path / "model.pt")

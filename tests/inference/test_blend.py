@@ -7,13 +7,26 @@ import pytest
 import torch
 
 from deltar.evaluation.baselines import run_baseline
-from deltar.inference.blend import ConfidenceBlend, blend_depth, blend_weight, zone_grid_mask
+from deltar.inference.blend import (
+    DEFAULT_BLEND,
+    BlendPixels,
+    ConfidenceBlend,
+    RegionBlend,
+    blend_depth,
+    blend_weight,
+    fit_confidence_blend,
+    zone_grid_mask,
+)
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.loading import load_estimator
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
 torch.set_num_threads(1)
+
+#: Blends that take the network alone and the fill alone everywhere (logits of +-60).
+NETWORK_ONLY = ConfidenceBlend(RegionBlend(60.0, 0.0, 0.0), RegionBlend(60.0, 0.0, 0.0))
+FILL_ONLY = ConfidenceBlend(RegionBlend(-60.0, 0.0, 0.0), RegionBlend(-60.0, 0.0, 0.0))
 
 
 def _scene(rng: np.random.Generator, height: int = 48, width: int = 64):
@@ -30,12 +43,21 @@ def _scene(rng: np.random.Generator, height: int = 48, width: int = 64):
 
 
 def test_blend_options_are_checked():
-    assert ConfidenceBlend() == ConfidenceBlend(8.0, 128.0)
-    for bad in (-1.0, float("nan"), float("inf"), "8"):
-        with pytest.raises(ValueError, match=r"ConfidenceBlend\.beta_inside"):
-            ConfidenceBlend(beta_inside=bad)
-    with pytest.raises(ValueError, match=r"ConfidenceBlend\.beta_outside"):
-        ConfidenceBlend(beta_outside=-0.5)
+    for bad in (float("nan"), float("inf"), "8", True, None):
+        with pytest.raises(ValueError, match="confidence blend bias must be a finite number"):
+            RegionBlend(bad, 0.0, 0.0)
+    with pytest.raises(ValueError, match="disagreement_slope"):
+        RegionBlend(0.0, 0.0, float("-inf"))
+    with pytest.raises(ValueError, match=r"ConfidenceBlend\.outside must be a RegionBlend"):
+        ConfidenceBlend(RegionBlend(0, 0, 0), (1, 2, 3))
+    assert RegionBlend(np.float32(2.0), 0, 0).bias == 2.0
+    assert ConfidenceBlend.from_dict(DEFAULT_BLEND.to_dict()) == DEFAULT_BLEND
+    with pytest.raises(ValueError, match="must have regions"):
+        ConfidenceBlend.from_dict({"inside": DEFAULT_BLEND.to_dict()["inside"]})
+    broken = DEFAULT_BLEND.to_dict()
+    del broken["outside"]["bias"]
+    with pytest.raises(ValueError, match="'outside' needs keys"):
+        ConfidenceBlend.from_dict(broken)
 
 
 def test_zone_grid_mask_is_the_clipped_bounding_box():
@@ -46,13 +68,19 @@ def test_zone_grid_mask_is_the_clipped_bounding_box():
     np.testing.assert_array_equal(mask, expected)
 
 
-def test_blend_weight_follows_the_relative_uncertainty():
+def test_blend_weight_is_the_logistic_of_the_two_features():
     depth = np.array([[2.0, 2.0], [4.0, 4.0]])
     uncertainty = np.array([[0.0, 0.2], [0.2, 0.4]])
+    fill = np.array([[2.0, 1.0], [4.0, 8.0]])
     inside = np.array([[True, True], [False, True]])
-    weight = blend_weight(depth, uncertainty, inside, ConfidenceBlend(8.0, 128.0))
-    np.testing.assert_allclose(weight, [[1.0, np.exp(-0.8)], [np.exp(-6.4), np.exp(-0.8)]],
-                               rtol=1e-6)
+    blend = ConfidenceBlend(RegionBlend(1.0, -2.0, 0.5), RegionBlend(-3.0, -1.0, 4.0))
+    weight = blend_weight(depth, uncertainty, fill, inside, blend)
+    log_spread = np.log(np.maximum(uncertainty, 1e-6) / depth)
+    gap = np.abs(np.log(depth / fill))
+    logit = np.where(inside, 1.0 - 2.0 * log_spread + 0.5 * gap,
+                     -3.0 - 1.0 * log_spread + 4.0 * gap)
+    assert weight.dtype == np.float32
+    np.testing.assert_allclose(weight, 1 / (1 + np.exp(-logit)), rtol=1e-5)
 
 
 def test_blend_goes_from_the_network_to_the_fill(rng):
@@ -60,17 +88,17 @@ def test_blend_goes_from_the_network_to_the_fill(rng):
     network = np.full(image.shape[:2], 2.0, np.float32)
     fill = run_baseline("colorization", image, means, valid, rects)
     sure = blend_depth(network, np.zeros_like(network), image, means, valid, rects,
-                       ConfidenceBlend())
+                       NETWORK_ONLY)
     np.testing.assert_array_equal(sure, network)
     unsure = blend_depth(network, np.full_like(network, 10.0), image, means, valid, rects,
-                         ConfidenceBlend())
+                         FILL_ONLY)
     np.testing.assert_allclose(unsure, fill, rtol=1e-5)
     # The fill follows the image: the bright half near 1 m, the dark half near 3 m.
     assert abs(np.median(unsure[:, :20]) - 1.0) < 0.1
     assert abs(np.median(unsure[:, -20:]) - 3.0) < 0.1
     # Without a valid zone there is nothing to fill from: the network's depth stays.
     none = blend_depth(network, np.full_like(network, 10.0), image, means, ~valid, rects,
-                       ConfidenceBlend())
+                       FILL_ONLY)
     np.testing.assert_array_equal(none, network)
 
 
@@ -78,9 +106,9 @@ def test_blend_scales_with_the_readings(rng):
     image, means, valid, rects = _scene(rng)
     network = rng.uniform(1.0, 3.0, image.shape[:2]).astype(np.float32)
     spread = (0.05 * network * rng.uniform(0, 2, image.shape[:2])).astype(np.float32)
-    base = blend_depth(network, spread, image, means, valid, rects, ConfidenceBlend())
+    base = blend_depth(network, spread, image, means, valid, rects, DEFAULT_BLEND)
     scaled = blend_depth(2.5 * network, 2.5 * spread, image, 2.5 * means, valid, rects,
-                         ConfidenceBlend())
+                         DEFAULT_BLEND)
     np.testing.assert_allclose(scaled, 2.5 * base, rtol=1e-4)
 
 
@@ -92,14 +120,13 @@ def test_no_target_zones_join_the_fill_at_their_depth(rng):
     valid[far] = False
     network = np.full(image.shape[:2], 1.0, np.float32)
     unsure = np.full_like(network, 10.0)
-    blended = blend_depth(network, unsure, image, means, valid, rects, ConfidenceBlend(),
+    blended = blend_depth(network, unsure, image, means, valid, rects, FILL_ONLY,
                           zone_far=far, far_depth_m=5.0)
     assert np.median(blended[:, -20:]) > 4.5
-    without = blend_depth(network, unsure, image, means, valid, rects, ConfidenceBlend())
+    without = blend_depth(network, unsure, image, means, valid, rects, FILL_ONLY)
     assert np.median(without[:, -20:]) < 1.5
     with pytest.raises(ValueError, match="far_depth_m"):
-        blend_depth(network, unsure, image, means, valid, rects, ConfidenceBlend(),
-                    zone_far=far)
+        blend_depth(network, unsure, image, means, valid, rects, FILL_ONLY, zone_far=far)
 
 
 def _select_estimator(**kwargs) -> DepthEstimator:
@@ -115,21 +142,24 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
     mean = rng.uniform(0.8, 3.0, (8, 8))
     frame = ZoneFrame(mean, np.full((8, 8), 0.02), np.ones((8, 8), bool))
     blended = _select_estimator()
-    assert blended.blend == ConfidenceBlend()
+    assert blended.blend == DEFAULT_BLEND
     plain = _select_estimator(blend=None)
     result, raw = blended.predict(image, frame), plain.predict(image, frame)
     assert raw.network_depth_m is None
     np.testing.assert_allclose(result.network_depth_m, raw.depth_m, rtol=1e-6)
     expected = blend_depth(raw.depth_m, raw.uncertainty_m, image, frame.flat()[0],
-                           frame.flat()[2], result.zone_rects, ConfidenceBlend(),
+                           frame.flat()[2], result.zone_rects, DEFAULT_BLEND,
                            zone_far=frame.flat_no_target(), far_depth_m=5.0)
     np.testing.assert_allclose(result.depth_m, expected, rtol=1e-5)
     assert not np.allclose(result.depth_m, raw.depth_m)  # the random net is unsure
     np.testing.assert_array_equal(result.uncertainty_m, raw.uncertainty_m)
     # Other heads were not validated with the blend: off unless asked for.
     assert DepthEstimator(lite_model, weights="test").blend is None
-    assert DepthEstimator(lite_model, weights="test", blend=ConfidenceBlend(1, 2)).blend == \
-        ConfidenceBlend(1, 2)
+    assert DepthEstimator(lite_model, weights="test", blend=FILL_ONLY).blend == FILL_ONLY
+    # Coefficients the weights carry (fitted by deltar fit-uncertainty) are used.
+    carried = _select_estimator().model
+    carried.config["confidence_blend"] = FILL_ONLY.to_dict()
+    assert DepthEstimator(carried, weights="test").blend == FILL_ONLY
     with pytest.raises(ValueError, match="blend must be 'auto', a ConfidenceBlend or None"):
         DepthEstimator(lite_model, weights="test", blend="on")
 
@@ -187,7 +217,7 @@ def test_bad_blend_inputs_name_the_argument(rng):
         (dict(zone_rects=rects[:, :3]), "zone_rects"),
     ]
     base = dict(depth_m=depth, uncertainty_m=unsure, image_rgb=image, zone_mean_m=means,
-                zone_valid=valid, zone_rects=rects, blend=ConfidenceBlend())
+                zone_valid=valid, zone_rects=rects, blend=DEFAULT_BLEND)
     for change, message in cases:
         with pytest.raises(ValueError, match=message):
             blend_depth(**{**base, **change})
@@ -199,9 +229,6 @@ def test_bad_blend_inputs_name_the_argument(rng):
         colorize_zones(image.astype(np.float32), means, valid, rects)
     with pytest.raises(ValueError, match="zone_mean_m must be finite"):
         colorize_zones(image, np.where(valid, np.nan, 1.0), valid, rects)
-    assert ConfidenceBlend(np.float32(8.0)).beta_inside == 8.0
-    with pytest.raises(ValueError, match="beta_inside"):
-        ConfidenceBlend(beta_inside=True)
 
 
 def test_blend_off_the_image_returns_the_network_depth(rng):
@@ -209,7 +236,7 @@ def test_blend_off_the_image_returns_the_network_depth(rng):
     depth = np.full(image.shape[:2], 2.0, np.float32)
     away = rects + np.float32(1000.0)  # no zone overlaps the image
     out = blend_depth(depth, np.full_like(depth, 1.0), image, means, valid, away,
-                      ConfidenceBlend())
+                      FILL_ONLY)
     assert out is depth
 
 
@@ -220,7 +247,7 @@ def test_blend_follows_the_flip_averaged_network_and_batches(rng):
     flipped = _select_estimator(flip_average=True).predict(image, frame)
     expected = blend_depth(flipped.network_depth_m, flipped.uncertainty_m, image,
                            frame.flat()[0], frame.flat()[2], flipped.zone_rects,
-                           ConfidenceBlend(), zone_far=frame.flat_no_target(), far_depth_m=5.0)
+                           DEFAULT_BLEND, zone_far=frame.flat_no_target(), far_depth_m=5.0)
     np.testing.assert_allclose(flipped.depth_m, expected, rtol=1e-5)
     # A batch with an image-only frame: that one keeps the network's depth, the other is
     # blended exactly as alone.
@@ -244,7 +271,7 @@ def test_onnx_backend_blends_like_pytorch(rng, tmp_path):
     rects = nominal_zone_rects(frame, 64, 96, torch_estimator.intrinsics.scaled(64, 96))
     export_onnx(torch_estimator.model, tmp_path / "select.onnx", 64, 96, zone_rects=rects)
     onnx_estimator = load_estimator(tmp_path / "select.onnx", kind="onnx", threads=1)
-    assert onnx_estimator.blend == ConfidenceBlend()
+    assert onnx_estimator.blend == DEFAULT_BLEND
     got = onnx_estimator.predict(image, frame)
     reference = _select_estimator().predict(image, frame)
     np.testing.assert_allclose(got.network_depth_m, reference.network_depth_m, atol=1e-4)
@@ -256,3 +283,41 @@ def test_onnx_refuses_flip_in_evaluation_names():
 
     with pytest.raises(ValueError, match=r"\+flip needs a PyTorch model"):
         onnx_predictor("model.onnx+flip")
+
+
+def _synthetic_pixels(rng: np.random.Generator, count: int) -> BlendPixels:
+    """Pixels where the network is right when its spread is small and the fill when it is
+    large (inside the grid the switch is at 5 % relative spread, beyond it at 20 %)."""
+    truth = rng.uniform(0.5, 4.0, count)
+    inside = rng.random(count) < 0.6
+    relative = np.exp(rng.uniform(np.log(0.01), np.log(0.5), count))
+    switch = np.where(inside, 0.05, 0.2)
+    network_error = np.where(relative < switch, 0.01, 0.3) * rng.standard_normal(count)
+    fill_error = 0.08 * rng.standard_normal(count)
+    network = truth * np.exp(network_error)
+    return BlendPixels(truth, network, truth * np.exp(fill_error), relative * network, inside)
+
+
+def test_fitted_blend_beats_network_and_fill_on_new_pixels(rng):
+    fitted = fit_confidence_blend(_synthetic_pixels(rng, 20000))
+    # Less sure, less weight, in both regions.
+    assert fitted.inside.spread_slope < 0 and fitted.outside.spread_slope < 0
+    new = _synthetic_pixels(rng, 20000)
+
+    def relative_error(depth):
+        return np.mean(np.abs(depth - new.truth_m) / new.truth_m)
+
+    blended = relative_error(new.blended(fitted))
+    assert blended < 0.8 * min(relative_error(new.network_m), relative_error(new.fill_m))
+    # The per-pixel path equals the map path of blend_weight / blend_with_fill.
+    weight = blend_weight(new.network_m[None], new.spread_m[None], new.fill_m[None],
+                          new.inside[None], fitted)[0]
+    expected = np.exp(weight * np.log(new.network_m) + (1 - weight) * np.log(new.fill_m))
+    np.testing.assert_allclose(new.blended(fitted), expected, rtol=1e-5)
+
+
+def test_blend_fit_needs_pixels_in_both_regions(rng):
+    pixels = _synthetic_pixels(rng, 3000)
+    pixels.inside[:] = True
+    with pytest.raises(ValueError, match="0 pixels with ground truth outside the zone grid"):
+        fit_confidence_blend(pixels)

@@ -8,6 +8,7 @@ import pytest
 from deltar.inference import colorization
 from deltar.inference.blend import (
     ConfidenceBlend,
+    RegionBlend,
     blend_fill,
     blend_weight,
     blend_with_fill,
@@ -62,14 +63,13 @@ def test_blend_with_fill_is_the_weighted_mixture(rng):
     depth = rng.uniform(1.0, 3.0, image.shape[:2]).astype(np.float32)
     spread = (0.1 * depth * rng.uniform(0, 2, depth.shape)).astype(np.float32)
     fill = blend_fill(image, means, valid, rects)
-    blend = ConfidenceBlend(8.0, 128.0)
-    weight = np.exp(-np.where(zone_grid_mask(rects, depth.shape), 8.0, 128.0)
-                    * spread.astype(np.float64) / depth)
-    expected = weight * depth + (1 - weight) * fill
+    blend = ConfidenceBlend(RegionBlend(-4.0, -2.0, 0.5), RegionBlend(-2.0, -1.0, 1.0))
+    inside = zone_grid_mask(rects, depth.shape)
+    weight = blend_weight(depth, spread, fill, inside, blend).astype(np.float64)
+    expected = depth.astype(np.float64) ** weight * fill.astype(np.float64) ** (1 - weight)
     got = blend_with_fill(depth, spread, fill, rects, blend)
     assert got.dtype == np.float32
-    np.testing.assert_allclose(got, expected, rtol=1e-6)
-    np.testing.assert_allclose(blend_weight(depth, spread, zone_grid_mask(rects, depth.shape),
-                                            blend), weight, rtol=1e-6)
+    np.testing.assert_allclose(got, expected, rtol=1e-5)
+    assert 0.05 < weight.mean() < 0.95  # a mixture, not one side
     with pytest.raises(ValueError, match="fill_m"):
         blend_with_fill(depth, spread, fill[:-1], rects, blend)

@@ -91,12 +91,14 @@ def fit_uncertainty_command(
                                          help="Random pixels with ground truth per frame."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
-    """Calibrate a model's per-pixel sigma on frames with ground truth.
+    """Fit a model's output stage on frames with ground truth: blend, then sigma.
 
-    Fits how the estimator turns the network's spread into a sigma that holds 68% of
-    the errors within one sigma and 95% within two (inside and beyond the zone grid),
-    and writes the checkpoint with that calibration; deltar predict and the estimator
-    then return the calibrated sigma.
+    For a plane-select model (the bundled default's kind) it first fits how the
+    estimator blends the network's depth with the zones' colorization fill, then (every
+    model) how it turns the network's spread into a sigma that holds 68% of the errors
+    within one sigma and 95% within two (inside and beyond the zone grid), and writes the
+    checkpoint with both; deltar predict and the estimator then use them. Give frames of
+    the model's training scenes, never of the scenes you will judge it on.
     """
     from deltar.cli.checks import output_file
     from deltar.cli.progress import ProgressReport
@@ -112,10 +114,19 @@ def fit_uncertainty_command(
         raise typer.BadParameter(str(err), param_hint="--data") from err
     total = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
                 for s in sets)
-    with ProgressReport("fitting uncertainty", total=total) as progress:
+    with ProgressReport("fitting the output stage", total=total) as progress:
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
                                          overwrite=overwrite, on_frame=progress.advance)
+    if fit.blend is not None:
+        for name in ("inside", "outside"):
+            region = getattr(fit.blend, name)
+            typer.echo(f"blend {name} the zone grid: w = sigmoid({region.bias:.3f} + "
+                       f"{region.spread_slope:.3f} log(spread/depth) + "
+                       f"{region.disagreement_slope:.3f} |log(network/fill)|)")
+        rel = fit.relative_error
+        typer.echo(f"mean relative error on these pixels: network {rel['network']:.4f}, "
+                   f"fill {rel['fill']:.4f}, blend {rel['blend']:.4f}")
     for name in ("inside", "outside"):
         region = getattr(fit.calibration, name)
         raw, new = fit.raw_coverage[name], fit.coverage[name]

@@ -1,12 +1,15 @@
-"""Fit a checkpoint's uncertainty calibration on frames with ground truth.
+"""Fit a checkpoint's output stage on frames with ground truth: blend, then sigma.
 
-The estimator runs the checkpoint as users run it (with its confidence blend), the
-absolute error of every frame's returned depth is compared with the network's spread,
-and :func:`deltar.inference.uncertainty.fit_uncertainty_calibration` picks the
-coefficients. The result is written into a new checkpoint's config
-(``uncertainty_calibration``), so the calibration travels with the weights into
-``DepthEstimator``, ``deltar predict`` and the ONNX export. Fit it on the training
-scenes' frames only: a calibration fitted on the frames it is judged on says nothing.
+The estimator runs the checkpoint's network over the frames; for a network the
+estimator blends with the zones' colorization fill (plane-select heads) the fill is
+computed too, and :func:`deltar.inference.blend.fit_confidence_blend` fits the blend's
+coefficients on sampled pixels. The blend is per pixel, so the blended depth of those
+same pixels is exact; their absolute errors and the network's spread then fit the
+sigma (:func:`deltar.inference.uncertainty.fit_uncertainty_calibration`), so the sigma
+describes the depth that is returned. Both results are written into a new checkpoint's
+config (``confidence_blend``, ``uncertainty_calibration``) and travel with the weights
+into ``DepthEstimator``, ``deltar predict`` and the ONNX export. Fit on the training
+scenes' frames only: an output stage fitted on the frames it is judged on says nothing.
 """
 
 from __future__ import annotations
@@ -19,13 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.inference.blend import BlendPixels, ConfidenceBlend, fit_confidence_blend
 from deltar.inference.uncertainty import (
     CalibrationPixels,
     UncertaintyCalibration,
-    concatenate_pixels,
     coverage,
     fit_uncertainty_calibration,
-    sample_pixels,
 )
 
 
@@ -34,36 +36,46 @@ class UncertaintyFit:
     """Outcome of :func:`fit_checkpoint_uncertainty`.
 
     Attributes:
-        calibration: the fitted coefficients.
+        calibration: the fitted sigma coefficients.
+        blend: the fitted blend coefficients (None: the network does not blend).
         frames: frames used.
         pixels: pixels used (per region: ``inside``, ``outside``).
         raw_coverage: (within 1, within 2) network spreads, per region, before.
         coverage: the same with the calibrated sigma, on the fitting pixels.
+        relative_error: mean relative error on the fitting pixels of ``network``,
+            ``fill`` and ``blend`` (the last two only when the network blends).
         path: the written checkpoint.
     """
 
     calibration: UncertaintyCalibration
+    blend: ConfidenceBlend | None
     frames: int
     pixels: dict[str, int]
     raw_coverage: dict[str, tuple[float, float]]
     coverage: dict[str, tuple[float, float]]
+    relative_error: dict[str, float]
     path: Path
 
 
-def collect_pixels(estimator, sets: Sequence[Sequence], *, frames_per_set: int | None = None,
-                   pixels_per_frame: int = 4000, min_depth: float = 1e-3,
-                   max_depth: float = 10.0, seed: int = 0,
-                   on_frame: Callable[[], None] | None = None
-                   ) -> tuple[CalibrationPixels, int]:
-    """Run ``estimator`` (raw spread: ``uncertainty=None``) over sets and sample pixels.
+def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
+                   frames_per_set: int | None = None, pixels_per_frame: int = 4000,
+                   min_depth: float = 1e-3, max_depth: float = 10.0, seed: int = 0,
+                   on_frame: Callable[[], None] | None = None) -> tuple[BlendPixels, int]:
+    """Run ``estimator``'s network over sets and sample pixels with ground truth.
 
     Args:
-        estimator: a :class:`~deltar.inference.estimator.DepthEstimator`.
+        estimator: a :class:`~deltar.inference.estimator.DepthEstimator` without blend
+            or calibration (``blend=None, uncertainty=None``): the network's depth and
+            raw spread.
         sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample` (image, zones and
             ground-truth depth in metres).
+        with_fill: also compute the zones' colorization fill
+            (:meth:`~deltar.inference.estimator.DepthEstimator.blend_fill_for`); else
+            the pixels' ``fill_m`` is the network's depth.
         frames_per_set: at most this many frames of each set, spread evenly (all by
             default).
-        pixels_per_frame: random pixels with ground truth kept per frame.
+        pixels_per_frame: random pixels with ground truth kept per frame (so every frame
+            weighs alike).
         min_depth, max_depth: ground-truth range in metres.
         seed: seed of the pixel draw.
         on_frame: called after each frame (progress).
@@ -81,23 +93,29 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, frames_per_set: int |
             np.linspace(0, count - 1, frames_per_set).round().astype(int)
         for index in picks:
             sample = samples[int(index)]
-            result = estimator.predict(sample.rgb, sample.zone_frame(),
-                                       zone_rects=sample.zone_rects)
-            gt = sample.depth_m
-            valid = (gt > min_depth) & (gt < max_depth)
-            if valid.any():
-                moved = (np.zeros_like(result.depth_m) if result.network_depth_m is None
-                         else np.abs(result.network_depth_m - result.depth_m))
-                parts.append(sample_pixels(np.abs(result.depth_m - gt), result.uncertainty_m,
-                                           result.depth_m, moved,
-                                           zone_grid_mask(result.zone_rects, gt.shape),
-                                           valid, pixels_per_frame, rng))
+            frame = sample.zone_frame()
+            result = estimator.predict(sample.rgb, frame, zone_rects=sample.zone_rects)
+            truth = sample.depth_m
+            chosen = np.flatnonzero((truth > min_depth) & (truth < max_depth))
+            if chosen.size:
+                if chosen.size > pixels_per_frame:
+                    chosen = rng.choice(chosen, size=pixels_per_frame, replace=False)
+                fill = (estimator.blend_fill_for(sample.rgb, frame, result.zone_rects)
+                        if with_fill else None)
+                fill = result.depth_m if fill is None else fill
+                inside = zone_grid_mask(result.zone_rects, truth.shape)
+                parts.append(BlendPixels(*(np.asarray(a, dtype=np.float64).reshape(-1)[chosen]
+                                           for a in (truth, result.depth_m, fill,
+                                                     result.uncertainty_m)),
+                                         inside=inside.reshape(-1)[chosen]))
                 frames += 1
             if on_frame is not None:
                 on_frame()
     if not parts:
-        raise ValueError("no frame has ground truth to fit the uncertainty on")
-    return concatenate_pixels(parts), frames
+        raise ValueError("no frame has ground truth to fit the output stage on")
+    return BlendPixels(*(np.concatenate([getattr(p, name) for p in parts])
+                         for name in ("truth_m", "network_m", "fill_m", "spread_m",
+                                      "inside"))), frames
 
 
 def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Sequence],
@@ -105,7 +123,8 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                                pixels_per_frame: int = 4000, min_pixels: int = 1000,
                                overwrite: bool = False,
                                on_frame: Callable[[], None] | None = None) -> UncertaintyFit:
-    """Fit the calibration of a checkpoint on sets with ground truth; write a new file.
+    """Fit a checkpoint's blend (plane-select networks) and sigma calibration on sets
+    with ground truth (module docstring); write them into a new checkpoint file.
 
     Args:
         checkpoint: a deltar checkpoint file or bundled name (``"default"``).
@@ -129,22 +148,37 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     if out.exists() and out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
+    blends = model.config.get("head") == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
     # original is what is saved, so the file is read once.
-    estimator = DepthEstimator(copy.deepcopy(model), uncertainty=None,
+    estimator = DepthEstimator(copy.deepcopy(model), blend=None, uncertainty=None,
                                weights=f"{preset} from {source}")
-    pixels, frames = collect_pixels(estimator, sets, frames_per_set=frames_per_set,
+    pixels, frames = collect_pixels(estimator, sets, with_fill=blends,
+                                    frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
-    calibration = fit_uncertainty_calibration(pixels, min_pixels)
+    blend = fit_confidence_blend(pixels, min_pixels) if blends else None
+    depth = pixels.network_m if blend is None else pixels.blended(blend).astype(np.float64)
+    error = np.abs(depth - pixels.truth_m)
+    calibration = fit_uncertainty_calibration(
+        CalibrationPixels(error, pixels.spread_m, depth, np.abs(pixels.network_m - depth),
+                          pixels.inside), min_pixels)
     regions = {"inside": pixels.inside, "outside": ~pixels.inside}
-    sigma = calibration.sigma(pixels.spread_m, pixels.depth_m, pixels.moved_m, pixels.inside)
+    sigma = calibration.sigma(pixels.spread_m, depth, np.abs(pixels.network_m - depth),
+                              pixels.inside)
+    relative = {"network": pixels.network_m}
+    if blend is not None:
+        relative.update(fill=pixels.fill_m, blend=depth)
     fit = UncertaintyFit(
-        calibration=calibration, frames=frames,
+        calibration=calibration, blend=blend, frames=frames,
         pixels={name: int(mask.sum()) for name, mask in regions.items()},
-        raw_coverage={name: coverage(pixels.error_m[m], pixels.spread_m[m])
-                      for name, m in regions.items()},
-        coverage={name: coverage(pixels.error_m[m], sigma[m]) for name, m in regions.items()},
+        raw_coverage={name: coverage(np.abs(pixels.network_m[m] - pixels.truth_m[m]),
+                                     pixels.spread_m[m]) for name, m in regions.items()},
+        coverage={name: coverage(error[m], sigma[m]) for name, m in regions.items()},
+        relative_error={name: float(np.mean(np.abs(v - pixels.truth_m) / pixels.truth_m))
+                        for name, v in relative.items()},
         path=out)
     model.config["uncertainty_calibration"] = calibration.to_dict()
+    if blend is not None:
+        model.config["confidence_blend"] = blend.to_dict()
     save_checkpoint(out, model, preset, overwrite=overwrite)
     return fit

@@ -5,18 +5,22 @@ descriptors pick. Where the pick is clear its depth is better per pixel than any
 classical method's; where it is unsure (mixed zones at depth edges, and most of what the
 camera sees beyond the sensor's field of view) a wrong pick costs a large error. The
 colorization fill of the zone readings (:func:`deltar.inference.colorization.colorize_zones`,
-the classical ``colorization`` baseline)
-errs differently: it propagates the readings smoothly along the image, so it hedges. The
-blend takes, per pixel,
+the classical ``colorization`` baseline) errs differently: it propagates the readings
+smoothly along the image, so it hedges. The blend mixes the two in log depth, per pixel:
 
-    depth = w * network + (1 - w) * fill,   w = exp(-beta * uncertainty / network)
+    log depth = w log network + (1 - w) log fill
+    w = sigmoid(bias + spread_slope * log(uncertainty / network)
+                + disagreement_slope * |log(network / fill)|)
 
-with ``beta_inside`` for pixels inside the zone grid's bounding box and ``beta_outside``
-beyond it (where the network extrapolates). Both parts are metric from the zones and
-``w`` is a ratio, so scaling every reading by ``k`` scales the blended depth by ``k``.
+with one ``(bias, spread_slope, disagreement_slope)`` for pixels inside the zone grid's
+bounding box and one for the pixels beyond it (where the network extrapolates). Both
+parts are metric from the zones and ``w`` depends on ratios only, so scaling every
+reading by ``k`` scales the blended depth by ``k``.
 
-The betas were chosen leave-one-scene-out (docs/training.md): on each fold the pair that
-did best on the three other scenes; three of the four folds chose (8, 128).
+The coefficients are fitted on frames with ground truth (:func:`fit_confidence_blend`,
+run by ``deltar fit-uncertainty`` on a model's training scenes) and travel in the
+network's config (``confidence_blend``); a plane-select checkpoint without them uses
+:data:`DEFAULT_BLEND`.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from __future__ import annotations
 import math
 import numbers
 import threading
+from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -31,26 +36,89 @@ import numpy as np
 
 from deltar.sensor.zone_frame import no_target_as_readings
 
+#: The two regions a blend (and the uncertainty calibration) treats apart.
+BLEND_REGIONS = ("inside", "outside")
+_REGION_KEYS = ("bias", "spread_slope", "disagreement_slope")
+
+
+@dataclass(frozen=True)
+class RegionBlend:
+    """Logistic weight of the network's log depth in one region (module docstring).
+
+    Attributes:
+        bias: the weight's logit where the network's relative uncertainty is 1 and it
+            agrees with the fill.
+        spread_slope: logit change per unit of ``log(uncertainty / depth)`` (negative:
+            the less sure the network, the more the fill counts).
+        disagreement_slope: logit change per unit of ``|log(network / fill)|``.
+    """
+
+    bias: float
+    spread_slope: float
+    disagreement_slope: float
+
+    def __post_init__(self) -> None:
+        for name in _REGION_KEYS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, numbers.Real)
+                                               and math.isfinite(value)):
+                raise ValueError(f"confidence blend {name} must be a finite number, got "
+                                 f"{value!r}")
+
+    def logit(self, log_relative_spread: np.ndarray, disagreement: np.ndarray) -> np.ndarray:
+        """The weight's logit (float32, same shape) from the two per-pixel features."""
+        return (np.float32(self.bias) + np.float32(self.spread_slope) * log_relative_spread
+                + np.float32(self.disagreement_slope) * disagreement)
+
 
 @dataclass(frozen=True)
 class ConfidenceBlend:
-    """Blend weights of :func:`blend_depth` (see the module docstring).
+    """Blend coefficients inside and beyond the zone grid (module docstring).
 
     Attributes:
-        beta_inside: weight decay per unit of relative uncertainty inside the zone grid.
-        beta_outside: the same beyond the zone grid's bounding box.
+        inside: coefficients for pixels inside the zone grid's bounding box.
+        outside: coefficients for the pixels beyond it.
     """
 
-    beta_inside: float = 8.0
-    beta_outside: float = 128.0
+    inside: RegionBlend
+    outside: RegionBlend
 
     def __post_init__(self) -> None:
-        for name in ("beta_inside", "beta_outside"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, numbers.Real)
-                                               and math.isfinite(value) and value >= 0):
-                raise ValueError(f"ConfidenceBlend.{name} must be a finite number >= 0, got "
-                                 f"{value!r}")
+        for name in BLEND_REGIONS:
+            if not isinstance(getattr(self, name), RegionBlend):
+                raise ValueError(f"ConfidenceBlend.{name} must be a RegionBlend, got "
+                                 f"{getattr(self, name)!r}")
+
+    def to_dict(self) -> dict[str, dict[str, float]]:
+        """Plain floats, for a checkpoint's config or ONNX metadata (JSON)."""
+        return {name: {key: float(getattr(getattr(self, name), key)) for key in _REGION_KEYS}
+                for name in BLEND_REGIONS}
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> ConfidenceBlend:
+        """The inverse of :meth:`to_dict`.
+
+        Raises:
+            ValueError: missing regions or coefficients, or values that are not finite.
+        """
+        if not isinstance(data, Mapping) or set(data) != set(BLEND_REGIONS):
+            raise ValueError(f"confidence blend must have regions {list(BLEND_REGIONS)}, got "
+                             f"{data!r}")
+        regions = {}
+        for name in BLEND_REGIONS:
+            entry = data[name]
+            if not isinstance(entry, Mapping) or set(entry) != set(_REGION_KEYS):
+                raise ValueError(f"confidence blend {name!r} needs keys {list(_REGION_KEYS)}, "
+                                 f"got {entry!r}")
+            regions[name] = RegionBlend(*(entry[key] for key in _REGION_KEYS))
+        return cls(**regions)
+
+
+#: The blend of a plane-select checkpoint that carries none: fitted with
+#: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones)
+#: with the bundled model (docs/training.md).
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.768, -3.198, 1.005),
+                                outside=RegionBlend(-7.803, -4.316, 2.994))
 
 
 def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
@@ -71,23 +139,28 @@ def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.nd
     return mask
 
 
-def blend_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, inside: np.ndarray,
-                 blend: ConfidenceBlend) -> np.ndarray:
-    """(H, W) float32 weight in (0, 1] of the network's depth (module docstring).
+def blend_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.ndarray,
+                 inside: np.ndarray, blend: ConfidenceBlend) -> np.ndarray:
+    """(H, W) float32 weight in [0, 1] of the network's log depth (module docstring).
 
     Args:
         depth_m: (H, W) network depth, metres (> 0).
         uncertainty_m: (H, W) its standard deviation, metres (>= 0).
+        fill_m: (H, W) the fill (:func:`blend_fill`), metres (> 0).
         inside: (H, W) bool, True inside the zone grid (:func:`zone_grid_mask`).
-        blend: the betas.
+        blend: the coefficients.
     """
-    # float32 throughout: a 480 x 640 frame's weight in about a millisecond.
-    depth_m = np.asarray(depth_m, dtype=np.float32)
-    relative = np.asarray(uncertainty_m, dtype=np.float32) / np.maximum(depth_m,
-                                                                       np.float32(1e-6))
-    relative *= np.where(inside, np.float32(-blend.beta_inside),
-                         np.float32(-blend.beta_outside))
-    return np.exp(relative, out=relative)
+    tiny = np.float32(1e-6)
+    log_depth = np.log(np.maximum(np.asarray(depth_m, dtype=np.float32), tiny))
+    log_spread = np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny))
+    log_spread -= log_depth
+    disagreement = np.abs(log_depth - np.log(np.maximum(np.asarray(fill_m, dtype=np.float32),
+                                                        tiny)))
+    logit = np.where(inside, blend.inside.logit(log_spread, disagreement),
+                     blend.outside.logit(log_spread, disagreement))
+    # sigmoid without overflow warnings: exp of a clipped logit.
+    return (np.float32(1.0) / (np.float32(1.0) + np.exp(-np.clip(logit, -60.0, 60.0)))
+            ).astype(np.float32)
 
 
 def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
@@ -148,14 +221,14 @@ def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid:
 
 def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.ndarray,
                     zone_rects: np.ndarray, blend: ConfidenceBlend) -> np.ndarray:
-    """``w * depth_m + (1 - w) * fill_m`` with :func:`blend_weight`'s ``w``.
+    """``depth_m ** w * fill_m ** (1 - w)`` with :func:`blend_weight`'s ``w``.
 
     Args:
         depth_m: (H, W) network depth, metres.
         uncertainty_m: (H, W) its standard deviation, metres.
         fill_m: (H, W) fill (:func:`blend_fill`), metres.
         zone_rects: (Z, 4) zone rectangles in image pixels.
-        blend: the betas.
+        blend: the coefficients.
 
     Returns:
         (H, W) float32 blended depth, metres.
@@ -164,15 +237,26 @@ def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.n
     if np.shape(fill_m) != depth_m.shape:
         raise ValueError(f"fill_m must have depth_m's shape {depth_m.shape}, got "
                          f"{np.shape(fill_m)}")
-    weight = blend_weight(depth_m, uncertainty_m, zone_grid_mask(zone_rects, depth_m.shape),
-                          blend)
     fill_m = np.asarray(fill_m, dtype=np.float32)
-    # In place, float32: exactly the network where w = 1 and the fill where w = 0.
-    blended = weight * depth_m
-    np.subtract(np.float32(1.0), weight, out=weight)
-    weight *= fill_m
-    blended += weight
-    return blended
+    weight = blend_weight(depth_m, uncertainty_m, fill_m,
+                          zone_grid_mask(zone_rects, depth_m.shape), blend)
+    return mix_log_depth(depth_m, fill_m, weight)
+
+
+def mix_log_depth(depth_m: np.ndarray, fill_m: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """``exp(w log depth_m + (1 - w) log fill_m)``: float32, metres, any one shape.
+
+    Exactly ``depth_m`` where ``w`` is 1 and ``fill_m`` where it is 0.
+    """
+    tiny = np.float32(1e-6)
+    log_fill = np.log(np.maximum(fill_m, tiny))
+    mixed = np.log(np.maximum(depth_m, tiny)) - log_fill
+    mixed *= weight
+    mixed += log_fill
+    out = np.exp(mixed, out=mixed).astype(np.float32, copy=False)
+    # exp(log x) is x only to a rounding: keep the two ends exact.
+    out = np.where(weight >= 1.0, depth_m, out)
+    return np.where(weight <= 0.0, fill_m, out).astype(np.float32, copy=False)
 
 
 def blend_depth(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb: np.ndarray,
@@ -226,3 +310,95 @@ def check_blend_inputs(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb
     if np.shape(image_rgb)[:2] != shape:
         raise ValueError(f"image_rgb must be (H, W, 3) with depth_m's (H, W) = {shape}, got "
                          f"{np.shape(image_rgb)}")
+
+
+@dataclass
+class BlendPixels:
+    """Pixels of frames with ground truth, for :func:`fit_confidence_blend` (and, blended,
+    for the uncertainty calibration).
+
+    Every array is (N,) float64 (``inside`` bool): the ground truth, the network's depth,
+    the fill, the network's spread (all metres) and whether the pixel lies inside the
+    zone grid's bounding box.
+    """
+
+    truth_m: np.ndarray
+    network_m: np.ndarray
+    fill_m: np.ndarray
+    spread_m: np.ndarray
+    inside: np.ndarray
+
+    def features(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) ``log(spread / network)`` and ``|log(network / fill)|``, float32."""
+        tiny = 1e-6
+        network = np.maximum(self.network_m, tiny)
+        log_spread = np.log(np.maximum(self.spread_m, tiny) / network)
+        disagreement = np.abs(np.log(network / np.maximum(self.fill_m, tiny)))
+        return log_spread.astype(np.float32), disagreement.astype(np.float32)
+
+    def blended(self, blend: ConfidenceBlend) -> np.ndarray:
+        """(N,) float32 blended depth in metres, as :func:`blend_with_fill` gives it."""
+        log_spread, disagreement = self.features()
+        logit = np.where(self.inside, blend.inside.logit(log_spread, disagreement),
+                         blend.outside.logit(log_spread, disagreement))
+        weight = (1.0 / (1.0 + np.exp(-np.clip(logit, -60.0, 60.0)))).astype(np.float32)
+        return mix_log_depth(self.network_m.astype(np.float32), self.fill_m.astype(np.float32),
+                             weight)
+
+
+#: Log-depth error (about 1 %) below which the fit's loss turns from absolute to squared:
+#: a smooth stand-in for the mean relative error.
+_FIT_SMOOTHING = 0.01
+#: Starting points of the fit: the network alone, an even mix, the fill alone.
+_FIT_STARTS = ((4.0, 0.0, 0.0), (0.0, -1.0, 0.0), (-4.0, 0.0, 0.0))
+
+
+def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
+                      region: str) -> RegionBlend:
+    from scipy.optimize import minimize  # scipy: on use
+
+    count = int(mask.sum())
+    if count < min_pixels:
+        raise ValueError(f"{count} pixels with ground truth {region} the zone grid, need at "
+                         f"least {min_pixels}: give more frames with ground truth")
+    log_spread, disagreement = (f[mask].astype(np.float64) for f in pixels.features())
+    log_network = np.log(np.maximum(pixels.network_m[mask], 1e-6))
+    log_fill = np.log(np.maximum(pixels.fill_m[mask], 1e-6))
+    gap = log_network - log_fill
+    offset = log_fill - np.log(np.maximum(pixels.truth_m[mask], 1e-6))
+    design = np.stack([np.ones_like(gap), log_spread, disagreement])  # (3, N)
+
+    def loss(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        weight = 1.0 / (1.0 + np.exp(-np.clip(theta @ design, -60.0, 60.0)))
+        error = weight * gap + offset
+        smooth = np.sqrt(error * error + _FIT_SMOOTHING ** 2)
+        slope = error / smooth * gap * weight * (1.0 - weight)
+        return float(smooth.mean()), design @ slope / error.size
+
+    best = None
+    for start in _FIT_STARTS:
+        result = minimize(loss, np.asarray(start), jac=True, method="L-BFGS-B",
+                          bounds=[(-50.0, 50.0)] * 3)
+        if best is None or result.fun < best.fun:
+            best = result
+    return RegionBlend(*(float(v) for v in best.x))
+
+
+def fit_confidence_blend(pixels: BlendPixels, min_pixels: int = 1000) -> ConfidenceBlend:
+    """Fit :class:`ConfidenceBlend` to pixels with ground truth (training scenes only).
+
+    Per region, the coefficients minimise the mean over pixels of a smoothed absolute
+    log-depth error of the blend (about the mean relative error; every frame should
+    give the same number of pixels, so that each weighs alike), by L-BFGS from three
+    starts (network alone, an even mix, the fill alone).
+
+    Args:
+        pixels: the sampled pixels.
+        min_pixels: fewest pixels each region needs.
+
+    Raises:
+        ValueError: too few pixels in a region.
+    """
+    inside = np.asarray(pixels.inside, dtype=bool)
+    return ConfidenceBlend(inside=_fit_region_blend(pixels, inside, min_pixels, "inside"),
+                           outside=_fit_region_blend(pixels, ~inside, min_pixels, "outside"))

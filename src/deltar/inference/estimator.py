@@ -27,6 +27,7 @@ import numpy as np
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import (
+    DEFAULT_BLEND,
     ConfidenceBlend,
     blend_with_fill,
     start_blend_fill,
@@ -102,9 +103,11 @@ class DepthEstimator:
             lower RMSE on rooms the model never saw; its fill runs on a worker thread
             while the network does):
             ``"auto"`` (default) does so for plane-select networks (``head ==
-            "plane_select"``, e.g. the bundled ``default``), for which it was validated
-            leave-one-scene-out, and not for others; a ``ConfidenceBlend`` always; None
-            never (the network alone, fastest).
+            "plane_select"``, e.g. the bundled ``default``) with the coefficients the
+            weights carry (``config["confidence_blend"]``, fitted with ``deltar
+            fit-uncertainty``) or, without them,
+            :data:`~deltar.inference.blend.DEFAULT_BLEND`, and not for other networks; a
+            ``ConfidenceBlend`` always; None never (the network alone, fastest).
         uncertainty: how ``uncertainty_m`` is computed
             (:class:`~deltar.inference.uncertainty.UncertaintyCalibration`): ``"auto"``
             (default) uses the calibration the weights carry
@@ -170,7 +173,9 @@ class DepthEstimator:
         self.image_mean = tuple(contract.get("image_mean", IMAGENET_MEAN))
         self.image_std = tuple(contract.get("image_std", IMAGENET_STD))
         if blend == "auto":
-            blend = ConfidenceBlend() if contract.get("head") == "plane_select" else None
+            stored = contract.get("confidence_blend")
+            blend = (None if contract.get("head") != "plane_select" else DEFAULT_BLEND
+                     if stored is None else ConfidenceBlend.from_dict(stored))
         elif blend is not None and not isinstance(blend, ConfidenceBlend):
             raise ValueError(f"blend must be 'auto', a ConfidenceBlend or None, got {blend!r}")
         self.blend = blend
@@ -413,6 +418,22 @@ class DepthEstimator:
                                            uncertainty_calibrated=self.uncertainty
                                            is not None))
         return results[0] if single else results
+
+    def blend_fill_for(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray
+                       ) -> np.ndarray | None:
+        """The fill the blend mixes with for one frame: (H, W) float32 metres, or None.
+
+        Args:
+            image: (H, W, 3) uint8 RGB image.
+            frame: its zone frame.
+            rects: (Z, 4) zone rectangles in pixels of ``image``
+                (``DepthPrediction.zone_rects``).
+
+        Returns:
+            :func:`~deltar.inference.blend.blend_fill` of the zones (no-target zones read
+            at the network's ``no_target_depth``), None without a valid zone on the image.
+        """
+        return self._start_fill(image, frame, rects).result()
 
     def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray) -> Future:
         """:func:`~deltar.inference.blend.start_blend_fill` for one frame (H, W metres)."""

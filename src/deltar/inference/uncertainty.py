@@ -30,7 +30,7 @@ points at one sigma for the two-sigma tail.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,35 +132,6 @@ class CalibrationPixels:
     depth_m: np.ndarray
     moved_m: np.ndarray
     inside: np.ndarray
-
-
-def sample_pixels(error_m: np.ndarray, spread_m: np.ndarray, depth_m: np.ndarray,
-                  moved_m: np.ndarray, inside: np.ndarray, valid: np.ndarray,
-                  count: int, rng: np.random.Generator) -> CalibrationPixels:
-    """Up to ``count`` random valid pixels of one frame (every frame then weighs alike).
-
-    Args:
-        error_m, spread_m, depth_m, moved_m: (H, W) metres (see :class:`CalibrationPixels`).
-        inside: (H, W) bool zone-grid mask.
-        valid: (H, W) bool, pixels with ground truth.
-        count: pixels to keep (all valid ones when fewer).
-        rng: the random generator (fixed seed for a reproducible fit).
-    """
-    index = np.flatnonzero(valid)
-    if index.size > count:
-        index = rng.choice(index, size=count, replace=False)
-    return CalibrationPixels(*(np.asarray(a, dtype=np.float64).reshape(-1)[index]
-                               for a in (error_m, spread_m, depth_m, moved_m)),
-                             inside=np.asarray(inside, dtype=bool).reshape(-1)[index])
-
-
-def concatenate_pixels(parts: Sequence[CalibrationPixels]) -> CalibrationPixels:
-    """One :class:`CalibrationPixels` of several frames' samples."""
-    if not parts:
-        raise ValueError("no calibration pixels")
-    return CalibrationPixels(*(np.concatenate([getattr(p, name) for p in parts])
-                               for name in ("error_m", "spread_m", "depth_m", "moved_m",
-                                            "inside")))
 
 
 def coverage(error_m: np.ndarray, sigma_m: np.ndarray) -> tuple[float, float]:

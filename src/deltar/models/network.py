@@ -109,6 +109,11 @@ class DeltarNet(nn.Module):
             network's spread to a calibrated sigma
             (:meth:`deltar.inference.uncertainty.UncertaintyCalibration.to_dict`), or
             None (the spread is returned as it is).
+        confidence_blend: output contract, recorded in :attr:`config` (read by the
+            estimator), does not change the network: the coefficients of the estimator's
+            blend of this network's depth with the zones' colorization fill
+            (:meth:`deltar.inference.blend.ConfidenceBlend.to_dict`), or None (the
+            estimator's default for plane-select networks).
     """
 
     def __init__(
@@ -139,6 +144,7 @@ class DeltarNet(nn.Module):
         planar: bool = True,
         no_target_depth: float | None = NO_TARGET_DEPTH_M,
         uncertainty_calibration: dict | None = None,
+        confidence_blend: dict | None = None,
     ) -> None:
         super().__init__()
         _check_choice("head", head, tuple(HEADS))
@@ -187,6 +193,7 @@ class DeltarNet(nn.Module):
             "no_target_depth": None if no_target_depth is None else float(no_target_depth),
             "uncertainty_calibration": None if uncertainty_calibration is None
             else dict(uncertainty_calibration),
+            "confidence_blend": None if confidence_blend is None else dict(confidence_blend),
         }
         self.zone_scale_norm = bool(zone_scale_norm)
         self.min_depth = min_depth
