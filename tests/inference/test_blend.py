@@ -25,8 +25,8 @@ from deltar.sensor.zone_frame import ZoneFrame
 torch.set_num_threads(1)
 
 #: Blends that take the network alone and the fill alone everywhere (logits of +-60).
-NETWORK_ONLY = ConfidenceBlend(RegionBlend(60.0, 0.0, 0.0), RegionBlend(60.0, 0.0, 0.0))
-FILL_ONLY = ConfidenceBlend(RegionBlend(-60.0, 0.0, 0.0), RegionBlend(-60.0, 0.0, 0.0))
+NETWORK_ONLY = ConfidenceBlend(RegionBlend(60.0, 0.0), RegionBlend(60.0, 0.0))
+FILL_ONLY = ConfidenceBlend(RegionBlend(-60.0, 0.0), RegionBlend(-60.0, 0.0))
 
 
 def _scene(rng: np.random.Generator, height: int = 48, width: int = 64):
@@ -45,12 +45,12 @@ def _scene(rng: np.random.Generator, height: int = 48, width: int = 64):
 def test_blend_options_are_checked():
     for bad in (float("nan"), float("inf"), "8", True, None):
         with pytest.raises(ValueError, match="confidence blend bias must be a finite number"):
-            RegionBlend(bad, 0.0, 0.0)
-    with pytest.raises(ValueError, match="disagreement_slope"):
-        RegionBlend(0.0, 0.0, float("-inf"))
+            RegionBlend(bad, 0.0)
+    with pytest.raises(ValueError, match="spread_slope"):
+        RegionBlend(0.0, float("-inf"))
     with pytest.raises(ValueError, match=r"ConfidenceBlend\.outside must be a RegionBlend"):
-        ConfidenceBlend(RegionBlend(0, 0, 0), (1, 2, 3))
-    assert RegionBlend(np.float32(2.0), 0, 0).bias == 2.0
+        ConfidenceBlend(RegionBlend(0, 0), (1, 2))
+    assert RegionBlend(np.float32(2.0), 0).bias == 2.0
     assert ConfidenceBlend.from_dict(DEFAULT_BLEND.to_dict()) == DEFAULT_BLEND
     with pytest.raises(ValueError, match="must have regions"):
         ConfidenceBlend.from_dict({"inside": DEFAULT_BLEND.to_dict()["inside"]})
@@ -68,19 +68,18 @@ def test_zone_grid_mask_is_the_clipped_bounding_box():
     np.testing.assert_array_equal(mask, expected)
 
 
-def test_blend_weight_is_the_logistic_of_the_two_features():
+def test_blend_weight_is_the_logistic_of_the_relative_spread():
     depth = np.array([[2.0, 2.0], [4.0, 4.0]])
     uncertainty = np.array([[0.0, 0.2], [0.2, 0.4]])
-    fill = np.array([[2.0, 1.0], [4.0, 8.0]])
     inside = np.array([[True, True], [False, True]])
-    blend = ConfidenceBlend(RegionBlend(1.0, -2.0, 0.5), RegionBlend(-3.0, -1.0, 4.0))
-    weight = blend_weight(depth, uncertainty, fill, inside, blend)
+    blend = ConfidenceBlend(RegionBlend(1.0, -2.0), RegionBlend(-3.0, -1.0))
+    weight = blend_weight(depth, uncertainty, inside, blend)
     log_spread = np.log(np.maximum(uncertainty, 1e-6) / depth)
-    gap = np.abs(np.log(depth / fill))
-    logit = np.where(inside, 1.0 - 2.0 * log_spread + 0.5 * gap,
-                     -3.0 - 1.0 * log_spread + 4.0 * gap)
+    logit = np.where(inside, 1.0 - 2.0 * log_spread, -3.0 - 1.0 * log_spread)
     assert weight.dtype == np.float32
     np.testing.assert_allclose(weight, 1 / (1 + np.exp(-logit)), rtol=1e-5)
+    # A sure pixel (zero spread) keeps the network wherever the slope is negative.
+    assert weight[0, 0] > 0.999
 
 
 def test_blend_goes_from_the_network_to_the_fill(rng):
@@ -310,8 +309,8 @@ def test_fitted_blend_beats_network_and_fill_on_new_pixels(rng):
     blended = relative_error(new.blended(fitted))
     assert blended < 0.8 * min(relative_error(new.network_m), relative_error(new.fill_m))
     # The per-pixel path equals the map path of blend_weight / blend_with_fill.
-    weight = blend_weight(new.network_m[None], new.spread_m[None], new.fill_m[None],
-                          new.inside[None], fitted)[0]
+    weight = blend_weight(new.network_m[None], new.spread_m[None], new.inside[None],
+                          fitted)[0]
     expected = np.exp(weight * np.log(new.network_m) + (1 - weight) * np.log(new.fill_m))
     np.testing.assert_allclose(new.blended(fitted), expected, rtol=1e-5)
 

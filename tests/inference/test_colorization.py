@@ -63,9 +63,9 @@ def test_blend_with_fill_is_the_weighted_mixture(rng):
     depth = rng.uniform(1.0, 3.0, image.shape[:2]).astype(np.float32)
     spread = (0.1 * depth * rng.uniform(0, 2, depth.shape)).astype(np.float32)
     fill = blend_fill(image, means, valid, rects)
-    blend = ConfidenceBlend(RegionBlend(-4.0, -2.0, 0.5), RegionBlend(-2.0, -1.0, 1.0))
+    blend = ConfidenceBlend(RegionBlend(-4.0, -2.0), RegionBlend(-2.0, -1.0))
     inside = zone_grid_mask(rects, depth.shape)
-    weight = blend_weight(depth, spread, fill, inside, blend).astype(np.float64)
+    weight = blend_weight(depth, spread, inside, blend).astype(np.float64)
     expected = depth.astype(np.float64) ** weight * fill.astype(np.float64) ** (1 - weight)
     got = blend_with_fill(depth, spread, fill, rects, blend)
     assert got.dtype == np.float32

@@ -122,8 +122,7 @@ def fit_uncertainty_command(
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)
             typer.echo(f"blend {name} the zone grid: w = sigmoid({region.bias:.3f} + "
-                       f"{region.spread_slope:.3f} log(spread/depth) + "
-                       f"{region.disagreement_slope:.3f} |log(network/fill)|)")
+                       f"{region.spread_slope:.3f} log(spread/depth))")
         rel = fit.relative_error
         typer.echo(f"mean relative error on these pixels: network {rel['network']:.4f}, "
                    f"fill {rel['fill']:.4f}, blend {rel['blend']:.4f}")

@@ -9,13 +9,14 @@ the classical ``colorization`` baseline) errs differently: it propagates the rea
 smoothly along the image, so it hedges. The blend mixes the two in log depth, per pixel:
 
     log depth = w log network + (1 - w) log fill
-    w = sigmoid(bias + spread_slope * log(uncertainty / network)
-                + disagreement_slope * |log(network / fill)|)
+    w = sigmoid(bias + spread_slope * log(uncertainty / network))
 
-with one ``(bias, spread_slope, disagreement_slope)`` for pixels inside the zone grid's
-bounding box and one for the pixels beyond it (where the network extrapolates). Both
-parts are metric from the zones and ``w`` depends on ratios only, so scaling every
-reading by ``k`` scales the blended depth by ``k``.
+with one ``(bias, spread_slope)`` for pixels inside the zone grid's bounding box and one
+for the pixels beyond it (where the network extrapolates). Both parts are metric from
+the zones and ``w`` depends on a ratio only, so scaling every reading by ``k`` scales
+the blended depth by ``k``. (A third term on the disagreement ``|log(network / fill)|``
+fitted lower errors on the training scenes and higher ones on the scenes left out, so
+the weight reads the network's own uncertainty alone.)
 
 The coefficients are fitted on frames with ground truth (:func:`fit_confidence_blend`,
 run by ``deltar fit-uncertainty`` on a model's training scenes) and travel in the
@@ -38,7 +39,7 @@ from deltar.sensor.zone_frame import no_target_as_readings
 
 #: The two regions a blend (and the uncertainty calibration) treats apart.
 BLEND_REGIONS = ("inside", "outside")
-_REGION_KEYS = ("bias", "spread_slope", "disagreement_slope")
+_REGION_KEYS = ("bias", "spread_slope")
 
 
 @dataclass(frozen=True)
@@ -46,16 +47,13 @@ class RegionBlend:
     """Logistic weight of the network's log depth in one region (module docstring).
 
     Attributes:
-        bias: the weight's logit where the network's relative uncertainty is 1 and it
-            agrees with the fill.
+        bias: the weight's logit where the network's relative uncertainty is 1.
         spread_slope: logit change per unit of ``log(uncertainty / depth)`` (negative:
             the less sure the network, the more the fill counts).
-        disagreement_slope: logit change per unit of ``|log(network / fill)|``.
     """
 
     bias: float
     spread_slope: float
-    disagreement_slope: float
 
     def __post_init__(self) -> None:
         for name in _REGION_KEYS:
@@ -65,10 +63,9 @@ class RegionBlend:
                 raise ValueError(f"confidence blend {name} must be a finite number, got "
                                  f"{value!r}")
 
-    def logit(self, log_relative_spread: np.ndarray, disagreement: np.ndarray) -> np.ndarray:
-        """The weight's logit (float32, same shape) from the two per-pixel features."""
-        return (np.float32(self.bias) + np.float32(self.spread_slope) * log_relative_spread
-                + np.float32(self.disagreement_slope) * disagreement)
+    def logit(self, log_relative_spread: np.ndarray) -> np.ndarray:
+        """The weight's logit (float32, same shape) from ``log(uncertainty / depth)``."""
+        return np.float32(self.bias) + np.float32(self.spread_slope) * log_relative_spread
 
 
 @dataclass(frozen=True)
@@ -117,8 +114,8 @@ class ConfidenceBlend:
 #: The blend of a plane-select checkpoint that carries none: fitted with
 #: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones)
 #: with the bundled model (docs/training.md).
-DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.768, -3.198, 1.005),
-                                outside=RegionBlend(-7.803, -4.316, 2.994))
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.509, -3.156),
+                                outside=RegionBlend(-1.886, -1.022))
 
 
 def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
@@ -139,26 +136,29 @@ def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.nd
     return mask
 
 
-def blend_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.ndarray,
-                 inside: np.ndarray, blend: ConfidenceBlend) -> np.ndarray:
+def blend_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, inside: np.ndarray,
+                 blend: ConfidenceBlend) -> np.ndarray:
     """(H, W) float32 weight in [0, 1] of the network's log depth (module docstring).
 
     Args:
         depth_m: (H, W) network depth, metres (> 0).
         uncertainty_m: (H, W) its standard deviation, metres (>= 0).
-        fill_m: (H, W) the fill (:func:`blend_fill`), metres (> 0).
         inside: (H, W) bool, True inside the zone grid (:func:`zone_grid_mask`).
         blend: the coefficients.
     """
+    return _weight(log_relative_spread(depth_m, uncertainty_m), inside, blend)
+
+
+def log_relative_spread(depth_m: np.ndarray, uncertainty_m: np.ndarray) -> np.ndarray:
+    """``log(uncertainty / depth)``, float32, any one shape (both floored at 1e-6 m)."""
     tiny = np.float32(1e-6)
-    log_depth = np.log(np.maximum(np.asarray(depth_m, dtype=np.float32), tiny))
-    log_spread = np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny))
-    log_spread -= log_depth
-    disagreement = np.abs(log_depth - np.log(np.maximum(np.asarray(fill_m, dtype=np.float32),
-                                                        tiny)))
-    logit = np.where(inside, blend.inside.logit(log_spread, disagreement),
-                     blend.outside.logit(log_spread, disagreement))
-    # sigmoid without overflow warnings: exp of a clipped logit.
+    return (np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny))
+            - np.log(np.maximum(np.asarray(depth_m, dtype=np.float32), tiny)))
+
+
+def _weight(log_spread: np.ndarray, inside: np.ndarray, blend: ConfidenceBlend) -> np.ndarray:
+    logit = np.where(inside, blend.inside.logit(log_spread), blend.outside.logit(log_spread))
+    # The logistic of a clipped logit: no overflow in exp.
     return (np.float32(1.0) / (np.float32(1.0) + np.exp(-np.clip(logit, -60.0, 60.0)))
             ).astype(np.float32)
 
@@ -237,10 +237,9 @@ def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.n
     if np.shape(fill_m) != depth_m.shape:
         raise ValueError(f"fill_m must have depth_m's shape {depth_m.shape}, got "
                          f"{np.shape(fill_m)}")
-    fill_m = np.asarray(fill_m, dtype=np.float32)
-    weight = blend_weight(depth_m, uncertainty_m, fill_m,
-                          zone_grid_mask(zone_rects, depth_m.shape), blend)
-    return mix_log_depth(depth_m, fill_m, weight)
+    weight = blend_weight(depth_m, uncertainty_m, zone_grid_mask(zone_rects, depth_m.shape),
+                          blend)
+    return mix_log_depth(depth_m, np.asarray(fill_m, dtype=np.float32), weight)
 
 
 def mix_log_depth(depth_m: np.ndarray, fill_m: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -328,20 +327,9 @@ class BlendPixels:
     spread_m: np.ndarray
     inside: np.ndarray
 
-    def features(self) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) ``log(spread / network)`` and ``|log(network / fill)|``, float32."""
-        tiny = 1e-6
-        network = np.maximum(self.network_m, tiny)
-        log_spread = np.log(np.maximum(self.spread_m, tiny) / network)
-        disagreement = np.abs(np.log(network / np.maximum(self.fill_m, tiny)))
-        return log_spread.astype(np.float32), disagreement.astype(np.float32)
-
     def blended(self, blend: ConfidenceBlend) -> np.ndarray:
         """(N,) float32 blended depth in metres, as :func:`blend_with_fill` gives it."""
-        log_spread, disagreement = self.features()
-        logit = np.where(self.inside, blend.inside.logit(log_spread, disagreement),
-                         blend.outside.logit(log_spread, disagreement))
-        weight = (1.0 / (1.0 + np.exp(-np.clip(logit, -60.0, 60.0)))).astype(np.float32)
+        weight = _weight(log_relative_spread(self.network_m, self.spread_m), self.inside, blend)
         return mix_log_depth(self.network_m.astype(np.float32), self.fill_m.astype(np.float32),
                              weight)
 
@@ -350,7 +338,7 @@ class BlendPixels:
 #: a smooth stand-in for the mean relative error.
 _FIT_SMOOTHING = 0.01
 #: Starting points of the fit: the network alone, an even mix, the fill alone.
-_FIT_STARTS = ((4.0, 0.0, 0.0), (0.0, -1.0, 0.0), (-4.0, 0.0, 0.0))
+_FIT_STARTS = ((4.0, 0.0), (0.0, -1.0), (-4.0, 0.0))
 
 
 def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
@@ -361,12 +349,12 @@ def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
     if count < min_pixels:
         raise ValueError(f"{count} pixels with ground truth {region} the zone grid, need at "
                          f"least {min_pixels}: give more frames with ground truth")
-    log_spread, disagreement = (f[mask].astype(np.float64) for f in pixels.features())
+    log_spread = log_relative_spread(pixels.network_m[mask], pixels.spread_m[mask])
     log_network = np.log(np.maximum(pixels.network_m[mask], 1e-6))
     log_fill = np.log(np.maximum(pixels.fill_m[mask], 1e-6))
     gap = log_network - log_fill
     offset = log_fill - np.log(np.maximum(pixels.truth_m[mask], 1e-6))
-    design = np.stack([np.ones_like(gap), log_spread, disagreement])  # (3, N)
+    design = np.stack([np.ones_like(gap), log_spread.astype(np.float64)])  # (2, N)
 
     def loss(theta: np.ndarray) -> tuple[float, np.ndarray]:
         weight = 1.0 / (1.0 + np.exp(-np.clip(theta @ design, -60.0, 60.0)))
@@ -378,7 +366,7 @@ def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
     best = None
     for start in _FIT_STARTS:
         result = minimize(loss, np.asarray(start), jac=True, method="L-BFGS-B",
-                          bounds=[(-50.0, 50.0)] * 3)
+                          bounds=[(-50.0, 50.0)] * 2)
         if best is None or result.fun < best.fun:
             best = result
     return RegionBlend(*(float(v) for v in best.x))
