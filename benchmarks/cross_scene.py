@@ -135,9 +135,12 @@ def train_fold(out: Path, template: dict, fold: str, steps: int | None) -> tuple
     config_path.parent.mkdir(parents=True, exist_ok=True)
     config_path.write_text(yaml.safe_dump(fold_config(template, fold, steps), sort_keys=False))
     started = time.monotonic()
-    # A folder left by an interrupted run resumes from its last checkpoint.
-    resume = ["--resume"] if (run_dir / "checkpoints" / "last.ckpt").is_file() else []
-    deltar("train", "-c", str(config_path), "--run-dir", str(run_dir), *resume)
+    if (run_dir / "checkpoints" / "last.ckpt").is_file():
+        # A folder left by an interrupted run resumes from its last checkpoint (with the
+        # config it saved).
+        deltar("train", "--resume", str(run_dir))
+    else:
+        deltar("train", "-c", str(config_path), "--run-dir", str(run_dir))
     return model, time.monotonic() - started
 
 

@@ -273,7 +273,7 @@ def blend_depth(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb: np.nd
         zone_mean_m: (Z,) zone readings, metres.
         zone_valid: (Z,) bool.
         zone_rects: (Z, 4) zone rectangles in image pixels.
-        blend: the betas.
+        blend: the coefficients.
         zone_far: (Z,) bool, optional: zones that reported no target; where not valid
             they join the fill as readings at ``far_depth_m`` (as the network reads them).
         far_depth_m: depth of a no-target zone, metres (required with ``zone_far``).
