@@ -34,6 +34,24 @@ def test_default_is_a_small_float16_select_model_with_its_input_contract():
     assert config["zone_scale_norm"] and config["design_size"] == (256, 320)
 
 
+def test_default_carries_its_fitted_blend_and_sigma_calibration():
+    from deltar.inference.blend import DEFAULT_BLEND, ConfidenceBlend
+    from deltar.inference.uncertainty import UncertaintyCalibration
+
+    estimator = load_estimator("default")
+    _, _, config = load_checkpoint(resolve_checkpoint("default"))
+    assert estimator.blend == ConfidenceBlend.from_dict(config["confidence_blend"])
+    assert estimator.uncertainty == UncertaintyCalibration.from_dict(
+        config["uncertainty_calibration"])
+    # DEFAULT_BLEND (for plane-select files without a blend) is the bundled model's fit.
+    for region in ("inside", "outside"):
+        ours, default = getattr(estimator.blend, region), getattr(DEFAULT_BLEND, region)
+        assert abs(ours.bias - default.bias) < 1e-3
+        assert abs(ours.spread_slope - default.spread_slope) < 1e-3
+        # Less sure, more fill: the weight falls as the relative spread grows.
+        assert ours.spread_slope < 0
+
+
 def test_default_keeps_the_sensor_scale_on_a_real_frame(shared_data):
     torch.set_num_threads(2)
     frame = open_source(str(shared_data / "realsense_floor"))[3]

@@ -114,8 +114,8 @@ class ConfidenceBlend:
 #: The blend of a plane-select checkpoint that carries none: fitted with
 #: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones)
 #: with the bundled model (docs/training.md).
-DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.509, -3.156),
-                                outside=RegionBlend(-1.886, -1.022))
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.162, -2.943),
+                                outside=RegionBlend(-1.807, -1.204))
 
 
 def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
