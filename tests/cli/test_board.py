@@ -44,6 +44,9 @@ def test_calibrate_with_a_board_then_check_it(board_recording, tmp_path):
     assert "board found in 10 of 10 paired images" in result.output
     assert "frames used: 10" in result.output and "cm before" in result.output
     calib = RigCalibration.load(out)
+    # The report prints the expected error the file stores.
+    assert (f"rotation {calib.residuals['rotation_sd_deg']:.2f} deg, translation "
+            f"{1000 * calib.residuals['translation_sd_m']:.1f} mm") in result.output
     angle = np.degrees(Rotation.from_matrix(calib.extrinsics.rotation @ TRUE.rotation.T)
                        .magnitude())
     assert angle < 1.0 and np.linalg.norm(calib.extrinsics.translation_m -

@@ -200,6 +200,11 @@ def _report(result, nominal, out: Path, overwrite: bool, tolerance_s: float,
                                                 calib.extrinsics.translation_m))
     typer.echo(f"mean zone-to-cloud distance: {100 * result.distance_before_m:.2f} cm before, "
                f"{100 * result.distance_after_m:.2f} cm after")
+    expected = getattr(board, "uncertainty", None)
+    if expected is not None:
+        typer.echo(f"expected error from the zones' noise ({100 * expected.zone_noise_m:.1f} cm, "
+                   f"1 sd): rotation {expected.rotation_rms_deg:.2f} deg, translation "
+                   f"{1000 * expected.translation_rms_m:.1f} mm")
     typer.echo(f"wrote {out}")
 
 
