@@ -89,6 +89,11 @@ def fit_uncertainty_command(
                                               "spread evenly (default: all)."),
     pixels_per_frame: int = typer.Option(4000, "--pixels-per-frame", min=100,
                                          help="Random pixels with ground truth per frame."),
+    blend_objective: str = typer.Option("relative", "--blend-objective",
+                                        help="What the blend's fit minimises: 'relative' "
+                                        "(a smoothed absolute log error, about REL) or "
+                                        "'squared' (squared log error, weighs large errors "
+                                        "more)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
     """Fit a model's output stage on frames with ground truth: blend, then sigma.
@@ -104,8 +109,12 @@ def fit_uncertainty_command(
     from deltar.cli.progress import ProgressReport
     from deltar.data.zone_sets import open_zone_set
     from deltar.evaluation.uncertainty import fit_checkpoint_uncertainty
+    from deltar.inference.blend import BLEND_OBJECTIVES
     from deltar.io.input_file import refuse_input_as_output
 
+    if blend_objective not in BLEND_OBJECTIVES:
+        raise typer.BadParameter(f"must be one of {', '.join(BLEND_OBJECTIVES)}, got "
+                                 f"{blend_objective!r}", param_hint="--blend-objective")
     refuse_input_as_output(out, [Path(checkpoint), *data], "--out")
     output_file(out, "--out", overwrite)
     try:
@@ -117,7 +126,8 @@ def fit_uncertainty_command(
     with ProgressReport("fitting the output stage", total=total) as progress:
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
-                                         overwrite=overwrite, on_frame=progress.advance)
+                                         overwrite=overwrite, blend_objective=blend_objective,
+                                         on_frame=progress.advance)
     if fit.blend is not None:
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)

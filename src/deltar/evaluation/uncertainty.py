@@ -121,7 +121,7 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
 def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Sequence],
                                out: str | os.PathLike, *, frames_per_set: int | None = None,
                                pixels_per_frame: int = 4000, min_pixels: int = 1000,
-                               overwrite: bool = False,
+                               overwrite: bool = False, blend_objective: str = "relative",
                                on_frame: Callable[[], None] | None = None) -> UncertaintyFit:
     """Fit a checkpoint's blend (plane-select networks) and sigma calibration on sets
     with ground truth (module docstring); write them into a new checkpoint file.
@@ -133,6 +133,8 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         out: the new checkpoint (never the input file; written atomically).
         frames_per_set, pixels_per_frame: see :func:`collect_pixels`.
         min_pixels: fewest pixels each region (inside, beyond the zone grid) needs.
+        blend_objective: what the blend's fit minimises
+            (:data:`~deltar.inference.blend.BLEND_OBJECTIVES`).
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
 
@@ -156,7 +158,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     pixels, frames = collect_pixels(estimator, sets, with_fill=blends,
                                     frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
-    blend = fit_confidence_blend(pixels, min_pixels) if blends else None
+    blend = fit_confidence_blend(pixels, min_pixels, blend_objective) if blends else None
     depth = pixels.network_m if blend is None else pixels.blended(blend).astype(np.float64)
     error = np.abs(depth - pixels.truth_m)
     calibration = fit_uncertainty_calibration(

@@ -342,7 +342,7 @@ _FIT_STARTS = ((4.0, 0.0), (0.0, -1.0), (-4.0, 0.0))
 
 
 def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
-                      region: str) -> RegionBlend:
+                      region: str, objective: str) -> RegionBlend:
     from scipy.optimize import minimize  # scipy: on use
 
     count = int(mask.sum())
@@ -359,6 +359,9 @@ def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
     def loss(theta: np.ndarray) -> tuple[float, np.ndarray]:
         weight = 1.0 / (1.0 + np.exp(-np.clip(theta @ design, -60.0, 60.0)))
         error = weight * gap + offset
+        if objective == "squared":
+            slope = 2.0 * error * gap * weight * (1.0 - weight)
+            return float(np.mean(error * error)), design @ slope / error.size
         smooth = np.sqrt(error * error + _FIT_SMOOTHING ** 2)
         slope = error / smooth * gap * weight * (1.0 - weight)
         return float(smooth.mean()), design @ slope / error.size
@@ -372,7 +375,14 @@ def _fit_region_blend(pixels: BlendPixels, mask: np.ndarray, min_pixels: int,
     return RegionBlend(*(float(v) for v in best.x))
 
 
-def fit_confidence_blend(pixels: BlendPixels, min_pixels: int = 1000) -> ConfidenceBlend:
+#: What :func:`fit_confidence_blend` can minimise over pixels: a smoothed absolute
+#: log-depth error (about the mean relative error) or the squared log-depth error (which
+#: weighs large errors more, as RMSE does).
+BLEND_OBJECTIVES = ("relative", "squared")
+
+
+def fit_confidence_blend(pixels: BlendPixels, min_pixels: int = 1000,
+                         objective: str = "relative") -> ConfidenceBlend:
     """Fit :class:`ConfidenceBlend` to pixels with ground truth (training scenes only).
 
     Per region, the coefficients minimise the mean over pixels of a smoothed absolute
@@ -387,6 +397,9 @@ def fit_confidence_blend(pixels: BlendPixels, min_pixels: int = 1000) -> Confide
     Raises:
         ValueError: too few pixels in a region.
     """
+    if objective not in BLEND_OBJECTIVES:
+        raise ValueError(f"objective must be one of {BLEND_OBJECTIVES}, got {objective!r}")
     inside = np.asarray(pixels.inside, dtype=bool)
-    return ConfidenceBlend(inside=_fit_region_blend(pixels, inside, min_pixels, "inside"),
-                           outside=_fit_region_blend(pixels, ~inside, min_pixels, "outside"))
+    return ConfidenceBlend(
+        inside=_fit_region_blend(pixels, inside, min_pixels, "inside", objective),
+        outside=_fit_region_blend(pixels, ~inside, min_pixels, "outside", objective))
