@@ -75,6 +75,10 @@ def test_cli_fits_and_refuses_bad_arguments(tmp_path, tiny_samples) -> None:
                                  "--frames-per-set", "1", "--out", str(out)])
     assert result.exit_code == 1 and "need at least 1000" in result.output
     assert not out.exists()
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--blend-objective", "rmse", "--out", str(out)])
+    assert result.exit_code == 2 and "--blend-objective" in result.output
+    assert "relative, squared" in result.output and not out.exists()
     result = runner.invoke(app, ["fit-uncertainty", str(source), "--data",
                                  str(tmp_path / "missing.json"), "--out", str(out)])
     assert result.exit_code == 2 and "--data" in result.output

@@ -297,8 +297,9 @@ def _synthetic_pixels(rng: np.random.Generator, count: int) -> BlendPixels:
     return BlendPixels(truth, network, truth * np.exp(fill_error), relative * network, inside)
 
 
-def test_fitted_blend_beats_network_and_fill_on_new_pixels(rng):
-    fitted = fit_confidence_blend(_synthetic_pixels(rng, 20000))
+@pytest.mark.parametrize("objective", ["relative", "squared"])
+def test_fitted_blend_beats_network_and_fill_on_new_pixels(rng, objective):
+    fitted = fit_confidence_blend(_synthetic_pixels(rng, 20000), objective=objective)
     # Less sure, less weight, in both regions.
     assert fitted.inside.spread_slope < 0 and fitted.outside.spread_slope < 0
     new = _synthetic_pixels(rng, 20000)
@@ -320,3 +321,5 @@ def test_blend_fit_needs_pixels_in_both_regions(rng):
     pixels.inside[:] = True
     with pytest.raises(ValueError, match="0 pixels with ground truth outside the zone grid"):
         fit_confidence_blend(pixels)
+    with pytest.raises(ValueError, match="objective must be one of"):
+        fit_confidence_blend(_synthetic_pixels(rng, 3000), objective="rmse")
