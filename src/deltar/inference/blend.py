@@ -35,10 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deltar.inference.regions import REGIONS, regions_from_dict, regions_to_dict
 from deltar.sensor.zone_frame import no_target_as_readings
 
-#: The two regions a blend (and the uncertainty calibration) treats apart.
-BLEND_REGIONS = ("inside", "outside")
 _REGION_KEYS = ("bias", "spread_slope")
 
 
@@ -81,15 +80,14 @@ class ConfidenceBlend:
     outside: RegionBlend
 
     def __post_init__(self) -> None:
-        for name in BLEND_REGIONS:
+        for name in REGIONS:
             if not isinstance(getattr(self, name), RegionBlend):
                 raise ValueError(f"ConfidenceBlend.{name} must be a RegionBlend, got "
                                  f"{getattr(self, name)!r}")
 
     def to_dict(self) -> dict[str, dict[str, float]]:
         """Plain floats, for a checkpoint's config or ONNX metadata (JSON)."""
-        return {name: {key: float(getattr(getattr(self, name), key)) for key in _REGION_KEYS}
-                for name in BLEND_REGIONS}
+        return regions_to_dict(self, _REGION_KEYS)
 
     @classmethod
     def from_dict(cls, data: Mapping) -> ConfidenceBlend:
@@ -98,17 +96,7 @@ class ConfidenceBlend:
         Raises:
             ValueError: missing regions or coefficients, or values that are not finite.
         """
-        if not isinstance(data, Mapping) or set(data) != set(BLEND_REGIONS):
-            raise ValueError(f"confidence blend must have regions {list(BLEND_REGIONS)}, got "
-                             f"{data!r}")
-        regions = {}
-        for name in BLEND_REGIONS:
-            entry = data[name]
-            if not isinstance(entry, Mapping) or set(entry) != set(_REGION_KEYS):
-                raise ValueError(f"confidence blend {name!r} needs keys {list(_REGION_KEYS)}, "
-                                 f"got {entry!r}")
-            regions[name] = RegionBlend(*(entry[key] for key in _REGION_KEYS))
-        return cls(**regions)
+        return cls(**regions_from_dict(data, RegionBlend, _REGION_KEYS, "confidence blend"))
 
 
 #: The blend of a plane-select checkpoint that carries none: fitted with

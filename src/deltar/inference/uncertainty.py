@@ -35,13 +35,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deltar.inference.regions import regions_from_dict, regions_to_dict
+
 #: Fraction of a Gaussian within one and two standard deviations.
 GAUSSIAN_WITHIN_1 = math.erf(1 / math.sqrt(2))
 GAUSSIAN_WITHIN_2 = math.erf(2 / math.sqrt(2))
 #: Ratios (b / a, c / a) tried by the fit (b: relative floor; c: blend disagreement).
 FLOOR_RATIOS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
 DISAGREEMENT_RATIOS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
-REGIONS = ("inside", "outside")
+_REGION_KEYS = ("spread", "floor", "disagreement")
 
 
 @dataclass(frozen=True)
@@ -94,8 +96,7 @@ class UncertaintyCalibration:
 
     def to_dict(self) -> dict[str, dict[str, float]]:
         """Plain floats, for a checkpoint's config or ONNX metadata (JSON)."""
-        return {name: {"spread": r.spread, "floor": r.floor, "disagreement": r.disagreement}
-                for name, r in (("inside", self.inside), ("outside", self.outside))}
+        return regions_to_dict(self, _REGION_KEYS)
 
     @classmethod
     def from_dict(cls, data: Mapping) -> UncertaintyCalibration:
@@ -104,18 +105,8 @@ class UncertaintyCalibration:
         Raises:
             ValueError: missing regions or coefficients, or invalid values.
         """
-        if not isinstance(data, Mapping) or set(data) != set(REGIONS):
-            raise ValueError(f"uncertainty calibration must have regions {list(REGIONS)}, "
-                             f"got {data!r}")
-        regions = {}
-        for name in REGIONS:
-            entry = data[name]
-            keys = ("spread", "floor", "disagreement")
-            if not isinstance(entry, Mapping) or set(entry) != set(keys):
-                raise ValueError(f"uncertainty calibration {name!r} needs keys {list(keys)}, "
-                                 f"got {entry!r}")
-            regions[name] = RegionCalibration(*(entry[key] for key in keys))
-        return cls(**regions)
+        return cls(**regions_from_dict(data, RegionCalibration, _REGION_KEYS,
+                                       "uncertainty calibration"))
 
 
 @dataclass
