@@ -60,17 +60,17 @@ def _tilted(yaw_deg: float, pitch_deg: float, distance_m: float) -> np.ndarray:
 
 def main() -> None:
     _grid(HERE / "calibration_board_good.png",
-          [_tilted(-30, 0, 0.6), _tilted(25, -15, 0.7), _tilted(0, 30, 0.8),
-           _tilted(20, 25, 0.6)],
-          ["30 deg from the left", "from the right, below", "30 deg from above",
+          [_tilted(-35, 0, 0.6), _tilted(30, -20, 0.7), _tilted(0, 40, 0.8),
+           _tilted(28, 28, 0.6)],
+          ["35 deg from the left", "from the right, below", "40 deg from above",
            "from the right, above"],
-          "good views: the board tilted 15-35 deg in different directions, 0.5-0.9 m")
+          "good views: the board tilted 25-45 deg in different directions, 0.5-0.9 m")
     _grid(HERE / "calibration_board_bad.png",
           [_tilted(0, 0, 0.7), _tilted(2, -2, 0.8), _tilted(0, 0, 2.2), _tilted(70, 0, 0.6)],
           ["head-on", "head-on again (no new direction)", "too far (2.2 m)", "grazing (70 deg)"],
           "bad views: all from one direction, too far, or grazing")
     with tempfile.TemporaryDirectory() as tmp:
-        poses = board_view_poses(12, distance_m=(0.5, 0.9), tilt_deg=35, min_tilt_deg=15,
+        poses = board_view_poses(12, distance_m=(0.5, 0.9), tilt_deg=45, min_tilt_deg=25,
                                  seed=6)
         write_board_recording(Path(tmp) / "rec", TRUE, CAMERA, SPEC, poses, seed=6)
         bumped = RigCalibration(CAMERA, SensorExtrinsics(
