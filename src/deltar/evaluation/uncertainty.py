@@ -161,12 +161,11 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     blend = fit_confidence_blend(pixels, min_pixels, blend_objective) if blends else None
     depth = pixels.network_m if blend is None else pixels.blended(blend).astype(np.float64)
     error = np.abs(depth - pixels.truth_m)
+    moved = np.abs(pixels.network_m - depth)
     calibration = fit_uncertainty_calibration(
-        CalibrationPixels(error, pixels.spread_m, depth, np.abs(pixels.network_m - depth),
-                          pixels.inside), min_pixels)
+        CalibrationPixels(error, pixels.spread_m, depth, moved, pixels.inside), min_pixels)
     regions = {"inside": pixels.inside, "outside": ~pixels.inside}
-    sigma = calibration.sigma(pixels.spread_m, depth, np.abs(pixels.network_m - depth),
-                              pixels.inside)
+    sigma = calibration.sigma(pixels.spread_m, depth, moved, pixels.inside)
     relative = {"network": pixels.network_m}
     if blend is not None:
         relative.update(fill=pixels.fill_m, blend=depth)

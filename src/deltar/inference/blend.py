@@ -373,17 +373,18 @@ def fit_confidence_blend(pixels: BlendPixels, min_pixels: int = 1000,
                          objective: str = "relative") -> ConfidenceBlend:
     """Fit :class:`ConfidenceBlend` to pixels with ground truth (training scenes only).
 
-    Per region, the coefficients minimise the mean over pixels of a smoothed absolute
-    log-depth error of the blend (about the mean relative error; every frame should
-    give the same number of pixels, so that each weighs alike), by L-BFGS from three
-    starts (network alone, an even mix, the fill alone).
+    Per region, the coefficients minimise the mean over pixels of the blend's log-depth
+    error, smoothed absolute (``"relative"``, about the mean relative error) or squared
+    (``"squared"``), by L-BFGS from three starts (network alone, an even mix, the fill
+    alone). Every frame should give the same number of pixels, so that each weighs alike.
 
     Args:
         pixels: the sampled pixels.
         min_pixels: fewest pixels each region needs.
+        objective: one of :data:`BLEND_OBJECTIVES`.
 
     Raises:
-        ValueError: too few pixels in a region.
+        ValueError: too few pixels in a region, or an unknown objective.
     """
     if objective not in BLEND_OBJECTIVES:
         raise ValueError(f"objective must be one of {BLEND_OBJECTIVES}, got {objective!r}")

@@ -174,8 +174,12 @@ class DepthEstimator:
         self.image_std = tuple(contract.get("image_std", IMAGENET_STD))
         if blend == "auto":
             stored = contract.get("confidence_blend")
-            blend = (None if contract.get("head") != "plane_select" else DEFAULT_BLEND
-                     if stored is None else ConfidenceBlend.from_dict(stored))
+            if contract.get("head") != "plane_select":
+                blend = None
+            elif stored is None:
+                blend = DEFAULT_BLEND
+            else:
+                blend = ConfidenceBlend.from_dict(stored)
         elif blend is not None and not isinstance(blend, ConfidenceBlend):
             raise ValueError(f"blend must be 'auto', a ConfidenceBlend or None, got {blend!r}")
         self.blend = blend
