@@ -197,11 +197,13 @@ def zone_histograms(depth_m: torch.Tensor, rects: torch.Tensor,
                           for i in range(0, batch, chunk)])
     device = depth_m.device
     pixels = torch.arange(max(height, width), dtype=torch.int64, device=device)
+    # searchsorted wants contiguous values (it copies and warns otherwise): the row and
+    # column indices of every frame, materialised rather than expanded.
+    rows = pixels[:height].expand(batch, height).contiguous()
+    cols = pixels[:width].expand(batch, width).contiguous()
     # Cell of every row / column: the number of bounds at or before it, minus one.
-    row_cell = torch.searchsorted(row_bounds, pixels[:height].expand(batch, height),
-                                  right=True) - 1
-    col_cell = torch.searchsorted(col_bounds, pixels[:width].expand(batch, width),
-                                  right=True) - 1
+    row_cell = torch.searchsorted(row_bounds, rows, right=True) - 1
+    col_cell = torch.searchsorted(col_bounds, cols, right=True) - 1
     if compiled:
         return _compiled_zone_histograms(depth_m, row_cell, col_cell, row_bounds, col_bounds,
                                          (y0, x0, y1, x1), (cells_y, cells_x, slots), config)
