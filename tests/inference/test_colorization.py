@@ -73,3 +73,46 @@ def test_blend_with_fill_is_the_weighted_mixture(rng):
     assert 0.05 < weight.mean() < 0.95  # a mixture, not one side
     with pytest.raises(ValueError, match="fill_m"):
         blend_with_fill(depth, spread, fill[:-1], rects, blend)
+
+
+def _reference_weights(gray: np.ndarray) -> np.ndarray:
+    """The affinity weights as first written: NaN-padded windows, nanvar and nanmin."""
+    height, width = gray.shape
+    padded = np.pad(gray, 1, mode="constant", constant_values=np.nan)
+    neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
+                           for dy, dx in colorization._NEIGHBOUR_OFFSETS])
+    inside = ~np.isnan(neighbours)
+    variance = np.nanvar(np.concatenate([neighbours, gray[None]]), axis=0)
+    sq_diff = (neighbours - gray) ** 2
+    scale = np.maximum(np.maximum(0.6 * variance, -np.nanmin(sq_diff, axis=0) / np.log(0.01)),
+                       2e-6)
+    weights = np.where(inside, np.exp(-np.where(inside, sq_diff, 0.0) / scale), 0.0)
+    return weights / weights.sum(axis=0)
+
+
+@pytest.mark.parametrize("shape", [(60, 80), (7, 3), (1, 6), (2, 2)])
+def test_affinity_weights_are_the_nan_window_formula(shape):
+    rng = np.random.default_rng(5)
+    gray = rng.random(shape)
+    gray[:, : shape[1] // 2] = 0.25  # a flat part: the 2e-6 floor of the scale
+    np.testing.assert_allclose(colorization._affinity_weights(gray), _reference_weights(gray),
+                               rtol=0, atol=1e-12)
+
+
+def test_the_blend_fill_is_the_baseline_fill_to_a_millionth(rng):
+    """The blend's fill stops refining at BLEND_FILL_TOLERANCE; the classical baseline
+    refines to float64. On textured frames with edges they agree within 1e-6 of the
+    readings' largest value (the float32 LU alone is off by up to ~3e-4 of it)."""
+    from deltar.inference.blend import BLEND_FILL_TOLERANCE
+    from deltar.inference.colorization import colorize_zones
+
+    for _ in range(4):
+        image, means, valid, rects, _ = _zones(rng, 96, 128)
+        image[:, 40:] //= 4  # a strong edge
+        exact = colorize_zones(image, means, valid, rects)
+        fast = colorize_zones(image, means, valid, rects, tolerance=BLEND_FILL_TOLERANCE)
+        np.testing.assert_allclose(fast, exact, rtol=0, atol=1e-6 * means[valid].max())
+        np.testing.assert_array_equal(blend_fill(image, means, valid, rects), fast)
+    for bad in (0.0, 1.0, -1e-3, "1e-3"):
+        with pytest.raises(ValueError, match="tolerance"):
+            colorize_zones(image, means, valid, rects, tolerance=bad)

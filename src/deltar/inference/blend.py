@@ -151,13 +151,21 @@ def _weight(log_spread: np.ndarray, inside: np.ndarray, blend: ConfidenceBlend) 
             ).astype(np.float32)
 
 
+#: Accuracy of the blend's fill solve (``colorize_zones``' ``tolerance``): one refinement
+#: step of the single-precision LU, which leaves about 1e-7 of the readings' scale
+#: (float32's own rounding), where the classical baseline refines to float64's 1e-10.
+BLEND_FILL_TOLERANCE = 1e-3
+
+
 def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
                far_depth_m: float | None = None) -> np.ndarray | None:
     """The fill that :func:`blend_depth` blends with: the zones' colorization (metres).
 
     It needs only the image and the zones, so a stream can compute it while the network
-    runs (:func:`start_blend_fill`). Arguments as :func:`blend_depth`'s.
+    runs (:func:`start_blend_fill`). Arguments as :func:`blend_depth`'s. Solved to
+    :data:`BLEND_FILL_TOLERANCE` (within 1e-6 of the readings' scale of the float64
+    solution the ``colorization`` baseline gives; tested).
 
     Returns:
         (H, W) float32 fill, metres, or None when no valid zone (on the image) is there
@@ -183,7 +191,7 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
             raise ValueError(f"zone_far must have zone_mean_m's shape {means.shape}, got "
                              f"{np.shape(zone_far)}")
         means, valid = no_target_as_readings(means, valid, zone_far, far_depth_m)
-    return colorize_zones(image_rgb, means, valid, zone_rects)
+    return colorize_zones(image_rgb, means, valid, zone_rects, tolerance=BLEND_FILL_TOLERANCE)
 
 
 _FILL_WORKER: ThreadPoolExecutor | None = None
@@ -225,19 +233,27 @@ def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.n
     if np.shape(fill_m) != depth_m.shape:
         raise ValueError(f"fill_m must have depth_m's shape {depth_m.shape}, got "
                          f"{np.shape(fill_m)}")
-    weight = blend_weight(depth_m, uncertainty_m, zone_grid_mask(zone_rects, depth_m.shape),
-                          blend)
-    return mix_log_depth(depth_m, np.asarray(fill_m, dtype=np.float32), weight)
+    # blend_weight then mix_log_depth, with the log of the depth taken once.
+    log_depth = np.log(np.maximum(depth_m, np.float32(1e-6)))
+    log_spread = np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32),
+                                   np.float32(1e-6)))
+    log_spread -= log_depth
+    weight = _weight(log_spread, zone_grid_mask(zone_rects, depth_m.shape), blend)
+    return mix_log_depth(depth_m, np.asarray(fill_m, dtype=np.float32), weight, log_depth)
 
 
-def mix_log_depth(depth_m: np.ndarray, fill_m: np.ndarray, weight: np.ndarray) -> np.ndarray:
+def mix_log_depth(depth_m: np.ndarray, fill_m: np.ndarray, weight: np.ndarray,
+                  log_depth: np.ndarray | None = None) -> np.ndarray:
     """``exp(w log depth_m + (1 - w) log fill_m)``: float32, metres, any one shape.
 
-    Exactly ``depth_m`` where ``w`` is 1 and ``fill_m`` where it is 0.
+    Exactly ``depth_m`` where ``w`` is 1 and ``fill_m`` where it is 0. ``log_depth``:
+    ``log(max(depth_m, 1e-6))`` (float32) when the caller has it already.
     """
     tiny = np.float32(1e-6)
     log_fill = np.log(np.maximum(fill_m, tiny))
-    mixed = np.log(np.maximum(depth_m, tiny)) - log_fill
+    if log_depth is None:
+        log_depth = np.log(np.maximum(depth_m, tiny))
+    mixed = log_depth - log_fill
     mixed *= weight
     mixed += log_fill
     out = np.exp(mixed, out=mixed).astype(np.float32, copy=False)

@@ -34,25 +34,45 @@ _NEIGHBOUR_OFFSETS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
 
 
 def _affinity_weights(gray: np.ndarray) -> np.ndarray:
-    """(h, w, 8) row-normalised neighbour weights of :func:`colorization_matrix`.
+    """(8, h, w) row-normalised neighbour weights of :func:`colorization_matrix`.
 
-    Entry [y, x, k] is ``w_pq`` for p = (y, x) and q = p + ``_NEIGHBOUR_OFFSETS[k]``;
-    0 where q is outside the image. Each cell's weights sum to 1.
+    Entry [k, y, x] is ``w_pq`` for p = (y, x) and q = p + ``_NEIGHBOUR_OFFSETS[k]``;
+    0 where q is outside the image. Each cell's weights sum to 1. Float64 throughout:
+    the window statistics are those of NumPy's ``nanvar`` / ``nanmin`` over the cell and
+    its neighbours inside the image (the same sums in another order, so equal to a few
+    float64 roundings). One plane per neighbour: the sums and minima over the
+    neighbours are then element-wise operations on whole planes, not reductions along a
+    short last axis, which cost NumPy several times as much.
     """
     height, width = gray.shape
-    padded = np.pad(gray, 1, mode="constant", constant_values=np.nan)
+    padded = np.pad(gray, 1)
     neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-                           for dy, dx in _NEIGHBOUR_OFFSETS], axis=-1)  # (H, W, 8), NaN outside
-    inside = ~np.isnan(neighbours)
-    window = np.concatenate([neighbours, gray[..., None]], axis=-1)
-    variance = np.nanvar(window, axis=-1)
-    sq_diff = (neighbours - gray[..., None]) ** 2
-    min_sq_diff = np.nanmin(sq_diff, axis=-1)
+                           for dy, dx in _NEIGHBOUR_OFFSETS])  # (8, H, W), 0 outside
+    inside = _inside_mask(height, width)
+    count = inside.sum(axis=0) + 1.0  # cells in each window, the centre included
+    mean = (neighbours.sum(axis=0) + gray) / count
+    deviation = (neighbours - mean) * inside
+    deviation *= deviation
+    variance = (deviation.sum(axis=0) + (gray - mean) ** 2) / count
+    sq_diff = neighbours - gray
+    sq_diff *= sq_diff
+    min_sq_diff = (sq_diff + (1.0 - inside) * np.finfo(np.float64).max).min(axis=0)
     scale = np.maximum(0.6 * variance, -min_sq_diff / math.log(0.01))
     scale = np.maximum(scale, 2e-6)
-    weights = np.where(inside, np.exp(-np.where(inside, sq_diff, 0.0) / scale[..., None]), 0.0)
-    weights /= weights.sum(axis=-1, keepdims=True)
+    weights = np.exp(-sq_diff / scale)
+    weights *= inside
+    weights /= weights.sum(axis=0)
     return weights
+
+
+def _inside_mask(height: int, width: int) -> np.ndarray:
+    """(8, h, w) float64: 1 where the neighbour ``_NEIGHBOUR_OFFSETS[k]`` is on the grid."""
+    rows = np.arange(height)[None, :, None]
+    cols = np.arange(width)[None, None, :]
+    dy = np.array([dy for dy, _ in _NEIGHBOUR_OFFSETS])[:, None, None]
+    dx = np.array([dx for _, dx in _NEIGHBOUR_OFFSETS])[:, None, None]
+    return ((rows + dy >= 0) & (rows + dy < height) & (cols + dx >= 0)
+            & (cols + dx < width)).astype(np.float64)
 
 
 def colorization_matrix(gray: np.ndarray) -> scipy.sparse.csr_matrix:
@@ -72,21 +92,31 @@ def colorization_matrix(gray: np.ndarray) -> scipy.sparse.csr_matrix:
                           list(_NEIGHBOUR_OFFSETS)).tocsr()
 
 
+#: Default relative accuracy of :func:`colorization_fill`: float64's, for the classical
+#: ``colorization`` baseline (module docstring of the refinement in
+#: :func:`_solve_stencil_system`).
+EXACT_TOLERANCE = 1e-10
+
+
 def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np.ndarray,
-                      alpha: float = 1.0) -> np.ndarray:
+                      alpha: float = 1.0, tolerance: float = EXACT_TOLERANCE) -> np.ndarray:
     """Fill a sparse map guided by an intensity image (Levin et al. colorization).
 
     Solves ``(L + alpha D) x = alpha D v`` where L is the colorization affinity Laplacian
     of ``gray`` (:func:`colorization_matrix`), D the diagonal of ``known_mask`` and v the
     known values. The solution is a weighted average of the known values, so it stays
-    inside their range. The solve is direct (:func:`_solve_stencil_system`): the result
-    is the exact solution up to float64 rounding.
+    inside their range. The solve is direct (:func:`_solve_stencil_system`): with the
+    default ``tolerance`` the result is the exact solution up to float64 rounding.
 
     Args:
         gray: (h, w) float intensity image in [0, 1].
         known_values: (h, w) values at the known pixels (e.g. depth in metres).
         known_mask: (h, w) bool, True where the value is known (at least one pixel).
         alpha: weight of the data term.
+        tolerance: the refinement of the single-precision solve stops once a correction
+            is at most this fraction of the solution's largest value; the error left is
+            then that correction times the refinement's contraction (1e-4 to 1e-3 on
+            image grids), so 1e-3 leaves about 1e-7 of the values' scale (one step).
 
     Returns:
         (h, w) float64 filled map.
@@ -98,28 +128,35 @@ def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np
                          f"shape, got {gray.shape}, {known_values.shape}, {known_mask.shape}")
     if not known_mask.any():
         raise ValueError("known_mask must mark at least one pixel")
+    _check_tolerance(tolerance)
     data = alpha * known_mask.astype(np.float64)
     rhs = data * np.where(known_mask, known_values, 0.0)
-    return _solve_stencil_system(_affinity_weights(gray), 1.0 + data, rhs)
+    return _solve_stencil_system(_affinity_weights(gray), 1.0 + data, rhs, float(tolerance))
+
+
+def _check_tolerance(tolerance: float) -> None:
+    if isinstance(tolerance, bool) or not (isinstance(tolerance, numbers.Real)
+                                           and 0.0 < tolerance < 1.0):
+        raise ValueError(f"tolerance must be a fraction in (0, 1), got {tolerance!r}")
 
 
 #: Largest banded-matrix buffer (entries) the grid solver builds (about 32 MB in float64).
 _MAX_BANDED_ENTRIES = 4_000_000
-#: Iterative refinement of the single-precision LU: steps at most, and the size of a
-#: correction, relative to the solution, below which it stops (each step shrinks the
+#: Iterative refinement of the single-precision LU: steps at most (each step shrinks the
 #: error by about 1e-4 or more, so the error left is far below float64's 1e-12 needs).
 _REFINEMENT_STEPS = 6
-_REFINEMENT_TOLERANCE = 1e-10
 
 
-def _solve_stencil_system(weights: np.ndarray, diagonal: np.ndarray,
-                          rhs: np.ndarray) -> np.ndarray:
-    """Solve ``diagonal_p x_p - sum_k weights[p, k] x_(p + offset_k) = rhs_p`` on a grid.
+def _solve_stencil_system(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarray,
+                          tolerance: float = EXACT_TOLERANCE) -> np.ndarray:
+    """Solve ``diagonal_p x_p - sum_k weights[k, p] x_(p + offset_k) = rhs_p`` on a grid.
 
     Args:
-        weights: (h, w, 8) neighbour weights (``_NEIGHBOUR_OFFSETS`` order; 0 outside).
+        weights: (8, h, w) neighbour weights (``_NEIGHBOUR_OFFSETS`` order; 0 outside).
         diagonal: (h, w) diagonal of the system.
         rhs: (h, w) right-hand side.
+        tolerance: relative size of the refinement's last correction
+            (:func:`colorization_fill`).
 
     Returns:
         (h, w) float64 solution.
@@ -127,28 +164,29 @@ def _solve_stencil_system(weights: np.ndarray, diagonal: np.ndarray,
     Numbered along the shorter side the matrix is banded (half-bandwidth min(h, w) + 1).
     The banded LU (LAPACK ``gbsv``, partial pivoting) runs in float32, which halves
     its memory traffic and doubles its SIMD width against float64, and iterative
-    refinement with float64 residuals brings the solution to float64 accuracy (two or
-    three steps; a system too ill-conditioned for that is solved in float64 instead).
-    LAPACK releases the GIL while it factors, so the fill can run beside the network
-    in another thread. A large grid, whose band would not fit in memory, takes SciPy's
-    sparse LU.
+    refinement with float64 residuals brings the solution to the accuracy asked for
+    (float64's: two or three steps; a system too ill-conditioned for that is solved in
+    float64 instead). LAPACK releases the GIL while it factors, so the fill can run
+    beside the network in another thread. A large grid, whose band would not fit in
+    memory, takes SciPy's sparse LU.
     """
     height, width = diagonal.shape
     if height < width:  # number along the columns: the grid transposed, row-major
         offsets = [(dx, dy) for dy, dx in _NEIGHBOUR_OFFSETS]
-        solution = _solve_rows_banded(weights.transpose(1, 0, 2), diagonal.T, rhs.T, offsets)
+        solution = _solve_rows_banded(weights.transpose(0, 2, 1), diagonal.T, rhs.T, offsets,
+                                      tolerance)
         return solution.T
-    return _solve_rows_banded(weights, diagonal, rhs, list(_NEIGHBOUR_OFFSETS))
+    return _solve_rows_banded(weights, diagonal, rhs, list(_NEIGHBOUR_OFFSETS), tolerance)
 
 
 def _stencil_product(weights: np.ndarray, diagonal: np.ndarray, values: np.ndarray,
                      offsets: list[tuple[int, int]]) -> np.ndarray:
-    """(h, w) ``diagonal * values - sum_k weights[..., k] * values shifted by offsets[k]``."""
+    """(h, w) ``diagonal * values - sum_k weights[k] * values shifted by offsets[k]``."""
     height, width = values.shape
     padded = np.pad(values, 1)
     product = diagonal * values
     for k, (dy, dx) in enumerate(offsets):
-        product -= weights[..., k] * padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
+        product -= weights[k] * padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
     return product
 
 
@@ -157,18 +195,18 @@ def _band_storage(weights: np.ndarray, diagonal: np.ndarray, offsets: list[tuple
     """LAPACK ``gbsv`` storage (3 band + 1, n) of the stencil system, unknowns row-major."""
     height, width = diagonal.shape
     size = height * width
-    flat = weights.reshape(size, len(offsets))
     storage = np.zeros((3 * band + 1, size), dtype=dtype)
     storage[2 * band] = diagonal.reshape(-1)
     for k, (dy, dx) in enumerate(offsets):
         shift = dy * width + dx  # column j = row i + shift, stored at [2 band + i - j, j]
         rows = slice(max(0, -shift), min(size, size - shift))
-        storage[2 * band - shift, rows.start + shift:rows.stop + shift] = -flat[rows, k]
+        storage[2 * band - shift, rows.start + shift:rows.stop + shift] = \
+            -weights[k].reshape(-1)[rows]
     return storage
 
 
 def _solve_rows_banded(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarray,
-                       offsets: list[tuple[int, int]]) -> np.ndarray:
+                       offsets: list[tuple[int, int]], tolerance: float) -> np.ndarray:
     """:func:`_solve_stencil_system` with the unknowns numbered row-major (width <= height)."""
     height, width = diagonal.shape
     size = height * width
@@ -187,7 +225,7 @@ def _solve_rows_banded(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarra
             correction = scipy.linalg.lapack.sgbtrs(
                 factors, band, band, residual.reshape(-1).astype(np.float32), pivots)[0]
             solution += correction.reshape(height, width)
-            if np.abs(correction).max() <= _REFINEMENT_TOLERANCE * np.abs(solution).max():
+            if np.abs(correction).max() <= tolerance * np.abs(solution).max():
                 return solution
     # Too ill-conditioned for single precision: the float64 LU.
     storage = _band_storage(weights, diagonal, offsets, band, np.float64)
@@ -205,9 +243,9 @@ def _sparse_system(weights: np.ndarray, diagonal: np.ndarray,
     index = np.arange(height * width).reshape(height, width)
     padded_index = np.pad(index, 1, mode="constant", constant_values=-1)
     neighbour_index = np.stack([padded_index[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-                                for dy, dx in offsets], axis=-1)
+                                for dy, dx in offsets])
     inside = neighbour_index >= 0
-    rows = np.broadcast_to(index[..., None], weights.shape)[inside]
+    rows = np.broadcast_to(index[None], weights.shape)[inside]
     size = height * width
     affinity = scipy.sparse.csr_matrix((weights[inside], (rows, neighbour_index[inside])),
                                        shape=(size, size))
@@ -216,7 +254,8 @@ def _sparse_system(weights: np.ndarray, diagonal: np.ndarray,
 
 def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                    zone_rects: np.ndarray, solve_cells: int = COLORIZATION_SOLVE_CELLS,
-                   seed_side: int = COLORIZATION_SEED_SIDE) -> np.ndarray | None:
+                   seed_side: int = COLORIZATION_SEED_SIDE,
+                   tolerance: float = EXACT_TOLERANCE) -> np.ndarray | None:
     """Dense depth from zone readings by colorization: seeds at zone centres, filled, upsampled.
 
     The fill is solved on a grid of about ``solve_cells`` cells with the image's aspect
@@ -235,15 +274,17 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
         solve_cells: number of cells of the linear solve (speed; clipped to the image's
             pixel count).
         seed_side: side of each seed square in cells (odd).
+        tolerance: accuracy of the solve (:func:`colorization_fill`); the default gives
+            the float64 solution, as the classical ``colorization`` baseline reports it.
 
     Returns:
         (H, W) float32 depth in metres within the range of the valid readings, or None
         when no valid zone overlaps the image.
 
     Raises:
-        ValueError: bad ``solve_cells`` / ``seed_side``, an image that is not (H, W, 3)
-            uint8, zone arrays of mismatched shapes, no valid zone, or a non-finite or
-            non-positive valid reading (the message names the argument).
+        ValueError: bad ``solve_cells`` / ``seed_side`` / ``tolerance``, an image that
+            is not (H, W, 3) uint8, zone arrays of mismatched shapes, no valid zone, or a
+            non-finite or non-positive valid reading (the message names the argument).
     """
     if isinstance(solve_cells, bool) or not isinstance(solve_cells, numbers.Integral) \
             or solve_cells < 4:
@@ -251,6 +292,7 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     if isinstance(seed_side, bool) or not isinstance(seed_side, numbers.Integral) \
             or seed_side < 1 or seed_side % 2 == 0:
         raise ValueError(f"seed_side must be a positive odd integer (cells), got {seed_side!r}")
+    _check_tolerance(tolerance)
     image_rgb = check_image(image_rgb, "image_rgb")
     zone_mean_m = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
     zone_valid = np.asarray(zone_valid, dtype=bool).reshape(-1)
@@ -297,7 +339,7 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
         window = (slice(max(0, y - half), y + half + 1), slice(max(0, x - half), x + half + 1))
         known[window] = True
         known_values[window] = value
-    filled = colorization_fill(gray, known_values, known)
+    filled = colorization_fill(gray, known_values, known, tolerance=tolerance)
     depth = cv2.resize(filled.astype(np.float32), (width, height),
                        interpolation=cv2.INTER_LINEAR)
     return np.clip(depth, low, high)
