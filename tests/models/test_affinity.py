@@ -274,3 +274,35 @@ def test_a_black_frame_trains_without_nan_gradients():
     out["depth"].log().mean().backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+@pytest.mark.parametrize(("size_in", "size_out"), [(16, 64), (20, 80), (32, 64), (5, 7),
+                                                   (7, 5), (1, 4), (3, 3)])
+def test_bilinear_matrix_is_torch_linear_resizing(size_in, size_out):
+    import torch.nn.functional as F
+
+    from deltar.models.affinity import bilinear_matrix
+
+    x = torch.randn(2, 3, size_in)
+    expected = F.interpolate(x, size=size_out, mode="linear", align_corners=False)
+    got = x @ torch.from_numpy(bilinear_matrix(size_in, size_out)).T
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("image_size", [(64, 96), (56, 88), (96, 64)])
+def test_the_exported_descriptors_are_the_descriptors(image_size):
+    """The export's form (centred and weighted before a whole-factor upsampling, resized
+    by matrix products, both norms from one convolution) gives forward's values; 56x88
+    has stride-16 maps of 3.5x5.5 cells, resized by a fractional factor."""
+    torch.manual_seed(3)
+    descriptors = EncoderDescriptors([16, 24, 40, 112], strides=(8, 16), out_stride=4)
+    with torch.no_grad():
+        descriptors.channel_weight.uniform_(0.5, 1.5)
+    height, width = image_size
+    features = [torch.randn(2, c, -(-height // s), -(-width // s))
+                for c, s in zip([16, 24, 40, 112], (2, 4, 8, 16), strict=True)]
+    zones = DecoderZones(image_size=image_size)
+    with torch.no_grad():
+        expected = descriptors(features, zones)
+        got = descriptors._export_forward(features, (height // 4, width // 4))
+    torch.testing.assert_close(got, expected, rtol=0, atol=2e-6)
