@@ -12,6 +12,9 @@ them alike), and per backend and size the network's counted GFLOP
 rate as a fraction of a float32 matrix product's measured in the same process with the
 same threads before and after the runs (:func:`deltar.models.benchmark.matmul_gflop_s`,
 the better of the two): ``NN% of matmul`` = GFLOP / median bare network time / that rate.
+Two parts of end to end are also timed alone, in the same alternation: the PNG decode and
+(for networks with the blend) the blend's colorization fill (``blend_fill``, milliseconds;
+in ``predict`` it runs on a worker thread beside the network).
 
     python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
         [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
@@ -109,16 +112,24 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         finally:
             estimator.blend = blend
 
+    image = _decode(png)
+    rects = inputs["image_rects"][0]
+
+    def fill_only():
+        if blend is not None:
+            estimator.blend_fill_for(image, frame, rects)
+
     matmul = matmul_gflop_s()
-    bare, full, plain = _interleaved_medians(
+    bare, full, plain, decode, fill = _interleaved_medians(
         [lambda: estimator.run_network(inputs), lambda: estimator.predict(_decode(png), frame),
-         network_only], repeats)
+         network_only, lambda: _decode(png), fill_only], repeats)
     matmul = max(matmul, matmul_gflop_s())
     return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
             "blend": blend is not None, "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full,
             "no_blend_fps": 1.0 / plain, "overhead": full / bare - 1.0,
             "e2e_ratio": bare / full, "gflop": gflop, "matmul_gflop_s": matmul,
-            "matmul_fraction": gflop / bare / matmul}
+            "matmul_fraction": gflop / bare / matmul, "decode_ms": 1e3 * decode,
+            "fill_ms": 1e3 * fill if blend is not None else float("nan")}
 
 
 def main() -> None:
@@ -149,7 +160,7 @@ def main() -> None:
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
              f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9} {'e2e/bare':>9} " \
-             f"{'GFLOP':>6} {'network rate':>30}"
+             f"{'GFLOP':>6} {'network rate':>30} {'decode ms':>9} {'fill ms':>7}"
     print(header)
     print("-" * len(header))
     for r in rows:
@@ -159,7 +170,7 @@ def main() -> None:
               f"{r['e2e_ratio']:>8.2f}x {r['gflop']:>6.2f} "
               f"{r['gflop'] / (1.0 / r['bare_fps']):>6.1f} GFLOP/s, "
               f"{100 * r['matmul_fraction']:>3.0f}% of matmul "
-              f"({r['matmul_gflop_s']:.0f})")
+              f"({r['matmul_gflop_s']:.0f}) {r['decode_ms']:>9.2f} {r['fill_ms']:>7.2f}")
 
 
 if __name__ == "__main__":
