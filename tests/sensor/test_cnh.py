@@ -120,7 +120,7 @@ def test_sampler_reads_cnh_shaped_histograms_end_to_end():
     values = _peaked_cnh(peaks, rng=rng)
     frame = zone_frame_from_cnh(np.full(64, 1500.0), values, config=cfg)
     estimator = DepthEstimator(ZonePainterNet(), weights="painter")
-    hypotheses = estimator.hypotheses_for(frame).numpy()  # (64, 16)
+    hypotheses = estimator.hypotheses_for(frame)  # (64, 16)
     assert hypotheses.shape == (64, 16)
     # Independent reference: invert the piecewise-uniform CDF of each clipped histogram.
     edges = cfg.edges_m()

@@ -347,3 +347,57 @@ def test_compiled_simulator_without_numba_says_how_to_get_it(monkeypatch):
     with pytest.raises(RuntimeError, match=r"deltar\[fast\]"):
         compiled.cell_counts(np.zeros((1, 2, 2), np.float32), np.zeros((1, 2), np.int64),
                              np.zeros((1, 2), np.int64), 404, 100, 4.0)
+
+
+def _assert_frame_equals_batched(depth: np.ndarray, rects: np.ndarray,
+                                 config: SimulatorConfig | None = None) -> ZoneFrame:
+    """The numpy one-frame simulator against the batched PyTorch one (both paths)."""
+    frame = simulate_zone_frame(depth, rects, config)
+    compiled_paths = [False] + ([True] if compiled_kernels.kernels() is not None else [])
+    for compiled in compiled_paths:
+        out = simulate_zones(torch.from_numpy(depth), torch.from_numpy(rects), config,
+                             compiled=compiled)
+        grid = frame.grid
+        assert np.array_equal(frame.hist_counts.reshape(grid * grid, -1), out.histogram.numpy())
+        assert np.array_equal(frame.valid.reshape(-1), out.valid.numpy())
+        assert np.array_equal(frame.no_target.reshape(-1), out.no_target.numpy())
+        np.testing.assert_allclose(frame.mean_m.reshape(-1), out.mean_m.numpy(), atol=1e-6,
+                                   rtol=0)
+        np.testing.assert_allclose(frame.sigma_m.reshape(-1), out.sigma_m.numpy(), atol=1e-6,
+                                   rtol=0)
+        assert np.array_equal(frame.hist_edges_m, out.bin_edges_m.numpy())
+    return frame
+
+
+@pytest.mark.parametrize("config", [SimulatorConfig(noise_floor_counts=2.0),
+                                    SimulatorConfig(max_range_m=3.0, bin_width_m=0.05)])
+def test_numpy_frame_simulator_equals_the_batched_one(rng, config):
+    depth = rng.uniform(0.0, 4.5, size=(60, 80)).astype(np.float32)
+    depth[rng.random((60, 80)) < 0.1] = 0.0
+    depth[:30, :40] = np.linspace(0.5, 1.5, 40, dtype=np.float32)
+    depth[40:, 60:] = 5.0  # beyond the range: no target
+    depth[0, :8] = [0.04, 0.08, 3.0, 4.0, 2.0, -1.0, 1e6, 3.9999]  # edges, end, outliers
+    rects = np.empty((64, 4), dtype=np.float32)
+    rects[:, :2] = rng.uniform(-20, 70, size=(64, 2))
+    rects[:, 2:] = rects[:, :2] + rng.uniform(0, 40, size=(64, 2))
+    frame = _assert_frame_equals_batched(depth, rects, config)
+    assert 0 < frame.valid.sum() < 64
+
+
+def test_numpy_frame_simulator_equals_the_batched_one_on_real_frames(shared_data):
+    for path in (shared_data / "7scenes_redkitchen" / "frame-000000.depth.png",
+                 shared_data / "realsense_office" / "depth" / "depth00002.png"):
+        depth = _read_depth_mm(path)
+        rects = training_zone_rects(*depth.shape, grid=8, zone_px=62) + np.float32(0.3)
+        frame = _assert_frame_equals_batched(depth, rects)
+        assert frame.valid.sum() >= 32
+
+
+def test_numpy_frame_simulator_refuses_bad_input():
+    rects = training_zone_rects(32, 32, grid=4, zone_px=8)
+    with pytest.raises(ValueError, match="depth_m has NaN"):
+        simulate_zone_frame(np.full((32, 32), np.nan, np.float32), rects)
+    with pytest.raises(ValueError, match="depth_m"):
+        simulate_zone_frame(np.ones((32, 32), np.int32), rects)
+    with pytest.raises(ValueError, match="rects has NaN"):
+        simulate_zone_frame(np.ones((32, 32), np.float32), np.full((16, 4), np.nan))

@@ -227,7 +227,7 @@ def simulated_zone_frame(planes: np.ndarray, sensor_to_world: np.ndarray,
     are made invalid at random and Gaussian noise of ``mean_noise_m`` (metres) is added to
     the means.
     """
-    from deltar.sensor.simulate import simulate_zone_frame
+    from deltar.sensor.simulate_frame import simulate_zone_frame
 
     sensor_depth = render_planes_depth(planes, sensor_to_world, sensor_cam)
     clean = simulate_zone_frame(sensor_depth, rects, timestamp_s=timestamp_s)

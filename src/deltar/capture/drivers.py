@@ -322,7 +322,7 @@ class SimulatedRig:
 
     def grab(self) -> Capture | None:
         """One step; None after the last source frame."""
-        from deltar.sensor.simulate import simulate_zone_frame
+        from deltar.sensor.simulate_frame import simulate_zone_frame
 
         if self._index >= len(self.source):
             return None

@@ -9,7 +9,9 @@ Messages are printed literally, never interpreted as rich markup (a file called
 
 :class:`DeltarGroup` (the ``deltar`` command group) turns the library's
 ``ValueError`` / ``OSError`` / ``ImportError`` into that line, so commands can let them
-propagate. Set ``DELTAR_TRACEBACK=1`` to see the Python traceback instead.
+propagate; a missing optional module names the extra that installs it
+(:func:`deltar.extras.missing_extra_message`). Set ``DELTAR_TRACEBACK=1`` to see the
+Python traceback instead.
 """
 
 from __future__ import annotations
@@ -40,7 +42,13 @@ def format_error(err: BaseException) -> str:
         if err.filename2:
             text = f"{err.filename} -> {err.filename2}: {err.strerror}"
     elif isinstance(err, ModuleNotFoundError) and err.name:
-        text = f"{err}: install the optional dependency (see the README's extras)"
+        from deltar.extras import missing_extra_message
+
+        if "pip install" in str(err):  # already names its extra (deltar.extras)
+            text = str(err)
+        else:
+            text = (missing_extra_message(err.name) or
+                    f"{err}: install the optional dependency (see the README's extras)")
     else:
         text = str(err) or type(err).__name__
     return " ".join(text.split())

@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import torch
 
 from deltar.data.rgbd import RGBDFrame
 from deltar.sensor.augment import SignalAugmentation, training_zone_rects
@@ -63,7 +62,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
     valid_counts: list[int] = []
 
     def simulated(frame: RGBDFrame, index: int) -> ZJUL5Sample:
-        from deltar.sensor.simulate import simulate_zone_frame
+        from deltar.sensor.simulate_frame import simulate_zone_frame
 
         height, width = frame.depth_m.shape
         if layout == "calibrated":
@@ -73,6 +72,8 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
             rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
         zones = simulate_zone_frame(frame.depth_m, rects)
         if degrade is not None:
+            import torch  # the augmentation is the training pipeline's (PyTorch)
+
             generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
             # The augmentation works on a frame's flat (Z,) zones, not per grid row.
             mean, sigma, valid = degrade(torch.from_numpy(zones.mean_m.reshape(-1)),

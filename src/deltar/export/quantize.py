@@ -9,7 +9,7 @@ inputs, outputs and deltar metadata, so :class:`~deltar.inference.onnx_runtime.O
 and ``load_estimator(path)`` run it like any export.
 
 Calibration frames are RGB-D frames whose zone readings are simulated from their depth
-with :func:`~deltar.sensor.simulate.simulate_zone_frame` on the layout the model was
+with :func:`~deltar.sensor.simulate_frame.simulate_zone_frame` on the layout the model was
 exported for, so the calibrated ranges are those of real images and real zone signals.
 """
 
@@ -61,7 +61,7 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
     from deltar.data.rgbd import open_rgbd
     from deltar.inference.onnx_runtime import INPUT_NAMES, NO_TARGET_INPUT
     from deltar.inference.preprocess import scale_rects
-    from deltar.sensor.simulate import simulate_zone_frame
+    from deltar.sensor.simulate_frame import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
 
     if frames < 1:

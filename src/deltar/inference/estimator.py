@@ -44,6 +44,7 @@ from deltar.inference.preprocess import (
 )
 from deltar.inference.uncertainty import UncertaintyCalibration
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
+from deltar.sensor.hypotheses import zone_hypotheses, zone_hypotheses_from_histogram
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -77,7 +78,8 @@ class DepthEstimator:
             every image is resized to whatever its aspect; by default the one size rule
             (:func:`~deltar.inference.preprocess.network_input_size`: each image keeps
             its aspect, scaled to the model's design-size pixel budget, sides rounded
-            to multiples of 32). An ONNX model runs at its exported size.
+            to multiples of 32). An ONNX model runs at its exported size (one exported
+            with a free size, as the bundled one, follows the rule too).
         intrinsics: nominal camera intrinsics used without a calibration (scaled to
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
@@ -125,23 +127,26 @@ class DepthEstimator:
                  flip_average: bool = False, max_range_m: float | None = None,
                  blend: ConfidenceBlend | str | None = "auto",
                  uncertainty: UncertaintyCalibration | str | None = "auto") -> None:
-        import torch
-
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         check_backend_options(precision, flip_average, onnx_model is not None)
         if sampling is not None and sampling not in HYPOTHESIS_SAMPLINGS:
             raise ValueError(f"sampling must be one of {HYPOTHESIS_SAMPLINGS}, got "
                              f"{sampling!r}")
-        if onnx_model is not None:
+        if onnx_model is not None and onnx_model.input_size is not None:
             if input_size is not None and tuple(input_size) != onnx_model.input_size:
                 raise ValueError(f"input_size {input_size} differs from the ONNX model's "
                                  f"fixed size {onnx_model.input_size}")
             input_size = onnx_model.input_size
         if input_size is not None:
             input_size = check_input_size(input_size, "input_size")
-        self.device = torch.device(device)
-        self.dtype = getattr(torch, precision)
+        # The PyTorch backend's device and dtype; an ONNX model runs without torch.
+        self.device = self.dtype = None
+        if model is not None:
+            import torch
+
+            self.device = torch.device(device)
+            self.dtype = getattr(torch, precision)
         self.precision = precision
         self.input_size = input_size
         self.intrinsics = intrinsics
@@ -166,7 +171,9 @@ class DepthEstimator:
                                 if contract.get("design_size") is not None else None)
         else:
             contract = onnx_model.contract
-            self.design_size = None  # the exported input size is fixed
+            # A fixed exported size replaces the size rule; a free one follows it.
+            self.design_size = (tuple(contract["design_size"]) if onnx_model.input_size is None
+                                and contract.get("design_size") is not None else None)
         # The input contract travels with the weights: hypotheses and normalisation.
         self.num_hypotheses = int(contract["num_hypotheses"])
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
@@ -225,21 +232,18 @@ class DepthEstimator:
             return calibration.intrinsics
         return self.intrinsics.scaled(*image_size)
 
-    def hypotheses_for(self, frame: ZoneFrame) -> torch.Tensor:
+    def hypotheses_for(self, frame: ZoneFrame) -> np.ndarray:
         """(Z, K) float32 depth hypotheses in metres for one frame (zeros where invalid).
 
-        Frames with a histogram are sampled from it; others from N(mean, sigma).
+        Frames with a histogram are sampled from it; others from N(mean, sigma)
+        (:mod:`deltar.sensor.hypotheses`, numpy for both backends).
         """
-        import torch
-
-        from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
-
-        mean, sigma, valid = (torch.from_numpy(np.ascontiguousarray(a)) for a in frame.flat())
+        mean, sigma, valid = frame.flat()
         if frame.hist_counts is not None:
-            counts = torch.from_numpy(frame.hist_counts.reshape(frame.zone_count, -1))
-            return sample_hypotheses_from_histogram(torch.from_numpy(frame.hist_edges_m),
-                                                    counts, valid, self.num_hypotheses)
-        return sample_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
+            counts = frame.hist_counts.reshape(frame.zone_count, -1)
+            return zone_hypotheses_from_histogram(frame.hist_edges_m, counts, valid,
+                                                  self.num_hypotheses)
+        return zone_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
 
     def prepare(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                 calibration: RigCalibration | None = None,
@@ -263,8 +267,6 @@ class DepthEstimator:
             pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in pixels
             (:meth:`network_size_for`).
         """
-        import torch
-
         if len(images) != len(frames) or not images:
             raise ValueError(f"need one zone frame per image, got {len(images)} images and "
                              f"{len(frames)} frames")
@@ -296,7 +298,7 @@ class DepthEstimator:
         for i, frame in enumerate(frames):
             check_zones_in_image(rects[i], frame.flat()[2], size, f"frames[{i}]")
         net_rects = scale_rects(rects, size, net_size)
-        hypotheses = torch.stack([self.hypotheses_for(f) for f in frames]).float().numpy()
+        hypotheses = np.stack([self.hypotheses_for(f) for f in frames])
         return {"image": normalise_images(checked, net_size, self.image_mean, self.image_std),
                 "hypotheses": hypotheses, "zone_rects": net_rects,
                 "zone_valid": np.stack([f.flat()[2] for f in frames]),

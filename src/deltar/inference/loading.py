@@ -20,6 +20,11 @@ A model source is one of (``kind``):
 Without ``kind`` the source is told apart in this order: None or a bundled name, an
 existing ``.onnx`` file, another existing file (a checkpoint), a preset name. Official
 weights are files too, so they need ``kind="official"``.
+
+Backends: a bundled model runs in PyTorch when PyTorch is installed (the ``torch``
+extra), else from its shipped ONNX export through onnxruntime (the base install; the
+same depth within 1e-4 m, tested). Checkpoints, official weights and presets need
+PyTorch; without it they raise ``ModuleNotFoundError`` naming the extra.
 """
 
 from __future__ import annotations
@@ -29,12 +34,19 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from deltar.extras import require_torch, torch_available
 from deltar.inference.checks import check_backend_options
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import check_input_size
 from deltar.io.input_file import input_file
 from deltar.io.resources import check_threads
-from deltar.weights import BUNDLED_MODELS, bundled_model_names, resolve_checkpoint
+from deltar.weights import (
+    BUNDLED_MODELS,
+    BUNDLED_ONNX,
+    bundled_model_names,
+    bundled_onnx,
+    resolve_checkpoint,
+)
 
 if TYPE_CHECKING:
     from deltar.models import DeltarNet
@@ -82,6 +94,10 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
     path = Path(text)
     if path.exists():  # a folder or a device is refused by the file's reader, by name
         return ("onnx" if path.suffix.lower() == ".onnx" else "checkpoint"), text
+    if not torch_available():
+        raise FileNotFoundError(f"model {text!r} is not a bundled model "
+                                f"({', '.join(BUNDLED_MODELS)}) or an existing file (presets "
+                                'need the \'torch\' extra: pip install "deltar[torch]")')
     from deltar.models import list_presets  # imports torch: only when needed
 
     if text in list_presets():
@@ -121,16 +137,23 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
             32, flip averaging with ONNX) or weights that do not load; messages name the
             argument or file.
         FileNotFoundError: a missing file or an unknown name.
+        ModuleNotFoundError: PyTorch is not installed and the source or an option needs
+            it (a checkpoint, official weights, a preset; a device other than the CPU,
+            float16 / bfloat16 or flip averaging); the message names the ``torch`` extra.
     """
     kind, text = resolve_source(source, kind)
+    if kind in ("bundled", "checkpoint") and text in BUNDLED_MODELS and not torch_available():
+        # Without PyTorch a bundled model runs from its ONNX export (same depth).
+        kind, text = "onnx", _bundled_onnx_path(text, device, precision, flip_average)
     check_backend_options(precision, flip_average, kind == "onnx")
     if input_size is not None:
         input_size = check_input_size(input_size, "input_size")
     if threads is not None:
         threads = check_threads(threads, "threads")
-        import torch
+        if kind != "onnx" or torch_available():
+            import torch
 
-        torch.set_num_threads(int(threads))
+            torch.set_num_threads(int(threads))
     kwargs: dict[str, Any] = {"input_size": input_size, **estimator_kwargs}
     if flip_average:
         kwargs["flip_average"] = True
@@ -138,8 +161,12 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
         from deltar.inference.onnx_runtime import OnnxDepthModel
 
         onnx_model = OnnxDepthModel(text, num_threads=threads)
-        return DepthEstimator(onnx_model=onnx_model, weights=f"onnx {text}",
-                              precision=precision, **kwargs)
+        bundled = any(Path(text) == bundled_onnx(name) for name in BUNDLED_ONNX)
+        weights = (f"{onnx_model.metadata.get('deltar_weights', text)} (onnxruntime)"
+                   if bundled else f"onnx {text}")
+        return DepthEstimator(onnx_model=onnx_model, weights=weights, precision=precision,
+                              **kwargs)
+    require_torch(f"the {kind} model {text!r}")
     kwargs.update(device=device, precision=precision)
     if kind == "bundled" and text not in BUNDLED_MODELS:
         raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
@@ -157,6 +184,24 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
     warnings.warn(f"preset {text!r} has random, untrained weights: the depth it predicts "
                   "is meaningless", UserWarning, stacklevel=2)
     return DepthEstimator(create_model(text), weights=f"{text} (random weights)", **kwargs)
+
+
+def _bundled_onnx_path(name: str, device: str, precision: str, flip_average: bool) -> str:
+    """The ONNX export of bundled model ``name``, for running it without PyTorch.
+
+    Raises:
+        ModuleNotFoundError: naming the ``torch`` extra, for options only the PyTorch
+            backend has (a device other than the CPU, float16 / bfloat16, flip
+            averaging) or an installation without the ONNX file.
+    """
+    needs = [what for what, asked in (("device " + repr(device), device != "cpu"),
+                                      ("precision " + repr(precision), precision != "float32"),
+                                      ("flip averaging", flip_average)) if asked]
+    path = bundled_onnx(name)
+    if needs or path is None:
+        require_torch(f"the bundled model {name!r} with {', '.join(needs)}" if needs else
+                      f"the bundled model {name!r} (no ONNX export in this installation)")
+    return str(path)
 
 
 def _official_model(path: Path) -> DeltarNet:

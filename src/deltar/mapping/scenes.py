@@ -70,7 +70,7 @@ def write_posed_recording(out: str | os.PathLike,
     """
     from deltar.io.recording import RecordingMeta, RecordingWriter, timestamp_to_ns
     from deltar.sensor.geometry import zone_rects
-    from deltar.sensor.simulate import simulate_zone_frame
+    from deltar.sensor.simulate_frame import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
 
     folder = Path(out)

@@ -1,7 +1,9 @@
 """The multi-zone ToF sensor: zone frames, zone geometry, simulation and sampling.
 
-The simulator, sampling and augmentation names need torch; they are imported on first
-use so that ``import deltar.sensor`` (and ``deltar --help``) stays light.
+The batched simulator, the PyTorch sampling and the augmentation names need torch; they
+are imported on first use so that ``import deltar.sensor`` (and ``deltar --help``) stays
+light. ``simulate_zone_frame`` (one frame, numpy) and :mod:`deltar.sensor.hypotheses`
+(the estimator's sampling, numpy) run without it.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFram
 if TYPE_CHECKING:
     from deltar.sensor.augment import SignalAugmentation, training_zone_rects
     from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
-    from deltar.sensor.simulate import SimulatedZones, simulate_zone_frame, simulate_zones
+    from deltar.sensor.simulate import SimulatedZones, simulate_zones
+    from deltar.sensor.simulate_frame import simulate_zone_frame
     from deltar.sensor.simulator_config import SimulatorConfig
 
 _LAZY = {
@@ -31,7 +34,7 @@ _LAZY = {
     "sample_hypotheses_from_histogram": "deltar.sensor.sampling",
     "SimulatedZones": "deltar.sensor.simulate",
     "SimulatorConfig": "deltar.sensor.simulator_config",
-    "simulate_zone_frame": "deltar.sensor.simulate",
+    "simulate_zone_frame": "deltar.sensor.simulate_frame",
     "simulate_zones": "deltar.sensor.simulate",
 }
 

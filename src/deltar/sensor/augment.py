@@ -9,9 +9,12 @@ deliberately differs from what the release's loader effectively does.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,8 @@ class SignalAugmentation:
             not modified. Dropped zones are invalid with mean and sigma 0; noisy means
             are clamped at 0 m.
         """
+        import torch
+
         mean = torch.as_tensor(mean_m)
         sigma = torch.as_tensor(sigma_m)
         valid = torch.as_tensor(valid)
@@ -127,7 +132,9 @@ def training_zone_rects(height: int, width: int, grid: int = 6, zone_px: int = 6
         if isinstance(generator, np.random.Generator):
             offset_y, offset_x = (int(v) for v in generator.integers(
                 -max_offset_px, max_offset_px + 1, size=2))
-        elif isinstance(generator, torch.Generator):
+        elif type(generator).__module__.startswith("torch"):  # a torch.Generator
+            import torch
+
             offset_y, offset_x = (int(v) for v in torch.randint(
                 -max_offset_px, max_offset_px + 1, (2,), generator=generator))
         else:

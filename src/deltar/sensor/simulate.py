@@ -14,7 +14,9 @@ Follows the simulation of the official DELTAR release (its NYU data loader), per
 
 Everything is vectorised over zones and over a batch of depth maps. Step 1 is
 :mod:`deltar.sensor.zone_histograms`; the parameters are
-:class:`~deltar.sensor.simulator_config.SimulatorConfig`.
+:class:`~deltar.sensor.simulator_config.SimulatorConfig`. One frame as a ``ZoneFrame``,
+without PyTorch: :func:`deltar.sensor.simulate_frame.simulate_zone_frame` (its numpy
+twin, also importable from here).
 """
 
 from __future__ import annotations
@@ -25,9 +27,11 @@ import numpy as np
 import torch
 
 from deltar.sensor import compiled as compiled_kernels
+from deltar.sensor.simulate_frame import simulate_zone_frame
 from deltar.sensor.simulator_config import SimulatorConfig
-from deltar.sensor.zone_frame import ZoneFrame
 from deltar.sensor.zone_histograms import use_compiled, zone_histograms, zone_pixel_bounds
+
+__all__ = ["SimulatedZones", "simulate_zone_frame", "simulate_zones", "strongest_cluster"]
 
 
 @dataclass
@@ -179,34 +183,3 @@ def _no_target(depth: torch.Tensor, rects: torch.Tensor, valid: torch.Tensor,
         y0, x0, y1, x1 = bounds[b][z]
         flags[b, z] = np.count_nonzero(pixels[b, y0:y1, x0:x1] > limit) > in_range[b][z]
     return torch.from_numpy(flags).to(valid.device)
-
-
-def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
-                        config: SimulatorConfig | None = None,
-                        timestamp_s: float | None = None) -> ZoneFrame:
-    """Simulate one sensor reading as a ``ZoneFrame``.
-
-    Args:
-        depth_m: (H, W) float depth map in metres, 0 = invalid pixel.
-        rects: (Z, 4) zone rectangles (y0, x0, y1, x1) in pixels, row-major over the
-            zone grid as it appears in the image; Z = 16 (4x4) or 64 (8x8).
-        config: simulator parameters; ``SimulatorConfig()`` when None.
-        timestamp_s: optional capture time stored in the frame.
-
-    Returns:
-        A ``ZoneFrame`` with mean, sigma, validity and the no-target flag per zone, and
-        the raw per-zone histogram (``hist_counts``, ``hist_edges_m``).
-    """
-    depth = np.asarray(depth_m)
-    boxes = np.asarray(rects, dtype=np.float32)
-    if depth.ndim != 2:
-        raise ValueError(f"depth_m must be a single (H, W) map, got shape {depth.shape}")
-    if boxes.ndim != 2 or boxes.shape[0] not in (16, 64):
-        raise ValueError(f"rects must have shape (16, 4) or (64, 4), got {boxes.shape}")
-    zones = simulate_zones(torch.from_numpy(depth.astype(np.float32)), torch.from_numpy(boxes),
-                           config)
-    return ZoneFrame(mean_m=zones.mean_m.numpy(), sigma_m=zones.sigma_m.numpy(),
-                     valid=zones.valid.numpy(), no_target=zones.no_target.numpy(),
-                     hist_edges_m=zones.bin_edges_m.numpy(),
-                     hist_counts=zones.histogram.numpy(), timestamp_s=timestamp_s,
-                     sensor_model="simulated")

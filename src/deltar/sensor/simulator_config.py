@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -50,5 +52,7 @@ class SimulatorConfig:
         return round(self.max_range_m / self.bin_width_m)
 
     def bin_edges_m(self) -> torch.Tensor:
-        """(num_bins + 1,) float64 bin edges in metres, from 0 to ``max_range_m``."""
+        """(num_bins + 1,) float64 torch bin edges in metres, from 0 to ``max_range_m``."""
+        import torch
+
         return torch.arange(self.num_bins + 1, dtype=torch.float64) * self.bin_width_m

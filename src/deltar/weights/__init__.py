@@ -4,6 +4,11 @@
 descriptors choosing among the zones' local planes) trained on CPU on real indoor RGB-D
 frames with simulated L5 zones (docs/training.md: the recipe and its leave-one-scene-out
 tables).
+
+Each bundled model is shipped twice: the checkpoint (``.pt``, the PyTorch path) and its
+ONNX export (``.onnx``, written from the checkpoint by ``deltar export --dynamic-size``,
+with the checkpoint's config as metadata), which the estimator runs through onnxruntime
+when PyTorch is not installed (:func:`bundled_onnx`; a test keeps the two equal).
 """
 
 from __future__ import annotations
@@ -14,6 +19,11 @@ _HERE = Path(__file__).resolve().parent
 
 #: Bundled model name -> file inside this package.
 BUNDLED_MODELS: dict[str, str] = {"default": "deltar_select_default.pt"}
+#: Bundled model name -> its ONNX export inside this package.
+BUNDLED_ONNX: dict[str, str] = {"default": "deltar_select_default.onnx"}
+#: The camera image size (H, W) pixels the bundled ONNX files were exported for; their
+#: image size is free (any multiples of 32, the size rule applies).
+BUNDLED_ONNX_EXPORT_SIZE = (480, 640)
 
 
 def bundled_model_names() -> list[str]:
@@ -40,3 +50,15 @@ def resolve_checkpoint(name_or_path: str | Path) -> Path:
         raise FileNotFoundError(f"checkpoint {text!r} is neither a bundled model "
                                 f"({', '.join(BUNDLED_MODELS)}) nor an existing file")
     return path
+
+
+def bundled_onnx(name: str) -> Path | None:
+    """Path of a bundled model's ONNX export, or None when this installation has none.
+
+    Args:
+        name: a bundled model name (a key of :data:`BUNDLED_MODELS`).
+    """
+    file = BUNDLED_ONNX.get(name)
+    if file is None or not (_HERE / file).is_file():
+        return None
+    return _HERE / file

