@@ -32,6 +32,7 @@ EXTRA_OF_MODULE: dict[str, str] = {
     "vl53l5cx_ctypes": "sensor",
 }
 
+
 def module_available(name: str) -> bool:
     """Whether the top-level module ``name`` can be imported here (nothing is imported)."""
     try:
@@ -45,24 +46,39 @@ def torch_available() -> bool:
     return module_available("torch")
 
 
-def missing_extra_message(module: str, what: str = "this command") -> str | None:
+def missing_extra_message(module: str, what: str = "this command",
+                          extra: str | None = None) -> str | None:
     """One line naming the extra that installs ``module``, or None for another module.
 
     Args:
         module: the missing module's name (``ModuleNotFoundError.name``; a submodule's
             top-level package counts).
         what: what needed it, the start of the line (e.g. ``"--official"``).
+        extra: the extra to name, when the one that installs ``module`` alone is not
+            enough (``deltar train`` needs ``train``, which brings torch too).
 
     Returns:
         e.g. ``this command needs torch, which the 'torch' extra installs: pip install
         "deltar[torch]"``.
     """
     top = module.split(".")[0]
-    extra = EXTRA_OF_MODULE.get(top)
+    extra = extra or EXTRA_OF_MODULE.get(top)
     if extra is None:
         return None
     return (f"{what} needs {top}, which the '{extra}' extra installs: "
             f'pip install "deltar[{extra}]"')
+
+
+def require_extra(module: str, what: str, extra: str | None = None) -> None:
+    """Raise ``ModuleNotFoundError`` naming the extra unless ``module`` is installed.
+
+    Args:
+        module: a top-level module of :data:`EXTRA_OF_MODULE` (e.g. ``"lightning"``).
+        what: what needs it, the start of the message (e.g. ``"deltar train"``).
+        extra: the extra to name (default: the one that installs ``module``).
+    """
+    if not module_available(module):
+        raise ModuleNotFoundError(missing_extra_message(module, what, extra), name=module)
 
 
 def require_torch(what: str) -> None:
@@ -71,5 +87,4 @@ def require_torch(what: str) -> None:
     Args:
         what: what needs it, the start of the message (e.g. ``"--flip"``).
     """
-    if not torch_available():
-        raise ModuleNotFoundError(missing_extra_message("torch", what), name="torch")
+    require_extra("torch", what)

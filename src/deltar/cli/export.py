@@ -58,6 +58,10 @@ def export_command(
     overwrite: bool = typer.Option(False, help="Replace an existing file."),
 ) -> None:
     """Export a model to ONNX (dynamic batch, fixed input size and zone layout)."""
+    from deltar.extras import require_extra
+
+    for module in ("onnx", "torch"):  # one line naming the 'export' extra
+        require_extra(module, "deltar export", "export")
     from deltar.cli.checks import output_file
     from deltar.export.onnx import export_onnx
     from deltar.export.quantize import export_int8

@@ -23,6 +23,10 @@ def train_command(
                                       "config as YAML and exit."),
 ) -> None:
     """Train DELTAR (Lightning): checkpoints, TensorBoard/CSV logs and config in a run folder."""
+    from deltar.extras import require_extra
+
+    for module in ("torch", "lightning"):  # one line naming the 'train' extra
+        require_extra(module, "deltar train", "train")
     from deltar.training.config_loading import load_config
 
     if resume is not None:
