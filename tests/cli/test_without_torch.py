@@ -1,0 +1,136 @@
+"""The base install: the command line without PyTorch.
+
+Each command runs in a subprocess in which importing torch, timm, lightning or einops
+raises ``ModuleNotFoundError`` (a meta-path finder installed before ``deltar`` is
+imported), as in a virtualenv made by ``pip install deltar`` (no extras). The depth it
+writes is compared with the PyTorch path in this process.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deltar.extras import EXTRA_OF_MODULE
+
+#: The modules the base install does not have.
+BLOCKED = ("torch", "timm", "lightning", "einops", "pytorch_lightning", "lightning_fabric",
+           "torchvision", "torchmetrics")
+
+RUNNER = textwrap.dedent(f"""
+    import sys
+
+    BLOCKED = {BLOCKED!r}
+
+
+    class NoTorch:
+        # A meta-path finder that refuses the PyTorch stack, as if it were not installed.
+        def find_spec(self, name, path=None, target=None):
+            if name.split(".")[0] in BLOCKED:
+                raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+            return None
+
+
+    sys.meta_path.insert(0, NoTorch())
+    from deltar.cli.main import main
+
+    try:
+        main(sys.argv[1:])
+    finally:
+        loaded = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
+        assert not loaded, loaded
+""")
+
+
+def run_without_torch(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    """``deltar ARGS`` in a subprocess where the PyTorch stack cannot be imported."""
+    runner = tmp_path / "no_torch_runner.py"
+    if not runner.exists():
+        runner.write_text(RUNNER)
+    return subprocess.run([sys.executable, str(runner), *args], capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
+
+
+def test_the_blocker_blocks(tmp_path):
+    result = subprocess.run([sys.executable, "-c", RUNNER.replace(
+        "from deltar.cli.main import main", "import torch")], capture_output=True, text=True)
+    assert result.returncode != 0 and "No module named 'torch'" in result.stderr
+
+
+@pytest.fixture(scope="module")
+def demo_without_torch(tmp_path_factory) -> Path:
+    """``deltar demo`` (one small scene) then ``deltar predict`` on its sample, no torch."""
+    tmp_path = tmp_path_factory.mktemp("no_torch")
+    demo = run_without_torch(tmp_path, "demo", str(tmp_path / "demo"), "--frames", "1",
+                             "--size", "120x160")
+    assert demo.returncode == 0, demo.stderr
+    sample = tmp_path / "demo" / "sample"
+    predict = run_without_torch(tmp_path, "predict", "--image", str(sample / "image.png"),
+                                "--zones", str(sample / "zones.json"), "--calib",
+                                str(sample / "calib.json"), "--out", str(tmp_path / "pred"),
+                                "--outputs", "npy")
+    assert predict.returncode == 0, predict.stderr
+    return tmp_path
+
+
+def test_demo_and_predict_without_torch_match_the_pytorch_path(demo_without_torch):
+    import json
+
+    from deltar.calibration.rig import RigCalibration
+    from deltar.data.rgbd_files import read_color
+    from deltar.inference.loading import load_estimator
+    from deltar.io.zone_file import load_zone_frame
+
+    metrics = json.loads((demo_without_torch / "demo" / "metrics.json").read_text())
+    assert "model:default" in metrics and metrics["model:default"]["rel"] < 0.2
+    sample = demo_without_torch / "demo" / "sample"
+    lean = np.load(demo_without_torch / "pred" / "image_depth_m.npy")
+    estimator = load_estimator("default")  # PyTorch is here
+    assert estimator.model is not None
+    reference = estimator.predict(read_color(sample / "image.png"),
+                                  load_zone_frame(sample / "zones.json"),
+                                  RigCalibration.load(sample / "calib.json"))
+    assert lean.shape == reference.depth_m.shape == (120, 160)
+    assert np.abs(lean - reference.depth_m).max() <= 1e-4
+
+
+def test_record_replay_bags_and_viewer_without_torch(tmp_path):
+    pytest.importorskip("rosbags")
+    pytest.importorskip("rerun")
+    record = run_without_torch(tmp_path, "record", "rec", "--bag", "--simulate",
+                               "procedural:2")
+    assert record.returncode == 0, record.stderr
+    replay = run_without_torch(tmp_path, "replay", "--bag", "rec", "--out-bag", "depth",
+                               "--rerun-save", "view.rrd")
+    assert replay.returncode == 0, replay.stderr
+    assert "wrote 1 frames of depth to the bag depth" in replay.stdout
+    assert (tmp_path / "view.rrd").stat().st_size > 0
+
+
+def _one_error_line(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 1, result.stdout + result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert "Traceback" not in result.stderr
+    return lines[0]
+
+
+def test_torch_only_commands_name_the_extra(tmp_path, demo_without_torch):
+    sample = demo_without_torch / "demo" / "sample"
+    inputs = ["--image", str(sample / "image.png"), "--zones", str(sample / "zones.json")]
+    line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "a",
+                                             "--official", str(sample / "calib.json")))
+    assert line.endswith('pip install "deltar[torch]"') and "torch" in line
+    line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "b",
+                                             "--flip"))
+    assert "flip averaging" in line and line.endswith('pip install "deltar[torch]"')
+    line = _one_error_line(run_without_torch(tmp_path, "train", "--config", "x.yaml"))
+    assert line.endswith('pip install "deltar[train]"')
+    line = _one_error_line(run_without_torch(tmp_path, "export", "--out", "x.onnx"))
+    assert line.endswith('pip install "deltar[export]"')
+    assert EXTRA_OF_MODULE["torch"] == "torch"

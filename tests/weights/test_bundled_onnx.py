@@ -1,0 +1,67 @@
+"""The bundled model's ONNX export, which the base install (no PyTorch) runs.
+
+It must stay what exporting the bundled checkpoint gives now, and give the PyTorch
+path's depth, so that the two files cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from deltar.data.sources import open_source
+from deltar.inference.loading import load_estimator
+from deltar.models.checkpoint import load_checkpoint
+from deltar.sensor.geometry import zone_rects
+from deltar.sensor.simulate_frame import simulate_zone_frame
+from deltar.weights import BUNDLED_ONNX_EXPORT_SIZE, bundled_onnx, resolve_checkpoint
+
+
+@pytest.fixture(scope="module")
+def real_frame(request):
+    """A real RGB-D frame of the shared data with zones simulated from its depth."""
+    from tests.conftest import SHARED_DATA
+
+    if not SHARED_DATA.is_dir():
+        pytest.fail(f"shared data not found at {SHARED_DATA}")
+    frame = open_source(str(SHARED_DATA / "7scenes_redkitchen"))[40]
+    zones = simulate_zone_frame(frame.depth_m, zone_rects(frame.intrinsics, 8))
+    return frame.image, zones
+
+
+def test_shipped_onnx_equals_a_fresh_export_of_the_shipped_checkpoint(tmp_path, real_frame):
+    from deltar.export.onnx import export_onnx
+
+    shipped = bundled_onnx("default")
+    assert shipped is not None and shipped.stat().st_size < 8 * 1024 * 1024
+    model, _, config = load_checkpoint(resolve_checkpoint("default"))
+    fresh = export_onnx(model, tmp_path / "fresh.onnx", *BUNDLED_ONNX_EXPORT_SIZE,
+                        dynamic_size=True)
+    image, zones = real_frame
+    ours, theirs = (load_estimator(path, threads=2) for path in (shipped, fresh))
+    # The config travels as metadata: the blend, the sigma calibration, the design size.
+    assert ours.onnx_model.contract == theirs.onnx_model.contract
+    assert json.loads(ours.onnx_model.metadata["deltar_config"]) == json.loads(
+        json.dumps(config, default=list))
+    assert ours.onnx_model.input_size is None  # the size rule applies per image
+    a, b = ours.predict(image, zones), theirs.predict(image, zones)
+    assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
+    assert np.abs(a.uncertainty_m - b.uncertainty_m).max() <= 1e-4
+
+
+@pytest.mark.parametrize("crop", [None, (480, 480)])
+def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame, crop):
+    """4:3 (network 256x320) and a square crop (288x288: the file's size is free)."""
+    image, zones = real_frame
+    if crop is not None:
+        image = np.ascontiguousarray(image[: crop[0], : crop[1]])
+    lean = load_estimator(bundled_onnx("default"), threads=2)
+    full = load_estimator("default", threads=2)
+    assert full.model is not None and lean.onnx_model is not None
+    assert lean.blend == full.blend and lean.uncertainty == full.uncertainty
+    a, b = lean.predict(image, zones), full.predict(image, zones)
+    assert a.network_size == b.network_size == ((256, 320) if crop is None else (288, 288))
+    assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
+    assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4
