@@ -30,6 +30,7 @@ EXTRA_OF_MODULE: dict[str, str] = {
     "numba": "fast",
     "open3d": "map",
     "vl53l5cx_ctypes": "sensor",
+    "matplotlib": "plots",
 }
 
 

@@ -1,9 +1,9 @@
-"""The base install: the command line without PyTorch.
+"""The base install: the command line without PyTorch (nor matplotlib).
 
-Each command runs in a subprocess in which importing torch, timm, lightning or einops
-raises ``ModuleNotFoundError`` (a meta-path finder installed before ``deltar`` is
-imported), as in a virtualenv made by ``pip install deltar`` (no extras). The depth it
-writes is compared with the PyTorch path in this process.
+Each command runs in a subprocess in which importing torch, timm, lightning, einops or
+matplotlib raises ``ModuleNotFoundError`` (a meta-path finder installed before
+``deltar`` is imported), as in a virtualenv made by ``pip install deltar`` (no extras).
+The depth it writes is compared with the PyTorch path in this process.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from deltar.extras import EXTRA_OF_MODULE
 
 #: The modules the base install does not have.
 BLOCKED = ("torch", "timm", "lightning", "einops", "pytorch_lightning", "lightning_fabric",
-           "torchvision", "torchmetrics")
+           "torchvision", "torchmetrics", "matplotlib")
 
 RUNNER = textwrap.dedent(f"""
     import sys
@@ -75,6 +75,11 @@ def demo_without_torch(tmp_path_factory) -> Path:
                                 str(sample / "calib.json"), "--out", str(tmp_path / "pred"),
                                 "--outputs", "npy")
     assert predict.returncode == 0, predict.stderr
+    network = run_without_torch(tmp_path, "predict", "--image", str(sample / "image.png"),
+                                "--zones", str(sample / "zones.json"), "--calib",
+                                str(sample / "calib.json"), "--out", str(tmp_path / "net"),
+                                "--outputs", "npy", "--network-only")
+    assert network.returncode == 0, network.stderr
     return tmp_path
 
 
@@ -87,16 +92,24 @@ def test_demo_and_predict_without_torch_match_the_pytorch_path(demo_without_torc
     from deltar.io.zone_file import load_zone_frame
 
     metrics = json.loads((demo_without_torch / "demo" / "metrics.json").read_text())
-    assert "model:default" in metrics and metrics["model:default"]["rel"] < 0.2
+    assert "model:default" in metrics and 0 < metrics["model:default"]["rmse"] < 5
     sample = demo_without_torch / "demo" / "sample"
-    lean = np.load(demo_without_torch / "pred" / "image_depth_m.npy")
-    estimator = load_estimator("default")  # PyTorch is here
+    inputs = (read_color(sample / "image.png"), load_zone_frame(sample / "zones.json"),
+              RigCalibration.load(sample / "calib.json"))
+    # The network's depth (--network-only): the same within 1e-4 m.
+    estimator = load_estimator("default", blend=None)  # PyTorch is here
     assert estimator.model is not None
-    reference = estimator.predict(read_color(sample / "image.png"),
-                                  load_zone_frame(sample / "zones.json"),
-                                  RigCalibration.load(sample / "calib.json"))
-    assert lean.shape == reference.depth_m.shape == (120, 160)
-    assert np.abs(lean - reference.depth_m).max() <= 1e-4
+    lean = np.load(demo_without_torch / "net" / "image_depth_m.npy")
+    reference = estimator.predict(*inputs).depth_m
+    assert lean.shape == reference.shape == (120, 160)
+    assert np.abs(lean - reference).max() <= 1e-4
+    # With the confidence blend: its weight reads the network's spread, whose float32
+    # rounding differs between the backends (as between PyTorch with and without its
+    # inference optimisations); where the network and the fill disagree that moves a few
+    # pixels by up to a few tenths of a millimetre (docs/inference.md).
+    lean = np.load(demo_without_torch / "pred" / "image_depth_m.npy")
+    error = np.abs(lean - load_estimator("default").predict(*inputs).depth_m)
+    assert np.mean(error <= 1e-4) >= 0.98 and error.max() <= 1e-3
 
 
 def test_record_replay_bags_and_viewer_without_torch(tmp_path):

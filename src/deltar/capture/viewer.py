@@ -78,12 +78,12 @@ def zone_points_m(frame: ZoneFrame, fov_deg: tuple[float, float] = DEFAULT_FOV_D
 
 def zone_colors(frame: ZoneFrame, depth_range_m: tuple[float, float]) -> np.ndarray:
     """(Z,) RGB uint8 colours: turbo by distance over ``depth_range_m``, grey if invalid."""
-    import matplotlib
+    from deltar.io.render import colormap
 
     mean, _, valid = frame.flat()
     low, high = depth_range_m
     scaled = np.clip((mean - low) / max(high - low, 1e-9), 0.0, 1.0)
-    rgb = (matplotlib.colormaps["turbo"](scaled)[:, :3] * 255 + 0.5).astype(np.uint8)
+    rgb = (colormap(scaled, "turbo") * 255 + 0.5).astype(np.uint8)
     rgb[~valid] = INVALID_ZONE_RGB
     return rgb
 

@@ -41,16 +41,13 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
         max_error_m: top of the error colour scale; default the 99th percentile of the
             error.
 
+    Drawn with matplotlib when it is installed (the ``plots`` extra), else with OpenCV
+    (:mod:`deltar.io.render`: the same four pictures, colour maps and zone colours).
+
     Returns:
         The written path.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
-
-    from deltar.inference.outputs import zone_outline_style
+    from deltar.io.render import has_matplotlib
 
     depth = np.asarray(depth_m, dtype=np.float32)
     if depth.shape != sample.depth_m.shape:
@@ -65,16 +62,43 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
     if max_error_m is None:
         max_error_m = float(np.nanpercentile(error, 99)) if has_gt.any() else 1.0
     max_error_m = max(max_error_m, 1e-3)
+    flags = (np.zeros_like(sample.zone_valid) if sample.zone_no_target is None
+             else sample.zone_no_target)
+    zones_title = ("zones (green valid, blue no target, red invalid)" if flags.any()
+                   else "zones (green valid, red invalid)")
+    means = sample.zone_mean_sigma[:, 0]
+    if not has_matplotlib():
+        import cv2
+
+        from deltar.io.render import Tile, compose_panel, draw_zones, scalar_tile
+
+        panel = compose_panel([Tile(sample.rgb, sample.name),
+                               Tile(draw_zones(sample.rgb, sample.zone_rects, sample.zone_valid,
+                                               flags, means), zones_title),
+                               scalar_tile(depth, f"{method}: depth (m)", "magma_r", 0.0,
+                                           max_depth_m),
+                               scalar_tile(error, "|pred - gt| (m)", "jet", 0.0, max_error_m)],
+                              columns=4)
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            ok, data = cv2.imencode(".png", cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
+            if not ok:
+                raise OSError(f"could not encode {path}")
+            Path(tmp).write_bytes(data.tobytes())
+        return Path(path)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    from deltar.inference.outputs import zone_outline_style
 
     fig, axes = plt.subplots(1, 4, figsize=(18, 4.2), constrained_layout=True)
     axes[0].imshow(sample.rgb)
     axes[0].set_title(sample.name)
     axes[1].imshow(sample.rgb)
-    flags = (np.zeros_like(sample.zone_valid) if sample.zone_no_target is None
-             else sample.zone_no_target)
-    axes[1].set_title("zones (green valid, blue no target, red invalid)" if flags.any()
-                      else "zones (green valid, red invalid)")
-    means = sample.zone_mean_sigma[:, 0]
+    axes[1].set_title(zones_title)
     for (y0, x0, y1, x1), valid, far, mean in zip(sample.zone_rects, sample.zone_valid,
                                                   flags, means, strict=True):
         # Rectangles are in pixel-centre coordinates, as imshow's axes are.

@@ -118,18 +118,20 @@ def write_results(out_dir: str | os.PathLike, results: Sequence[WallResult], *,
                   title: str = "", overwrite: bool = False) -> dict[str, Path]:
     """Write ``wall_test.json``, ``wall_test.csv`` and the plot ``wall_test.png``.
 
-    Returns:
-        dict kind ("json", "csv", "plot") -> path.
-    """
-    import matplotlib
+    The plot needs matplotlib (the ``plots`` extra); without it a ``UserWarning`` says
+    so and the two tables are written alone.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Returns:
+        dict kind ("json", "csv", "plot") -> path; no "plot" without matplotlib.
+    """
+    from deltar.io.render import has_matplotlib
 
     out = Path(out_dir)
     rows = [asdict(r) for r in results]
     paths = {"json": out / "wall_test.json", "csv": out / "wall_test.csv",
              "plot": out / "wall_test.png"}
+    if not has_matplotlib():
+        del paths["plot"]
     write_text_atomic(paths["json"], json.dumps({"title": title, "results": rows}, indent=2)
                       + "\n", overwrite=overwrite)
     buffer = io.StringIO()
@@ -137,6 +139,16 @@ def write_results(out_dir: str | os.PathLike, results: Sequence[WallResult], *,
     writer.writeheader()
     writer.writerows(rows)
     write_text_atomic(paths["csv"], buffer.getvalue(), overwrite=overwrite)
+    if "plot" not in paths:
+        import warnings
+
+        warnings.warn('wall_test.png needs matplotlib, which the \'plots\' extra installs: '
+                      'pip install "deltar[plots]"', UserWarning, stacklevel=2)
+        return paths
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
     distance = [r.distance_m for r in results]
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))

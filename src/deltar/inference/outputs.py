@@ -89,15 +89,16 @@ def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray, *,
 
 def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None = None,
              cmap: str = "turbo") -> np.ndarray:
-    """Map an (H, W) array to (H, W, 3) uint8 RGB with a matplotlib colour map.
+    """Map an (H, W) array to (H, W, 3) uint8 RGB with a colour map.
 
     Args:
         values: (H, W) values, e.g. depth in metres; non-finite values come out black.
         vmin, vmax: colour range; by default the 1st and 99th percentiles of the
             finite values.
-        cmap: matplotlib colour map name.
+        cmap: colour map name (matplotlib's; without matplotlib, OpenCV's table of it:
+            :func:`deltar.io.render.colormap`).
     """
-    import matplotlib
+    from deltar.io.render import colormap
 
     data = np.asarray(values, dtype=np.float64)
     finite = np.isfinite(data)
@@ -107,7 +108,7 @@ def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None =
         vmax = hi if vmax is None else vmax
     span = max(float(vmax) - float(vmin), 1e-9)
     scaled = np.clip((np.where(finite, data, vmin) - vmin) / span, 0.0, 1.0)
-    rgb = matplotlib.colormaps[cmap](scaled)[..., :3]
+    rgb = colormap(scaled, cmap)
     rgb[~finite] = 0.0
     return (rgb * 255.0 + 0.5).astype(np.uint8)
 
@@ -187,7 +188,14 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
         prediction: the estimator's result for ``image``.
         title: figure title (e.g. the frame name and the weights).
         overwrite: replace an existing file.
+
+    Drawn with matplotlib when it is installed (the ``plots`` extra), else with OpenCV
+    (:mod:`deltar.io.render`: the same four pictures, colour maps and zone colours).
     """
+    from deltar.io.render import has_matplotlib
+
+    if not has_matplotlib():
+        return _write_panel_opencv(path, image, prediction, title, overwrite)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -232,6 +240,35 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
     finally:
         plt.close(fig)
     return Path(path)
+
+
+def _write_panel_opencv(path: str | os.PathLike, image: np.ndarray,
+                        prediction: DepthPrediction, title: str, overwrite: bool) -> Path:
+    """:func:`write_panel` without matplotlib (:func:`deltar.io.render.compose_panel`)."""
+    import cv2
+
+    from deltar.io.render import Tile, compose_panel, draw_zones, scalar_tile
+
+    frame = prediction.zone_frame
+    mean, _, valid = frame.flat()
+    far_zones = frame.flat_no_target()
+    depth, spread = prediction.depth_m, prediction.uncertainty_m
+    vmax = float(np.percentile(depth[np.isfinite(depth)], 99)) if np.isfinite(depth).any() \
+        else 1.0
+    finite = np.isfinite(spread)
+    low, high = (float(spread[finite].min()), float(spread[finite].max())) if finite.any() \
+        else (0.0, 1.0)
+    zones_title = ("zones (m; blue = no target, red = invalid)" if far_zones.any()
+                   else "zones (m; red = invalid)")
+    rgb = np.ascontiguousarray(image, dtype=np.uint8)
+    panel = compose_panel([Tile(rgb, "image"),
+                           Tile(draw_zones(rgb, prediction.zone_rects, valid, far_zones,
+                                           mean if frame.grid <= 8 else None), zones_title),
+                           scalar_tile(depth, "depth", "turbo", 0.0, vmax),
+                           scalar_tile(spread, "uncertainty (std)", "magma", low, high)],
+                          columns=2, title=title)
+    return write_bytes_atomic(path, _encode_png(cv2.cvtColor(panel, cv2.COLOR_RGB2BGR)),
+                              overwrite=overwrite)
 
 
 def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
