@@ -37,31 +37,34 @@ def test_shipped_onnx_equals_a_fresh_export_of_the_shipped_checkpoint(tmp_path, 
     shipped = bundled_onnx("default")
     assert shipped is not None and shipped.stat().st_size < 8 * 1024 * 1024
     model, _, config = load_checkpoint(resolve_checkpoint("default"))
-    fresh = export_onnx(model, tmp_path / "fresh.onnx", *BUNDLED_ONNX_EXPORT_SIZE,
-                        dynamic_size=True)
+    fresh = export_onnx(model, tmp_path / "fresh.onnx", *BUNDLED_ONNX_EXPORT_SIZE)
     image, zones = real_frame
     ours, theirs = (load_estimator(path, threads=2) for path in (shipped, fresh))
     # The config travels as metadata: the blend, the sigma calibration, the design size.
     assert ours.onnx_model.contract == theirs.onnx_model.contract
     assert json.loads(ours.onnx_model.metadata["deltar_config"]) == json.loads(
         json.dumps(config, default=list))
-    assert ours.onnx_model.input_size is None  # the size rule applies per image
+    assert ours.onnx_model.input_size == (256, 320)  # every 4:3 camera's network size
     a, b = ours.predict(image, zones), theirs.predict(image, zones)
     assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
     assert np.abs(a.uncertainty_m - b.uncertainty_m).max() <= 1e-4
 
 
-@pytest.mark.parametrize("crop", [None, (480, 480)])
-def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame, crop):
-    """4:3 (network 256x320) and a square crop (288x288: the file's size is free)."""
+def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame):
     image, zones = real_frame
-    if crop is not None:
-        image = np.ascontiguousarray(image[: crop[0], : crop[1]])
     lean = load_estimator(bundled_onnx("default"), threads=2)
     full = load_estimator("default", threads=2)
     assert full.model is not None and lean.onnx_model is not None
     assert lean.blend == full.blend and lean.uncertainty == full.uncertainty
     a, b = lean.predict(image, zones), full.predict(image, zones)
-    assert a.network_size == b.network_size == ((256, 320) if crop is None else (288, 288))
-    assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
+    assert a.network_size == b.network_size == (256, 320)
     assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4
+    assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
+
+
+def test_another_aspect_is_stretched_with_a_warning_naming_the_torch_extra(real_frame):
+    image, zones = real_frame
+    lean = load_estimator(bundled_onnx("default"), threads=2)
+    with pytest.warns(UserWarning, match=r"stretched .* 256x320 .*288x288.*deltar\[torch\]"):
+        result = lean.predict(np.ascontiguousarray(image[:, :480]), zones)
+    assert result.network_size == (256, 320) and result.depth_m.shape == (480, 480)

@@ -51,10 +51,6 @@ def export_command(
                                             "frames (zones simulated) calibrate --int8."),
     calibration_frames: int = typer.Option(16, "--calibration-frames", min=1,
                                            help="Calibration frames for --int8."),
-    dynamic_size: bool = typer.Option(False, "--dynamic-size", help="Leave the image size "
-                                      "free (any multiples of 32, the size rule per image, "
-                                      "as the PyTorch model); networks without zone-patch "
-                                      "fusion only (deltar-select, the bundled model)."),
     overwrite: bool = typer.Option(False, help="Replace an existing file."),
 ) -> None:
     """Export a model to ONNX (dynamic batch, fixed input size and zone layout)."""
@@ -77,9 +73,6 @@ def export_command(
     if layout_from is not None and not layout_from.exists():
         raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "
                                 "recording folder")
-    if dynamic_size and int8:
-        raise typer.BadParameter("--dynamic-size writes float32 files only",
-                                 param_hint="--int8")
     if int8 != (calibration is not None):
         raise typer.BadParameter("--int8 and --calibration DIR go together",
                                  param_hint="--calibration")
@@ -95,14 +88,12 @@ def export_command(
                                overwrite=overwrite, metadata=metadata)
         else:
             path = export_onnx(estimator.model, out, height, width, zone_rects=rects,
-                               overwrite=overwrite, metadata=metadata,
-                               dynamic_size=dynamic_size)
+                               overwrite=overwrite, metadata=metadata)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         fail(err)
     kind = "int8" if int8 else "float32"
     from deltar.export.onnx import export_input_size
 
     net_h, net_w = export_input_size(estimator.model, height, width)
-    network = "any multiples of 32" if dynamic_size else f"{net_h}x{net_w}"
-    typer.echo(f"wrote {path} ({kind}, camera {height}x{width}, network {network}, "
+    typer.echo(f"wrote {path} ({kind}, camera {height}x{width}, network {net_h}x{net_w}, "
                f"weights: {estimator.weights})")

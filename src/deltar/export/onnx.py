@@ -119,7 +119,7 @@ def example_inputs(model: DeltarNet, height: int, width: int,
 
 def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: int, *,
                 zone_rects: np.ndarray | None = None, overwrite: bool = False,
-                metadata: dict[str, str] | None = None, dynamic_size: bool = False) -> Path:
+                metadata: dict[str, str] | None = None) -> Path:
     """Export ``model`` to an ONNX file with a dynamic batch axis, atomically.
 
     Args:
@@ -133,19 +133,9 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
             the nominal 8x8 geometry at this size when None.
         overwrite: replace an existing file (default: ``FileExistsError``).
         metadata: extra string key/values stored in the model (e.g. the preset).
-        dynamic_size: also leave the image's height and width free (any multiples of 32:
-            the estimator then applies the size rule to every image, as with the
-            PyTorch model). Only for networks whose graph does not depend on the zone
-            layout (an empty layout signature, e.g. ``deltar-select``); the constant
-            "same" paddings fixed at ``height`` x ``width`` hold for every input of
-            multiples of 32 (each such convolution's input is a multiple of its stride).
 
     Returns:
         The written path.
-
-    Raises:
-        ValueError: a non-positive size, or ``dynamic_size`` for a network with
-            zone-patch fusion.
     """
     import onnx
     import torch
@@ -164,16 +154,9 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     # without it (e.g. the plane-select one) takes any layout, which an empty signature
     # records.
     uses_patches = getattr(model, "distribution_encoder", None) is not None
-    if dynamic_size and uses_patches:
-        raise ValueError("dynamic_size needs a network without zone-patch fusion (its "
-                         "graph fixes the zone layout's shapes), e.g. deltar-select")
     signature = layout_signature(inputs[2].numpy(), grid) if uses_patches else []
     input_names = [*INPUT_NAMES, *((NO_TARGET_INPUT,) if len(inputs) > 4 else ())]
     dynamic = {name: {0: "batch"} for name in (*input_names, *OUTPUT_NAMES)}
-    if dynamic_size:
-        dynamic["image"] = {0: "batch", 2: "height", 3: "width"}
-        for name in ("depth", "uncertainty"):
-            dynamic[name] = {0: "batch", 2: "height_2", 3: "width_2"}
     net_height, net_width = inputs[0].shape[-2:]
     traced = _tuple_outputs(model)
     with atomic_path(path, overwrite=overwrite) as tmp, _traceable(model), \

@@ -19,6 +19,7 @@ config (checkpoints: :mod:`deltar.models.checkpoint`) or the ONNX file's metadat
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -78,8 +79,9 @@ class DepthEstimator:
             every image is resized to whatever its aspect; by default the one size rule
             (:func:`~deltar.inference.preprocess.network_input_size`: each image keeps
             its aspect, scaled to the model's design-size pixel budget, sides rounded
-            to multiples of 32). An ONNX model runs at its exported size (one exported
-            with a free size, as the bundled one, follows the rule too).
+            to multiples of 32). An ONNX model runs at its exported size: an image the
+            rule would give another size is stretched to it, with a ``UserWarning`` when
+            the file records the weights' design size (the bundled ONNX file does).
         intrinsics: nominal camera intrinsics used without a calibration (scaled to
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
@@ -133,7 +135,7 @@ class DepthEstimator:
         if sampling is not None and sampling not in HYPOTHESIS_SAMPLINGS:
             raise ValueError(f"sampling must be one of {HYPOTHESIS_SAMPLINGS}, got "
                              f"{sampling!r}")
-        if onnx_model is not None and onnx_model.input_size is not None:
+        if onnx_model is not None:
             if input_size is not None and tuple(input_size) != onnx_model.input_size:
                 raise ValueError(f"input_size {input_size} differs from the ONNX model's "
                                  f"fixed size {onnx_model.input_size}")
@@ -158,6 +160,7 @@ class DepthEstimator:
                              f"{max_range_m!r}")
         self.max_range_m = max_range_m
         self.onnx_model = onnx_model
+        self._stretch_warned: set[tuple[int, int]] = set()
         self.model = None
         if model is not None:
             model.eval()
@@ -171,9 +174,7 @@ class DepthEstimator:
                                 if contract.get("design_size") is not None else None)
         else:
             contract = onnx_model.contract
-            # A fixed exported size replaces the size rule; a free one follows it.
-            self.design_size = (tuple(contract["design_size"]) if onnx_model.input_size is None
-                                and contract.get("design_size") is not None else None)
+            self.design_size = None  # the exported input size is fixed
         # The input contract travels with the weights: hypotheses and normalisation.
         self.num_hypotheses = int(contract["num_hypotheses"])
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
@@ -287,6 +288,7 @@ class DepthEstimator:
                 raise ValueError(f"frames[{i}]: {problem}")
         check_calibration(calibration)
         net_size = self.network_size_for(size)
+        self._warn_if_stretched(size, net_size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)
             expected = (len(frames), frames[0].zone_count, 4)
@@ -304,6 +306,24 @@ class DepthEstimator:
                 "zone_valid": np.stack([f.flat()[2] for f in frames]),
                 "zone_no_target": np.stack([f.flat_no_target() for f in frames]),
                 "image_rects": rects, "image_size": size, "network_size": net_size}
+
+    def _warn_if_stretched(self, image_size: tuple[int, int], net_size: tuple[int, int]
+                           ) -> None:
+        """Warn (once per image size) when an ONNX file's fixed input stretches an image
+        that the weights' size rule would run at another size, as PyTorch does."""
+        if self.onnx_model is None:
+            return
+        design = self.onnx_model.contract.get("design_size")
+        if design is None or tuple(image_size) in self._stretch_warned:
+            return
+        rule = network_input_size(*image_size, design_size=tuple(design))
+        if tuple(rule) != tuple(net_size):
+            self._stretch_warned.add(tuple(image_size))
+            warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "
+                          f"model's fixed {net_size[0]}x{net_size[1]} input (PyTorch runs them "
+                          f"at {rule[0]}x{rule[1]}; pip install \"deltar[torch]\" for that, "
+                          "or export for this size with deltar export --size)", UserWarning,
+                          stacklevel=3)
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Run the network on :meth:`prepare`'s output: the one backend interface, numpy

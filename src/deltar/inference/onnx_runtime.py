@@ -77,9 +77,7 @@ class OnnxDepthModel:
             work (decoding, resizing) needs those cores.
 
     Attributes:
-        input_size: (H, W) fixed input size in pixels, or None for a file exported with
-            a free image size (``export_onnx(..., dynamic_size=True)``: any multiples of
-            32, the estimator applies the size rule).
+        input_size: (H, W) fixed input size in pixels.
         num_hypotheses: K hypotheses per zone.
         grid: zones per side.
         contract: the exported network's config (``deltar_config`` metadata): its input
@@ -119,9 +117,7 @@ class OnnxDepthModel:
         self.grid = int(meta["deltar_grid"])
         self.metadata = dict(meta)
         shapes = {i.name: i.shape for i in self.session.get_inputs()}
-        height, width = shapes["image"][2:4]
-        self.input_size = ((int(height), int(width))
-                           if isinstance(height, int) and isinstance(width, int) else None)
+        self.input_size = (int(shapes["image"][2]), int(shapes["image"][3]))
         self.num_hypotheses = int(shapes["hypotheses"][2])
         try:
             config = json.loads(meta.get("deltar_config", "{}"))
@@ -154,8 +150,7 @@ class OnnxDepthModel:
         """Run the network; same inputs and outputs as ``DeltarNet.forward`` (numpy).
 
         Args:
-            image: (B, 3, H, W) float32 normalised, H x W = :attr:`input_size` (or any
-                multiples of 32 when it is None).
+            image: (B, 3, H, W) float32 normalised, H x W = :attr:`input_size`.
             hypotheses: (B, Z, K) float32 metres.
             zone_rects: (B, Z, 4) float32 pixels of the input.
             zone_valid: (B, Z) bool.
@@ -167,12 +162,7 @@ class OnnxDepthModel:
             ``uncertainty`` (B, 1, H/2, W/2), float32 metres.
         """
         image = np.asarray(image, dtype=np.float32)
-        if self.input_size is None:
-            if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] % 32 or \
-                    image.shape[3] % 32 or min(image.shape[2:]) < 32:
-                raise ValueError(f"image must be (B, 3, H, W) with H and W multiples of 32, "
-                                 f"got {image.shape}")
-        elif image.ndim != 4 or tuple(image.shape[1:]) != (3, *self.input_size):
+        if image.ndim != 4 or tuple(image.shape[1:]) != (3, *self.input_size):
             raise ValueError(f"image must be (B, 3, {self.input_size[0]}, "
                              f"{self.input_size[1]}), got {image.shape}")
         hyp = np.asarray(hypotheses, dtype=np.float32)

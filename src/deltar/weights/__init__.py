@@ -6,9 +6,10 @@ frames with simulated L5 zones (docs/training.md: the recipe and its leave-one-s
 tables).
 
 Each bundled model is shipped twice: the checkpoint (``.pt``, the PyTorch path) and its
-ONNX export (``.onnx``, written from the checkpoint by ``deltar export --dynamic-size``,
-with the checkpoint's config as metadata), which the estimator runs through onnxruntime
-when PyTorch is not installed (:func:`bundled_onnx`; a test keeps the two equal).
+ONNX export (``.onnx``, written from the checkpoint by ``deltar export --checkpoint
+default --size 480x640``, with the checkpoint's config as metadata), which the estimator
+runs through onnxruntime when PyTorch is not installed (:func:`bundled_onnx`; a test keeps
+the two equal). Its input is fixed at 256x320, the network size of every 4:3 camera.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ _HERE = Path(__file__).resolve().parent
 BUNDLED_MODELS: dict[str, str] = {"default": "deltar_select_default.pt"}
 #: Bundled model name -> its ONNX export inside this package.
 BUNDLED_ONNX: dict[str, str] = {"default": "deltar_select_default.onnx"}
-#: The camera image size (H, W) pixels the bundled ONNX files were exported for; their
-#: image size is free (any multiples of 32, the size rule applies).
+#: The camera image size (H, W) pixels the bundled ONNX files were exported for (a 4:3
+#: camera: network input 256x320 by the size rule).
 BUNDLED_ONNX_EXPORT_SIZE = (480, 640)
 
 
