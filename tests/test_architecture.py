@@ -17,10 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "deltar"
 
 #: Lowest first. A package may import packages of lower layers only; packages of one
-#: layer do not import each other. ``camera`` and ``contract`` are the modules
-#: src/deltar/camera.py and src/deltar/contract.py.
+#: layer do not import each other. ``camera``, ``contract`` and ``extras`` are the modules
+#: src/deltar/camera.py, src/deltar/contract.py and src/deltar/extras.py.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("camera", "contract", "weights"),
+    ("camera", "contract", "weights", "extras"),
     ("sensor",),
     ("io",),
     ("calibration",),
@@ -205,6 +205,8 @@ CROSS_CUTTING_TESTS: dict[str, str] = {
     "cli/test_bad_input.py": "every command's refusal of bad input (one error line, early)",
     "inference/test_bad_input_api.py": "the Python API's refusal of bad input",
     "weights/test_bundled_model.py": "the model file the package ships (deltar.weights)",
+    "weights/test_bundled_onnx.py": "the bundled model's ONNX file (deltar.weights)",
+    "cli/test_without_torch.py": "the commands of the base install, without PyTorch",
 }
 
 
