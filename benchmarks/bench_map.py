@@ -7,9 +7,11 @@ depth), the ground-truth depth and the ground-truth poses
 same poses and settings:
 
 - the reference map from the ground-truth depth (``--method recorded``);
-- the model's map: the bundled ``default`` on the cabinet (it never saw that scene);
-  on the kitchen, which the default trained on, a fold model trained without it
-  (``configs/cross_scene_select.yaml`` with the kitchen source removed: ``--kitchen-model``);
+- the model's map, from a model that never saw the scene (the bundled ``default`` trained
+  on both): on each scene a fold model of ``benchmarks/cross_scene.py`` trained without
+  it (``--kitchen-model``: the kitchen-shelf fold's; ``--cabinet-model``: the
+  cabinet-makerspace fold's; their ``model-calibrated.pt`` carry the fold's fitted blend
+  and sigma);
 - the same model with the estimator's confidence blend with the colorization fill
   (``--blend``; ``deltar map`` fuses the network's own depth by default);
 - every classical baseline's map (``--method NAME``).
@@ -21,8 +23,9 @@ at 480x640 on 2 threads (ratio to Open3D's own unweighted ``integrate`` in the s
 each run's peak memory (max RSS), and the cabinet mapped with RGB-D odometry instead of
 the given poses (ATE).
 
-    python benchmarks/bench_map.py --out /work/exp/map/bench \\
-        --kitchen-model /work/exp/map/runs/fold_no_kitchen/model.pt
+    python benchmarks/bench_map.py --out map-bench/ \\
+        --kitchen-model cs/runs/without-kitchen-shelf/model-calibrated.pt \\
+        --cabinet-model cs/runs/without-cabinet-makerspace/model-calibrated.pt
 
 Everything is written to ``--out`` (recordings, maps, results.json, the pictures of the
 meshes side by side); finished maps are reused when the script is run again.
@@ -169,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--kitchen-model", type=Path, required=True,
                         help="a checkpoint trained without the 7-Scenes kitchen")
+    parser.add_argument("--cabinet-model", type=Path, required=True,
+                        help="a checkpoint trained without the TUM fr3 cabinet")
     parser.add_argument("--scenes", default="cabinet,kitchen")
     parser.add_argument("--baselines", default=",".join(BASELINES))
     args = parser.parse_args(argv)
@@ -178,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     for scene in args.scenes.split(","):
         recording = make_recording(args.out, scene)
         maps_dir = args.out / "maps" / scene
-        model = ["--checkpoint", str(args.kitchen_model)] if scene == "kitchen" else []
+        model = ["--checkpoint", str(args.kitchen_model if scene == "kitchen"
+                                     else args.cabinet_model)]
         runs = {"ground truth": ["--method", "recorded"], "model": model,
                 "model_blend": [*model, "--blend"]}
         runs |= {name: ["--method", name] for name in args.baselines.split(",")}
