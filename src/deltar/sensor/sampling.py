@@ -19,10 +19,12 @@ import math
 import torch
 
 from deltar.contract import HYPOTHESIS_SAMPLINGS
+from deltar.sensor.hypotheses import ICDF_PROBABILITY_MARGIN, _check_num_samples
 
-#: Lowest and highest probability used for inverse-CDF sampling (the release's values).
-ICDF_PROBABILITY_MARGIN = 1e-3
-
+# ICDF_PROBABILITY_MARGIN and the K check live in the torch-free numpy twins
+# (deltar.sensor.hypotheses), so that both samplings share them.
+__all__ = ["ICDF_PROBABILITY_MARGIN", "icdf_probabilities", "sample_hypotheses",
+           "sample_hypotheses_from_histogram"]
 
 
 def icdf_probabilities(num_samples: int, dtype: torch.dtype = torch.float32,
@@ -133,11 +135,6 @@ def sample_hypotheses_from_histogram(edges_m: torch.Tensor, counts: torch.Tensor
     samples = edges[index] + fraction.clamp(0.0, 1.0) * (edges[index + 1] - edges[index])
     samples = torch.where(usable[..., None], samples, torch.zeros_like(samples))
     return samples.to(dtype)
-
-
-def _check_num_samples(num_samples: int) -> None:
-    if int(num_samples) != num_samples or num_samples < 2:
-        raise ValueError(f"num_samples must be an integer >= 2, got {num_samples}")
 
 
 def _check_zone_inputs(mean_m, sigma_m, valid) -> tuple[torch.Tensor, ...]:
