@@ -8,8 +8,9 @@ built from the packaged ImageNet encoder, untrained, on the simulated test sets 
 the choice nested: for each of that script's five folds it picks the variant with the
 lowest mean REL over the fold's eight training scenes and reports it on the two scenes
 left out. The rows with a component switched off (``no_affinity``: temperature 0, the
-zones' spatial prior alone; ``no_planes``: constant zone readings) are the test-time
-ablation of the two parts the design keeps.
+zones' spatial prior alone; ``no_planes``: constant zone readings; ``no_flags``: the
+zones that reported no target ignored) are the test-time ablation of the parts the
+design keeps.
 
     python benchmarks/cross_scene.py --out cs/          # makes cs/sets (once)
     python benchmarks/select_design_sweep.py --sets cs/sets --out sweep.json \
@@ -36,6 +37,7 @@ VARIANTS: dict[str, tuple[float, dict]] = {
     "base": (4.5, {}),
     "no_affinity": (0.0, {}),
     "no_planes": (4.5, {"planar": False}),
+    "no_flags": (4.5, {"no_target_depth": None}),
     "t3": (3.0, {}),
     "t7": (7.0, {}),
     "t10": (10.0, {}),
@@ -47,7 +49,7 @@ VARIANTS: dict[str, tuple[float, dict]] = {
     "lite2": (4.5, {"backbone": "tf_efficientnet_lite2"}),
 }
 #: Variants that switch a component off: scored, never chosen.
-ABLATIONS = ("no_affinity", "no_planes")
+ABLATIONS = ("no_affinity", "no_planes", "no_flags")
 
 
 def load_scenes(sets: Path, condition: str, frames: int) -> dict[str, list]:
