@@ -137,11 +137,18 @@ def blend_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, inside: np.ndar
     return _weight(log_relative_spread(depth_m, uncertainty_m), inside, blend)
 
 
-def log_relative_spread(depth_m: np.ndarray, uncertainty_m: np.ndarray) -> np.ndarray:
-    """``log(uncertainty / depth)``, float32, any one shape (both floored at 1e-6 m)."""
+def log_relative_spread(depth_m: np.ndarray, uncertainty_m: np.ndarray,
+                        log_depth: np.ndarray | None = None) -> np.ndarray:
+    """``log(uncertainty / depth)``, float32, any one shape (both floored at 1e-6 m).
+
+    ``log_depth``: ``log(max(depth_m, 1e-6))`` (float32) when the caller has it already.
+    """
     tiny = np.float32(1e-6)
-    return (np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny))
-            - np.log(np.maximum(np.asarray(depth_m, dtype=np.float32), tiny)))
+    if log_depth is None:
+        log_depth = np.log(np.maximum(np.asarray(depth_m, dtype=np.float32), tiny))
+    log_spread = np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny))
+    log_spread -= log_depth
+    return log_spread
 
 
 def _weight(log_spread: np.ndarray, inside: np.ndarray, blend: ConfidenceBlend) -> np.ndarray:
@@ -235,10 +242,8 @@ def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.n
                          f"{np.shape(fill_m)}")
     # blend_weight then mix_log_depth, with the log of the depth taken once.
     log_depth = np.log(np.maximum(depth_m, np.float32(1e-6)))
-    log_spread = np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32),
-                                   np.float32(1e-6)))
-    log_spread -= log_depth
-    weight = _weight(log_spread, zone_grid_mask(zone_rects, depth_m.shape), blend)
+    weight = _weight(log_relative_spread(depth_m, uncertainty_m, log_depth),
+                     zone_grid_mask(zone_rects, depth_m.shape), blend)
     return mix_log_depth(depth_m, np.asarray(fill_m, dtype=np.float32), weight, log_depth)
 
 
