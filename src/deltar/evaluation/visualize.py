@@ -68,9 +68,13 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
                    else "zones (green valid, red invalid)")
     means = sample.zone_mean_sigma[:, 0]
     if not has_matplotlib():
-        import cv2
-
-        from deltar.io.render import Tile, compose_panel, draw_zones, scalar_tile
+        from deltar.io.render import (
+            Tile,
+            compose_panel,
+            draw_zones,
+            scalar_tile,
+            write_panel_png,
+        )
 
         panel = compose_panel([Tile(sample.rgb, sample.name),
                                Tile(draw_zones(sample.rgb, sample.zone_rects, sample.zone_valid,
@@ -80,12 +84,7 @@ def save_frame_panel(path: str | Path, sample: ZJUL5Sample, depth_m: np.ndarray,
                                scalar_tile(error, "|pred - gt| (m)", "jet", 0.0, max_error_m)],
                               columns=4)
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
-            ok, data = cv2.imencode(".png", cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
-            if not ok:
-                raise OSError(f"could not encode {path}")
-            Path(tmp).write_bytes(data.tobytes())
-        return Path(path)
+        return write_panel_png(path, panel)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -203,16 +203,13 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
     from matplotlib.patches import Rectangle
 
     frame = prediction.zone_frame
-    mean, _, valid = frame.flat()
+    mean, valid, far_zones, vmax, zones_title = _panel_zones_and_range(prediction)
     depth = prediction.depth_m
-    vmax = float(np.percentile(depth[np.isfinite(depth)], 99)) if np.isfinite(depth).any() \
-        else 1.0
     fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
     try:
         axes[0, 0].imshow(image)
         axes[0, 0].set_title("image")
         axes[0, 1].imshow(image)
-        far_zones = frame.flat_no_target()
         for (y0, x0, y1, x1), value, ok, far in zip(prediction.zone_rects, mean, valid,
                                                     far_zones, strict=True):
             axes[0, 1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False,
@@ -222,8 +219,7 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
                                 fontsize=5, ha="center", va="center")
         axes[0, 1].set_xlim(-0.5, image.shape[1] - 0.5)
         axes[0, 1].set_ylim(image.shape[0] - 0.5, -0.5)
-        axes[0, 1].set_title("zones (m; blue = no target, red = invalid)" if far_zones.any()
-                             else "zones (m; red = invalid)")
+        axes[0, 1].set_title(zones_title)
         shown = axes[1, 0].imshow(depth, cmap="turbo", vmin=0.0, vmax=vmax)
         fig.colorbar(shown, ax=axes[1, 0], label="m")
         axes[1, 0].set_title("depth")
@@ -245,30 +241,38 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
 def _write_panel_opencv(path: str | os.PathLike, image: np.ndarray,
                         prediction: DepthPrediction, title: str, overwrite: bool) -> Path:
     """:func:`write_panel` without matplotlib (:func:`deltar.io.render.compose_panel`)."""
-    import cv2
+    from deltar.io.render import Tile, compose_panel, draw_zones, scalar_tile, write_panel_png
 
-    from deltar.io.render import Tile, compose_panel, draw_zones, scalar_tile
-
-    frame = prediction.zone_frame
-    mean, _, valid = frame.flat()
-    far_zones = frame.flat_no_target()
+    mean, valid, far_zones, vmax, zones_title = _panel_zones_and_range(prediction)
     depth, spread = prediction.depth_m, prediction.uncertainty_m
-    vmax = float(np.percentile(depth[np.isfinite(depth)], 99)) if np.isfinite(depth).any() \
-        else 1.0
     finite = np.isfinite(spread)
     low, high = (float(spread[finite].min()), float(spread[finite].max())) if finite.any() \
         else (0.0, 1.0)
-    zones_title = ("zones (m; blue = no target, red = invalid)" if far_zones.any()
-                   else "zones (m; red = invalid)")
     rgb = np.ascontiguousarray(image, dtype=np.uint8)
     panel = compose_panel([Tile(rgb, "image"),
                            Tile(draw_zones(rgb, prediction.zone_rects, valid, far_zones,
-                                           mean if frame.grid <= 8 else None), zones_title),
+                                           mean if prediction.zone_frame.grid <= 8 else None),
+                                zones_title),
                            scalar_tile(depth, "depth", "turbo", 0.0, vmax),
                            scalar_tile(spread, "uncertainty (std)", "magma", low, high)],
                           columns=2, title=title)
-    return write_bytes_atomic(path, _encode_png(cv2.cvtColor(panel, cv2.COLOR_RGB2BGR)),
-                              overwrite=overwrite)
+    return write_panel_png(path, panel, overwrite=overwrite)
+
+
+def _panel_zones_and_range(prediction: DepthPrediction
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str]:
+    """What both panel renderers draw the zones and depth with: the zones' means (m),
+    validity, no-target flags, the depth colour scale's top (99th percentile, m) and
+    the zone tile's title."""
+    frame = prediction.zone_frame
+    mean, _, valid = frame.flat()
+    far_zones = frame.flat_no_target()
+    depth = prediction.depth_m
+    vmax = float(np.percentile(depth[np.isfinite(depth)], 99)) if np.isfinite(depth).any() \
+        else 1.0
+    title = ("zones (m; blue = no target, red = invalid)" if far_zones.any()
+             else "zones (m; red = invalid)")
+    return mean, valid, far_zones, vmax, title
 
 
 def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,

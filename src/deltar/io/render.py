@@ -11,8 +11,10 @@ meaning as the matplotlib one.
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -185,3 +187,21 @@ def compose_panel(tiles: Sequence[Tile], columns: int, title: str = "") -> np.nd
     if title:
         _text(panel, title, (_MARGIN_PX, _TITLE_PX - 6), 0.5)
     return panel
+
+
+def write_panel_png(path: str | os.PathLike, panel: np.ndarray, *, overwrite: bool = True
+                    ) -> Path:
+    """Write an (H, W, 3) uint8 RGB panel (:func:`compose_panel`) as a PNG, atomically.
+
+    Raises:
+        ValueError: the panel could not be encoded (naming ``path``).
+        FileExistsError: ``path`` exists and not ``overwrite``.
+    """
+    import cv2
+
+    from deltar.io.atomic import write_bytes_atomic
+
+    ok, data = cv2.imencode(".png", cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError(f"could not encode {path} as PNG")
+    return write_bytes_atomic(path, data.tobytes(), overwrite=overwrite)
