@@ -83,7 +83,6 @@ class EncoderDescriptors(nn.Module):
         descriptors = torch.cat(parts, dim=1) * self.channel_weight[None, :, None, None]
         return unit_channels(descriptors)
 
-
     def _export_forward(self, features: Sequence[torch.Tensor], size: tuple[int, int]
                         ) -> torch.Tensor:
         """:meth:`forward`'s descriptors as the ONNX export writes them: the same values

@@ -177,17 +177,12 @@ class PlanarSelectHead(DepthHead):
         if self.planar:
             hypotheses = log_mean[:, None, :] - torch.log(
                 self._plane_ratio(means, valid, zone_rects.to(dtype), (height, width), stride))
-            if torch.onnx.is_in_onnx_export():
-                # Fewer passes over the (B, h*w, Z) maps, same values: a zone that is not
-                # chosen has log_mean 0 and slopes 0, so its hypothesis is log(1) = 0
-                # already; and the second moment reuses the weighted hypotheses.
-                weighted = weights * hypotheses
-                log_depth = weighted.sum(-1, keepdim=True)
-                second = (weighted * hypotheses).sum(-1, keepdim=True)
-            else:
-                hypotheses = hypotheses.masked_fill(~chosen[:, None, :], 0.0)  # (B, h*w, Z)
-                log_depth = (weights * hypotheses).sum(-1, keepdim=True)
-                second = (weights * hypotheses ** 2).sum(-1, keepdim=True)
+            # (B, h*w, Z). No mask needed: a zone that is not chosen has log_mean 0 and
+            # slopes 0, so its hypothesis is log(1) = 0 already; and the second moment
+            # reuses the weighted hypotheses (fewer passes over the maps).
+            weighted = weights * hypotheses
+            log_depth = weighted.sum(-1, keepdim=True)
+            second = (weighted * hypotheses).sum(-1, keepdim=True)
         else:
             log_depth = weights @ log_mean[..., None]
             second = weights @ (log_mean[..., None] ** 2)
