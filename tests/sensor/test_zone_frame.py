@@ -31,11 +31,12 @@ def test_from_driver_flat_lists(zones, grid):
     assert frame.timestamp_s == 3.0
 
 
-def test_multi_target_lists_keep_the_first_target():
+def test_multi_target_lists_keep_the_first_target_as_the_primary():
     distance = np.repeat(np.arange(16) * 100.0 + 500, 2)
-    distance[1::2] = 9999  # second target of each zone
+    distance[1::2] = 3999  # second target of each zone
     frame = ZoneFrame.from_driver(distance, np.full(32, 10.0), np.full(32, 5), grid=4)
     np.testing.assert_allclose(frame.flat()[0], (np.arange(16) * 100.0 + 500) / 1000)
+    np.testing.assert_allclose(frame.flat_targets()[0][:, 1], 3.999, rtol=1e-6)
 
 
 def test_status_filtering():

@@ -10,7 +10,11 @@ Follows the simulation of the official DELTAR release (its NYU data loader), per
 4. split the non-empty bins into clusters of consecutive bins and keep only the cluster
    with the largest total count (the first one on ties);
 5. report the count-weighted mean and (population) standard deviation of the kept
-   bins' centres; a zone with no counts left is invalid.
+   bins' centres; a zone with no counts left is invalid;
+6. with ``max_targets`` > 1, also report the other clusters as further targets, the
+   way ST's driver reports several targets per zone (clusters closer than
+   ``target_separation_m`` = 0.6 m merged, see
+   :func:`~deltar.sensor.simulate_frame.secondary_targets`).
 
 Everything is vectorised over zones and over a batch of depth maps. Step 1 is
 :mod:`deltar.sensor.zone_histograms`; the parameters are
@@ -27,7 +31,11 @@ import numpy as np
 import torch
 
 from deltar.sensor import compiled as compiled_kernels
-from deltar.sensor.simulate_frame import simulate_zone_frame
+from deltar.sensor.simulate_frame import (
+    check_target_options,
+    secondary_targets,
+    simulate_zone_frame,
+)
 from deltar.sensor.simulator_config import SimulatorConfig
 from deltar.sensor.zone_histograms import use_compiled, zone_histograms, zone_pixel_bounds
 
@@ -50,6 +58,12 @@ class SimulatedZones:
         no_target: (B, Z) bool, invalid zones that would report *no target* (ST status
             255): more of their pixels with depth lie beyond ``max_range_m`` than within
             it. Invalid zones without it carry no information (e.g. no depth at all).
+        target_mean_m: (B, Z, T) float32, every reported target's distance in metres (0
+            where not valid), T = ``max_targets``; ``[..., 0]`` is the primary reading
+            (``mean_m``), the others in ``target_order``.
+        target_sigma_m: (B, Z, T) float32 standard deviations in metres (0 where not valid).
+        target_valid: (B, Z, T) bool; ``[..., 0]`` is ``valid``.
+        target_order: order of targets 1.. (``"strongest"`` or ``"closest"``).
     """
 
     mean_m: torch.Tensor
@@ -59,6 +73,10 @@ class SimulatedZones:
     cluster: torch.Tensor
     bin_edges_m: torch.Tensor
     no_target: torch.Tensor
+    target_mean_m: torch.Tensor | None = None
+    target_sigma_m: torch.Tensor | None = None
+    target_valid: torch.Tensor | None = None
+    target_order: str = "strongest"
 
 
 def strongest_cluster(counts: torch.Tensor) -> torch.Tensor:
@@ -84,8 +102,8 @@ def strongest_cluster(counts: torch.Tensor) -> torch.Tensor:
 
 
 def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.ndarray,
-                   config: SimulatorConfig | None = None, compiled: bool | None = None
-                   ) -> SimulatedZones:
+                   config: SimulatorConfig | None = None, compiled: bool | None = None,
+                   max_targets: int = 1, target_order: str = "strongest") -> SimulatedZones:
     """Simulate the zone signals a multi-zone ToF sensor would report.
 
     Args:
@@ -98,15 +116,23 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
             the compiled kernels of :mod:`deltar.sensor.compiled` (numba, CPU; the same
             counts, moments equal to float rounding); None uses them when numba is
             installed and the depth is on the CPU.
+        max_targets: targets per zone to report, 1..4 (ST's
+            ``VL53L5CX_NB_TARGET_PER_ZONE``). Target 0 is the primary reading (the
+            strongest cluster, as with 1); the others are the remaining clusters,
+            ``config.target_separation_m`` apart (computed from the histograms with
+            :func:`~deltar.sensor.simulate_frame.secondary_targets`, on the CPU).
+        target_order: order of targets 1.. : ``"strongest"`` first or ``"closest"`` first.
 
     Returns:
-        ``SimulatedZones`` with (B, Z) tensors, or (Z,) for an unbatched ``depth_m``, on
-        ``depth_m``'s device.
+        ``SimulatedZones`` with (B, Z) tensors and (B, Z, max_targets) target tensors, or
+        (Z,) and (Z, max_targets) for an unbatched ``depth_m``, on ``depth_m``'s device.
 
     Raises:
-        ValueError: wrong shapes, batch sizes that do not match, NaN or infinite values.
+        ValueError: wrong shapes, batch sizes that do not match, NaN or infinite values,
+            ``max_targets`` not in 1..4, an unknown ``target_order``.
     """
     cfg = config or SimulatorConfig()
+    check_target_options(max_targets, target_order)
     depth = torch.as_tensor(depth_m)
     boxes = torch.as_tensor(rects)
     if depth.ndim not in (2, 3) or not depth.is_floating_point():
@@ -154,13 +180,43 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
         sigma = torch.where(valid, variance.sqrt(), 0.0).to(torch.float32)
 
     no_target = _no_target(depth, boxes, valid, histogram, cfg)
+    targets = [mean[..., None], sigma[..., None], valid[..., None]]
+    if max_targets > 1:
+        targets = _with_secondary_targets(histogram, cluster, targets, cfg, max_targets,
+                                          target_order)
     out = SimulatedZones(mean_m=mean, sigma_m=sigma, valid=valid, histogram=histogram,
                          cluster=cluster, bin_edges_m=edges.to(torch.float32),
-                         no_target=no_target)
+                         no_target=no_target, target_mean_m=targets[0],
+                         target_sigma_m=targets[1], target_valid=targets[2],
+                         target_order=target_order)
     if not batched:
-        for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster", "no_target"):
+        for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster", "no_target",
+                     "target_mean_m", "target_sigma_m", "target_valid"):
             setattr(out, name, getattr(out, name)[0])
     return out
+
+
+def _with_secondary_targets(histogram: torch.Tensor, cluster: torch.Tensor,
+                            primary: list[torch.Tensor], config: SimulatorConfig,
+                            max_targets: int, target_order: str) -> list[torch.Tensor]:
+    """(B, Z, T) mean, sigma, valid: the primary ``[..., :1]`` and the other targets.
+
+    The other targets come from the numpy function the single-frame simulator uses
+    (:func:`~deltar.sensor.simulate_frame.secondary_targets`), so both agree; the
+    cleaning repeats the simulator's steps 2-3 in the same float32 arithmetic.
+    """
+    hist = histogram.detach().cpu().numpy()
+    cleaned = hist.copy()
+    cleaned[..., : config.ignored_bins] = 0.0
+    cleaned = np.maximum(cleaned - np.float32(config.noise_floor_counts), np.float32(0.0))
+    bins = hist.shape[-1]
+    centres = (np.arange(bins, dtype=np.float64) + 0.5) * config.bin_width_m
+    more = secondary_targets(cleaned.reshape(-1, bins),
+                             cluster.detach().cpu().numpy().reshape(-1, bins), centres,
+                             config.target_separation_m, max_targets - 1, target_order)
+    shape = (*histogram.shape[:-1], max_targets - 1)
+    return [torch.cat([first, torch.from_numpy(rest.reshape(shape)).to(first.device)], dim=-1)
+            for first, rest in zip(primary, more, strict=True)]
 
 
 def _no_target(depth: torch.Tensor, rects: torch.Tensor, valid: torch.Tensor,

@@ -29,7 +29,11 @@ from deltar.sensor.geometry import zone_rects_to_pixel_bounds
 from deltar.sensor.simulator_config import SimulatorConfig
 from deltar.sensor.zone_frame import ZoneFrame
 
-__all__ = ["depth_bins", "simulate_zone_frame", "strongest_run", "zone_depth_histograms"]
+__all__ = ["depth_bins", "secondary_targets", "simulate_zone_frame", "strongest_run",
+           "zone_depth_histograms"]
+
+#: Most targets per zone the simulator reports, as ST's driver (1 to 4).
+MAX_SIMULATED_TARGETS = 4
 
 
 def depth_bins(depth_m: np.ndarray, config: SimulatorConfig) -> np.ndarray:
@@ -106,9 +110,120 @@ def strongest_run(counts: np.ndarray) -> np.ndarray:
     return np.where(run_id == best, counts, 0).astype(counts.dtype)
 
 
+def secondary_targets(cleaned: np.ndarray, primary: np.ndarray, centres_m: np.ndarray,
+                      separation_m: float, count: int, order: str = "strongest"
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The targets a zone reports besides its primary one, from its cleaned histogram.
+
+    Shared by both simulators (:func:`simulate_zone_frame` and
+    :func:`deltar.sensor.simulate.simulate_zones`), so their targets agree. Per zone:
+
+    1. the runs of consecutive non-empty bins, each with its count-weighted mean;
+    2. runs whose mean lies less than ``separation_m`` from the primary run's are part
+       of the primary target (the sensor reports surfaces closer than that as one);
+    3. the remaining runs, taken by increasing distance, join the current group while
+       their mean lies less than ``separation_m`` from the group's count-weighted mean,
+       else start a new group;
+    4. the groups ordered by total count (``"strongest"``, the closer one first on
+       ties) or by distance (``"closest"``); the first ``count`` are reported, each with
+       the count-weighted mean and population standard deviation of its bins' centres.
+
+    Args:
+        cleaned: (N, bins) float32 counts after the ignored bins and the noise floor.
+        primary: (N, bins) counts of each zone's primary (strongest) run, zero elsewhere.
+        centres_m: (bins,) bin centres, metres.
+        separation_m: smallest distance between two reported targets, metres.
+        count: number of target slots to fill besides the primary (>= 0).
+        order: ``"strongest"`` or ``"closest"``.
+
+    Returns:
+        ``(mean, sigma, valid)``: (N, count) float32 metres, (N, count) float32 metres
+        (0 where not valid), (N, count) bool.
+    """
+    zones = cleaned.shape[0]
+    mean_out = np.zeros((zones, count), dtype=np.float32)
+    sigma_out = np.zeros((zones, count), dtype=np.float32)
+    valid_out = np.zeros((zones, count), dtype=bool)
+    if count == 0 or zones == 0:
+        return mean_out, sigma_out, valid_out
+    centres = np.asarray(centres_m, dtype=np.float64)
+    nonzero = cleaned > 0
+    previous = np.zeros_like(nonzero)
+    previous[:, 1:] = nonzero[:, :-1]
+    run_id = np.cumsum(nonzero & ~previous, axis=-1) * nonzero  # 0 = empty bin
+    runs = int(run_id.max()) + 1
+    weights = np.where(nonzero, cleaned, 0).astype(np.float64)
+    flat_id = (np.arange(zones)[:, None] * runs + run_id).ravel()
+    run_total = np.bincount(flat_id, weights.ravel(), zones * runs).reshape(zones, runs)
+    run_first = np.bincount(flat_id, (weights * centres).ravel(),
+                            zones * runs).reshape(zones, runs)
+    exists = run_total > 0
+    exists[:, 0] = False
+    run_mean = np.where(exists, run_first / np.where(exists, run_total, 1.0), 0.0)
+    # The primary run: the one holding the primary cluster's bins.
+    has_primary = (primary > 0).any(axis=-1)
+    primary_id = np.where(has_primary, run_id[np.arange(zones), np.argmax(primary > 0, -1)], 0)
+    primary_mean = run_mean[np.arange(zones), primary_id]
+    eligible = exists & has_primary[:, None] & (
+        np.abs(run_mean - primary_mean[:, None]) >= separation_m)
+    eligible[np.arange(zones), primary_id] = False
+    # Group the eligible runs by increasing distance (run ids follow the bins).
+    group = np.zeros((zones, runs), dtype=np.int64)  # 0 = no group
+    current = np.zeros(zones, dtype=np.int64)
+    group_total = np.zeros(zones)
+    group_first = np.zeros(zones)
+    for run in range(1, runs):
+        take = eligible[:, run]
+        if not take.any():
+            continue
+        group_mean = group_first / np.where(current > 0, group_total, 1.0)
+        joins = take & (current > 0) & (run_mean[:, run] - group_mean < separation_m)
+        starts = take & ~joins
+        current = current + starts
+        group_total = np.where(starts, 0.0, group_total) + np.where(take, run_total[:, run], 0)
+        group_first = np.where(starts, 0.0, group_first) + np.where(take, run_first[:, run], 0)
+        group[:, run] = np.where(take, current, 0)
+    groups = int(current.max()) + 1
+    if groups == 1:
+        return mean_out, sigma_out, valid_out
+    bin_group = np.take_along_axis(group, run_id, axis=1)  # (N, bins), 0 = none
+    flat_group = (np.arange(zones)[:, None] * groups + bin_group).ravel()
+    total = np.bincount(flat_group, weights.ravel(), zones * groups).reshape(zones, groups)
+    first = np.bincount(flat_group, (weights * centres).ravel(),
+                        zones * groups).reshape(zones, groups)
+    present = total > 0
+    present[:, 0] = False
+    mean = np.where(present, first / np.where(present, total, 1.0), 0.0)
+    spread = weights * (centres - np.take_along_axis(mean, bin_group, axis=1)) ** 2
+    second = np.bincount(flat_group, spread.ravel(), zones * groups).reshape(zones, groups)
+    sigma = np.sqrt(np.where(present, second / np.where(present, total, 1.0), 0.0))
+    # Groups are numbered by distance: a stable sort keeps the closer first on ties.
+    key = np.where(present, -total if order == "strongest" else mean, np.inf)
+    ranked = np.argsort(key, axis=-1, kind="stable")[:, :count]
+    chosen = np.take_along_axis(present, ranked, axis=1)
+    width = ranked.shape[1]
+    valid_out[:, :width] = chosen
+    mean_out[:, :width] = np.where(chosen, np.take_along_axis(mean, ranked, axis=1), 0.0)
+    sigma_out[:, :width] = np.where(chosen, np.take_along_axis(sigma, ranked, axis=1), 0.0)
+    return mean_out, sigma_out, valid_out
+
+
+def check_target_options(max_targets: int, target_order: str) -> None:
+    """Raise ``ValueError`` naming the argument unless ``max_targets`` is an integer in
+    1..4 and ``target_order`` is ``"strongest"`` or ``"closest"``."""
+    if isinstance(max_targets, (bool, np.bool_)) or not isinstance(
+            max_targets, (int, np.integer)) or not 1 <= max_targets <= MAX_SIMULATED_TARGETS:
+        raise ValueError(f"max_targets must be an integer in 1..{MAX_SIMULATED_TARGETS}, "
+                         f"got {max_targets!r}")
+    if target_order not in ("strongest", "closest"):
+        raise ValueError(f"target_order must be 'strongest' or 'closest', got "
+                         f"{target_order!r}")
+
+
 def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
                         config: SimulatorConfig | None = None,
-                        timestamp_s: float | None = None) -> ZoneFrame:
+                        timestamp_s: float | None = None, max_targets: int = 1,
+                        target_order: str = "strongest") -> ZoneFrame:
     """Simulate one sensor reading as a ``ZoneFrame``.
 
     Args:
@@ -117,6 +232,14 @@ def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
             zone grid as it appears in the image; Z = 16 (4x4) or 64 (8x8).
         config: simulator parameters; ``SimulatorConfig()`` when None.
         timestamp_s: optional capture time stored in the frame, seconds.
+        max_targets: targets per zone to report, 1..4 (ST's
+            ``VL53L5CX_NB_TARGET_PER_ZONE``). 1 (the default) gives the primary reading
+            only, the frame has no target arrays. More fills ``target_mean_m``,
+            ``target_sigma_m``, ``target_valid`` (n, n, max_targets): target 0 is the
+            primary (strongest) cluster, the others come from
+            :func:`secondary_targets` (``config.target_separation_m`` apart).
+        target_order: order of targets 1.. (``"strongest"`` first, or ``"closest"``
+            first); stored as the frame's ``target_order``.
 
     Returns:
         A ``ZoneFrame`` with mean and sigma (metres), validity and the no-target flag per
@@ -125,9 +248,11 @@ def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
 
     Raises:
         ValueError: a ``depth_m`` that is not a 2-D float map or holds NaN / infinite
-            values; ``rects`` not (16, 4) or (64, 4), or not finite.
+            values; ``rects`` not (16, 4) or (64, 4), or not finite; ``max_targets`` not
+            in 1..4 or an unknown ``target_order``.
     """
     cfg = config or SimulatorConfig()
+    check_target_options(max_targets, target_order)
     depth = np.asarray(depth_m)
     boxes = np.asarray(rects, dtype=np.float32)
     if depth.ndim != 2:
@@ -164,8 +289,18 @@ def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
         y0, x0, y1, x1 = bounds[zone]
         no_target[zone] = np.count_nonzero(depth[y0:y1, x0:x1] > limit) > in_range[zone]
     grid = round(math.sqrt(len(boxes)))
+    targets = {}
+    if max_targets > 1:
+        more = secondary_targets(cleaned, cluster, centres, cfg.target_separation_m,
+                                 max_targets - 1, target_order)
+        targets = {name: np.concatenate([first[:, None], rest], axis=1)
+                   .reshape(grid, grid, max_targets)
+                   for name, first, rest in zip(("target_mean_m", "target_sigma_m",
+                                                 "target_valid"), (mean, sigma, valid), more,
+                                                 strict=True)}
+        targets["target_order"] = target_order
     return ZoneFrame(mean_m=mean.reshape(grid, grid), sigma_m=sigma.reshape(grid, grid),
                      valid=valid.reshape(grid, grid), no_target=no_target.reshape(grid, grid),
                      hist_edges_m=edges.astype(np.float32),
                      hist_counts=histogram.reshape(grid, grid, -1), timestamp_s=timestamp_s,
-                     sensor_model="simulated")
+                     sensor_model="simulated", **targets)

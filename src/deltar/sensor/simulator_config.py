@@ -22,12 +22,17 @@ class SimulatorConfig:
         max_range_m: upper end of the histogram in metres (4.0); farther depth is not seen.
         ignored_bins: number of leading bins zeroed before clustering (1: depth < 4 cm).
         noise_floor_counts: counts subtracted from every bin, clipped at 0 (20 pixels).
+        target_separation_m: with several targets per zone (``max_targets`` > 1), the
+            smallest distance between two reported targets, metres (0.6: ST's user
+            manual for the VL53L8CX, UM3109, reports two surfaces less than 600 mm apart
+            as one target). Unused with one target per zone.
     """
 
     bin_width_m: float = 0.04
     max_range_m: float = 4.0
     ignored_bins: int = 1
     noise_floor_counts: float = 20.0
+    target_separation_m: float = 0.6
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.bin_width_m) and self.bin_width_m > 0):
@@ -45,6 +50,9 @@ class SimulatorConfig:
         if not (math.isfinite(self.noise_floor_counts) and self.noise_floor_counts >= 0):
             raise ValueError(f"SimulatorConfig.noise_floor_counts must be >= 0, got "
                              f"{self.noise_floor_counts}")
+        if not (math.isfinite(self.target_separation_m) and self.target_separation_m > 0):
+            raise ValueError(f"SimulatorConfig.target_separation_m must be > 0, got "
+                             f"{self.target_separation_m}")
 
     @property
     def num_bins(self) -> int:

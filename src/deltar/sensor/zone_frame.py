@@ -16,7 +16,11 @@ NO_TARGET_STATUS = 255
 #: Where the methods that use the flag place a zone that reported no target, metres:
 #: beyond the 4 m range, at 1.25 times it (a prior, not fitted to any scene).
 NO_TARGET_DEPTH_M = 5.0
-
+#: Most targets per zone ST's driver reports (``VL53L5CX_NB_TARGET_PER_ZONE``, 1 to 4).
+MAX_TARGETS_PER_ZONE = 4
+#: Orders the driver reports a zone's targets in: strongest return first (the default)
+#: or closest first (``vl53l5cx_set_target_order``).
+TARGET_ORDERS: tuple[str, ...] = ("strongest", "closest")
 
 
 def no_target_as_readings(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
@@ -99,6 +103,17 @@ class ZoneFrame:
         no_target: optional (n, n) bool, invalid zones that reported *no target*
             (nothing within the sensor's range, so the surface is farther away); by
             default the zones whose ``status`` is 255 (:data:`NO_TARGET_STATUS`), or none.
+        target_mean_m: optional (n, n, T) float32, every target the zone reported,
+            metres, T = 1..4 (:data:`MAX_TARGETS_PER_ZONE`), in ``target_order``; 0
+            where not valid. Given together with ``target_sigma_m`` and
+            ``target_valid``; None for a frame with only the primary reading.
+        target_sigma_m: optional (n, n, T) float32 standard deviations, metres.
+        target_valid: optional (n, n, T) bool, the targets that carry a measurement.
+        target_status: optional (n, n, T) uint8, the driver's ``target_status`` per target.
+        target_order: ``"strongest"`` (the driver's default: strongest return first) or
+            ``"closest"`` (closest first). In ``"strongest"`` order target 0 is the primary
+            reading: ``target_valid[..., 0] == valid`` and, where valid, the target's mean
+            and sigma equal ``mean_m`` and ``sigma_m`` (checked).
     """
 
     mean_m: np.ndarray
@@ -111,6 +126,11 @@ class ZoneFrame:
     sensor_model: str = "VL53L5CX"
     extra: dict = field(default_factory=dict)
     no_target: np.ndarray | None = None
+    target_mean_m: np.ndarray | None = None
+    target_sigma_m: np.ndarray | None = None
+    target_valid: np.ndarray | None = None
+    target_status: np.ndarray | None = None
+    target_order: str = "strongest"
 
     def __post_init__(self) -> None:
         # Numbers stay numbers: strings and booleans are refused, never converted.
@@ -131,6 +151,7 @@ class ZoneFrame:
                 self.no_target = np.asarray(self.no_target).reshape(n, n)
             if self.hist_counts is not None:
                 self.hist_counts = np.asarray(self.hist_counts).reshape(n, n, -1)
+        self._convert_targets()
         if self.no_target is None and self.status is not None:
             status = np.asarray(self.status)
             if status.shape == self.valid.shape:
@@ -213,6 +234,104 @@ class ZoneFrame:
         if not isinstance(self.sensor_model, str):
             raise ValueError(f"ZoneFrame.sensor_model must be a string, got "
                              f"{self.sensor_model!r}")
+        self._validate_targets(n)
+
+    def _convert_targets(self) -> None:
+        """Target arrays as float32 / bool / uint8, (Z, T) flat input as (n, n, T)."""
+        given = [name for name in ("target_mean_m", "target_sigma_m", "target_valid")
+                 if getattr(self, name) is not None]
+        if given and len(given) < 3:
+            raise ValueError("ZoneFrame.target_mean_m, target_sigma_m and target_valid must "
+                             f"be given together, got only {given}")
+        if not given:
+            if self.target_status is not None:
+                raise ValueError("ZoneFrame.target_status needs target_mean_m, "
+                                 "target_sigma_m and target_valid")
+            return
+        self.target_mean_m = _numbers(self.target_mean_m,
+                                      "ZoneFrame.target_mean_m").astype(np.float32)
+        self.target_sigma_m = _numbers(self.target_sigma_m,
+                                       "ZoneFrame.target_sigma_m").astype(np.float32)
+        self.target_valid = _flags(self.target_valid, "ZoneFrame.target_valid")
+        if self.target_status is not None:
+            self.target_status = status_codes(self.target_status, "ZoneFrame.target_status")
+        n = self.mean_m.shape[0] if self.mean_m.ndim == 2 else -1
+        for name in ("target_mean_m", "target_sigma_m", "target_valid", "target_status"):
+            arr = getattr(self, name)
+            if arr is not None and arr.ndim == 2 and n > 0 and arr.shape[0] == n * n:
+                setattr(self, name, arr.reshape(n, n, arr.shape[1]))
+        # Targets that are not valid carry 0, as invalid zones do in files.
+        if self.target_valid.shape == self.target_mean_m.shape:
+            self.target_mean_m = np.where(self.target_valid, self.target_mean_m,
+                                          np.float32(0.0))
+        if self.target_valid.shape == self.target_sigma_m.shape:
+            self.target_sigma_m = np.where(self.target_valid, self.target_sigma_m,
+                                           np.float32(0.0))
+
+    def _validate_targets(self, n: int) -> None:
+        """The checks of the target arrays (see the class doc), ValueErrors naming the field."""
+        if self.target_order not in TARGET_ORDERS:
+            raise ValueError(f"ZoneFrame.target_order must be one of {TARGET_ORDERS}, got "
+                             f"{self.target_order!r}")
+        if self.target_mean_m is None:
+            return
+        mean = self.target_mean_m
+        if mean.ndim != 3 or mean.shape[:2] != (n, n) or \
+                not 1 <= mean.shape[2] <= MAX_TARGETS_PER_ZONE:
+            raise ValueError(f"ZoneFrame.target_mean_m must have shape ({n}, {n}, T) with "
+                             f"T in 1..{MAX_TARGETS_PER_ZONE}, got {mean.shape}")
+        for name in ("target_sigma_m", "target_valid", "target_status"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape != mean.shape:
+                raise ValueError(f"ZoneFrame.{name} must have shape {mean.shape} like "
+                                 f"target_mean_m, got {arr.shape}")
+        valid = self.target_valid
+        sigma = self.target_sigma_m
+        if not np.all(np.isfinite(mean[valid])) or np.any(mean[valid] < 0):
+            raise ValueError("ZoneFrame.target_mean_m must be finite and >= 0 in valid "
+                             "targets, bad (row, column, target) "
+                             f"{np.argwhere(valid & ~(mean >= 0)).tolist()[:5]}")
+        if not np.all(np.isfinite(sigma[valid])) or np.any(sigma[valid] < 0):
+            raise ValueError("ZoneFrame.target_sigma_m must be finite and >= 0 in valid "
+                             "targets, bad (row, column, target) "
+                             f"{np.argwhere(valid & ~(sigma >= 0)).tolist()[:5]}")
+        if self.target_status is not None and \
+                np.any(valid & (self.target_status == NO_TARGET_STATUS)):
+            raise ValueError(f"ZoneFrame.target_status is {NO_TARGET_STATUS} (no target) for "
+                             "valid targets (row, column, target) "
+                             f"{np.argwhere(valid & (self.target_status == 255)).tolist()[:5]}")
+        if self.target_order == "strongest":
+            # Target 0 is the primary reading: the same flags, and the same values where valid.
+            differs = (valid[..., 0] != self.valid) | (self.valid & (
+                (np.abs(mean[..., 0] - self.mean_m) > 1e-6)
+                | (np.abs(sigma[..., 0] - self.sigma_m) > 1e-6)))
+            if differs.any():
+                raise ValueError("ZoneFrame.target_mean_m / target_sigma_m / target_valid "
+                                 "[..., 0] must equal mean_m / sigma_m / valid in "
+                                 "'strongest' order (target 0 is the primary reading); "
+                                 f"they differ at zones {np.argwhere(differs).tolist()[:5]}")
+
+    @property
+    def targets_per_zone(self) -> int:
+        """T, the number of target slots per zone (1 for a frame without target arrays)."""
+        return 1 if self.target_mean_m is None else int(self.target_mean_m.shape[2])
+
+    def targets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every target of every zone: mean (n, n, T) float32 metres, sigma (n, n, T)
+        float32 metres, valid (n, n, T) bool, in :attr:`target_order`.
+
+        A frame without target arrays gives T = 1: the primary reading (zeros where
+        not valid).
+        """
+        if self.target_mean_m is not None:
+            return self.target_mean_m, self.target_sigma_m, self.target_valid
+        valid = self.valid[..., None]
+        return (np.where(valid, self.mean_m[..., None], np.float32(0.0)),
+                np.where(valid, self.sigma_m[..., None], np.float32(0.0)), valid.copy())
+
+    def flat_targets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`targets` as row-major (Z, T) arrays, Z = n * n."""
+        return tuple(a.reshape(self.zone_count, -1) for a in self.targets())
 
     # ------------------------------------------------------------------ views
     def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -317,22 +436,45 @@ class ZoneFrame:
         orientation: Orientation | None = None,
         timestamp_s: float | None = None,
         sensor_model: str = "VL53L5CX",
+        nb_target_detected: Sequence[int] | None = None,
+        targets_per_zone: int | None = None,
+        target_order: str = "strongest",
     ) -> ZoneFrame:
         """Build a frame from what the Python drivers return.
 
+        Driver builds for several targets per zone (``VL53L5CX_NB_TARGET_PER_ZONE`` = T)
+        return ``zones * T`` entries per field, zone-major: entry ``zone * T + t`` is
+        target ``t`` of ``zone``. The primary reading (``mean_m``, ``sigma_m``, ``valid``)
+        is each zone's first target; with T > 1 (or ``targets_per_zone`` given) the frame
+        also holds every target (``target_mean_m`` ... (n, n, T)).
+
         Args:
-            distance_mm: flat list of 16 or 64 distances in millimetres (driver order).
-                Zones reading 0 or less (error codes) or more than the sensor model's
-                range (:data:`SENSOR_MAX_RANGE_M`, with a ``RuntimeWarning``) are invalid.
-                Drivers built for several targets per zone return more entries; only
-                the first target of each zone is used then.
+            distance_mm: flat list of ``zones * T`` distances in millimetres (driver
+                order). Targets reading 0 or less (error codes) or more than the sensor
+                model's range (:data:`SENSOR_MAX_RANGE_M`, with a ``RuntimeWarning``) are
+                invalid.
             range_sigma_mm: flat list of the same length, sigma in millimetres.
             target_status: flat list of the same length, ST's target status codes.
-            grid: 4 or 8; inferred from the length when None (16 -> 4, 64 -> 8).
+            grid: 4 or 8; inferred when None: from ``nb_target_detected``'s length when
+                given, else from the length of ``distance_mm`` (16 -> 4, 64 -> 8, one
+                target per zone).
             valid_status: status codes that count as a valid range (default 5 and 9).
             orientation: how the driver's grid maps onto the image (identity by default).
             timestamp_s: capture time in seconds.
             sensor_model: free text stored with the frame.
+            nb_target_detected: optional flat list of ``zones`` counts (driver order), the
+                number of targets each zone detected; target ``t`` of a zone is valid only
+                when ``t`` is below its count (the driver leaves stale values beyond it).
+            targets_per_zone: T, 1..4; inferred from the lengths when None (``len /
+                zones``). A buffer sized for 8x8 (``64 * T``) read in 4x4 mode uses its
+                first ``16 * T`` entries, as ST's driver fills it.
+            target_order: ``"strongest"`` (the driver's default) or ``"closest"``, as
+                the driver was configured (``vl53l5cx_set_target_order``).
+
+        Raises:
+            ValueError: lengths that do not fit ``grid`` and ``targets_per_zone``, codes
+                that are not integers in 0..255, an unknown ``target_order``, naming the
+                argument.
         """
         arrays = {}
         for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
@@ -342,20 +484,61 @@ class ZoneFrame:
         if len(set(sizes)) > 1:
             raise ValueError("distance_mm, range_sigma_mm and target_status must have the same "
                              f"length (one entry per zone and target), got {sizes}")
-        n = grid if grid is not None else _grid_from_count(arrays["distance_mm"].size,
-                                                           "distance_mm")
+        if target_order not in TARGET_ORDERS:
+            raise ValueError(f"target_order must be one of {TARGET_ORDERS}, got "
+                             f"{target_order!r}")
+        detected = None
+        if nb_target_detected is not None:
+            detected = status_codes(number_array(nb_target_detected, "nb_target_detected"),
+                                    "nb_target_detected").astype(np.int64)
+        if targets_per_zone is not None and (
+                isinstance(targets_per_zone, (bool, np.bool_))
+                or not isinstance(targets_per_zone, (int, np.integer))
+                or not 1 <= targets_per_zone <= MAX_TARGETS_PER_ZONE):
+            raise ValueError(f"targets_per_zone must be an integer in "
+                             f"1..{MAX_TARGETS_PER_ZONE}, got {targets_per_zone!r}")
+        if grid is not None:
+            n = grid
+        elif detected is not None:
+            n = _grid_from_count(detected.size, "nb_target_detected")
+        elif targets_per_zone is not None and sizes[0] % targets_per_zone == 0:
+            n = _grid_from_count(sizes[0] // targets_per_zone, "distance_mm")
+        else:
+            n = _grid_from_count(sizes[0], "distance_mm")
         if n not in SUPPORTED_GRIDS:
             raise ValueError(f"grid must be one of {SUPPORTED_GRIDS}, got {n}")
         zones = n * n
+        size = sizes[0]
+        if targets_per_zone is not None:
+            per_zone = int(targets_per_zone)
+            # ST's buffers are sized for 8x8; in 4x4 mode the first 16 zones are filled.
+            used = zones * per_zone
+            if size != used and not (n == 4 and size == 64 * per_zone):
+                raise ValueError(f"distance_mm has {size} entries; expected {used} for a "
+                                 f"{n}x{n} grid with {per_zone} target(s) per zone")
+        else:
+            if size < zones or size % zones:
+                raise ValueError(f"distance_mm has {size} entries; expected {zones} for a "
+                                 f"{n}x{n} grid (times the targets per zone)")
+            per_zone = size // zones
+            if per_zone > MAX_TARGETS_PER_ZONE:
+                raise ValueError(f"distance_mm has {size} entries, {per_zone} per zone of a "
+                                 f"{n}x{n} grid; the driver reports at most "
+                                 f"{MAX_TARGETS_PER_ZONE} targets per zone")
+        if detected is not None:
+            if detected.size == 64 and n == 4:
+                detected = detected[:16]
+            if detected.size != zones:
+                raise ValueError(f"nb_target_detected has {detected.size} entries; expected "
+                                 f"{zones} (one per zone of a {n}x{n} grid)")
         for name, arr in arrays.items():
-            if arr.size < zones or arr.size % zones:
-                raise ValueError(f"{name} has {arr.size} entries; expected {zones} for a "
-                                 f"{n}x{n} grid")
-            # Multi-target builds store targets per zone contiguously: keep the first.
-            arrays[name] = arr.reshape(zones, -1)[:, 0]
+            # Zone-major: target t of zone z at z * per_zone + t.
+            arrays[name] = arr[: zones * per_zone].reshape(zones, per_zone)
         status = status_codes(arrays["target_status"], "target_status")
         valid = np.isin(status, np.asarray(valid_status, dtype=np.uint8))
         valid &= status != NO_TARGET_STATUS
+        if detected is not None:
+            valid &= np.arange(per_zone)[None, :] < detected[:, None]
         mean = arrays["distance_mm"] / 1000.0
         sigma = arrays["range_sigma_mm"] / 1000.0
         valid &= np.isfinite(mean) & np.isfinite(sigma) & (mean > 0) & (sigma >= 0)
@@ -364,18 +547,24 @@ class ZoneFrame:
         for far, what, values in ((valid & (mean > limit), "read more than", mean),
                                   (valid & (sigma > limit), "have a sigma larger than", sigma)):
             if far.any():
-                warnings.warn(f"{int(far.sum())} zone(s) with a valid status {what} the "
+                unit = "zone(s)" if per_zone == 1 else "target(s)"
+                warnings.warn(f"{int(far.sum())} {unit} with a valid status {what} the "
                               f"{sensor_model}'s {limit:g} m range (up to "
                               f"{values[far].max():.6g} m); marked invalid", RuntimeWarning,
                               stacklevel=2)
                 valid &= ~far
         orient = orientation or Orientation()
-        mean, sigma, valid, status = (orient.apply(a.reshape(n, n))
+        mean, sigma, valid, status = (orient.apply(a.reshape(n, n, per_zone))
                                       for a in (mean, sigma, valid, status))
-        mean = np.where(valid, mean, 0.0)
-        sigma = np.where(valid, sigma, 0.0)
-        return cls(mean_m=mean, sigma_m=sigma, valid=valid, status=status,
-                   timestamp_s=timestamp_s, sensor_model=sensor_model)
+        mean = np.where(valid, mean, 0.0).astype(np.float32)
+        sigma = np.where(valid, sigma, 0.0).astype(np.float32)
+        targets = {}
+        if per_zone > 1 or targets_per_zone is not None:
+            targets = {"target_mean_m": mean, "target_sigma_m": sigma, "target_valid": valid,
+                       "target_status": status, "target_order": target_order}
+        return cls(mean_m=mean[..., 0], sigma_m=sigma[..., 0], valid=valid[..., 0],
+                   status=status[..., 0], timestamp_s=timestamp_s, sensor_model=sensor_model,
+                   **targets)
 
 
 def number_array(values, name: str) -> np.ndarray:
