@@ -171,7 +171,8 @@ def test_bag_pairs_decode_and_predict_into_a_new_bag(tmp_path, encoding):
 
 def test_missing_tof_topic_is_a_clear_error(tmp_path):
     write_input_bag(tmp_path / "bag", with_tof=False)
-    with pytest.raises(ValueError, match=r"no ToF topic \(deltar_msgs/msg/ZoneFrame\)"):
+    with pytest.raises(ValueError, match=r"no ToF topic \(deltar_msgs/msg/ZoneFrame or "
+                       r"deltar_msgs/msg/MultiTargetZoneFrame\)"):
         BagInput(tmp_path / "bag")
     with pytest.raises(ValueError, match="no topic '/nope'"):
         BagInput(tmp_path / "bag", tof_topic="/nope")

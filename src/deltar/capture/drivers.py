@@ -16,6 +16,7 @@ All timestamps are seconds on ``time.monotonic`` (hardware) or a simulated clock
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -71,6 +72,13 @@ class DriverAdapter(SensorAdapter):
         sensor_model: stored in each frame.
         clock: time source in seconds (``time.monotonic``).
         poll_interval_s: sleep between data-ready polls.
+        targets_per_zone: targets per zone the driver was built for
+            (``VL53L5CX_NB_TARGET_PER_ZONE``, 1..4). When given, the results are read as
+            ``grid`` x ``grid`` zones of that many targets each (the first ``16 * T``
+            entries of an 8x8-sized buffer in 4x4 mode) and the frames carry the target
+            arrays; None infers the grid from the result's length, one target per zone
+            (several when the length is a multiple of 64 zones).
+        target_order: ``"strongest"`` or ``"closest"``, as the driver was configured.
     """
 
     def __init__(self, driver: Any, *, data_ready: str = "data_ready",
@@ -78,7 +86,8 @@ class DriverAdapter(SensorAdapter):
                  stop: str | None = "stop_ranging", start_args: tuple = (), grid: int = 8,
                  orientation: Orientation | None = None, sensor_model: str = "VL53L5CX",
                  clock: Callable[[], float] = time.monotonic,
-                 poll_interval_s: float = 0.002) -> None:
+                 poll_interval_s: float = 0.002, targets_per_zone: int | None = None,
+                 target_order: str = "strongest") -> None:
         for name in (data_ready, get_data, start, stop):
             if name is not None and not callable(getattr(driver, name, None)):
                 raise ValueError(f"driver {type(driver).__name__} has no method {name!r}")
@@ -92,6 +101,16 @@ class DriverAdapter(SensorAdapter):
         self.sensor_model = sensor_model
         self.clock = clock
         self.poll_interval_s = poll_interval_s
+        if targets_per_zone is not None and (
+                isinstance(targets_per_zone, bool) or not isinstance(targets_per_zone, int)
+                or not 1 <= targets_per_zone <= 4):
+            raise ValueError(f"targets_per_zone must be an integer in 1..4, got "
+                             f"{targets_per_zone!r}")
+        if target_order not in ("strongest", "closest"):
+            raise ValueError(f"target_order must be 'strongest' or 'closest', got "
+                             f"{target_order!r}")
+        self.targets_per_zone = targets_per_zone
+        self.target_order = target_order
 
     def start(self) -> None:
         if self._names[2] is not None:
@@ -111,9 +130,11 @@ class DriverAdapter(SensorAdapter):
         # Timestamp when the frame was seen ready, before the (slow) I2C transfer.
         timestamp = self.clock()
         result = get_data()
-        frame = zone_frame_from_driver_result(result, orientation=self.orientation,
-                                              timestamp_s=timestamp,
-                                              sensor_model=self.sensor_model)
+        frame = zone_frame_from_driver_result(
+            result, orientation=self.orientation, timestamp_s=timestamp,
+            sensor_model=self.sensor_model,
+            grid=None if self.targets_per_zone is None else self.grid,
+            targets_per_zone=self.targets_per_zone, target_order=self.target_order)
         if frame.grid != self.grid:
             raise ValueError(f"driver returned a {frame.grid}x{frame.grid} frame, adapter is "
                              f"configured for {self.grid}x{self.grid}")
@@ -132,23 +153,32 @@ def _import(module: str, package: str) -> Any:
 
 
 def open_vl53l5cx_ctypes(grid: int = 8, ranging_hz: int = 15,
-                         orientation: Orientation | None = None) -> DriverAdapter:
+                         orientation: Orientation | None = None,
+                         targets_per_zone: int | None = None,
+                         target_order: str = "strongest") -> DriverAdapter:
     """A sensor through ``vl53l5cx-ctypes`` (Raspberry Pi, ST's ULD via ctypes).
 
     Its example shows the image up-down flipped relative to the driver order, hence
-    the default orientation ``Orientation(flip_ud=True)``.
+    the default orientation ``Orientation(flip_ud=True)``. ``targets_per_zone`` and
+    ``target_order``: as the driver library was built and configured (see
+    :class:`DriverAdapter`).
     """
     driver_module = _import("vl53l5cx_ctypes", "vl53l5cx-ctypes")
     driver = driver_module.VL53L5CX()
     driver.set_resolution(grid * grid)
     driver.set_ranging_frequency_hz(ranging_hz)
     return DriverAdapter(driver, grid=grid,
-                         orientation=orientation or Orientation(flip_ud=True))
+                         orientation=orientation or Orientation(flip_ud=True),
+                         targets_per_zone=targets_per_zone, target_order=target_order)
 
 
 def open_sparkfun(grid: int = 8, ranging_hz: int = 15,
-                  orientation: Orientation | None = None) -> DriverAdapter:
-    """A sensor through SparkFun's ``sparkfun-qwiic-vl53l5cx`` (CPython / MicroPython)."""
+                  orientation: Orientation | None = None, targets_per_zone: int | None = None,
+                  target_order: str = "strongest") -> DriverAdapter:
+    """A sensor through SparkFun's ``sparkfun-qwiic-vl53l5cx`` (CPython / MicroPython).
+
+    ``targets_per_zone`` and ``target_order``: see :class:`DriverAdapter`.
+    """
     driver_module = _import("qwiic_vl53l5cx", "sparkfun-qwiic-vl53l5cx")
     driver = driver_module.QwiicVL53L5CX()
     if not driver.begin():
@@ -156,12 +186,15 @@ def open_sparkfun(grid: int = 8, ranging_hz: int = 15,
     driver.set_resolution(grid * grid)
     driver.set_ranging_frequency_hz(ranging_hz)
     return DriverAdapter(driver, data_ready="check_data_ready", get_data="get_ranging_data",
-                         grid=grid, orientation=orientation)
+                         grid=grid, orientation=orientation, targets_per_zone=targets_per_zone,
+                         target_order=target_order)
 
 
 def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
                        ranging_hz: int = 15,
-                       orientation: Orientation | None = None) -> DriverAdapter:
+                       orientation: Orientation | None = None,
+                       targets_per_zone: int | None = None,
+                       target_order: str = "strongest") -> DriverAdapter:
     """A sensor through ``circuitpython-vl53lxcx`` on a CircuitPython board.
 
     The driver needs ``init()`` (firmware upload) and starts ranging with the set of
@@ -173,6 +206,8 @@ def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
         model: ``"VL53L5CX"`` or ``"VL53L8CX"`` (the driver class of that name).
         ranging_hz: ranging frequency.
         orientation: how the driver grid maps onto the image.
+        targets_per_zone, target_order: as the driver was built and configured (see
+            :class:`DriverAdapter`).
     """
     driver_module = _import("vl53lxcx", "circuitpython-vl53lxcx")
     if model not in ("VL53L5CX", "VL53L8CX"):
@@ -186,7 +221,8 @@ def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
                if hasattr(driver_module, name)}
     return DriverAdapter(driver, data_ready="check_data_ready", get_data="get_ranging_data",
                          start_args=(outputs,), grid=grid, orientation=orientation,
-                         sensor_model=model)
+                         sensor_model=model, targets_per_zone=targets_per_zone,
+                         target_order=target_order)
 
 
 class OpenCVCamera:
@@ -288,6 +324,9 @@ class SimulatedRig:
         config: simulator parameters (``SimulatorConfig()`` when None).
         with_histogram: keep the simulated per-zone histogram in the frames (the
             VL53L5CX reports only mean and sigma, so False by default).
+        max_targets: targets per zone the simulated sensor reports, 1..4 (see
+            :func:`~deltar.sensor.simulate_frame.simulate_zone_frame`; 1 by default).
+        target_order: order of targets 1.., ``"strongest"`` or ``"closest"``.
     """
 
     sensor_model = "simulated"
@@ -297,7 +336,11 @@ class SimulatedRig:
                  extrinsics: SensorExtrinsics | None = None, camera_hz: float = 30.0,
                  sensor_hz: float = 15.0, sensor_delay_s: float = 0.004,
                  start_time_s: float = 0.0, config: Any = None,
-                 with_histogram: bool = False) -> None:
+                 with_histogram: bool = False, max_targets: int = 1,
+                 target_order: str = "strongest") -> None:
+        from deltar.sensor.simulate_frame import check_target_options
+
+        check_target_options(max_targets, target_order)
         if len(source) == 0:
             raise ValueError("the RGB-D source has no frames")
         if not 0 < sensor_hz <= camera_hz:
@@ -311,6 +354,8 @@ class SimulatedRig:
         self.start_time_s = float(start_time_s)
         self.config = config
         self.with_histogram = with_histogram
+        self.max_targets = max_targets
+        self.target_order = target_order
         self.intrinsics: CameraIntrinsics = source[0].intrinsics
         self._index = 0
 
@@ -344,10 +389,10 @@ class SimulatedRig:
             rects = zone_rects(self.intrinsics, self.grid, fov_deg=self.fov_deg,
                                extrinsics=self.extrinsics, depth_m=place)
             zones = simulate_zone_frame(depth, rects, self.config,
-                                        timestamp_s=image_time + self.sensor_delay_s)
+                                        timestamp_s=image_time + self.sensor_delay_s,
+                                        max_targets=self.max_targets,
+                                        target_order=self.target_order)
             if not self.with_histogram:
-                zones = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
-                                  timestamp_s=zones.timestamp_s, sensor_model="simulated",
-                                  no_target=zones.no_target)
+                zones = dataclasses.replace(zones, hist_edges_m=None, hist_counts=None)
             capture.zone_frame = zones
         return capture

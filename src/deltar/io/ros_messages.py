@@ -31,6 +31,11 @@ from deltar.sensor.zone_frame import (
 ZONE_FRAME_MSGTYPE = "deltar_msgs/msg/ZoneFrame"
 #: Where its definition lives (package data).
 ZONE_FRAME_MSG_PATH = Path(__file__).with_name("msg") / "ZoneFrame.msg"
+#: The ToF message with several targets per zone (``ZoneFrame``'s fields, then the targets).
+MULTI_TARGET_ZONE_FRAME_MSGTYPE = "deltar_msgs/msg/MultiTargetZoneFrame"
+MULTI_TARGET_ZONE_FRAME_MSG_PATH = Path(__file__).with_name("msg") / "MultiTargetZoneFrame.msg"
+#: Message types a zone frame is read from (``zone_frame_from_msg``).
+ZONE_FRAME_MSGTYPES = (ZONE_FRAME_MSGTYPE, MULTI_TARGET_ZONE_FRAME_MSGTYPE)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 _EXTRA_HINT = 'ROS 2 bag support needs the "ros" extra: pip install "deltar[ros]"'
@@ -48,13 +53,15 @@ def require_rosbags() -> Any:
 
 @functools.lru_cache(maxsize=1)
 def typestore() -> Any:
-    """The ROS 2 Humble type store with ``deltar_msgs/msg/ZoneFrame`` registered."""
+    """The ROS 2 Humble type store with ``deltar_msgs/msg/ZoneFrame`` and
+    ``deltar_msgs/msg/MultiTargetZoneFrame`` registered."""
     require_rosbags()
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(get_types_from_msg(ZONE_FRAME_MSG_PATH.read_text(encoding="utf-8"),
-                                      ZONE_FRAME_MSGTYPE))
+    for path, name in ((ZONE_FRAME_MSG_PATH, ZONE_FRAME_MSGTYPE),
+                       (MULTI_TARGET_ZONE_FRAME_MSG_PATH, MULTI_TARGET_ZONE_FRAME_MSGTYPE)):
+        store.register(get_types_from_msg(path.read_text(encoding="utf-8"), name))
     return store
 
 
@@ -134,10 +141,13 @@ def intrinsics_from_camera_info(msg: Any, image_size: tuple[int, int] | None = N
 
 def zone_frame_from_msg(msg: Any, source: str = "zones",
                         valid_status: tuple[int, ...] = DEFAULT_VALID_STATUS) -> ZoneFrame:
-    """A :class:`ZoneFrame` from a ``deltar_msgs/msg/ZoneFrame`` (see its ``.msg``).
+    """A :class:`ZoneFrame` from a ``deltar_msgs/msg/ZoneFrame`` or
+    ``deltar_msgs/msg/MultiTargetZoneFrame`` (see their ``.msg``); the latter fills the
+    frame's target arrays.
 
     Raises:
-        ValueError: lengths that do not match ``zone_count``, naming the field.
+        ValueError: lengths that do not match ``zone_count`` (and ``targets_per_zone``),
+            naming the field.
     """
     count = int(msg.zone_count)
     distance = np.asarray(msg.distance_m, dtype=np.float64)
@@ -171,13 +181,58 @@ def zone_frame_from_msg(msg: Any, source: str = "zones",
             raise ValueError(f"{source}: hist_counts has {counts.size} values, expected "
                              f"zone_count x {max(bins, 0)} bins from hist_edges_m")
         hist = {"hist_edges_m": edges, "hist_counts": counts.reshape(count, bins)}
+    targets = {}
+    if hasattr(msg, "target_distance_m"):
+        targets = _targets_from_msg(msg, count, source, valid_status)
     try:
         return ZoneFrame(mean_m=np.where(valid, distance, 0.0),
                          sigma_m=np.where(valid, sigma, 0.0), valid=valid, status=status,
                          timestamp_s=stamp_to_ns(msg.header.stamp) / 1e9,
-                         sensor_model=str(msg.sensor_model) or "VL53L5CX", **hist)
+                         sensor_model=str(msg.sensor_model) or "VL53L5CX", **hist, **targets)
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from err
+
+
+def _targets_from_msg(msg: Any, count: int, source: str,
+                      valid_status: tuple[int, ...]) -> dict[str, Any]:
+    """The target arrays of a ``MultiTargetZoneFrame`` as ``ZoneFrame`` arguments.
+
+    Validity as for the primary fields: ``target_valid`` when given, else a positive,
+    finite distance with (when given) a status in ``valid_status``.
+    """
+    per_zone = int(msg.targets_per_zone)
+    if not 1 <= per_zone <= 4:
+        raise ValueError(f"{source}: targets_per_zone is {per_zone}; expected 1..4")
+    size = count * per_zone
+    distance = np.asarray(msg.target_distance_m, dtype=np.float64)
+    if distance.size != size:
+        raise ValueError(f"{source}: target_distance_m has {distance.size} entries; expected "
+                         f"zone_count x targets_per_zone = {size}")
+    arrays = {}
+    for name in ("target_sigma_m", "target_status", "target_valid"):
+        values = np.asarray(getattr(msg, name))
+        if values.size not in (0, size):
+            raise ValueError(f"{source}: {name} has {values.size} entries; expected {size} "
+                             "or none")
+        arrays[name] = values if values.size else None
+    ok = np.isfinite(distance) & (distance > 0)
+    status = None if arrays["target_status"] is None else \
+        arrays["target_status"].astype(np.uint8)
+    if arrays["target_valid"] is not None:
+        valid = arrays["target_valid"].astype(bool) & ok
+    elif status is not None:
+        valid = ok & np.isin(status, np.asarray(valid_status, dtype=np.uint8))
+    else:
+        valid = ok
+    sigma = np.zeros(size) if arrays["target_sigma_m"] is None else \
+        arrays["target_sigma_m"].astype(np.float64)
+    valid &= np.isfinite(sigma) & (sigma >= 0)
+    shape = (count, per_zone)
+    return {"target_mean_m": np.where(valid, distance, 0.0).reshape(shape),
+            "target_sigma_m": np.where(valid, sigma, 0.0).reshape(shape),
+            "target_valid": valid.reshape(shape),
+            "target_status": None if status is None else status.reshape(shape),
+            "target_order": str(msg.target_order) or "strongest"}
 
 
 def zone_frame_from_vl53l5cx_ros2(msg: Any, *, orientation: Orientation | None = None,

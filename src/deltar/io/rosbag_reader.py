@@ -2,8 +2,9 @@
 
 A camera topic (``sensor_msgs/msg/Image`` in ``rgb8`` or ``bgr8``, or
 ``sensor_msgs/msg/CompressedImage``), its ``sensor_msgs/msg/CameraInfo`` and a ToF
-topic, either this package's ``deltar_msgs/msg/ZoneFrame`` (``msg/ZoneFrame.msg``) or
-the ``sensor_msgs/msg/Image`` (32FC1, 4x4 or 8x8, metres, NaN = invalid) that the
+topic, either this package's ``deltar_msgs/msg/ZoneFrame`` (``msg/ZoneFrame.msg``; or
+``deltar_msgs/msg/MultiTargetZoneFrame`` with several targets per zone) or the
+``sensor_msgs/msg/Image`` (32FC1, 4x4 or 8x8, metres, NaN = invalid) that the
 ``vl53l5cx_ros2`` driver node (github.com/skhbk/vl53l5cx_ros2) publishes. Zone frames
 are paired with the image nearest in header stamp. The messages are decoded by
 :mod:`deltar.io.ros_messages`.
@@ -27,7 +28,7 @@ from deltar.io.recording import nearest_in_time
 from deltar.io.ros_messages import (
     CAMERA_INFO_TYPE,
     IMAGE_TYPES,
-    ZONE_FRAME_MSGTYPE,
+    ZONE_FRAME_MSGTYPES,
     image_from_msg,
     intrinsics_from_camera_info,
     require_rosbags,
@@ -112,7 +113,7 @@ class BagInput:
         self.tof_format = tof_format
         self.tof_orientation = tof_orientation
         self.tof_sigma_m = float(tof_sigma_m)
-        tof_types = (ZONE_FRAME_MSGTYPE,) if tof_format == "deltar" else \
+        tof_types = ZONE_FRAME_MSGTYPES if tof_format == "deltar" else \
             ("sensor_msgs/msg/Image",)
         if tof_format == "vl53l5cx_ros2" and tof_topic is None:
             raise ValueError("the vl53l5cx_ros2 format needs the ToF topic named "

@@ -24,6 +24,7 @@ import numpy as np
 from deltar.camera import CameraIntrinsics, check_image
 from deltar.io.ros_messages import (
     CAMERA_INFO_TYPE,
+    MULTI_TARGET_ZONE_FRAME_MSGTYPE,
     ZONE_FRAME_MSGTYPE,
     require_rosbags,
     stamped_header,
@@ -184,11 +185,21 @@ class BagWriter:
 
     def add_zone_frame(self, topic: str, stamp_ns: int, frame_id: str, frame: ZoneFrame,
                        log_ns: int | None = None) -> None:
-        """A :class:`ZoneFrame` as ``deltar_msgs/msg/ZoneFrame``.
+        """A :class:`ZoneFrame` as ``deltar_msgs/msg/ZoneFrame``, or, when it holds several
+        targets per zone (``frame.target_mean_m``), as
+        ``deltar_msgs/msg/MultiTargetZoneFrame`` (the same fields and every target).
+
+        A topic carries one type: the first frame written to it decides. On a
+        ``MultiTargetZoneFrame`` topic, frames without target arrays are written with
+        T = 1 (their primary reading); a frame with targets on a ``ZoneFrame`` topic is
+        an error.
 
         A frame's no-target flags are written as status 255; a frame without status
         codes (e.g. a simulated one) gets 5 (valid), 255 (no target) and 0 (anything
         else), so that the flags survive the message.
+
+        Raises:
+            ValueError: a frame with targets for a topic that carries ``ZoneFrame``.
         """
         mean, sigma, valid = frame.flat()
         empty = np.zeros(0, dtype=np.float32)
@@ -210,7 +221,42 @@ class BagWriter:
             frame.hist_edges_m.astype(np.float32),
             hist_counts=empty if frame.hist_counts is None else
             frame.hist_counts.reshape(-1).astype(np.float32))
-        self._write(topic, ZONE_FRAME_MSGTYPE, msg, stamp_ns if log_ns is None else log_ns)
+        connection = self._connections.get(topic)
+        multi = frame.target_mean_m is not None if connection is None else \
+            connection.msgtype == MULTI_TARGET_ZONE_FRAME_MSGTYPE
+        if multi:
+            msgtype = MULTI_TARGET_ZONE_FRAME_MSGTYPE
+            msg = _with_targets(msg, frame)
+        elif frame.target_mean_m is not None:
+            raise ValueError(f"topic {topic} carries {ZONE_FRAME_MSGTYPE} (one target per "
+                             "zone) but this frame holds several targets per zone; write "
+                             "multi-target frames to their own topic")
+        else:
+            msgtype = ZONE_FRAME_MSGTYPE
+        self._write(topic, msgtype, msg, stamp_ns if log_ns is None else log_ns)
+
+
+def _with_targets(msg: Any, frame: ZoneFrame) -> Any:
+    """A ``MultiTargetZoneFrame`` with ``msg``'s fields and every target of ``frame``.
+
+    Targets that are not valid are written as NaN; target statuses as for the primary
+    status (no-target flags of target 0 as 255; 5 / 0 when the frame has no codes).
+    """
+    mean, sigma, valid = frame.flat_targets()
+    status = frame.target_status
+    if status is None:
+        status = np.where(valid, 5, 0).astype(np.uint8)
+        if frame.no_target is not None:
+            status[:, 0] = np.where(frame.flat_no_target(), NO_TARGET_STATUS, status[:, 0])
+    fields = {name: getattr(msg, name) for name in
+              ("header", "sensor_model", "zone_count", "distance_m", "sigma_m", "status",
+               "valid", "hist_edges_m", "hist_counts")}
+    return typestore().types[MULTI_TARGET_ZONE_FRAME_MSGTYPE](
+        **fields, targets_per_zone=frame.targets_per_zone, target_order=frame.target_order,
+        target_distance_m=np.where(valid, mean, np.nan).reshape(-1).astype(np.float32),
+        target_sigma_m=np.where(valid, sigma, 0.0).reshape(-1).astype(np.float32),
+        target_status=np.asarray(status, dtype=np.uint8).reshape(-1),
+        target_valid=valid.reshape(-1).astype(bool))
 
 
 class BagRecordingWriter:

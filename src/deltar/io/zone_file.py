@@ -7,11 +7,20 @@ JSON layout (``schema_version`` 1), flat row-major lists of ``zone_count`` entri
      "mean_m": [...], "sigma_m": [...], "valid": [...],
      "status": [...],                        # optional, uint8 target status codes
      "no_target": [...],                     # optional, bools: zones with no target
-     "hist_edges_m": [...], "hist_counts": [[...], ...]}   # optional, (B + 1,), (Z, B)
+     "hist_edges_m": [...], "hist_counts": [[...], ...],   # optional, (B + 1,), (Z, B)
+     "targets_per_zone": 2, "target_order": "strongest",   # optional: every target
+     "target_mean_m": [[...], ...], "target_sigma_m": [[...], ...],   # (Z, T) metres
+     "target_valid": [[...], ...], "target_status": [[...], ...]}     # (Z, T), status optional
+
+The target keys are written only for frames that hold several targets per zone
+(``ZoneFrame.target_mean_m``); a single-target frame's file is as before, and readers
+that do not know the keys ignore them.
 
 NPZ files hold the same keys as arrays (``schema``/``sensor_model`` as 0-d strings).
 A raw driver dump is a JSON object with ``distance_mm``, ``range_sigma_mm`` and
-``target_status`` (flat lists of 16 or 64, driver order), as the Python drivers return.
+``target_status`` (flat lists of 16 or 64, driver order), as the Python drivers return;
+multi-target builds return ``zones * T`` entries (zone-major), optionally with
+``nb_target_detected`` (one per zone), ``targets_per_zone`` and ``target_order``.
 
 Values must be numbers: strings (``"1.5"``) and booleans (``true``) are refused, not
 converted. A schema file's valid zones must read a distance the sensor can measure
@@ -40,6 +49,7 @@ from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFram
 SCHEMA_NAME = "deltar.zone_frame"
 SCHEMA_VERSION = 1
 _DRIVER_FIELDS = ("distance_mm", "range_sigma_mm", "target_status")
+_TARGET_KEYS = ("target_mean_m", "target_sigma_m", "target_valid", "target_status")
 
 
 def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
@@ -64,6 +74,16 @@ def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
         data["hist_edges_m"] = frame.hist_edges_m.astype(float).tolist()
         data["hist_counts"] = frame.hist_counts.reshape(frame.zone_count, -1).astype(
             float).tolist()
+    if frame.target_mean_m is not None:
+        mean, sigma, valid = frame.flat_targets()
+        data["targets_per_zone"] = frame.targets_per_zone
+        data["target_order"] = frame.target_order
+        data["target_mean_m"] = mean.astype(float).tolist()
+        data["target_sigma_m"] = sigma.astype(float).tolist()
+        data["target_valid"] = valid.tolist()
+        if frame.target_status is not None:
+            data["target_status"] = frame.target_status.reshape(frame.zone_count, -1).astype(
+                int).tolist()
     return data
 
 
@@ -90,11 +110,19 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
         raise ValueError(f"{source}: sensor_model must be a string, got {sensor_model!r}")
     if all(k in data for k in _DRIVER_FIELDS):
         fields = [number_array(data[k], f"{source}: {k}") for k in _DRIVER_FIELDS]
+        detected = data.get("nb_target_detected")
+        if detected is not None:
+            detected = number_array(detected, f"{source}: nb_target_detected")
+        per_zone = data.get("targets_per_zone")
+        if isinstance(per_zone, np.integer):
+            per_zone = int(per_zone)
         try:
             return ZoneFrame.from_driver(
                 *fields, orientation=orientation, valid_status=valid_status,
                 timestamp_s=_optional_float(data.get("timestamp_s"), source, "timestamp_s"),
-                sensor_model=sensor_model)
+                sensor_model=sensor_model, nb_target_detected=detected,
+                targets_per_zone=per_zone,
+                target_order=data.get("target_order", "strongest"))
         except (TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid driver output: {err}") from err
     if data.get("schema", SCHEMA_NAME) != SCHEMA_NAME:
@@ -148,17 +176,62 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
         if not np.all(np.isfinite(counts)) or not np.all(np.isfinite(edges)):
             raise ValueError(f"{source}: histogram has NaN or infinite values")
     timestamp = _optional_float(data.get("timestamp_s"), source, "timestamp_s")
+    targets = _target_arrays(data, source, count)
     try:
         frame = ZoneFrame(mean_m=arrays["mean_m"], sigma_m=arrays["sigma_m"],
                           valid=valid, status=status, hist_edges_m=edges,
                           hist_counts=counts, timestamp_s=timestamp, sensor_model=sensor_model,
-                          no_target=no_target)
+                          no_target=no_target, **targets)
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from err
     problem = frame.physical_error()
     if problem is not None:
         raise ValueError(f"{source}: {problem}")
     return frame
+
+
+def _target_arrays(data: Mapping[str, Any], source: str, count: int) -> dict[str, Any]:
+    """The optional target keys of a schema dict as ``ZoneFrame`` arguments ({} when absent).
+
+    Raises:
+        ValueError: naming ``source`` and the key: a partial set, arrays that are not
+            (``count``, T) with T = ``targets_per_zone``, non-numbers, NaN or negative values.
+    """
+    present = [key for key in (*_TARGET_KEYS, "targets_per_zone", "target_order")
+               if data.get(key) is not None]
+    if not present:
+        return {}
+    missing = [key for key in ("target_mean_m", "target_sigma_m", "target_valid",
+                               "targets_per_zone") if data.get(key) is None]
+    if missing:
+        raise ValueError(f"{source}: target keys {present} need {missing} as well")
+    per_zone = data["targets_per_zone"]
+    if isinstance(per_zone, (bool, np.bool_)) or not isinstance(per_zone, (int, np.integer)) \
+            or not 1 <= per_zone <= 4:
+        raise ValueError(f"{source}: targets_per_zone must be an integer in 1..4, got "
+                         f"{per_zone!r}")
+    out: dict[str, Any] = {}
+    for key in _TARGET_KEYS:
+        if data.get(key) is None:
+            continue
+        if key == "target_valid":
+            values = _bool_array(data[key], source, key, count * int(per_zone))
+        else:
+            values = _float_array(data[key], source, key)
+            if values.size == count * per_zone and not np.all(np.isfinite(values)):
+                raise ValueError(f"{source}: {key} has NaN or infinite values")
+            if np.any(values < 0):
+                raise ValueError(f"{source}: {key} has negative values")
+        if values.size != count * per_zone or np.ndim(data[key]) not in (1, 2) or (
+                np.ndim(data[key]) == 2 and np.shape(data[key]) != (count, per_zone)):
+            raise ValueError(f"{source}: {key} must be ({count}, {per_zone}) (zones x "
+                             f"targets_per_zone), got shape {np.shape(data[key])}")
+        out[key] = values.reshape(count, int(per_zone))
+    order = data.get("target_order", "strongest")
+    if not isinstance(order, str):
+        raise ValueError(f"{source}: target_order must be a string, got {order!r}")
+    out["target_order"] = order
+    return out
 
 
 def _bool_array(values: Any, source: str, key: str, count: int | None = None) -> np.ndarray:
@@ -232,25 +305,32 @@ def load_zone_frame(path: str | os.PathLike, *, orientation: Orientation | None 
 
 def zone_frame_from_driver_result(result: Any, *, orientation: Orientation | None = None,
                                   timestamp_s: float | None = None,
-                                  sensor_model: str = "VL53L5CX") -> ZoneFrame:
+                                  sensor_model: str = "VL53L5CX", grid: int | None = None,
+                                  targets_per_zone: int | None = None,
+                                  target_order: str = "strongest") -> ZoneFrame:
     """Convert what a Python driver returns (dict or results object) into a ``ZoneFrame``.
 
     Works with ``vl53l5cx-ctypes`` results, SparkFun's ``RangingDataResults`` and
     CircuitPython's ``get_ranging_data()``: anything with ``distance_mm``,
-    ``range_sigma_mm`` and ``target_status`` as items or attributes (flat, millimetres).
+    ``range_sigma_mm`` and ``target_status`` as items or attributes (flat, millimetres),
+    and optionally ``nb_target_detected`` (one per zone). ``grid``, ``targets_per_zone``
+    and ``target_order`` are as the driver was configured (see
+    :meth:`ZoneFrame.from_driver`; inferred from the lengths when None).
     """
     fields = {}
-    for name in _DRIVER_FIELDS:
+    for name in (*_DRIVER_FIELDS, "nb_target_detected"):
         if isinstance(result, Mapping):
             value = result.get(name)
         else:
             value = getattr(result, name, None)
-        if value is None:
+        if value is None and name != "nb_target_detected":
             raise ValueError(f"driver result has no field {name!r}")
-        fields[name] = list(value)
+        fields[name] = None if value is None else list(value)
     return ZoneFrame.from_driver(fields["distance_mm"], fields["range_sigma_mm"],
                                  fields["target_status"], orientation=orientation,
-                                 timestamp_s=timestamp_s, sensor_model=sensor_model)
+                                 timestamp_s=timestamp_s, sensor_model=sensor_model, grid=grid,
+                                 nb_target_detected=fields["nb_target_detected"],
+                                 targets_per_zone=targets_per_zone, target_order=target_order)
 
 
 def _float_array(values: Any, source: str, key: str) -> np.ndarray:
