@@ -7,7 +7,11 @@ zone noise, 10 % invalid zones; the guess is roll 90 deg, translation 0. Run fro
 repository root::
 
     PYTHONPATH=src python benchmarks/bench_board_calibration.py [--part board|intrinsics|
-        refusal|depth|bound] [--seeds 5] [--first-seed 0] [--tilt 45,25]
+        refusal|depth|bound] [--seeds 5] [--first-seed 0] [--tilt 45,25] [--views 15,20,25]
+        [--zone-noise 0.02] [--invalid 0.1]
+
+``--zone-noise 0 --invalid 0`` measures what is left without the zones' noise (the bias of
+the solver's model of the zone readings and the board poses' own error).
 
 ``--part bound`` prints the expected error (the Cramer-Rao bound of
 :mod:`deltar.calibration.board_uncertainty`) of the view geometries, without rendering.
@@ -46,7 +50,8 @@ def errors(found: SensorExtrinsics, truth: SensorExtrinsics = TRUE) -> tuple[flo
 
 
 def board_run(folder: Path, views: int, seed: int, *, intrinsics: bool = False,
-              tilt: tuple[float, float] = (45.0, 25.0)):
+              tilt: tuple[float, float] = (45.0, 25.0), zone_noise_m: float = 0.02,
+              invalid_fraction: float = 0.1):
     from deltar.calibration.board import parse_board_spec
     from deltar.calibration.board_pipeline import calibrate_recording_with_board
     from deltar.calibration.synthetic_board import board_view_poses, write_board_recording
@@ -57,7 +62,9 @@ def board_run(folder: Path, views: int, seed: int, *, intrinsics: bool = False,
                              min_tilt_deg=tilt[1], seed=seed)
     write_board_recording(folder, TRUE, CAMERA, spec, poses,
                           recorded_intrinsics=ROUGH if intrinsics else None,
-                          distortion=DISTORTION if intrinsics else (), seed=seed)
+                          distortion=DISTORTION if intrinsics else (),
+                          mean_noise_m=zone_noise_m, invalid_fraction=invalid_fraction,
+                          seed=seed)
     start = time.perf_counter()
     result, report = calibrate_recording_with_board(Recording(folder), spec,
                                                     nominal_extrinsics(90.0),
@@ -72,22 +79,23 @@ def expected(report) -> str:
             f"{100 * u.miss_probability(0.5, 0.010):.0f} %")
 
 
-def part_board(seeds: range, tilt: tuple[float, float]) -> None:
+def part_board(seeds: range, tilt: tuple[float, float], view_counts: tuple[int, ...],
+               **zones) -> None:
     print("| views | seed | rotation error (deg) | translation error (mm) | expected (deg / mm "
           "/ chance of a miss) | before -> after zone-to-cloud (cm) | solve (s) |")
     print("|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        for views in (15, 20, 25):
+        for views in view_counts:
             for seed in seeds:
                 result, report, took = board_run(Path(tmp) / f"b{views}_{seed}", views, seed,
-                                                 tilt=tilt)
+                                                 tilt=tilt, **zones)
                 angle, shift = errors(result.calibration.extrinsics)
                 print(f"| {views} | {seed} | {angle:.3f} | {shift:.1f} | {expected(report)} | "
                       f"{100 * result.distance_before_m:.2f} -> "
                       f"{100 * result.distance_after_m:.2f} | {took:.1f} |", flush=True)
 
 
-def part_intrinsics(seeds: range, tilt: tuple[float, float]) -> None:
+def part_intrinsics(seeds: range, tilt: tuple[float, float], **zones) -> None:
     print("| seed | fx error (%) | fy error (%) | cx, cy error (px) | k1 | rotation error "
           "(deg) | translation error (mm) | expected (deg / mm / chance of a miss) | "
           "reprojection RMS (px) |")
@@ -95,7 +103,7 @@ def part_intrinsics(seeds: range, tilt: tuple[float, float]) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             result, report, _ = board_run(Path(tmp) / f"i{seed}", 20, seed, intrinsics=True,
-                                          tilt=tilt)
+                                          tilt=tilt, **zones)
             k = result.calibration.intrinsics
             angle, shift = errors(result.calibration.extrinsics)
             print(f"| {seed} | {100 * (k.fx / CAMERA.fx - 1):+.2f} | "
@@ -181,13 +189,20 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--tilt", default="45,25",
                         help="largest and smallest view tilt off the wall's normal, degrees")
+    parser.add_argument("--views", default="15,20,25",
+                        help="view counts of --part board, comma-separated")
+    parser.add_argument("--zone-noise", type=float, default=0.02,
+                        help="zone noise of --part board and intrinsics, metres")
+    parser.add_argument("--invalid", type=float, default=0.1,
+                        help="share of zones made invalid at random (board, intrinsics)")
     args = parser.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     tilt = tuple(float(v) for v in args.tilt.split(","))
+    zones = {"zone_noise_m": args.zone_noise, "invalid_fraction": args.invalid}
     if args.part == "board":
-        part_board(seeds, tilt)
+        part_board(seeds, tilt, tuple(int(v) for v in args.views.split(",")), **zones)
     elif args.part == "intrinsics":
-        part_intrinsics(seeds, tilt)
+        part_intrinsics(seeds, tilt, **zones)
     elif args.part == "bound":
         part_bound(seeds)
     elif args.part == "refusal":

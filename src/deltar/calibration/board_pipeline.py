@@ -39,7 +39,9 @@ from deltar.calibration.board_uncertainty import ExtrinsicUncertainty, extrinsic
 from deltar.calibration.extrinsic import (
     PlaneObservation,
     check_plane_diversity,
+    mean_zone_to_cloud_distance,
     normal_spread_deg,
+    point_to_plane_rms,
 )
 from deltar.calibration.pipeline import (
     CalibrationResult,
@@ -48,6 +50,7 @@ from deltar.calibration.pipeline import (
 )
 from deltar.calibration.plane import ZonePlaneFit, zone_centre_points
 from deltar.calibration.time_offset import TimeOffsetEstimate, estimate_time_offset
+from deltar.calibration.zone_model import ZoneReadingModel, refine_extrinsics_to_zones
 from deltar.camera import CameraIntrinsics
 from deltar.sensor.geometry import SensorExtrinsics
 
@@ -362,6 +365,8 @@ def calibrate_recording_with_board(
                                     fov_deg=fov, sensor_model=meta.sensor_model,
                                     skipped=skipped, start=closed)
     result.unpaired = unpaired
+    used = {o.name for o in result.observations}
+    result = _refine_to_zones(result, [v for v in good if v.name in used], fov)
     calibration = result.calibration
     residuals = dict(calibration.residuals)
     residuals["board_views"] = float(len(views))
@@ -369,7 +374,6 @@ def calibrate_recording_with_board(
                                                       for v in good]))
     if intrinsics_rms is not None:
         residuals["intrinsics_rms_px"] = intrinsics_rms
-    used = {o.name for o in result.observations}
     uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov,
                                   intrinsics_sd, distortion)
     residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
@@ -380,6 +384,26 @@ def calibrate_recording_with_board(
     report = BoardReport(searched, len(views), residuals["board_pose_rms_px"], estimate, offset,
                          intrinsics_rms, closed, skipped, uncertainty)
     return result, report
+
+
+def _refine_to_zones(result: CalibrationResult, views: list[_View], fov) -> CalibrationResult:
+    """The plane-pair solution refined against the zone readings themselves: each view's
+    board plane, moved into the sensor frame, predicts every zone's reading
+    (:mod:`deltar.calibration.zone_model`); all views jointly."""
+    calibration = result.calibration
+    model = ZoneReadingModel(grid=calibration.grid, fov_deg=tuple(fov))
+    refined = refine_extrinsics_to_zones(
+        [(v.pose.normal_cam, v.pose.offset_cam_m) for v in views], [v.mean_m for v in views],
+        [v.plane.inliers for v in views], calibration.extrinsics, model)
+    after = mean_zone_to_cloud_distance(result.observations, refined.extrinsics)
+    residuals = dict(calibration.residuals)
+    residuals["zone_to_cloud_after_m"] = after
+    residuals["point_to_plane_rms_m"] = point_to_plane_rms(result.observations,
+                                                           refined.extrinsics)
+    residuals["zone_reading_rms_m"] = refined.rms_residual_m
+    return replace(result, calibration=replace(calibration, extrinsics=refined.extrinsics,
+                                               residuals=residuals),
+                   distance_after_m=after)
 
 
 def _expected_error(views: list[_View], calibration, fov, intrinsics_sd=None,

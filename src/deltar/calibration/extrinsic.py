@@ -230,6 +230,15 @@ def _solve_once(frames: list[tuple[PlaneObservation, np.ndarray]], start: Sensor
     return SensorExtrinsics(rot, trans).inverse(), bool(solution.success)
 
 
+def point_to_plane_rms(observations: Sequence[PlaneObservation],
+                       extrinsics: SensorExtrinsics) -> float:
+    """RMS distance (metres) of every observation's camera points to its sensor plane
+    under ``extrinsics``."""
+    return float(np.sqrt(np.mean(np.concatenate(
+        [_plane_residuals(o, np.asarray(o.points_cam_m, float), extrinsics) ** 2
+         for o in observations]))))
+
+
 def mean_zone_to_cloud_distance(observations: Sequence[PlaneObservation],
                                 extrinsics: SensorExtrinsics) -> float:
     """Mean distance (metres) from each zone measurement to the nearest scene point.

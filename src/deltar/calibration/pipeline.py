@@ -18,6 +18,7 @@ from deltar.calibration.extrinsic import (
 from deltar.calibration.plane import ZonePlaneFit, fit_plane_to_zones
 from deltar.calibration.rig import RigCalibration
 from deltar.calibration.slam import Trajectory, world_to_camera
+from deltar.calibration.zone_model import ZoneReadingModel, refit_zone_plane
 from deltar.camera import CameraIntrinsics
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
 from deltar.sensor.zone_frame import ZoneFrame
@@ -50,8 +51,13 @@ class CalibrationResult:
 def zone_plane_from_frame(frame: ZoneFrame, *,
                           fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
                           min_zone_fraction: float = 0.6, max_incidence_deg: float = 60.0,
-                          name: str = "") -> ZonePlaneFit:
+                          zone_model: bool = True, name: str = "") -> ZonePlaneFit:
     """The frame's plane in the sensor frame, refused when one plane does not fill the view.
+
+    The EM fit (:func:`~deltar.calibration.plane.fit_plane_to_zones`) finds the plane and
+    its zones; with ``zone_model`` the plane is then refitted so that the zone readings it
+    predicts (:func:`deltar.calibration.zone_model.refit_zone_plane`) match the measured
+    ones, which removes the readings' bias on tilted planes.
 
     Args:
         frame: the zone frame (means are z-depth in metres).
@@ -59,6 +65,7 @@ def zone_plane_from_frame(frame: ZoneFrame, *,
         min_zone_fraction: fewest valid zones (fraction) that must lie on the plane.
         max_incidence_deg: largest angle between the plane's normal and the sensor's
             axis; grazing planes are fitted poorly from zones.
+        zone_model: refit the plane to the zone reading model.
         name: label for error messages.
 
     Raises:
@@ -78,6 +85,9 @@ def zone_plane_from_frame(frame: ZoneFrame, *,
         raise ValueError(f"frame {name}: only {fraction:.0%} of the valid zones lie on one "
                          f"plane (need {min_zone_fraction:.0%}): fill the sensor's view with "
                          "a flat surface")
+    if zone_model:
+        model = ZoneReadingModel(grid=frame.grid, fov_deg=tuple(fov_deg))
+        plane = refit_zone_plane(plane, frame.flat()[0], model)
     return plane
 
 
