@@ -2,13 +2,16 @@
 
 Weights carry their own contract in their config (``image_mean`` / ``image_std``,
 ``hypothesis_sampling``, ``design_size``; see :mod:`deltar.models.checkpoint`); these
-are the values it can take and the defaults new models start from; and the one image
-normaliser (:func:`normalise_image`) that maps camera images onto the contract.
+are the values it can take and the defaults new models start from; the one reader of
+that contract from a stored network config (:func:`network_contract`, also for ONNX
+files, without PyTorch); and the one image normaliser (:func:`normalise_image`) that
+maps camera images onto the contract.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +24,47 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 #: How per-zone depth hypotheses are drawn from a zone's (mean, sigma): "icdf" (the
 #: release: evenly spaced quantiles of the Gaussian) or "uniform" (random draws).
 HYPOTHESIS_SAMPLINGS = ("icdf", "uniform")
+#: The sections of a stored network config (:class:`deltar.models.config.NetworkConfig`).
+NETWORK_CONFIG_SECTIONS = ("input", "encoder", "decoder", "head", "output")
+#: What :func:`network_contract` returns: the input section's keys, the head's name and
+#: the output section's keys.
+_CONTRACT_INPUT_KEYS = ("design_size", "image_mean", "image_std", "num_hypotheses",
+                        "hypothesis_sampling", "zone_scale_norm")
+_CONTRACT_OUTPUT_KEYS = ("min_depth", "max_depth", "no_target_depth",
+                         "uncertainty_calibration", "confidence_blend")
+
+
+def is_sectioned_config(config: Mapping[str, Any]) -> bool:
+    """Whether a stored network config has per-part sections (format 3), not flat
+    options (format 2, whose ``head`` and ``decoder`` are names, not sections)."""
+    return isinstance(config.get("input"), Mapping)
+
+
+def network_contract(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The contract a stored network config carries, as one flat dict.
+
+    Reads both forms a config is stored in: the per-part sections of checkpoint format 3
+    and of ONNX files exported since (``{"input": {...}, "head": {"name": ...}, ...}``)
+    and the flat options of format 2.
+
+    Args:
+        config: the stored network config.
+
+    Returns:
+        ``design_size`` (H, W pixels), ``image_mean`` / ``image_std``,
+        ``num_hypotheses``, ``hypothesis_sampling``, ``zone_scale_norm``, ``head`` (its
+        name), ``min_depth`` / ``max_depth`` / ``no_target_depth`` (metres) and
+        ``uncertainty_calibration`` / ``confidence_blend`` (dicts or None): those the
+        config holds.
+    """
+    keys = (*_CONTRACT_INPUT_KEYS, "head", *_CONTRACT_OUTPUT_KEYS)
+    if not is_sectioned_config(config):  # format 2: flat options of the same names
+        return {key: config[key] for key in keys if key in config}
+    head = config.get("head") or {}
+    flat = {**(config.get("input") or {}), **(config.get("output") or {})}
+    if "name" in head:
+        flat["head"] = head["name"]
+    return {key: flat[key] for key in keys if key in flat}
 
 
 def normalise_image(image: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,
@@ -35,7 +79,7 @@ def normalise_image(image: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,
     Args:
         image: (H, W, 3) RGB, uint8 (0-255) or float in [0, 1] (e.g. after augmentation).
         mean, std: per RGB channel, the network's input contract
-            (``model.config["image_mean"]`` / ``["image_std"]``); ImageNet's by default.
+            (``InputConfig.image_mean`` / ``image_std``); ImageNet's by default.
 
     Returns:
         (3, H, W) float32.

@@ -35,14 +35,14 @@ def test_fit_writes_a_checkpoint_the_estimator_calibrates_with(tmp_path, tiny_sa
         within_1, within_2 = fit.coverage[name]
         assert 0.55 <= within_1 <= 0.85 and within_2 >= within_1
     model, _, config = load_checkpoint(fit.path)
-    assert config["uncertainty_calibration"] == fit.calibration.to_dict()
+    assert config["output"]["uncertainty_calibration"] == fit.calibration.to_dict()
     estimator = DepthEstimator(model)
     assert estimator.uncertainty == fit.calibration
     sample = tiny_samples[0]
     assert estimator.predict(sample.rgb, sample.zone_frame(),
                              zone_rects=sample.zone_rects).uncertainty_calibrated
     # The input checkpoint is left as it was.
-    assert load_checkpoint(source)[2]["uncertainty_calibration"] is None
+    assert load_checkpoint(source)[2]["output"]["uncertainty_calibration"] is None
     with pytest.raises(ValueError, match="is the checkpoint being calibrated"):
         fit_checkpoint_uncertainty(source, [ZJUL5Dataset(data)], source, overwrite=True)
 
@@ -61,7 +61,7 @@ def test_fit_of_a_plane_select_model_fits_its_blend_first(tmp_path, tiny_samples
     rel = fit.relative_error
     assert rel["blend"] <= min(rel["network"], rel["fill"]) * 1.02
     _, _, config = load_checkpoint(fit.path)
-    assert ConfidenceBlend.from_dict(config["confidence_blend"]) == fit.blend
+    assert ConfidenceBlend.from_dict(config["output"]["confidence_blend"]) == fit.blend
     estimator = DepthEstimator(load_checkpoint(fit.path)[0])
     assert estimator.blend == fit.blend and estimator.uncertainty == fit.calibration
 

@@ -35,8 +35,13 @@ class ZonePainterNet(nn.Module):
 
     def __init__(self, num_hypotheses: int = 16) -> None:
         super().__init__()
-        self.config = {"num_hypotheses": num_hypotheses}
+        #: What :meth:`contract` returns (tests set ``design_size`` here).
+        self.contract_values = {"num_hypotheses": num_hypotheses}
         self.dummy = nn.Parameter(torch.zeros(()))  # so .to(dtype) has something to move
+
+    def contract(self) -> dict:
+        """The input contract, as ``DeltarNet.contract``."""
+        return dict(self.contract_values)
 
     def forward(self, image, hypotheses, zone_rects, zone_valid):
         batch, _, height, width = image.shape

@@ -157,7 +157,7 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
     assert DepthEstimator(lite_model, weights="test", blend=FILL_ONLY).blend == FILL_ONLY
     # Coefficients the weights carry (fitted by deltar fit-uncertainty) are used.
     carried = _select_estimator().model
-    carried.config["confidence_blend"] = FILL_ONLY.to_dict()
+    carried.set_output_contract(confidence_blend=FILL_ONLY.to_dict())
     assert DepthEstimator(carried, weights="test").blend == FILL_ONLY
     with pytest.raises(ValueError, match="blend must be 'auto', a ConfidenceBlend or None"):
         DepthEstimator(lite_model, weights="test", blend="on")

@@ -94,7 +94,7 @@ def test_estimator_runs_the_rule_on_odd_sizes(lite_model, rng, size):
     estimator = DepthEstimator(lite_model, weights="test")
     image = rng.integers(0, 256, (*size, 3), dtype=np.uint8)
     pred = estimator.predict(image, _frame(rng))
-    expected = network_input_size(*size, design_size=lite_model.config["design_size"])
+    expected = network_input_size(*size, design_size=lite_model.network_config.inputs.design_size)
     assert pred.network_size == estimator.network_size_for(size) == expected
     assert pred.depth_m.shape == size and pred.uncertainty_m.shape == size
     assert np.isfinite(pred.depth_m).all() and np.isfinite(pred.uncertainty_m).all()
@@ -105,7 +105,7 @@ def test_estimator_runs_the_rule_on_odd_sizes(lite_model, rng, size):
 def test_zones_line_up_through_the_rule_on_odd_sizes(rng, size):
     """A network painting zone means gives back the zone-mean map on non-4:3 images."""
     painter = ZonePainterNet()
-    painter.config["design_size"] = (64, 96)
+    painter.contract_values["design_size"] = (64, 96)
     estimator = DepthEstimator(painter, weights="painter")
     frame = _frame(rng)
     pred = estimator.predict(rng.integers(0, 256, (*size, 3), dtype=np.uint8), frame)

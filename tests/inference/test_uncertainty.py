@@ -92,11 +92,11 @@ def test_estimator_applies_the_calibration_the_weights_carry(lite_model, rng) ->
     assert not raw.uncertainty_calibrated
     calibration = UncertaintyCalibration(RegionCalibration(2.0, 0.05, 1.0),
                                          RegionCalibration(3.0, 0.1, 1.0))
-    lite_model.config["uncertainty_calibration"] = calibration.to_dict()
+    lite_model.set_output_contract(uncertainty_calibration=calibration.to_dict())
     try:
         result = DepthEstimator(lite_model, fold_batch_norms=False).predict(image, frame)
     finally:
-        lite_model.config["uncertainty_calibration"] = None
+        lite_model.set_output_contract(uncertainty_calibration=None)
     assert result.uncertainty_calibrated
     np.testing.assert_allclose(result.depth_m, raw.depth_m)
     from deltar.inference.blend import zone_grid_mask
@@ -107,12 +107,12 @@ def test_estimator_applies_the_calibration_the_weights_carry(lite_model, rng) ->
                         np.hypot(3.0 * raw.uncertainty_m, 0.1 * raw.depth_m))
     np.testing.assert_allclose(result.uncertainty_m, expected, rtol=1e-5)
     # uncertainty=None keeps the raw spread whatever the weights carry.
-    lite_model.config["uncertainty_calibration"] = calibration.to_dict()
+    lite_model.set_output_contract(uncertainty_calibration=calibration.to_dict())
     try:
         plain = DepthEstimator(lite_model, fold_batch_norms=False,
                                uncertainty=None).predict(image, frame)
     finally:
-        lite_model.config["uncertainty_calibration"] = None
+        lite_model.set_output_contract(uncertainty_calibration=None)
     np.testing.assert_allclose(plain.uncertainty_m, raw.uncertainty_m)
     with pytest.raises(ValueError, match="uncertainty must be"):
         DepthEstimator(lite_model, fold_batch_norms=False, uncertainty="calibrated")

@@ -194,10 +194,12 @@ def test_checkpoints_saved_before_the_flags_ignore_them(tmp_path):
     path = save_checkpoint(tmp_path / "new.pt", model, "deltar-select")
     assert load_checkpoint(path)[0].uses_no_target
     payload = torch.load(path, weights_only=False)
-    del payload["config"]["no_target_depth"]  # as files written before the flags
-    torch.save(payload, tmp_path / "old.pt")
+    # As files written before the flags: format 2, flat options, no no_target_depth.
+    flat = model.network_config.flat_options()
+    del flat["no_target_depth"]
+    torch.save({**payload, "format_version": 2, "config": flat}, tmp_path / "old.pt")
     old, _, config = load_checkpoint(tmp_path / "old.pt")
-    assert not old.uses_no_target and config["no_target_depth"] is None
+    assert not old.uses_no_target and config["output"]["no_target_depth"] is None
 
 
 def test_encoder_descriptors_are_unit_vectors_at_the_output_stride():
@@ -239,8 +241,8 @@ def test_plane_select_checkpoint_round_trip_keeps_the_design(tmp_path):
         model.decoder.channel_weight.uniform_(0.5, 1.5)
     save_checkpoint(tmp_path / "m.pt", model, "deltar-lite")
     loaded, preset, _ = load_checkpoint(tmp_path / "m.pt")
-    assert preset == "deltar-lite" and loaded.config["decoder"] == "descriptors"
-    assert loaded.config["planar"] is False and not loaded.head.planar
+    assert preset == "deltar-lite" and loaded.network_config.decoder.name == "descriptors"
+    assert loaded.network_config.head.planar is False and not loaded.head.planar
     torch.testing.assert_close(loaded.decoder.channel_weight, model.decoder.channel_weight)
     assert loaded.head.temperature.item() == pytest.approx(3.0)
 
@@ -251,7 +253,8 @@ def test_select_preset_trains_only_its_descriptor_weights_and_temperature():
     assert "deltar-select" in list_presets()
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=(64, 96))
-    assert model.config["decoder"] == "descriptors" and model.distribution_encoder is None
+    assert model.network_config.decoder.name == "descriptors"
+    assert model.distribution_encoder is None
     rects = _grid_rects(8, 8) * torch.tensor([1.0, 1.5, 1.0, 1.5])
     out = model(torch.rand(2, 3, 64, 96), torch.rand(2, 64, 16) * 2 + 1, rects.repeat(2, 1, 1),
                 torch.rand(2, 64) > 0.2)

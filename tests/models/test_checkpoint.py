@@ -1,4 +1,5 @@
-"""The deltar checkpoint carries the weights' input contract; other versions are refused."""
+"""The deltar checkpoint carries the weights' input contract; format 2 files are read,
+other versions are refused."""
 
 from __future__ import annotations
 
@@ -20,11 +21,12 @@ def test_round_trip_keeps_the_input_contract(tmp_path):
                          num_hypotheses=8)
     path = save_checkpoint(tmp_path / "m.pt", model, "deltar-lite")
     restored, preset, config = load_checkpoint(path)
-    assert preset == "deltar-lite" and config == model.config
+    assert preset == "deltar-lite" and config == model.config()
+    assert torch.load(path, weights_only=True)["format_version"] == 3
     for key, value in {"image_mean": (0.5, 0.5, 0.5), "image_std": (0.5, 0.5, 0.5),
                        "design_size": (64, 96), "hypothesis_sampling": "uniform",
                        "num_hypotheses": 8, "zone_scale_norm": True}.items():
-        assert config[key] == value, key
+        assert config["input"][key] == value, key
     for name, tensor in model.state_dict().items():
         assert torch.equal(restored.state_dict()[name], tensor), name
 
@@ -49,7 +51,50 @@ def test_foreign_and_future_files_are_refused(tmp_path):
         load_checkpoint(foreign)
     wrong = tmp_path / "wrong.pt"
     payload = checkpoint_payload(model, "deltar-lite")
-    payload["config"] = {**payload["config"], "n_bins": 7}
+    payload["config"]["head"]["n_bins"] = 7
     torch.save(payload, wrong)
     with pytest.raises(ValueError, match=r"wrong\.pt: weights do not fit"):
         load_checkpoint(wrong)
+
+
+def test_format_2_files_load_with_the_same_weights_and_outputs(tmp_path):
+    """Format 2 stored the options flat; the state-dict keys are the same."""
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", design_size=(64, 96), head="zone_select").eval()
+    flat = {k: list(v) if isinstance(v, tuple) else v
+            for k, v in model.network_config.flat_options().items()}
+    flat["bin_norm"] = "linear"  # a removed option at the only value it had
+    payload = {**checkpoint_payload(model, "deltar-lite"), "format_version": 2,
+               "config": flat}
+    torch.save(payload, tmp_path / "v2.pt")
+    restored, preset, config = load_checkpoint(tmp_path / "v2.pt")
+    assert preset == "deltar-lite" and config == model.config()
+    rects = torch.tensor([[0.0, 0.0, 32.0, 48.0], [0.0, 48.0, 32.0, 96.0],
+                          [32.0, 0.0, 64.0, 48.0], [32.0, 48.0, 64.0, 96.0]])[None]
+    inputs = (torch.rand(1, 3, 64, 96), torch.rand(1, 4, 16) + 1, rects,
+              torch.ones(1, 4, dtype=torch.bool))
+    with torch.no_grad():
+        torch.testing.assert_close(restored(*inputs)["depth"], model(*inputs)["depth"])
+    payload["config"] = {**flat, "bin_norm": "log"}
+    torch.save(payload, tmp_path / "removed.pt")
+    with pytest.raises(ValueError, match="bin_norm"):
+        load_checkpoint(tmp_path / "removed.pt")
+
+
+def test_config_round_trips_through_the_network(tmp_path):
+    from deltar.models import DeltarNet
+    from deltar.models.config import HeadConfig, NetworkConfig, OutputConfig
+
+    model = create_model("deltar-select", design_size=(64, 96), planar=False)
+    twin = DeltarNet.from_config(model.config())
+    assert twin.config() == model.config()
+    assert twin.network_config == model.network_config
+    assert set(twin.state_dict()) == set(model.state_dict())
+    with pytest.raises(ValueError, match=r"unknown head options.*n_bin"):
+        NetworkConfig.from_dict({"head": {"n_bin": 3}})
+    with pytest.raises(ValueError, match="head must be one of"):
+        HeadConfig(name="magic")
+    with pytest.raises(ValueError, match="no_target_depth"):
+        OutputConfig(max_depth=4.0)
+    with pytest.raises(ValueError, match=r"unknown network options.*n_bin"):
+        NetworkConfig().with_options(n_bin=3)

@@ -32,7 +32,7 @@ def test_presets_forward_backward_finite(preset, network_inputs):
     torch.manual_seed(0)
     model = create_model(preset)
     out = _forward_backward(model, network_inputs())
-    n_bins = model.config["n_bins"]
+    n_bins = model.network_config.head.n_bins
     assert out["depth"].shape == (2, 1, 32, 48)
     assert out["uncertainty"].shape == (2, 1, 32, 48)
     assert out["bin_edges"].shape == (2, n_bins + 1)
@@ -56,7 +56,7 @@ def test_ablations_forward_backward_finite(ablation, network_inputs):
 
 def test_uniform_sampling_is_recorded():
     model = create_model("deltar-lite", **ABLATIONS["uniform_sampling"])
-    assert model.config["hypothesis_sampling"] == "uniform"
+    assert model.network_config.inputs.hypothesis_sampling == "uniform"
 
 
 def test_unknown_preset_lists_known_names():
@@ -171,7 +171,7 @@ def test_zone_scale_norm_takes_the_metric_scale_from_the_zones(network_inputs, h
     # image says where depth changes, the zones say how far.
     torch.manual_seed(3)
     model = create_model("deltar-lite", head=head).eval()
-    assert model.config["zone_scale_norm"]
+    assert model.network_config.inputs.zone_scale_norm
     with torch.no_grad():
         if head == "zone_prior":  # a head that is not zero, so the image matters
             model.head.logits_conv.weight.normal_(0.0, 0.5)

@@ -61,8 +61,9 @@ def test_create_model_imagenet_fills_the_encoder_and_keeps_the_contract():
     model = create_model("deltar-lite", "imagenet", design_size=(64, 96))
     source = _packaged("tf_efficientnet_lite0")
     assert torch.equal(model.image_encoder.backbone.conv_stem.weight, source["_conv_stem.weight"])
-    assert model.config["image_mean"] == PRETRAINED_NORMALISATION["tf_efficientnet_lite0"][0]
-    assert model.config["image_std"] == PRETRAINED_NORMALISATION["tf_efficientnet_lite0"][1]
+    mean, std = PRETRAINED_NORMALISATION["tf_efficientnet_lite0"]
+    inputs = model.network_config.inputs
+    assert inputs.image_mean == tuple(mean) and inputs.image_std == tuple(std)
     # The default reads nothing: random encoder weights.
     random = create_model("deltar-lite", design_size=(64, 96))
     assert not torch.equal(random.image_encoder.backbone.conv_stem.weight,

@@ -178,3 +178,20 @@ def test_the_system_passes_the_batch_no_target_flags_to_the_network():
         direct = select.model(image, hypotheses, rects, valid, zone_no_target=~valid)["depth"]
     torch.testing.assert_close(flagged, direct)
     assert (flagged - without).abs().max() > 0.1
+
+
+def test_format_2_training_checkpoints_still_load(tmp_path):
+    """Runs saved before format 3 recorded the flat options as "overrides"."""
+    from deltar.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", design_size=(64, 96), n_bins=8)
+    flat = model.network_config.flat_options()
+    torch.save({"deltar_model": {"preset": "deltar-lite", "overrides": flat,
+                                 "format_version": 2},
+                "state_dict": {f"model.{k}": v for k, v in model.state_dict().items()}},
+               tmp_path / "old.ckpt")
+    restored = load_trained_model(str(tmp_path / "old.ckpt"))
+    assert restored.network_config == model.network_config
+    for name, tensor in model.state_dict().items():
+        assert torch.equal(restored.state_dict()[name], tensor), name

@@ -33,7 +33,7 @@ def test_float16_package_loads_and_predicts_like_the_original(tmp_path):
     packed = package_checkpoint(source, tmp_path / "small.pt")
     assert packed.stat().st_size < 0.6 * source.stat().st_size
     loaded, preset, config = load_checkpoint(packed)
-    assert preset == "deltar-lite" and config["head"] == "zone_prior"
+    assert preset == "deltar-lite" and config["head"]["name"] == "zone_prior"
     with torch.no_grad():
         expected = model(*_inputs())["depth"]
         actual = loaded(*_inputs())["depth"]

@@ -28,10 +28,13 @@ def test_default_is_a_small_float16_select_model_with_its_input_contract():
     assert floats and all(t.dtype == torch.float16 for t in floats)
     model, preset, config = load_checkpoint(path)
     assert preset == "deltar-select" and not model.training
-    assert config["backbone"] == "tf_efficientnet_lite0" and config["head"] == "plane_select"
-    assert config["decoder"] == "descriptors" and config["planar"]
-    assert config["image_mean"] == (0.5, 0.5, 0.5) and config["image_std"] == (0.5, 0.5, 0.5)
-    assert config["zone_scale_norm"] and config["design_size"] == (256, 320)
+    assert payload["format_version"] == 2  # read as it shipped, flat options
+    inputs, head = config["input"], config["head"]
+    assert config["encoder"]["backbone"] == "tf_efficientnet_lite0"
+    assert head["name"] == "plane_select" and head["planar"]
+    assert config["decoder"]["name"] == "descriptors"
+    assert inputs["image_mean"] == (0.5, 0.5, 0.5) and inputs["image_std"] == (0.5, 0.5, 0.5)
+    assert inputs["zone_scale_norm"] and inputs["design_size"] == (256, 320)
 
 
 def test_default_carries_its_fitted_blend_and_sigma_calibration():
@@ -40,9 +43,9 @@ def test_default_carries_its_fitted_blend_and_sigma_calibration():
 
     estimator = load_estimator("default")
     _, _, config = load_checkpoint(resolve_checkpoint("default"))
-    assert estimator.blend == ConfidenceBlend.from_dict(config["confidence_blend"])
+    assert estimator.blend == ConfidenceBlend.from_dict(config["output"]["confidence_blend"])
     assert estimator.uncertainty == UncertaintyCalibration.from_dict(
-        config["uncertainty_calibration"])
+        config["output"]["uncertainty_calibration"])
     # DEFAULT_BLEND (for plane-select files without a blend) is the bundled model's fit.
     for region in ("inside", "outside"):
         ours, default = getattr(estimator.blend, region), getattr(DEFAULT_BLEND, region)

@@ -11,9 +11,11 @@ import json
 import numpy as np
 import pytest
 
+from deltar.contract import is_sectioned_config
 from deltar.data.sources import open_source
 from deltar.inference.loading import load_estimator
 from deltar.models.checkpoint import load_checkpoint
+from deltar.models.config import NetworkConfig
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulate_frame import simulate_zone_frame
 from deltar.weights import BUNDLED_ONNX_EXPORT_SIZE, bundled_onnx, resolve_checkpoint
@@ -42,8 +44,14 @@ def test_shipped_onnx_equals_a_fresh_export_of_the_shipped_checkpoint(tmp_path, 
     ours, theirs = (load_estimator(path, threads=2) for path in (shipped, fresh))
     # The config travels as metadata: the blend, the sigma calibration, the design size.
     assert ours.onnx_model.contract == theirs.onnx_model.contract
-    assert json.loads(ours.onnx_model.metadata["deltar_config"]) == json.loads(
-        json.dumps(config, default=list))
+    stored = json.loads(json.dumps(config, default=list))
+    assert json.loads(theirs.onnx_model.metadata["deltar_config"]) == stored
+    shipped_config = json.loads(ours.onnx_model.metadata["deltar_config"])
+    if not is_sectioned_config(shipped_config):  # exported with flat options (format 2)
+        shipped_config = NetworkConfig.from_flat(
+            {k: tuple(v) if isinstance(v, list) else v for k, v in shipped_config.items()}
+        ).to_dict()
+    assert json.loads(json.dumps(shipped_config, default=list)) == stored
     assert ours.onnx_model.input_size == (256, 320)  # every 4:3 camera's network size
     a, b = ours.predict(image, zones), theirs.predict(image, zones)
     assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4

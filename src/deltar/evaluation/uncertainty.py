@@ -150,7 +150,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     if out.exists() and out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
-    blends = model.config.get("head") == "plane_select"
+    blends = model.network_config.head.name == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
     # original is what is saved, so the file is read once.
     estimator = DepthEstimator(copy.deepcopy(model), blend=None, uncertainty=None,
@@ -178,8 +178,8 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         relative_error={name: float(np.mean(np.abs(v - pixels.truth_m) / pixels.truth_m))
                         for name, v in relative.items()},
         path=out)
-    model.config["uncertainty_calibration"] = calibration.to_dict()
+    model.set_output_contract(uncertainty_calibration=calibration.to_dict())
     if blend is not None:
-        model.config["confidence_blend"] = blend.to_dict()
+        model.set_output_contract(confidence_blend=blend.to_dict())
     save_checkpoint(out, model, preset, overwrite=overwrite)
     return fit

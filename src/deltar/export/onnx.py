@@ -71,7 +71,7 @@ def export_input_size(model: DeltarNet, height: int, width: int) -> tuple[int, i
     """
     from deltar.inference.preprocess import network_input_size
 
-    return network_input_size(height, width, design_size=model.config.get("design_size"))
+    return network_input_size(height, width, design_size=model.network_config.inputs.design_size)
 
 
 def example_inputs(model: DeltarNet, height: int, width: int,
@@ -107,7 +107,7 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     rects = scale_rects(np.asarray(rects, dtype=np.float32), (height, width),
                         (net_height, net_width))
     zones = rects.shape[0]
-    k = int(model.config["num_hypotheses"])
+    k = model.network_config.inputs.num_hypotheses
     hypotheses = torch.linspace(1.8, 2.2, k).expand(1, zones, k).contiguous()
     inputs = (torch.zeros(1, 3, net_height, net_width), hypotheses,
               torch.from_numpy(rects)[None], torch.ones(1, zones, dtype=torch.bool))
@@ -169,7 +169,7 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
         extra = {SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
                  "deltar_image_size": f"{height}x{width}",
                  "deltar_input_size": f"{net_height}x{net_width}",
-                 "deltar_config": json.dumps(model.config, default=list),
+                 "deltar_config": json.dumps(model.config(), default=list),
                  **(metadata or {})}
         for key, value in extra.items():
             entry = proto.metadata_props.add()

@@ -87,7 +87,7 @@ class DepthEstimator:
         fov_deg: sensor field of view for the nominal zone placement, degrees.
         sampling: hypothesis sampling for frames without a histogram ("icdf" or
             "uniform"); None: the one the weights were trained with
-            (``model.config["hypothesis_sampling"]``, or the ONNX file's metadata).
+            (``model.network_config.inputs.hypothesis_sampling``, or the ONNX file's metadata).
         weights: free text saying where the weights come from (shown by the CLI).
         fold_batch_norms: apply every inference optimisation in place
             (:func:`~deltar.models.optimize.prepare_for_inference`): fold all batch
@@ -169,7 +169,7 @@ class DepthEstimator:
 
                 prepare_for_inference(model)
             self.model = model.to(device=self.device, dtype=self.dtype)
-            contract = model.config
+            contract = model.contract()
             self.design_size = (tuple(contract["design_size"])
                                 if contract.get("design_size") is not None else None)
         else:

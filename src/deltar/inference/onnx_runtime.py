@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from deltar.contract import network_contract
 from deltar.io.input_file import input_file
 
 if TYPE_CHECKING:
@@ -80,10 +81,11 @@ class OnnxDepthModel:
         input_size: (H, W) fixed input size in pixels.
         num_hypotheses: K hypotheses per zone.
         grid: zones per side.
-        contract: the exported network's config (``deltar_config`` metadata): its input
-            contract (``image_mean``, ``image_std``, ``hypothesis_sampling``,
-            ``num_hypotheses``, ...); files without it get the release's ImageNet
-            normalisation and inverse-CDF sampling.
+        contract: the contract the exported network's config (``deltar_config``
+            metadata, either stored form) carries, flat
+            (:func:`deltar.contract.network_contract`): ``image_mean``, ``image_std``,
+            ``hypothesis_sampling``, ``num_hypotheses``, ...; files without it get the
+            release's ImageNet normalisation and inverse-CDF sampling.
     """
 
     def __init__(self, path: str | os.PathLike, num_threads: int | None = None,
@@ -123,7 +125,7 @@ class OnnxDepthModel:
             config = json.loads(meta.get("deltar_config", "{}"))
         except json.JSONDecodeError as err:
             raise ValueError(f"{path}: unreadable deltar_config metadata: {err}") from err
-        self.contract = {**config, "num_hypotheses": self.num_hypotheses}
+        self.contract = {**network_contract(config), "num_hypotheses": self.num_hypotheses}
 
     def check_layout(self, zone_rects: np.ndarray) -> None:
         """Raise ``ValueError`` if a (B, Z, 4) layout does not fit the exported one.

@@ -42,7 +42,7 @@ def network_input_size(height: int, width: int,
     Args:
         height, width: image size in pixels (positive).
         design_size: (H, W) in pixels the model was designed and trained for
-            (``model.config["design_size"]``, stored in every checkpoint); None skips
+            (``model.network_config.inputs.design_size``, stored in every checkpoint); None skips
             the scaling to its pixel budget.
         divisor: required multiple (32 for DeltarNet).
 
@@ -119,7 +119,7 @@ def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
         images: B images, each (H, W, 3) uint8 RGB.
         size: (h, w) network input size in pixels.
         mean, std: per-channel normalisation for images in [0, 1], the network's input
-            contract (``model.config["image_mean"]`` / ``["image_std"]``); ImageNet's
+            contract (``model.network_config.inputs.image_mean`` / ``image_std``); ImageNet's
             when None.
 
     Returns:

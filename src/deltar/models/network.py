@@ -1,20 +1,35 @@
-"""DeltarNet: dense metric depth from an RGB image and multi-zone ToF distributions."""
+"""DeltarNet: dense metric depth from an RGB image and multi-zone ToF distributions.
+
+The network is built from its parts' configs (:mod:`deltar.models.config`): the image
+encoder, a decoder named in :data:`DECODERS` and a head named in :data:`HEADS`, each
+registry entry built with the same call.
+"""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD, SIZE_DIVISOR
+from deltar.contract import SIZE_DIVISOR
 from deltar.models.affinity import EncoderDescriptors, descriptor_levels
+from deltar.models.config import (
+    DECODER_NAMES,
+    HEAD_NAMES,
+    DecoderConfig,
+    EncoderConfig,
+    HeadConfig,
+    InputConfig,
+    NetworkConfig,
+    OutputConfig,
+)
 from deltar.models.decoder import FUSION_STRIDES, DecoderZones, FusionDecoder
 from deltar.models.encoders import FEATURE_STRIDES, DistributionEncoder, ImageEncoder
-from deltar.models.fusion import FUSION_MODES
 from deltar.models.heads.base import DepthHead, ZoneInputs
 from deltar.models.heads.bins import BinsHead
 from deltar.models.heads.direct import DirectDepthHead
@@ -23,214 +38,215 @@ from deltar.models.heads.plane_select import PlanarSelectHead
 from deltar.models.heads.zone_prior import ZonePriorHead
 from deltar.models.heads.zone_select import ZoneSelectHead
 from deltar.models.zone_patches import ZonePatchResampler, zone_window
-from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
-#: Each head by name: a builder from (input feature width, the network's config).
-HEADS: dict[str, Callable[[int, dict[str, Any]], DepthHead]] = {
-    "bins": lambda width, c: BinsHead(width, c["n_bins"], width, min_depth=c["min_depth"],
-                                      max_depth=c["max_depth"]),
-    "mvit": lambda width, c: MiniViTHead(
-        width, c["n_bins"], width, min_depth=c["min_depth"], max_depth=c["max_depth"],
-        design_tokens=(c["design_size"][0] // 32, c["design_size"][1] // 32)),
-    "direct": lambda width, c: DirectDepthHead(width, c["min_depth"], c["max_depth"]),
-    "zone_prior": lambda width, c: ZonePriorHead(width, c["n_bins"], width,
-                                                 min_depth=c["min_depth"],
-                                                 max_depth=c["max_depth"]),
-    "zone_select": lambda width, c: ZoneSelectHead(width, width, c["n_bins"],
-                                                   min_depth=c["min_depth"],
-                                                   max_depth=c["max_depth"]),
-    "plane_select": lambda width, c: PlanarSelectHead(
-        c["select_temperature"], c["planar"], n_bins=c["n_bins"], min_depth=c["min_depth"],
-        max_depth=c["max_depth"], no_target_depth=c["no_target_depth"]),
+#: A head builder: (width of the features it reads, the network's config) -> the head.
+HeadBuilder = Callable[[int, NetworkConfig], DepthHead]
+
+
+def _bins_head(width: int, c: NetworkConfig) -> DepthHead:
+    return BinsHead(width, c.head.n_bins, width, min_depth=c.output.min_depth,
+                    max_depth=c.output.max_depth)
+
+
+def _mvit_head(width: int, c: NetworkConfig) -> DepthHead:
+    height, wide = c.inputs.design_size
+    return MiniViTHead(width, c.head.n_bins, width, min_depth=c.output.min_depth,
+                       max_depth=c.output.max_depth, design_tokens=(height // 32, wide // 32))
+
+
+def _direct_head(width: int, c: NetworkConfig) -> DepthHead:
+    return DirectDepthHead(width, c.output.min_depth, c.output.max_depth)
+
+
+def _zone_prior_head(width: int, c: NetworkConfig) -> DepthHead:
+    return ZonePriorHead(width, c.head.n_bins, width, min_depth=c.output.min_depth,
+                         max_depth=c.output.max_depth)
+
+
+def _zone_select_head(width: int, c: NetworkConfig) -> DepthHead:
+    return ZoneSelectHead(width, width, c.head.n_bins, min_depth=c.output.min_depth,
+                          max_depth=c.output.max_depth)
+
+
+def _plane_select_head(width: int, c: NetworkConfig) -> DepthHead:
+    # Compares the descriptors as they come: no layer to size by the width.
+    return PlanarSelectHead(c.head.temperature, c.head.planar, n_bins=c.head.n_bins,
+                            min_depth=c.output.min_depth, max_depth=c.output.max_depth,
+                            no_target_depth=c.output.no_target_depth)
+
+
+#: Each head by :attr:`HeadConfig.name <deltar.models.config.HeadConfig.name>`, one
+#: file each under :mod:`deltar.models.heads`.
+HEADS: dict[str, HeadBuilder] = {
+    "bins": _bins_head,
+    "mvit": _mvit_head,
+    "direct": _direct_head,
+    "zone_prior": _zone_prior_head,
+    "zone_select": _zone_select_head,
+    "plane_select": _plane_select_head,
 }
-#: Heads that choose among the zone readings (the only ones the descriptor decoder,
-#: which gives the head no zone information, can feed).
-SELECTING_HEADS = ("zone_select", "plane_select")
-#: Where the head's features come from: the zone-fusion decoder, or the encoder alone.
-DECODERS = ("fusion", "descriptors")
-DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
-IMAGE_INPUTS = ("rgb", "rgb_zone_maps")
+assert tuple(HEADS) == HEAD_NAMES
+
+
+class BuiltDecoder(NamedTuple):
+    """What a decoder builder returns.
+
+    Attributes:
+        decoder: the module called as ``decoder(image_features, DecoderZones)``.
+        distribution_encoder: the zone distributions' encoder it fuses, or None.
+        out_channels: width of the features it gives the head.
+    """
+
+    decoder: nn.Module
+    distribution_encoder: DistributionEncoder | None
+    out_channels: int
+
+
+class DecoderEntry(NamedTuple):
+    """A decoder of the registry: how many encoder maps it reads, and its builder.
+
+    Attributes:
+        encoder_levels: (decoder config) -> number of encoder maps, fine to coarse.
+        build: (encoder map widths fine to coarse, the network's config) -> decoder.
+    """
+
+    encoder_levels: Callable[[DecoderConfig], int]
+    build: Callable[[Sequence[int], NetworkConfig], BuiltDecoder]
+
+
+def _fusion_decoder(encoder_channels: Sequence[int], c: NetworkConfig) -> BuiltDecoder:
+    """The zone-fusion decoder and the distribution encoder it fuses."""
+    d = c.decoder
+    five_channel = c.encoder.image_input == "rgb_zone_maps"
+    mean_sigma_points = d.distribution_input == "mean_sigma"
+    fusion_kwargs = None
+    if not five_channel:
+        fusion_kwargs = {"num_hypotheses": 1 if mean_sigma_points else c.inputs.num_hypotheses,
+                         "layer_order": d.fusion_layers, "mode": d.fusion,
+                         "cross_heads": d.cross_heads, "self_heads": d.self_heads}
+    decoder = FusionDecoder(encoder_channels, d.channels, d.out_channels, fusion_kwargs,
+                            c.inputs.design_size)
+    if five_channel:
+        return BuiltDecoder(decoder, None, d.out_channels)
+    distribution = DistributionEncoder(point_dim=2 if mean_sigma_points else 1,
+                                       widths=decoder.fusion_dims[::-1])
+    return BuiltDecoder(decoder, distribution, d.out_channels)
+
+
+def _descriptor_decoder(encoder_channels: Sequence[int], c: NetworkConfig) -> BuiltDecoder:
+    """Frozen-encoder descriptors at stride 4 (no decoder to train)."""
+    decoder = EncoderDescriptors(encoder_channels, c.decoder.descriptor_strides)
+    return BuiltDecoder(decoder, None, decoder.channels)
+
+
+#: Each decoder by :attr:`DecoderConfig.name <deltar.models.config.DecoderConfig.name>`.
+DECODERS: dict[str, DecoderEntry] = {
+    "fusion": DecoderEntry(lambda d: len(FEATURE_STRIDES), _fusion_decoder),
+    # Reads the encoder up to its coarsest chosen stride only.
+    "descriptors": DecoderEntry(lambda d: descriptor_levels(d.descriptor_strides),
+                                _descriptor_decoder),
+}
+assert tuple(DECODERS) == DECODER_NAMES
 
 
 class DeltarNet(nn.Module):
-    """The DELTAR network (Li et al., ECCV 2022), configurable for its ablations.
+    """The DELTAR network (Li et al., ECCV 2022), built from its parts' configs.
+
+    Every argument is a frozen dataclass of :mod:`deltar.models.config` (see there for
+    each option); a part left out takes its defaults (the release's architecture).
+    :func:`~deltar.models.presets.create_model` builds the named presets;
+    :meth:`from_config` / :meth:`config` round-trip the stored form.
 
     Args:
-        backbone: timm backbone name for the image encoder.
-        stem_activation: keep the activation after the stem norm (False reproduces the
-            released weights, see :class:`~deltar.models.encoders.ImageEncoder`).
-        decoder_channels: five decoder widths; the fusion widths are half of the
-            second to fourth, and the PointNet widths are those, fine to coarse.
-        head: a name of :data:`HEADS`, one file each under :mod:`deltar.models.heads`:
-            "bins" (release), "mvit" (paper's AdaBins refinement), "direct" (the
-            no-refinement ablation), "zone_prior" (log-ratio bins around a smooth prior
-            from the zone means), "zone_select" (an image-guided choice among the zone
-            readings) or "plane_select" (the zones' local planes chosen by feature
-            affinity).
-        head_channels: width of the decoder output fed to the head.
-        n_bins: number of depth bins N.
-        min_depth: smallest depth, metres.
-        max_depth: largest depth, metres.
-        num_hypotheses: K hypotheses per zone the model is designed for.
-        distribution_input: "hypotheses" (K sampled depths per zone) or "mean_sigma"
-            (mean/variance PointNet ablation: one (mean, sigma) point per zone).
-        image_input: "rgb", or "rgb_zone_maps" (five-channel ablation: zone mean and
-            sigma painted into two extra input channels; no distribution branch).
-        fusion: zone fusion mode, one of
-            :data:`~deltar.models.fusion.FUSION_MODES`.
-        fusion_layers: order of "hist2image" / "image" layers at each fusion scale.
-        cross_heads: heads of the zone-to-image attention.
-        self_heads: heads of the image self attention.
-        design_size: (H, W) input size the positional encodings are laid out for.
-        hypothesis_sampling: how the data pipeline samples hypotheses ("icdf" or
-            "uniform"); part of the input contract recorded in :attr:`config` (read by
-            the estimator), does not change the network.
-        image_mean: per-channel (RGB) mean the input image is normalised with, for
-            images in [0, 1]; input contract, recorded in :attr:`config` (ImageNet's by
-            default; (0.5, 0.5, 0.5) for the EfficientNet-Lite ImageNet weights).
-        image_std: per-channel standard deviation of that normalisation.
-        zone_scale_norm: take the metric scale from the sensor: divide the zone readings
-            by each frame's median valid zone mean ``s`` before the network sees them and
-            multiply depth, uncertainty and bin edges by ``s`` afterwards, so that
-            scaling every zone reading by ``k`` scales the output by ``k`` (up to the
-            ``min_depth``/``max_depth`` clamp). Frames without a valid zone use ``s = 1``.
-        decoder: "fusion" (the zone-fusion decoder of the paper) or "descriptors" (no
-            decoder: the head compares frozen-encoder descriptors,
-            :class:`~deltar.models.affinity.EncoderDescriptors`, at stride 4; the zone
-            readings enter only through the head, so a selecting head is required).
-        descriptor_strides: encoder strides the descriptors use.
-        select_temperature: initial affinity temperature of the "plane_select" head.
-        planar: "plane_select" hypotheses are the zones' local planes (else constants).
-        no_target_depth: metres, the "plane_select" hypothesis of a zone that reported no
-            target (beyond the sensor's range), when ``zone_no_target`` is given; None
-            ignores the flags (checkpoints saved before them load that way).
-        uncertainty_calibration: output contract, recorded in :attr:`config` (read by the
-            estimator), does not change the network: how the estimator maps this
-            network's spread to a calibrated sigma
-            (:meth:`deltar.inference.uncertainty.UncertaintyCalibration.to_dict`), or
-            None (the spread is returned as it is).
-        confidence_blend: output contract, recorded in :attr:`config` (read by the
-            estimator), does not change the network: the coefficients of the estimator's
-            blend of this network's depth with the zones' colorization fill
-            (:meth:`deltar.inference.blend.ConfidenceBlend.to_dict`), or None (the
-            estimator's default for plane-select networks).
+        encoder: the image encoder (:class:`~deltar.models.config.EncoderConfig`).
+        decoder: the decoder, a name of :data:`DECODERS` and its options
+            (:class:`~deltar.models.config.DecoderConfig`).
+        head: the depth head, a name of :data:`HEADS` and its options
+            (:class:`~deltar.models.config.HeadConfig`).
+        inputs: the input contract (:class:`~deltar.models.config.InputConfig`).
+        output: depth range and output contract
+            (:class:`~deltar.models.config.OutputConfig`).
+
+    Raises:
+        ValueError: parts that do not fit together (naming the option).
     """
 
     def __init__(
         self,
-        backbone: str = "tf_efficientnetv2_b3",
-        stem_activation: bool = True,
-        decoder_channels: Sequence[int] = (256, 256, 128, 64, 32),
-        head: str = "bins",
-        head_channels: int = 128,
-        n_bins: int = 256,
-        min_depth: float = 1e-3,
-        max_depth: float = 10.0,
-        num_hypotheses: int = 16,
-        distribution_input: str = "hypotheses",
-        image_input: str = "rgb",
-        fusion: str = "attention",
-        fusion_layers: Sequence[str] = ("hist2image", "image", "hist2image", "image"),
-        cross_heads: int = 4,
-        self_heads: int = 8,
-        design_size: tuple[int, int] = (480, 640),
-        hypothesis_sampling: str = "icdf",
-        image_mean: Sequence[float] = IMAGENET_MEAN,
-        image_std: Sequence[float] = IMAGENET_STD,
-        zone_scale_norm: bool = False,
-        decoder: str = "fusion",
-        descriptor_strides: Sequence[int] = (8, 16),
-        select_temperature: float = 5.0,
-        planar: bool = True,
-        no_target_depth: float | None = NO_TARGET_DEPTH_M,
-        uncertainty_calibration: dict | None = None,
-        confidence_blend: dict | None = None,
+        encoder: EncoderConfig | None = None,
+        decoder: DecoderConfig | None = None,
+        head: HeadConfig | None = None,
+        inputs: InputConfig | None = None,
+        output: OutputConfig | None = None,
     ) -> None:
         super().__init__()
-        _check_choice("head", head, tuple(HEADS))
-        _check_choice("distribution_input", distribution_input, DISTRIBUTION_INPUTS)
-        _check_choice("image_input", image_input, IMAGE_INPUTS)
-        _check_choice("fusion", fusion, FUSION_MODES)
-        _check_choice("hypothesis_sampling", hypothesis_sampling, HYPOTHESIS_SAMPLINGS)
-        _check_choice("decoder", decoder, DECODERS)
-        if decoder == "descriptors" and head not in SELECTING_HEADS:
-            raise ValueError(f"decoder 'descriptors' gives the head no zone information: it "
-                             f"needs head 'zone_select' or 'plane_select', got {head!r}")
-        if decoder == "descriptors" and image_input != "rgb":
-            raise ValueError("decoder 'descriptors' takes image_input 'rgb' only")
-        if not 0 < min_depth < max_depth:
-            raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
-        if design_size[0] % SIZE_DIVISOR or design_size[1] % SIZE_DIVISOR:
-            raise ValueError(f"design_size must be divisible by {SIZE_DIVISOR}: {design_size}")
-        if len(image_mean) != 3 or len(image_std) != 3 or min(image_std) <= 0:
-            raise ValueError(f"image_mean and image_std need 3 values (std > 0), got "
-                             f"{image_mean}, {image_std}")
-        self.config = {
-            "backbone": backbone,
-            "stem_activation": stem_activation,
-            "decoder_channels": tuple(decoder_channels),
-            "head": head,
-            "head_channels": head_channels,
-            "n_bins": n_bins,
-            "min_depth": min_depth,
-            "max_depth": max_depth,
-            "num_hypotheses": num_hypotheses,
-            "distribution_input": distribution_input,
-            "image_input": image_input,
-            "fusion": fusion,
-            "fusion_layers": tuple(fusion_layers),
-            "cross_heads": cross_heads,
-            "self_heads": self_heads,
-            "design_size": tuple(design_size),
-            "hypothesis_sampling": hypothesis_sampling,
-            "image_mean": tuple(float(v) for v in image_mean),
-            "image_std": tuple(float(v) for v in image_std),
-            "zone_scale_norm": bool(zone_scale_norm),
-            "decoder": decoder,
-            "descriptor_strides": tuple(int(v) for v in descriptor_strides),
-            "select_temperature": float(select_temperature),
-            "planar": bool(planar),
-            "no_target_depth": None if no_target_depth is None else float(no_target_depth),
-            "uncertainty_calibration": None if uncertainty_calibration is None
-            else dict(uncertainty_calibration),
-            "confidence_blend": None if confidence_blend is None else dict(confidence_blend),
-        }
-        self.zone_scale_norm = bool(zone_scale_norm)
-        self.min_depth = min_depth
-        self.max_depth = max_depth
-        self.five_channel = image_input == "rgb_zone_maps"
-        self.mean_sigma_points = distribution_input == "mean_sigma"
+        spec = NetworkConfig(inputs or InputConfig(), encoder or EncoderConfig(),
+                             decoder or DecoderConfig(), head or HeadConfig(),
+                             output or OutputConfig())
+        #: The parts' configs (frozen); :meth:`config` is its stored form.
+        self.network_config = spec
+        self.zone_scale_norm = spec.inputs.zone_scale_norm
+        self.min_depth = spec.output.min_depth
+        self.max_depth = spec.output.max_depth
+        self.five_channel = spec.encoder.image_input == "rgb_zone_maps"
+        self.mean_sigma_points = spec.decoder.distribution_input == "mean_sigma"
 
-        in_channels = 5 if self.five_channel else 3
-        # The descriptor decoder reads the encoder up to its coarsest chosen stride only.
-        levels = (descriptor_levels(descriptor_strides) if decoder == "descriptors"
-                  else len(FEATURE_STRIDES))
-        self.image_encoder = ImageEncoder(backbone, in_channels, stem_activation, levels)
+        entry = DECODERS[spec.decoder.name]
+        self.image_encoder = ImageEncoder(spec.encoder.backbone, 5 if self.five_channel else 3,
+                                          spec.encoder.stem_activation,
+                                          entry.encoder_levels(spec.decoder))
         self.distribution_encoder = None
-        self.decoder: FusionDecoder | EncoderDescriptors
-        if decoder == "descriptors":
-            self.decoder = EncoderDescriptors(self.image_encoder.channels, descriptor_strides)
-            head_channels = self.decoder.channels
-        else:
-            self.decoder, self.distribution_encoder = self._fusion_decoder()
+        built = entry.build(self.image_encoder.channels, spec)
+        self.decoder: nn.Module = built.decoder
+        self.distribution_encoder = built.distribution_encoder
         self.traceable = False
-        self.head: DepthHead = HEADS[head](head_channels, self.config)
+        self.head: DepthHead = HEADS[spec.head.name](built.out_channels, spec)
 
-    def _fusion_decoder(self) -> tuple[FusionDecoder, DistributionEncoder | None]:
-        """The zone-fusion decoder and the distribution encoder it fuses, from the config."""
-        c = self.config
-        fusion_kwargs = None
-        if not self.five_channel:
-            fusion_kwargs = {"num_hypotheses": 1 if self.mean_sigma_points else
-                             c["num_hypotheses"], "layer_order": c["fusion_layers"],
-                             "mode": c["fusion"], "cross_heads": c["cross_heads"],
-                             "self_heads": c["self_heads"]}
-        decoder = FusionDecoder(self.image_encoder.channels, c["decoder_channels"],
-                                c["head_channels"], fusion_kwargs, c["design_size"])
-        if self.five_channel:
-            return decoder, None
-        return decoder, DistributionEncoder(point_dim=2 if self.mean_sigma_points else 1,
-                                            widths=decoder.fusion_dims[::-1])
+    @classmethod
+    def from_network_config(cls, spec: NetworkConfig) -> DeltarNet:
+        """The network (random weights) of a :class:`~deltar.models.config.NetworkConfig`."""
+        return cls(spec.encoder, spec.decoder, spec.head, spec.inputs, spec.output)
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> DeltarNet:
+        """The network (random weights) of a stored config, :meth:`config`'s form.
+
+        Raises:
+            ValueError: an unknown section or option, or a bad value (naming it).
+        """
+        return cls.from_network_config(NetworkConfig.from_dict(config))
+
+    def config(self) -> dict[str, dict[str, Any]]:
+        """The network's config as stored in checkpoints and ONNX metadata: one section
+        per part (``input``, ``encoder``, ``decoder``, ``head``, ``output``)."""
+        return self.network_config.to_dict()
+
+    def contract(self) -> dict[str, Any]:
+        """The input and output contract readers need, flat
+        (:func:`deltar.contract.network_contract`): ``design_size``, ``image_mean``,
+        ``image_std``, ``num_hypotheses``, ``hypothesis_sampling``, ``head``,
+        ``no_target_depth``, ``uncertainty_calibration``, ``confidence_blend``, ..."""
+        from deltar.contract import network_contract
+
+        return network_contract(self.config())
+
+    def set_output_contract(self, **options: Any) -> DeltarNet:
+        """Replace output-contract options that do not change the network
+        (``uncertainty_calibration``, ``confidence_blend``), e.g. after fitting them.
+
+        Returns:
+            The network itself.
+
+        Raises:
+            ValueError: another option, or a bad value.
+        """
+        allowed = ("uncertainty_calibration", "confidence_blend")
+        unknown = sorted(set(options) - set(allowed))
+        if unknown:
+            raise ValueError(f"only {allowed} can be set on a built network, got {unknown}")
+        self.network_config = replace(self.network_config,
+                                      output=replace(self.network_config.output, **options))
+        return self
 
     @property
     def uses_no_target(self) -> bool:
@@ -453,8 +469,3 @@ def paint_zone_maps(
     return torch.einsum(
         "bzh,bzw,bzc->bchw", in_rows.to(values.dtype), in_cols.to(values.dtype), values
     )
-
-
-def _check_choice(name: str, value: str, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")

@@ -139,7 +139,7 @@ def load_encoder_weights(model: nn.Module, weights: str | os.PathLike,
 
     Args:
         model: the network; its ``image_encoder.backbone`` is a timm ``features_only``
-            model and ``model.config["backbone"]`` names it.
+            model and ``model.network_config.encoder.backbone`` names it.
         weights: ``"imagenet"`` (the packaged weights of :data:`PRETRAINED_PACKAGES`, or
             timm's download for other backbones when ``allow_download``), or the path of
             a state dict (timm names, or ``efficientnet_pytorch`` names for
@@ -155,7 +155,7 @@ def load_encoder_weights(model: nn.Module, weights: str | os.PathLike,
         ValueError: no offline source for the backbone, or the weights do not fit.
         FileNotFoundError: a weights path does not exist.
     """
-    backbone = model.config["backbone"]
+    backbone = model.network_config.encoder.backbone
     encoder = model.image_encoder.backbone
     if str(weights) == "imagenet":
         if backbone in PRETRAINED_PACKAGES:

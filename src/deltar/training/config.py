@@ -250,7 +250,9 @@ class ModelConfig:
     Attributes:
         preset: ``deltar.models`` preset name (``deltar-official``, ``deltar-paper``,
             ``deltar-lite``).
-        overrides: constructor arguments replacing the preset's (see ``DeltarNet``).
+        overrides: flat network options replacing the preset's, each setting one field
+            of one part (:data:`deltar.models.config.FLAT_OPTIONS`, e.g. ``n_bins``,
+            ``design_size``, ``head``).
         init_checkpoint: optional weights to start from: a Lightning checkpoint of a
             previous run (``.ckpt``) or a ``model.pt`` exported by ``deltar train``.
         official_weights: optional released ``nyu.pt`` (for ``deltar-official``).

@@ -165,7 +165,7 @@ def build_datasets(config: DataConfig, seed: int = 0,
         config: the data section of a training config.
         seed: base seed of all item randomness.
         image_mean, image_std: per-channel image normalisation, the network's input
-            contract (``model.config["image_mean"]`` / ``["image_std"]``).
+            contract (``model.network_config.inputs.image_mean`` / ``image_std``).
 
     Returns:
         ``(train, val)`` datasets of item dicts (see the module docstring).
@@ -346,7 +346,7 @@ class DeltarDataModule(L.LightningDataModule):
         config: data configuration.
         seed: base seed of data order and item randomness.
         image_mean, image_std: per-channel image normalisation of the network's input
-            contract (``model.config["image_mean"]`` / ``["image_std"]``).
+            contract (``model.network_config.inputs.image_mean`` / ``image_std``).
     """
 
     def __init__(self, config: DataConfig, seed: int = 0,

@@ -67,7 +67,7 @@ class SimulatedL5Dataset(Dataset):
         layout_rotation_deg: calibration error: the handed-out zone centres are also
             rotated about the image centre by up to +- this many degrees.
         image_mean, image_std: per-channel normalisation of ``image`` (the network's
-            input contract, ``model.config["image_mean"]`` / ``["image_std"]``).
+            input contract, ``model.network_config.inputs.image_mean`` / ``image_std``).
 
     Items are dicts of tensors: ``image`` (3, H, W) float32 ImageNet-normalised,
     ``image_rgb`` (H, W, 3) uint8, ``depth`` (1, H, W) float32 metres (0 invalid),

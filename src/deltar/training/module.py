@@ -22,6 +22,7 @@ from deltar.io.torch_file import read_torch_file
 from deltar.models import create_model, scaled_si_loss
 from deltar.models.checkpoint import (
     CHECKPOINT_FORMAT_VERSION,
+    READABLE_FORMAT_VERSIONS,
     checkpoint_payload,
     model_from_config,
 )
@@ -36,7 +37,8 @@ class DeltarSystem(L.LightningModule):
 
     Args:
         preset: model preset for :func:`deltar.models.create_model`.
-        model_overrides: constructor overrides of the preset.
+        model_overrides: flat options replacing the preset's
+            (:data:`deltar.models.config.FLAT_OPTIONS`).
         optim: loss / optimiser / schedule settings (defaults: the release's recipe).
         min_depth, max_depth: ground-truth range of the validation metrics, metres.
         encoder_weights: pretrained image-encoder weights (see
@@ -183,9 +185,8 @@ class DeltarSystem(L.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the model recipe and this process's RNG states next to the weights."""
-        # The full constructor config, so the checkpoint survives changes to preset defaults.
-        checkpoint["deltar_model"] = {"preset": self.preset,
-                                      "overrides": dict(self.model.config),
+        # The full network config, so the checkpoint survives changes to preset defaults.
+        checkpoint["deltar_model"] = {"preset": self.preset, "config": self.model.config(),
                                       "format_version": CHECKPOINT_FORMAT_VERSION}
         # The legacy global numpy state is what third-party code (and timm) draws from.
         checkpoint["deltar_rng"] = {
@@ -252,22 +253,23 @@ def _load_weights_file(path: str, map_location: str = "cpu",
     data = read_torch_file(path, "weights file", weights_only=False,
                            map_location=map_location)
     if isinstance(data, dict) and "deltar_model" in data and "state_dict" in data:
-        recipe = data["deltar_model"]
+        recipe = dict(data["deltar_model"])
         prefix = "model."
         state = {k[len(prefix):]: v for k, v in data["state_dict"].items()
                  if k.startswith(prefix)}
         version = recipe.get("format_version")
+        # Format 2 stored the flat options as "overrides".
+        config = recipe.get("config", recipe.get("overrides"))
     elif isinstance(data, dict) and {"preset", "config", "state_dict"} <= set(data):
-        recipe = {"preset": data["preset"], "overrides": data["config"]}
-        state, version = data["state_dict"], data.get("format_version")
+        recipe = {"preset": data["preset"], "config": data["config"]}
+        state, version, config = data["state_dict"], data.get("format_version"), data["config"]
     else:
         raise ValueError(f"{path} is neither a deltar training checkpoint nor a model.pt "
                          "export")
-    if version != CHECKPOINT_FORMAT_VERSION:
+    if version not in READABLE_FORMAT_VERSIONS:
         raise ValueError(f"{path}: unsupported checkpoint format_version {version!r} (this "
-                         f"deltar reads version {CHECKPOINT_FORMAT_VERSION})")
-    overrides = {**recipe["overrides"], **(model_config or {})}
-    model = model_from_config(recipe["preset"], overrides)
+                         f"deltar reads versions {READABLE_FORMAT_VERSIONS})")
+    model = model_from_config(recipe["preset"], dict(config), version, model_config)
     model.load_state_dict(state)
     return model, recipe
 

@@ -23,8 +23,8 @@ def package_checkpoint(source: str | os.PathLike, destination: str | os.PathLike
         destination: output ``.pt`` file (written atomically; never the source).
         float16: store floating-point tensors as float16 (half the size; they are cast
             back to the model's dtype on load).
-        model_config: constructor arguments overriding the ones the file records (for
-            files written before full configs were saved).
+        model_config: flat options (:data:`deltar.models.config.FLAT_OPTIONS`)
+            overriding the ones the file records.
         overwrite: replace an existing destination.
 
     Returns:

@@ -228,8 +228,9 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     L.seed_everything(config.seed, workers=True, verbose=False)
     system = build_system(config)
     # The image normalisation is part of the network's input contract.
-    data = DeltarDataModule(config.data, config.seed, image_mean=system.model.config["image_mean"],
-                            image_std=system.model.config["image_std"])
+    inputs = system.model.network_config.inputs
+    data = DeltarDataModule(config.data, config.seed, image_mean=inputs.image_mean,
+                            image_std=inputs.image_std)
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)

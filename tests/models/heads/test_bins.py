@@ -42,7 +42,7 @@ def test_every_head_has_the_one_interface(head, network_inputs):
     model = create_model("deltar-lite", head=head, design_size=(64, 96)).eval()
     assert isinstance(model.head, DepthHead)
     _, hypotheses, rects, valid = network_inputs(batch=2)
-    features = torch.randn(2, model.config["head_channels"], 32, 48)
+    features = torch.randn(2, model.network_config.decoder.out_channels, 32, 48)
     zones = ZoneInputs(hypotheses, valid, rects, stride=2.0)
     with torch.no_grad():
         out = model.head.predict(features, zones)
