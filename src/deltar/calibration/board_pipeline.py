@@ -276,7 +276,7 @@ def calibrate_recording_with_board(
         zone_t, zone_d = [], []
         for frame in frames:
             try:
-                plane = zone_plane_from_frame(frame, fov_deg=fov)
+                plane = zone_plane_from_frame(frame, fov_deg=fov, zone_model=True)
             except ValueError:
                 continue
             zone_t.append(frame.timestamp_s)
@@ -306,7 +306,7 @@ def calibrate_recording_with_board(
             continue
         pose = estimate_board_pose(detection, camera, distortion)
         try:
-            plane = zone_plane_from_frame(frame, fov_deg=fov, name=name)
+            plane = zone_plane_from_frame(frame, fov_deg=fov, zone_model=True, name=name)
             reason = ""
         except ValueError as err:
             plane, reason = None, str(err)

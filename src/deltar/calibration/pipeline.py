@@ -51,13 +51,16 @@ class CalibrationResult:
 def zone_plane_from_frame(frame: ZoneFrame, *,
                           fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
                           min_zone_fraction: float = 0.6, max_incidence_deg: float = 60.0,
-                          zone_model: bool = True, name: str = "") -> ZonePlaneFit:
+                          zone_model: bool = False, name: str = "") -> ZonePlaneFit:
     """The frame's plane in the sensor frame, refused when one plane does not fill the view.
 
     The EM fit (:func:`~deltar.calibration.plane.fit_plane_to_zones`) finds the plane and
     its zones; with ``zone_model`` the plane is then refitted so that the zone readings it
     predicts (:func:`deltar.calibration.zone_model.refit_zone_plane`) match the measured
-    ones, which removes the readings' bias on tilted planes.
+    ones, which removes the readings' bias on tilted planes. That model assumes a flat
+    surface filling each zone (the board path's wall); on real rooms, where surfaces
+    are not quite flat and zones mix surfaces, the EM plane's slack (each reading may lie
+    anywhere in its cell) does better, so it is off by default.
 
     Args:
         frame: the zone frame (means are z-depth in metres).
@@ -65,7 +68,7 @@ def zone_plane_from_frame(frame: ZoneFrame, *,
         min_zone_fraction: fewest valid zones (fraction) that must lie on the plane.
         max_incidence_deg: largest angle between the plane's normal and the sensor's
             axis; grazing planes are fitted poorly from zones.
-        zone_model: refit the plane to the zone reading model.
+        zone_model: refit the plane to the zone reading model (flat surfaces only).
         name: label for error messages.
 
     Raises:
