@@ -80,21 +80,3 @@ def test_format_2_files_load_with_the_same_weights_and_outputs(tmp_path):
     with pytest.raises(ValueError, match="bin_norm"):
         load_checkpoint(tmp_path / "removed.pt")
 
-
-def test_config_round_trips_through_the_network(tmp_path):
-    from deltar.models import DeltarNet
-    from deltar.models.config import HeadConfig, NetworkConfig, OutputConfig
-
-    model = create_model("deltar-select", design_size=(64, 96), planar=False)
-    twin = DeltarNet.from_config(model.config())
-    assert twin.config() == model.config()
-    assert twin.network_config == model.network_config
-    assert set(twin.state_dict()) == set(model.state_dict())
-    with pytest.raises(ValueError, match=r"unknown head options.*n_bin"):
-        NetworkConfig.from_dict({"head": {"n_bin": 3}})
-    with pytest.raises(ValueError, match="head must be one of"):
-        HeadConfig(name="magic")
-    with pytest.raises(ValueError, match="no_target_depth"):
-        OutputConfig(max_depth=4.0)
-    with pytest.raises(ValueError, match=r"unknown network options.*n_bin"):
-        NetworkConfig().with_options(n_bin=3)
