@@ -64,6 +64,8 @@ def test_small_rig_calibrates(small_recording):
     assert residuals["frames_used"] == 12 and residuals["board_views"] == 12
     assert residuals["rotation_sd_deg"] == expected.rotation_rms_deg
     assert residuals["translation_sd_m"] == expected.translation_rms_m
+    # The last step fits the zone readings themselves: what is left is their 1 cm noise.
+    assert residuals["zone_reading_rms_m"] == pytest.approx(0.01, rel=0.3)
     assert result.calibration.time_offset_s == 0.0 and result.calibration.distortion == ()
 
 

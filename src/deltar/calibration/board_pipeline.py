@@ -3,11 +3,15 @@
 The board is fixed flat on a wall, a door or a table, so the surface the zones see is
 the board's plane. Per colour image OpenCV finds the board and its pose, which gives
 the plane in the camera frame; per zone frame the existing plane fit
-(:func:`deltar.calibration.pipeline.zone_plane_from_frame`) gives it in the sensor
-frame. Plane pairs give the extrinsic in closed form (normals: Kabsch; offsets: linear
-least squares), and the existing robust point-to-plane refinement
-(:func:`deltar.calibration.pipeline.calibrate_observations`) finishes it, so the
-output file and report are those of the depth-image path. The result also carries its
+(:func:`deltar.calibration.pipeline.zone_plane_from_frame`), refitted to the zone
+reading model (:mod:`deltar.calibration.zone_model`), gives it in the sensor frame.
+Plane pairs give the extrinsic in closed form (normals: Kabsch; offsets: linear least
+squares), the existing robust point-to-plane refinement
+(:func:`deltar.calibration.pipeline.calibrate_observations`) takes it further and drops
+views that disagree, so the output file and report are those of the depth-image path;
+last, the extrinsic is refined against the zone readings themselves, each view's board
+plane predicting every zone's reading through the zone reading model (the
+maximum-likelihood solution when the zones' noise dominates). The result also carries its
 expected error (:mod:`deltar.calibration.board_uncertainty`): with 2 cm zone noise the
 zones, not the board poses, limit the accuracy, and the roll about the viewing axis most
 (it is seen only through the direction each view is tilted), so too few or too shallow
