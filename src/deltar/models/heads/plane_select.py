@@ -164,8 +164,8 @@ class PlanarSelectHead(DepthHead):
 
         means = zone_mean_m.to(dtype)
         log_mean = torch.log(means.clamp_min(1e-3))
-        # Log depths relative to the frame's mean valid reading: the spread below is a
-        # difference of second moments, which cancels badly on large log depths.
+        # Log depths relative to the frame's mean valid reading: small numbers, so the
+        # sums below keep float32's relative precision.
         centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
         log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
         if far is not None:
@@ -178,15 +178,16 @@ class PlanarSelectHead(DepthHead):
             hypotheses = log_mean[:, None, :] - torch.log(
                 self._plane_ratio(means, valid, zone_rects.to(dtype), (height, width), stride))
             # (B, h*w, Z). No mask needed: a zone that is not chosen has log_mean 0 and
-            # slopes 0, so its hypothesis is log(1) = 0 already; and the second moment
-            # reuses the weighted hypotheses (fewer passes over the maps).
-            weighted = weights * hypotheses
-            log_depth = weighted.sum(-1, keepdim=True)
-            second = (weighted * hypotheses).sum(-1, keepdim=True)
+            # slopes 0, so its hypothesis is log(1) = 0 already.
+            log_depth = (weights * hypotheses).sum(-1, keepdim=True)
         else:
+            hypotheses = log_mean[:, None, :]
             log_depth = weights @ log_mean[..., None]
-            second = weights @ (log_mean[..., None] ** 2)
-        spread = (second - log_depth ** 2).clamp_min(0.0).sqrt()
+        # The variance from the deviations: the difference of second moments cancels
+        # where one zone dominates, leaving float32 rounding (a spread of about 3e-4 in
+        # place of nearly 0) that differs between runtimes and moves the confidence blend.
+        deviation = hypotheses - log_depth
+        spread = (weights * deviation * deviation).sum(-1, keepdim=True).sqrt()
         low, high = self.min_depth, self.max_depth
         if zone_scale_m is not None:
             # The clamp is in metres: readings divided by the frame's scale are not.
