@@ -180,3 +180,20 @@ def test_bad_target_arrays_name_the_field(changes, message):
 def test_closest_order_does_not_tie_target_0_to_the_primary():
     frame = ZoneFrame(**_frame_fields(mean_m=np.full((4, 4), 3.0), target_order="closest"))
     assert frame.target_order == "closest" and frame.mean_m[0, 0] == 3.0
+
+
+def test_several_targets_without_a_grid_say_how_to_read_them():
+    with pytest.raises(ValueError, match=r"distance_mm has 128 entries; expected 16 \(4x4\) or 64 "
+                                         r"\(8x8\), or pass grid= or targets_per_zone="):
+        ZoneFrame.from_driver(*_driver_targets(64, 2))
+
+
+def test_physical_error_names_targets_out_of_range():
+    mean = np.full((4, 4, 2), 1.5, np.float32)
+    mean[1, 2, 1] = 4.5
+    frame = ZoneFrame(**_frame_fields(target_mean_m=mean))
+    assert frame.physical_error() == (
+        "1 valid target(s) read distances outside the VL53L5CX range 0 < d <= 4 m or have a "
+        "sigma larger than it (zone 6 target 1: 4.5 m, sigma 0.02 m); mark such targets "
+        "invalid")
+    assert ZoneFrame(**_frame_fields()).physical_error() is None

@@ -16,7 +16,10 @@ float rounding (tested against it):
 3. keep the run of consecutive non-empty bins with the largest total (the first on ties);
 4. report its count-weighted mean and (population) standard deviation of the bin centres;
    a zone with no counts left is invalid, and reports *no target* when more of its
-   pixels lie beyond the range than within it.
+   pixels lie beyond the range than within it;
+5. with ``max_targets`` > 1, report the other clusters as further targets, as ST's
+   multi-target driver would (:func:`secondary_targets`, shared with the batched
+   simulator).
 """
 
 from __future__ import annotations

@@ -381,7 +381,8 @@ class ZoneFrame:
         consistency checks): a valid zone must read ``0 < d <= range``
         (:meth:`range_error`), have a sigma no larger than the range (a spread of
         distances within it cannot be larger), and, with histograms, have counted
-        some photons.
+        some photons; a valid target (``target_mean_m`` ...) must read ``0 < d <=
+        range`` with a sigma no larger than the range.
 
         Args:
             max_range_m: the largest possible distance in metres; by default the sensor
@@ -409,6 +410,17 @@ class ZoneFrame:
                 return (f"{empty.size} valid zone(s) have an all-zero histogram (zones "
                         f"{empty[:5].tolist()}): a zone that counted no photons measured no "
                         "distance; mark such zones invalid")
+        if self.target_mean_m is not None:
+            mean_t, sigma_t, valid_t = self.flat_targets()
+            bad = valid_t & ((mean_t <= 0) | (mean_t > limit) | (sigma_t > limit))
+            if bad.any():
+                zones, targets = np.nonzero(bad)
+                where = ", ".join(f"zone {z} target {t}: {mean_t[z, t]:.6g} m, sigma "
+                                  f"{sigma_t[z, t]:.6g} m" for z, t in
+                                  zip(zones[:5], targets[:5], strict=True))
+                return (f"{int(bad.sum())} valid target(s) read distances outside the "
+                        f"{self.sensor_model} range 0 < d <= {limit:g} m or have a sigma "
+                        f"larger than it ({where}); mark such targets invalid")
         return None
 
     @property
@@ -503,8 +515,12 @@ class ZoneFrame:
             n = _grid_from_count(detected.size, "nb_target_detected")
         elif targets_per_zone is not None and sizes[0] % targets_per_zone == 0:
             n = _grid_from_count(sizes[0] // targets_per_zone, "distance_mm")
-        else:
+        elif sizes[0] in (16, 64):
             n = _grid_from_count(sizes[0], "distance_mm")
+        else:
+            raise ValueError(f"distance_mm has {sizes[0]} entries; expected 16 (4x4) or 64 "
+                             "(8x8), or pass grid= or targets_per_zone= for a driver that "
+                             "reports several targets per zone")
         if n not in SUPPORTED_GRIDS:
             raise ValueError(f"grid must be one of {SUPPORTED_GRIDS}, got {n}")
         zones = n * n
