@@ -11,11 +11,16 @@ import pytest
 
 from deltar.calibration.rig import RigCalibration
 from deltar.camera import CameraIntrinsics
+from deltar.capture.bag_replay import replay_bag
+from deltar.capture.drivers import SimulatedRig
+from deltar.capture.record import record
 from deltar.capture.replay import replay, replay_to_folder
 from deltar.inference.estimator import DepthEstimator
 from deltar.io.recording import Recording
+from deltar.io.rosbag_reader import BagInput
 from deltar.sensor.geometry import SensorExtrinsics
 from deltar.sensor.placement import zone_mean_depth
+from tests.capture.test_drivers import StepSource, _check_step_targets
 from tests.capture.test_record import record_wall
 from tests.inference.fakes import ZonePainterNet
 
@@ -119,3 +124,28 @@ def test_replay_pairs_with_the_calibrations_time_offset(tmp_path):
     assert all(abs(item.pair.color_offset_s - 0.0293) < 1e-3 for item in items)
     items = list(replay(tmp_path / "rec", _estimator(), calibration=calib, time_offset_s=0.0))
     assert all(abs(item.pair.color_offset_s + 0.004) < 1e-6 for item in items)
+
+
+class FrameCollector:
+    """Stands in for the estimator: keeps the zone frames replay hands it."""
+
+    def __init__(self) -> None:
+        self.frames = []
+
+    def predict(self, image, zone_frame, calibration):
+        self.frames.append(zone_frame)
+        return None
+
+
+@pytest.mark.parametrize("storage", [None, "sqlite3"])
+def test_simulated_targets_survive_record_and_replay(tmp_path, storage):
+    rig = SimulatedRig(StepSource(1.0, frames=4, height=96, width=128), max_targets=2)
+    out = tmp_path / ("bag" if storage else "rec")
+    record(out, rig, bag_storage=storage)
+    collector = FrameCollector()
+    if storage is None:
+        items = list(replay(out, collector))
+    else:
+        items = list(replay_bag(BagInput(out), collector))
+    assert len(items) == 2 == len(collector.frames)
+    _check_step_targets(collector.frames)

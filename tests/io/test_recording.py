@@ -11,6 +11,7 @@ import pytest
 from deltar.camera import CameraIntrinsics
 from deltar.io.recording import Recording, RecordingMeta, RecordingWriter
 from deltar.sensor.zone_frame import ZoneFrame
+from tests.io.test_zone_file import _assert_same_targets, _target_frame
 
 CAMERA = CameraIntrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
 
@@ -132,3 +133,16 @@ def test_pairs_apply_a_time_offset(tmp_path):
     assert [round(p.color_offset_s, 3) for p in shifted] == [0.05, 0.05, 0.05]
     with pytest.raises(ValueError, match="time_offset_s must be finite"):
         rec.pairs(time_offset_s=float("nan"))
+
+
+def test_recording_round_trip_keeps_the_targets(tmp_path, rng):
+    writer = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    frames = [_target_frame(rng, grid=4, per_zone=2, timestamp_s=t) for t in (0.1, 0.2)]
+    for frame in frames:
+        writer.add_zone_frame(frame)
+    for t in (0.1, 0.2):
+        writer.add_color(t, np.zeros((24, 32, 3), np.uint8))
+    pairs = Recording(tmp_path / "rec").pairs()
+    assert len(pairs) == 2
+    for pair, frame in zip(pairs, frames, strict=True):
+        _assert_same_targets(pair.zone_frame, frame)

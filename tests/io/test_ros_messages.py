@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deltar.io.ros_messages import stamped_header, typestore, zone_frame_from_vl53l5cx_ros2
+from deltar.io.ros_messages import (
+    MULTI_TARGET_ZONE_FRAME_MSGTYPE,
+    ZONE_FRAME_MSGTYPE,
+    stamped_header,
+    typestore,
+    zone_frame_from_msg,
+    zone_frame_from_vl53l5cx_ros2,
+)
 from deltar.sensor.zone_frame import Orientation
 
 T0 = 1_700_000_000_000_000_000  # a wall-clock stamp, ns
@@ -31,3 +38,33 @@ def test_vl53l5cx_ros2_distance_image_adapter():
         is_bigendian=0, step=16, data=np.zeros(128, np.uint8))
     with pytest.raises(ValueError, match="expected a 4x4 or 8x8 32FC1"):
         zone_frame_from_vl53l5cx_ros2(bad)
+
+
+def test_multi_target_message_lengths_are_checked(rng):
+    from deltar.io.ros_messages import stamped_header, typestore
+
+    def message(**changes):
+        fields = dict(header=stamped_header(0, "tof"), sensor_model="VL53L5CX", zone_count=16,
+                      distance_m=np.full(16, 1.0, np.float32), sigma_m=np.zeros(0, np.float32),
+                      status=np.zeros(0, np.uint8), valid=np.zeros(0, bool),
+                      hist_edges_m=np.zeros(0, np.float32), hist_counts=np.zeros(0, np.float32),
+                      targets_per_zone=2, target_order="strongest",
+                      target_distance_m=np.tile(np.float32([1.0, 2.5]), 16),
+                      target_sigma_m=np.zeros(0, np.float32), target_status=np.zeros(0, np.uint8),
+                      target_valid=np.zeros(0, bool))
+        fields.update(changes)
+        return typestore().types[MULTI_TARGET_ZONE_FRAME_MSGTYPE](**fields)
+
+    frame = zone_frame_from_msg(message())
+    assert frame.target_valid.all() and frame.target_mean_m[0, 0, 1] == np.float32(2.5)
+    # Status codes decide validity when no flags are given (5 and 9 valid).
+    status = np.tile(np.uint8([5, 4]), 16)
+    assert not zone_frame_from_msg(message(target_status=status)).target_valid[..., 1].any()
+    with pytest.raises(ValueError, match="zones: target_distance_m has 16 entries; expected "
+                                         "zone_count x targets_per_zone = 32"):
+        zone_frame_from_msg(message(target_distance_m=np.ones(16, np.float32)))
+    with pytest.raises(ValueError, match="target_sigma_m has 3 entries; expected 32 or none"):
+        zone_frame_from_msg(message(target_sigma_m=np.ones(3, np.float32)))
+    with pytest.raises(ValueError, match=r"targets_per_zone is 0; expected 1\.\.4"):
+        zone_frame_from_msg(message(targets_per_zone=0))
+    assert ZONE_FRAME_MSGTYPE != MULTI_TARGET_ZONE_FRAME_MSGTYPE

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from deltar.capture.bag_replay import replay_bag_to_bag
 from deltar.inference.estimator import DepthEstimator
@@ -12,6 +13,7 @@ from deltar.io.rosbag_writer import BagWriter
 from deltar.sensor.zone_frame import ZoneFrame
 from tests.inference.fakes import ZonePainterNet
 from tests.io.test_rosbag_reader import INTR, read_topic, write_input_bag
+from tests.io.test_zone_file import _assert_same_targets, _target_frame
 
 
 def test_point_cloud_holds_back_projected_coloured_points(tmp_path):
@@ -67,3 +69,31 @@ def test_no_target_flags_beside_other_status_codes_are_written_as_255(tmp_path):
     back = zone_frame_from_msg(msg)
     assert back.status.reshape(-1)[:3].tolist() == [255, 4, 5]
     assert np.flatnonzero(back.flat_no_target()).tolist() == [0]
+
+
+def test_bag_round_trip_writes_the_multi_target_message(tmp_path, rng):
+    frame = _target_frame(rng, per_zone=3, order="closest")
+    plain = _target_frame(rng, with_status=False)
+    plain_single = ZoneFrame(mean_m=plain.mean_m, sigma_m=plain.sigma_m, valid=plain.valid,
+                             no_target=np.where(plain.valid, False, True))
+    with BagWriter(tmp_path / "bag") as writer:
+        writer.add_zone_frame("/tof/zones", 1_000, "tof", frame)
+        writer.add_zone_frame("/tof/zones", 2_000, "tof", plain)
+        writer.add_zone_frame("/tof/zones", 3_000, "tof", plain_single)  # written with T = 1
+        writer.add_zone_frame("/tof/single", 1_000, "tof", plain_single)
+        with pytest.raises(ValueError, match=r"topic /tof/single carries deltar_msgs/msg/"
+                                             r"ZoneFrame \(one target per zone\)"):
+            writer.add_zone_frame("/tof/single", 2_000, "tof", frame)
+    messages = read_messages(tmp_path / "bag", "/tof/zones")
+    assert [type(msg).__name__ for _, msg in messages] == [
+        "deltar_msgs__msg__MultiTargetZoneFrame"] * 3
+    first, second, third = (zone_frame_from_msg(msg) for _, msg in messages)
+    _assert_same_targets(first, frame)
+    np.testing.assert_array_equal(first.target_status, frame.target_status)
+    _assert_same_targets(second, plain)
+    assert third.targets_per_zone == 1
+    np.testing.assert_array_equal(third.target_valid[..., 0], plain_single.valid)
+    np.testing.assert_array_equal(third.no_target, plain_single.no_target)
+    (_, single), = read_messages(tmp_path / "bag", "/tof/single")
+    assert not hasattr(single, "target_distance_m")
+    assert zone_frame_from_msg(single).target_mean_m is None

@@ -3,24 +3,39 @@
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Target status codes that ST documents as a valid range (5: valid, 9: valid, large pulse).
-DEFAULT_VALID_STATUS: tuple[int, ...] = (5, 9)
-#: ST's "no target detected": nothing returned within the sensor's range.
-NO_TARGET_STATUS = 255
+from deltar.sensor.zone_targets import (
+    check_target_fields,
+    convert_target_fields,
+    driver_readings,
+)
+from deltar.sensor.zone_values import (  # re-exported: the names readers import from here
+    DEFAULT_VALID_STATUS,
+    MAX_TARGETS_PER_ZONE,
+    NO_TARGET_STATUS,
+    SENSOR_MAX_RANGE_M,
+    SUPPORTED_GRIDS,
+    TARGET_ORDERS,
+    flags,
+    grid_from_count,
+    number_array,
+    numbers,
+    sensor_max_range_m,
+    status_codes,
+)
+
+__all__ = ["DEFAULT_VALID_STATUS", "MAX_TARGETS_PER_ZONE", "NO_TARGET_DEPTH_M",
+           "NO_TARGET_STATUS", "SENSOR_MAX_RANGE_M", "SUPPORTED_GRIDS", "TARGET_ORDERS",
+           "Orientation", "ZoneFrame", "no_target_as_readings", "number_array",
+           "sensor_max_range_m", "status_codes"]
+
 #: Where the methods that use the flag place a zone that reported no target, metres:
 #: beyond the 4 m range, at 1.25 times it (a prior, not fitted to any scene).
 NO_TARGET_DEPTH_M = 5.0
-#: Most targets per zone ST's driver reports (``VL53L5CX_NB_TARGET_PER_ZONE``, 1 to 4).
-MAX_TARGETS_PER_ZONE = 4
-#: Orders the driver reports a zone's targets in: strongest return first (the default)
-#: or closest first (``vl53l5cx_set_target_order``).
-TARGET_ORDERS: tuple[str, ...] = ("strongest", "closest")
 
 
 def no_target_as_readings(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
@@ -46,16 +61,6 @@ def no_target_as_readings(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
     return np.where(far, far_depth_m, zone_mean_m), valid | far
 
 
-SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
-
-#: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
-#: A valid zone must read ``0 < d <= range``; unknown models have no upper limit.
-SENSOR_MAX_RANGE_M: dict[str, float] = {"VL53L5CX": 4.0, "VL53L8CX": 4.0}
-
-
-def sensor_max_range_m(sensor_model: str) -> float:
-    """The largest distance ``sensor_model`` reports, metres (``inf`` when unknown)."""
-    return SENSOR_MAX_RANGE_M.get(str(sensor_model).upper(), math.inf)
 
 
 @dataclass(frozen=True)
@@ -134,13 +139,13 @@ class ZoneFrame:
 
     def __post_init__(self) -> None:
         # Numbers stay numbers: strings and booleans are refused, never converted.
-        self.mean_m = _numbers(self.mean_m, "ZoneFrame.mean_m").astype(np.float32)
-        self.sigma_m = _numbers(self.sigma_m, "ZoneFrame.sigma_m").astype(np.float32)
-        self.valid = _flags(self.valid, "ZoneFrame.valid")
+        self.mean_m = numbers(self.mean_m, "ZoneFrame.mean_m").astype(np.float32)
+        self.sigma_m = numbers(self.sigma_m, "ZoneFrame.sigma_m").astype(np.float32)
+        self.valid = flags(self.valid, "ZoneFrame.valid")
         if self.status is not None:
             self.status = status_codes(self.status, "ZoneFrame.status")
         if self.mean_m.ndim == 1:  # flat row-major input
-            n = _grid_from_count(self.mean_m.size, "mean_m")
+            n = grid_from_count(self.mean_m.size, "mean_m")
             self.mean_m = self.mean_m.reshape(n, n)
             self.sigma_m = self.sigma_m.reshape(n, n) if self.sigma_m.size == n * n \
                 else self.sigma_m
@@ -151,7 +156,7 @@ class ZoneFrame:
                 self.no_target = np.asarray(self.no_target).reshape(n, n)
             if self.hist_counts is not None:
                 self.hist_counts = np.asarray(self.hist_counts).reshape(n, n, -1)
-        self._convert_targets()
+        convert_target_fields(self)
         if self.no_target is None and self.status is not None:
             status = np.asarray(self.status)
             if status.shape == self.valid.shape:
@@ -234,82 +239,7 @@ class ZoneFrame:
         if not isinstance(self.sensor_model, str):
             raise ValueError(f"ZoneFrame.sensor_model must be a string, got "
                              f"{self.sensor_model!r}")
-        self._validate_targets(n)
-
-    def _convert_targets(self) -> None:
-        """Target arrays as float32 / bool / uint8, (Z, T) flat input as (n, n, T)."""
-        given = [name for name in ("target_mean_m", "target_sigma_m", "target_valid")
-                 if getattr(self, name) is not None]
-        if given and len(given) < 3:
-            raise ValueError("ZoneFrame.target_mean_m, target_sigma_m and target_valid must "
-                             f"be given together, got only {given}")
-        if not given:
-            if self.target_status is not None:
-                raise ValueError("ZoneFrame.target_status needs target_mean_m, "
-                                 "target_sigma_m and target_valid")
-            return
-        self.target_mean_m = _numbers(self.target_mean_m,
-                                      "ZoneFrame.target_mean_m").astype(np.float32)
-        self.target_sigma_m = _numbers(self.target_sigma_m,
-                                       "ZoneFrame.target_sigma_m").astype(np.float32)
-        self.target_valid = _flags(self.target_valid, "ZoneFrame.target_valid")
-        if self.target_status is not None:
-            self.target_status = status_codes(self.target_status, "ZoneFrame.target_status")
-        n = self.mean_m.shape[0] if self.mean_m.ndim == 2 else -1
-        for name in ("target_mean_m", "target_sigma_m", "target_valid", "target_status"):
-            arr = getattr(self, name)
-            if arr is not None and arr.ndim == 2 and n > 0 and arr.shape[0] == n * n:
-                setattr(self, name, arr.reshape(n, n, arr.shape[1]))
-        # Targets that are not valid carry 0, as invalid zones do in files.
-        if self.target_valid.shape == self.target_mean_m.shape:
-            self.target_mean_m = np.where(self.target_valid, self.target_mean_m,
-                                          np.float32(0.0))
-        if self.target_valid.shape == self.target_sigma_m.shape:
-            self.target_sigma_m = np.where(self.target_valid, self.target_sigma_m,
-                                           np.float32(0.0))
-
-    def _validate_targets(self, n: int) -> None:
-        """The checks of the target arrays (see the class doc), ValueErrors naming the field."""
-        if self.target_order not in TARGET_ORDERS:
-            raise ValueError(f"ZoneFrame.target_order must be one of {TARGET_ORDERS}, got "
-                             f"{self.target_order!r}")
-        if self.target_mean_m is None:
-            return
-        mean = self.target_mean_m
-        if mean.ndim != 3 or mean.shape[:2] != (n, n) or \
-                not 1 <= mean.shape[2] <= MAX_TARGETS_PER_ZONE:
-            raise ValueError(f"ZoneFrame.target_mean_m must have shape ({n}, {n}, T) with "
-                             f"T in 1..{MAX_TARGETS_PER_ZONE}, got {mean.shape}")
-        for name in ("target_sigma_m", "target_valid", "target_status"):
-            arr = getattr(self, name)
-            if arr is not None and arr.shape != mean.shape:
-                raise ValueError(f"ZoneFrame.{name} must have shape {mean.shape} like "
-                                 f"target_mean_m, got {arr.shape}")
-        valid = self.target_valid
-        sigma = self.target_sigma_m
-        if not np.all(np.isfinite(mean[valid])) or np.any(mean[valid] < 0):
-            raise ValueError("ZoneFrame.target_mean_m must be finite and >= 0 in valid "
-                             "targets, bad (row, column, target) "
-                             f"{np.argwhere(valid & ~(mean >= 0)).tolist()[:5]}")
-        if not np.all(np.isfinite(sigma[valid])) or np.any(sigma[valid] < 0):
-            raise ValueError("ZoneFrame.target_sigma_m must be finite and >= 0 in valid "
-                             "targets, bad (row, column, target) "
-                             f"{np.argwhere(valid & ~(sigma >= 0)).tolist()[:5]}")
-        if self.target_status is not None and \
-                np.any(valid & (self.target_status == NO_TARGET_STATUS)):
-            raise ValueError(f"ZoneFrame.target_status is {NO_TARGET_STATUS} (no target) for "
-                             "valid targets (row, column, target) "
-                             f"{np.argwhere(valid & (self.target_status == 255)).tolist()[:5]}")
-        if self.target_order == "strongest":
-            # Target 0 is the primary reading: the same flags, and the same values where valid.
-            differs = (valid[..., 0] != self.valid) | (self.valid & (
-                (np.abs(mean[..., 0] - self.mean_m) > 1e-6)
-                | (np.abs(sigma[..., 0] - self.sigma_m) > 1e-6)))
-            if differs.any():
-                raise ValueError("ZoneFrame.target_mean_m / target_sigma_m / target_valid "
-                                 "[..., 0] must equal mean_m / sigma_m / valid in "
-                                 "'strongest' order (target 0 is the primary reading); "
-                                 f"they differ at zones {np.argwhere(differs).tolist()[:5]}")
+        check_target_fields(self, n)
 
     @property
     def targets_per_zone(self) -> int:
@@ -488,179 +418,9 @@ class ZoneFrame:
                 that are not integers in 0..255, an unknown ``target_order``, naming the
                 argument.
         """
-        arrays = {}
-        for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
-                             ("target_status", target_status)):
-            arrays[name] = number_array(values, name)
-        sizes = [arr.size for arr in arrays.values()]
-        if len(set(sizes)) > 1:
-            raise ValueError("distance_mm, range_sigma_mm and target_status must have the same "
-                             f"length (one entry per zone and target), got {sizes}")
-        if target_order not in TARGET_ORDERS:
-            raise ValueError(f"target_order must be one of {TARGET_ORDERS}, got "
-                             f"{target_order!r}")
-        detected = None
-        if nb_target_detected is not None:
-            detected = status_codes(number_array(nb_target_detected, "nb_target_detected"),
-                                    "nb_target_detected").astype(np.int64)
-        if targets_per_zone is not None and (
-                isinstance(targets_per_zone, (bool, np.bool_))
-                or not isinstance(targets_per_zone, (int, np.integer))
-                or not 1 <= targets_per_zone <= MAX_TARGETS_PER_ZONE):
-            raise ValueError(f"targets_per_zone must be an integer in "
-                             f"1..{MAX_TARGETS_PER_ZONE}, got {targets_per_zone!r}")
-        if grid is not None:
-            n = grid
-        elif detected is not None:
-            n = _grid_from_count(detected.size, "nb_target_detected")
-        elif targets_per_zone is not None and sizes[0] % targets_per_zone == 0:
-            n = _grid_from_count(sizes[0] // targets_per_zone, "distance_mm")
-        elif sizes[0] in (16, 64):
-            n = _grid_from_count(sizes[0], "distance_mm")
-        else:
-            raise ValueError(f"distance_mm has {sizes[0]} entries; expected 16 (4x4) or 64 "
-                             "(8x8), or pass grid= or targets_per_zone= for a driver that "
-                             "reports several targets per zone")
-        if n not in SUPPORTED_GRIDS:
-            raise ValueError(f"grid must be one of {SUPPORTED_GRIDS}, got {n}")
-        zones = n * n
-        size = sizes[0]
-        if targets_per_zone is not None:
-            per_zone = int(targets_per_zone)
-            # ST's buffers are sized for 8x8; in 4x4 mode the first 16 zones are filled.
-            used = zones * per_zone
-            if size != used and not (n == 4 and size == 64 * per_zone):
-                raise ValueError(f"distance_mm has {size} entries; expected {used} for a "
-                                 f"{n}x{n} grid with {per_zone} target(s) per zone")
-        else:
-            if size < zones or size % zones:
-                raise ValueError(f"distance_mm has {size} entries; expected {zones} for a "
-                                 f"{n}x{n} grid (times the targets per zone)")
-            per_zone = size // zones
-            if per_zone > MAX_TARGETS_PER_ZONE:
-                raise ValueError(f"distance_mm has {size} entries, {per_zone} per zone of a "
-                                 f"{n}x{n} grid; the driver reports at most "
-                                 f"{MAX_TARGETS_PER_ZONE} targets per zone")
-        if detected is not None:
-            if detected.size == 64 and n == 4:
-                detected = detected[:16]
-            if detected.size != zones:
-                raise ValueError(f"nb_target_detected has {detected.size} entries; expected "
-                                 f"{zones} (one per zone of a {n}x{n} grid)")
-        for name, arr in arrays.items():
-            # Zone-major: target t of zone z at z * per_zone + t.
-            arrays[name] = arr[: zones * per_zone].reshape(zones, per_zone)
-        status = status_codes(arrays["target_status"], "target_status")
-        valid = np.isin(status, np.asarray(valid_status, dtype=np.uint8))
-        valid &= status != NO_TARGET_STATUS
-        if detected is not None:
-            valid &= np.arange(per_zone)[None, :] < detected[:, None]
-        mean = arrays["distance_mm"] / 1000.0
-        sigma = arrays["range_sigma_mm"] / 1000.0
-        valid &= np.isfinite(mean) & np.isfinite(sigma) & (mean > 0) & (sigma >= 0)
-        # Readings beyond the sensor's range are not measurements: invalid, visibly.
-        limit = sensor_max_range_m(sensor_model)
-        for far, what, values in ((valid & (mean > limit), "read more than", mean),
-                                  (valid & (sigma > limit), "have a sigma larger than", sigma)):
-            if far.any():
-                unit = "zone(s)" if per_zone == 1 else "target(s)"
-                warnings.warn(f"{int(far.sum())} {unit} with a valid status {what} the "
-                              f"{sensor_model}'s {limit:g} m range (up to "
-                              f"{values[far].max():.6g} m); marked invalid", RuntimeWarning,
-                              stacklevel=2)
-                valid &= ~far
-        orient = orientation or Orientation()
-        mean, sigma, valid, status = (orient.apply(a.reshape(n, n, per_zone))
-                                      for a in (mean, sigma, valid, status))
-        mean = np.where(valid, mean, 0.0).astype(np.float32)
-        sigma = np.where(valid, sigma, 0.0).astype(np.float32)
-        targets = {}
-        if per_zone > 1 or targets_per_zone is not None:
-            targets = {"target_mean_m": mean, "target_sigma_m": sigma, "target_valid": valid,
-                       "target_status": status, "target_order": target_order}
-        return cls(mean_m=mean[..., 0], sigma_m=sigma[..., 0], valid=valid[..., 0],
-                   status=status[..., 0], timestamp_s=timestamp_s, sensor_model=sensor_model,
-                   **targets)
-
-
-def number_array(values, name: str) -> np.ndarray:
-    """Flat float64 array of a list (or array) of numbers, refusing anything else.
-
-    Strings (``"1.5"``) and booleans are refused rather than converted: a file or driver
-    that stores them is not what the reader expects, and converting hides that.
-
-    Args:
-        values: a (nested) list or tuple of int / float, or a numeric numpy array.
-        name: what the values are, for the error message (e.g. ``"zones.json: mean_m"``).
-
-    Raises:
-        ValueError: ``"<name> must hold numbers, got ..."``.
-    """
-    if isinstance(values, np.ndarray):
-        if values.dtype.kind not in "iuf":
-            raise ValueError(f"{name} must hold numbers, got an array of {values.dtype}")
-        return values.astype(np.float64).reshape(-1)
-    if not isinstance(values, (list, tuple)):
-        raise ValueError(f"{name} must be a list of numbers, got {type(values).__name__}")
-    flat: list = []
-    pending = [values]
-    while pending:
-        item = pending.pop()
-        if isinstance(item, (list, tuple)):
-            pending.extend(reversed(item))
-        else:
-            flat.append(item)
-    bad = [v for v in flat if isinstance(v, (bool, np.bool_))
-           or not isinstance(v, (int, float, np.integer, np.floating))]
-    if bad:
-        raise ValueError(f"{name} must hold numbers, got {type(bad[0]).__name__} "
-                         f"{bad[0]!r}" + (f" and {len(bad) - 1} more" if len(bad) > 1 else ""))
-    return np.asarray(flat, dtype=np.float64)
-
-
-def status_codes(values, name: str) -> np.ndarray:
-    """ST target status codes as uint8, refusing what is not an integer in 0..255.
-
-    Fractional codes (``5.5``), codes out of range and non-numbers are refused rather
-    than truncated or wrapped.
-
-    Args:
-        values: array-like of codes.
-        name: what the codes are, for the message.
-
-    Raises:
-        ValueError: ``"<name> must hold integer codes in 0..255, got <value>"``.
-    """
-    codes = _numbers(values, name)
-    bad = ~np.isfinite(codes) | (codes < 0) | (codes > 255) | (codes != np.round(codes))
-    if np.any(bad):
-        raise ValueError(f"{name} must hold integer codes in 0..255, got "
-                         f"{codes[bad].reshape(-1)[0]:g}")
-    return codes.astype(np.uint8)
-
-
-def _numbers(values, name: str) -> np.ndarray:
-    """An array of numbers (any shape), refusing strings, booleans and objects."""
-    array = np.asarray(values)
-    if array.dtype.kind not in "iuf":
-        shown = "booleans" if array.dtype.kind == "b" else f"values of type {array.dtype}"
-        raise ValueError(f"{name} must hold numbers, got {shown}")
-    return array
-
-
-def _flags(values, name: str) -> np.ndarray:
-    """A bool array of booleans or 0/1 numbers, refusing strings and other numbers."""
-    array = np.asarray(values)
-    if array.dtype.kind != "b" and (array.dtype.kind not in "iuf"
-                                    or not np.all(np.isin(array, (0, 1)))):
-        raise ValueError(f"{name} must hold booleans (or 0/1), got values of type "
-                         f"{array.dtype}" + ("" if array.dtype.kind not in "iuf" else
-                                             " other than 0 and 1"))
-    return array.astype(bool)
-
-
-def _grid_from_count(count: int, name: str) -> int:
-    n = math.isqrt(count)
-    if n * n != count or n not in SUPPORTED_GRIDS:
-        raise ValueError(f"{name} has {count} zones; expected 16 (4x4) or 64 (8x8)")
-    return n
+        fields = driver_readings(
+            distance_mm, range_sigma_mm, target_status, grid=grid, valid_status=valid_status,
+            orientation=orientation, sensor_model=sensor_model,
+            nb_target_detected=nb_target_detected, targets_per_zone=targets_per_zone,
+            target_order=target_order)
+        return cls(**fields, timestamp_s=timestamp_s, sensor_model=sensor_model)

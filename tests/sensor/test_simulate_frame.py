@@ -1,4 +1,5 @@
-"""Several targets per zone in the zone simulators (simulate_zones, simulate_zone_frame)."""
+"""The numpy single-frame simulator (deltar.sensor.simulate_frame) and its batched twin:
+several targets per zone (secondary_targets, max_targets)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Several targets per zone in ZoneFrame: the target arrays, from_driver, validation."""
+"""Several targets per zone in ZoneFrame (deltar.sensor.zone_targets): the target arrays,
+from_driver, validation."""
 
 from __future__ import annotations
 

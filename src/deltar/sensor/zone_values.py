@@ -1,0 +1,113 @@
+"""Values of a zone reading: the sensor constants (status codes, grids, range, targets
+per zone) and the checked conversions of numbers, flags and status codes that the zone
+frame (:mod:`deltar.sensor.zone_frame`) and its readers use."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Target status codes that ST documents as a valid range (5: valid, 9: valid, large pulse).
+DEFAULT_VALID_STATUS: tuple[int, ...] = (5, 9)
+#: ST's "no target detected": nothing returned within the sensor's range.
+NO_TARGET_STATUS = 255
+#: Most targets per zone ST's driver reports (``VL53L5CX_NB_TARGET_PER_ZONE``, 1 to 4).
+MAX_TARGETS_PER_ZONE = 4
+#: Orders the driver reports a zone's targets in: strongest return first (the default)
+#: or closest first (``vl53l5cx_set_target_order``).
+TARGET_ORDERS: tuple[str, ...] = ("strongest", "closest")
+
+SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
+
+#: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
+#: A valid zone must read ``0 < d <= range``; unknown models have no upper limit.
+SENSOR_MAX_RANGE_M: dict[str, float] = {"VL53L5CX": 4.0, "VL53L8CX": 4.0}
+
+
+def sensor_max_range_m(sensor_model: str) -> float:
+    """The largest distance ``sensor_model`` reports, metres (``inf`` when unknown)."""
+    return SENSOR_MAX_RANGE_M.get(str(sensor_model).upper(), math.inf)
+
+
+def number_array(values, name: str) -> np.ndarray:
+    """Flat float64 array of a list (or array) of numbers, refusing anything else.
+
+    Strings (``"1.5"``) and booleans are refused rather than converted: a file or driver
+    that stores them is not what the reader expects, and converting hides that.
+
+    Args:
+        values: a (nested) list or tuple of int / float, or a numeric numpy array.
+        name: what the values are, for the error message (e.g. ``"zones.json: mean_m"``).
+
+    Raises:
+        ValueError: ``"<name> must hold numbers, got ..."``.
+    """
+    if isinstance(values, np.ndarray):
+        if values.dtype.kind not in "iuf":
+            raise ValueError(f"{name} must hold numbers, got an array of {values.dtype}")
+        return values.astype(np.float64).reshape(-1)
+    if not isinstance(values, (list, tuple)):
+        raise ValueError(f"{name} must be a list of numbers, got {type(values).__name__}")
+    flat: list = []
+    pending = [values]
+    while pending:
+        item = pending.pop()
+        if isinstance(item, (list, tuple)):
+            pending.extend(reversed(item))
+        else:
+            flat.append(item)
+    bad = [v for v in flat if isinstance(v, (bool, np.bool_))
+           or not isinstance(v, (int, float, np.integer, np.floating))]
+    if bad:
+        raise ValueError(f"{name} must hold numbers, got {type(bad[0]).__name__} "
+                         f"{bad[0]!r}" + (f" and {len(bad) - 1} more" if len(bad) > 1 else ""))
+    return np.asarray(flat, dtype=np.float64)
+
+
+def status_codes(values, name: str) -> np.ndarray:
+    """ST target status codes as uint8, refusing what is not an integer in 0..255.
+
+    Fractional codes (``5.5``), codes out of range and non-numbers are refused rather
+    than truncated or wrapped.
+
+    Args:
+        values: array-like of codes.
+        name: what the codes are, for the message.
+
+    Raises:
+        ValueError: ``"<name> must hold integer codes in 0..255, got <value>"``.
+    """
+    codes = numbers(values, name)
+    bad = ~np.isfinite(codes) | (codes < 0) | (codes > 255) | (codes != np.round(codes))
+    if np.any(bad):
+        raise ValueError(f"{name} must hold integer codes in 0..255, got "
+                         f"{codes[bad].reshape(-1)[0]:g}")
+    return codes.astype(np.uint8)
+
+
+def numbers(values, name: str) -> np.ndarray:
+    """An array of numbers (any shape), refusing strings, booleans and objects."""
+    array = np.asarray(values)
+    if array.dtype.kind not in "iuf":
+        shown = "booleans" if array.dtype.kind == "b" else f"values of type {array.dtype}"
+        raise ValueError(f"{name} must hold numbers, got {shown}")
+    return array
+
+
+def flags(values, name: str) -> np.ndarray:
+    """A bool array of booleans or 0/1 numbers, refusing strings and other numbers."""
+    array = np.asarray(values)
+    if array.dtype.kind != "b" and (array.dtype.kind not in "iuf"
+                                    or not np.all(np.isin(array, (0, 1)))):
+        raise ValueError(f"{name} must hold booleans (or 0/1), got values of type "
+                         f"{array.dtype}" + ("" if array.dtype.kind not in "iuf" else
+                                             " other than 0 and 1"))
+    return array.astype(bool)
+
+
+def grid_from_count(count: int, name: str) -> int:
+    n = math.isqrt(count)
+    if n * n != count or n not in SUPPORTED_GRIDS:
+        raise ValueError(f"{name} has {count} zones; expected 16 (4x4) or 64 (8x8)")
+    return n
