@@ -333,3 +333,56 @@ def test_a_model_prepared_for_inference_exports_with_parity(tmp_path):
     assert not [n for n in graph.node if n.op_type == "Pad"]
     assert not any("forward" in vars(m) for m in model.modules()
                    if isinstance(m, SymmetricSameConv2d))
+
+
+def test_several_sizes_share_one_weights_file_and_run_each_image_at_its_rule_size(
+        tmp_path, rng):
+    import json
+
+    from deltar.export.onnx import export_onnx_sizes
+    from deltar.inference.onnx_runtime import SIZES_KEY
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", head="plane_select", decoder="descriptors",
+                         design_size=(64, 96)).eval()
+    with torch.no_grad():
+        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    # 64x96 and 128x192 give the same network size: one file for both.
+    camera_sizes = [(64, 96), (54, 128), (128, 192), (96, 64)]
+    written = export_onnx_sizes(model, tmp_path / "net.onnx", camera_sizes)
+    names = [p.name for p in written]
+    assert names == ["net.onnx", "net.64x128.onnx", "net.96x64.onnx", "net.onnx.data"]
+    single = export_onnx(model, tmp_path / "alone.onnx", 54, 128)
+    weights = written[-1].stat().st_size
+    # The weights are written once: each graph is a small fraction of a whole export.
+    assert all(p.stat().st_size < 0.5 * single.stat().st_size for p in written[:-1])
+    assert weights > 0.5 * single.stat().st_size
+    runner = OnnxDepthModel(written[0], num_threads=1)
+    assert runner.input_sizes == ((64, 96), (64, 128), (96, 64))
+    assert json.loads(runner.metadata[SIZES_KEY]) == {
+        "64x96": "net.onnx", "64x128": "net.64x128.onnx", "96x64": "net.96x64.onnx"}
+    with pytest.raises(ValueError, match="no export for 32x32"):
+        runner.for_input_size((32, 32))
+    # Every image runs at the size rule's size, with the PyTorch path's depth; the
+    # wide one by the file written for it, as a file exported alone for it gives.
+    estimator = load_estimator(written[0], kind="onnx", threads=1)
+    reference = DepthEstimator(model, weights="t", fold_batch_norms=False)
+    alone = load_estimator(single, kind="onnx", threads=1)
+    frame = ZoneFrame(rng.uniform(0.5, 3, (8, 8)), rng.uniform(0.01, 0.1, (8, 8)),
+                      np.ones((8, 8), bool))
+    for size in [(64, 96), (54, 128), (96, 64)]:
+        image = rng.integers(0, 256, size=(*size, 3), dtype=np.uint8)
+        got, expected = estimator.predict(image, frame), reference.predict(image, frame)
+        assert got.network_size == expected.network_size
+        assert np.abs(got.depth_m - expected.depth_m).max() < DEPTH_TOLERANCE_M
+        if size == (54, 128):
+            assert got.network_size == (64, 128)
+            np.testing.assert_allclose(got.depth_m, alone.predict(image, frame).depth_m,
+                                       atol=1e-6)
+    with pytest.raises(FileExistsError):
+        export_onnx_sizes(model, tmp_path / "net.onnx", camera_sizes)
+    # The files go together: one missing is named when the set is loaded.
+    written[2].unlink()
+    with pytest.raises(ValueError, match=r"96x64 export .*net\.96x64\.onnx.* missing"):
+        OnnxDepthModel(written[0])

@@ -19,7 +19,12 @@ from deltar.models.checkpoint import load_checkpoint
 from deltar.models.config import NetworkConfig
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulate_frame import simulate_zone_frame
-from deltar.weights import BUNDLED_ONNX_EXPORT_SIZE, bundled_onnx, resolve_checkpoint
+from deltar.weights import (
+    BUNDLED_ONNX_EXPORT_SIZE,
+    BUNDLED_ONNX_EXPORT_SIZES,
+    bundled_onnx,
+    resolve_checkpoint,
+)
 
 
 @pytest.fixture(scope="module")
@@ -35,10 +40,14 @@ def real_frame(request):
 
 
 def test_shipped_onnx_equals_a_fresh_export_of_the_shipped_checkpoint(tmp_path, real_frame):
-    from deltar.export.onnx import export_onnx
+    from deltar.export.onnx import export_input_size, export_onnx
 
     shipped = bundled_onnx("default")
-    assert shipped is not None and shipped.stat().st_size < 8 * 1024 * 1024
+    assert shipped is not None
+    # One file per exported size, the weights in one shared file: small all together.
+    files = list(shipped.parent.glob("deltar_select_default.*onnx*"))
+    assert len(files) == len(BUNDLED_ONNX_EXPORT_SIZES) + 1
+    assert sum(f.stat().st_size for f in files) < 8 * 1024 * 1024
     model, _, config = load_checkpoint(resolve_checkpoint("default"))
     fresh = export_onnx(model, tmp_path / "fresh.onnx", *BUNDLED_ONNX_EXPORT_SIZE)
     image, zones = real_frame
@@ -54,6 +63,8 @@ def test_shipped_onnx_equals_a_fresh_export_of_the_shipped_checkpoint(tmp_path, 
         ).to_dict()
     assert json.loads(json.dumps(shipped_config, default=list)) == stored
     assert ours.onnx_model.input_size == (256, 320)  # every 4:3 camera's network size
+    assert ours.onnx_model.input_sizes == tuple(
+        export_input_size(model, *size) for size in BUNDLED_ONNX_EXPORT_SIZES)
     a, b = ours.predict(image, zones), theirs.predict(image, zones)
     assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
     assert np.abs(a.uncertainty_m - b.uncertainty_m).max() <= 1e-4
@@ -71,12 +82,14 @@ def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame):
     assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
 
 
-def test_another_aspect_is_stretched_with_a_warning_naming_the_torch_extra(real_frame):
-    image, zones = real_frame
+def test_an_aspect_not_exported_is_stretched_with_a_warning_naming_the_torch_extra():
+    # 2:1: the size rule gives 192x416, not exported; the nearest aspect exported is 16:9.
+    frame = render_scene(3, 240, 480)
+    zones = simulate_zone_frame(frame.depth_m, zone_rects(frame.intrinsics, 8))
     lean = load_estimator(bundled_onnx("default"), threads=2)
-    with pytest.warns(UserWarning, match=r"stretched .* 256x320 .*288x288.*deltar\[torch\]"):
-        result = lean.predict(np.ascontiguousarray(image[:, :480]), zones)
-    assert result.network_size == (256, 320) and result.depth_m.shape == (480, 480)
+    with pytest.warns(UserWarning, match=r"stretched .* 224x384 .*192x416.*deltar\[torch\]"):
+        result = lean.predict(frame.image, zones)
+    assert result.network_size == (224, 384) and result.depth_m.shape == (240, 480)
 
 
 @pytest.fixture(scope="module")
@@ -102,3 +115,21 @@ def test_blended_depth_agrees_across_backends_on_every_pixel(both_backends, size
         assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4, seed
         assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4, seed
         assert np.abs(a.uncertainty_m - b.uncertainty_m).max() <= 1e-4, seed
+
+
+@pytest.mark.parametrize("size", [(720, 1280), (480, 480), (640, 480)])
+def test_other_aspects_run_at_the_pytorch_size_with_the_pytorch_depth(both_backends, size):
+    # 16:9, 1:1 and portrait 3:4 cameras: each at its own exported size, no stretching.
+    import warnings
+
+    lean, full = both_backends
+    frame = render_scene(5, *size)
+    zones = simulate_zone_frame(frame.depth_m, zone_rects(frame.intrinsics, 8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a = lean.predict(frame.image, zones)
+    b = full.predict(frame.image, zones)
+    assert a.network_size == b.network_size != (256, 320)
+    assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4
+    assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
+    assert np.abs(a.uncertainty_m - b.uncertainty_m).max() <= 1e-4

@@ -41,7 +41,9 @@ def export_command(
     size: str = typer.Option("480x640", "--size", help="Camera image size HxW; the file's "
                              "fixed network input follows the size rule (aspect kept, the "
                              "weights' design pixel count, sides rounded to multiples of "
-                             "32; docs/inference.md)."),
+                             "32; docs/inference.md). Several, comma-separated: one file "
+                             "per network size (OUT, then OUT's stem.HxW.onnx beside it), "
+                             "sharing one weights file (OUT.data)."),
     layout_from: Path | None = typer.Option(None, "--layout-from", help="Fix the zone "
                                             "layout from a rig calibration JSON or a "
                                             "recording folder (default: nominal 8x8)."),
@@ -59,7 +61,7 @@ def export_command(
     for module in ("onnx", "torch"):  # one line naming the 'export' extra
         require_extra(module, "deltar export", "export")
     from deltar.cli.checks import output_file
-    from deltar.export.onnx import export_onnx
+    from deltar.export.onnx import export_onnx, export_onnx_sizes
     from deltar.export.quantize import export_int8
     from deltar.io.input_file import refuse_input_as_output
 
@@ -67,7 +69,11 @@ def export_command(
         raise typer.BadParameter(f"must be onnx, got {format!r}", param_hint="--format")
     from deltar.cli.checks import image_size
 
-    height, width = image_size(size, "--size")
+    sizes = [image_size(text.strip(), "--size") for text in size.split(",")]
+    height, width = sizes[0]
+    if len(sizes) > 1 and (int8 or layout_from is not None):
+        raise typer.BadParameter("several sizes go without --int8 and --layout-from",
+                                 param_hint="--size")
     refuse_input_as_output(out, [checkpoint, official, layout_from, calibration], "--out")
     output_file(out, "--out", overwrite)
     if layout_from is not None and not layout_from.exists():
@@ -86,6 +92,10 @@ def export_command(
             path = export_int8(estimator.model, out, height, width, calibration,
                                frames=calibration_frames, zone_rects=rects,
                                overwrite=overwrite, metadata=metadata)
+        elif len(sizes) > 1:
+            paths = export_onnx_sizes(estimator.model, out, sizes, overwrite=overwrite,
+                                      metadata=metadata)
+            path = ", ".join(str(p) for p in paths)
         else:
             path = export_onnx(estimator.model, out, height, width, zone_rects=rects,
                                overwrite=overwrite, metadata=metadata)
@@ -94,6 +104,8 @@ def export_command(
     kind = "int8" if int8 else "float32"
     from deltar.export.onnx import export_input_size
 
-    net_h, net_w = export_input_size(estimator.model, height, width)
-    typer.echo(f"wrote {path} ({kind}, camera {height}x{width}, network {net_h}x{net_w}, "
+    networks = ", ".join("x".join(map(str, export_input_size(estimator.model, *s)))
+                         for s in sizes)
+    cameras = ", ".join(f"{h}x{w}" for h, w in sizes)
+    typer.echo(f"wrote {path} ({kind}, camera {cameras}, network {networks}, "
                f"weights: {estimator.weights})")

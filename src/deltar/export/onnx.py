@@ -33,7 +33,10 @@ from deltar.inference.onnx_runtime import (
     NO_TARGET_INPUT,
     OUTPUT_NAMES,
     SIGNATURE_KEY,
+    SIZES_KEY,
     layout_signature,
+    size_text,
+    sized_file_name,
 )
 
 if TYPE_CHECKING:
@@ -43,7 +46,10 @@ if TYPE_CHECKING:
     from deltar.models import DeltarNet
 
 OPSET = 17
-__all__ = ["OPSET", "example_inputs", "export_input_size", "export_onnx"]
+__all__ = ["OPSET", "example_inputs", "export_input_size", "export_onnx", "export_onnx_sizes"]
+#: Initializers at least this large (bytes) go to the shared weights file of
+#: :func:`export_onnx_sizes`; smaller ones (and every size-dependent constant) stay inline.
+SHARED_MIN_BYTES = 1024
 
 
 def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
@@ -176,6 +182,125 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
             entry.key, entry.value = key, str(value)
         onnx.save(proto, str(tmp))
     return path
+
+
+def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
+                      image_sizes: list[tuple[int, int]], *, overwrite: bool = False,
+                      metadata: dict[str, str] | None = None) -> list[Path]:
+    """Export ``model`` for several camera image sizes, the files sharing one weights file.
+
+    Each distinct network input size (:func:`export_input_size` of a camera size: the one
+    size rule) gets its own fixed-size file, :func:`export_onnx`'s graph: the first at
+    ``path``, the others beside it as ``<stem>.<h>x<w>.onnx`` (network input size in
+    pixels). Their weights are the same, so they are written once, to ``<path>.data``
+    (ONNX external data, which onnxruntime reads from beside the file): an extra size
+    costs its graph alone. Every file lists all the sizes in its ``deltar_input_sizes``
+    metadata, so :class:`~deltar.inference.onnx_runtime.OnnxDepthModel` of the first
+    runs each image at the size the size rule gives it (PyTorch's size), when listed.
+
+    Args:
+        model: the network, as for :func:`export_onnx`.
+        path: the first size's ``.onnx`` file.
+        image_sizes: (H, W) camera image sizes in pixels; sizes that give a network
+            input size already listed are skipped.
+        overwrite: replace existing files (default: ``FileExistsError``).
+        metadata: extra string key/values stored in every file.
+
+    Returns:
+        The written ``.onnx`` paths, the first size's first, then the weights file.
+
+    Raises:
+        ValueError: no image size, or a non-positive one.
+        FileExistsError: a file to write exists and ``overwrite`` is False.
+    """
+    import tempfile
+
+    import onnx
+
+    from deltar.io.atomic import atomic_path
+
+    if not image_sizes:
+        raise ValueError("image_sizes must name at least one (height, width) camera size")
+    path = Path(path)
+    by_network: dict[tuple[int, int], tuple[int, int]] = {}
+    for height, width in image_sizes:
+        if height < 1 or width < 1:
+            raise ValueError(f"image sizes must be positive, got {height}x{width}")
+        by_network.setdefault(export_input_size(model, height, width), (height, width))
+    first = next(iter(by_network))
+    names = {size: path.name if size == first else sized_file_name(path.name, size)
+             for size in by_network}
+    data_path = path.with_name(path.name + ".data")
+    targets = [path.with_name(name) for name in names.values()] + [data_path]
+    for target in targets:
+        if target.exists() and not overwrite:
+            raise FileExistsError(f"refusing to overwrite existing file: {target}")
+    listing = json.dumps({size_text(size): name for size, name in names.items()})
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".deltar-export-") as tmp:
+        protos = {}
+        for size, (height, width) in by_network.items():
+            single = export_onnx(model, Path(tmp) / f"{size_text(size)}.onnx", height, width,
+                                 metadata=metadata)
+            protos[size] = onnx.load(str(single))
+        blob, where = _shared_weights(list(protos.values()))
+        with atomic_path(data_path, overwrite=overwrite) as tmp_data:
+            tmp_data.write_bytes(blob)
+        for size, proto in protos.items():
+            _point_to_shared(proto, where, data_path.name)
+            entry = proto.metadata_props.add()
+            entry.key, entry.value = SIZES_KEY, listing
+            with atomic_path(path.with_name(names[size]), overwrite=overwrite) as tmp_model:
+                tmp_model.write_bytes(proto.SerializeToString())
+    return targets
+
+
+def _shared_weights(protos: list[onnx.ModelProto]) -> tuple[bytes, dict[str, tuple[int, int]]]:
+    """The large initializers of several exports of one network as one blob.
+
+    Returns:
+        The blob (each tensor's little-endian bytes, at 64-byte aligned offsets) and
+        name -> (offset, length).
+
+    Raises:
+        ValueError: the exports' large initializers differ (not one network's weights).
+    """
+    from onnx import numpy_helper
+
+    def large(proto: onnx.ModelProto) -> dict[str, bytes]:
+        arrays = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+        return {name: np.ascontiguousarray(a).astype(a.dtype.newbyteorder("<")).tobytes()
+                for name, a in arrays.items() if a.nbytes >= SHARED_MIN_BYTES}
+
+    tensors = large(protos[0])
+    for proto in protos[1:]:
+        if large(proto) != tensors:
+            raise ValueError("the exports' weights differ: only one network's exports at "
+                             "several sizes can share a weights file")
+    blob, where = bytearray(), {}
+    for name, data in tensors.items():
+        blob.extend(b"\0" * (-len(blob) % 64))
+        where[name] = (len(blob), len(data))
+        blob.extend(data)
+    return bytes(blob), where
+
+
+def _point_to_shared(proto: onnx.ModelProto, where: dict[str, tuple[int, int]],
+                     location: str) -> None:
+    """Replace the listed initializers' data by references into the shared file, in place."""
+    import onnx
+    from onnx.external_data_helper import set_external_data
+
+    for tensor in proto.graph.initializer:
+        if tensor.name not in where:
+            continue
+        offset, length = where[tensor.name]
+        if not tensor.HasField("raw_data"):  # set_external_data wants the raw form
+            tensor.raw_data = b""
+        set_external_data(tensor, location, offset=offset, length=length)
+        for field in ("raw_data", "float_data", "int32_data", "int64_data", "double_data",
+                      "uint64_data"):
+            tensor.ClearField(field)
+        tensor.data_location = onnx.TensorProto.EXTERNAL
 
 
 @contextlib.contextmanager

@@ -79,9 +79,13 @@ class DepthEstimator:
             every image is resized to whatever its aspect; by default the one size rule
             (:func:`~deltar.inference.preprocess.network_input_size`: each image keeps
             its aspect, scaled to the model's design-size pixel budget, sides rounded
-            to multiples of 32). An ONNX model runs at its exported size: an image the
-            rule would give another size is stretched to it, with a ``UserWarning`` when
-            the file records the weights' design size (the bundled ONNX file does).
+            to multiples of 32). An ONNX model runs at its exported sizes
+            (``onnx_model.input_sizes``; the bundled one has the common camera aspects'):
+            each image at the size the rule gives it when that size was exported (as
+            PyTorch runs it), else stretched to the exported size nearest in aspect, with
+            a ``UserWarning`` (when the file records the weights' design size, as the
+            bundled one does; without it the rule cannot be applied and the nearest
+            aspect is taken silently).
         intrinsics: nominal camera intrinsics used without a calibration (scaled to
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
@@ -136,10 +140,12 @@ class DepthEstimator:
             raise ValueError(f"sampling must be one of {HYPOTHESIS_SAMPLINGS}, got "
                              f"{sampling!r}")
         if onnx_model is not None:
-            if input_size is not None and tuple(input_size) != onnx_model.input_size:
-                raise ValueError(f"input_size {input_size} differs from the ONNX model's "
-                                 f"fixed size {onnx_model.input_size}")
-            input_size = onnx_model.input_size
+            sizes = onnx_model.input_sizes
+            if input_size is not None and tuple(input_size) not in sizes:
+                raise ValueError(f"input_size {tuple(input_size)} is not one the ONNX model "
+                                 f"was exported at: {', '.join(map(str, sizes))}")
+            if len(sizes) == 1:
+                input_size = sizes[0]
         if input_size is not None:
             input_size = check_input_size(input_size, "input_size")
         # The PyTorch backend's device and dtype; an ONNX model runs without torch.
@@ -174,7 +180,9 @@ class DepthEstimator:
                                 if contract.get("design_size") is not None else None)
         else:
             contract = onnx_model.contract
-            self.design_size = None  # the exported input size is fixed
+            # The size rule picks among the exported sizes (network_size_for).
+            self.design_size = (tuple(contract["design_size"])
+                                if contract.get("design_size") is not None else None)
         # The input contract travels with the weights: hypotheses and normalisation.
         self.num_hypotheses = int(contract["num_hypotheses"])
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
@@ -206,13 +214,20 @@ class DepthEstimator:
     def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:
         """(h, w) network input size in pixels for images of ``image_size`` (H, W).
 
-        The fixed ``input_size`` (or an ONNX model's exported size) when set, else the
-        one size rule (:func:`~deltar.inference.preprocess.network_input_size`) with the
-        model's design size.
+        The fixed ``input_size`` (or an ONNX model's one exported size) when set, else
+        the one size rule (:func:`~deltar.inference.preprocess.network_input_size`) with
+        the model's design size; for an ONNX model exported at several sizes, the rule's
+        size when it is one of them, else the exported size nearest in aspect.
         """
         if self.input_size is not None:
             return self.input_size
-        return network_input_size(*image_size, design_size=self.design_size)
+        rule = network_input_size(*image_size, design_size=self.design_size)
+        if self.onnx_model is None or rule in self.onnx_model.input_sizes:
+            return rule
+        aspect = math.log(image_size[0] / image_size[1])
+        return min(self.onnx_model.input_sizes,
+                   key=lambda size: (abs(math.log(size[0] / size[1]) - aspect),
+                                     -size[0] * size[1]))
 
     def zone_rects_for(self, frame: ZoneFrame, image_size: tuple[int, int],
                        calibration: RigCalibration | None = None) -> np.ndarray:
@@ -309,7 +324,7 @@ class DepthEstimator:
 
     def _warn_if_stretched(self, image_size: tuple[int, int], net_size: tuple[int, int]
                            ) -> None:
-        """Warn (once per image size) when an ONNX file's fixed input stretches an image
+        """Warn (once per image size) when an ONNX model's exported sizes stretch an image
         that the weights' size rule would run at another size, as PyTorch does."""
         if self.onnx_model is None:
             return
@@ -320,10 +335,10 @@ class DepthEstimator:
         if tuple(rule) != tuple(net_size):
             self._stretch_warned.add(tuple(image_size))
             warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "
-                          f"model's fixed {net_size[0]}x{net_size[1]} input (PyTorch runs them "
-                          f"at {rule[0]}x{rule[1]}; pip install \"deltar[torch]\" for that, "
-                          "or export for this size with deltar export --size)", UserWarning,
-                          stacklevel=3)
+                          f"model's {net_size[0]}x{net_size[1]} input, the exported size "
+                          f"nearest in aspect (PyTorch runs them at {rule[0]}x{rule[1]}; pip "
+                          f"install \"deltar[torch]\" for that, or export for this size with "
+                          "deltar export --size)", UserWarning, stacklevel=3)
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Run the network on :meth:`prepare`'s output: the one backend interface, numpy

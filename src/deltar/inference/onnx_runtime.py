@@ -7,6 +7,11 @@ window), so the export fixes them too: a file serves every zone layout with the 
 at export). The signature is stored in the file's metadata and checked before every
 run, so a layout that does not fit raises a clear error instead of giving wrong depth.
 
+One network exported at several input sizes (:func:`deltar.export.onnx.export_onnx_sizes`:
+one file per size, the weights shared) lists its files in each file's metadata
+(:data:`SIZES_KEY`); ``OnnxDepthModel`` of any of them loads another size's file when an
+image of that size comes (:meth:`OnnxDepthModel.for_input_size`).
+
 This is the runtime side of :mod:`deltar.export.onnx` (which writes the files): the
 input and output names, the metadata keys and the signature live here, so the
 estimator runs ONNX files without importing the exporter.
@@ -33,6 +38,20 @@ NO_TARGET_INPUT = "zone_no_target"
 OUTPUT_NAMES = ("depth", "bin_edges", "uncertainty")
 #: Metadata key of the layout signature an ONNX file was exported for.
 SIGNATURE_KEY = "deltar_layout_signature"
+#: Metadata key of the files of one network exported at several input sizes: JSON
+#: {"<h>x<w>": file name beside this one}.
+SIZES_KEY = "deltar_input_sizes"
+
+
+def size_text(size: tuple[int, int]) -> str:
+    """``"<h>x<w>"`` of an (H, W) size in pixels."""
+    return f"{int(size[0])}x{int(size[1])}"
+
+
+def sized_file_name(name: str, size: tuple[int, int]) -> str:
+    """The file name of another input size's export beside ``name``: ``<stem>.<h>x<w>.onnx``."""
+    stem = name[:-len(".onnx")] if name.endswith(".onnx") else name
+    return f"{stem}.{size_text(size)}.onnx"
 
 
 def layout_signature(zone_rects: np.ndarray | torch.Tensor, grid: int) -> list[dict]:
@@ -78,7 +97,9 @@ class OnnxDepthModel:
             work (decoding, resizing) needs those cores.
 
     Attributes:
-        input_size: (H, W) fixed input size in pixels.
+        input_size: (H, W) fixed input size in pixels of this file.
+        input_sizes: every (H, W) input size the network was exported at, this file's
+            first (:data:`SIZES_KEY`; just ``input_size`` for a file exported alone).
         num_hypotheses: K hypotheses per zone.
         grid: zones per side.
         contract: the contract the exported network's config (``deltar_config``
@@ -94,6 +115,7 @@ class OnnxDepthModel:
 
         path = Path(path)
         input_file(path, "ONNX model")
+        self._options = (num_threads, allow_spinning)
         options = ort.SessionOptions()
         if num_threads:
             options.intra_op_num_threads = int(num_threads)
@@ -126,6 +148,42 @@ class OnnxDepthModel:
         except json.JSONDecodeError as err:
             raise ValueError(f"{path}: unreadable deltar_config metadata: {err}") from err
         self.contract = {**network_contract(config), "num_hypotheses": self.num_hypotheses}
+        self._files = {self.input_size: path}
+        try:
+            listed = json.loads(meta.get(SIZES_KEY, "{}"))
+            for text, name in listed.items():
+                height, width = (int(v) for v in text.split("x"))
+                if (height, width) != self.input_size:
+                    self._files[(height, width)] = path.with_name(Path(name).name)
+        except (json.JSONDecodeError, ValueError, AttributeError) as err:
+            raise ValueError(f"{path}: unreadable {SIZES_KEY} metadata: {err}") from err
+        for size, other in self._files.items():
+            if not other.is_file():
+                raise ValueError(f"{path}: the {size_text(size)} export it lists, {other}, "
+                                 "is missing (keep the files of one export together)")
+        self.input_sizes = tuple(self._files)
+        self._loaded: dict[tuple[int, int], OnnxDepthModel] = {self.input_size: self}
+
+    def for_input_size(self, size: tuple[int, int]) -> OnnxDepthModel:
+        """The model for (H, W) input images of ``size`` pixels (one of :attr:`input_sizes`):
+        this one or another size's file, loaded on first use with the same options.
+
+        Raises:
+            ValueError: a size the network was not exported at, or a file that is not
+                an export of the same network (another contract, grid or inputs).
+        """
+        size = (int(size[0]), int(size[1]))
+        if size not in self._loaded:
+            if size not in self._files:
+                raise ValueError(f"{self.path}: no export for {size_text(size)} inputs (it "
+                                 f"has {', '.join(size_text(s) for s in self.input_sizes)})")
+            other = OnnxDepthModel(self._files[size], *self._options)
+            if (other.input_size != size or other.contract != self.contract
+                    or other.grid != self.grid or other.takes_no_target != self.takes_no_target):
+                raise ValueError(f"{other.path} is not the {size_text(size)} export of the "
+                                 f"network in {self.path}")
+            self._loaded[size] = other
+        return self._loaded[size]
 
     def check_layout(self, zone_rects: np.ndarray) -> None:
         """Raise ``ValueError`` if a (B, Z, 4) layout does not fit the exported one.
@@ -152,7 +210,8 @@ class OnnxDepthModel:
         """Run the network; same inputs and outputs as ``DeltarNet.forward`` (numpy).
 
         Args:
-            image: (B, 3, H, W) float32 normalised, H x W = :attr:`input_size`.
+            image: (B, 3, H, W) float32 normalised, H x W one of :attr:`input_sizes`
+                (run by that size's file).
             hypotheses: (B, Z, K) float32 metres.
             zone_rects: (B, Z, 4) float32 pixels of the input.
             zone_valid: (B, Z) bool.
@@ -164,9 +223,13 @@ class OnnxDepthModel:
             ``uncertainty`` (B, 1, H/2, W/2), float32 metres.
         """
         image = np.asarray(image, dtype=np.float32)
-        if image.ndim != 4 or tuple(image.shape[1:]) != (3, *self.input_size):
-            raise ValueError(f"image must be (B, 3, {self.input_size[0]}, "
-                             f"{self.input_size[1]}), got {image.shape}")
+        if image.ndim != 4 or image.shape[1] != 3 or tuple(image.shape[2:]) not in self._files:
+            sizes = " or ".join(size_text(s) for s in self.input_sizes)
+            raise ValueError(f"image must be (B, 3, H, W) with H x W {sizes}, got "
+                             f"{image.shape}")
+        if tuple(image.shape[2:]) != self.input_size:
+            return self.for_input_size(image.shape[2:]).run(image, hypotheses, zone_rects,
+                                                              zone_valid, zone_no_target)
         hyp = np.asarray(hypotheses, dtype=np.float32)
         if hyp.ndim != 3 or hyp.shape[2] != self.num_hypotheses or not np.all(np.isfinite(hyp)):
             raise ValueError(f"hypotheses must be finite (B, Z, {self.num_hypotheses}), got "

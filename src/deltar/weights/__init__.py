@@ -6,10 +6,18 @@ frames with simulated L5 zones (docs/training.md: the recipe and its leave-one-s
 tables).
 
 Each bundled model is shipped twice: the checkpoint (``.pt``, the PyTorch path) and its
-ONNX export (``.onnx``, written from the checkpoint by ``deltar export --checkpoint
-default --size 480x640``, with the checkpoint's config as metadata), which the estimator
-runs through onnxruntime when PyTorch is not installed (:func:`bundled_onnx`; a test keeps
-the two equal). Its input is fixed at 256x320, the network size of every 4:3 camera.
+ONNX export, which the estimator runs through onnxruntime when PyTorch is not installed
+(:func:`bundled_onnx`; tests keep the two equal). The export is one fixed-size file per
+common camera aspect (4:3, 16:9, 16:10 and 3:2, 1:1, and the portrait 3:4 and 9:16:
+network inputs 256x320, 224x384, 224x352, 288x288, 320x256, 384x224), all reading one
+shared weights file (``.onnx.data``), written from the checkpoint with the checkpoint's
+config as metadata by (one command)::
+
+    deltar export --checkpoint default --out src/deltar/weights/deltar_select_default.onnx
+        --size 480x640,720x1280,800x1280,480x480,640x480,1280x720
+
+:func:`bundled_onnx` gives the 4:3 file, which lists the others; an image runs at the
+size the size rule gives it, as on the PyTorch path.
 """
 
 from __future__ import annotations
@@ -22,9 +30,12 @@ _HERE = Path(__file__).resolve().parent
 BUNDLED_MODELS: dict[str, str] = {"default": "deltar_select_default.pt"}
 #: Bundled model name -> its ONNX export inside this package.
 BUNDLED_ONNX: dict[str, str] = {"default": "deltar_select_default.onnx"}
-#: The camera image size (H, W) pixels the bundled ONNX files were exported for (a 4:3
-#: camera: network input 256x320 by the size rule).
-BUNDLED_ONNX_EXPORT_SIZE = (480, 640)
+#: The camera image sizes (H, W) pixels the bundled ONNX files were exported for, the
+#: first that of the file :func:`bundled_onnx` gives (a 4:3 camera: network input 256x320
+#: by the size rule).
+BUNDLED_ONNX_EXPORT_SIZES = ((480, 640), (720, 1280), (800, 1280), (480, 480), (640, 480),
+                            (1280, 720))
+BUNDLED_ONNX_EXPORT_SIZE = BUNDLED_ONNX_EXPORT_SIZES[0]
 
 
 def bundled_model_names() -> list[str]:
