@@ -8,11 +8,13 @@ from deltar.contract import network_contract
 from deltar.models import DeltarNet, create_model
 from deltar.models.config import (
     FLAT_OPTIONS,
-    DecoderConfig,
+    DescriptorConfig,
+    FusionConfig,
     HeadConfig,
     InputConfig,
     NetworkConfig,
     OutputConfig,
+    PlaneSelectConfig,
 )
 from deltar.models.presets import PRESETS
 
@@ -32,14 +34,20 @@ def test_config_round_trips_through_the_network():
     (lambda: NetworkConfig.from_dict({"neck": {}}), r"unknown network config sections"),
     (lambda: NetworkConfig().with_options(n_bin=3), r"unknown network options.*n_bin"),
     (lambda: HeadConfig(name="magic"), "head must be one of"),
-    (lambda: DecoderConfig(name="unet"), "decoder must be one of"),
-    (lambda: DecoderConfig(channels=(8, 8)), "decoder_channels"),
-    (lambda: DecoderConfig(descriptor_strides=(6,)), "descriptor strides"),
+    (lambda: HeadConfig(name="plane_select"), "takes a PlaneSelectConfig"),
+    (lambda: FusionConfig(name="unet"), "decoder must be one of"),
+    (lambda: FusionConfig(channels=(8, 8)), "decoder_channels"),
+    (lambda: DescriptorConfig(strides=(6,)), "descriptor strides"),
+    (lambda: NetworkConfig(head=OutputConfig()), "the head part must be one of"),
+    (lambda: NetworkConfig.from_dict({"decoder": {"name": "descriptors", "channels": [8]}}),
+     r"unknown decoder options \['channels'\] for DescriptorConfig"),
+    (lambda: PRESETS["deltar-lite"].with_options(planar=False),
+     r"head 'zone_prior' has no option \['planar'\]"),
     (lambda: InputConfig(design_size=(65, 96)), "design_size"),
     (lambda: InputConfig(image_std=(0.5, 0.0, 0.5)), "image_std"),
     (lambda: OutputConfig(min_depth=2.0, max_depth=1.0), "min_depth"),
     (lambda: OutputConfig(max_depth=4.0), "no_target_depth"),
-    (lambda: NetworkConfig(decoder=DecoderConfig(name="descriptors")), "decoder 'descriptors'"),
+    (lambda: NetworkConfig(decoder=DescriptorConfig()), "decoder 'descriptors'"),
 ])
 def test_bad_values_name_the_option(make, match):
     with pytest.raises(ValueError, match=match):
@@ -47,11 +55,24 @@ def test_bad_values_name_the_option(make, match):
 
 
 def test_flat_options_cover_every_field_once_and_read_back():
-    spec = PRESETS["deltar-lite"]
     targets = list(FLAT_OPTIONS.values())
     assert len(set(targets)) == len(targets)
-    assert {(s, f) for s, fields in spec.to_dict().items() for f in fields} == set(targets)
-    assert NetworkConfig.from_flat(spec.flat_options()) == spec
+    covered = set()
+    for spec in PRESETS.values():
+        covered |= {(s, f) for s, fields in spec.to_dict().items() for f in fields}
+        assert NetworkConfig.from_flat(spec.flat_options()) == spec
+    assert covered == set(targets)
+
+
+def test_switching_the_head_keeps_the_shared_bin_count():
+    lite = PRESETS["deltar-lite"]
+    select = lite.with_options(decoder="descriptors", head="plane_select", planar=False)
+    assert select.head == PlaneSelectConfig(n_bins=64, planar=False)
+    assert select.decoder == DescriptorConfig()
+    assert lite.with_options(head="bins").head == HeadConfig(name="bins", n_bins=64)
+    # Format-2 files store every option of every kind: the others are dropped.
+    stored = {**lite.flat_options(), "planar": True, "descriptor_strides": (8, 16)}
+    assert PRESETS["deltar-official"].with_stored_options(stored) == lite
 
 
 def test_contract_is_the_same_from_either_stored_form():

@@ -11,12 +11,10 @@ import json
 import numpy as np
 import pytest
 
-from deltar.contract import is_sectioned_config
 from deltar.data.procedural import render_scene
 from deltar.data.sources import open_source
 from deltar.inference.loading import load_estimator
 from deltar.models.checkpoint import load_checkpoint
-from deltar.models.config import NetworkConfig
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulate_frame import simulate_zone_frame
 from deltar.weights import (
@@ -56,12 +54,7 @@ def test_shipped_onnx_equals_a_fresh_export_of_the_shipped_checkpoint(tmp_path, 
     assert ours.onnx_model.contract == theirs.onnx_model.contract
     stored = json.loads(json.dumps(config, default=list))
     assert json.loads(theirs.onnx_model.metadata["deltar_config"]) == stored
-    shipped_config = json.loads(ours.onnx_model.metadata["deltar_config"])
-    if not is_sectioned_config(shipped_config):  # exported with flat options (format 2)
-        shipped_config = NetworkConfig.from_flat(
-            {k: tuple(v) if isinstance(v, list) else v for k, v in shipped_config.items()}
-        ).to_dict()
-    assert json.loads(json.dumps(shipped_config, default=list)) == stored
+    assert json.loads(ours.onnx_model.metadata["deltar_config"]) == stored
     assert ours.onnx_model.input_size == (256, 320)  # every 4:3 camera's network size
     assert ours.onnx_model.input_sizes == tuple(
         export_input_size(model, *size) for size in BUNDLED_ONNX_EXPORT_SIZES)

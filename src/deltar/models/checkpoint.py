@@ -32,7 +32,7 @@ import torch
 
 from deltar.models.config import NetworkConfig
 from deltar.models.network import DeltarNet
-from deltar.models.presets import PRESETS, preset_config
+from deltar.models.presets import PRESETS
 
 CHECKPOINT_FORMAT = "deltar.checkpoint"
 #: The version this deltar writes.
@@ -107,7 +107,7 @@ def network_config_from_stored(preset: str, config: dict[str, Any], format_versi
         # Weights saved before the no-target flags existed keep the behaviour they were
         # measured with: they ignore the flags.
         config.setdefault("no_target_depth", None)
-        spec = preset_config(preset, **config)
+        spec = PRESETS[preset].with_stored_options(config)
     else:
         raise ValueError(f"unsupported checkpoint format_version {format_version!r} (this "
                          f"deltar reads versions {READABLE_FORMAT_VERSIONS})")

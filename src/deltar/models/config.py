@@ -1,9 +1,11 @@
 """The network's configuration, one small frozen dataclass per part.
 
 :class:`NetworkConfig` holds five parts: :class:`InputConfig` (the input contract the
-weights were trained with), :class:`EncoderConfig`, :class:`DecoderConfig`,
-:class:`HeadConfig` and :class:`OutputConfig` (depth range and what the estimator reads
-about the outputs). :class:`~deltar.models.network.DeltarNet` is built from them;
+weights were trained with), :class:`EncoderConfig`, the decoder (:class:`FusionConfig`
+or :class:`DescriptorConfig`, by name in :data:`DECODER_CONFIGS`), the head
+(:class:`HeadConfig`, or :class:`PlaneSelectConfig` with that head's own options, by
+name in :data:`HEAD_CONFIGS`) and :class:`OutputConfig` (depth range and what the
+estimator reads about the outputs). :class:`~deltar.models.network.DeltarNet` is built from them;
 ``NetworkConfig.to_dict()`` / ``NetworkConfig.from_dict()`` give the nested dict that
 checkpoints (format 3) and ONNX metadata store, one section per part.
 
@@ -17,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from deltar.contract import (
@@ -31,14 +33,9 @@ from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.fusion import FUSION_MODES, LAYER_KINDS
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
-#: Head names (one file each under :mod:`deltar.models.heads`; built by
-#: :data:`deltar.models.network.HEADS`).
-HEAD_NAMES = ("bins", "mvit", "direct", "zone_prior", "zone_select", "plane_select")
 #: Heads that choose among the zone readings (the only ones the descriptor decoder,
 #: which gives the head no zone information, can feed).
 SELECTING_HEADS = ("zone_select", "plane_select")
-#: Decoder names (built by :data:`deltar.models.network.DECODERS`).
-DECODER_NAMES = ("fusion", "descriptors")
 #: Paper ablation (Table 4): how the zone distributions enter the fusion decoder.
 DISTRIBUTION_INPUTS = ("hypotheses", "mean_sigma")
 #: Paper ablation (Table 4): what the image encoder reads.
@@ -111,26 +108,22 @@ class EncoderConfig:
 
 
 @dataclass(frozen=True)
-class DecoderConfig:
-    """Where the head's features come from.
+class FusionConfig:
+    """The zone-fusion decoder of the paper (:class:`~deltar.models.decoder.FusionDecoder`)
+    and the distribution encoder it fuses.
 
     Attributes:
-        name: "fusion" (the zone-fusion decoder of the paper,
-            :class:`~deltar.models.decoder.FusionDecoder`) or "descriptors" (no decoder:
-            the head compares frozen-encoder descriptors at stride 4,
-            :class:`~deltar.models.affinity.EncoderDescriptors`; the zone readings enter
-            only through the head, so a selecting head is required).
-        channels: "fusion": five decoder widths; the fusion widths are half of the second
-            to fourth, and the PointNet widths are those, fine to coarse.
-        out_channels: "fusion": width of the features fed to the head.
-        fusion: "fusion": zone fusion mode, "attention" (the release); the others of
+        name: "fusion".
+        channels: five decoder widths; the fusion widths are half of the second to
+            fourth, and the PointNet widths are those, fine to coarse.
+        out_channels: width of the features fed to the head.
+        fusion: zone fusion mode, "attention" (the release); the others of
             :data:`~deltar.models.fusion.FUSION_MODES` are paper ablations.
-        fusion_layers: "fusion": order of "hist2image" / "image" layers at each scale.
-        cross_heads: "fusion": heads of the zone-to-image attention.
-        self_heads: "fusion": heads of the image self attention.
-        distribution_input: "fusion": "hypotheses" (K sampled depths per zone); paper
-            ablation "mean_sigma" (one (mean, sigma) point per zone).
-        descriptor_strides: "descriptors": the encoder strides the descriptors use.
+        fusion_layers: order of "hist2image" / "image" layers at each fusion scale.
+        cross_heads: heads of the zone-to-image attention.
+        self_heads: heads of the image self attention.
+        distribution_input: "hypotheses" (K sampled depths per zone); paper ablation
+            "mean_sigma" (one (mean, sigma) point per zone).
     """
 
     name: str = "fusion"
@@ -141,13 +134,11 @@ class DecoderConfig:
     cross_heads: int = 4
     self_heads: int = 8
     distribution_input: str = "hypotheses"
-    descriptor_strides: tuple[int, ...] = (8, 16)
 
     def __post_init__(self) -> None:
+        _check_kind(self, "decoder", DECODER_CONFIGS)
         _set(self, "channels", tuple(int(v) for v in self.channels))
         _set(self, "fusion_layers", tuple(str(v) for v in self.fusion_layers))
-        _set(self, "descriptor_strides", tuple(int(v) for v in self.descriptor_strides))
-        _check_choice("decoder", self.name, DECODER_NAMES)
         _check_choice("fusion", self.fusion, FUSION_MODES)
         _check_choice("distribution_input", self.distribution_input, DISTRIBUTION_INPUTS)
         if len(self.channels) != 5:
@@ -155,38 +146,85 @@ class DecoderConfig:
         if any(kind not in LAYER_KINDS for kind in self.fusion_layers):
             raise ValueError(f"fusion_layers must be among {LAYER_KINDS}, got "
                              f"{self.fusion_layers}")
-        if not self.descriptor_strides or any(
-                s not in FEATURE_STRIDES for s in self.descriptor_strides):
+
+
+@dataclass(frozen=True)
+class DescriptorConfig:
+    """No decoder to train: the head compares frozen-encoder descriptors at stride 4
+    (:class:`~deltar.models.affinity.EncoderDescriptors`); the zone readings enter only
+    through the head, so a head of :data:`SELECTING_HEADS` is required.
+
+    Attributes:
+        name: "descriptors".
+        strides: the encoder strides the descriptors use.
+    """
+
+    name: str = "descriptors"
+    strides: tuple[int, ...] = (8, 16)
+
+    def __post_init__(self) -> None:
+        _check_kind(self, "decoder", DECODER_CONFIGS)
+        _set(self, "strides", tuple(int(v) for v in self.strides))
+        if not self.strides or any(s not in FEATURE_STRIDES for s in self.strides):
             raise ValueError(f"descriptor strides must be among {FEATURE_STRIDES}, got "
-                             f"{self.descriptor_strides}")
+                             f"{self.strides}")
+
+
+#: Each decoder's config class by name.
+DECODER_CONFIGS: dict[str, type] = {"fusion": FusionConfig, "descriptors": DescriptorConfig}
+DecoderConfig = FusionConfig | DescriptorConfig
 
 
 @dataclass(frozen=True)
 class HeadConfig:
-    """The depth head and its own parameters.
+    """A depth head that takes only its bin count.
 
     Attributes:
-        name: one of :data:`HEAD_NAMES`: "bins" (release), "mvit" (paper's AdaBins
-            refinement), "zone_prior" (log-ratio bins around a smooth prior from the
-            zone means), "zone_select" (an image-guided choice among the zone readings),
-            "plane_select" (the zones' local planes chosen by feature affinity); paper
-            ablation "direct" (no refinement).
-        n_bins: number of depth bins N (every head but "direct").
-        temperature: "plane_select": initial affinity temperature.
-        planar: "plane_select": hypotheses are the zones' local planes (else constants).
+        name: "bins" (release), "mvit" (paper's AdaBins refinement), "zone_prior"
+            (log-ratio bins around a smooth prior from the zone means), "zone_select"
+            (an image-guided choice among the zone readings); paper ablation "direct"
+            (no refinement, no bins). "plane_select" has its own
+            :class:`PlaneSelectConfig`.
+        n_bins: number of depth bins N (unused by "direct").
     """
 
     name: str = "bins"
     n_bins: int = 256
+
+    def __post_init__(self) -> None:
+        _check_kind(self, "head", HEAD_CONFIGS)
+        if int(self.n_bins) < 1:
+            raise ValueError(f"n_bins must be >= 1, got {self.n_bins}")
+
+
+@dataclass(frozen=True)
+class PlaneSelectConfig(HeadConfig):
+    """The plane-select head (:mod:`deltar.models.heads.plane_select`): the zones' local
+    planes chosen by feature affinity.
+
+    Attributes:
+        name: "plane_select".
+        n_bins: number of bins of the reported edges.
+        temperature: initial affinity temperature.
+        planar: hypotheses are the zones' local planes (else constants).
+    """
+
+    name: str = "plane_select"
+    n_bins: int = 64
     temperature: float = 5.0
     planar: bool = True
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         _set(self, "temperature", float(self.temperature))
         _set(self, "planar", bool(self.planar))
-        _check_choice("head", self.name, HEAD_NAMES)
-        if int(self.n_bins) < 1:
-            raise ValueError(f"n_bins must be >= 1, got {self.n_bins}")
+
+
+#: Each head's config class by name (one file each under :mod:`deltar.models.heads`;
+#: built by :data:`deltar.models.network.HEADS`).
+HEAD_CONFIGS: dict[str, type] = {"bins": HeadConfig, "mvit": HeadConfig, "direct": HeadConfig,
+                                 "zone_prior": HeadConfig, "zone_select": HeadConfig,
+                                 "plane_select": PlaneSelectConfig}
 
 
 @dataclass(frozen=True)
@@ -233,10 +271,10 @@ class OutputConfig:
             _set(self, name, None if value is None else dict(value))
 
 
-#: The part classes by section name, in the order of the stored dict.
-PART_CLASSES: dict[str, type] = {"input": InputConfig, "encoder": EncoderConfig,
-                                 "decoder": DecoderConfig, "head": HeadConfig,
-                                 "output": OutputConfig}
+#: Each section's config classes by kind name; parts of one kind only under None.
+PART_CLASSES: dict[str, dict[str | None, type]] = {
+    "input": {None: InputConfig}, "encoder": {None: EncoderConfig},
+    "decoder": DECODER_CONFIGS, "head": HEAD_CONFIGS, "output": {None: OutputConfig}}
 assert tuple(PART_CLASSES) == NETWORK_CONFIG_SECTIONS
 
 #: Each flat option name (format-2 checkpoints, ``create_model`` overrides, the
@@ -250,8 +288,8 @@ FLAT_OPTIONS: dict[str, tuple[str, str]] = {
     "decoder_channels": ("decoder", "channels"),
     "head_channels": ("decoder", "out_channels"),
     **{name: ("decoder", name) for name in ("fusion", "fusion_layers", "cross_heads",
-                                            "self_heads", "distribution_input",
-                                            "descriptor_strides")},
+                                            "self_heads", "distribution_input")},
+    "descriptor_strides": ("decoder", "strides"),
     "head": ("head", "name"),
     "n_bins": ("head", "n_bins"),
     "select_temperature": ("head", "temperature"),
@@ -266,23 +304,23 @@ class NetworkConfig:
     """The whole network: its five parts, checked together.
 
     Raises:
-        ValueError: a part's value out of its range (naming the option), or parts that
-            do not fit together (the descriptor decoder with a head that does not
-            select among the zones, or with the five-channel image input).
+        ValueError: a part of the wrong type, or parts that do not fit together (the
+            descriptor decoder with a head that does not select among the zones, or
+            with the five-channel image input).
     """
 
     inputs: InputConfig = field(default_factory=InputConfig)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
-    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    decoder: DecoderConfig = field(default_factory=FusionConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def __post_init__(self) -> None:
-        for attribute, section in zip(("inputs", "encoder", "decoder", "head", "output"),
-                                      PART_CLASSES, strict=True):
-            if not isinstance(getattr(self, attribute), PART_CLASSES[section]):
-                raise ValueError(f"{attribute} must be a {PART_CLASSES[section].__name__}, "
-                                 f"got {getattr(self, attribute)!r}")
+        for (section, classes), part in zip(PART_CLASSES.items(), self._values(), strict=True):
+            if type(part) not in classes.values():
+                raise ValueError(f"the {section} part must be one of "
+                                 f"{sorted({c.__name__ for c in classes.values()})}, got "
+                                 f"{part!r}")
         if self.decoder.name == "descriptors" and self.head.name not in SELECTING_HEADS:
             raise ValueError(f"decoder 'descriptors' gives the head no zone information: it "
                              f"needs head 'zone_select' or 'plane_select', got "
@@ -290,38 +328,46 @@ class NetworkConfig:
         if self.decoder.name == "descriptors" and self.encoder.image_input != "rgb":
             raise ValueError("decoder 'descriptors' takes image_input 'rgb' only")
 
+    def _values(self) -> tuple[Any, ...]:
+        return self.inputs, self.encoder, self.decoder, self.head, self.output
+
     def parts(self) -> dict[str, Any]:
         """The parts by section name (``input``, ``encoder``, ``decoder``, ``head``,
         ``output``)."""
-        return dict(zip(PART_CLASSES, (self.inputs, self.encoder, self.decoder, self.head,
-                                       self.output), strict=True))
+        return dict(zip(PART_CLASSES, self._values(), strict=True))
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
-        """The nested dict checkpoints and ONNX metadata store: one section per part."""
+        """The nested dict checkpoints and ONNX metadata store: one section per part
+        (the decoder's and the head's with their ``name``)."""
         return {section: asdict(part) for section, part in self.parts().items()}
 
     @classmethod
     def from_dict(cls, config: Mapping[str, Any]) -> NetworkConfig:
         """Read :meth:`to_dict`'s nested form; a missing section or field takes its
-        default.
+        default (a decoder or head section without ``name``: "fusion", "bins").
 
         Raises:
-            ValueError: an unknown section or field (naming it), or a bad value.
+            ValueError: an unknown section or option (naming it), or a bad value.
         """
         unknown = set(config) - set(PART_CLASSES)
         if unknown:
             raise ValueError(f"unknown network config sections {sorted(unknown)}; known: "
                              f"{list(PART_CLASSES)}")
-        parts = {}
-        for section, part_class in PART_CLASSES.items():
+        defaults = cls().parts()
+        parts = []
+        for section, classes in PART_CLASSES.items():
             values = dict(config.get(section) or {})
-            names = {f.name for f in fields(part_class)}
-            extra = set(values) - names
+            kind = values.get("name", getattr(defaults[section], "name", None))
+            if kind not in classes:
+                _check_choice(section, kind, tuple(classes))
+            part_class = classes[kind]
+            extra = set(values) - _field_names(part_class)
             if extra:
-                raise ValueError(f"unknown {section} options {sorted(extra)}; known: "
-                                 f"{sorted(names)}")
-            parts[section] = part_class(**values)
-        return cls(*parts.values())
+                raise ValueError(f"unknown {section} options {sorted(extra)} for "
+                                 f"{part_class.__name__}; known: "
+                                 f"{sorted(_field_names(part_class))}")
+            parts.append(part_class(**values))
+        return cls(*parts)
 
     @classmethod
     def from_flat(cls, options: Mapping[str, Any]) -> NetworkConfig:
@@ -331,10 +377,23 @@ class NetworkConfig:
     def with_options(self, **options: Any) -> NetworkConfig:
         """A copy with flat options (:data:`FLAT_OPTIONS`) replaced, e.g. ``n_bins=128``.
 
+        A new ``decoder`` or ``head`` name switches that part's kind: the options the
+        two kinds share (``n_bins``) are kept, the others start from the new kind's
+        defaults.
+
         Raises:
-            ValueError: an unknown option (the message lists the known ones) or a bad
-                value.
+            ValueError: an unknown option (the message lists the known ones), an option
+                the chosen decoder or head does not have, or a bad value.
         """
+        return self._replaced(options, drop_inapplicable=False)
+
+    def with_stored_options(self, options: Mapping[str, Any]) -> NetworkConfig:
+        """As :meth:`with_options`, for format-2 files, which store every option of
+        every kind: options the chosen decoder and head do not have are dropped."""
+        return self._replaced(options, drop_inapplicable=True)
+
+    def _replaced(self, options: Mapping[str, Any], drop_inapplicable: bool
+                  ) -> NetworkConfig:
         unknown = sorted(set(options) - set(FLAT_OPTIONS))
         if unknown:
             raise ValueError(f"unknown network options {unknown}; known: "
@@ -345,14 +404,41 @@ class NetworkConfig:
             changes.setdefault(section, {})[name] = value
         parts = self.parts()
         for section, values in changes.items():
-            parts[section] = replace(parts[section], **values)
+            current, classes = parts[section], PART_CLASSES[section]
+            kind = values.get("name", getattr(current, "name", None))
+            if kind not in classes:
+                _check_choice(section, kind, tuple(classes))
+            part_class = classes[kind]
+            names = _field_names(part_class)
+            inapplicable = sorted(set(values) - names)
+            if inapplicable and not drop_inapplicable:
+                flat = [o for o, target in FLAT_OPTIONS.items()
+                        if target[0] == section and target[1] in inapplicable]
+                raise ValueError(f"{section} {kind!r} has no option {flat}")
+            kept = {k: v for k, v in asdict(current).items() if k in names}
+            kept.update({k: v for k, v in values.items() if k in names})
+            parts[section] = part_class(**kept)
         return NetworkConfig(*parts.values())
 
     def flat_options(self) -> dict[str, Any]:
-        """Every flat option (:data:`FLAT_OPTIONS`) with its value here."""
+        """The flat options (:data:`FLAT_OPTIONS`) of this config's parts with their
+        values (those of the chosen decoder and head kinds only)."""
         parts = self.parts()
         return {option: getattr(parts[section], name)
-                for option, (section, name) in FLAT_OPTIONS.items()}
+                for option, (section, name) in FLAT_OPTIONS.items()
+                if name in _field_names(type(parts[section]))}
+
+
+def _field_names(part_class: type) -> set[str]:
+    return {f.name for f in fields(part_class)}
+
+
+def _check_kind(part: Any, section: str, classes: Mapping[str, type]) -> None:
+    """A decoder's or head's ``name`` must be one its class stands for."""
+    _check_choice(section, part.name, tuple(classes))
+    if classes[part.name] is not type(part):
+        raise ValueError(f"{section} {part.name!r} takes a {classes[part.name].__name__}, "
+                         f"not a {type(part).__name__}")
 
 
 def _set(instance: Any, name: str, value: Any) -> None:

@@ -19,10 +19,11 @@ from torch import nn
 from deltar.contract import SIZE_DIVISOR
 from deltar.models.affinity import EncoderDescriptors, descriptor_levels
 from deltar.models.config import (
-    DECODER_NAMES,
-    HEAD_NAMES,
+    DECODER_CONFIGS,
+    HEAD_CONFIGS,
     DecoderConfig,
     EncoderConfig,
+    FusionConfig,
     HeadConfig,
     InputConfig,
     NetworkConfig,
@@ -75,7 +76,7 @@ def _plane_select_head(width: int, c: NetworkConfig) -> DepthHead:
                             no_target_depth=c.output.no_target_depth)
 
 
-#: Each head by :attr:`HeadConfig.name <deltar.models.config.HeadConfig.name>`, one
+#: Each head by its config's ``name`` (:data:`deltar.models.config.HEAD_CONFIGS`), one
 #: file each under :mod:`deltar.models.heads`.
 HEADS: dict[str, HeadBuilder] = {
     "bins": _bins_head,
@@ -85,7 +86,7 @@ HEADS: dict[str, HeadBuilder] = {
     "zone_select": _zone_select_head,
     "plane_select": _plane_select_head,
 }
-assert tuple(HEADS) == HEAD_NAMES
+assert tuple(HEADS) == tuple(HEAD_CONFIGS)
 
 
 class BuiltDecoder(NamedTuple):
@@ -110,7 +111,7 @@ class DecoderEntry(NamedTuple):
         build: (encoder map widths fine to coarse, the network's config) -> decoder.
     """
 
-    encoder_levels: Callable[[DecoderConfig], int]
+    encoder_levels: Callable[[Any], int]
     build: Callable[[Sequence[int], NetworkConfig], BuiltDecoder]
 
 
@@ -135,18 +136,18 @@ def _fusion_decoder(encoder_channels: Sequence[int], c: NetworkConfig) -> BuiltD
 
 def _descriptor_decoder(encoder_channels: Sequence[int], c: NetworkConfig) -> BuiltDecoder:
     """Frozen-encoder descriptors at stride 4 (no decoder to train)."""
-    decoder = EncoderDescriptors(encoder_channels, c.decoder.descriptor_strides)
+    decoder = EncoderDescriptors(encoder_channels, c.decoder.strides)
     return BuiltDecoder(decoder, None, decoder.channels)
 
 
-#: Each decoder by :attr:`DecoderConfig.name <deltar.models.config.DecoderConfig.name>`.
+#: Each decoder by its config's ``name`` (:data:`deltar.models.config.DECODER_CONFIGS`).
 DECODERS: dict[str, DecoderEntry] = {
     "fusion": DecoderEntry(lambda d: len(FEATURE_STRIDES), _fusion_decoder),
     # Reads the encoder up to its coarsest chosen stride only.
-    "descriptors": DecoderEntry(lambda d: descriptor_levels(d.descriptor_strides),
+    "descriptors": DecoderEntry(lambda d: descriptor_levels(d.strides),
                                 _descriptor_decoder),
 }
-assert tuple(DECODERS) == DECODER_NAMES
+assert tuple(DECODERS) == tuple(DECODER_CONFIGS)
 
 
 class DeltarNet(nn.Module):
@@ -159,10 +160,12 @@ class DeltarNet(nn.Module):
 
     Args:
         encoder: the image encoder (:class:`~deltar.models.config.EncoderConfig`).
-        decoder: the decoder, a name of :data:`DECODERS` and its options
-            (:class:`~deltar.models.config.DecoderConfig`).
-        head: the depth head, a name of :data:`HEADS` and its options
-            (:class:`~deltar.models.config.HeadConfig`).
+        decoder: the decoder of :data:`DECODERS` and its options
+            (:class:`~deltar.models.config.FusionConfig` or
+            :class:`~deltar.models.config.DescriptorConfig`).
+        head: the depth head of :data:`HEADS` and its options
+            (:class:`~deltar.models.config.HeadConfig`, or
+            :class:`~deltar.models.config.PlaneSelectConfig` for "plane_select").
         inputs: the input contract (:class:`~deltar.models.config.InputConfig`).
         output: depth range and output contract
             (:class:`~deltar.models.config.OutputConfig`).
@@ -181,7 +184,7 @@ class DeltarNet(nn.Module):
     ) -> None:
         super().__init__()
         spec = NetworkConfig(inputs or InputConfig(), encoder or EncoderConfig(),
-                             decoder or DecoderConfig(), head or HeadConfig(),
+                             decoder or FusionConfig(), head or HeadConfig(),
                              output or OutputConfig())
         #: The parts' configs (frozen); :meth:`config` is its stored form.
         self.network_config = spec
@@ -189,7 +192,8 @@ class DeltarNet(nn.Module):
         self.min_depth = spec.output.min_depth
         self.max_depth = spec.output.max_depth
         self.five_channel = spec.encoder.image_input == "rgb_zone_maps"
-        self.mean_sigma_points = spec.decoder.distribution_input == "mean_sigma"
+        self.mean_sigma_points = (isinstance(spec.decoder, FusionConfig)
+                                  and spec.decoder.distribution_input == "mean_sigma")
 
         entry = DECODERS[spec.decoder.name]
         self.image_encoder = ImageEncoder(spec.encoder.backbone, 5 if self.five_channel else 3,

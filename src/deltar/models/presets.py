@@ -5,11 +5,13 @@ from __future__ import annotations
 from typing import Any
 
 from deltar.models.config import (
-    DecoderConfig,
+    DescriptorConfig,
     EncoderConfig,
+    FusionConfig,
     HeadConfig,
     InputConfig,
     NetworkConfig,
+    PlaneSelectConfig,
 )
 from deltar.models.network import DeltarNet
 
@@ -35,9 +37,9 @@ PRESETS: dict[str, NetworkConfig] = {
     # taken from the zones (see docs/models.md).
     "deltar-lite": NetworkConfig(
         inputs=_LITE0_INPUT, encoder=_LITE0_ENCODER,
-        decoder=DecoderConfig(channels=(128, 128, 64, 32, 16), out_channels=32,
-                              fusion_layers=("hist2image", "image"), cross_heads=2,
-                              self_heads=2),
+        decoder=FusionConfig(channels=(128, 128, 64, 32, 16), out_channels=32,
+                             fusion_layers=("hist2image", "image"), cross_heads=2,
+                             self_heads=2),
         head=HeadConfig(name="zone_prior", n_bins=64)),
     # For a new room with nothing to train on: the same ImageNet EfficientNet-Lite0
     # encoder (kept frozen in training), no decoder; each pixel picks among the zones'
@@ -45,8 +47,8 @@ PRESETS: dict[str, NetworkConfig] = {
     # numbers; useful untrained with encoder_weights="imagenet"; docs/models.md).
     "deltar-select": NetworkConfig(
         inputs=_LITE0_INPUT, encoder=_LITE0_ENCODER,
-        decoder=DecoderConfig(name="descriptors", descriptor_strides=(8, 16)),
-        head=HeadConfig(name="plane_select", n_bins=64)),
+        decoder=DescriptorConfig(strides=(8, 16)),
+        head=PlaneSelectConfig(n_bins=64)),
 }
 
 #: The paper's ablations (Table 4), as options replacing a preset's: each row of the
