@@ -323,3 +323,22 @@ def test_blend_fit_needs_pixels_in_both_regions(rng):
         fit_confidence_blend(pixels)
     with pytest.raises(ValueError, match="objective must be one of"):
         fit_confidence_blend(_synthetic_pixels(rng, 3000), objective="rmse")
+
+
+def test_blend_with_fill_is_blend_weight_then_mix_log_depth(rng):
+    # blend_with_fill takes the zone grid's box as slices and works in place: the same
+    # values as the two public steps with the mask, over the whole range of weights.
+    from deltar.inference.blend import DEFAULT_BLEND, blend_with_fill, mix_log_depth
+
+    depth = rng.uniform(0.3, 6.0, (96, 128)).astype(np.float32)
+    spread = (depth * rng.choice([0.0, 1e-9, 1e-4, 0.05, 0.3, 2.0], depth.shape)).astype(
+        np.float32)
+    fill = rng.uniform(0.3, 6.0, depth.shape).astype(np.float32)
+    rects = np.array([[20.3, 30.0, 40.0, 50.7], [60.0, 70.2, 80.0, 100.0]], np.float32)
+    weight = blend_weight(depth, spread, zone_grid_mask(rects, depth.shape), DEFAULT_BLEND)
+    assert weight.min() < 0.01 and weight.max() == 1.0
+    expected = mix_log_depth(depth, fill, weight)
+    got = blend_with_fill(depth, spread, fill, rects, DEFAULT_BLEND)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=0)
+    np.testing.assert_array_equal(got[weight >= 1.0], depth[weight >= 1.0])

@@ -113,15 +113,20 @@ def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.nd
         zone_rects: (Z, 4) (y0, x0, y1, x1) in image pixels (may run past the image).
         image_size: (H, W) pixels.
     """
+    mask = np.zeros(tuple(image_size), dtype=bool)
+    mask[_grid_box(zone_rects, image_size)] = True
+    return mask
+
+
+def _grid_box(zone_rects: np.ndarray, image_size: tuple[int, int]) -> tuple[slice, slice]:
+    """(rows, cols) slices of :func:`zone_grid_mask`'s True pixels."""
     height, width = image_size
     rects = np.asarray(zone_rects, dtype=np.float64)
     y0 = int(np.clip(np.floor(rects[:, 0].min()), 0, height))
     x0 = int(np.clip(np.floor(rects[:, 1].min()), 0, width))
     y1 = int(np.clip(np.ceil(rects[:, 2].max()), 0, height))
     x1 = int(np.clip(np.ceil(rects[:, 3].max()), 0, width))
-    mask = np.zeros((height, width), dtype=bool)
-    mask[y0:y1, x0:x1] = True
-    return mask
+    return slice(y0, y1), slice(x0, x1)
 
 
 def blend_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, inside: np.ndarray,
@@ -146,16 +151,34 @@ def log_relative_spread(depth_m: np.ndarray, uncertainty_m: np.ndarray,
     tiny = np.float32(1e-6)
     if log_depth is None:
         log_depth = np.log(np.maximum(np.asarray(depth_m, dtype=np.float32), tiny))
-    log_spread = np.log(np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny))
+    log_spread = np.maximum(np.asarray(uncertainty_m, dtype=np.float32), tiny)
+    np.log(log_spread, out=log_spread)
     log_spread -= log_depth
     return log_spread
 
 
 def _weight(log_spread: np.ndarray, inside: np.ndarray, blend: ConfidenceBlend) -> np.ndarray:
     logit = np.where(inside, blend.inside.logit(log_spread), blend.outside.logit(log_spread))
-    # The logistic of a clipped logit: no overflow in exp.
-    return (np.float32(1.0) / (np.float32(1.0) + np.exp(-np.clip(logit, -60.0, 60.0)))
-            ).astype(np.float32)
+    return _logistic(logit.astype(np.float32, copy=False))
+
+
+def _weight_in_box(log_spread: np.ndarray, box: tuple[slice, slice],
+                   blend: ConfidenceBlend) -> np.ndarray:
+    """:func:`_weight` for an inside region that is a rectangle (``box``): the same values
+    in fewer passes over the map."""
+    logit = blend.outside.logit(log_spread)
+    logit[box] = blend.inside.logit(log_spread[box])
+    return _logistic(logit)
+
+
+def _logistic(logit: np.ndarray) -> np.ndarray:
+    """float32 ``1 / (1 + exp(-logit))`` of a clipped logit (no overflow in exp), computed
+    in the float32 array ``logit``, which it returns."""
+    np.clip(logit, -60.0, 60.0, out=logit)
+    np.negative(logit, out=logit)
+    np.exp(logit, out=logit)
+    logit += np.float32(1.0)
+    return np.divide(np.float32(1.0), logit, out=logit)
 
 
 #: Accuracy of the blend's fill solve (``colorize_zones``' ``tolerance``): one refinement
@@ -240,10 +263,11 @@ def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.n
     if np.shape(fill_m) != depth_m.shape:
         raise ValueError(f"fill_m must have depth_m's shape {depth_m.shape}, got "
                          f"{np.shape(fill_m)}")
-    # blend_weight then mix_log_depth, with the log of the depth taken once.
+    # blend_weight then mix_log_depth, with the log of the depth taken once and the
+    # zone grid's box as slices (no mask).
     log_depth = np.log(np.maximum(depth_m, np.float32(1e-6)))
-    weight = _weight(log_relative_spread(depth_m, uncertainty_m, log_depth),
-                     zone_grid_mask(zone_rects, depth_m.shape), blend)
+    weight = _weight_in_box(log_relative_spread(depth_m, uncertainty_m, log_depth),
+                            _grid_box(zone_rects, depth_m.shape), blend)
     return mix_log_depth(depth_m, np.asarray(fill_m, dtype=np.float32), weight, log_depth)
 
 
@@ -255,7 +279,8 @@ def mix_log_depth(depth_m: np.ndarray, fill_m: np.ndarray, weight: np.ndarray,
     ``log(max(depth_m, 1e-6))`` (float32) when the caller has it already.
     """
     tiny = np.float32(1e-6)
-    log_fill = np.log(np.maximum(fill_m, tiny))
+    log_fill = np.maximum(fill_m, tiny)
+    np.log(log_fill, out=log_fill)
     if log_depth is None:
         log_depth = np.log(np.maximum(depth_m, tiny))
     mixed = log_depth - log_fill
@@ -263,8 +288,9 @@ def mix_log_depth(depth_m: np.ndarray, fill_m: np.ndarray, weight: np.ndarray,
     mixed += log_fill
     out = np.exp(mixed, out=mixed).astype(np.float32, copy=False)
     # exp(log x) is x only to a rounding: keep the two ends exact.
-    out = np.where(weight >= 1.0, depth_m, out)
-    return np.where(weight <= 0.0, fill_m, out).astype(np.float32, copy=False)
+    np.copyto(out, depth_m, where=weight >= 1.0)
+    np.copyto(out, fill_m, where=weight <= 0.0)
+    return out
 
 
 def blend_depth(depth_m: np.ndarray, uncertainty_m: np.ndarray, image_rgb: np.ndarray,

@@ -435,7 +435,7 @@ class DepthEstimator:
         intrinsics = self.image_intrinsics(size, calibration)
         results = []
         for i, frame in enumerate(frames):
-            depth, spread = both[i, 0].astype(np.float32), both[i, 1].astype(np.float32)
+            depth, spread = both[i, 0], both[i, 1]  # float32 already (resize_to_image)
             if frame.valid_count == 0:  # image-only: the metric scale is unknown
                 spread = np.maximum(spread, depth)
             network_depth = None
