@@ -85,13 +85,15 @@ def deltar(*args: str) -> None:
     subprocess.run(command, check=True, cwd=PROJECT)
 
 
-def test_set(out: Path, scene: str, condition: str) -> Path:
-    """The left-out scene's simulated test set (data.json) in one condition, made once."""
+def test_set(out: Path, scene: str, condition: str, targets: int = 1) -> Path:
+    """The left-out scene's simulated test set (data.json) in one condition, made once
+    (``targets``: targets per zone the simulated sensor reports)."""
     folder, intrinsics, step = SCENES[scene]
     target = out / "sets" / (scene if condition == "clean" else f"{scene}-{condition}")
     index = target / "data.json"
     if not index.is_file():
-        args = ["simulate", str(DATA / folder), str(target), "--step", str(step)]
+        args = ["simulate", str(DATA / folder), str(target), "--step", str(step),
+                "--targets", str(targets)]
         if intrinsics:
             args += ["--intrinsics", intrinsics]
         deltar(*args, *CONDITIONS[condition])
@@ -174,7 +176,8 @@ def evaluate(out: Path, index: Path, models: dict[str, str], tag: str) -> dict[s
     return rows
 
 
-def calibration_set(out: Path, scene: str, condition: str, frames: int = 6) -> Path:
+def calibration_set(out: Path, scene: str, condition: str, frames: int = 6,
+                    targets: int = 1) -> Path:
     """A few frames of a training scene (clean or degraded), made once: what a fold's
     uncertainty calibration is fitted on (the fold's own training scenes only)."""
     from deltar.data.rgbd import open_rgbd
@@ -186,14 +189,14 @@ def calibration_set(out: Path, scene: str, condition: str, frames: int = 6) -> P
     if not index.is_file():
         step = max(1, len(open_rgbd(DATA / folder).names) // frames)
         args = ["simulate", str(DATA / folder), str(target), "--step", str(step),
-                "--limit", str(frames)]
+                "--limit", str(frames), "--targets", str(targets)]
         if intrinsics:
             args += ["--intrinsics", intrinsics]
         deltar(*args, *CONDITIONS[condition])
     return index
 
 
-def calibrate_fold(out: Path, fold: str, model: Path) -> Path:
+def calibrate_fold(out: Path, fold: str, model: Path, targets: int = 1) -> Path:
     """The fold's model with its sigma calibrated on its training scenes (made once)."""
     calibrated = model.with_name("model-calibrated.pt")
     if not calibrated.is_file():
@@ -201,7 +204,8 @@ def calibrate_fold(out: Path, fold: str, model: Path) -> Path:
         for scene in SCENES:
             if scene not in FOLDS[fold]:
                 for condition in ("clean", "degraded"):
-                    args += ["--data", str(calibration_set(out, scene, condition))]
+                    args += ["--data", str(calibration_set(out, scene, condition,
+                                                           targets=targets))]
         deltar(*args)
     return calibrated
 
@@ -227,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                         default=list(CONDITIONS), help="test conditions (default: all)")
     parser.add_argument("--steps", type=int, default=None,
                         help="override the recipe's trainer.max_steps")
+    parser.add_argument("--targets", type=int, default=1, choices=range(1, 5),
+                        help="targets per zone the simulated sensor reports (test and "
+                        "calibration sets; default 1, the primary reading alone)")
     parser.add_argument("--extra-model", action="append", default=[], metavar="NAME_OR_PATH",
                         help="also evaluate this checkpoint (e.g. 'default') on every fold")
     args = parser.parse_args(argv)
@@ -240,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         summary["train_seconds"][fold] = seconds
         # Same weights, sigma calibrated on the fold's training scenes: the depth metrics
         # are the model's, the coverage ones the calibration's.
-        model = calibrate_fold(args.out, fold, model)
+        model = calibrate_fold(args.out, fold, model, args.targets)
         # "trained" is the estimator as users run it (for the plane-select recipe: the
         # network blended with the colorization fill where it is unsure); "network" is the
         # network's own depth (the estimator without the blend).
@@ -250,11 +257,12 @@ def main(argv: list[str] | None = None) -> int:
             summary[scene] = {}
             for condition in args.conditions:
                 if condition == "noflags" and "clean" in summary[scene] and \
-                        not has_no_target_flags(test_set(args.out, scene, "clean")):
+                        not has_no_target_flags(test_set(args.out, scene, "clean",
+                                                         args.targets)):
                     # No zone of the scene reports no target: the same set as clean.
                     summary[scene][condition] = summary[scene]["clean"]
                     continue
-                index = test_set(args.out, scene, condition)
+                index = test_set(args.out, scene, condition, args.targets)
                 tag = scene if condition == "clean" else f"{scene}-{condition}"
                 summary[scene][condition] = evaluate(args.out, index, models, tag)
 

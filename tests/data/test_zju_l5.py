@@ -160,3 +160,30 @@ def test_a_frame_with_datasets_of_the_wrong_shape_names_the_file(tmp_path, rng):
         f["rgb"] = np.uint8(3)
     with pytest.raises(ValueError, match=rf"^{frame}: cannot read ZJU-L5 frame file: "):
         ZJUL5Dataset(index, intrinsics=None)[0]
+
+
+def test_targets_round_trip_and_are_checked(tmp_path, rng):
+    sample = _sample(rng, "kitchen/00003", zones=16)
+    valid = sample.zone_valid
+    mean = np.zeros((16, 2), np.float32)
+    mean[:, 0] = sample.zone_mean_sigma[:, 0]
+    mean[valid, 1] = mean[valid, 0] + 1.0
+    sigma = np.where(mean > 0, 0.02, 0.0).astype(np.float32)
+    sigma[:, 0] = sample.zone_mean_sigma[:, 1]
+    targets = dict(target_mean_m=mean, target_sigma_m=sigma, target_valid=mean > 0,
+                   target_signal=np.where(mean > 0, 0.5, 0.0))
+    with_targets = ZJUL5Sample(**{**sample.__dict__, **targets})
+    write_zju_l5(tmp_path / "set", [with_targets])
+    back = ZJUL5Dataset(tmp_path / "set" / "data.json")[0]
+    for key, value in targets.items():
+        np.testing.assert_allclose(getattr(back, key), value)
+    frame = back.zone_frame()
+    assert frame.target_mean_m.shape == (4, 4, 2)
+    np.testing.assert_allclose(frame.target_signal.reshape(16, 2), targets["target_signal"])
+    with pytest.raises(ValueError, match="given together"):
+        ZJUL5Sample(**{**sample.__dict__, "target_mean_m": mean})
+    with pytest.raises(ValueError, match="target_sigma_m must have"):
+        ZJUL5Sample(**{**sample.__dict__, **targets, "target_sigma_m": mean[:, :1]})
+    with pytest.raises(ValueError, match="target_signal must be finite"):
+        ZJUL5Sample(**{**sample.__dict__, **targets,
+                       "target_signal": np.full((16, 2), -1.0)})

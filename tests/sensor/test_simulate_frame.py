@@ -43,6 +43,13 @@ def test_two_surfaces_far_apart_are_two_targets_with_their_means(compiled):
     frame = simulate_zone_frame(depth, rects, max_targets=4)
     np.testing.assert_allclose(frame.target_mean_m[0, 0], mean, atol=1e-5, rtol=0)
     assert frame.target_valid[0, 0].tolist() == valid.tolist()
+    # Signal: the target's share of the zone (its counts after the noise floor) over its
+    # squared distance, so that signal * distance^2 gives back the 60 / 40 split.
+    for signal in (zones.target_signal[0].numpy(), frame.target_signal[0, 0]):
+        area = signal[:2] * mean[:2] ** 2
+        np.testing.assert_allclose(area / area.sum(), [0.6, 0.4], atol=0.01)
+        assert 0.55 < area.sum() <= 1.0
+        assert np.all(signal[2:] == 0)
 
 
 def test_surfaces_closer_than_the_separation_are_one_target():
@@ -158,6 +165,9 @@ def test_numpy_and_torch_twins_report_the_same_targets(rng, order):
                                        rtol=0)
             np.testing.assert_allclose(sigma, batch.target_sigma_m[index].numpy(), atol=1e-5,
                                        rtol=0)
+            np.testing.assert_allclose(frame.target_signal.reshape(64, 4),
+                                       batch.target_signal[index].numpy(), rtol=1e-5,
+                                       atol=1e-7)
     assert batch.target_valid[..., 1].sum() > 10  # the test covers second targets
 
 
@@ -201,7 +211,7 @@ def _reference_targets(cleaned: np.ndarray, centres: np.ndarray, separation: flo
             found.append((weights.sum(), mean, sigma))
         if order == "strongest":
             found.sort(key=lambda item: -item[0])  # stable: the closer first on ties
-        out.append([(mean, sigma) for _, mean, sigma in found[:count]])
+        out.append([(mean, sigma, total) for total, mean, sigma in found[:count]])
     return out
 
 
@@ -212,12 +222,13 @@ def test_secondary_targets_follow_the_documented_rule(rng, order):
     cleaned[rng.random((300, bins)) < 0.5] = 0.0
     cleaned[:20] = 0.0  # zones without counts
     centres = (np.arange(bins) + 0.5) * BIN
-    mean, sigma, valid = secondary_targets(cleaned, strongest_run(cleaned), centres, 0.6, 3,
-                                           order)
+    mean, sigma, valid, counts = secondary_targets(cleaned, strongest_run(cleaned), centres,
+                                                   0.6, 3, order)
     expected = _reference_targets(cleaned, centres, 0.6, 3, order)
     for zone, targets in enumerate(expected):
         assert valid[zone].sum() == len(targets)
-        for slot, (ref_mean, ref_sigma) in enumerate(targets):
+        for slot, (ref_mean, ref_sigma, ref_total) in enumerate(targets):
+            assert counts[zone, slot] == pytest.approx(ref_total, rel=1e-6)
             assert mean[zone, slot] == pytest.approx(ref_mean, abs=1e-6)
             assert sigma[zone, slot] == pytest.approx(ref_sigma, abs=1e-6)
     assert valid[:, 1].sum() > 0

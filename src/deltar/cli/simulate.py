@@ -83,6 +83,10 @@ def simulate_command(
                                          help="Write the zones that reported no target "
                                          "(ST status 255); without: those zones are just "
                                          "invalid, as the released ZJU-L5 files store them."),
+    targets: int = typer.Option(1, "--targets", min=1, max=4, help="Targets per zone to "
+                                "report, 1-4 (ST's VL53L5CX_NB_TARGET_PER_ZONE): with more "
+                                "than 1, a zone that sees surfaces at least 0.6 m apart "
+                                "reports each, strongest first."),
 ) -> None:
     """Simulate L5 zone readings for RGB-D frames and write them as a ZJU-L5 set.
 
@@ -147,7 +151,7 @@ def simulate_command(
                                            degrade=degrade, seed=seed, cnh_config=cnh_config,
                                            scene=scene, split=split,
                                            no_target_flags=no_target_flags,
-                                           on_frame=progress.advance)
+                                           max_targets=targets, on_frame=progress.advance)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")
     empty = int(np.count_nonzero(np.asarray(valid_counts) == 0))

@@ -24,7 +24,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
                  grid: int = 8, layout: str = "calibrated",
                  degrade: SignalAugmentation | None = None, seed: int = 0,
                  cnh_config=None, scene: str = "scene", split: str = "test",
-                 no_target_flags: bool = True, on_frame=None):
+                 no_target_flags: bool = True, max_targets: int = 1, on_frame=None):
     """Simulate L5 readings for RGB-D frames and write them as a ZJU-L5-layout set.
 
     Args:
@@ -45,6 +45,10 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         no_target_flags: write the zones that reported no target (``zone_no_target``);
             ``False`` writes none, as the released ZJU-L5 files store none (those zones
             are then just invalid).
+        max_targets: targets per zone to report, 1..4 (1: the primary reading alone; more
+            writes every zone's targets, :func:`~deltar.sensor.simulate_frame.simulate_zone_frame`).
+            A degradation scales a zone's other targets as it scales its primary reading
+            and drops them with it.
         on_frame: optional callable called after each frame (progress).
 
     Returns:
@@ -70,7 +74,15 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         else:
             zone_px = max(1, round(56 * grid / 8 * width / 640))
             rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
-        zones = simulate_zone_frame(frame.depth_m, rects)
+        zones = simulate_zone_frame(frame.depth_m, rects, max_targets=max_targets)
+        targets = {}
+        if max_targets > 1:
+            mean_t, sigma_t, valid_t = (a.reshape(grid * grid, -1) for a in zones.targets())
+            targets = {"target_mean_m": mean_t, "target_sigma_m": sigma_t,
+                       "target_valid": valid_t}
+            signal = getattr(zones, "target_signal", None)
+            if signal is not None:
+                targets["target_signal"] = signal.reshape(grid * grid, -1)
         if degrade is not None:
             import torch  # the augmentation is the training pipeline's (PyTorch)
 
@@ -82,6 +94,21 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
             # A reading biased past the sensor's range is one it does not report.
             valid = valid & (mean > 0) & (mean <= SimulatorConfig().max_range_m)
             mean, sigma = mean * valid, sigma * valid
+            if targets:
+                # The zone's bias scales all its targets; a dropped zone loses them all.
+                before = zones.mean_m.reshape(-1)
+                factor = np.where(before > 0, mean.numpy() / np.maximum(before, 1e-6), 0.0)
+                keep = valid.numpy()[:, None] & targets["target_valid"]
+                targets["target_valid"] = keep
+                for key in ("target_mean_m", "target_sigma_m"):
+                    targets[key] = np.where(keep, targets[key] * factor[:, None],
+                                            0.0).astype(np.float32)
+                if "target_signal" in targets:
+                    targets["target_signal"] = np.where(keep, targets["target_signal"], 0.0)
+                # Target 0 is the primary reading as degraded.
+                targets["target_mean_m"][:, 0] = mean.numpy()
+                targets["target_sigma_m"][:, 0] = sigma.numpy()
+                targets["target_valid"][:, 0] = valid.numpy()
             zones = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in (mean, sigma, valid)),
                               no_target=zones.no_target)
         valid_counts.append(int(np.count_nonzero(zones.valid)))
@@ -96,7 +123,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
                            zone_valid=zones.valid.reshape(-1),
                            zone_no_target=zones.flat_no_target() if no_target_flags else None,
                            name=f"{scene}/{frame.name}".replace("\\", "/"),
-                           intrinsics=frame.intrinsics, **histogram)
+                           intrinsics=frame.intrinsics, **histogram, **targets)
 
     def samples():
         for i in indices:

@@ -15,7 +15,11 @@ Z is 64 (8x8) for the released data; 16 (4x4) is accepted too. Files written by
 and, for histogram sensors, optional datasets ``hist_edges_m`` (B + 1,) bin edges in
 metres and ``hist_counts`` (Z, B) per-zone histograms (e.g. ST's CNH), and an optional
 ``no_target`` (Z,) bool dataset: invalid zones that reported no target (ST status 255,
-nothing within the sensor's range; ``deltar simulate`` writes it).
+nothing within the sensor's range; ``deltar simulate`` writes it), and, for a sensor
+that reports several targets per zone (``deltar simulate --targets``), optional datasets
+``target_mean_m``, ``target_sigma_m`` (Z, T) float metres, ``target_valid`` (Z, T) bool
+and ``target_signal`` (Z, T) float (each target's return signal, any unit), T = 1..4,
+strongest first, target 0 the primary reading.
 """
 
 from __future__ import annotations
@@ -42,6 +46,9 @@ _HISTOGRAM_KEYS: tuple[str, ...] = ("hist_edges_m", "hist_counts")
 #: Optional dataset of this library's files (not in the released ones): (Z,) bool zones
 #: that reported no target (nothing within the sensor's range).
 _NO_TARGET_KEY = "no_target"
+#: Optional datasets of a sensor that reports several targets per zone, (Z, T) each.
+_TARGET_KEYS: tuple[str, ...] = ("target_mean_m", "target_sigma_m", "target_valid",
+                                 "target_signal")
 
 
 @dataclass
@@ -63,6 +70,11 @@ class ZJUL5Sample:
             when present, models sample their depth hypotheses from them.
         zone_no_target: optional (Z,) bool, invalid zones that reported *no target*
             (nothing within the sensor's range); the released files do not have it.
+        target_mean_m, target_sigma_m: optional (Z, T) float32 every target of each zone,
+            metres (0 where not valid), strongest first; target 0 is the primary reading.
+        target_valid: optional (Z, T) bool (given with the two above).
+        target_signal: optional (Z, T) float32 each target's return signal (any unit;
+            only ratios within a zone matter).
     """
 
     rgb: np.ndarray
@@ -75,6 +87,10 @@ class ZJUL5Sample:
     hist_edges_m: np.ndarray | None = None
     hist_counts: np.ndarray | None = None
     zone_no_target: np.ndarray | None = None
+    target_mean_m: np.ndarray | None = None
+    target_sigma_m: np.ndarray | None = None
+    target_valid: np.ndarray | None = None
+    target_signal: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.rgb = np.asarray(self.rgb)
@@ -133,6 +149,37 @@ class ZJUL5Sample:
                                  f"{self.hist_counts.shape}")
             if not np.all(np.isfinite(self.hist_counts)) or np.any(self.hist_counts < 0):
                 raise ValueError(f"{where}: hist_counts must be finite and >= 0")
+        self._validate_targets(where, zones)
+
+    def _validate_targets(self, where: str, zones: int) -> None:
+        given = [getattr(self, key) is not None for key in _TARGET_KEYS[:3]]
+        if any(given) and not all(given):
+            raise ValueError(f"{where}: target_mean_m, target_sigma_m and target_valid must "
+                             "be given together")
+        if self.target_signal is not None and not all(given):
+            raise ValueError(f"{where}: target_signal needs target_mean_m, target_sigma_m "
+                             "and target_valid")
+        if not all(given):
+            return
+        self.target_mean_m = np.asarray(self.target_mean_m, dtype=np.float32)
+        self.target_sigma_m = np.asarray(self.target_sigma_m, dtype=np.float32)
+        self.target_valid = np.asarray(self.target_valid).astype(bool)
+        if self.target_signal is not None:
+            self.target_signal = np.asarray(self.target_signal, dtype=np.float32)
+        shape = self.target_mean_m.shape
+        if len(shape) != 2 or shape[0] != zones or not 1 <= shape[1] <= 4:
+            raise ValueError(f"{where}: target_mean_m must be ({zones}, T) with T in 1..4, got "
+                             f"{shape}")
+        for key in _TARGET_KEYS[1:]:
+            value = getattr(self, key)
+            if value is not None and value.shape != shape:
+                raise ValueError(f"{where}: {key} must have target_mean_m's shape {shape}, got "
+                                 f"{value.shape}")
+        for key in ("target_mean_m", "target_sigma_m", "target_signal"):
+            value = getattr(self, key)
+            if value is not None and (not np.all(np.isfinite(value[self.target_valid]))
+                                      or np.any(value[self.target_valid] < 0)):
+                raise ValueError(f"{where}: {key} must be finite and >= 0 where target_valid")
 
     @property
     def grid(self) -> int:
@@ -144,15 +191,27 @@ class ZJUL5Sample:
 
         Mean and sigma (metres) are zero in invalid zones; zones flagged valid but
         reporting no distance (mean <= 0) are invalid, as the classical baselines treat
-        them. The histogram and the no-target flags are attached when the sample has them.
+        them. The histogram, the no-target flags and the targets are attached when the
+        sample has them.
         """
         from deltar.sensor.zone_frame import ZoneFrame
 
         valid = np.asarray(self.zone_valid, dtype=bool) & (self.zone_mean_sigma[:, 0] > 0)
+        targets = {}
+        if self.target_mean_m is not None:
+            n = self.grid
+            target_valid = self.target_valid & valid[:, None]
+            targets = {"target_mean_m": np.where(target_valid, self.target_mean_m, 0.0),
+                       "target_sigma_m": np.where(target_valid, self.target_sigma_m, 0.0),
+                       "target_valid": target_valid}
+            if self.target_signal is not None:
+                targets["target_signal"] = np.where(target_valid, self.target_signal, 0.0)
+            targets = {key: value.reshape(n, n, -1) for key, value in targets.items()}
         return ZoneFrame(mean_m=np.where(valid, self.zone_mean_sigma[:, 0], 0.0),
                          sigma_m=np.where(valid, self.zone_mean_sigma[:, 1], 0.0),
                          valid=valid, hist_edges_m=self.hist_edges_m,
-                         hist_counts=self.hist_counts, no_target=self.zone_no_target)
+                         hist_counts=self.hist_counts, no_target=self.zone_no_target,
+                         **targets)
 
 
 def _read_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics | None
@@ -169,8 +228,8 @@ def _decode_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics |
             missing = [k for k in _REQUIRED_KEYS if k not in f]
             if missing:
                 raise ValueError(f"ZJU-L5 file {path} is missing datasets {missing}")
-            arrays = {k: f[k][()] for k in (*_REQUIRED_KEYS, *_HISTOGRAM_KEYS, _NO_TARGET_KEY)
-                      if k in f}
+            arrays = {k: f[k][()] for k in (*_REQUIRED_KEYS, *_HISTOGRAM_KEYS, _NO_TARGET_KEY,
+                                            *_TARGET_KEYS) if k in f}
             attrs = {k: f.attrs[k] for k in ("fx", "fy", "cx", "cy") if k in f.attrs}
     except OSError as err:  # h5py raises OSError for truncated / non-HDF5 files
         raise ValueError(f"cannot read ZJU-L5 file {path}: {err}") from err
@@ -200,7 +259,8 @@ def _decode_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics |
                            zone_valid=valid, name=name, intrinsics=intrinsics,
                            hist_edges_m=arrays.get("hist_edges_m"),
                            hist_counts=arrays.get("hist_counts"),
-                           zone_no_target=arrays.get(_NO_TARGET_KEY))
+                           zone_no_target=arrays.get(_NO_TARGET_KEY),
+                           **{key: arrays.get(key) for key in _TARGET_KEYS})
     except ValueError as err:
         raise ValueError(f"ZJU-L5 file {path}: {err}") from err
 
@@ -299,6 +359,9 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
                 f.create_dataset("hist_counts", data=sample.hist_counts.astype(np.float32))
             if sample.zone_no_target is not None:
                 f.create_dataset(_NO_TARGET_KEY, data=sample.zone_no_target.astype(bool))
+            for key in _TARGET_KEYS:
+                if getattr(sample, key) is not None:
+                    f.create_dataset(key, data=getattr(sample, key))
             if sample.intrinsics is not None:
                 for key in ("fx", "fy", "cx", "cy"):
                     f.attrs[key] = float(getattr(sample.intrinsics, key))

@@ -47,6 +47,7 @@ from deltar.inference.uncertainty import UncertaintyCalibration
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
 from deltar.sensor.hypotheses import zone_hypotheses, zone_hypotheses_from_histogram
 from deltar.sensor.placement import nominal_zone_rects
+from deltar.sensor.targets import stacked_target_inputs
 from deltar.sensor.zone_frame import ZoneFrame
 
 if TYPE_CHECKING:
@@ -279,7 +280,9 @@ class DepthEstimator:
             they are): ``image`` (B, 3, h, w) float32 normalised, ``hypotheses`` (B, Z, K)
             float32 metres, ``zone_rects`` (B, Z, 4) float32 pixels of the network input,
             ``zone_valid`` (B, Z) bool, ``zone_no_target`` (B, Z) bool (the frames'
-            no-target flags); and ``image_rects`` (B, Z, 4) rectangles in input-image
+            no-target flags), ``zone_targets`` (B, Z, T, 2) float32 (every target of each
+            zone, :meth:`~deltar.sensor.zone_frame.ZoneFrame.target_inputs`; T = 1 when
+            no frame reports more than one); and ``image_rects`` (B, Z, 4) rectangles in input-image
             pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in pixels
             (:meth:`network_size_for`).
         """
@@ -320,6 +323,7 @@ class DepthEstimator:
                 "hypotheses": hypotheses, "zone_rects": net_rects,
                 "zone_valid": np.stack([f.flat()[2] for f in frames]),
                 "zone_no_target": np.stack([f.flat_no_target() for f in frames]),
+                "zone_targets": stacked_target_inputs(frames),
                 "image_rects": rects, "image_size": size, "network_size": net_size}
 
     def _warn_if_stretched(self, image_size: tuple[int, int], net_size: tuple[int, int]
@@ -347,12 +351,16 @@ class DepthEstimator:
 
         Args:
             inputs: :meth:`prepare`'s dict (``image``, ``hypotheses``, ``zone_rects``,
-                ``zone_valid`` and optionally ``zone_no_target`` are read).
+                ``zone_valid`` and optionally ``zone_no_target`` and ``zone_targets`` are
+                read; networks whose head does not read them ignore them).
 
         Returns:
             (depth, uncertainty), each (B, 1, h/2, w/2) float32 numpy arrays in metres.
         """
         no_target = inputs.get("zone_no_target")
+        targets = inputs.get("zone_targets")
+        if targets is not None and np.shape(targets)[2] < 2:
+            targets = None  # the primary readings alone: what the zones already carry
         if self.onnx_model is not None:
             out = self.onnx_model.run(inputs["image"], inputs["hypotheses"],
                                       inputs["zone_rects"], inputs["zone_valid"], no_target)
@@ -361,7 +369,7 @@ class DepthEstimator:
 
         tensors = [None if array is None else torch.from_numpy(np.asarray(array)).to(self.device)
                    for array in (inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
-                                 inputs["zone_valid"], no_target)]
+                                 inputs["zone_valid"], no_target, targets)]
         if self.flip_average:
             from deltar.inference.flip import flip_averaged
 
@@ -372,14 +380,17 @@ class DepthEstimator:
 
     def _run_model(self, image: torch.Tensor, hypotheses: torch.Tensor,
                    zone_rects: torch.Tensor, zone_valid: torch.Tensor,
-                   zone_no_target: torch.Tensor | None = None
+                   zone_no_target: torch.Tensor | None = None,
+                   zone_targets: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
         import torch
 
-        # Only networks whose head reads the flags take them (other models, e.g. a
-        # user's own module, keep the four-input call).
+        # Only networks whose head reads the flags (the targets) take them (other
+        # models, e.g. a user's own module, keep the four-input call).
         flags = {"zone_no_target": zone_no_target} if (
             zone_no_target is not None and getattr(self.model, "uses_no_target", False)) else {}
+        if zone_targets is not None and getattr(self.model, "uses_targets", False):
+            flags["zone_targets"] = zone_targets.to(self.dtype)
         with torch.inference_mode():
             out = self.model(image.to(self.dtype), hypotheses.to(self.dtype), zone_rects,
                              zone_valid, **flags)

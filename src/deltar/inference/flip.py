@@ -11,14 +11,15 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-#: ``run(image, hypotheses, zone_rects, zone_valid[, zone_no_target]) -> (depth,
-#: uncertainty)``; the fifth argument is passed only when flags are given.
+#: ``run(image, hypotheses, zone_rects, zone_valid[, zone_no_target[, zone_targets]])
+#: -> (depth, uncertainty)``; the optional arguments are passed only when given.
 NetworkRun = Callable[..., "tuple[torch.Tensor, torch.Tensor]"]
 
 
 def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor,
                   zone_rects: torch.Tensor, zone_valid: torch.Tensor,
-                  zone_no_target: torch.Tensor | None = None
+                  zone_no_target: torch.Tensor | None = None,
+                  zone_targets: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Average of ``run`` on the inputs and on their left-right mirror, in one batch.
 
@@ -36,6 +37,8 @@ def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor
         zone_rects: (B, Z, 4) (y0, x0, y1, x1) in pixels of ``image``.
         zone_valid: (B, Z) bool.
         zone_no_target: optional (B, Z) bool no-target flags, mirrored like the zones.
+        zone_targets: optional (B, Z, T, 2) every target of each zone, mirrored like the
+            zones.
 
     Returns:
         (depth, uncertainty), each (B, 1, h', w') metres in ``run``'s output grid.
@@ -56,8 +59,10 @@ def flip_averaged(run: NetworkRun, image: torch.Tensor, hypotheses: torch.Tensor
     mirrored_rects = torch.from_numpy(np.stack([
         mirror_zone_rects(r, width, grid) for r in zone_rects.cpu().numpy()])
     ).to(zone_rects.device)
-    flags = () if zone_no_target is None else (
-        torch.cat([zone_no_target, zone_no_target[:, order]]),)
+    flags = tuple(torch.cat([extra, extra[:, order]]) for extra in (zone_no_target, zone_targets)
+                  if extra is not None)
+    if zone_no_target is None and zone_targets is not None:
+        raise ValueError("zone_targets needs zone_no_target (pass all-False flags)")
     depth, spread = run(torch.cat([image, image.flip(-1)]),
                         torch.cat([hypotheses, hypotheses[:, order]]),
                         torch.cat([zone_rects, mirrored_rects]),

@@ -257,6 +257,11 @@ class DeltarNet(nn.Module):
         """Whether the head reads ``zone_no_target`` (then an export takes it as input)."""
         return bool(self.head.uses_no_target)
 
+    @property
+    def uses_targets(self) -> bool:
+        """Whether the head reads ``zone_targets`` (several targets per zone)."""
+        return bool(self.head.uses_targets)
+
     def set_traceable(self, enabled: bool = True) -> DeltarNet:
         """Switch the network to (or back from) its traceable path, for ONNX export.
 
@@ -280,6 +285,7 @@ class DeltarNet(nn.Module):
         zone_valid: torch.Tensor,
         zone_mean_sigma: torch.Tensor | None = None,
         zone_no_target: torch.Tensor | None = None,
+        zone_targets: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
         """Estimate depth.
 
@@ -297,13 +303,17 @@ class DeltarNet(nn.Module):
             zone_no_target: optional (B, Z) bool, zones whose sensor reported *no target*
                 (ST status 255: nothing within range); the "plane_select" head offers
                 ``no_target_depth`` there, the other heads ignore it.
+            zone_targets: optional (B, Z, T, 2) every target each zone reported,
+                ``[distance in metres (0: empty slot), share of the zone]``, target 0 the
+                primary reading (:func:`deltar.sensor.zone_frame.ZoneFrame.target_inputs`);
+                the "plane_select" head chooses among them, the other heads ignore it.
 
         Returns:
             dict with ``depth`` (B, 1, H/2, W/2) metres, ``bin_edges`` (B, N + 1)
             metres and ``uncertainty`` (B, 1, H/2, W/2) metres.
         """
         grid = self.validate_inputs(image, hypotheses, zone_rects, zone_valid, zone_mean_sigma,
-                                    zone_no_target)
+                                    zone_no_target, zone_targets)
         valid = zone_valid.bool()
         scale = None
         if self.zone_scale_norm:
@@ -311,6 +321,9 @@ class DeltarNet(nn.Module):
             hypotheses = hypotheses / scale[:, None, None]
             if zone_mean_sigma is not None:
                 zone_mean_sigma = zone_mean_sigma / scale[:, None, None]
+            if zone_targets is not None:
+                zone_targets = torch.stack([zone_targets[..., 0] / scale[:, None, None],
+                                            zone_targets[..., 1]], dim=-1)
         if (self.mean_sigma_points or self.five_channel) and zone_mean_sigma is None:
             zone_mean_sigma = torch.stack(
                 [hypotheses.mean(dim=2), hypotheses.std(dim=2, unbiased=False)], dim=-1
@@ -339,7 +352,7 @@ class DeltarNet(nn.Module):
                                          resamplers)
         features = self.decoder(image_features, decoder_zones)
         zones = ZoneInputs(hypotheses, valid, zone_rects, image.shape[-1] / features.shape[-1],
-                           zone_mean_sigma, zone_no_target, scale)
+                           zone_mean_sigma, zone_no_target, scale, zone_targets)
         depth, edges, uncertainty = self.head.predict(features, zones)
         half = (image.shape[-2] // 2, image.shape[-1] // 2)
         if tuple(depth.shape[-2:]) != half:
@@ -364,6 +377,7 @@ class DeltarNet(nn.Module):
         zone_valid: torch.Tensor,
         zone_mean_sigma: torch.Tensor | None = None,
         zone_no_target: torch.Tensor | None = None,
+        zone_targets: torch.Tensor | None = None,
     ) -> int:
         """Check shapes and values of the forward inputs; return the zone grid side n.
 
@@ -420,6 +434,13 @@ class DeltarNet(nn.Module):
             if zone_no_target.dtype != torch.bool:
                 raise ValueError(f"zone_no_target must be a bool tensor, got "
                                  f"{zone_no_target.dtype}")
+        if zone_targets is not None:
+            if (zone_targets.ndim != 4 or tuple(zone_targets.shape[:2]) != (batch, zones)
+                    or zone_targets.shape[-1] != 2 or not 1 <= zone_targets.shape[2] <= 4):
+                raise ValueError(f"zone_targets must be (B={batch}, Z={zones}, T, 2) with T in "
+                                 f"1..4, got {tuple(zone_targets.shape)}")
+            if not torch.isfinite(zone_targets).all() or (zone_targets < 0).any():
+                raise ValueError("zone_targets must be finite and non-negative (metres, shares)")
         return grid
 
 

@@ -35,6 +35,7 @@ from deltar.sensor.simulate_frame import (
     check_target_options,
     secondary_targets,
     simulate_zone_frame,
+    target_signal,
 )
 from deltar.sensor.simulator_config import SimulatorConfig
 from deltar.sensor.zone_histograms import use_compiled, zone_histograms, zone_pixel_bounds
@@ -63,6 +64,8 @@ class SimulatedZones:
             (``mean_m``), the others in ``target_order``.
         target_sigma_m: (B, Z, T) float32 standard deviations in metres (0 where not valid).
         target_valid: (B, Z, T) bool; ``[..., 0]`` is ``valid``.
+        target_signal: (B, Z, T) float32 each target's simulated return signal
+            (:func:`~deltar.sensor.simulate_frame.target_signal`; 0 where not valid).
         target_order: order of targets 1.. (``"strongest"`` or ``"closest"``).
     """
 
@@ -77,6 +80,7 @@ class SimulatedZones:
     target_sigma_m: torch.Tensor | None = None
     target_valid: torch.Tensor | None = None
     target_order: str = "strongest"
+    target_signal: torch.Tensor | None = None
 
 
 def strongest_cluster(counts: torch.Tensor) -> torch.Tensor:
@@ -180,7 +184,7 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
         sigma = torch.where(valid, variance.sqrt(), 0.0).to(torch.float32)
 
     no_target = _no_target(depth, boxes, valid, histogram, cfg)
-    targets = [mean[..., None], sigma[..., None], valid[..., None]]
+    targets = [mean[..., None], sigma[..., None], valid[..., None], None]
     if max_targets > 1:
         targets = _with_secondary_targets(histogram, cluster, targets, cfg, max_targets,
                                           target_order)
@@ -188,18 +192,21 @@ def simulate_zones(depth_m: torch.Tensor | np.ndarray, rects: torch.Tensor | np.
                          cluster=cluster, bin_edges_m=edges.to(torch.float32),
                          no_target=no_target, target_mean_m=targets[0],
                          target_sigma_m=targets[1], target_valid=targets[2],
+                         target_signal=targets[3],
                          target_order=target_order)
     if not batched:
         for name in ("mean_m", "sigma_m", "valid", "histogram", "cluster", "no_target",
-                     "target_mean_m", "target_sigma_m", "target_valid"):
-            setattr(out, name, getattr(out, name)[0])
+                     "target_mean_m", "target_sigma_m", "target_valid", "target_signal"):
+            if getattr(out, name) is not None:
+                setattr(out, name, getattr(out, name)[0])
     return out
 
 
 def _with_secondary_targets(histogram: torch.Tensor, cluster: torch.Tensor,
                             primary: list[torch.Tensor], config: SimulatorConfig,
                             max_targets: int, target_order: str) -> list[torch.Tensor]:
-    """(B, Z, T) mean, sigma, valid: the primary ``[..., :1]`` and the other targets.
+    """(B, Z, T) mean, sigma, valid and signal: the primary ``[..., :1]`` and the other
+    targets.
 
     The other targets come from the numpy function the single-frame simulator uses
     (:func:`~deltar.sensor.simulate_frame.secondary_targets`), so both agree; the
@@ -215,8 +222,14 @@ def _with_secondary_targets(histogram: torch.Tensor, cluster: torch.Tensor,
                              cluster.detach().cpu().numpy().reshape(-1, bins), centres,
                              config.target_separation_m, max_targets - 1, target_order)
     shape = (*histogram.shape[:-1], max_targets - 1)
-    return [torch.cat([first, torch.from_numpy(rest.reshape(shape)).to(first.device)], dim=-1)
-            for first, rest in zip(primary, more, strict=True)]
+    out = [torch.cat([first, torch.from_numpy(rest.reshape(shape)).to(first.device)], dim=-1)
+           for first, rest in zip(primary[:3], more[:3], strict=True)]
+    counts = np.concatenate([cluster.detach().cpu().numpy().reshape(-1, bins).sum(-1,
+                                                                                 keepdims=True),
+                             more[3]], axis=1)
+    signal = target_signal(counts, out[0].detach().cpu().numpy().reshape(-1, max_targets),
+                           np.maximum(hist.reshape(-1, bins).sum(-1), 1.0))
+    return [*out, torch.from_numpy(signal.reshape(*shape[:-1], max_targets)).to(out[0].device)]
 
 
 def _no_target(depth: torch.Tensor, rects: torch.Tensor, valid: torch.Tensor,

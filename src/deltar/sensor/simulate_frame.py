@@ -140,15 +140,17 @@ def secondary_targets(cleaned: np.ndarray, primary: np.ndarray, centres_m: np.nd
         order: ``"strongest"`` or ``"closest"``.
 
     Returns:
-        ``(mean, sigma, valid)``: (N, count) float32 metres, (N, count) float32 metres
-        (0 where not valid), (N, count) bool.
+        ``(mean, sigma, valid, counts)``: (N, count) float32 metres, (N, count) float32
+        metres (0 where not valid), (N, count) bool, and (N, count) float32 the targets'
+        total counts (their pixels).
     """
     zones = cleaned.shape[0]
     mean_out = np.zeros((zones, count), dtype=np.float32)
     sigma_out = np.zeros((zones, count), dtype=np.float32)
     valid_out = np.zeros((zones, count), dtype=bool)
+    counts_out = np.zeros((zones, count), dtype=np.float32)
     if count == 0 or zones == 0:
-        return mean_out, sigma_out, valid_out
+        return mean_out, sigma_out, valid_out, counts_out
     centres = np.asarray(centres_m, dtype=np.float64)
     nonzero = cleaned > 0
     previous = np.zeros_like(nonzero)
@@ -188,7 +190,7 @@ def secondary_targets(cleaned: np.ndarray, primary: np.ndarray, centres_m: np.nd
         group[:, run] = np.where(take, current, 0)
     groups = int(current.max()) + 1
     if groups == 1:
-        return mean_out, sigma_out, valid_out
+        return mean_out, sigma_out, valid_out, counts_out
     bin_group = np.take_along_axis(group, run_id, axis=1)  # (N, bins), 0 = none
     flat_group = (np.arange(zones)[:, None] * groups + bin_group).ravel()
     total = np.bincount(flat_group, weights.ravel(), zones * groups).reshape(zones, groups)
@@ -208,7 +210,28 @@ def secondary_targets(cleaned: np.ndarray, primary: np.ndarray, centres_m: np.nd
     valid_out[:, :width] = chosen
     mean_out[:, :width] = np.where(chosen, np.take_along_axis(mean, ranked, axis=1), 0.0)
     sigma_out[:, :width] = np.where(chosen, np.take_along_axis(sigma, ranked, axis=1), 0.0)
-    return mean_out, sigma_out, valid_out
+    counts_out[:, :width] = np.where(chosen, np.take_along_axis(total, ranked, axis=1), 0.0)
+    return mean_out, sigma_out, valid_out, counts_out
+
+
+def target_signal(counts: np.ndarray, mean_m: np.ndarray, zone_pixels: np.ndarray
+                  ) -> np.ndarray:
+    """Simulated return signal of each target: its share of the zone's pixels over its
+    squared distance (a return's signal falls with the square of the distance).
+
+    Args:
+        counts: (N, T) pixels of each target.
+        mean_m: (N, T) target distances, metres (0: no target).
+        zone_pixels: (N,) pixels of each zone with a depth in range.
+
+    Returns:
+        (N, T) float32 signal (0 where there is no target), in units of a zone filled by
+        one surface at 1 m.
+    """
+    share = counts / np.asarray(zone_pixels, dtype=np.float64)[:, None]
+    distance = np.asarray(mean_m, dtype=np.float64)
+    return np.where(distance > 0, share / np.maximum(distance, 1e-6) ** 2, 0.0
+                    ).astype(np.float32)
 
 
 def check_target_options(max_targets: int, target_order: str) -> None:
@@ -296,11 +319,15 @@ def simulate_zone_frame(depth_m: np.ndarray, rects: np.ndarray,
     if max_targets > 1:
         more = secondary_targets(cleaned, cluster, centres, cfg.target_separation_m,
                                  max_targets - 1, target_order)
+        pixels = np.maximum(histogram.sum(-1), 1.0)
+        signal = target_signal(np.concatenate([total[:, None], more[3]], axis=1),
+                               np.concatenate([mean[:, None], more[0]], axis=1), pixels)
         targets = {name: np.concatenate([first[:, None], rest], axis=1)
                    .reshape(grid, grid, max_targets)
                    for name, first, rest in zip(("target_mean_m", "target_sigma_m",
-                                                 "target_valid"), (mean, sigma, valid), more,
-                                                 strict=True)}
+                                                 "target_valid"), (mean, sigma, valid),
+                                                more[:3], strict=True)}
+        targets["target_signal"] = signal.reshape(grid, grid, max_targets)
         targets["target_order"] = target_order
     return ZoneFrame(mean_m=mean.reshape(grid, grid), sigma_m=sigma.reshape(grid, grid),
                      valid=valid.reshape(grid, grid), no_target=no_target.reshape(grid, grid),

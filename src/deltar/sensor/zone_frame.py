@@ -115,6 +115,11 @@ class ZoneFrame:
         target_sigma_m: optional (n, n, T) float32 standard deviations, metres.
         target_valid: optional (n, n, T) bool, the targets that carry a measurement.
         target_status: optional (n, n, T) uint8, the driver's ``target_status`` per target.
+        target_signal: optional (n, n, T) float32 >= 0, each target's return signal (ST:
+            ``signal_per_spad``, kcps per SPAD; the simulator: the target's share of the
+            zone's pixels over its squared distance in metres). Only ratios within a zone
+            are used: with equal reflectance a target's share of the zone is
+            proportional to ``signal * distance^2`` (:mod:`deltar.sensor.targets`).
         target_order: ``"strongest"`` (the driver's default: strongest return first) or
             ``"closest"`` (closest first). In ``"strongest"`` order target 0 is the primary
             reading: ``target_valid[..., 0] == valid`` and, where valid, the target's mean
@@ -136,6 +141,7 @@ class ZoneFrame:
     target_valid: np.ndarray | None = None
     target_status: np.ndarray | None = None
     target_order: str = "strongest"
+    target_signal: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Numbers stay numbers: strings and booleans are refused, never converted.
@@ -381,6 +387,7 @@ class ZoneFrame:
         nb_target_detected: Sequence[int] | None = None,
         targets_per_zone: int | None = None,
         target_order: str = "strongest",
+        signal_per_spad: Sequence[float] | None = None,
     ) -> ZoneFrame:
         """Build a frame from what the Python drivers return.
 
@@ -412,6 +419,9 @@ class ZoneFrame:
                 first ``16 * T`` entries, as ST's driver fills it.
             target_order: ``"strongest"`` (the driver's default) or ``"closest"``, as
                 the driver was configured (``vl53l5cx_set_target_order``).
+            signal_per_spad: optional flat list like ``distance_mm``, each target's
+                return signal (kcps per SPAD); kept as ``target_signal`` when the frame
+                holds every target (it weighs a zone's targets against each other).
 
         Raises:
             ValueError: lengths that do not fit ``grid`` and ``targets_per_zone``, codes
@@ -422,5 +432,5 @@ class ZoneFrame:
             distance_mm, range_sigma_mm, target_status, grid=grid, valid_status=valid_status,
             orientation=orientation, sensor_model=sensor_model,
             nb_target_detected=nb_target_detected, targets_per_zone=targets_per_zone,
-            target_order=target_order)
+            target_order=target_order, signal_per_spad=signal_per_spad)
         return cls(**fields, timestamp_s=timestamp_s, sensor_model=sensor_model)

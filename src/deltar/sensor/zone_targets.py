@@ -42,9 +42,10 @@ def convert_target_fields(frame: Any) -> None:
         raise ValueError("ZoneFrame.target_mean_m, target_sigma_m and target_valid must "
                          f"be given together, got only {given}")
     if not given:
-        if frame.target_status is not None:
-            raise ValueError("ZoneFrame.target_status needs target_mean_m, "
-                             "target_sigma_m and target_valid")
+        for name in ("target_status", "target_signal"):
+            if getattr(frame, name) is not None:
+                raise ValueError(f"ZoneFrame.{name} needs target_mean_m, "
+                                 "target_sigma_m and target_valid")
         return
     frame.target_mean_m = numbers(frame.target_mean_m,
                                   "ZoneFrame.target_mean_m").astype(np.float32)
@@ -53,8 +54,12 @@ def convert_target_fields(frame: Any) -> None:
     frame.target_valid = flags(frame.target_valid, "ZoneFrame.target_valid")
     if frame.target_status is not None:
         frame.target_status = status_codes(frame.target_status, "ZoneFrame.target_status")
+    if frame.target_signal is not None:
+        frame.target_signal = numbers(frame.target_signal,
+                                      "ZoneFrame.target_signal").astype(np.float32)
     n = frame.mean_m.shape[0] if frame.mean_m.ndim == 2 else -1
-    for name in ("target_mean_m", "target_sigma_m", "target_valid", "target_status"):
+    for name in ("target_mean_m", "target_sigma_m", "target_valid", "target_status",
+                 "target_signal"):
         arr = getattr(frame, name)
         if arr is not None and arr.ndim == 2 and n > 0 and arr.shape[0] == n * n:
             setattr(frame, name, arr.reshape(n, n, arr.shape[1]))
@@ -64,6 +69,10 @@ def convert_target_fields(frame: Any) -> None:
                                       np.float32(0.0))
     if frame.target_valid.shape == frame.target_sigma_m.shape:
         frame.target_sigma_m = np.where(frame.target_valid, frame.target_sigma_m,
+                                       np.float32(0.0))
+    if frame.target_signal is not None and \
+            frame.target_valid.shape == frame.target_signal.shape:
+        frame.target_signal = np.where(frame.target_valid, frame.target_signal,
                                        np.float32(0.0))
 
 def check_target_fields(frame: Any, n: int) -> None:
@@ -86,7 +95,7 @@ def check_target_fields(frame: Any, n: int) -> None:
             not 1 <= mean.shape[2] <= MAX_TARGETS_PER_ZONE:
         raise ValueError(f"ZoneFrame.target_mean_m must have shape ({n}, {n}, T) with "
                          f"T in 1..{MAX_TARGETS_PER_ZONE}, got {mean.shape}")
-    for name in ("target_sigma_m", "target_valid", "target_status"):
+    for name in ("target_sigma_m", "target_valid", "target_status", "target_signal"):
         arr = getattr(frame, name)
         if arr is not None and arr.shape != mean.shape:
             raise ValueError(f"ZoneFrame.{name} must have shape {mean.shape} like "
@@ -101,6 +110,10 @@ def check_target_fields(frame: Any, n: int) -> None:
         raise ValueError("ZoneFrame.target_sigma_m must be finite and >= 0 in valid "
                          "targets, bad (row, column, target) "
                          f"{np.argwhere(valid & ~(sigma >= 0)).tolist()[:5]}")
+    signal = frame.target_signal
+    if signal is not None and (not np.all(np.isfinite(signal[valid]))
+                               or np.any(signal[valid] < 0)):
+        raise ValueError("ZoneFrame.target_signal must be finite and >= 0 in valid targets")
     if frame.target_status is not None and \
             np.any(valid & (frame.target_status == NO_TARGET_STATUS)):
         raise ValueError(f"ZoneFrame.target_status is {NO_TARGET_STATUS} (no target) for "
@@ -130,6 +143,7 @@ def driver_readings(
     nb_target_detected: Sequence[int] | None = None,
     targets_per_zone: int | None = None,
     target_order: str = "strongest",
+    signal_per_spad: Sequence[float] | None = None,
 ) -> dict[str, Any]:
     """The zone frame fields of what the Python drivers return (for ``ZoneFrame.from_driver``).
 
@@ -161,6 +175,8 @@ def driver_readings(
             first ``16 * T`` entries, as ST's driver fills it.
         target_order: ``"strongest"`` (the driver's default) or ``"closest"``, as
             the driver was configured (``vl53l5cx_set_target_order``).
+        signal_per_spad: optional flat list like ``distance_mm``, each target's return
+            signal (kcps per SPAD), kept as ``target_signal`` with several targets.
 
     Returns:
         ``ZoneFrame`` keyword arguments: ``mean_m``, ``sigma_m``, ``valid``, ``status``
@@ -174,12 +190,14 @@ def driver_readings(
     """
     arrays = {}
     for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
-                         ("target_status", target_status)):
-        arrays[name] = number_array(values, name)
+                         ("target_status", target_status), ("signal_per_spad", signal_per_spad)):
+        if values is not None:
+            arrays[name] = number_array(values, name)
     sizes = [arr.size for arr in arrays.values()]
     if len(set(sizes)) > 1:
-        raise ValueError("distance_mm, range_sigma_mm and target_status must have the same "
-                         f"length (one entry per zone and target), got {sizes}")
+        raise ValueError("distance_mm, range_sigma_mm, target_status (and signal_per_spad) "
+                         "must have the same length (one entry per zone and target), got "
+                         f"{sizes}")
     if target_order not in TARGET_ORDERS:
         raise ValueError(f"target_order must be one of {TARGET_ORDERS}, got "
                          f"{target_order!r}")
@@ -253,15 +271,20 @@ def driver_readings(
                           f"{values[far].max():.6g} m); marked invalid", RuntimeWarning,
                           stacklevel=2)
             valid &= ~far
-    mean, sigma, valid, status = (a.reshape(n, n, per_zone)
-                                  for a in (mean, sigma, valid, status))
+    signal = arrays.get("signal_per_spad", np.zeros_like(mean))
+    mean, sigma, valid, status, signal = (a.reshape(n, n, per_zone)
+                                          for a in (mean, sigma, valid, status, signal))
     if orientation is not None:
-        mean, sigma, valid, status = (orientation.apply(a) for a in (mean, sigma, valid, status))
+        mean, sigma, valid, status, signal = (orientation.apply(a)
+                                              for a in (mean, sigma, valid, status, signal))
     mean = np.where(valid, mean, 0.0).astype(np.float32)
     sigma = np.where(valid, sigma, 0.0).astype(np.float32)
     targets = {}
     if per_zone > 1 or targets_per_zone is not None:
         targets = {"target_mean_m": mean, "target_sigma_m": sigma, "target_valid": valid,
                    "target_status": status, "target_order": target_order}
+        if "signal_per_spad" in arrays:
+            good = valid & np.isfinite(signal) & (signal >= 0)
+            targets["target_signal"] = np.where(good, signal, 0.0).astype(np.float32)
     return {"mean_m": mean[..., 0], "sigma_m": sigma[..., 0], "valid": valid[..., 0],
             "status": status[..., 0], **targets}

@@ -123,6 +123,9 @@ class ZoneInputs:
             the sensor's range); heads that do not use it ignore it.
         scale_m: optional (B,) metres per unit of ``hypotheses`` and ``mean_sigma`` (the
             frame's scale with ``zone_scale_norm``; None: they are in metres).
+        targets: optional (B, Z, T, 2) every target each zone reported, ``[distance,
+            share]`` (distance in the units of ``hypotheses``, 0 where a slot is empty;
+            target 0 is the primary reading); heads that do not use it ignore it.
     """
 
     hypotheses: torch.Tensor
@@ -132,6 +135,7 @@ class ZoneInputs:
     mean_sigma: torch.Tensor | None = None
     no_target: torch.Tensor | None = None
     scale_m: torch.Tensor | None = None
+    targets: torch.Tensor | None = None
 
     def mean_m(self, dtype: torch.dtype) -> torch.Tensor:
         """(B, Z) zone means in metres, as ``dtype``."""
@@ -150,6 +154,8 @@ class DepthHead(nn.Module):
     traceable: bool = False
     #: Whether :meth:`predict` reads ``ZoneInputs.no_target`` (an export then takes it).
     uses_no_target: bool = False
+    #: Whether :meth:`predict` reads ``ZoneInputs.targets`` (several targets per zone).
+    uses_targets: bool = False
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
         """Depth, bin edges and uncertainty from decoder features.

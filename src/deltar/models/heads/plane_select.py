@@ -12,7 +12,13 @@ geometric mean over the zones of each zone's *local plane* evaluated at that pix
   frozen ImageNet features of the encoder, which tell surfaces apart better than colour;
 - each zone's hypothesis is not a constant but the plane through its reading fitted to
   its neighbours that read alike (:func:`zone_planes`), so slanted floors and walls keep
-  their slope inside a zone and past the edge of the sensor's field of view.
+  their slope inside a zone and past the edge of the sensor's field of view;
+- a zone that reports more than one target (a depth edge inside the zone: the sensor
+  separates surfaces at least 0.6 m apart) offers each further target as a hypothesis
+  of its own (:func:`secondary_descriptors`): the zone's spatial prior, a descriptor
+  borrowed from the neighbours that read like that target, and the log of each
+  target's share of the zone as prior weight, so a pixel takes the second surface when
+  it looks like the neighbours on that surface.
 
 The metric scale comes from the zones alone: every output is a weighted mean of planes
 anchored at the zone readings, and the planes are fitted on readings relative to each
@@ -95,6 +101,81 @@ def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects:
     return slope_y.masked_fill(~valid, 0.0), slope_x.masked_fill(~valid, 0.0)
 
 
+#: Neighbour range (zone sizes per axis) and log-depth similarity of the neighbours a
+#: further target borrows its descriptor from (:func:`secondary_descriptors`).
+SECONDARY_NEIGHBOURHOOD = 1.6
+SECONDARY_SIMILARITY = 0.1
+#: Least summed neighbour weight for a borrowed descriptor; below it the target keeps
+#: its own zone's descriptor.
+SECONDARY_MIN_SUPPORT = 0.05
+
+
+def target_shares(zone_targets: torch.Tensor, zone_valid: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each reported target's share of its zone, and which targets beyond the first exist.
+
+    Args:
+        zone_targets: (B, Z, T, 2) per target ``[distance, share]``: the distance in the
+            units of the zone readings (0: no target in that slot) and the target's
+            share of the zone's footprint (any non-negative scale; normalised here over
+            the zone's reported targets; all 0 gives equal shares). Target 0 is the
+            zone's primary reading.
+        zone_valid: (B, Z) bool.
+
+    Returns:
+        ``(share, present)``: (B, Z, T) shares summing to 1 over each valid zone's
+        reported targets (target 0 alone: 1), and (B, Z, T - 1) bool, the further targets
+        that are reported by a valid zone.
+    """
+    valid = zone_valid.bool()
+    present = (zone_targets[..., 1:, 0] > 0) & valid[..., None]
+    reported = torch.cat([valid[..., None], present], dim=-1).to(zone_targets.dtype)
+    raw = zone_targets[..., 1].clamp_min(0.0) * reported
+    total = raw.sum(-1, keepdim=True)
+    count = reported.sum(-1, keepdim=True).clamp_min(1.0)
+    share = torch.where(total > 0, raw / total.clamp_min(1e-12), reported / count)
+    return share, present
+
+
+def secondary_descriptors(pooled: torch.Tensor, zone_mean_m: torch.Tensor,
+                          zone_valid: torch.Tensor, zone_rects: torch.Tensor,
+                          target_m: torch.Tensor) -> torch.Tensor:
+    """The descriptor of each further target: borrowed from neighbours that read like it.
+
+    Zone k's further target at distance d is the surface beside the one its primary
+    reading describes; the neighbours whose readings lie near d (weight
+    ``exp(-0.5 (log(m_j / d) / SECONDARY_SIMILARITY)^2)`` over the valid neighbours
+    within :data:`SECONDARY_NEIGHBOURHOOD` zone sizes) show how that surface looks. With
+    too little support (< :data:`SECONDARY_MIN_SUPPORT`) the zone's own descriptor is
+    kept.
+
+    Args:
+        pooled: (B, C, Z) unit zone descriptors.
+        zone_mean_m: (B, Z) primary readings (units of ``target_m``).
+        zone_valid: (B, Z) bool.
+        zone_rects: (B, Z, 4) (y0, x0, y1, x1), pixels.
+        target_m: (B, Z, S) further targets' distances (0 where none).
+
+    Returns:
+        (B, C, Z * S) unit descriptors, zone-major (zone k's targets at k * S ...).
+    """
+    batch, zones, slots = target_m.shape
+    centre_y, centre_x, zone_h, zone_w = _zone_geometry(zone_rects.to(pooled.dtype))
+    dy = (centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None]  # (B, k, j)
+    dx = (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None]
+    eye = torch.eye(zones, dtype=torch.bool, device=pooled.device)
+    near = (dy.abs() < SECONDARY_NEIGHBOURHOOD) & (dx.abs() < SECONDARY_NEIGHBOURHOOD) & \
+        zone_valid.bool()[:, None, :] & ~eye
+    log_ratio = torch.log(zone_mean_m.clamp_min(1e-3))[:, None, None, :] - \
+        torch.log(target_m.clamp_min(1e-3))[..., None]  # (B, k, s, j)
+    weight = torch.exp(-0.5 * (log_ratio / SECONDARY_SIMILARITY) ** 2) * near[:, :, None, :]
+    weight = weight.reshape(batch, zones * slots, zones)
+    borrowed = pooled @ weight.transpose(1, 2)  # (B, C, Z * S)
+    own = pooled.repeat_interleave(slots, dim=2)
+    supported = weight.sum(-1) >= SECONDARY_MIN_SUPPORT  # (B, Z * S)
+    return F.normalize(torch.where(supported[:, None, :], borrowed, own), dim=1)
+
+
 class PlanarSelectHead(DepthHead):
     """Depth as an affinity-weighted choice among the zones' local planes (log depth).
 
@@ -113,6 +194,8 @@ class PlanarSelectHead(DepthHead):
             readings. None: the head ignores the flags (weights saved before they
             existed load that way).
     """
+
+    uses_targets = True
 
     def __init__(self, temperature: float = 5.0, planar: bool = True, max_ratio: float = 2.0,
                  n_bins: int = 64, min_depth: float = 1e-3, max_depth: float = 10.0,
@@ -137,7 +220,8 @@ class PlanarSelectHead(DepthHead):
     def forward(self, descriptors: torch.Tensor, zone_mean_m: torch.Tensor,
                 zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float,
                 zone_no_target: torch.Tensor | None = None,
-                zone_scale_m: torch.Tensor | None = None) -> HeadOutput:
+                zone_scale_m: torch.Tensor | None = None,
+                zone_targets: torch.Tensor | None = None) -> HeadOutput:
         """Depth, bin edges and uncertainty: the inputs and outputs of
         :meth:`~deltar.models.heads.zone_select.ZoneSelectHead.forward`, with unit-length
         pixel descriptors (B, C, h, w)
@@ -149,6 +233,11 @@ class PlanarSelectHead(DepthHead):
         ``no_target_depth``. Valid zones alone set the planes and the frame's centre.
         ``zone_scale_m`` (B,), optional: metres per unit of ``zone_mean_m`` (when the
         readings were divided by the frame's scale), to place that absolute depth.
+        ``zone_targets`` (B, Z, T, 2), optional: every target each zone reported,
+        ``[distance, share]`` (:func:`target_shares`; distances in the units of
+        ``zone_mean_m``); targets beyond the first join the choice as constant
+        hypotheses with borrowed descriptors (:func:`secondary_descriptors`), and every
+        target's log share is added to its weight's logit.
         """
         _, _, height, width = descriptors.shape
         dtype = descriptors.dtype
@@ -158,9 +247,28 @@ class PlanarSelectHead(DepthHead):
         chosen = valid if far is None else valid | far
         log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
         pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
-        cosine = descriptors.flatten(2).transpose(1, 2) @ pooled  # (B, h*w, Z)
+        pixels = descriptors.flatten(2).transpose(1, 2)  # (B, h*w, C)
+        cosine = pixels @ pooled  # (B, h*w, Z)
         prior_logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]).flatten(1, 2)
-        weights = softmax_over_zones(prior_logits + self.temperature.to(dtype) * cosine)
+        logits = prior_logits + self.temperature.to(dtype) * cosine
+        extra = None
+        if zone_targets is not None and zone_targets.shape[2] > 1:
+            targets = zone_targets.to(dtype)
+            share, present = target_shares(targets, valid)
+            slots = present.shape[-1]
+            descriptors_2 = secondary_descriptors(pooled, zone_mean_m.to(dtype), valid,
+                                                  zone_rects, targets[..., 1:, 0])
+            cosine_2 = pixels @ descriptors_2  # (B, h*w, Z * S)
+            log_share = torch.log(share.clamp_min(1e-6))
+            # The primary's share only where the zone reported more than one target.
+            logits = logits + torch.where(present.any(-1), log_share[..., 0], 0.0)[:, None, :]
+            logits_2 = prior_logits.repeat_interleave(slots, dim=2) + \
+                self.temperature.to(dtype) * cosine_2 + log_share[..., 1:].flatten(1)[:, None, :]
+            logits_2 = logits_2.masked_fill(~present.flatten(1)[:, None, :], -1e4)
+            logits = torch.cat([logits, logits_2], dim=-1)
+            # Constant hypotheses, relative to the frame's centre like the readings.
+            extra = (torch.log(targets[..., 1:, 0].clamp_min(1e-3)).flatten(1), present)
+        weights = softmax_over_zones(logits)
 
         means = zone_mean_m.to(dtype)
         log_mean = torch.log(means.clamp_min(1e-3))
@@ -174,13 +282,21 @@ class PlanarSelectHead(DepthHead):
             if zone_scale_m is not None:
                 log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
             log_mean = torch.where(far, log_far.to(dtype), log_mean)
+        if extra is not None:
+            log_extra = (extra[0] - centre).masked_fill(~extra[1].flatten(1), 0.0)
         if self.planar:
             hypotheses = log_mean[:, None, :] - torch.log(
                 self._plane_ratio(means, valid, zone_rects.to(dtype), (height, width), stride))
+            if extra is not None:
+                hypotheses = torch.cat(
+                    [hypotheses, log_extra[:, None, :].expand(-1, hypotheses.shape[1], -1)],
+                    dim=-1)
             # (B, h*w, Z). No mask needed: a zone that is not chosen has log_mean 0 and
             # slopes 0, so its hypothesis is log(1) = 0 already.
             log_depth = (weights * hypotheses).sum(-1, keepdim=True)
         else:
+            if extra is not None:
+                log_mean = torch.cat([log_mean, log_extra], dim=-1)
             hypotheses = log_mean[:, None, :]
             log_depth = weights @ log_mean[..., None]
         # The variance from the deviations: the difference of second moments cancels
@@ -199,7 +315,7 @@ class PlanarSelectHead(DepthHead):
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
         """The choice among the zones' planes (:meth:`forward`), descriptors as features."""
         return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
-                    zones.stride, zones.no_target, zones.scale_m)
+                    zones.stride, zones.no_target, zones.scale_m, zones.targets)
 
     def _plane_ratio(self, means: torch.Tensor, valid: torch.Tensor, rects: torch.Tensor,
                      size: tuple[int, int], stride: float) -> torch.Tensor:

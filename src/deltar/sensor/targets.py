@@ -1,0 +1,76 @@
+"""Every target of a zone as the network reads it: distances and shares of the zone.
+
+A zone that reports several targets (:attr:`~deltar.sensor.zone_frame.ZoneFrame.target_mean_m`)
+sees several surfaces. The plane-select network offers each as a hypothesis and weighs
+it by the share of the zone's footprint it covers. The sensor does not report that
+share, but it reports each target's signal; a return's signal falls with the square of
+its distance, so with equal reflectance a target's share of the footprint is
+proportional to ``signal * distance^2``. Without signals every reported target gets an
+equal share.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from deltar.sensor.zone_frame import ZoneFrame
+
+__all__ = ["stacked_target_inputs", "target_inputs"]
+
+
+def target_inputs(frame: ZoneFrame) -> np.ndarray:
+    """(Z, T, 2) float32 ``[distance (metres), share]`` per zone and target slot.
+
+    Slot 0 is the zone's primary reading (``frame.mean_m``; share 1 when the zone
+    reports nothing else); slots 1.. are the zone's other valid targets in the frame's
+    order. Empty slots and invalid zones are 0. Shares are
+    ``signal * distance^2`` normalised over the zone's targets when the frame carries
+    target signals (``target_signal``), else equal. A frame with one target per zone
+    gives T = 1.
+    """
+    mean, _, valid = frame.flat_targets()
+    primary_m, _, primary_valid = frame.flat()
+    zones, slots = mean.shape
+    out = np.zeros((zones, slots, 2), dtype=np.float32)
+    out[:, 0, 0] = np.where(primary_valid, primary_m, 0.0)
+    signal = getattr(frame, "target_signal", None)
+    flat_signal = None if signal is None else np.asarray(signal, np.float64).reshape(zones, -1)
+    # The primary is the target that lies at the primary reading (slot 0 in the
+    # default, strongest-first order; anywhere in closest-first order).
+    is_primary = valid & primary_valid[:, None] & (
+        np.abs(mean - primary_m[:, None]) <= 1e-4 * np.maximum(primary_m[:, None], 1.0))
+    first = np.argmax(is_primary, axis=1)
+    found = is_primary.any(axis=1)
+    weight = np.where(valid, 1.0, 0.0) if flat_signal is None else \
+        np.where(valid, np.maximum(flat_signal, 0.0) * mean.astype(np.float64) ** 2, 0.0)
+    weight[~primary_valid] = 0.0
+    primary_weight = np.where(found, weight[np.arange(zones), first],
+                              np.where(primary_valid, 1.0, 0.0))
+    for zone in np.flatnonzero(primary_valid):
+        slot = 1
+        for target in range(slots):
+            if not valid[zone, target] or (found[zone] and target == first[zone]):
+                continue
+            out[zone, slot] = (mean[zone, target], weight[zone, target])
+            slot += 1
+    total = primary_weight + out[:, 1:, 1].sum(axis=1)
+    out[:, 0, 1] = primary_weight
+    has_weight = total > 0
+    out[has_weight, :, 1] /= total[has_weight, None]
+    out[primary_valid & ~has_weight, 0, 1] = 1.0
+    return out
+
+
+def stacked_target_inputs(frames: Sequence[ZoneFrame]) -> np.ndarray:
+    """(B, Z, T, 2) float32 :func:`target_inputs` of a batch; T is the most targets any
+    zone of the batch reports (slots no zone fills are dropped; 1 when none reports a
+    second)."""
+    parts = [target_inputs(frame) for frame in frames]
+    slots = max(int((part[..., 0] > 0).sum(axis=1).max(initial=1)) for part in parts)
+    out = np.zeros((len(parts), parts[0].shape[0], slots, 2), dtype=np.float32)
+    for index, part in enumerate(parts):
+        used = min(slots, part.shape[1])
+        out[index, :, :used] = part[:, :used]
+    return out
