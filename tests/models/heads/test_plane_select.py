@@ -1,4 +1,4 @@
-"""The plane-select head with several targets per zone."""
+"""The plane-select head (several targets per zone; the rest in tests/models/test_affinity.py)."""
 
 from __future__ import annotations
 
