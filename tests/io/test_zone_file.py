@@ -139,17 +139,18 @@ def test_nan_and_corrupt_json_are_rejected(tmp_path, rng):
 
 def _target_frame(rng: np.random.Generator, grid: int = 8, per_zone: int = 3,
                   order: str = "strongest", with_status: bool = True,
-                  timestamp_s: float = 12.25) -> ZoneFrame:
+                  timestamp_s: float = 12.25, with_signal: bool = True) -> ZoneFrame:
     zones = grid * grid
     valid = rng.random((zones, per_zone)) > 0.3
     mean = np.where(valid, rng.uniform(0.2, 3.9, (zones, per_zone)), 0.0)
     sigma = np.where(valid, rng.uniform(0.0, 0.1, (zones, per_zone)), 0.0)
     status = np.where(valid, 5, 255 * (rng.random((zones, per_zone)) > 0.5)).astype(np.uint8)
+    signal = np.where(valid, rng.uniform(0.5, 800.0, (zones, per_zone)), 0.0)
     return ZoneFrame(mean_m=mean[:, 0], sigma_m=sigma[:, 0], valid=valid[:, 0],
                      status=status[:, 0] if with_status else None, timestamp_s=timestamp_s,
                      sensor_model="VL53L8CX", target_mean_m=mean, target_sigma_m=sigma,
                      target_valid=valid, target_status=status if with_status else None,
-                     target_order=order)
+                     target_order=order, target_signal=signal if with_signal else None)
 
 
 def _assert_same_targets(back: ZoneFrame, frame: ZoneFrame) -> None:
@@ -160,6 +161,9 @@ def _assert_same_targets(back: ZoneFrame, frame: ZoneFrame) -> None:
     np.testing.assert_allclose(back.target_sigma_m, frame.target_sigma_m, atol=1e-6, rtol=0)
     np.testing.assert_array_equal(back.valid, frame.valid)
     np.testing.assert_allclose(back.mean_m, frame.mean_m, atol=1e-6, rtol=0)
+    assert (back.target_signal is None) == (frame.target_signal is None)
+    if frame.target_signal is not None:
+        np.testing.assert_allclose(back.target_signal, frame.target_signal, rtol=1e-6)
 
 
 @pytest.mark.parametrize("suffix", [".json", ".npz"])
@@ -190,9 +194,26 @@ def test_single_target_files_are_unchanged_and_old_files_read(tmp_path, rng):
     with_targets = zone_frame_to_dict(frame)
     assert {k: v for k, v in with_targets.items() if k in data} == data
     assert sorted(set(with_targets) - set(data)) == [
-        "target_mean_m", "target_order", "target_sigma_m", "target_status", "target_valid",
-        "targets_per_zone"]
+        "target_mean_m", "target_order", "target_sigma_m", "target_signal", "target_status",
+        "target_valid", "targets_per_zone"]
     assert np.shape(with_targets["target_mean_m"]) == (64, 3)
+    assert np.shape(with_targets["target_signal"]) == (64, 3)
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz"])
+def test_target_signal_is_optional(tmp_path, rng, suffix):
+    frame = _target_frame(rng, with_signal=False)
+    assert "target_signal" not in zone_frame_to_dict(frame)
+    back = load_zone_frame(save_zone_frame(tmp_path / f"frame{suffix}", frame))
+    assert back.target_signal is None
+    _assert_same_targets(back, frame)
+    # A file with targets written before the signal key existed reads the same.
+    data = zone_frame_to_dict(_target_frame(rng))
+    del data["target_signal"]
+    path = tmp_path / "old_targets.json"
+    path.write_text(json.dumps(data))
+    back = load_zone_frame(path)
+    assert back.target_signal is None and back.targets_per_zone == 3
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -206,8 +227,14 @@ def test_single_target_files_are_unchanged_and_old_files_read(tmp_path, rng):
     ({"target_valid": [["yes"] * 3] * 64}, "target_valid must hold 192 booleans"),
     ({"target_order": "nearest"}, "ZoneFrame.target_order must be one of"),
     ({"target_order": 3}, "target_order must be a string"),
+    ({"target_signal": [[-1.0] * 3] * 64}, "target_signal has negative values"),
+    ({"target_signal": [[1.0] * 2] * 64}, r"target_signal must be \(64, 3\)"),
+    ({"target_signal": [["1.0"] * 3] * 64}, "target_signal must hold numbers"),
+    ({"target_signal": [[float("nan")] * 3] * 64}, "target_signal has NaN"),
+    ({"target_signal": [[True] * 3] * 64}, "target_signal must hold numbers"),
 ], ids=["no-valid", "no-count", "count-5", "count-mismatch", "shape", "negative", "strings",
-        "valid-strings", "order", "order-number"])
+        "valid-strings", "order", "order-number", "signal-negative", "signal-shape",
+        "signal-strings", "signal-nan", "signal-bools"])
 def test_bad_target_keys_name_the_file_and_key(tmp_path, rng, edit, message):
     data = zone_frame_to_dict(_target_frame(rng))
     data.update(edit)
@@ -243,3 +270,35 @@ def test_driver_dumps_and_results_with_several_targets(tmp_path):
     assert frame.targets_per_zone == 2 and not frame.target_valid[..., 1].any()
     with pytest.raises(ValueError, match=r"dump\.json: invalid driver output: target_order"):
         zone_frame_from_dict({**dump, "target_order": "nearest"}, source=str(path))
+
+
+def test_driver_signal_per_spad_becomes_the_target_signal(tmp_path):
+    distance = np.repeat(np.arange(16) * 100.0 + 500, 2)
+    distance[1::2] += 1500
+    signal = np.tile([300.0, 40.0], 16)
+    dump = {"distance_mm": distance.tolist(), "range_sigma_mm": [10] * 32,
+            "target_status": [5] * 32, "signal_per_spad": signal.tolist(), "targets_per_zone": 2}
+    path = tmp_path / "dump.json"
+    path.write_text(json.dumps(dump))
+    frame = load_zone_frame(path)
+    np.testing.assert_allclose(frame.flat_targets()[0][3], [0.8, 2.3], atol=1e-6)
+    np.testing.assert_allclose(frame.target_signal.reshape(16, 2)[3], [300.0, 40.0])
+    with pytest.raises(ValueError, match=r"dump\.json: signal_per_spad must hold numbers"):
+        zone_frame_from_dict({**dump, "signal_per_spad": ["1"] * 32}, source=str(path))
+
+    class Results:  # a driver's results object (attributes, as vl53l5cx-ctypes)
+        def __init__(self, per_zone: int) -> None:
+            self.distance_mm = [1000.0] * 16 * per_zone
+            self.range_sigma_mm = [10] * 16 * per_zone
+            self.target_status = [5] * 16 * per_zone
+            self.signal_per_spad = [120.0] * 16 * per_zone + [7.0] * 5  # longer buffer
+
+    with pytest.raises(ValueError, match="signal_per_spad"):
+        zone_frame_from_driver_result(Results(2), targets_per_zone=2)
+    results = Results(2)
+    results.signal_per_spad = results.signal_per_spad[:32]
+    frame = zone_frame_from_driver_result(results, targets_per_zone=2)
+    assert frame.target_signal.shape == (4, 4, 2) and np.all(frame.target_signal == 120.0)
+    # One target per zone: no target arrays, the signal is not read.
+    single = zone_frame_from_driver_result(Results(1))
+    assert single.target_mean_m is None and single.target_signal is None

@@ -10,7 +10,8 @@ JSON layout (``schema_version`` 1), flat row-major lists of ``zone_count`` entri
      "hist_edges_m": [...], "hist_counts": [[...], ...],   # optional, (B + 1,), (Z, B)
      "targets_per_zone": 2, "target_order": "strongest",   # optional: every target
      "target_mean_m": [[...], ...], "target_sigma_m": [[...], ...],   # (Z, T) metres
-     "target_valid": [[...], ...], "target_status": [[...], ...]}     # (Z, T), status optional
+     "target_valid": [[...], ...], "target_status": [[...], ...],     # (Z, T), status optional
+     "target_signal": [[...], ...]}          # optional (Z, T) >= 0, each target's return signal
 
 The target keys are written only for frames that hold several targets per zone
 (``ZoneFrame.target_mean_m``); a single-target frame's file is as before, and readers
@@ -20,7 +21,8 @@ NPZ files hold the same keys as arrays (``schema``/``sensor_model`` as 0-d strin
 A raw driver dump is a JSON object with ``distance_mm``, ``range_sigma_mm`` and
 ``target_status`` (flat lists of 16 or 64, driver order), as the Python drivers return;
 multi-target builds return ``zones * T`` entries (zone-major), optionally with
-``nb_target_detected`` (one per zone), ``targets_per_zone`` and ``target_order``.
+``nb_target_detected`` (one per zone), ``signal_per_spad`` (like ``distance_mm``),
+``targets_per_zone`` and ``target_order``.
 
 Values must be numbers: strings (``"1.5"``) and booleans (``true``) are refused, not
 converted. A schema file's valid zones must read a distance the sensor can measure
@@ -49,7 +51,8 @@ from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFram
 SCHEMA_NAME = "deltar.zone_frame"
 SCHEMA_VERSION = 1
 _DRIVER_FIELDS = ("distance_mm", "range_sigma_mm", "target_status")
-_TARGET_KEYS = ("target_mean_m", "target_sigma_m", "target_valid", "target_status")
+_TARGET_KEYS = ("target_mean_m", "target_sigma_m", "target_valid", "target_status",
+                "target_signal")
 
 
 def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
@@ -84,6 +87,9 @@ def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
         if frame.target_status is not None:
             data["target_status"] = frame.target_status.reshape(frame.zone_count, -1).astype(
                 int).tolist()
+        if frame.target_signal is not None:
+            data["target_signal"] = frame.target_signal.reshape(frame.zone_count, -1).astype(
+                float).tolist()
     return data
 
 
@@ -110,9 +116,11 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
         raise ValueError(f"{source}: sensor_model must be a string, got {sensor_model!r}")
     if all(k in data for k in _DRIVER_FIELDS):
         fields = [number_array(data[k], f"{source}: {k}") for k in _DRIVER_FIELDS]
-        detected = data.get("nb_target_detected")
+        detected, signal = data.get("nb_target_detected"), data.get("signal_per_spad")
         if detected is not None:
             detected = number_array(detected, f"{source}: nb_target_detected")
+        if signal is not None:
+            signal = number_array(signal, f"{source}: signal_per_spad")
         per_zone = data.get("targets_per_zone")
         if isinstance(per_zone, np.integer):
             per_zone = int(per_zone)
@@ -121,7 +129,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
                 *fields, orientation=orientation, valid_status=valid_status,
                 timestamp_s=_optional_float(data.get("timestamp_s"), source, "timestamp_s"),
                 sensor_model=sensor_model, nb_target_detected=detected,
-                targets_per_zone=per_zone,
+                targets_per_zone=per_zone, signal_per_spad=signal,
                 target_order=data.get("target_order", "strongest"))
         except (TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid driver output: {err}") from err
@@ -313,24 +321,29 @@ def zone_frame_from_driver_result(result: Any, *, orientation: Orientation | Non
     Works with ``vl53l5cx-ctypes`` results, SparkFun's ``RangingDataResults`` and
     CircuitPython's ``get_ranging_data()``: anything with ``distance_mm``,
     ``range_sigma_mm`` and ``target_status`` as items or attributes (flat, millimetres),
-    and optionally ``nb_target_detected`` (one per zone). ``grid``, ``targets_per_zone``
-    and ``target_order`` are as the driver was configured (see
-    :meth:`ZoneFrame.from_driver`; inferred from the lengths when None).
+    and optionally ``nb_target_detected`` (one per zone) and ``signal_per_spad`` (like
+    ``distance_mm``, kcps per SPAD). ``grid``, ``targets_per_zone`` and ``target_order``
+    are as the driver was configured (see :meth:`ZoneFrame.from_driver`; inferred from
+    the lengths when None). ``signal_per_spad`` is read only when the frame holds every
+    target (``targets_per_zone`` given, or more entries than zones), as
+    ``target_signal``; a single-target reading has no use for it.
     """
     fields = {}
-    for name in (*_DRIVER_FIELDS, "nb_target_detected"):
+    for name in (*_DRIVER_FIELDS, "nb_target_detected", "signal_per_spad"):
         if isinstance(result, Mapping):
             value = result.get(name)
         else:
             value = getattr(result, name, None)
-        if value is None and name != "nb_target_detected":
+        if value is None and name in _DRIVER_FIELDS:
             raise ValueError(f"driver result has no field {name!r}")
         fields[name] = None if value is None else list(value)
+    several = targets_per_zone is not None or len(fields["distance_mm"]) not in (16, 64)
     return ZoneFrame.from_driver(fields["distance_mm"], fields["range_sigma_mm"],
                                  fields["target_status"], orientation=orientation,
                                  timestamp_s=timestamp_s, sensor_model=sensor_model, grid=grid,
                                  nb_target_detected=fields["nb_target_detected"],
-                                 targets_per_zone=targets_per_zone, target_order=target_order)
+                                 targets_per_zone=targets_per_zone, target_order=target_order,
+                                 signal_per_spad=fields["signal_per_spad"] if several else None)
 
 
 def _float_array(values: Any, source: str, key: str) -> np.ndarray:
