@@ -51,7 +51,7 @@ def test_multi_target_message_lengths_are_checked(rng):
                       targets_per_zone=2, target_order="strongest",
                       target_distance_m=np.tile(np.float32([1.0, 2.5]), 16),
                       target_sigma_m=np.zeros(0, np.float32), target_status=np.zeros(0, np.uint8),
-                      target_valid=np.zeros(0, bool))
+                      target_valid=np.zeros(0, bool), target_signal=np.zeros(0, np.float32))
         fields.update(changes)
         return typestore().types[MULTI_TARGET_ZONE_FRAME_MSGTYPE](**fields)
 
@@ -67,4 +67,14 @@ def test_multi_target_message_lengths_are_checked(rng):
         zone_frame_from_msg(message(target_sigma_m=np.ones(3, np.float32)))
     with pytest.raises(ValueError, match=r"targets_per_zone is 0; expected 1\.\.4"):
         zone_frame_from_msg(message(targets_per_zone=0))
+    # An empty target_signal: no signals; else one per target, 0 where not valid.
+    assert frame.target_signal is None
+    signal = np.tile(np.float32([250.0, 30.0]), 16)
+    with_signal = zone_frame_from_msg(message(target_signal=signal, target_status=status))
+    np.testing.assert_array_equal(with_signal.target_signal[..., 0], 250.0)
+    np.testing.assert_array_equal(with_signal.target_signal[..., 1], 0.0)
+    with pytest.raises(ValueError, match="target_signal has 16 entries; expected 32 or none"):
+        zone_frame_from_msg(message(target_signal=np.ones(16, np.float32)))
+    with pytest.raises(ValueError, match=r"zones: ZoneFrame\.target_signal must be finite"):
+        zone_frame_from_msg(message(target_signal=np.full(32, -1.0, np.float32)))
     assert ZONE_FRAME_MSGTYPE != MULTI_TARGET_ZONE_FRAME_MSGTYPE

@@ -97,3 +97,80 @@ def test_bag_round_trip_writes_the_multi_target_message(tmp_path, rng):
     (_, single), = read_messages(tmp_path / "bag", "/tof/single")
     assert not hasattr(single, "target_distance_m")
     assert zone_frame_from_msg(single).target_mean_m is None
+
+
+#: MultiTargetZoneFrame as it was before ``target_signal`` (bags written then hold it).
+PREVIOUS_MULTI_TARGET_MSG = """std_msgs/Header header
+string sensor_model
+uint16 zone_count
+float32[] distance_m
+float32[] sigma_m
+uint8[] status
+bool[] valid
+float32[] hist_edges_m
+float32[] hist_counts
+uint8 targets_per_zone
+string target_order
+float32[] target_distance_m
+float32[] target_sigma_m
+uint8[] target_status
+bool[] target_valid
+"""
+
+
+#: A later layout with a field this version does not know (read with the stored definition).
+LATER_MULTI_TARGET_MSG = PREVIOUS_MULTI_TARGET_MSG + "float32[] target_signal\nuint16[] later\n"
+
+
+def _layout_message(frame: ZoneFrame, definition: str):
+    """``frame`` as a MultiTargetZoneFrame of another layout, and that layout's store."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from deltar.io.ros_messages import MULTI_TARGET_ZONE_FRAME_MSGTYPE as msgtype
+    from deltar.io.ros_messages import stamped_header
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg(definition, msgtype))
+    mean, sigma, valid = frame.flat()
+    t_mean, t_sigma, t_valid = frame.flat_targets()
+    later = {} if definition == PREVIOUS_MULTI_TARGET_MSG else {
+        "target_signal": frame.target_signal.reshape(-1), "later": np.arange(3, dtype=np.uint16)}
+    msg = store.types[msgtype](
+        header=stamped_header(5_000_000_000, "tof"), sensor_model=frame.sensor_model,
+        zone_count=frame.zone_count, distance_m=np.where(valid, mean, np.nan).astype(np.float32),
+        sigma_m=sigma.astype(np.float32), status=np.zeros(0, np.uint8), valid=valid,
+        hist_edges_m=np.zeros(0, np.float32), hist_counts=np.zeros(0, np.float32),
+        targets_per_zone=frame.targets_per_zone, target_order=frame.target_order,
+        target_distance_m=np.where(t_valid, t_mean, np.nan).reshape(-1).astype(np.float32),
+        target_sigma_m=t_sigma.reshape(-1).astype(np.float32),
+        target_status=np.zeros(0, np.uint8), target_valid=t_valid.reshape(-1), **later)
+    return store, msgtype, msg
+
+
+@pytest.mark.parametrize("layout, stored_definition", [
+    ("previous", True), ("previous", False), ("later", True)],
+    ids=["previous-definition-in-bag", "previous-no-definition", "later-definition-in-bag"])
+def test_bags_of_other_layouts_read_with_their_definition(tmp_path, rng, layout,
+                                                          stored_definition):
+    from rosbags.rosbag2 import Writer
+
+    frame = _target_frame(rng, per_zone=2, with_signal=layout == "later", with_status=False)
+    new = _target_frame(rng, per_zone=2, timestamp_s=6.0)
+    definition = PREVIOUS_MULTI_TARGET_MSG if layout == "previous" else LATER_MULTI_TARGET_MSG
+    store, msgtype, msg = _layout_message(frame, definition)
+    with Writer(tmp_path / "bag", version=8) as writer:
+        # Without a stored definition (as ROS 2 Humble's recorder writes bags), the
+        # reader tries this package's layout, then the previous one.
+        extra = {"typestore": store} if stored_definition else {"msgdef": "",
+                                                                "rihs01": "RIHS01_" + "0" * 64}
+        topic = writer.add_connection("/tof/zones", msgtype, **extra)
+        writer.write(topic, 1, store.serialize_cdr(msg, msgtype))
+    (_, message), = read_messages(tmp_path / "bag", "/tof/zones")
+    back = zone_frame_from_msg(message)
+    assert (back.target_signal is None) == (layout == "previous")
+    _assert_same_targets(back, frame)
+    # The current layout written by BagWriter keeps the signal.
+    with BagWriter(tmp_path / "new") as writer:
+        writer.add_zone_frame("/tof/zones", 6_000_000_000, "tof", new)
+    (_, current), = read_messages(tmp_path / "new", "/tof/zones")
+    _assert_same_targets(zone_frame_from_msg(current), new)

@@ -55,14 +55,71 @@ def require_rosbags() -> Any:
 def typestore() -> Any:
     """The ROS 2 Humble type store with ``deltar_msgs/msg/ZoneFrame`` and
     ``deltar_msgs/msg/MultiTargetZoneFrame`` registered."""
+    return _store_with(((ZONE_FRAME_MSGTYPE, ZONE_FRAME_MSG_PATH.read_text(encoding="utf-8")),
+                        (MULTI_TARGET_ZONE_FRAME_MSGTYPE, _multi_target_definition())))
+
+
+def _multi_target_definition(with_signal: bool = True) -> str:
+    """``MultiTargetZoneFrame.msg``; without ``target_signal``: the layout before it."""
+    text = MULTI_TARGET_ZONE_FRAME_MSG_PATH.read_text(encoding="utf-8")
+    if with_signal:
+        return text
+    return "\n".join(line for line in text.splitlines()
+                     if not line.strip().endswith(" target_signal"))
+
+
+@functools.lru_cache(maxsize=8)
+def _store_with(definitions: tuple[tuple[str, str], ...]) -> Any:
+    """A ROS 2 Humble type store with these ``(msgtype, .msg text)`` pairs registered."""
     require_rosbags()
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
-    for path, name in ((ZONE_FRAME_MSG_PATH, ZONE_FRAME_MSGTYPE),
-                       (MULTI_TARGET_ZONE_FRAME_MSG_PATH, MULTI_TARGET_ZONE_FRAME_MSGTYPE)):
-        store.register(get_types_from_msg(path.read_text(encoding="utf-8"), name))
+    for name, text in definitions:
+        store.register(get_types_from_msg(text, name))
     return store
+
+
+def _previous_layout_store() -> Any:
+    """The type store of bags written before ``MultiTargetZoneFrame.target_signal``."""
+    return _store_with(((MULTI_TARGET_ZONE_FRAME_MSGTYPE, _multi_target_definition(False)),))
+
+
+def deserialize(connection: Any, rawdata: bytes, source: str = "bag") -> Any:
+    """Deserialise one message of a bag connection (``rosbags`` ``Connection``).
+
+    ``deltar_msgs`` messages are read with the definition stored in the bag when it
+    has one (a bag written before a field was added holds the older layout), else with
+    this package's definition, then with the layout before ``target_signal`` (bags
+    without stored definitions, e.g. recorded by ROS 2 Humble). Other types use
+    :func:`typestore`.
+
+    Raises:
+        ValueError: corrupt message bytes or an unparsable stored definition, naming
+            ``source`` and the type.
+    """
+    msgtype = connection.msgtype
+    stores = [typestore()]
+    if msgtype in ZONE_FRAME_MSGTYPES:
+        msgdef = getattr(connection, "msgdef", None)
+        stored = getattr(msgdef, "data", "") or ""
+        if getattr(getattr(msgdef, "format", None), "name", "") == "MSG" and stored.strip():
+            try:
+                stores = [_store_with(((msgtype, stored),))]
+            except Exception as err:  # rosbags raises its own parse / type errors
+                raise ValueError(f"{source}: the bag's definition of {msgtype} cannot be "
+                                 f"read: {err}") from err
+        elif msgtype == MULTI_TARGET_ZONE_FRAME_MSGTYPE:
+            stores.append(_previous_layout_store())
+    for store in stores[:-1]:
+        try:
+            return store.deserialize_cdr(rawdata, msgtype)
+        except Exception:  # rosbags' SerdeError: not this layout, try the next
+            continue
+    try:
+        return stores[-1].deserialize_cdr(rawdata, msgtype)
+    except Exception as err:  # corrupt bytes (rosbags' SerdeError and others)
+        raise ValueError(f"{source}: corrupt {msgtype} message: {err}") from err
 
 
 def stamp_to_ns(stamp: Any) -> int:
@@ -198,7 +255,8 @@ def _targets_from_msg(msg: Any, count: int, source: str,
     """The target arrays of a ``MultiTargetZoneFrame`` as ``ZoneFrame`` arguments.
 
     Validity as for the primary fields: ``target_valid`` when given, else a positive,
-    finite distance with (when given) a status in ``valid_status``.
+    finite distance with (when given) a status in ``valid_status``. ``target_signal``
+    is absent from messages of the layout before it, and may be empty: no signals.
     """
     per_zone = int(msg.targets_per_zone)
     if not 1 <= per_zone <= 4:
@@ -215,6 +273,10 @@ def _targets_from_msg(msg: Any, count: int, source: str,
             raise ValueError(f"{source}: {name} has {values.size} entries; expected {size} "
                              "or none")
         arrays[name] = values if values.size else None
+    signal = np.asarray(getattr(msg, "target_signal", ()), dtype=np.float64)
+    if signal.size not in (0, size):
+        raise ValueError(f"{source}: target_signal has {signal.size} entries; expected "
+                         f"{size} or none")
     ok = np.isfinite(distance) & (distance > 0)
     status = None if arrays["target_status"] is None else \
         arrays["target_status"].astype(np.uint8)
@@ -232,6 +294,8 @@ def _targets_from_msg(msg: Any, count: int, source: str,
             "target_sigma_m": np.where(valid, sigma, 0.0).reshape(shape),
             "target_valid": valid.reshape(shape),
             "target_status": None if status is None else status.reshape(shape),
+            "target_signal": np.where(valid, signal, 0.0).reshape(shape) if signal.size
+            else None,
             "target_order": str(msg.target_order) or "strongest"}
 
 

@@ -29,11 +29,11 @@ from deltar.io.ros_messages import (
     CAMERA_INFO_TYPE,
     IMAGE_TYPES,
     ZONE_FRAME_MSGTYPES,
+    deserialize,
     image_from_msg,
     intrinsics_from_camera_info,
     require_rosbags,
     stamp_to_ns,
-    typestore,
     zone_frame_from_msg,
     zone_frame_from_vl53l5cx_ros2,
 )
@@ -161,12 +161,8 @@ class BagInput:
             return {_namespace(self.image_topic)}
         return set()
 
-    def _deserialize(self, rawdata: bytes, msgtype: str, topic: str) -> Any:
-        try:
-            return typestore().deserialize_cdr(rawdata, msgtype)
-        except Exception as err:  # corrupt message bytes
-            raise ValueError(f"{self.path}: corrupt {msgtype} message on {topic}: {err}") \
-                from err
+    def _deserialize(self, connection: Any, rawdata: bytes) -> Any:
+        return deserialize(connection, rawdata, f"{self.path}: {connection.topic}")
 
     def _zone_frame(self, msg: Any) -> ZoneFrame:
         if self.tof_format == "deltar":
@@ -195,7 +191,7 @@ class BagInput:
             wanted = [c for c in reader.connections
                       if c.topic in (self.image_topic, self.tof_topic, self.info_topic)]
             for connection, log_ns, raw in reader.messages(connections=wanted):
-                msg = self._deserialize(raw, connection.msgtype, connection.topic)
+                msg = self._deserialize(connection, raw)
                 stamp = stamp_to_ns(msg.header.stamp)
                 if connection.topic == self.image_topic:
                     size = (int(getattr(msg, "height", 0)), int(getattr(msg, "width", 0)))
@@ -255,7 +251,7 @@ class BagInput:
             for index, (connection, _, raw) in enumerate(reader.messages(connections=wanted)):
                 if index not in by_index:
                     continue
-                msg = self._deserialize(raw, connection.msgtype, connection.topic)
+                msg = self._deserialize(connection, raw)
                 rgb = image_from_msg(msg, connection.msgtype, source=self.image_topic)
                 for pair in by_index[index]:
                     yield pair, rgb
@@ -275,5 +271,5 @@ def read_messages(path: str | os.PathLike, topic: str) -> list[tuple[int, Any]]:
         if not wanted:
             raise ValueError(f"{path}: no topic {topic!r}; topics: "
                              f"{sorted(c.topic for c in reader.connections)}")
-        return [(int(log_ns), typestore().deserialize_cdr(raw, conn.msgtype))
+        return [(int(log_ns), deserialize(conn, raw, f"{path}: {topic}"))
                 for conn, log_ns, raw in reader.messages(connections=wanted)]

@@ -240,7 +240,8 @@ def _with_targets(msg: Any, frame: ZoneFrame) -> Any:
     """A ``MultiTargetZoneFrame`` with ``msg``'s fields and every target of ``frame``.
 
     Targets that are not valid are written as NaN; target statuses as for the primary
-    status (no-target flags of target 0 as 255; 5 / 0 when the frame has no codes).
+    status (no-target flags of target 0 as 255; 5 / 0 when the frame has no codes);
+    ``target_signal`` empty when the frame has no signals.
     """
     mean, sigma, valid = frame.flat_targets()
     status = frame.target_status
@@ -256,7 +257,9 @@ def _with_targets(msg: Any, frame: ZoneFrame) -> Any:
         target_distance_m=np.where(valid, mean, np.nan).reshape(-1).astype(np.float32),
         target_sigma_m=np.where(valid, sigma, 0.0).reshape(-1).astype(np.float32),
         target_status=np.asarray(status, dtype=np.uint8).reshape(-1),
-        target_valid=valid.reshape(-1).astype(bool))
+        target_valid=valid.reshape(-1).astype(bool),
+        target_signal=np.zeros(0, np.float32) if frame.target_signal is None else
+        frame.target_signal.reshape(-1).astype(np.float32))
 
 
 class BagRecordingWriter:
