@@ -97,6 +97,42 @@ def test_missing_circuitpython_driver():
         open_circuitpython(i2c=None)
 
 
+def test_circuitpython_asks_for_signals_with_several_targets(monkeypatch):
+    import sys
+    import types
+
+    started = []
+
+    class FakeSensor(MultiTargetDriver):
+        def __init__(self, i2c) -> None:
+            super().__init__()
+
+        def init(self) -> None:
+            pass
+
+        def check_data_ready(self):
+            return True
+
+        def get_ranging_data(self):
+            return self
+
+        def start_ranging(self, outputs):
+            started.append(set(outputs))
+
+    module = types.SimpleNamespace(VL53L5CX=FakeSensor, DATA_NB_TARGET_DETECTED=2,
+                                   DATA_SIGNAL_PER_SPAD=3, DATA_RANGE_SIGMA_MM=4,
+                                   DATA_DISTANCE_MM=5, DATA_TARGET_STATUS=7)
+    monkeypatch.setitem(sys.modules, "vl53lxcx", module)
+    with open_circuitpython(i2c=None, targets_per_zone=2) as sensor:
+        frame = sensor.read()
+    assert started == [{2, 3, 4, 5, 7}]
+    assert frame.targets_per_zone == 2 and frame.target_signal is not None
+    assert frame.target_signal.max() == pytest.approx(163.0)
+    with open_circuitpython(i2c=None):
+        pass
+    assert started[-1] == {4, 5, 7}
+
+
 def test_simulated_rig_rates_and_zones():
     rig = SimulatedRig(FlatWallSource(1.01, frames=6, height=48, width=64), grid=8,
                        camera_hz=30.0, sensor_hz=10.0, sensor_delay_s=0.004)
@@ -160,6 +196,8 @@ class MultiTargetDriver:
         self.range_sigma_mm = [5] * 128
         self.target_status = [5] * 128
         self.nb_target_detected = [2] * 63 + [1]
+        self.signal_per_spad = np.repeat(np.arange(64) + 100.0, 2)  # kcps per SPAD
+        self.signal_per_spad[1::2] /= 10
 
     def data_ready(self):
         return True
@@ -183,6 +221,15 @@ def test_driver_adapter_reads_every_target():
     # Driver zone 63 (one target detected) is image zone (0, 7).
     assert not frame.target_valid[0, 7, 1] and frame.target_valid[0, 7, 0]
     np.testing.assert_array_equal(frame.mean_m, frame.target_mean_m[..., 0])
+    # Each target's signal_per_spad, reoriented like the distances; 0 where not valid.
+    np.testing.assert_allclose(frame.target_signal[0, 0], [156.0, 15.6], rtol=1e-6)
+    np.testing.assert_allclose(frame.target_signal[0, 7], [163.0, 0.0], rtol=1e-6)
+    # Without targets_per_zone a one-target reading needs no signal.
+    single = MultiTargetDriver()
+    for name in ("distance_mm", "range_sigma_mm", "target_status", "signal_per_spad"):
+        setattr(single, name, list(getattr(single, name))[:64])
+    single.nb_target_detected = None
+    assert DriverAdapter(single, poll_interval_s=0.0).read().target_signal is None
     # 4x4 mode: the first 16 zones of the 8x8-sized buffers.
     frame = DriverAdapter(MultiTargetDriver(), grid=4, targets_per_zone=2,
                           poll_interval_s=0.0).read()
@@ -208,6 +255,9 @@ def _check_step_targets(frames) -> None:
     assert frames and all(f.targets_per_zone == 2 for f in frames)
     for frame in frames:
         np.testing.assert_array_equal(frame.target_valid[..., 0], frame.valid)
+        # The simulator's signal: positive for every valid target, 0 elsewhere.
+        assert np.all(frame.target_signal[frame.target_valid] > 0)
+        assert np.all(frame.target_signal[~frame.target_valid] == 0)
         second = frame.target_valid[..., 1]
         assert second.any()  # the zones on the step see both surfaces
         # Both surfaces, one as each target.

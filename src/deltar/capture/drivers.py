@@ -63,7 +63,8 @@ class DriverAdapter(SensorAdapter):
         driver: the driver object.
         data_ready: name of the method returning True when a frame is waiting.
         get_data: name of the method returning the results (an object or dict with
-            ``distance_mm``, ``range_sigma_mm``, ``target_status`` as flat lists).
+            ``distance_mm``, ``range_sigma_mm``, ``target_status`` as flat lists, and
+            optionally ``nb_target_detected`` and ``signal_per_spad``).
         start: name of the method that starts ranging (None: nothing to call).
         stop: name of the method that stops ranging (None: nothing to call).
         start_args: positional arguments of the start method.
@@ -76,8 +77,10 @@ class DriverAdapter(SensorAdapter):
             (``VL53L5CX_NB_TARGET_PER_ZONE``, 1..4). When given, the results are read as
             ``grid`` x ``grid`` zones of that many targets each (the first ``16 * T``
             entries of an 8x8-sized buffer in 4x4 mode) and the frames carry the target
-            arrays; None infers the grid from the result's length, one target per zone
-            (several when the length is a multiple of 64 zones).
+            arrays, with each target's ``signal_per_spad`` (kcps per SPAD) as
+            ``target_signal`` when the results have it (it weighs a zone's targets
+            against each other); None infers the grid from the result's length, one
+            target per zone (several when the length is a multiple of 64 zones).
         target_order: ``"strongest"`` or ``"closest"``, as the driver was configured.
     """
 
@@ -198,7 +201,9 @@ def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
     """A sensor through ``circuitpython-vl53lxcx`` on a CircuitPython board.
 
     The driver needs ``init()`` (firmware upload) and starts ranging with the set of
-    outputs to report: distance, sigma and target status are requested.
+    outputs to report: distance, sigma and target status are requested, and with
+    ``targets_per_zone`` given also each zone's target count and each target's
+    ``signal_per_spad``.
 
     Args:
         i2c: the board's ``busio.I2C`` object.
@@ -216,9 +221,10 @@ def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
     driver.init()
     driver.resolution = grid * grid
     driver.ranging_freq = ranging_hz
-    outputs = {getattr(driver_module, name) for name in
-               ("DATA_DISTANCE_MM", "DATA_RANGE_SIGMA_MM", "DATA_TARGET_STATUS")
-               if hasattr(driver_module, name)}
+    wanted = ("DATA_DISTANCE_MM", "DATA_RANGE_SIGMA_MM", "DATA_TARGET_STATUS")
+    if targets_per_zone is not None:
+        wanted += ("DATA_NB_TARGET_DETECTED", "DATA_SIGNAL_PER_SPAD")
+    outputs = {getattr(driver_module, name) for name in wanted if hasattr(driver_module, name)}
     return DriverAdapter(driver, data_ready="check_data_ready", get_data="get_ranging_data",
                          start_args=(outputs,), grid=grid, orientation=orientation,
                          sensor_model=model, targets_per_zone=targets_per_zone,
