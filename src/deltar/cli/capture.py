@@ -51,8 +51,15 @@ def record_command(
                                       "frames."),
     duration: float | None = typer.Option(None, help="Stop after this many seconds."),
     sensor_hz: float = typer.Option(15.0, help="Sensor rate (simulated mode)."),
+    targets: int | None = typer.Option(None, "--targets", min=1, max=4, help="Targets per "
+                                       "zone, 1-4 (ST's VL53L5CX_NB_TARGET_PER_ZONE): the "
+                                       "simulated sensor reports that many (default 1); a "
+                                       "driver reads that many, as its library was built "
+                                       "(default: one). Every target is recorded with its "
+                                       "return signal."),
     bag: bool = typer.Option(False, "--bag", help="Write OUT as a new ROS 2 bag (camera "
-                             "Image + CameraInfo, depth, deltar_msgs/msg/ZoneFrame)."),
+                             "Image + CameraInfo, depth, deltar_msgs/msg/ZoneFrame, or "
+                             "MultiTargetZoneFrame with --targets)."),
     bag_storage: str = BagStorageOption,
     rerun: bool = RerunOption,
     rerun_save: Path | None = RerunSaveOption,
@@ -89,7 +96,8 @@ def record_command(
                 raise ValueError(f"--simulate {simulate}: depths up to {deepest:g} m do not fit "
                                  "a recording's depth images (16-bit millimetres, at most "
                                  f"{MAX_RECORDED_DEPTH_M} m)")
-            rig = SimulatedRig(source, grid=grid, sensor_hz=sensor_hz)
+            rig = SimulatedRig(source, grid=grid, sensor_hz=sensor_hz,
+                               max_targets=targets or 1)
         else:
             calibration = load_calibration(calib)
             if calibration is None:
@@ -99,7 +107,7 @@ def record_command(
             if sensor not in openers:
                 raise ValueError(f"--sensor must be one of {sorted(openers)}, got {sensor!r}")
             rig = HardwareRig(OpenCVCamera(camera, (intrinsics.height, intrinsics.width)),
-                              openers[sensor](grid=grid))
+                              openers[sensor](grid=grid, targets_per_zone=targets))
         total = frames or (len(rig.source) if simulate is not None else None)
         viewer = open_viewer(rerun, rerun_save)
         with ProgressReport("recording", total=total, unit="images") as progress:
