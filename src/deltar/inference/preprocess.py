@@ -17,11 +17,10 @@ Without a design size (a model that declares none) step 1 is skipped. A fixed si
 (``DepthEstimator(input_size=...)``, ``deltar predict --size``, or the size an ONNX
 file was exported at) replaces the rule; an ONNX export at several sizes takes the
 rule's size when it was exported, else the exported size nearest in aspect. The image
-is resized to the network size
-(area averaging when shrinking, bilinear when enlarging), the zone rectangles are
-mapped with the same per-axis scales (:func:`scale_rects`), and the network's depth and
-uncertainty (half the network size) are resized bilinearly back to H x W
-(:func:`resize_to_image`). Pixel centres sit at integer coordinates throughout.
+is resized to the network size (area averaging when shrinking, bilinear when
+enlarging), the zone rectangles are mapped with the same per-axis scales
+(:func:`scale_rects`), and the network's depth and uncertainty (half the network size)
+are resized bilinearly back to H x W (:func:`resize_to_image`). Pixel centres sit at integer coordinates throughout.
 
 The module works on numpy arrays (OpenCV resizes); it does not import torch.
 """
