@@ -20,7 +20,8 @@ rule's size when it was exported, else the exported size nearest in aspect. The 
 is resized to the network size (area averaging when shrinking, bilinear when
 enlarging), the zone rectangles are mapped with the same per-axis scales
 (:func:`scale_rects`), and the network's depth and uncertainty (half the network size)
-are resized bilinearly back to H x W (:func:`resize_to_image`). Pixel centres sit at integer coordinates throughout.
+are resized bilinearly back to H x W (:func:`resize_to_image`). Pixel centres sit at
+integer coordinates throughout.
 
 The module works on numpy arrays (OpenCV resizes); it does not import torch.
 """
