@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from deltar.calibration.board import BoardDetector, estimate_board_pose, parse_board_spec
-from deltar.calibration.board_pipeline import closed_form_extrinsics
+from deltar.calibration.extrinsic import closed_form_extrinsics
 from deltar.calibration.synthetic_board import (
     WALL,
     board_to_world,

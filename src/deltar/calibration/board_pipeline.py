@@ -43,6 +43,7 @@ from deltar.calibration.board_uncertainty import ExtrinsicUncertainty, extrinsic
 from deltar.calibration.extrinsic import (
     PlaneObservation,
     check_plane_diversity,
+    closed_form_extrinsics,
     mean_zone_to_cloud_distance,
     normal_spread_deg,
     point_to_plane_rms,
@@ -102,42 +103,6 @@ class BoardReport:
     closed_form: SensorExtrinsics | None = None
     skipped: list[tuple[str, str]] = field(default_factory=list)
     uncertainty: ExtrinsicUncertainty | None = None
-
-
-def closed_form_extrinsics(normals_sensor: np.ndarray, offsets_sensor_m: np.ndarray,
-                           normals_cam: np.ndarray, offsets_cam_m: np.ndarray,
-                           normal_weights: np.ndarray | None = None,
-                           offset_weights: np.ndarray | None = None) -> SensorExtrinsics:
-    """Sensor-to-camera transform from planes seen by both devices.
-
-    A plane ``n_c . p + d_c = 0`` in the camera frame is ``(R^T n_c) . p + (d_c + n_c . t)
-    = 0`` in the sensor frame, so ``n_c = R n_s`` (the rotation aligning the normals,
-    Kabsch) and ``n_c . t = d_s - d_c`` (linear least squares for t).
-
-    Args:
-        normals_sensor, normals_cam: (F, 3) unit normals, both oriented towards their
-            device (the devices are on the same side of every plane).
-        offsets_sensor_m, offsets_cam_m: (F,) plane offsets d, metres.
-        normal_weights, offset_weights: optional (F,) weights (inverse variances) of the
-            normal and offset equations.
-
-    Returns:
-        ``SensorExtrinsics`` (``p_cam = R p_sensor + t``).
-    """
-    ns = np.asarray(normals_sensor, dtype=np.float64).reshape(-1, 3)
-    nc = np.asarray(normals_cam, dtype=np.float64).reshape(-1, 3)
-    if ns.shape != nc.shape or ns.shape[0] < 3:
-        raise ValueError(f"need at least 3 plane pairs of equal count, got {ns.shape[0]} and "
-                         f"{nc.shape[0]}")
-    wn = np.ones(len(ns)) if normal_weights is None else np.asarray(normal_weights, float)
-    wd = np.ones(len(ns)) if offset_weights is None else np.asarray(offset_weights, float)
-    u, _, vt = np.linalg.svd((ns * wn[:, None]).T @ nc)
-    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    rotation = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
-    rhs = np.asarray(offsets_sensor_m, float) - np.asarray(offsets_cam_m, float)
-    root = np.sqrt(wd)
-    translation = np.linalg.lstsq(nc * root[:, None], rhs * root, rcond=None)[0]
-    return SensorExtrinsics(rotation, translation)
 
 
 @dataclass
