@@ -5,8 +5,9 @@ The type store (:func:`typestore`: ROS 2 Humble's types with this package's
 stamps, headers, and the decoders of the messages a bag is read from: camera images
 (``sensor_msgs/msg/Image`` in ``rgb8`` / ``bgr8``, ``CompressedImage``), metric images
 (``32FC1``), ``CameraInfo`` and zone frames (``deltar_msgs/msg/ZoneFrame`` or the
-``vl53l5cx_ros2`` driver's 32FC1 image). Reading bags is
-:mod:`deltar.io.rosbag_reader`, writing them :mod:`deltar.io.rosbag_writer`.
+``vl53l5cx_ros2`` driver's 32FC1 image), and :func:`deserialize`, which reads this
+package's messages with the definition a bag stores (older layouts still read). Reading
+bags is :mod:`deltar.io.rosbag_reader`, writing them :mod:`deltar.io.rosbag_writer`.
 
 All times are integer nanoseconds (``header.stamp``) unless named ``_s`` (seconds).
 """

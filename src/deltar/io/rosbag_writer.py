@@ -268,8 +268,9 @@ class BagRecordingWriter:
     Same methods as :class:`deltar.io.recording.RecordingWriter`; writes the topics of
     :data:`RECORD_TOPICS`: colour images (``rgb8``) each with a ``CameraInfo``,
     reference depth (``32FC1``, metres, NaN = invalid) and zone frames
-    (``deltar_msgs/msg/ZoneFrame``). Stamps are the capture times; the bag is complete
-    when :meth:`close` is called.
+    (``deltar_msgs/msg/ZoneFrame``, or ``MultiTargetZoneFrame`` with every target and its
+    signal when the first frame holds several targets per zone). Stamps are the capture
+    times; the bag is complete when :meth:`close` is called.
 
     Args:
         path: the bag folder to create (must not exist).
