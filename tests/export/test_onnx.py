@@ -215,6 +215,21 @@ def test_plane_select_network_exports_with_parity(tmp_path):
     got = runner.run(*(t.numpy() for t in inputs), no_target.numpy())
     assert np.abs(got["depth"] - flagged).max() < DEPTH_TOLERANCE_M
     assert np.abs(flagged - _torch_outputs(model, inputs)["depth"]).max() > 0.1
+    # And several targets per zone, as a sixth input of NETWORK_TARGET_SLOTS slots:
+    # the same depth as PyTorch; none given reads as the primary readings alone.
+    assert runner.target_slots == 2
+    primary = inputs[1].mean(dim=2)
+    targets = torch.zeros(*inputs[3].shape, 2, 2)
+    targets[..., 0, 0], targets[..., 0, 1] = primary, 0.6
+    targets[:, ::3, 1, 0], targets[:, ::3, 1, 1] = primary[:, ::3] * 2.5, 0.4
+    targets = targets * inputs[3][..., None, None]
+    with torch.inference_mode():
+        expected = model(*inputs, zone_no_target=no_target, zone_targets=targets)["depth"]
+    got = runner.run(*(t.numpy() for t in inputs), no_target.numpy(), targets.numpy())
+    assert np.abs(got["depth"] - expected.numpy()).max() < DEPTH_TOLERANCE_M
+    assert np.abs(expected.numpy() - flagged).max() > 0.1
+    alone = runner.run(*(t.numpy() for t in inputs), no_target.numpy(), None)
+    assert np.abs(alone["depth"] - flagged).max() < DEPTH_TOLERANCE_M
 
 
 @pytest.mark.parametrize("size", [(480, 480), (720, 1280)])

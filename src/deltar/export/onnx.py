@@ -34,6 +34,7 @@ from deltar.inference.onnx_runtime import (
     OUTPUT_NAMES,
     SIGNATURE_KEY,
     SIZES_KEY,
+    TARGETS_INPUT,
     layout_signature,
     size_text,
     sized_file_name,
@@ -61,9 +62,10 @@ def _tuple_outputs(model: DeltarNet) -> torch.nn.Module:
             super().__init__()
             self.inner = inner
 
-        def forward(self, image, hypotheses, zone_rects, zone_valid, zone_no_target=None):
+        def forward(self, image, hypotheses, zone_rects, zone_valid, zone_no_target=None,
+                    zone_targets=None):
             out = self.inner(image, hypotheses, zone_rects, zone_valid,
-                             zone_no_target=zone_no_target)
+                             zone_no_target=zone_no_target, zone_targets=zone_targets)
             return out["depth"], out["bin_edges"], out["uncertainty"]
 
     return TupleOutputs(model).eval()
@@ -98,7 +100,9 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     Returns:
         (image (1, 3, h, w) mid-grey, hypotheses (1, Z, K) around 2 m, zone_rects
         (1, Z, 4) in network-input pixels, zone_valid (1, Z) all True), and
-        zone_no_target (1, Z) all False for a network whose head uses the flags.
+        zone_no_target (1, Z) all False for a network whose head uses the flags, and
+        zone_targets (1, Z, NETWORK_TARGET_SLOTS, 2) for one whose head reads several
+        targets per zone (the primary reading in slot 0, a second target in slot 1).
     """
     import torch
 
@@ -120,6 +124,15 @@ def example_inputs(model: DeltarNet, height: int, width: int,
     if getattr(model, "uses_no_target", False):
         # The head reads the flags: the export takes them as a fifth input.
         inputs += (torch.zeros(1, zones, dtype=torch.bool),)
+        if getattr(model, "uses_targets", False):
+            from deltar.sensor.targets import NETWORK_TARGET_SLOTS
+
+            # And the targets as a sixth: traced with a second target in every zone, so
+            # the graph keeps the branch that reads them.
+            targets = torch.zeros(1, zones, NETWORK_TARGET_SLOTS, 2)
+            targets[..., 0, 0], targets[..., 0, 1] = 2.0, 0.7
+            targets[..., 1:, 0], targets[..., 1:, 1] = 3.0, 0.3 / (NETWORK_TARGET_SLOTS - 1)
+            inputs += (targets,)
     return inputs
 
 
@@ -161,7 +174,7 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     # records.
     uses_patches = getattr(model, "distribution_encoder", None) is not None
     signature = layout_signature(inputs[2].numpy(), grid) if uses_patches else []
-    input_names = [*INPUT_NAMES, *((NO_TARGET_INPUT,) if len(inputs) > 4 else ())]
+    input_names = [*INPUT_NAMES, NO_TARGET_INPUT, TARGETS_INPUT][:len(inputs)]
     dynamic = {name: {0: "batch"} for name in (*input_names, *OUTPUT_NAMES)}
     net_height, net_width = inputs[0].shape[-2:]
     traced = _tuple_outputs(model)

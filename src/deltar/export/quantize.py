@@ -56,10 +56,17 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
     Returns:
         One feed dict per frame: ``image`` (1, 3, h, w) float32, ``hypotheses`` (1, Z, K)
         float32 metres, ``zone_rects`` (1, Z, 4) float32 pixels, ``zone_valid`` (1, Z) bool,
-        and ``zone_no_target`` (1, Z) bool for a file that takes the flags.
+        ``zone_no_target`` (1, Z) bool for a file that takes the flags and
+        ``zone_targets`` (1, Z, T, 2) float32 for one that reads several targets per
+        zone (simulated with that many).
     """
     from deltar.data.rgbd import open_rgbd
-    from deltar.inference.onnx_runtime import INPUT_NAMES, NO_TARGET_INPUT
+    from deltar.inference.onnx_runtime import (
+        INPUT_NAMES,
+        NO_TARGET_INPUT,
+        TARGETS_INPUT,
+        fixed_target_slots,
+    )
     from deltar.inference.preprocess import scale_rects
     from deltar.sensor.simulate_frame import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
@@ -83,13 +90,23 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
             rects = estimator.zone_rects_for(layout, size)
         else:
             rects = scale_rects(np.asarray(zone_rects, dtype=np.float32), rects_size, size)
-        zones = simulate_zone_frame(frame.depth_m, rects)
+        model = estimator.onnx_model
+        slots = 1 if model is None else model.target_slots
+        zones = simulate_zone_frame(frame.depth_m, rects, max_targets=slots)
+        # The reading as a CX part reports it: no histogram.
+        targets = {} if zones.target_mean_m is None else {
+            name: getattr(zones, name) for name in ("target_mean_m", "target_sigma_m",
+                                                    "target_valid", "target_signal")}
         reading = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
-                            no_target=zones.no_target)
+                            no_target=zones.no_target, **targets)
         inputs = estimator.prepare([frame.image], [reading], zone_rects=rects[None])
         names = list(INPUT_NAMES)
-        if estimator.onnx_model is not None and estimator.onnx_model.takes_no_target:
+        if model is not None and model.takes_no_target:
             names.append(NO_TARGET_INPUT)
+        if slots > 1:
+            inputs[TARGETS_INPUT] = fixed_target_slots(inputs[TARGETS_INPUT],
+                                                       inputs["zone_valid"].shape, slots)
+            names.append(TARGETS_INPUT)
         feeds.append({name: inputs[name] for name in names})
     return feeds
 

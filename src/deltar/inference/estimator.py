@@ -363,7 +363,8 @@ class DepthEstimator:
             targets = None  # the primary readings alone: what the zones already carry
         if self.onnx_model is not None:
             out = self.onnx_model.run(inputs["image"], inputs["hypotheses"],
-                                      inputs["zone_rects"], inputs["zone_valid"], no_target)
+                                      inputs["zone_rects"], inputs["zone_valid"], no_target,
+                                      targets)
             return out["depth"], out["uncertainty"]
         import torch
 

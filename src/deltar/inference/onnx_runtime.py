@@ -36,6 +36,9 @@ INPUT_NAMES = ("image", "hypotheses", "zone_rects", "zone_valid")
 #: The optional fifth input of networks whose head uses the no-target flags.
 NO_TARGET_INPUT = "zone_no_target"
 OUTPUT_NAMES = ("depth", "bin_edges", "uncertainty")
+#: The optional input of graphs that read several targets per zone: (B, Z, T, 2)
+#: ``[distance, share]`` (:func:`deltar.sensor.targets.target_inputs`).
+TARGETS_INPUT = "zone_targets"
 #: Metadata key of the layout signature an ONNX file was exported for.
 SIGNATURE_KEY = "deltar_layout_signature"
 #: Metadata key of the files of one network exported at several input sizes: JSON
@@ -129,11 +132,18 @@ class OnnxDepthModel:
             raise ValueError(f"{path}: cannot load ONNX model: {err}") from err
         self.path = path
         names = [i.name for i in self.session.get_inputs()]
-        if names not in (list(INPUT_NAMES), [*INPUT_NAMES, NO_TARGET_INPUT]):
+        if names not in (list(INPUT_NAMES), [*INPUT_NAMES, NO_TARGET_INPUT],
+                         [*INPUT_NAMES, NO_TARGET_INPUT, TARGETS_INPUT]):
             raise ValueError(f"{path}: inputs are {names}, expected {list(INPUT_NAMES)} "
-                             f"(and optionally {NO_TARGET_INPUT!r}; export with deltar export)")
+                             f"(and optionally {NO_TARGET_INPUT!r}, {TARGETS_INPUT!r}; export "
+                             "with deltar export)")
         #: Whether the graph takes the (B, Z) bool no-target flags.
         self.takes_no_target = NO_TARGET_INPUT in names
+        #: Target slots per zone the graph reads (1: the primary reading alone).
+        self.target_slots = 1
+        if TARGETS_INPUT in names:
+            self.target_slots = int(
+                {i.name: i.shape for i in self.session.get_inputs()}[TARGETS_INPUT][2])
         meta = self.session.get_modelmeta().custom_metadata_map
         if SIGNATURE_KEY not in meta:
             raise ValueError(f"{path}: no {SIGNATURE_KEY} metadata (export with deltar export)")
@@ -179,7 +189,8 @@ class OnnxDepthModel:
                                  f"has {', '.join(size_text(s) for s in self.input_sizes)})")
             other = OnnxDepthModel(self._files[size], *self._options)
             if (other.input_size != size or other.contract != self.contract
-                    or other.grid != self.grid or other.takes_no_target != self.takes_no_target):
+                    or other.grid != self.grid or other.takes_no_target != self.takes_no_target
+                    or other.target_slots != self.target_slots):
                 raise ValueError(f"{other.path} is not the {size_text(size)} export of the "
                                  f"network in {self.path}")
             self._loaded[size] = other
@@ -205,8 +216,8 @@ class OnnxDepthModel:
                              "backend")
 
     def run(self, image: np.ndarray, hypotheses: np.ndarray, zone_rects: np.ndarray,
-            zone_valid: np.ndarray, zone_no_target: np.ndarray | None = None
-            ) -> dict[str, np.ndarray]:
+            zone_valid: np.ndarray, zone_no_target: np.ndarray | None = None,
+            zone_targets: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Run the network; same inputs and outputs as ``DeltarNet.forward`` (numpy).
 
         Args:
@@ -217,6 +228,10 @@ class OnnxDepthModel:
             zone_valid: (B, Z) bool.
             zone_no_target: optional (B, Z) bool no-target flags (all False when None);
                 used by graphs that take them (:attr:`takes_no_target`), else ignored.
+            zone_targets: optional (B, Z, T, 2) float32 every target of each zone
+                (:func:`deltar.sensor.targets.target_inputs`); graphs that read targets
+                (:attr:`target_slots` > 1) get them padded or cut to their T (none: the
+                primary readings alone), other graphs ignore them.
 
         Returns:
             dict of ``depth`` (B, 1, H/2, W/2), ``bin_edges`` (B, N + 1) and
@@ -229,7 +244,8 @@ class OnnxDepthModel:
                              f"{image.shape}")
         if tuple(image.shape[2:]) != self.input_size:
             return self.for_input_size(image.shape[2:]).run(image, hypotheses, zone_rects,
-                                                              zone_valid, zone_no_target)
+                                                              zone_valid, zone_no_target,
+                                                              zone_targets)
         hyp = np.asarray(hypotheses, dtype=np.float32)
         if hyp.ndim != 3 or hyp.shape[2] != self.num_hypotheses or not np.all(np.isfinite(hyp)):
             raise ValueError(f"hypotheses must be finite (B, Z, {self.num_hypotheses}), got "
@@ -245,5 +261,28 @@ class OnnxDepthModel:
                 raise ValueError(f"zone_no_target must have the shape of zone_valid "
                                  f"{feeds['zone_valid'].shape}, got {flags.shape}")
             feeds[NO_TARGET_INPUT] = flags
+        if self.target_slots > 1:
+            feeds[TARGETS_INPUT] = fixed_target_slots(zone_targets, feeds["zone_valid"].shape,
+                                                      self.target_slots)
         outputs = self.session.run(list(OUTPUT_NAMES), feeds)
         return dict(zip(OUTPUT_NAMES, outputs, strict=True))
+
+
+def fixed_target_slots(zone_targets: np.ndarray | None, batch_zones: tuple[int, int],
+                       slots: int) -> np.ndarray:
+    """(B, Z, slots, 2) float32: ``zone_targets`` padded with empty slots or cut (the
+    slots come largest share first); all 0 when None, which reads as no further target.
+
+    Raises:
+        ValueError: ``zone_targets`` not (B, Z, T, 2) for the batch's (B, Z).
+    """
+    out = np.zeros((*batch_zones, slots, 2), dtype=np.float32)
+    if zone_targets is None:
+        return out
+    targets = np.asarray(zone_targets, dtype=np.float32)
+    if targets.ndim != 4 or targets.shape[:2] != tuple(batch_zones) or targets.shape[3] != 2:
+        raise ValueError(f"zone_targets must be (B, Z, T, 2) with (B, Z) = {batch_zones}, got "
+                         f"{targets.shape}")
+    used = min(slots, targets.shape[2])
+    out[:, :, :used] = targets[:, :, :used]
+    return out

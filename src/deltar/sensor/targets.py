@@ -17,15 +17,21 @@ import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
 
-__all__ = ["stacked_target_inputs", "target_inputs"]
+__all__ = ["NETWORK_TARGET_SLOTS", "stacked_target_inputs", "target_inputs"]
+
+#: Targets per zone the network reads: the primary reading and the largest other one.
+#: On the ten protocol scenes simulated with four targets per zone, 6.2 % of the valid
+#: zones report two targets and 0.04 % three (none four), so a third slot would cost the
+#: head a third more work for nothing measurable.
+NETWORK_TARGET_SLOTS = 2
 
 
 def target_inputs(frame: ZoneFrame) -> np.ndarray:
     """(Z, T, 2) float32 ``[distance (metres), share]`` per zone and target slot.
 
     Slot 0 is the zone's primary reading (``frame.mean_m``; share 1 when the zone
-    reports nothing else); slots 1.. are the zone's other valid targets in the frame's
-    order. Empty slots and invalid zones are 0. Shares are
+    reports nothing else); slots 1.. are the zone's other valid targets, largest share
+    first (the frame's order on ties). Empty slots and invalid zones are 0. Shares are
     ``signal * distance^2`` normalised over the zone's targets when the frame carries
     target signals (``target_signal``), else equal. A frame with one target per zone
     gives T = 1.
@@ -55,6 +61,9 @@ def target_inputs(frame: ZoneFrame) -> np.ndarray:
                 continue
             out[zone, slot] = (mean[zone, target], weight[zone, target])
             slot += 1
+    # Largest share first, so that keeping the first slots keeps the largest targets.
+    order = np.argsort(-out[:, 1:, 1], axis=1, kind="stable")
+    out[:, 1:] = np.take_along_axis(out[:, 1:], order[..., None], axis=1)
     total = primary_weight + out[:, 1:, 1].sum(axis=1)
     out[:, 0, 1] = primary_weight
     has_weight = total > 0
@@ -63,12 +72,21 @@ def target_inputs(frame: ZoneFrame) -> np.ndarray:
     return out
 
 
-def stacked_target_inputs(frames: Sequence[ZoneFrame]) -> np.ndarray:
-    """(B, Z, T, 2) float32 :func:`target_inputs` of a batch; T is the most targets any
-    zone of the batch reports (slots no zone fills are dropped; 1 when none reports a
-    second)."""
+def stacked_target_inputs(frames: Sequence[ZoneFrame], slots: int | None = None
+                          ) -> np.ndarray:
+    """(B, Z, T, 2) float32 :func:`target_inputs` of a batch.
+
+    Args:
+        frames: the batch's zone frames.
+        slots: T, fixed (an exported network's input; missing targets are 0, further
+            ones dropped, the smallest first); None: the most targets any zone of the
+            batch reports, at most :data:`NETWORK_TARGET_SLOTS` (1 when no zone reports
+            a second).
+    """
     parts = [target_inputs(frame) for frame in frames]
-    slots = max(int((part[..., 0] > 0).sum(axis=1).max(initial=1)) for part in parts)
+    if slots is None:
+        used = max(int((part[..., 0] > 0).sum(axis=1).max(initial=1)) for part in parts)
+        slots = min(used, NETWORK_TARGET_SLOTS)
     out = np.zeros((len(parts), parts[0].shape[0], slots, 2), dtype=np.float32)
     for index, part in enumerate(parts):
         used = min(slots, part.shape[1])

@@ -163,7 +163,8 @@ def secondary_descriptors(pooled: torch.Tensor, zone_mean_m: torch.Tensor,
     centre_y, centre_x, zone_h, zone_w = _zone_geometry(zone_rects.to(pooled.dtype))
     dy = (centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None]  # (B, k, j)
     dx = (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None]
-    eye = torch.eye(zones, dtype=torch.bool, device=pooled.device)
+    index = torch.arange(zones, device=pooled.device)
+    eye = index[:, None] == index[None, :]  # (a bool eye exports to ops every runtime has)
     near = (dy.abs() < SECONDARY_NEIGHBOURHOOD) & (dx.abs() < SECONDARY_NEIGHBOURHOOD) & \
         zone_valid.bool()[:, None, :] & ~eye
     log_ratio = torch.log(zone_mean_m.clamp_min(1e-3))[:, None, None, :] - \
