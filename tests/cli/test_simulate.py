@@ -224,10 +224,13 @@ def test_degraded_targets_follow_their_zone(tmp_path):
         assert result.exit_code == 0, result.output
     for s_deg, s_clean in zip(ZJUL5Dataset(out / "data.json"),
                               ZJUL5Dataset(clean / "data.json"), strict=True):
-        kept = s_deg.zone_valid
-        assert not (s_deg.target_valid & ~kept[:, None]).any()  # dropped zones lose all
-        s_deg.zone_frame()  # target 0 is still the (degraded) primary reading
-        both = s_deg.target_valid[:, 1] & kept
+        zone_kept = s_deg.zone_valid
+        assert not (s_deg.target_valid & ~zone_kept[:, None]).any()  # dropped: all lost
+        assert s_deg.zone_frame().physical_error() is None  # target 0 the degraded primary
+        both = s_clean.target_valid[:, 1] & zone_kept
         factor = s_deg.zone_mean_sigma[both, 0] / s_clean.zone_mean_sigma[both, 0]
-        np.testing.assert_allclose(s_deg.target_mean_m[both, 1],
-                                   s_clean.target_mean_m[both, 1] * factor, rtol=1e-5)
+        scaled = s_clean.target_mean_m[both, 1] * factor
+        reported = s_deg.target_valid[both, 1]
+        np.testing.assert_allclose(s_deg.target_mean_m[both, 1][reported], scaled[reported],
+                                   rtol=1e-5)
+        assert np.all(scaled[~reported] > 4.0)  # pushed past the range: not reported

@@ -48,7 +48,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         max_targets: targets per zone to report, 1..4 (1: the primary reading alone; more
             writes every zone's targets, :func:`~deltar.sensor.simulate_frame.simulate_zone_frame`).
             A degradation scales a zone's other targets as it scales its primary reading
-            and drops them with it.
+            and drops them with it (and those it pushes past the range).
         on_frame: optional callable called after each frame (progress).
 
     Returns:
@@ -98,7 +98,10 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
                 # The zone's bias scales all its targets; a dropped zone loses them all.
                 before = zones.mean_m.reshape(-1)
                 factor = np.where(before > 0, mean.numpy() / np.maximum(before, 1e-6), 0.0)
-                keep = valid.numpy()[:, None] & targets["target_valid"]
+                # As for the primary: a target biased past the range is not reported.
+                scaled = targets["target_mean_m"] * factor[:, None]
+                keep = valid.numpy()[:, None] & targets["target_valid"] & (
+                    scaled <= SimulatorConfig().max_range_m)
                 targets["target_valid"] = keep
                 for key in ("target_mean_m", "target_sigma_m"):
                     targets[key] = np.where(keep, targets[key] * factor[:, None],
