@@ -107,8 +107,9 @@ def test_quantize_rejects_bad_input(exported, tmp_path):
 
 
 def test_a_file_that_takes_the_no_target_flags_quantises_with_them(tmp_path):
-    # The plane-select network (the bundled model's) takes a fifth input; the real
-    # office frames have zones beyond 4 m, so the feeds carry flags that are set.
+    # The plane-select network (the bundled model's) takes a fifth input, and several
+    # targets per zone as a sixth; the real office frames have zones beyond 4 m, so the
+    # feeds carry flags that are set (and targets simulated, as the file reads them).
     torch.set_num_threads(1)
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=SIZE).eval()
@@ -116,12 +117,15 @@ def test_a_file_that_takes_the_no_target_flags_quantises_with_them(tmp_path):
     estimator = load_estimator(float_path, kind="onnx", threads=1)
     assert estimator.onnx_model.takes_no_target
     feeds = calibration_feeds(estimator, SHARED_DATA / "realsense_office", frames=2)
+    assert estimator.onnx_model.target_slots == 2
     assert all(set(feed) == {"image", "hypotheses", "zone_rects", "zone_valid",
-                             "zone_no_target"} for feed in feeds)
+                             "zone_no_target", "zone_targets"} for feed in feeds)
     assert any(feed["zone_no_target"].any() for feed in feeds)
+    assert all(feed["zone_targets"].shape == (1, 64, 2, 2) for feed in feeds)
     int8_path = quantize_onnx(float_path, tmp_path / "select-int8.onnx", feeds)
     runner = OnnxDepthModel(int8_path, num_threads=1)
     assert runner.takes_no_target
     out = runner.run(*(feeds[0][k] for k in ("image", "hypotheses", "zone_rects",
-                                               "zone_valid", "zone_no_target")))
+                                               "zone_valid", "zone_no_target",
+                                               "zone_targets")))
     assert np.all(np.isfinite(out["depth"])) and out["depth"].shape == (1, 1, 32, 48)

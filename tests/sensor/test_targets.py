@@ -58,8 +58,12 @@ def test_a_single_target_frame_gives_one_slot_and_batches_pad_to_the_used_slots(
     np.testing.assert_allclose(inputs[..., 0, 0], 1.5)
     np.testing.assert_allclose(inputs[..., 0, 1], 1.0)
     batch = stacked_target_inputs([single, _frame()])
-    assert batch.shape == (2, 16, 3, 2)
+    assert batch.shape == (2, 16, 2, 2)  # at most NETWORK_TARGET_SLOTS: the largest kept
     np.testing.assert_array_equal(batch[0, :, 1:], 0.0)
+    np.testing.assert_allclose(batch[1, 0], [[1.0, 1 / 2.25], [2.0, 1 / 2.25]], rtol=1e-5)
+    fixed = stacked_target_inputs([single, _frame()], slots=3)
+    assert fixed.shape == (2, 16, 3, 2)
+    np.testing.assert_allclose(fixed[1, 0, 2], [3.5, 0.25 / 2.25], rtol=1e-5)
     # A multi-target frame whose zones report one target each: one slot.
     frame = _frame()
     frame.target_valid[..., 1:] = False

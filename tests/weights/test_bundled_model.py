@@ -28,7 +28,7 @@ def test_default_is_a_small_float16_select_model_with_its_input_contract():
     assert floats and all(t.dtype == torch.float16 for t in floats)
     model, preset, config = load_checkpoint(path)
     assert preset == "deltar-select" and not model.training
-    assert payload["format_version"] == 2  # read as it shipped, flat options
+    assert payload["format_version"] == 3  # per-part sections
     inputs, head = config["input"], config["head"]
     assert config["encoder"]["backbone"] == "tf_efficientnet_lite0"
     assert head["name"] == "plane_select" and head["planar"]

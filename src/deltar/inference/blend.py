@@ -100,10 +100,11 @@ class ConfidenceBlend:
 
 
 #: The blend of a plane-select checkpoint that carries none: fitted with
-#: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones)
+#: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones,
+#: simulated with up to four targets per zone)
 #: with the bundled model (docs/training.md).
-DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.162, -2.943),
-                                outside=RegionBlend(-1.807, -1.204))
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-4.953, -2.953),
+                                outside=RegionBlend(-3.864, -2.581))
 
 
 def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
