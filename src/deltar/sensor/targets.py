@@ -36,8 +36,13 @@ def target_inputs(frame: ZoneFrame) -> np.ndarray:
     target signals (``target_signal``), else equal. A frame with one target per zone
     gives T = 1.
     """
-    mean, _, valid = frame.flat_targets()
     primary_m, _, primary_valid = frame.flat()
+    if frame.target_mean_m is None:  # one target per zone: the primary readings alone
+        single = np.zeros((frame.zone_count, 1, 2), dtype=np.float32)
+        single[:, 0, 0] = np.where(primary_valid, primary_m, 0.0)
+        single[:, 0, 1] = primary_valid
+        return single
+    mean, _, valid = frame.flat_targets()
     zones, slots = mean.shape
     out = np.zeros((zones, slots, 2), dtype=np.float32)
     out[:, 0, 0] = np.where(primary_valid, primary_m, 0.0)

@@ -391,37 +391,10 @@ class ZoneFrame:
     ) -> ZoneFrame:
         """Build a frame from what the Python drivers return.
 
-        Driver builds for several targets per zone (``VL53L5CX_NB_TARGET_PER_ZONE`` = T)
-        return ``zones * T`` entries per field, zone-major: entry ``zone * T + t`` is
-        target ``t`` of ``zone``. The primary reading (``mean_m``, ``sigma_m``, ``valid``)
-        is each zone's first target; with T > 1 (or ``targets_per_zone`` given) the frame
-        also holds every target (``target_mean_m`` ... (n, n, T)).
-
-        Args:
-            distance_mm: flat list of ``zones * T`` distances in millimetres (driver
-                order). Targets reading 0 or less (error codes) or more than the sensor
-                model's range (:data:`SENSOR_MAX_RANGE_M`, with a ``RuntimeWarning``) are
-                invalid.
-            range_sigma_mm: flat list of the same length, sigma in millimetres.
-            target_status: flat list of the same length, ST's target status codes.
-            grid: 4 or 8; inferred when None: from ``nb_target_detected``'s length when
-                given, else from the length of ``distance_mm`` (16 -> 4, 64 -> 8, one
-                target per zone).
-            valid_status: status codes that count as a valid range (default 5 and 9).
-            orientation: how the driver's grid maps onto the image (identity by default).
-            timestamp_s: capture time in seconds.
-            sensor_model: free text stored with the frame.
-            nb_target_detected: optional flat list of ``zones`` counts (driver order), the
-                number of targets each zone detected; target ``t`` of a zone is valid only
-                when ``t`` is below its count (the driver leaves stale values beyond it).
-            targets_per_zone: T, 1..4; inferred from the lengths when None (``len /
-                zones``). A buffer sized for 8x8 (``64 * T``) read in 4x4 mode uses its
-                first ``16 * T`` entries, as ST's driver fills it.
-            target_order: ``"strongest"`` (the driver's default) or ``"closest"``, as
-                the driver was configured (``vl53l5cx_set_target_order``).
-            signal_per_spad: optional flat list like ``distance_mm``, each target's
-                return signal (kcps per SPAD); kept as ``target_signal`` when the frame
-                holds every target (it weighs a zone's targets against each other).
+        The driver's flat lists (millimetres, ``zones * T`` entries zone-major for a build
+        with T targets per zone; the primary reading is each zone's first target) as
+        :func:`~deltar.sensor.zone_targets.driver_readings` reads them: every argument
+        but ``timestamp_s`` (capture time in seconds) is documented there.
 
         Raises:
             ValueError: lengths that do not fit ``grid`` and ``targets_per_zone``, codes
