@@ -81,10 +81,10 @@ def test_tum_trajectory_quaternion_order_and_interpolation(tmp_path):
 
 def test_tum_errors_name_the_line(tmp_path):
     (tmp_path / "t.txt").write_text("2.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n")
-    with pytest.raises(ValueError, match=r"t\.txt:2: timestamps must increase"):
+    with pytest.raises(ValueError, match=r"t\.txt:2: time 1.0 is not after the previous"):
         read_tum_trajectory(tmp_path / "t.txt")
     (tmp_path / "q.txt").write_text("1.0 0 0 0 0 0 0 2\n")
-    with pytest.raises(ValueError, match=r"q\.txt:1: quaternion"):
+    with pytest.raises(ValueError, match=r"q\.txt:1: the quaternion's norm"):
         read_tum_trajectory(tmp_path / "q.txt")
     (tmp_path / "n.txt").write_text("1.0 0 0 0 0 0 1\n")
     with pytest.raises(ValueError, match="expected 8"):

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.io.input_file import input_file, reading
 from deltar.io.ply import read_ply, write_ply
+from deltar.io.tum import read_tum_poses
 
 
 def read_ply_points(path: str | os.PathLike) -> np.ndarray:
@@ -73,47 +73,15 @@ class Trajectory:
 
 
 def read_tum_trajectory(path: str | os.PathLike) -> Trajectory:
-    """Read a TUM-format trajectory (``timestamp tx ty tz qx qy qz qw`` per line).
+    """Read a TUM-format trajectory (``timestamp tx ty tz qx qy qz qw`` per line;
+    :func:`deltar.io.tum.read_tum_poses`).
 
     Raises:
         FileNotFoundError: missing file.
         ValueError: malformed lines, non-unit quaternions, unsorted or duplicate
             timestamps (the message names the file and line).
     """
-    path = input_file(path, "trajectory file")
-    with reading(path, "trajectory file"):
-        return _parse_tum(path)
-
-
-def _parse_tum(path: Path) -> Trajectory:
-    from scipy.spatial.transform import Rotation
-
-    times, poses = [], []
-    for number, line in enumerate(path.read_bytes().decode("utf-8").splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            values = np.array([float(v) for v in line.replace(",", " ").split()])
-        except ValueError as err:
-            raise ValueError(f"{path}:{number}: not numbers: {line!r}") from err
-        if values.size != 8 or not np.all(np.isfinite(values)):
-            raise ValueError(f"{path}:{number}: expected 8 finite values "
-                             "(timestamp tx ty tz qx qy qz qw)")
-        quat = values[4:]
-        if abs(np.linalg.norm(quat) - 1) > 1e-3:
-            raise ValueError(f"{path}:{number}: quaternion is not unit length")
-        if times and values[0] <= times[-1]:
-            raise ValueError(f"{path}:{number}: timestamps must increase strictly "
-                             f"({values[0]} after {times[-1]})")
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_quat(quat).as_matrix()  # scipy order: x, y, z, w
-        pose[:3, 3] = values[1:4]
-        times.append(values[0])
-        poses.append(pose)
-    if not times:
-        raise ValueError(f"{path}: trajectory has no poses")
-    return Trajectory(np.array(times), np.stack(poses))
+    return Trajectory(*read_tum_poses(path))
 
 
 def world_to_camera(points_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:

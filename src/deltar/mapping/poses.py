@@ -24,9 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from deltar.io.input_file import input_file, input_folder, reading
+from deltar.io.tum import ROTATION_TOLERANCE, quaternion_pose, read_tum_poses
 
-#: Largest |R^T R - I| (and |det R - 1|) accepted for a pose's rotation block.
-ROTATION_TOLERANCE = 1e-3
 #: Default largest |pose time - frame time| when poses are matched to frames, seconds.
 DEFAULT_POSE_TOLERANCE_S = 0.05
 
@@ -117,29 +116,6 @@ def read_pose_folder(folder: str | os.PathLike) -> Trajectory:
     return Trajectory(None, poses, tuple(n for n, _ in entries), str(root))
 
 
-def quaternion_pose(translation: np.ndarray, quaternion_xyzw: np.ndarray,
-                    source: str) -> np.ndarray:
-    """(4, 4) transform from a translation (3,) in metres and a unit quaternion (x, y, z, w).
-
-    Raises:
-        ValueError: non-finite values or a quaternion whose norm is not 1 (+-1e-3).
-    """
-    from scipy.spatial.transform import Rotation
-
-    q = np.asarray(quaternion_xyzw, dtype=np.float64)
-    t = np.asarray(translation, dtype=np.float64)
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
-        raise ValueError(f"{source}: the pose has NaN or infinite values")
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > ROTATION_TOLERANCE:
-        raise ValueError(f"{source}: the quaternion's norm is {norm:.4f}, not 1: not a "
-                         "rotation")
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
-    pose[:3, 3] = t
-    return pose
-
-
 def read_tum_trajectory(path: str | os.PathLike) -> Trajectory:
     """A TUM RGB-D trajectory: lines ``t tx ty tz qx qy qz qw`` (``#`` comments).
 
@@ -150,34 +126,8 @@ def read_tum_trajectory(path: str | os.PathLike) -> Trajectory:
         ValueError: a line that is not 8 numbers, a quaternion that is not unit length,
             times not strictly increasing, or no pose (naming the file and line).
     """
-    path = input_file(path, "trajectory file")
-    with reading(path, "trajectory file"):
-        return _parse_tum(path)
-
-
-def _parse_tum(path: Path) -> Trajectory:
-    times, poses = [], []
-    for number, line in enumerate(path.read_bytes().decode("utf-8").splitlines(), start=1):
-        text = line.split("#", 1)[0].strip()
-        if not text:
-            continue
-        where = f"{path}:{number}"
-        try:
-            values = [float(v) for v in text.replace(",", " ").split()]
-        except ValueError as err:
-            raise ValueError(f"{where}: expected 't tx ty tz qx qy qz qw', got {text!r}") \
-                from err
-        if len(values) != 8:
-            raise ValueError(f"{where}: expected 8 numbers 't tx ty tz qx qy qz qw', got "
-                             f"{len(values)}")
-        if times and values[0] <= times[-1]:
-            raise ValueError(f"{where}: time {values[0]} is not after the previous "
-                             f"{times[-1]}")
-        times.append(values[0])
-        poses.append(quaternion_pose(np.array(values[1:4]), np.array(values[4:8]), where))
-    if not poses:
-        raise ValueError(f"{path}: no pose lines ('t tx ty tz qx qy qz qw')")
-    return Trajectory(np.array(times), np.stack(poses), None, str(path))
+    times, poses = read_tum_poses(path)
+    return Trajectory(times, poses, None, str(path))
 
 
 def write_tum_trajectory(path: str | os.PathLike, times_s: np.ndarray,
