@@ -136,9 +136,9 @@ def prepare_for_inference(
 ) -> nn.Module:
     """Eval mode, every batch norm folded and channels-last layout, in place.
 
-    Each step changes results only by float rounding: on the release's v2 parity
-    fixture (well-conditioned weights) all of them together move depth by at most
-    3.3e-5 m at 1, 2 or 4 threads, far inside the 1e-3 m parity tolerance (tested).
+    Each step changes results only by float rounding; the tests hold all of them together
+    to the release's parity tolerance on its parity fixture, at several thread counts
+    (their speed: benchmarks/RESULTS.md).
 
     Args:
         model: a :class:`~deltar.models.DeltarNet`.
@@ -146,11 +146,10 @@ def prepare_for_inference(
             and the distribution encoder's).
         channels_last: convert the image encoder's, the decoder's and the head's 4-D
             weights to channels-last layout (oneDNN's fast path; the encoder's maps then
-            come out channels-last whatever the input's layout: 0.75-0.85x the time of
-            the lite network at 256x320).
+            come out channels-last whatever the input's layout).
         symmetric_same: run the encoder's TensorFlow-"same" convolutions without a
-            padding copy (:class:`SymmetricSameConv2d`; the bundled network at 256x320:
-            0.89x the time, bit-identical depth in the test frame).
+            padding copy (:class:`SymmetricSameConv2d`; the same depth to the bit in the
+            tests).
 
     Returns:
         The same model, ready for ``torch.inference_mode()``.
