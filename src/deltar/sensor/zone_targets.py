@@ -195,9 +195,9 @@ def driver_readings(
             arrays[name] = number_array(values, name)
     sizes = [arr.size for arr in arrays.values()]
     if len(set(sizes)) > 1:
-        raise ValueError("distance_mm, range_sigma_mm, target_status (and signal_per_spad) "
-                         "must have the same length (one entry per zone and target), got "
-                         f"{sizes}")
+        *first, last = arrays
+        raise ValueError(f"{', '.join(first)} and {last} must have the same length (one "
+                         f"entry per zone and target), got {sizes}")
     if target_order not in TARGET_ORDERS:
         raise ValueError(f"target_order must be one of {TARGET_ORDERS}, got "
                          f"{target_order!r}")
