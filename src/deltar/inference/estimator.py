@@ -106,7 +106,7 @@ class DepthEstimator:
             network time; PyTorch backend only).
         max_range_m: largest distance a valid zone may read, metres; by default each
             frame's sensor model's range (4 m for the VL53L5CX/L8CX, see
-            :data:`~deltar.sensor.zone_frame.SENSOR_MAX_RANGE_M`).
+            :data:`~deltar.sensor.zone_values.SENSOR_MAX_RANGE_M`).
         blend: blend the network's depth with the colorization fill of the zones where
             the network is unsure (:class:`~deltar.inference.blend.ConfidenceBlend`;
             lower RMSE on rooms the model never saw; its fill runs on a worker thread

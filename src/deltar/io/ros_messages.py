@@ -22,11 +22,8 @@ from typing import Any
 import numpy as np
 
 from deltar.camera import CameraIntrinsics
-from deltar.sensor.zone_frame import (
-    DEFAULT_VALID_STATUS,
-    Orientation,
-    ZoneFrame,
-)
+from deltar.sensor.zone_frame import Orientation, ZoneFrame
+from deltar.sensor.zone_values import DEFAULT_VALID_STATUS
 
 #: The ToF message type shipped with the package.
 ZONE_FRAME_MSGTYPE = "deltar_msgs/msg/ZoneFrame"

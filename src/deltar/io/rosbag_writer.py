@@ -30,7 +30,8 @@ from deltar.io.ros_messages import (
     stamped_header,
     typestore,
 )
-from deltar.sensor.zone_frame import NO_TARGET_STATUS, ZoneFrame
+from deltar.sensor.zone_frame import ZoneFrame
+from deltar.sensor.zone_values import NO_TARGET_STATUS
 
 #: Storage plugins :class:`BagWriter` writes.
 STORAGES: tuple[str, ...] = ("sqlite3", "mcap")

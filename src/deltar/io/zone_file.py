@@ -27,7 +27,7 @@ multi-target builds return ``zones * T`` entries (zone-major), optionally with
 Values must be numbers: strings (``"1.5"``) and booleans (``true``) are refused, not
 converted. A schema file's valid zones must read a distance the sensor can measure
 (``0 < d <= 4 m`` for the VL53L5CX/L8CX, see
-:data:`~deltar.sensor.zone_frame.SENSOR_MAX_RANGE_M`); a driver dump's zones outside
+:data:`~deltar.sensor.zone_values.SENSOR_MAX_RANGE_M`); a driver dump's zones outside
 that range are marked invalid with a warning, as error codes (``d <= 0``) always are.
 """
 
@@ -46,7 +46,8 @@ import numpy as np
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_json
-from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame, number_array
+from deltar.sensor.zone_frame import Orientation, ZoneFrame
+from deltar.sensor.zone_values import DEFAULT_VALID_STATUS, number_array
 
 SCHEMA_NAME = "deltar.zone_frame"
 SCHEMA_VERSION = 1

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.sensor.zone_frame import sensor_max_range_m
+from deltar.sensor.zone_values import sensor_max_range_m
 
 if TYPE_CHECKING:
     from deltar.calibration.rig import RigCalibration

@@ -18,7 +18,8 @@ from deltar.sensor.geometry import (
     zone_rects,
     zone_rects_to_pixel_bounds,
 )
-from deltar.sensor.zone_frame import DEFAULT_VALID_STATUS, Orientation, ZoneFrame
+from deltar.sensor.zone_frame import Orientation, ZoneFrame
+from deltar.sensor.zone_values import DEFAULT_VALID_STATUS
 
 if TYPE_CHECKING:
     from deltar.sensor.augment import SignalAugmentation, training_zone_rects

@@ -24,12 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.sensor.zone_frame import (
-    DEFAULT_VALID_STATUS,
-    NO_TARGET_STATUS,
-    Orientation,
-    ZoneFrame,
-)
+from deltar.sensor.zone_frame import Orientation, ZoneFrame
+from deltar.sensor.zone_values import DEFAULT_VALID_STATUS, NO_TARGET_STATUS
 
 #: Distance spanned by one bin of the device histogram, metres. Not given in ST's
 #: public driver headers; this is the value public VL53L8CH host code uses

@@ -13,25 +13,18 @@ from deltar.sensor.zone_targets import (
     convert_target_fields,
     driver_readings,
 )
-from deltar.sensor.zone_values import (  # re-exported: the names readers import from here
+from deltar.sensor.zone_values import (
     DEFAULT_VALID_STATUS,
-    MAX_TARGETS_PER_ZONE,
     NO_TARGET_STATUS,
-    SENSOR_MAX_RANGE_M,
     SUPPORTED_GRIDS,
-    TARGET_ORDERS,
     flags,
     grid_from_count,
-    number_array,
     numbers,
     sensor_max_range_m,
     status_codes,
 )
 
-__all__ = ["DEFAULT_VALID_STATUS", "MAX_TARGETS_PER_ZONE", "NO_TARGET_DEPTH_M",
-           "NO_TARGET_STATUS", "SENSOR_MAX_RANGE_M", "SUPPORTED_GRIDS", "TARGET_ORDERS",
-           "Orientation", "ZoneFrame", "no_target_as_readings", "number_array",
-           "sensor_max_range_m", "status_codes"]
+__all__ = ["NO_TARGET_DEPTH_M", "Orientation", "ZoneFrame", "no_target_as_readings"]
 
 #: Where the methods that use the flag place a zone that reported no target, metres:
 #: beyond the 4 m range, at 1.25 times it (a prior, not fitted to any scene).
