@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -216,17 +217,8 @@ def zone_frame_from_msg(msg: Any, source: str = "zones",
             raise ValueError(f"{source}: {name} has {values.size} entries; expected "
                              f"{count} or none")
         arrays[name] = values if values.size else None
-    ok = np.isfinite(distance) & (distance > 0)
-    status = None if arrays["status"] is None else arrays["status"].astype(np.uint8)
-    if arrays["valid"] is not None:
-        valid = arrays["valid"].astype(bool) & ok
-    elif status is not None:
-        valid = ok & np.isin(status, np.asarray(valid_status, dtype=np.uint8))
-    else:
-        valid = ok
-    sigma = np.zeros(count) if arrays["sigma_m"] is None else \
-        arrays["sigma_m"].astype(np.float64)
-    valid &= np.isfinite(sigma) & (sigma >= 0)
+    valid, sigma, status = _readings_validity(distance, arrays["sigma_m"], arrays["status"],
+                                              arrays["valid"], valid_status)
     edges = np.asarray(msg.hist_edges_m, dtype=np.float64)
     counts = np.asarray(msg.hist_counts, dtype=np.float64)
     hist = {}
@@ -275,18 +267,9 @@ def _targets_from_msg(msg: Any, count: int, source: str,
     if signal.size not in (0, size):
         raise ValueError(f"{source}: target_signal has {signal.size} entries; expected "
                          f"{size} or none")
-    ok = np.isfinite(distance) & (distance > 0)
-    status = None if arrays["target_status"] is None else \
-        arrays["target_status"].astype(np.uint8)
-    if arrays["target_valid"] is not None:
-        valid = arrays["target_valid"].astype(bool) & ok
-    elif status is not None:
-        valid = ok & np.isin(status, np.asarray(valid_status, dtype=np.uint8))
-    else:
-        valid = ok
-    sigma = np.zeros(size) if arrays["target_sigma_m"] is None else \
-        arrays["target_sigma_m"].astype(np.float64)
-    valid &= np.isfinite(sigma) & (sigma >= 0)
+    valid, sigma, status = _readings_validity(distance, arrays["target_sigma_m"],
+                                              arrays["target_status"], arrays["target_valid"],
+                                              valid_status)
     shape = (count, per_zone)
     return {"target_mean_m": np.where(valid, distance, 0.0).reshape(shape),
             "target_sigma_m": np.where(valid, sigma, 0.0).reshape(shape),
@@ -351,3 +334,32 @@ def metric_image_from_msg(msg: Any, source: str = "image") -> np.ndarray:
     rows = data[:step * height].reshape(height, step)[:, :4 * width]
     return rows.copy().view(">f4" if msg.is_bigendian else "<f4").reshape(height, width) \
         .astype(np.float32)
+
+
+def _readings_validity(distance: np.ndarray, sigma_m: np.ndarray | None,
+                       status: np.ndarray | None, valid: np.ndarray | None,
+                       valid_status: Sequence[int]
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Which of a message's flat readings are valid, and their sigma and status.
+
+    A reading is valid when its flag says so (when the message has flags), else when its
+    status is one of ``valid_status`` (when it has codes), and in any case when its
+    distance is positive and finite and its sigma finite and >= 0.
+
+    Args:
+        distance: (N,) metres; sigma_m: (N,) metres or None (then 0); status: (N,)
+            codes or None; valid: (N,) flags or None.
+
+    Returns:
+        ``(valid, sigma, status)``: (N,) bool, (N,) float64 metres, (N,) uint8 or None.
+    """
+    ok = np.isfinite(distance) & (distance > 0)
+    codes = None if status is None else status.astype(np.uint8)
+    if valid is not None:
+        valid = valid.astype(bool) & ok
+    elif codes is not None:
+        valid = ok & np.isin(codes, np.asarray(valid_status, dtype=np.uint8))
+    else:
+        valid = ok
+    sigma = np.zeros(distance.shape) if sigma_m is None else sigma_m.astype(np.float64)
+    return valid & np.isfinite(sigma) & (sigma >= 0), sigma, codes
