@@ -110,3 +110,33 @@ def test_network_takes_zone_targets_and_checks_them():
         model(image, hypotheses, rects, valid, zone_targets=targets[:, :10])
     with pytest.raises(ValueError, match="zone_targets"):
         model(image, hypotheses, rects, valid, zone_targets=torch.full_like(targets, float("nan")))
+
+
+def test_only_the_frames_largest_further_targets_are_weighed():
+    from deltar.models.heads.plane_select import SECONDARY_HYPOTHESES
+
+    torch.manual_seed(3)
+    rows, cols = torch.meshgrid(torch.arange(8), torch.arange(8), indexing="ij")
+    y0, x0 = (rows * 4).reshape(-1).float(), (cols * 4).reshape(-1).float()
+    rects = torch.stack([y0, x0, y0 + 4, x0 + 4], dim=-1)[None]
+    means = torch.rand(1, 64) * 2 + 1.0
+    valid = torch.ones(1, 64, dtype=torch.bool)
+    descriptors = torch.nn.functional.normalize(torch.randn(1, 6, 32, 32), dim=1)
+    targets = torch.zeros(1, 64, 2, 2)
+    targets[..., 0, 0] = means
+    targets[..., 1, 0] = means + 1.0
+    share = torch.rand(1, 64) * 0.5  # every zone reports a second target
+    targets[..., 0, 1], targets[..., 1, 1] = 1 - share, share
+    head = PlanarSelectHead(temperature=5.0)
+    depth, _, _ = head(descriptors, means, valid, rects, stride=1.0, zone_targets=targets)
+    # The same as a frame whose smaller further targets were never reported (their
+    # zones then keep their primary alone, at its full share).
+    smallest = torch.argsort(share[0])[: 64 - SECONDARY_HYPOTHESES]
+    trimmed = targets.clone()
+    trimmed[0, smallest, 1] = 0.0
+    trimmed[0, smallest, 0, 1] = 1.0
+    expected, _, _ = head(descriptors, means, valid, rects, stride=1.0, zone_targets=trimmed)
+    torch.testing.assert_close(depth, expected, rtol=1e-5, atol=1e-5)
+    # ...and not the same as with none of them.
+    plain, _, _ = head(descriptors, means, valid, rects, stride=1.0)
+    assert (depth - plain).abs().max() > 1e-2
