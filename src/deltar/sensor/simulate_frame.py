@@ -158,13 +158,7 @@ def secondary_targets(cleaned: np.ndarray, primary: np.ndarray, centres_m: np.nd
     run_id = np.cumsum(nonzero & ~previous, axis=-1) * nonzero  # 0 = empty bin
     runs = int(run_id.max()) + 1
     weights = np.where(nonzero, cleaned, 0).astype(np.float64)
-    flat_id = (np.arange(zones)[:, None] * runs + run_id).ravel()
-    run_total = np.bincount(flat_id, weights.ravel(), zones * runs).reshape(zones, runs)
-    run_first = np.bincount(flat_id, (weights * centres).ravel(),
-                            zones * runs).reshape(zones, runs)
-    exists = run_total > 0
-    exists[:, 0] = False
-    run_mean = np.where(exists, run_first / np.where(exists, run_total, 1.0), 0.0)
+    run_total, run_first, run_mean, exists = _weighted_means(run_id, weights, centres, runs)
     # The primary run: the one holding the primary cluster's bins.
     has_primary = (primary > 0).any(axis=-1)
     primary_id = np.where(has_primary, run_id[np.arange(zones), np.argmax(primary > 0, -1)], 0)
@@ -192,15 +186,9 @@ def secondary_targets(cleaned: np.ndarray, primary: np.ndarray, centres_m: np.nd
     if groups == 1:
         return mean_out, sigma_out, valid_out, counts_out
     bin_group = np.take_along_axis(group, run_id, axis=1)  # (N, bins), 0 = none
-    flat_group = (np.arange(zones)[:, None] * groups + bin_group).ravel()
-    total = np.bincount(flat_group, weights.ravel(), zones * groups).reshape(zones, groups)
-    first = np.bincount(flat_group, (weights * centres).ravel(),
-                        zones * groups).reshape(zones, groups)
-    present = total > 0
-    present[:, 0] = False
-    mean = np.where(present, first / np.where(present, total, 1.0), 0.0)
+    total, _, mean, present = _weighted_means(bin_group, weights, centres, groups)
     spread = weights * (centres - np.take_along_axis(mean, bin_group, axis=1)) ** 2
-    second = np.bincount(flat_group, spread.ravel(), zones * groups).reshape(zones, groups)
+    second = _sums_by_label(bin_group, spread, groups)
     sigma = np.sqrt(np.where(present, second / np.where(present, total, 1.0), 0.0))
     # Groups are numbered by distance: a stable sort keeps the closer first on ties.
     key = np.where(present, -total if order == "strongest" else mean, np.inf)
@@ -232,6 +220,26 @@ def target_signal(counts: np.ndarray, mean_m: np.ndarray, zone_pixels: np.ndarra
     distance = np.asarray(mean_m, dtype=np.float64)
     return np.where(distance > 0, share / np.maximum(distance, 1e-6) ** 2, 0.0
                     ).astype(np.float32)
+
+
+def _sums_by_label(labels: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """(N, count) sums of each row's ``values`` (N, bins) over the bins of each label
+    0..count-1 (``labels`` (N, bins) int)."""
+    rows = labels.shape[0]
+    flat = (np.arange(rows)[:, None] * count + labels).ravel()
+    return np.bincount(flat, values.ravel(), rows * count).reshape(rows, count)
+
+
+def _weighted_means(labels: np.ndarray, weights: np.ndarray, centres: np.ndarray,
+                    count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per row and label 1..count-1 (0 = no label): the total weight, the weighted sum and
+    the weighted mean of the bin centres (metres; 0 where empty) and whether any weight is
+    there, each (N, count)."""
+    total = _sums_by_label(labels, weights, count)
+    first = _sums_by_label(labels, weights * centres, count)
+    present = total > 0
+    present[:, 0] = False
+    return total, first, np.where(present, first / np.where(present, total, 1.0), 0.0), present
 
 
 def check_target_options(max_targets: int, target_order: str) -> None:
