@@ -210,13 +210,7 @@ def zone_frame_from_msg(msg: Any, source: str = "zones",
     if distance.size != count or count not in (16, 64):
         raise ValueError(f"{source}: zone_count is {count} and distance_m has "
                          f"{distance.size} entries; expected 16 or 64 of each")
-    arrays = {}
-    for name in ("sigma_m", "status", "valid"):
-        values = np.asarray(getattr(msg, name))
-        if values.size not in (0, count):
-            raise ValueError(f"{source}: {name} has {values.size} entries; expected "
-                             f"{count} or none")
-        arrays[name] = values if values.size else None
+    arrays = _optional_fields(msg, ("sigma_m", "status", "valid"), count, source)
     valid, sigma, status = _readings_validity(distance, arrays["sigma_m"], arrays["status"],
                                               arrays["valid"], valid_status)
     edges = np.asarray(msg.hist_edges_m, dtype=np.float64)
@@ -256,17 +250,10 @@ def _targets_from_msg(msg: Any, count: int, source: str,
     if distance.size != size:
         raise ValueError(f"{source}: target_distance_m has {distance.size} entries; expected "
                          f"zone_count x targets_per_zone = {size}")
-    arrays = {}
-    for name in ("target_sigma_m", "target_status", "target_valid"):
-        values = np.asarray(getattr(msg, name))
-        if values.size not in (0, size):
-            raise ValueError(f"{source}: {name} has {values.size} entries; expected {size} "
-                             "or none")
-        arrays[name] = values if values.size else None
-    signal = np.asarray(getattr(msg, "target_signal", ()), dtype=np.float64)
-    if signal.size not in (0, size):
-        raise ValueError(f"{source}: target_signal has {signal.size} entries; expected "
-                         f"{size} or none")
+    # target_signal is absent from messages of the layout before it.
+    arrays = _optional_fields(msg, ("target_sigma_m", "target_status", "target_valid",
+                                    "target_signal"), size, source)
+    signal = arrays["target_signal"]
     valid, sigma, status = _readings_validity(distance, arrays["target_sigma_m"],
                                               arrays["target_status"], arrays["target_valid"],
                                               valid_status)
@@ -275,8 +262,8 @@ def _targets_from_msg(msg: Any, count: int, source: str,
             "target_sigma_m": np.where(valid, sigma, 0.0).reshape(shape),
             "target_valid": valid.reshape(shape),
             "target_status": None if status is None else status.reshape(shape),
-            "target_signal": np.where(valid, signal, 0.0).reshape(shape) if signal.size
-            else None,
+            "target_signal": None if signal is None else
+            np.where(valid, signal.astype(np.float64), 0.0).reshape(shape),
             "target_order": str(msg.target_order) or "strongest"}
 
 
@@ -334,6 +321,24 @@ def metric_image_from_msg(msg: Any, source: str = "image") -> np.ndarray:
     rows = data[:step * height].reshape(height, step)[:, :4 * width]
     return rows.copy().view(">f4" if msg.is_bigendian else "<f4").reshape(height, width) \
         .astype(np.float32)
+
+
+def _optional_fields(msg: Any, names: tuple[str, ...], size: int, source: str
+                     ) -> dict[str, np.ndarray | None]:
+    """A message's optional flat fields: each ``size`` entries, or empty (then None; a
+    field the message's layout lacks counts as empty).
+
+    Raises:
+        ValueError: a field of another length, naming it.
+    """
+    arrays = {}
+    for name in names:
+        values = np.asarray(getattr(msg, name, ()))
+        if values.size not in (0, size):
+            raise ValueError(f"{source}: {name} has {values.size} entries; expected {size} "
+                             "or none")
+        arrays[name] = values if values.size else None
+    return arrays
 
 
 def _readings_validity(distance: np.ndarray, sigma_m: np.ndarray | None,
