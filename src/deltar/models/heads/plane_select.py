@@ -53,6 +53,13 @@ def _zone_geometry(rects: torch.Tensor
     return centre_y, centre_x, zone_h, zone_w
 
 
+def _zone_offsets(rects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, k, j) offsets of zone j's centre from zone k's, in mean zone heights / widths."""
+    centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
+    return ((centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None],
+            (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None])
+
+
 def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects: torch.Tensor,
                 neighbourhood: float = 1.6, similarity: float = 0.05, ridge: float = 0.1
                 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,9 +86,7 @@ def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects:
         ``(slope_y, slope_x)``: (B, Z) relative inverse-depth change per zone height and
         per zone width (0 for invalid zones).
     """
-    centre_y, centre_x, zone_h, zone_w = _zone_geometry(zone_rects.to(zone_mean_m.dtype))
-    dy = (centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None]  # (B, k, j)
-    dx = (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None]
+    dy, dx = _zone_offsets(zone_rects.to(zone_mean_m.dtype))
     valid = zone_valid.bool()
     log_mean = torch.log(zone_mean_m.clamp_min(1e-3))
     log_ratio = log_mean[:, None, :] - log_mean[:, :, None]  # log(m_j / m_k)
@@ -165,9 +170,7 @@ def secondary_descriptors(pooled: torch.Tensor, zone_mean_m: torch.Tensor,
         (B, C, Z * S) unit descriptors, zone-major (zone k's targets at k * S ...).
     """
     batch, zones, slots = target_m.shape
-    centre_y, centre_x, zone_h, zone_w = _zone_geometry(zone_rects.to(pooled.dtype))
-    dy = (centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None]  # (B, k, j)
-    dx = (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None]
+    dy, dx = _zone_offsets(zone_rects.to(pooled.dtype))
     index = torch.arange(zones, device=pooled.device)
     eye = index[:, None] == index[None, :]  # (a bool eye exports to ops every runtime has)
     near = (dy.abs() < SECONDARY_NEIGHBOURHOOD) & (dx.abs() < SECONDARY_NEIGHBOURHOOD) & \
@@ -251,19 +254,31 @@ class PlanarSelectHead(DepthHead):
         far = None if zone_no_target is None or not self.uses_no_target else \
             zone_no_target.bool() & ~valid
         chosen = valid if far is None else valid | far
+        means = zone_mean_m.to(dtype)
+        log_mean = torch.log(means.clamp_min(1e-3))
+        # Log depths relative to the frame's mean valid reading: small numbers, so the
+        # sums below keep float32's relative precision.
+        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
+        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
+        if far is not None:
+            # Absolute: the range limit does not scale with the scene.
+            log_far = math.log(self.no_target_depth) - centre
+            if zone_scale_m is not None:
+                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
+            log_mean = torch.where(far, log_far.to(dtype), log_mean)
         log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
         pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
         pixels = descriptors.flatten(2).transpose(1, 2)  # (B, h*w, C)
         cosine = pixels @ pooled  # (B, h*w, Z)
         prior_logits = (log_wy[:, :, None, :] + log_wx[:, None, :, :]).flatten(1, 2)
         logits = prior_logits + self.temperature.to(dtype) * cosine
-        extra = None
+        log_extra = None  # (B, K) the further targets' log depths
         if zone_targets is not None and zone_targets.shape[2] > 1:
             targets = zone_targets.to(dtype)
             share, present = target_shares(targets, valid)
             slots = present.shape[-1]
-            descriptors_2 = secondary_descriptors(pooled, zone_mean_m.to(dtype), valid,
-                                                  zone_rects, targets[..., 1:, 0])
+            descriptors_2 = secondary_descriptors(pooled, means, valid, zone_rects,
+                                                  targets[..., 1:, 0])
             log_share = torch.log(share.clamp_min(1e-6))
             # The per-pixel work only for the frame's SECONDARY_HYPOTHESES largest further
             # targets (the others, when there are more, are dropped as if not reported).
@@ -285,28 +300,13 @@ class PlanarSelectHead(DepthHead):
             logits_2 = logits_2.masked_fill(~present[:, None, :], -1e4)
             logits = torch.cat([logits, logits_2], dim=-1)
             # Constant hypotheses, relative to the frame's centre like the readings.
-            extra = (torch.log(targets[..., 1:, 0].clamp_min(1e-3)).flatten(1).gather(1, order),
-                     present)
+            log_extra = (torch.log(targets[..., 1:, 0].clamp_min(1e-3)).flatten(1)
+                         .gather(1, order) - centre).masked_fill(~present, 0.0)
         weights = softmax_over_zones(logits)
-
-        means = zone_mean_m.to(dtype)
-        log_mean = torch.log(means.clamp_min(1e-3))
-        # Log depths relative to the frame's mean valid reading: small numbers, so the
-        # sums below keep float32's relative precision.
-        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
-        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
-        if far is not None:
-            # Absolute: the range limit does not scale with the scene.
-            log_far = math.log(self.no_target_depth) - centre
-            if zone_scale_m is not None:
-                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
-            log_mean = torch.where(far, log_far.to(dtype), log_mean)
-        if extra is not None:
-            log_extra = (extra[0] - centre).masked_fill(~extra[1], 0.0)
         if self.planar:
             hypotheses = log_mean[:, None, :] - torch.log(
                 self._plane_ratio(means, valid, zone_rects.to(dtype), (height, width), stride))
-            if extra is not None:
+            if log_extra is not None:
                 hypotheses = torch.cat(
                     [hypotheses, log_extra[:, None, :].expand(-1, hypotheses.shape[1], -1)],
                     dim=-1)
@@ -314,7 +314,7 @@ class PlanarSelectHead(DepthHead):
             # slopes 0, so its hypothesis is log(1) = 0 already.
             log_depth = (weights * hypotheses).sum(-1, keepdim=True)
         else:
-            if extra is not None:
+            if log_extra is not None:
                 log_mean = torch.cat([log_mean, log_extra], dim=-1)
             hypotheses = log_mean[:, None, :]
             log_depth = weights @ log_mean[..., None]
