@@ -69,3 +69,21 @@ def test_a_single_target_frame_gives_one_slot_and_batches_pad_to_the_used_slots(
     frame.target_valid[..., 1:] = False
     frame.target_mean_m[..., 1:] = 0.0
     assert stacked_target_inputs([frame]).shape == (1, 16, 1, 2)
+
+
+def test_in_closest_first_order_the_primary_is_found_wherever_it_stands():
+    # Zone (0, 0) read closest first: targets at 1.0, 2.0 and 3.5 m, the primary (the
+    # strongest return) the second of them.
+    frame = _frame()
+    mean = frame.mean_m.copy()
+    mean[0, 0] = 2.0
+    t_mean = frame.target_mean_m.copy()
+    t_mean[0, 0] = (1.0, 2.0, 3.5)
+    t_signal = frame.target_signal.copy()
+    t_signal[0, 0] = (1.0, 1 / 4, 0.25 / 3.5**2)
+    closest = ZoneFrame(mean, frame.sigma_m, frame.valid, target_mean_m=t_mean,
+                        target_sigma_m=frame.target_sigma_m, target_valid=frame.target_valid,
+                        target_signal=t_signal, target_order="closest")
+    inputs = target_inputs(closest)
+    np.testing.assert_allclose(inputs[0], [[2.0, 1 / 2.25], [1.0, 1 / 2.25],
+                                           [3.5, 0.25 / 2.25]], rtol=1e-5)

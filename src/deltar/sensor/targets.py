@@ -46,29 +46,26 @@ def target_inputs(frame: ZoneFrame) -> np.ndarray:
     zones, slots = mean.shape
     out = np.zeros((zones, slots, 2), dtype=np.float32)
     out[:, 0, 0] = np.where(primary_valid, primary_m, 0.0)
-    signal = getattr(frame, "target_signal", None)
-    flat_signal = None if signal is None else np.asarray(signal, np.float64).reshape(zones, -1)
+    signal = frame.target_signal
     # The primary is the target that lies at the primary reading (slot 0 in the
     # default, strongest-first order; anywhere in closest-first order).
     is_primary = valid & primary_valid[:, None] & (
         np.abs(mean - primary_m[:, None]) <= 1e-4 * np.maximum(primary_m[:, None], 1.0))
     first = np.argmax(is_primary, axis=1)
     found = is_primary.any(axis=1)
-    weight = np.where(valid, 1.0, 0.0) if flat_signal is None else \
-        np.where(valid, np.maximum(flat_signal, 0.0) * mean.astype(np.float64) ** 2, 0.0)
+    weight = np.where(valid, 1.0, 0.0) if signal is None else np.where(
+        valid, np.maximum(signal.reshape(zones, -1), 0.0) * mean.astype(np.float64) ** 2, 0.0)
     weight[~primary_valid] = 0.0
     primary_weight = np.where(found, weight[np.arange(zones), first],
                               np.where(primary_valid, 1.0, 0.0))
-    for zone in np.flatnonzero(primary_valid):
-        slot = 1
-        for target in range(slots):
-            if not valid[zone, target] or (found[zone] and target == first[zone]):
-                continue
-            out[zone, slot] = (mean[zone, target], weight[zone, target])
-            slot += 1
-    # Largest share first, so that keeping the first slots keeps the largest targets.
-    order = np.argsort(-out[:, 1:, 1], axis=1, kind="stable")
-    out[:, 1:] = np.take_along_axis(out[:, 1:], order[..., None], axis=1)
+    # The other valid targets of valid zones, largest share first (the frame's order on
+    # ties), so that keeping the first slots keeps the largest targets.
+    other = valid & primary_valid[:, None] & ~(found[:, None] & (
+        np.arange(slots)[None, :] == first[:, None]))
+    order = np.argsort(np.where(other, -weight, np.inf), axis=1, kind="stable")[:, : slots - 1]
+    kept = np.take_along_axis(other, order, axis=1)
+    out[:, 1:, 0] = np.where(kept, np.take_along_axis(mean, order, axis=1), 0.0)
+    out[:, 1:, 1] = np.where(kept, np.take_along_axis(weight, order, axis=1), 0.0)
     total = primary_weight + out[:, 1:, 1].sum(axis=1)
     out[:, 0, 1] = primary_weight
     has_weight = total > 0
