@@ -77,12 +77,10 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         zones = simulate_zone_frame(frame.depth_m, rects, max_targets=max_targets)
         targets = {}
         if max_targets > 1:
-            mean_t, sigma_t, valid_t = (a.reshape(grid * grid, -1) for a in zones.targets())
-            targets = {"target_mean_m": mean_t, "target_sigma_m": sigma_t,
-                       "target_valid": valid_t}
-            signal = getattr(zones, "target_signal", None)
-            if signal is not None:
-                targets["target_signal"] = signal.reshape(grid * grid, -1)
+            # (Z, T) each, as the ZJU-L5 files store them.
+            targets = {name: getattr(zones, name).reshape(grid * grid, -1)
+                       for name in ("target_mean_m", "target_sigma_m", "target_valid",
+                                    "target_signal")}
         if degrade is not None:
             import torch  # the augmentation is the training pipeline's (PyTorch)
 
@@ -103,11 +101,10 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
                 keep = valid.numpy()[:, None] & targets["target_valid"] & (
                     scaled <= SimulatorConfig().max_range_m)
                 targets["target_valid"] = keep
-                for key in ("target_mean_m", "target_sigma_m"):
-                    targets[key] = np.where(keep, targets[key] * factor[:, None],
-                                            0.0).astype(np.float32)
-                if "target_signal" in targets:
-                    targets["target_signal"] = np.where(keep, targets["target_signal"], 0.0)
+                targets["target_mean_m"] = np.where(keep, scaled, 0.0).astype(np.float32)
+                targets["target_sigma_m"] = np.where(
+                    keep, targets["target_sigma_m"] * factor[:, None], 0.0).astype(np.float32)
+                targets["target_signal"] = np.where(keep, targets["target_signal"], 0.0)
                 # Target 0 is the primary reading as degraded.
                 targets["target_mean_m"][:, 0] = mean.numpy()
                 targets["target_sigma_m"][:, 0] = sigma.numpy()

@@ -281,7 +281,7 @@ class DepthEstimator:
             float32 metres, ``zone_rects`` (B, Z, 4) float32 pixels of the network input,
             ``zone_valid`` (B, Z) bool, ``zone_no_target`` (B, Z) bool (the frames'
             no-target flags), ``zone_targets`` (B, Z, T, 2) float32 (every target of each
-            zone, :meth:`~deltar.sensor.zone_frame.ZoneFrame.target_inputs`; T = 1 when
+            zone, :func:`~deltar.sensor.targets.stacked_target_inputs`; T = 1 when
             no frame reports more than one); and ``image_rects`` (B, Z, 4) rectangles in input-image
             pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in pixels
             (:meth:`network_size_for`).

@@ -305,7 +305,7 @@ class DeltarNet(nn.Module):
                 ``no_target_depth`` there, the other heads ignore it.
             zone_targets: optional (B, Z, T, 2) every target each zone reported,
                 ``[distance in metres (0: empty slot), share of the zone]``, target 0 the
-                primary reading (:func:`deltar.sensor.zone_frame.ZoneFrame.target_inputs`);
+                primary reading (:func:`deltar.sensor.targets.target_inputs`);
                 the "plane_select" head chooses among them, the other heads ignore it.
 
         Returns:
