@@ -61,14 +61,10 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         zone (simulated with that many).
     """
     from deltar.data.rgbd import open_rgbd
-    from deltar.inference.onnx_runtime import (
-        INPUT_NAMES,
-        NO_TARGET_INPUT,
-        TARGETS_INPUT,
-        fixed_target_slots,
-    )
+    from deltar.inference.onnx_runtime import INPUT_NAMES, NO_TARGET_INPUT, TARGETS_INPUT
     from deltar.inference.preprocess import scale_rects
     from deltar.sensor.simulate_frame import simulate_zone_frame
+    from deltar.sensor.targets import fixed_target_slots
     from deltar.sensor.zone_frame import ZoneFrame
 
     if frames < 1:

@@ -28,6 +28,7 @@ import numpy as np
 
 from deltar.contract import network_contract
 from deltar.io.input_file import input_file
+from deltar.sensor.targets import fixed_target_slots
 
 if TYPE_CHECKING:
     import torch
@@ -267,22 +268,3 @@ class OnnxDepthModel:
         outputs = self.session.run(list(OUTPUT_NAMES), feeds)
         return dict(zip(OUTPUT_NAMES, outputs, strict=True))
 
-
-def fixed_target_slots(zone_targets: np.ndarray | None, batch_zones: tuple[int, int],
-                       slots: int) -> np.ndarray:
-    """(B, Z, slots, 2) float32: ``zone_targets`` padded with empty slots or cut (the
-    slots come largest share first); all 0 when None, which reads as no further target.
-
-    Raises:
-        ValueError: ``zone_targets`` not (B, Z, T, 2) for the batch's (B, Z).
-    """
-    out = np.zeros((*batch_zones, slots, 2), dtype=np.float32)
-    if zone_targets is None:
-        return out
-    targets = np.asarray(zone_targets, dtype=np.float32)
-    if targets.ndim != 4 or targets.shape[:2] != tuple(batch_zones) or targets.shape[3] != 2:
-        raise ValueError(f"zone_targets must be (B, Z, T, 2) with (B, Z) = {batch_zones}, got "
-                         f"{targets.shape}")
-    used = min(slots, targets.shape[2])
-    out[:, :, :used] = targets[:, :, :used]
-    return out

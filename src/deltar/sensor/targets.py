@@ -17,7 +17,8 @@ import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
 
-__all__ = ["NETWORK_TARGET_SLOTS", "stacked_target_inputs", "target_inputs"]
+__all__ = ["NETWORK_TARGET_SLOTS", "fixed_target_slots", "stacked_target_inputs",
+           "target_inputs"]
 
 #: Targets per zone the network reads: the primary reading and the largest other one.
 #: On the ten protocol scenes' test frames simulated with four targets per zone, 11.9 %
@@ -89,8 +90,26 @@ def stacked_target_inputs(frames: Sequence[ZoneFrame], slots: int | None = None
     if slots is None:
         used = max(int((part[..., 0] > 0).sum(axis=1).max(initial=1)) for part in parts)
         slots = min(used, NETWORK_TARGET_SLOTS)
-    out = np.zeros((len(parts), parts[0].shape[0], slots, 2), dtype=np.float32)
-    for index, part in enumerate(parts):
-        used = min(slots, part.shape[1])
-        out[index, :, :used] = part[:, :used]
+    return np.concatenate([fixed_target_slots(part[None], (1, part.shape[0]), slots)
+                           for part in parts])
+
+
+def fixed_target_slots(zone_targets: np.ndarray | None, batch_zones: tuple[int, int],
+                       slots: int) -> np.ndarray:
+    """(B, Z, slots, 2) float32: ``zone_targets`` (B, Z, T, 2) padded with empty slots or
+    cut (the slots come largest share first); all 0 when None, which reads as no further
+    target.
+
+    Raises:
+        ValueError: ``zone_targets`` not (B, Z, T, 2) for the batch's (B, Z).
+    """
+    out = np.zeros((*batch_zones, slots, 2), dtype=np.float32)
+    if zone_targets is None:
+        return out
+    targets = np.asarray(zone_targets, dtype=np.float32)
+    if targets.ndim != 4 or targets.shape[:2] != tuple(batch_zones) or targets.shape[3] != 2:
+        raise ValueError(f"zone_targets must be (B, Z, T, 2) with (B, Z) = {batch_zones}, got "
+                         f"{targets.shape}")
+    used = min(slots, targets.shape[2])
+    out[:, :, :used] = targets[:, :, :used]
     return out
