@@ -20,10 +20,9 @@ from deltar.sensor.zone_frame import ZoneFrame
 __all__ = ["NETWORK_TARGET_SLOTS", "fixed_target_slots", "stacked_target_inputs",
            "target_inputs"]
 
-#: Targets per zone the network reads: the primary reading and the largest other one.
-#: On the ten protocol scenes' test frames simulated with four targets per zone, 11.9 %
-#: of the valid zones report two targets, 0.3 % three and none four: a third slot would
-#: cost the head half as much work again for 0.3 % of the zones.
+#: Targets per zone the network reads: the primary reading and the largest other one
+#: (a zone rarely reports a third: benchmarks/RESULTS.md, several targets per zone
+#: through the network; a third slot would cost the head half as much work again).
 NETWORK_TARGET_SLOTS = 2
 
 

@@ -115,8 +115,8 @@ SECONDARY_SIMILARITY = 0.1
 SECONDARY_MIN_SUPPORT = 0.05
 #: Further targets per frame the head weighs at each pixel, the largest shares first: a
 #: fixed count, so the exported graph's extra work is that many hypotheses, not one per
-#: zone. No frame of the ten protocol scenes (clean or degraded, 586 frames) has more
-#: than 23 zones with a second target (6.6 on average).
+#: zone; more than any protocol frame needs (benchmarks/RESULTS.md, several targets per
+#: zone through the network).
 SECONDARY_HYPOTHESES = 24
 
 
