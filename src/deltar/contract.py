@@ -31,7 +31,8 @@ NETWORK_CONFIG_SECTIONS = ("input", "encoder", "decoder", "head", "output")
 _CONTRACT_INPUT_KEYS = ("design_size", "image_mean", "image_std", "num_hypotheses",
                         "hypothesis_sampling", "zone_scale_norm")
 _CONTRACT_OUTPUT_KEYS = ("min_depth", "max_depth", "no_target_depth",
-                         "uncertainty_calibration", "confidence_blend")
+                         "uncertainty_calibration", "confidence_blend",
+                         "no_target_min_neighbour_m")
 
 
 def is_sectioned_config(config: Mapping[str, Any]) -> bool:
@@ -54,8 +55,8 @@ def network_contract(config: Mapping[str, Any]) -> dict[str, Any]:
         ``design_size`` (H, W pixels), ``image_mean`` / ``image_std``,
         ``num_hypotheses``, ``hypothesis_sampling``, ``zone_scale_norm``, ``head`` (its
         name), ``min_depth`` / ``max_depth`` / ``no_target_depth`` (metres) and
-        ``uncertainty_calibration`` / ``confidence_blend`` (dicts or None): those the
-        config holds.
+        ``uncertainty_calibration`` / ``confidence_blend`` (dicts or None) and
+        ``no_target_min_neighbour_m`` (metres or None): those the config holds.
     """
     keys = (*_CONTRACT_INPUT_KEYS, "head", *_CONTRACT_OUTPUT_KEYS)
     if not is_sectioned_config(config):  # format 2: flat options of the same names

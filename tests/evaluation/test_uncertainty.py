@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -87,3 +88,38 @@ def test_cli_fits_and_refuses_bad_arguments(tmp_path, tiny_samples) -> None:
                                  "--out", str(out)])
     assert result.exit_code != 0 and "exists; pass --overwrite" in result.output
     assert out.read_bytes() == b"keep"
+
+
+def _unflagged_sample(far_truth: bool, seed: int):
+    """A 4 x 4 frame without flags whose right half returned nothing, beside a column
+    reading 3.2 m: its truth is 6 m (beyond the range) or 3.2 m (failed zones on the
+    same wall)."""
+    from deltar.data.zju_l5 import ZJUL5Sample
+    from tests.evaluation.samples import make_sample
+
+    base = make_sample("scene/0001", seed)
+    means = np.tile([1.0, 3.2, 0.0, 0.0], (4, 1))
+    truth = means.copy()
+    truth[:, 2:] = 6.0 if far_truth else 3.2
+    depth = np.pad(np.kron(truth, np.ones((8, 8))), ((0, 0), (8, 8)), mode="edge")
+    valid = (means > 0).reshape(-1)
+    mean_sigma = np.stack([means.reshape(-1), np.full(16, 0.05)], 1)
+    return ZJUL5Sample(rgb=base.rgb, depth_m=depth.astype(np.float32),
+                       zone_mean_sigma=mean_sigma, zone_rects=base.zone_rects,
+                       zone_valid=valid, name=base.name)
+
+
+@pytest.mark.parametrize("far_truth, expected", [(True, 3.0), (False, None)])
+def test_no_target_rule_is_chosen_by_what_invalid_zones_hide(far_truth, expected) -> None:
+    from deltar.evaluation.uncertainty import fit_no_target_inference
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    estimator = DepthEstimator(model, blend=None, uncertainty=None)
+    samples = [_unflagged_sample(far_truth, seed) for seed in range(2)]
+    chosen, errors = fit_no_target_inference(estimator, [samples])
+    # 3.5 m marks only the column with no valid neighbour; 3.0 m and below mark both
+    # invalid columns alike.
+    assert errors[3.0] == errors[1.5] and len(set(errors.values())) == 3
+    assert chosen == expected
+    assert (errors[3.0] < errors[3.5] < errors[None]) == far_truth

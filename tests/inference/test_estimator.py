@@ -258,3 +258,29 @@ def test_no_target_zones_of_a_frame_reach_the_plane_select_head(rng, flip_averag
     np.testing.assert_allclose(depth_far[:, :20], 1.5, rtol=0.1)
     single = DepthEstimator(model, weights="test").predict(image, far).depth_m
     assert np.abs(depth_far - single).mean() < 0.05
+
+
+def test_a_frame_without_flags_gets_them_by_the_weights_rule(rng):
+    from deltar.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96))
+    model.set_output_contract(no_target_min_neighbour_m=2.5)
+    image = random_image(rng, 64, 96)
+    valid = np.ones((8, 8), bool)
+    valid[:, 6:] = False  # the right columns returned nothing; column 5 reads 3 m
+    mean = np.where(valid, 1.5, 0.0)
+    mean[:, 5] = 3.0
+    sigma = np.full((8, 8), 0.02)
+    unflagged = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid)
+    flagged = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid, no_target=~valid)
+    estimator = DepthEstimator(model, weights="test")
+    assert estimator.no_target_min_neighbour_m == 2.5
+    np.testing.assert_allclose(estimator.predict(image, unflagged).depth_m,
+                               estimator.predict(image, flagged).depth_m, atol=1e-5)
+    assert estimator.predict(image, unflagged).depth_m[:, -8:].mean() > 4.0
+    # None: a frame without flags has no zone read as no target.
+    plain = DepthEstimator(model, weights="test", no_target_min_neighbour_m=None)
+    assert plain.predict(image, unflagged).depth_m[:, -8:].mean() < 3.5
+    with pytest.raises(ValueError, match="no_target_min_neighbour_m"):
+        DepthEstimator(model, weights="test", no_target_min_neighbour_m=-1.0)

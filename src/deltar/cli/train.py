@@ -100,14 +100,18 @@ def fit_uncertainty_command(
                                         "more)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
-    """Fit a model's output stage on frames with ground truth: blend, then sigma.
+    """Fit a model's output stage on frames with ground truth: blend, sigma, no-target rule.
 
     For a plane-select model (the bundled default's kind) it first fits how the
     estimator blends the network's depth with the zones' colorization fill, then (every
     model) how it turns the network's spread into a sigma that holds 68% of the errors
     within one sigma and 95% within two (inside and beyond the zone grid), and writes the
-    checkpoint with both; deltar predict and the estimator then use them. Give frames of
-    the model's training scenes, never of the scenes you will judge it on.
+    checkpoint with both; deltar predict and the estimator then use them. For a model
+    that reads no-target flags it also chooses, on the same frames with their flags
+    removed, when a reading without flags (e.g. a ZJU-L5 file) has an invalid zone read
+    as no target (beside a valid zone reading at least a fitted distance). Give frames of
+    the model's training scenes (clean and degraded), never of the scenes you will judge
+    it on.
     """
     from deltar.cli.checks import output_file
     from deltar.cli.progress import ProgressReport
@@ -125,8 +129,9 @@ def fit_uncertainty_command(
         sets = [open_zone_set(path) for path in data]
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
-    total = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
-                for s in sets)
+    # Each frame is visited twice: the blend and sigma, then the no-target rule.
+    total = 2 * sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
+                    for s in sets)
     with ProgressReport("fitting the output stage", total=total) as progress:
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
@@ -147,4 +152,11 @@ def fit_uncertainty_command(
                    f"({region.spread:.3f} spread)^2 + ({region.floor:.4f} depth)^2 + "
                    f"({region.disagreement:.3f} |blend move|)^2; within 1/2 sigma "
                    f"{raw[0]:.1%} / {raw[1]:.1%} raw -> {new[0]:.1%} / {new[1]:.1%}")
+    if fit.no_target_errors:
+        tried = ", ".join(f"{'none' if c is None else f'{c:g} m'} {e:.4f}"
+                          for c, e in fit.no_target_errors.items())
+        chosen = fit.no_target_min_neighbour_m
+        typer.echo("frames without no-target flags: invalid zones read as no target "
+                   + ("never" if chosen is None else f"beside a valid zone reading >= "
+                      f"{chosen:g} m") + f" (mean relative error with flags removed: {tried})")
     typer.echo(f"wrote {fit.path} ({fit.frames} frames)")

@@ -1,4 +1,4 @@
-"""Fit a checkpoint's output stage on frames with ground truth: blend, then sigma.
+"""Fit a checkpoint's output stage on frames with ground truth: blend, sigma, no-target rule.
 
 The estimator runs the checkpoint's network over the frames; for a network the
 estimator blends with the zones' colorization fill (plane-select heads) the fill is
@@ -10,6 +10,9 @@ describes the depth that is returned. Both results are written into a new checkp
 config (``confidence_blend``, ``uncertainty_calibration``) and travel with the weights
 into ``DepthEstimator``, ``deltar predict`` and the ONNX export. Fit on the training
 scenes' frames only: an output stage fitted on the frames it is judged on says nothing.
+Last, for networks that read no-target flags, the threshold of the rule that infers them
+for readings without flags is chosen on the same frames with their flags removed
+(:func:`fit_no_target_inference`) and written as ``no_target_min_neighbour_m``.
 """
 
 from __future__ import annotations
@@ -44,6 +47,10 @@ class UncertaintyFit:
         coverage: the same with the calibrated sigma, on the fitting pixels.
         relative_error: mean relative error on the fitting pixels of ``network``,
             ``fill`` and ``blend`` (the last two only when the network blends).
+        no_target_min_neighbour_m: the chosen no-target rule for frames without flags
+            (metres, or None), :func:`fit_no_target_inference`.
+        no_target_errors: mean relative error of each candidate rule over the frames
+            it changes (empty when the network reads no flags or no frame changed).
         path: the written checkpoint.
     """
 
@@ -54,6 +61,8 @@ class UncertaintyFit:
     raw_coverage: dict[str, tuple[float, float]]
     coverage: dict[str, tuple[float, float]]
     relative_error: dict[str, float]
+    no_target_min_neighbour_m: float | None
+    no_target_errors: dict[float | None, float]
     path: Path
 
 
@@ -88,11 +97,8 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
     rng = np.random.default_rng(seed)
     parts, frames = [], 0
     for samples in sets:
-        count = len(samples)
-        picks = range(count) if frames_per_set is None or frames_per_set >= count else \
-            np.linspace(0, count - 1, frames_per_set).round().astype(int)
-        for index in picks:
-            sample = samples[int(index)]
+        for index in _picks(len(samples), frames_per_set):
+            sample = samples[index]
             frame = sample.zone_frame()
             result = estimator.predict(sample.rgb, frame, zone_rects=sample.zone_rects)
             truth = sample.depth_m
@@ -116,6 +122,82 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
     return BlendPixels(*(np.concatenate([getattr(p, name) for p in parts])
                          for name in ("truth_m", "network_m", "fill_m", "spread_m",
                                       "inside"))), frames
+
+
+#: Thresholds :func:`fit_no_target_inference` tries, metres, most cautious first (None:
+#: a frame without flags has no zone read as no target).
+NO_TARGET_CANDIDATES_M: tuple[float | None, ...] = (None, 3.5, 3.0, 2.5, 2.0, 1.5)
+
+
+def _picks(count: int, frames_per_set: int | None) -> Sequence[int]:
+    """Indices of at most ``frames_per_set`` frames of ``count``, spread evenly."""
+    if frames_per_set is None or frames_per_set >= count:
+        return range(count)
+    return [int(i) for i in np.linspace(0, count - 1, frames_per_set).round()]
+
+
+def fit_no_target_inference(estimator, sets: Sequence[Sequence], *,
+                            candidates: Sequence[float | None] = NO_TARGET_CANDIDATES_M,
+                            frames_per_set: int | None = None, min_depth: float = 1e-3,
+                            max_depth: float = 10.0,
+                            on_frame: Callable[[], None] | None = None
+                            ) -> tuple[float | None, dict[float | None, float]]:
+    """Choose the no-target rule's threshold for frames without flags
+    (:func:`deltar.sensor.no_target.infer_no_target`) on frames with ground truth.
+
+    Each frame's flags are removed and every candidate's inferred flags are given to the
+    estimator (as users run it: with its blend); the candidate with the lowest mean
+    relative error over the frames wins, the most cautious on a tie. Frames where no
+    candidate reads any zone as no target are skipped (every candidate is the same there).
+    Fit on frames of the training scenes with their zones also degraded (dropped zones
+    are invalid without being far), so the rule weighs both reasons a zone is invalid.
+
+    Args:
+        estimator: a :class:`~deltar.inference.estimator.DepthEstimator`.
+        sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample` (image, zones and
+            ground-truth depth in metres).
+        candidates: thresholds to try, metres (None: no inference), cautious first.
+        frames_per_set: at most this many frames of each set, spread evenly.
+        min_depth, max_depth: ground-truth range in metres.
+        on_frame: called after each frame (progress).
+
+    Returns:
+        (the chosen threshold in metres or None, mean relative error per candidate; empty
+        when no frame was affected, then the choice is None).
+    """
+    from dataclasses import replace
+
+    from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
+    from deltar.sensor.no_target import infer_no_target
+
+    errors: dict[float | None, list[float]] = {c: [] for c in candidates}
+    for samples in sets:
+        for index in _picks(len(samples), frames_per_set):
+            sample = samples[index]
+            frame = sample.zone_frame()
+            flags = {c: np.zeros_like(frame.valid) if c is None else
+                     infer_no_target(frame.mean_m, frame.valid, c) for c in candidates}
+            if any(mask.any() for mask in flags.values()):
+                scored: dict[bytes, float] = {}  # candidates that infer the same flags
+                for c, mask in flags.items():
+                    key = np.packbits(mask).tobytes()
+                    if key not in scored:
+                        depth = estimator.predict(sample.rgb, replace(frame, no_target=mask),
+                                                  zone_rects=sample.zone_rects).depth_m
+                        try:
+                            scored[key] = depth_metrics(depth, sample.depth_m, min_depth,
+                                                        max_depth)["rel"]
+                        except EmptyFrameError:
+                            scored[key] = float("nan")
+                    errors[c].append(scored[key])
+            if on_frame is not None:
+                on_frame()
+    means = {c: float(np.nanmean(v)) for c, v in errors.items() if v and
+             not np.all(np.isnan(v))}
+    if not means:
+        return None, {}
+    best = min(means.values())
+    return next(c for c in candidates if means.get(c) == best), means
 
 
 def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Sequence],
@@ -166,6 +248,11 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         CalibrationPixels(error, pixels.spread_m, depth, moved, pixels.inside), min_pixels)
     regions = {"inside": pixels.inside, "outside": ~pixels.inside}
     sigma = calibration.sigma(pixels.spread_m, depth, moved, pixels.inside)
+    # The rule for frames without flags, chosen with the fitted blend as users run it.
+    estimator.blend = blend
+    rule, rule_errors = fit_no_target_inference(
+        estimator, sets, frames_per_set=frames_per_set, on_frame=on_frame) \
+        if model.uses_no_target else (None, {})
     relative = {"network": pixels.network_m}
     if blend is not None:
         relative.update(fill=pixels.fill_m, blend=depth)
@@ -177,8 +264,9 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         coverage={name: coverage(error[m], sigma[m]) for name, m in regions.items()},
         relative_error={name: float(np.mean(np.abs(v - pixels.truth_m) / pixels.truth_m))
                         for name, v in relative.items()},
-        path=out)
-    model.set_output_contract(uncertainty_calibration=calibration.to_dict())
+        no_target_min_neighbour_m=rule, no_target_errors=rule_errors, path=out)
+    model.set_output_contract(uncertainty_calibration=calibration.to_dict(),
+                              no_target_min_neighbour_m=rule)
     if blend is not None:
         model.set_output_contract(confidence_blend=blend.to_dict())
     save_checkpoint(out, model, preset, overwrite=overwrite)

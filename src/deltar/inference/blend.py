@@ -107,6 +107,27 @@ DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-4.953, -2.953),
                                 outside=RegionBlend(-3.864, -2.581))
 
 
+def resolve_blend(blend: ConfidenceBlend | str | None, contract: Mapping
+                  ) -> ConfidenceBlend | None:
+    """The blend an estimator uses (its ``blend`` argument) given the weights' contract.
+
+    ``"auto"``: plane-select networks blend with the coefficients the weights carry
+    (``contract["confidence_blend"]``) or :data:`DEFAULT_BLEND`, other networks do not;
+    a ``ConfidenceBlend`` as it is; None never.
+
+    Raises:
+        ValueError: anything else.
+    """
+    if blend == "auto":
+        if contract.get("head") != "plane_select":
+            return None
+        stored = contract.get("confidence_blend")
+        return DEFAULT_BLEND if stored is None else ConfidenceBlend.from_dict(stored)
+    if blend is not None and not isinstance(blend, ConfidenceBlend):
+        raise ValueError(f"blend must be 'auto', a ConfidenceBlend or None, got {blend!r}")
+    return blend
+
+
 def zone_grid_mask(zone_rects: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """(H, W) bool: pixels inside the bounding box of all zone rectangles.
 

@@ -28,9 +28,9 @@ import numpy as np
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import (
-    DEFAULT_BLEND,
     ConfidenceBlend,
     blend_with_fill,
+    resolve_blend,
     start_blend_fill,
     zone_grid_mask,
 )
@@ -43,9 +43,10 @@ from deltar.inference.preprocess import (
     resize_to_image,
     scale_rects,
 )
-from deltar.inference.uncertainty import UncertaintyCalibration
+from deltar.inference.uncertainty import UncertaintyCalibration, resolve_uncertainty
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
 from deltar.sensor.hypotheses import zone_hypotheses, zone_hypotheses_from_histogram
+from deltar.sensor.no_target import check_min_neighbour_m, frame_no_target
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.targets import stacked_target_inputs
 from deltar.sensor.zone_frame import ZoneFrame
@@ -123,6 +124,11 @@ class DepthEstimator:
             (``config["uncertainty_calibration"]``, fitted with ``deltar
             fit-uncertainty``) and the network's raw spread when they carry none; a
             calibration always; None the raw spread.
+        no_target_min_neighbour_m: for frames without no-target flags (e.g. ZJU-L5
+            files): ``"auto"`` (default) reads invalid zones as no target by the rule
+            the weights carry (``config["no_target_min_neighbour_m"]``, fitted with
+            ``deltar fit-uncertainty``; :func:`~deltar.sensor.no_target.infer_no_target`),
+            a number of metres uses that threshold, None reads none so.
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -133,7 +139,8 @@ class DepthEstimator:
                  weights: str = "unknown", fold_batch_norms: bool = True,
                  flip_average: bool = False, max_range_m: float | None = None,
                  blend: ConfidenceBlend | str | None = "auto",
-                 uncertainty: UncertaintyCalibration | str | None = "auto") -> None:
+                 uncertainty: UncertaintyCalibration | str | None = "auto",
+                 no_target_min_neighbour_m: float | str | None = "auto") -> None:
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         check_backend_options(precision, flip_average, onnx_model is not None)
@@ -189,27 +196,14 @@ class DepthEstimator:
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
         self.image_mean = tuple(contract.get("image_mean", IMAGENET_MEAN))
         self.image_std = tuple(contract.get("image_std", IMAGENET_STD))
-        if blend == "auto":
-            stored = contract.get("confidence_blend")
-            if contract.get("head") != "plane_select":
-                blend = None
-            elif stored is None:
-                blend = DEFAULT_BLEND
-            else:
-                blend = ConfidenceBlend.from_dict(stored)
-        elif blend is not None and not isinstance(blend, ConfidenceBlend):
-            raise ValueError(f"blend must be 'auto', a ConfidenceBlend or None, got {blend!r}")
-        self.blend = blend
-        if uncertainty == "auto":
-            stored = contract.get("uncertainty_calibration")
-            uncertainty = None if stored is None else UncertaintyCalibration.from_dict(stored)
-        elif uncertainty is not None and not isinstance(uncertainty, UncertaintyCalibration):
-            raise ValueError(f"uncertainty must be 'auto', an UncertaintyCalibration or None, "
-                             f"got {uncertainty!r}")
-        self.uncertainty = uncertainty
+        self.blend = resolve_blend(blend, contract)
+        self.uncertainty = resolve_uncertainty(uncertainty, contract)
         # No-target zones join the fill at the depth the network reads them at.
         far = contract.get("no_target_depth")
         self.no_target_depth_m = None if far is None else float(far)
+        self.no_target_min_neighbour_m = check_min_neighbour_m(
+            contract.get("no_target_min_neighbour_m") if no_target_min_neighbour_m == "auto"
+            else no_target_min_neighbour_m, "no_target_min_neighbour_m")
 
     # ------------------------------------------------------------------ prediction
     def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:
@@ -322,7 +316,7 @@ class DepthEstimator:
         return {"image": normalise_images(checked, net_size, self.image_mean, self.image_std),
                 "hypotheses": hypotheses, "zone_rects": net_rects,
                 "zone_valid": np.stack([f.flat()[2] for f in frames]),
-                "zone_no_target": np.stack([f.flat_no_target() for f in frames]),
+                "zone_no_target": np.stack([self.no_target_of(f) for f in frames]),
                 "zone_targets": stacked_target_inputs(frames),
                 "image_rects": rects, "image_size": size, "network_size": net_size}
 
@@ -488,9 +482,14 @@ class DepthEstimator:
         """
         return self._start_fill(image, frame, rects).result()
 
+    def no_target_of(self, frame: ZoneFrame) -> np.ndarray:
+        """(Z,) bool: the frame's no-target flags, inferred when it carries none
+        (:func:`~deltar.sensor.no_target.frame_no_target`)."""
+        return frame_no_target(frame, self.no_target_min_neighbour_m)
+
     def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray) -> Future:
         """:func:`~deltar.inference.blend.start_blend_fill` for one frame (H, W metres)."""
         mean, _, valid = frame.flat()
-        far = frame.flat_no_target() if self.no_target_depth_m is not None else None
+        far = self.no_target_of(frame) if self.no_target_depth_m is not None else None
         return start_blend_fill(image, mean, valid, rects, zone_far=far,
                                 far_depth_m=self.no_target_depth_m)

@@ -109,6 +109,24 @@ class UncertaintyCalibration:
                                        "uncertainty calibration"))
 
 
+def resolve_uncertainty(uncertainty: UncertaintyCalibration | str | None, contract: Mapping
+                        ) -> UncertaintyCalibration | None:
+    """The calibration an estimator uses (its ``uncertainty`` argument) given the weights'
+    contract: ``"auto"`` the one they carry (``contract["uncertainty_calibration"]``, or
+    None: the raw spread), a calibration as it is, None the raw spread.
+
+    Raises:
+        ValueError: anything else.
+    """
+    if uncertainty == "auto":
+        stored = contract.get("uncertainty_calibration")
+        return None if stored is None else UncertaintyCalibration.from_dict(stored)
+    if uncertainty is not None and not isinstance(uncertainty, UncertaintyCalibration):
+        raise ValueError(f"uncertainty must be 'auto', an UncertaintyCalibration or None, "
+                         f"got {uncertainty!r}")
+    return uncertainty
+
+
 @dataclass
 class CalibrationPixels:
     """Pixels of frames with ground truth, for :func:`fit_uncertainty_calibration`.

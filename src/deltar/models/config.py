@@ -31,6 +31,7 @@ from deltar.contract import (
 )
 from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.fusion import FUSION_MODES, LAYER_KINDS
+from deltar.sensor.no_target import check_min_neighbour_m
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 
 #: Heads that choose among the zone readings (the only ones the descriptor decoder,
@@ -245,6 +246,10 @@ class OutputConfig:
             depth with the zones' colorization fill
             (:meth:`deltar.inference.blend.ConfidenceBlend.to_dict`), or None (the
             estimator's default for plane-select networks); does not change the network.
+        no_target_min_neighbour_m: metres; for frames without no-target flags, the
+            estimator reads an invalid zone as no target when a valid neighbour reads at
+            least this much (:func:`deltar.sensor.no_target.infer_no_target`); None
+            reads none so. Fitted with the output stage; does not change the network.
     """
 
     min_depth: float = 1e-3
@@ -252,6 +257,7 @@ class OutputConfig:
     no_target_depth: float | None = NO_TARGET_DEPTH_M
     uncertainty_calibration: dict[str, Any] | None = None
     confidence_blend: dict[str, Any] | None = None
+    no_target_min_neighbour_m: float | None = None
 
     def __post_init__(self) -> None:
         if not 0 < self.min_depth < self.max_depth:
@@ -269,6 +275,8 @@ class OutputConfig:
             if value is not None and not isinstance(value, Mapping):
                 raise ValueError(f"{name} must be a dict or None, got {value!r}")
             _set(self, name, None if value is None else dict(value))
+        _set(self, "no_target_min_neighbour_m", check_min_neighbour_m(
+            self.no_target_min_neighbour_m, "no_target_min_neighbour_m"))
 
 
 #: Each section's config classes by kind name; parts of one kind only under None.
@@ -295,7 +303,8 @@ FLAT_OPTIONS: dict[str, tuple[str, str]] = {
     "select_temperature": ("head", "temperature"),
     "planar": ("head", "planar"),
     **{name: ("output", name) for name in ("min_depth", "max_depth", "no_target_depth",
-                                           "uncertainty_calibration", "confidence_blend")},
+                                           "uncertainty_calibration", "confidence_blend",
+                                           "no_target_min_neighbour_m")},
 }
 
 

@@ -236,7 +236,8 @@ class DeltarNet(nn.Module):
 
     def set_output_contract(self, **options: Any) -> DeltarNet:
         """Replace output-contract options that do not change the network
-        (``uncertainty_calibration``, ``confidence_blend``), e.g. after fitting them.
+        (``uncertainty_calibration``, ``confidence_blend``,
+        ``no_target_min_neighbour_m``), e.g. after fitting them.
 
         Returns:
             The network itself.
@@ -244,7 +245,7 @@ class DeltarNet(nn.Module):
         Raises:
             ValueError: another option, or a bad value.
         """
-        allowed = ("uncertainty_calibration", "confidence_blend")
+        allowed = ("uncertainty_calibration", "confidence_blend", "no_target_min_neighbour_m")
         unknown = sorted(set(options) - set(allowed))
         if unknown:
             raise ValueError(f"only {allowed} can be set on a built network, got {unknown}")
