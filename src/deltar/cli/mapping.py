@@ -75,7 +75,8 @@ def map_command(
                                            "L5)."),
     max_relative_sigma: float = typer.Option(0.15, "--max-relative-sigma", help="Model "
                                              "pixels whose uncertainty / depth exceeds this "
-                                             "are skipped; below, weight falls linearly."),
+                                             "are skipped; below, a pixel weighs "
+                                             "1 / (1 + (sigma / truncation)^2)."),
     max_memory: float = typer.Option(2048.0, "--max-memory", help="Memory budget of the "
                                      "volume, MiB (it never grows past it)."),
     tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
@@ -156,7 +157,8 @@ def map_command(
                f"(voxel {settings.voxel_size_m * 100:g} cm, truncation "
                f"{settings.truncation_m * 100:g} cm, depth <= {settings.max_depth_m:g} m)")
     if depth is None:
-        depth = DepthSource(model.load(), max_relative_sigma=max_relative_sigma)
+        depth = DepthSource(model.load(), max_relative_sigma=max_relative_sigma,
+                            truncation_m=settings.truncation_m)
     viewer = None
     if rerun or rerun_save is not None:
         from deltar.mapping.viewer import MapViewer

@@ -18,6 +18,7 @@ Poses, in this order:
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -212,7 +213,16 @@ def build_map(source: FrameSource, depth: DepthSource, plan: MapPlan, settings: 
 
     Returns:
         The map with the poses used and the timings.
+
+    Raises:
+        ValueError: a model depth source whose weights are made for another truncation
+            distance than ``settings``'.
     """
+    if depth.method is None and not math.isclose(depth.truncation_m, settings.truncation_m,
+                                                 rel_tol=1e-6):
+        raise ValueError(f"the depth source weighs pixels for a truncation of "
+                         f"{depth.truncation_m:g} m, the map's is {settings.truncation_m:g} m: "
+                         "give DepthSource(truncation_m=settings.truncation_m)")
     volume = TSDFMap(settings, capacity_blocks=plan.capacity_blocks)
     odometry = None
     if plan.poses is None:

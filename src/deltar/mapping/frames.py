@@ -29,6 +29,9 @@ if TYPE_CHECKING:
 RECORDED = "recorded"
 #: Default largest relative uncertainty (sigma / depth) of an integrated pixel.
 DEFAULT_MAX_RELATIVE_SIGMA = 0.15
+#: Default TSDF truncation distance the weights are made for, metres (the map's default:
+#: 4 voxels of 2 cm).
+DEFAULT_TRUNCATION_M = 0.08
 #: Sensor range assumed for sensor models without a known one, metres (the L5's).
 FALLBACK_RANGE_M = 4.0
 
@@ -154,26 +157,40 @@ class FrameSource:
         return limit if math.isfinite(limit) else FALLBACK_RANGE_M
 
 
-def confidence_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray,
-                      max_relative_sigma: float) -> np.ndarray:
+def confidence_weight(depth_m: np.ndarray, uncertainty_m: np.ndarray, *,
+                      truncation_m: float, max_relative_sigma: float) -> np.ndarray:
     """Per-pixel integration weight from the predicted uncertainty.
 
-    ``w = 1 - (sigma / depth) / max_relative_sigma``, clipped to [0, 1]: 1 for a certain
-    pixel, falling linearly to 0 (skipped) at ``max_relative_sigma``.
+    ``w = 1 / (1 + (sigma / t)^2)`` for the TSDF truncation distance ``t``: the inverse
+    variance of the pixel's signed distance in the TSDF's own unit (``t``), with the
+    variance of a perfect pixel taken as one unit (the band a pixel updates), so a
+    certain pixel weighs 1 like a classical baseline's, and a pixel with ``sigma = t``
+    weighs 0.5. Where views overlap, a pixel of ten times the sigma pulls about a
+    hundredth as hard. Pixels whose relative sigma (``sigma / depth``) is above
+    ``max_relative_sigma`` get 0 (skipped), as do those without a positive depth or a
+    finite sigma.
 
     Args:
         depth_m, uncertainty_m: (H, W) depth and its standard deviation, metres.
-        max_relative_sigma: relative sigma at and above which a pixel is skipped.
+        truncation_m: the TSDF's truncation distance, metres (> 0).
+        max_relative_sigma: relative sigma above which a pixel is skipped (> 0).
 
     Returns:
         (H, W) float32 weights in [0, 1].
     """
+    for name, value in (("truncation_m", truncation_m),
+                        ("max_relative_sigma", max_relative_sigma)):
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
     depth = np.asarray(depth_m, dtype=np.float32)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        relative = np.asarray(uncertainty_m, dtype=np.float32) / depth
-    weight = 1.0 - relative / np.float32(max_relative_sigma)
-    weight[~np.isfinite(weight) | (depth <= 0)] = 0.0
-    return np.clip(weight, 0.0, 1.0).astype(np.float32)
+    sigma = np.asarray(uncertainty_m, dtype=np.float32)
+    if sigma.shape != depth.shape:
+        raise ValueError(f"uncertainty_m must be {depth.shape}, got {sigma.shape}")
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        weight = 1.0 / (1.0 + np.square(sigma / np.float32(truncation_m)))
+        keep = np.isfinite(sigma) & (sigma >= 0) & (depth > 0) & np.isfinite(depth) \
+            & (sigma <= np.float32(max_relative_sigma) * depth)
+    return np.where(keep, weight, 0.0).astype(np.float32)
 
 
 class DepthSource:
@@ -184,13 +201,17 @@ class DepthSource:
         method: a classical baseline's name (:data:`~deltar.evaluation.baselines.BASELINES`)
             or ``"recorded"`` (the recording's own depth images: a reference), None for
             the model.
-        max_relative_sigma: pixels of the model whose sigma / depth is above this get
-            weight 0; below, the weight falls linearly (:func:`confidence_weight`).
-            Baselines and recorded depth have no uncertainty: weight 1.
+        max_relative_sigma: pixels of the model whose sigma / depth is above this are
+            skipped.
+        truncation_m: the truncation distance of the map the weights are for, metres;
+            below the threshold a pixel weighs ``1 / (1 + (sigma / truncation_m)^2)``
+            (:func:`confidence_weight`). Baselines and recorded depth have no
+            uncertainty: weight 1.
     """
 
     def __init__(self, estimator: DepthEstimator | None = None, method: str | None = None,
-                 max_relative_sigma: float = DEFAULT_MAX_RELATIVE_SIGMA) -> None:
+                 max_relative_sigma: float = DEFAULT_MAX_RELATIVE_SIGMA,
+                 truncation_m: float = DEFAULT_TRUNCATION_M) -> None:
         from deltar.evaluation.baselines import BASELINES
 
         if (estimator is None) == (method is None):
@@ -200,7 +221,10 @@ class DepthSource:
                              f"got {method!r}")
         if not (math.isfinite(max_relative_sigma) and max_relative_sigma > 0):
             raise ValueError(f"--max-relative-sigma must be > 0, got {max_relative_sigma}")
+        if not (math.isfinite(truncation_m) and truncation_m > 0):
+            raise ValueError(f"truncation_m must be > 0, got {truncation_m}")
         self.estimator = estimator
+        self.truncation_m = float(truncation_m)
         self.method = method
         self.max_relative_sigma = float(max_relative_sigma)
 
@@ -239,5 +263,6 @@ class DepthSource:
         # says so by value, not by a warning.
         prediction = self.estimator.predict(frame.image, frame.zone_frame, frame.calibration)
         weight = confidence_weight(prediction.depth_m, prediction.uncertainty_m,
-                                   self.max_relative_sigma)
+                                   truncation_m=self.truncation_m,
+                                   max_relative_sigma=self.max_relative_sigma)
         return prediction.depth_m, weight

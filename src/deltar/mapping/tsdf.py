@@ -1,13 +1,23 @@
 """A confidence-weighted TSDF map in Open3D's ``VoxelBlockGrid``.
 
 The volume is Open3D's sparse voxel block grid (hashed blocks of
-``block_resolution``\\ :sup:`3` voxels, each with a truncated signed distance, a weight
-and an RGB colour, all float32). Open3D allocates the blocks that a frame's depth
+``block_resolution``\\ :sup:`3` voxels, each with a truncated signed distance, an RGB
+colour, the number of pixels that observed it and the sum of their weights, all
+float32). Open3D allocates the blocks that a frame's depth
 touches (``compute_unique_block_coordinates``) and extracts the mesh and points
 (marching cubes); the per-voxel update, a weighted running average, is done here with
 torch on the grid's own attribute buffers (shared through DLPack) because Open3D's
 ``integrate`` gives every pixel the weight 1 and the map weights each pixel by its
 confidence.
+
+Two quantities per voxel, because they answer different questions: the pixels' weights
+(their confidence, :func:`deltar.mapping.frames.confidence_weight`) decide how the
+views that see a voxel are averaged, so a confident view outvotes an unsure one where
+both look; the number of pixels that observed it (Open3D's ``weight`` attribute, which
+its extraction thresholds) decides whether the voxel is on the surface at all, so one
+integrated pixel makes a surface whatever its weight, as one pixel of a classical
+baseline (weight 1) does. Which pixels are integrated at all is the depth source's
+choice (a zero weight skips a pixel).
 
 Memory is bounded: the grid's block capacity doubles as the map grows but never past
 the budget (``max_memory_bytes``); once the budget is reached, a frame integrates only
@@ -29,14 +39,13 @@ from deltar.camera import CameraIntrinsics
 
 #: Voxels per block side.
 BLOCK_RESOLUTION = 8
-#: Bytes per voxel: tsdf, weight and RGB, float32 each.
-VOXEL_BYTES = 4 * (1 + 1 + 3)
+#: Bytes per voxel: tsdf, observation count, RGB and weight sum, float32 each.
+VOXEL_BYTES = 4 * (1 + 1 + 3 + 1)
 #: Hash map bytes per block beside the voxels (key, index, bookkeeping), measured order.
 BLOCK_OVERHEAD_BYTES = 64
-#: Least accumulated weight of a voxel on the extracted surface (one pixel of
-#: confidence 0.5, or half a pixel of confidence 1).
-MIN_WEIGHT = 0.5
-#: Blocks a map reserves at first (40 MiB at 8^3 voxels); it doubles as needed.
+#: Least number of integrated pixels that observed a voxel on the extracted surface.
+MIN_OBSERVATIONS = 1
+#: Blocks a map reserves at first (48 MiB at 8^3 voxels); it doubles as needed.
 INITIAL_BLOCKS = 4096
 _OPEN3D_HINT = 'mapping needs Open3D: pip install "deltar[map]"'
 
@@ -167,9 +176,11 @@ class TSDFMap:
         self.device = o3c.Device(device)
         self._o3d, self._o3c = o3d, o3c
         self.grid = o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight", "color"),
-            attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-            attr_channels=((1), (1), (3)), voxel_size=settings.voxel_size_m,
+            # "weight" is what Open3D's extraction thresholds: here the observation
+            # count; "confidence" is the sum of the pixels' weights (the running mean's).
+            attr_names=("tsdf", "weight", "color", "confidence"),
+            attr_dtypes=(o3c.float32, o3c.float32, o3c.float32, o3c.float32),
+            attr_channels=((1), (1), (3), (1)), voxel_size=settings.voxel_size_m,
             block_resolution=settings.block_resolution, block_count=capacity,
             device=self.device)
         self.frames = 0
@@ -220,7 +231,10 @@ class TSDFMap:
             depth_m: (H, W) float depth in metres along the optical axis; 0, NaN or
                 beyond ``max_depth_m`` are not integrated.
             color_rgb: (H, W, 3) uint8 RGB image registered with the depth.
-            weight: (H, W) float per-pixel weight >= 0 (0: skipped), or None for 1.
+            weight: (H, W) float per-pixel weight >= 0 (0: skipped), or None for 1. Only
+                ratios matter: it sets how much the pixel pulls a voxel's mean against
+                the other pixels that observed it; any positive weight counts as one
+                observation for the extraction.
             intrinsics: the camera's intrinsics at (H, W) pixels.
             camera_to_world: (4, 4) pose, metres.
 
@@ -285,7 +299,12 @@ class TSDFMap:
     def _update(self, buf_indices: Any, depth: np.ndarray, weight: np.ndarray | None,
                 color_rgb: np.ndarray, intrinsics: CameraIntrinsics,
                 camera_to_world: np.ndarray) -> int:
-        """The weighted running average over the voxels of ``buf_indices``' blocks."""
+        """The weighted running average over the voxels of ``buf_indices``' blocks.
+
+        Each voxel's distance and colour move to the new pixel's by the share
+        ``w / (W + w)`` of its weight ``w`` in the weight sum ``W`` (stored as
+        "confidence"); its observation count (Open3D's "weight") grows by one.
+        """
         import torch
         from torch.utils.dlpack import from_dlpack
 
@@ -324,7 +343,8 @@ class TSDFMap:
         color_new = torch.from_numpy(np.require(color_rgb, requirements=["C", "W"])).view(-1, 3) \
             .index_select(0, pixel)
         tsdf = from_dlpack(self.grid.attribute("tsdf").to_dlpack()).view(-1)
-        weights = from_dlpack(self.grid.attribute("weight").to_dlpack()).view(-1)
+        weights = from_dlpack(self.grid.attribute("confidence").to_dlpack()).view(-1)
+        counts = from_dlpack(self.grid.attribute("weight").to_dlpack()).view(-1)
         colors = from_dlpack(self.grid.attribute("color").to_dlpack()).view(-1, 3)
         w_old = weights.index_select(0, indices)
         total = w_old + w_new
@@ -335,27 +355,34 @@ class TSDFMap:
         colors.index_copy_(0, indices, color_old + share[:, None]
                            * (color_new.to(torch.float32) - color_old))
         weights.index_copy_(0, indices, total)
+        counts.index_copy_(0, indices, counts.index_select(0, indices) + 1.0)
         return int(indices.numel())
 
     # ------------------------------------------------------------------ outputs
-    def mesh(self, weight_threshold: float = MIN_WEIGHT) -> Any:
+    def mesh(self, min_observations: int = MIN_OBSERVATIONS) -> Any:
         """The map's surface as an Open3D legacy ``TriangleMesh`` (metres, RGB 0..1).
 
-        Voxels observed with less total weight than ``weight_threshold`` are left out.
+        Voxels observed by fewer than ``min_observations`` integrated pixels are left out.
         """
         if self.block_count == 0:
             return self._o3d.geometry.TriangleMesh()
-        mesh = self.grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+        mesh = self.grid.extract_triangle_mesh(
+            weight_threshold=_open3d_threshold(min_observations)).to_legacy()
         if mesh.has_vertex_colors():  # float rounding can leave 1 + 1e-7
             mesh.vertex_colors = self._o3d.utility.Vector3dVector(
                 np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
         return mesh
 
-    def points(self, weight_threshold: float = MIN_WEIGHT) -> tuple[np.ndarray, np.ndarray]:
-        """Surface points of the map: ((N, 3) float64 metres, (N, 3) uint8 RGB)."""
+    def points(self, min_observations: int = MIN_OBSERVATIONS
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Surface points of the map: ((N, 3) float64 metres, (N, 3) uint8 RGB).
+
+        Voxels observed by fewer than ``min_observations`` integrated pixels are left out.
+        """
         if self.block_count == 0:
             return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
-        cloud = self.grid.extract_point_cloud(weight_threshold=weight_threshold)
+        cloud = self.grid.extract_point_cloud(
+            weight_threshold=_open3d_threshold(min_observations))
         if "positions" not in cloud.point or cloud.point.positions.shape[0] == 0:
             return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
         xyz = cloud.point.positions.numpy().astype(np.float64)
@@ -364,7 +391,7 @@ class TSDFMap:
         return xyz, np.clip(np.round(255 * rgb), 0, 255).astype(np.uint8)
 
     def write(self, out_dir: str | Path, *, overwrite: bool = False,
-              weight_threshold: float = MIN_WEIGHT) -> dict[str, Path]:
+              min_observations: int = MIN_OBSERVATIONS) -> dict[str, Path]:
         """Write ``mesh.ply`` (coloured triangle mesh) and ``points.ply`` atomically.
 
         Raises:
@@ -380,14 +407,21 @@ class TSDFMap:
             for path in paths.values():
                 if path.exists():
                     raise FileExistsError(f"refusing to overwrite existing file: {path}")
-        mesh = self.mesh(weight_threshold)
+        mesh = self.mesh(min_observations)
         if len(mesh.triangles) == 0:
             raise ValueError("the map has no surface: no frame's depth was integrated "
                              "(check the depth limit, the poses and the confidence threshold)")
         with atomic_path(paths["mesh"], overwrite=overwrite) as tmp:
             if not self._o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
                 raise ValueError(f"{paths['mesh']}: Open3D could not write the mesh")
-        xyz, rgb = self.points(weight_threshold)
+        xyz, rgb = self.points(min_observations)
         write_ply(paths["points"], xyz, rgb, overwrite=overwrite,
                   comments=[f"deltar map: {len(xyz)} surface points, metres, world frame"])
         return paths
+
+
+def _open3d_threshold(min_observations: int) -> float:
+    """Open3D keeps voxels whose weight is above its threshold: half a count below."""
+    if not (isinstance(min_observations, (int, np.integer)) and min_observations >= 1):
+        raise ValueError(f"min_observations must be an integer >= 1, got {min_observations!r}")
+    return float(min_observations) - 0.5

@@ -1,0 +1,87 @@
+"""Pixel weights from the predicted sigma, and how the map uses them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deltar.mapping.frames import DepthSource, confidence_weight
+from deltar.mapping.tsdf import MapSettings, TSDFMap
+from tests.mapping.conftest import SMALL, WALL_Z_M, pose_at, render_wall
+
+COARSE = MapSettings(voxel_size_m=0.04, truncation_voxels=3, max_depth_m=4.0)
+
+
+def test_weight_is_the_inverse_variance_in_truncation_units():
+    depth = np.full((2, 3), 2.0, np.float32)
+    sigma = np.array([[0.0, 0.08, 0.16], [0.24, 0.31, 0.29]], np.float32)
+    weight = confidence_weight(depth, sigma, truncation_m=0.08, max_relative_sigma=0.15)
+    # 1 / (1 + (sigma / t)^2): 1, 1/2, 1/5, 1/10; 0.31 / 2 m is above 0.15 (skipped),
+    # 0.29 / 2 m is not.
+    assert weight[0] == pytest.approx([1.0, 0.5, 0.2], abs=1e-6)
+    assert weight[1, 0] == pytest.approx(0.1, abs=1e-6)
+    assert weight[1, 1] == 0.0
+    assert weight[1, 2] == pytest.approx(1 / (1 + (0.29 / 0.08) ** 2), rel=1e-5)
+    assert weight.dtype == np.float32
+
+
+def test_weight_skips_pixels_without_depth_or_sigma():
+    depth = np.array([[0.0, 1.0, np.nan, 1.0]], np.float32)
+    sigma = np.array([[0.01, np.nan, 0.01, np.inf]], np.float32)
+    weight = confidence_weight(depth, sigma, truncation_m=0.08, max_relative_sigma=0.5)
+    assert np.all(weight == 0.0)
+
+
+def test_weight_refuses_bad_arguments():
+    depth = np.ones((2, 2), np.float32)
+    with pytest.raises(ValueError, match="truncation_m"):
+        confidence_weight(depth, depth, truncation_m=0.0, max_relative_sigma=0.15)
+    with pytest.raises(ValueError, match="max_relative_sigma"):
+        confidence_weight(depth, depth, truncation_m=0.08, max_relative_sigma=float("nan"))
+    with pytest.raises(ValueError, match="uncertainty_m"):
+        confidence_weight(depth, depth[:1], truncation_m=0.08, max_relative_sigma=0.15)
+    with pytest.raises(ValueError, match="truncation_m"):
+        DepthSource(method="nearest", truncation_m=-1.0)
+
+
+def test_one_unsure_view_alone_still_makes_a_surface():
+    # A pixel that nothing else observes is surface whatever its weight: the weight only
+    # sets its share where views overlap.
+    pose = pose_at(0.0)
+    image, depth = render_wall(pose)
+    volume = TSDFMap(COARSE)
+    volume.integrate(depth, image, np.full_like(depth, 0.05), SMALL, pose)
+    vertices = np.asarray(volume.mesh().vertices)
+    assert len(vertices) > 100
+    assert np.abs(vertices[:, 2] - WALL_Z_M).max() < 0.01
+    # Asking for two observations per voxel leaves the single view out.
+    assert len(volume.mesh(min_observations=2).vertices) == 0
+    assert len(volume.points(min_observations=2)[0]) == 0
+    with pytest.raises(ValueError, match="min_observations"):
+        volume.points(min_observations=0)
+
+
+def test_a_certain_view_outvotes_an_unsure_one_where_both_look():
+    pose = pose_at(0.0)
+    image, depth = render_wall(pose)
+    truncation = COARSE.truncation_m
+    sure = confidence_weight(depth, np.full_like(depth, 0.01), truncation_m=truncation,
+                             max_relative_sigma=0.15)
+    unsure = confidence_weight(depth, np.full_like(depth, 0.25), truncation_m=truncation,
+                               max_relative_sigma=0.15)
+    volume = TSDFMap(COARSE)
+    volume.integrate(depth, image, sure, SMALL, pose)
+    volume.integrate(depth + 0.06, image, unsure, SMALL, pose)  # 6 cm off
+    z = np.median(np.asarray(volume.mesh().vertices)[:, 2])
+    # Weights ~0.99 and ~0.13: the surface moves ~0.7 cm, not the 3 cm of a plain mean.
+    share = unsure.flat[0] / (sure.flat[0] + unsure.flat[0])
+    assert z == pytest.approx(WALL_Z_M + 0.06 * share, abs=0.004)
+    assert z < WALL_Z_M + 0.015
+
+
+def test_the_map_refuses_weights_made_for_another_truncation():
+    from deltar.mapping.builder import build_map
+
+    source = DepthSource(estimator=object(), truncation_m=0.05)
+    with pytest.raises(ValueError, match=r"truncation of 0\.05 m, the map's is 0\.08 m"):
+        build_map(None, source, None, MapSettings())
