@@ -96,7 +96,8 @@ def test_default_runs_large_images_at_its_training_scale(rng):
 def test_default_places_zones_with_no_target_beyond_the_range(shared_data):
     # A real office frame whose window side lies beyond the L5's 4 m: with the zones'
     # no-target flags the default puts those pixels past the range, closer to the truth
-    # than without them; the measured zones keep their depth.
+    # than without them; the measured zones keep their depth. Without flags the default
+    # infers them by the rule it carries (docs/inference.md).
     torch.set_num_threads(2)
     camera = CameraIntrinsics(615.0, 615.0, 320.0, 240.0, width=640, height=480)
     frame = open_source(str(shared_data / "realsense_office"), intrinsics=camera)[0]
@@ -106,8 +107,11 @@ def test_default_places_zones_with_no_target_beyond_the_range(shared_data):
     estimator = load_estimator("default")
     flagged = estimator.predict(frame.image, ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid,
                                                        no_target=zones.no_target)).depth_m
-    plain = estimator.predict(frame.image, ZoneFrame(zones.mean_m, zones.sigma_m,
-                                                     zones.valid)).depth_m
+    unflagged = ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid)
+    plain = load_estimator("default", no_target_min_neighbour_m=None).predict(
+        frame.image, unflagged).depth_m
+    # A frame without flags gets them from the rule the default carries.
+    inferred = estimator.predict(frame.image, unflagged).depth_m
     truth = frame.depth_m
     far = np.zeros(truth.shape, bool)
     for (y0, x0, y1, x1), flag in zip(rects, zones.no_target.ravel(), strict=True):
@@ -117,8 +121,10 @@ def test_default_places_zones_with_no_target_beyond_the_range(shared_data):
     seen = far & (truth > 0)
     assert np.median(flagged[seen]) > 4.0 > np.median(plain[seen])
     rel = {name: np.mean(np.abs(d[seen] - truth[seen]) / truth[seen])
-           for name, d in (("flagged", flagged), ("plain", plain))}
+           for name, d in (("flagged", flagged), ("plain", plain), ("inferred", inferred))}
     assert rel["flagged"] < 0.7 * rel["plain"]
+    # Inferred flags recover most of what the sensor's own flags give.
+    assert np.median(inferred[seen]) > 4.0 and rel["inferred"] < 0.8 * rel["plain"]
     # Over each valid zone, the depth stays what it was (median ratio within 2%).
     ratios = []
     for (y0, x0, y1, x1), ok in zip(rects, zones.valid.ravel(), strict=True):
