@@ -25,3 +25,14 @@ def test_require_extra_raises_only_for_a_missing_module(monkeypatch):
     with pytest.raises(ModuleNotFoundError, match=r'deltar\[plots\]') as info:
         extras.require_extra("no_such_mod", "the plot")
     assert info.value.name == "no_such_mod"
+
+
+def test_lazy_attributes_imports_on_first_use_and_names_unknown_ones():
+    from deltar.extras import lazy_attributes
+
+    from deltar.camera import CameraIntrinsics
+
+    getter = lazy_attributes("deltar.example", {"CameraIntrinsics": "deltar.camera"})
+    assert getter("CameraIntrinsics") is CameraIntrinsics
+    with pytest.raises(AttributeError, match=r"module 'deltar\.example' has no attribute"):
+        getter("nope")

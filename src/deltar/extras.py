@@ -10,7 +10,10 @@ needs one (``error: ... pip install "deltar[torch]"``).
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
+from collections.abc import Callable, Mapping
+from typing import Any
 
 #: Top-level module -> the extra that installs it (``pip install "deltar[EXTRA]"``).
 EXTRA_OF_MODULE: dict[str, str] = {
@@ -89,3 +92,24 @@ def require_torch(what: str) -> None:
         what: what needs it, the start of the message (e.g. ``"--flip"``).
     """
     require_extra("torch", what)
+
+
+def lazy_attributes(package: str, homes: Mapping[str, str]) -> Callable[[str], Any]:
+    """A package's module ``__getattr__`` that imports each name of ``homes`` on first use.
+
+    Keeps ``import deltar.<package>`` light: a name whose module needs torch or HDF5 is
+    imported only when it is asked for.
+
+    Args:
+        package: the package's name, for the error (e.g. ``"deltar.data"``).
+        homes: name -> the module that defines it (e.g. ``"deltar.data.nyu"``).
+
+    Returns:
+        ``__getattr__(name)``, raising ``AttributeError`` for a name not in ``homes``.
+    """
+    def __getattr__(name: str) -> Any:
+        if name in homes:
+            return getattr(importlib.import_module(homes[name]), name)
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return __getattr__

@@ -7,8 +7,9 @@ predict`` does) does not load the NYU reader's HDF5 library or the torch-based m
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from deltar.extras import lazy_attributes
 
 if TYPE_CHECKING:
     from deltar.data.nyu import NYU_INTRINSICS, NYUH5Reader, NYULabeledReader
@@ -43,10 +44,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'deltar.data' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = [

@@ -8,9 +8,9 @@ light. ``simulate_zone_frame`` (one frame, numpy) and :mod:`deltar.sensor.hypoth
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from deltar.extras import lazy_attributes
 from deltar.sensor.cnh import CNHConfig, zone_frame_from_cnh
 from deltar.sensor.geometry import (
     SensorExtrinsics,
@@ -40,10 +40,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'deltar.sensor' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = [
