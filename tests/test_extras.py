@@ -28,9 +28,8 @@ def test_require_extra_raises_only_for_a_missing_module(monkeypatch):
 
 
 def test_lazy_attributes_imports_on_first_use_and_names_unknown_ones():
-    from deltar.extras import lazy_attributes
-
     from deltar.camera import CameraIntrinsics
+    from deltar.extras import lazy_attributes
 
     getter = lazy_attributes("deltar.example", {"CameraIntrinsics": "deltar.camera"})
     assert getter("CameraIntrinsics") is CameraIntrinsics
