@@ -8,7 +8,11 @@ repository root::
 
     PYTHONPATH=src python benchmarks/bench_board_calibration.py [--part board|intrinsics|
         refusal|depth|bound] [--seeds 5] [--first-seed 0] [--tilt 45,25] [--views 15,20,25]
-        [--zone-noise 0.02] [--invalid 0.1]
+        [--zone-noise 0.02] [--invalid 0.1] [--near 0]
+
+``--near N`` draws N of the views 0.3-0.45 m from the board (it fills most of the
+image), as the guide asks for ``--calibrate-intrinsics``; the other views are those of
+the same seed without it.
 
 ``--zone-noise 0 --invalid 0`` measures what is left without the zones' noise (the bias of
 the solver's model of the zone readings and the board poses' own error).
@@ -39,6 +43,7 @@ ROUGH = CameraIntrinsics(540.0, 464.6, 330.0, 230.0, 640, 480)  # fx +8 %, fy -8
 DISTORTION = (-0.12, 0.05, 0.001, -0.001)
 TRUE = SensorExtrinsics(Rotation.from_euler("zyx", [91.5, 2.0, -1.5], degrees=True).as_matrix(),
                         np.array([0.04, -0.02, 0.01]))
+NEAR_M = (0.3, 0.45)
 TARGET = "charuco:7x5:0.04:0.03:DICT_5X5_100"
 
 
@@ -51,15 +56,18 @@ def errors(found: SensorExtrinsics, truth: SensorExtrinsics = TRUE) -> tuple[flo
 
 def board_run(folder: Path, views: int, seed: int, *, intrinsics: bool = False,
               tilt: tuple[float, float] = (45.0, 25.0), zone_noise_m: float = 0.02,
-              invalid_fraction: float = 0.1):
+              invalid_fraction: float = 0.1, near: int = 0):
     from deltar.calibration.board import parse_board_spec
     from deltar.calibration.board_pipeline import calibrate_recording_with_board
     from deltar.calibration.synthetic_board import board_view_poses, write_board_recording
     from deltar.io.recording import Recording
 
     spec = parse_board_spec(TARGET)
-    poses = board_view_poses(views, distance_m=(0.5, 0.9), tilt_deg=tilt[0],
+    poses = board_view_poses(views - near, distance_m=(0.5, 0.9), tilt_deg=tilt[0],
                              min_tilt_deg=tilt[1], seed=seed)
+    # Views close enough for the board to fill most of the image (for the intrinsics).
+    poses += board_view_poses(near, distance_m=NEAR_M, tilt_deg=tilt[0],
+                              min_tilt_deg=tilt[1], seed=10_000 + seed)
     write_board_recording(folder, TRUE, CAMERA, spec, poses,
                           recorded_intrinsics=ROUGH if intrinsics else None,
                           distortion=DISTORTION if intrinsics else (),
@@ -80,7 +88,7 @@ def expected(report) -> str:
 
 
 def part_board(seeds: range, tilt: tuple[float, float], view_counts: tuple[int, ...],
-               **zones) -> None:
+               near: int = 0, **zones) -> None:
     print("| views | seed | rotation error (deg) | translation error (mm) | expected (deg / mm "
           "/ chance of a miss) | before -> after zone-to-cloud (cm) | solve (s) |")
     print("|---|---|---|---|---|---|---|")
@@ -88,27 +96,28 @@ def part_board(seeds: range, tilt: tuple[float, float], view_counts: tuple[int, 
         for views in view_counts:
             for seed in seeds:
                 result, report, took = board_run(Path(tmp) / f"b{views}_{seed}", views, seed,
-                                                 tilt=tilt, **zones)
+                                                 tilt=tilt, near=near, **zones)
                 angle, shift = errors(result.calibration.extrinsics)
                 print(f"| {views} | {seed} | {angle:.3f} | {shift:.1f} | {expected(report)} | "
                       f"{100 * result.distance_before_m:.2f} -> "
                       f"{100 * result.distance_after_m:.2f} | {took:.1f} |", flush=True)
 
 
-def part_intrinsics(seeds: range, tilt: tuple[float, float], **zones) -> None:
-    print("| seed | fx error (%) | fy error (%) | cx, cy error (px) | k1 | rotation error "
-          "(deg) | translation error (mm) | expected (deg / mm / chance of a miss) | "
-          "reprojection RMS (px) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+def part_intrinsics(seeds: range, tilt: tuple[float, float], near: int = 0, **zones) -> None:
+    print("| seed | fx error (%) | fy error (%) | cx, cy error (px) | cx, cy sd (px) | k1 | "
+          "rotation error (deg) | translation error (mm) | expected (deg / mm / chance of a "
+          "miss) | reprojection RMS (px) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             result, report, _ = board_run(Path(tmp) / f"i{seed}", 20, seed, intrinsics=True,
-                                          tilt=tilt, **zones)
+                                          tilt=tilt, near=near, **zones)
             k = result.calibration.intrinsics
             angle, shift = errors(result.calibration.extrinsics)
             print(f"| {seed} | {100 * (k.fx / CAMERA.fx - 1):+.2f} | "
                   f"{100 * (k.fy / CAMERA.fy - 1):+.2f} | {k.cx - CAMERA.cx:+.1f}, "
-                  f"{k.cy - CAMERA.cy:+.1f} | {result.calibration.distortion[0]:+.3f} | "
+                  f"{k.cy - CAMERA.cy:+.1f} | {report.camera.sd[2]:.1f}, "
+                  f"{report.camera.sd[3]:.1f} | {result.calibration.distortion[0]:+.3f} | "
                   f"{angle:.3f} | {shift:.1f} | {expected(report)} | "
                   f"{report.intrinsics_rms_px:.2f} |", flush=True)
 
@@ -195,14 +204,18 @@ def main() -> None:
                         help="zone noise of --part board and intrinsics, metres")
     parser.add_argument("--invalid", type=float, default=0.1,
                         help="share of zones made invalid at random (board, intrinsics)")
+    parser.add_argument("--near", type=int, default=0,
+                        help="of the views (--part intrinsics: 20), this many 0.3-0.45 m away "
+                        "(the board fills most of the image)")
     args = parser.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     tilt = tuple(float(v) for v in args.tilt.split(","))
     zones = {"zone_noise_m": args.zone_noise, "invalid_fraction": args.invalid}
     if args.part == "board":
-        part_board(seeds, tilt, tuple(int(v) for v in args.views.split(",")), **zones)
+        part_board(seeds, tilt, tuple(int(v) for v in args.views.split(",")), near=args.near,
+                   **zones)
     elif args.part == "intrinsics":
-        part_intrinsics(seeds, tilt, **zones)
+        part_intrinsics(seeds, tilt, near=args.near, **zones)
     elif args.part == "bound":
         part_bound(seeds)
     elif args.part == "refusal":

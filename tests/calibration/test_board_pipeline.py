@@ -3,6 +3,7 @@ OpenCV's board image: accuracy, the time offset, and every refusal with its mess
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -166,22 +167,46 @@ def test_vga_rig_meets_the_accuracy_target(tmp_path):
 
 
 @pytest.mark.slow
-def test_intrinsics_from_8_percent_off(tmp_path):
+@pytest.mark.parametrize("near", [0, 6])
+def test_intrinsics_from_8_percent_off(tmp_path, near):
+    """20 views; with ``near`` of them 0.3-0.45 m away (the board fills most of the image)
+    the principal point is pinned down, without them a warning asks for such views."""
     camera = CameraIntrinsics(500.0, 505.0, 322.0, 238.0, 640, 480)
     rough = CameraIntrinsics(540.0, 465.0, 330.0, 230.0, 640, 480)
     spec = parse_board_spec("charuco:7x5:0.04:0.03:DICT_5X5_100")
-    write_board_recording(tmp_path / "rec", TRUE, camera, spec, _poses(20, seed=2, **STEEP),
+    poses = _poses(20 - near, seed=2, **STEEP) + _poses(near, seed=10_002,
+                                                        distance_m=(0.3, 0.45), **STEEP)
+    write_board_recording(tmp_path / "rec", TRUE, camera, spec, poses,
                           recorded_intrinsics=rough, distortion=(-0.12, 0.05, 0.001, -0.001),
                           seed=2)
-    result, report = calibrate_recording_with_board(Recording(tmp_path / "rec"), spec, NOMINAL,
-                                                    calibrate_intrinsics=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result, report = calibrate_recording_with_board(Recording(tmp_path / "rec"), spec,
+                                                        NOMINAL, calibrate_intrinsics=True)
     found = result.calibration.intrinsics
     assert found.fx == pytest.approx(500.0, rel=0.01) and found.fy == pytest.approx(505.0,
                                                                                    rel=0.01)
     assert result.calibration.distortion[0] == pytest.approx(-0.12, abs=0.03)
-    assert report.intrinsics_rms_px < 0.5
+    assert report.intrinsics_rms_px < 0.5 and report.camera.rms_px == report.intrinsics_rms_px
     angle, shift = _errors(result.calibration.extrinsics)
     assert angle < 0.5 and shift < 0.010
     # The expected error includes the intrinsics' own error.
     expected = report.uncertainty
     assert angle < 3 * expected.rotation_rms_deg and shift < 3 * expected.translation_rms_m
+    sd = report.camera.sd
+    assert abs(found.cx - 322.0) < 4 * sd[2] and abs(found.cy - 238.0) < 4 * sd[3]
+    messages = [str(w.message) for w in caught if "principal point sd" in str(w.message)]
+    if near:
+        # Pinned down: what is left is mostly the zones' noise.
+        assert max(sd[2], sd[3]) < 1.5
+        assert all(": record more views, tilted 25-45 deg" in m for m in messages)
+    else:
+        # The board in the middle of every view: the intrinsics weigh as much as the
+        # zones' noise, and the warning asks for close views first.
+        assert min(sd[2], sd[3]) > 1.5
+        assert len(messages) == 1
+        assert re.search(r"the camera intrinsics calibrated from the same views \(principal "
+                         r"point sd \d\.\d, \d\.\d px\) 0\.\d\d deg; together 0\.\d\d deg",
+                         messages[0])
+        assert ": record views close enough that the board fills most of the image (about " \
+               "0.3-0.45 m for an A4 board)" in messages[0]

@@ -35,6 +35,7 @@ from deltar.calibration.board import (
     BoardDetector,
     BoardPose,
     BoardSpec,
+    CameraCalibration,
     board_points_in_view,
     calibrate_camera,
     estimate_board_pose,
@@ -75,6 +76,9 @@ PLANE_AGREE_M = 0.06
 #: 0.5 deg or 10 mm (benchmarks/RESULTS.md, 2026-12-03).
 MAX_EXPECTED_ROTATION_DEG = 0.35
 MAX_EXPECTED_TRANSLATION_M = 0.005
+#: Distances (metres) at which an A4 board fills most of a typical camera's image: views
+#: from there pin the principal point down when the intrinsics are calibrated.
+NEAR_VIEW_M = (0.3, 0.45)
 
 
 @dataclass
@@ -91,7 +95,10 @@ class BoardReport:
             the intrinsics were not calibrated).
         closed_form: the closed-form extrinsic the refinement started from.
         uncertainty: the error the zones' noise leaves in the extrinsic (1 sd, the
-            Cramer-Rao bound of :mod:`deltar.calibration.board_uncertainty`).
+            Cramer-Rao bound of :mod:`deltar.calibration.board_uncertainty`), with the
+            calibrated intrinsics' error when they were calibrated.
+        camera: the intrinsics' calibration with its covariance (None when the
+            intrinsics were not calibrated).
     """
 
     images_searched: int
@@ -103,6 +110,7 @@ class BoardReport:
     closed_form: SensorExtrinsics | None = None
     skipped: list[tuple[str, str]] = field(default_factory=list)
     uncertainty: ExtrinsicUncertainty | None = None
+    camera: CameraCalibration | None = None
 
 
 @dataclass
@@ -282,7 +290,7 @@ def calibrate_recording_with_board(
         views.append(_View(name, plane, pose, detection, frame.flat()[0], reason))
     _refuse_few_views(detector, recording, len(views), searched, MIN_BOARD_VIEWS,
                       paired=True)
-    intrinsics_rms = intrinsics_sd = None
+    intrinsics_rms = camera_fit = None
     if calibrate_intrinsics:
         # Board poses from intrinsics that are several % off disagree with the zones'
         # planes, so the camera is calibrated before the views are checked against them.
@@ -290,7 +298,9 @@ def calibrate_recording_with_board(
         if len(detections) < MIN_INTRINSIC_VIEWS:
             raise ValueError(f"--calibrate-intrinsics needs the board in at least "
                              f"{MIN_INTRINSIC_VIEWS} images, found in {len(detections)}")
-        camera, distortion, intrinsics_rms, intrinsics_sd = calibrate_camera(detections, camera)
+        camera_fit = calibrate_camera(detections, camera)
+        camera, distortion = camera_fit.intrinsics, camera_fit.distortion
+        intrinsics_rms = camera_fit.rms_px
         for v in views:
             v.pose = estimate_board_pose(v.detection, camera, distortion)
     # Zones that see another surface give planes whose normals disagree with the board's.
@@ -344,14 +354,14 @@ def calibrate_recording_with_board(
     if intrinsics_rms is not None:
         residuals["intrinsics_rms_px"] = intrinsics_rms
     uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov,
-                                  intrinsics_sd, distortion)
+                                  camera_fit)
     residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
     residuals["translation_sd_m"] = uncertainty.translation_rms_m
     residuals["zone_noise_m"] = uncertainty.zone_noise_m
     result.calibration = replace(calibration, residuals=residuals,
                                  distortion=tuple(distortion), time_offset_s=offset)
     report = BoardReport(searched, len(views), residuals["board_pose_rms_px"], estimate, offset,
-                         intrinsics_rms, closed, skipped, uncertainty)
+                         intrinsics_rms, closed, skipped, uncertainty, camera_fit)
     return result, report
 
 
@@ -375,46 +385,77 @@ def _refine_to_zones(result: CalibrationResult, views: list[_View], fov) -> Cali
                    distance_after_m=after)
 
 
-def _expected_error(views: list[_View], calibration, fov, intrinsics_sd=None,
-                    distortion=()) -> ExtrinsicUncertainty:
-    """The extrinsic's expected error from the views used (with the error of calibrated
-    intrinsics, ``intrinsics_sd`` of fx, fy, cx, cy in pixels); warns when it is large."""
-    sensitivity = None
-    if intrinsics_sd is not None:
-        sensitivity = [_plane_sensitivity(v, calibration.intrinsics, distortion) for v in views]
-    uncertainty = extrinsic_uncertainty(
-        [(v.pose.normal_cam, v.pose.offset_cam_m, v.pose.normal_std_rad, v.pose.offset_std_m)
-         for v in views], [v.mean_m for v in views], [v.plane.inliers for v in views],
-        calibration.extrinsics, grid=calibration.grid, fov_deg=fov,
-        plane_sensitivity=sensitivity,
-        camera_covariance=None if intrinsics_sd is None else np.diag(intrinsics_sd ** 2))
+def _expected_error(views: list[_View], calibration, fov,
+                    camera_fit: CameraCalibration | None = None) -> ExtrinsicUncertainty:
+    """The extrinsic's expected error from the views used (with the error of intrinsics
+    calibrated from the same views, ``camera_fit``); warns when it is large, saying
+    whether more views or views that pin the camera down are needed."""
+    planes = [(v.pose.normal_cam, v.pose.offset_cam_m, v.pose.normal_std_rad,
+               v.pose.offset_std_m) for v in views]
+    args = ([v.mean_m for v in views], [v.plane.inliers for v in views],
+            calibration.extrinsics)
+    kwargs = {"grid": calibration.grid, "fov_deg": fov}
+    uncertainty = zones_only = extrinsic_uncertainty(planes, *args, **kwargs)
+    if camera_fit is not None:
+        sensitivity = [_plane_sensitivity(v, camera_fit) for v in views]
+        uncertainty = extrinsic_uncertainty(planes, *args, **kwargs,
+                                            zone_noise_m=zones_only.zone_noise_m,
+                                            plane_sensitivity=sensitivity,
+                                            camera_covariance=camera_fit.covariance)
     rotation, translation = uncertainty.rotation_rms_deg, uncertainty.translation_rms_m
-    if rotation > MAX_EXPECTED_ROTATION_DEG or translation > MAX_EXPECTED_TRANSLATION_M:
+    if rotation <= MAX_EXPECTED_ROTATION_DEG and translation <= MAX_EXPECTED_TRANSLATION_M:
+        return uncertainty
+    wanted = (f"(1 sd; at most {MAX_EXPECTED_ROTATION_DEG} deg and "
+              f"{1000 * MAX_EXPECTED_TRANSLATION_M:g} mm wanted)")
+    more_views = "record more views, tilted 25-45 deg left, right, up and down"
+    if camera_fit is None:
         warnings.warn(
             f"the {len(views)} board views leave the extrinsic uncertain: the zones' noise "
             f"({100 * uncertainty.zone_noise_m:.1f} cm) allows errors of about "
-            f"{rotation:.2f} deg and {1000 * translation:.1f} mm (1 sd; at most "
-            f"{MAX_EXPECTED_ROTATION_DEG} deg and {1000 * MAX_EXPECTED_TRANSLATION_M:g} mm "
-            "wanted): record more views, tilted 25-45 deg left, right, up and down",
+            f"{rotation:.2f} deg and {1000 * translation:.1f} mm {wanted}: {more_views}",
             stacklevel=3)
+        return uncertainty
+    # Name both parts (root of the summed rotation variances) and advise on the larger.
+    zones_part = zones_only.covariance[:3, :3].trace()
+    camera_part = max(uncertainty.covariance[:3, :3].trace() - zones_part, 0.0)
+    close_views = ("record views close enough that the board fills most of the image "
+                   f"(about {NEAR_VIEW_M[0]:g}-{NEAR_VIEW_M[1]:g} m for an A4 board), tilted "
+                   "as the others")
+    advice = (f"{close_views}, or give intrinsics from a camera calibration; more views "
+              "also help" if camera_part > zones_part else
+              f"{more_views}; views close enough that the board fills most of the image "
+              f"(about {NEAR_VIEW_M[0]:g}-{NEAR_VIEW_M[1]:g} m for an A4 board) pin the "
+              "intrinsics down")
+    sd = camera_fit.sd
+    warnings.warn(
+        f"the {len(views)} board views leave the extrinsic uncertain: the zones' noise "
+        f"({100 * uncertainty.zone_noise_m:.1f} cm) allows errors of about "
+        f"{np.degrees(np.sqrt(zones_part)):.2f} deg, and the camera intrinsics calibrated "
+        f"from the same views (principal point sd {sd[2]:.1f}, {sd[3]:.1f} px) "
+        f"{np.degrees(np.sqrt(camera_part)):.2f} deg; together {rotation:.2f} deg and "
+        f"{1000 * translation:.1f} mm {wanted}: {advice}", stacklevel=3)
     return uncertainty
 
 
-def _plane_sensitivity(view: _View, camera: CameraIntrinsics, distortion,
-                       step_px: float = 0.5) -> np.ndarray:
-    """(4, 4) derivative of the view's board plane (normal, offset in metres) with
-    respect to fx, fy, cx, cy (pixels), by solving its pose again with each moved."""
+def _plane_sensitivity(view: _View, camera_fit: CameraCalibration) -> np.ndarray:
+    """(4, 8) derivative of the view's board plane (normal, offset in metres) with
+    respect to fx, fy, cx, cy (pixels) and k1, k2, p1, p2, by solving its pose again
+    with each moved by half its standard deviation either way."""
+    camera = camera_fit.intrinsics
+    base = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
+                     *camera_fit.distortion[:4]], dtype=np.float64)
+    k3 = tuple(camera_fit.distortion[4:5])
+    steps = np.maximum(camera_fit.sd / 2, 1e-6 * np.maximum(np.abs(base), 1.0))
     columns = []
-    for k in range(4):
+    for k, step in enumerate(steps):
         planes = []
         for sign in (1.0, -1.0):
-            values = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-            values[k] += sign * step_px
-            pose = estimate_board_pose(view.detection, replace(camera, fx=values[0],
-                                                               fy=values[1], cx=values[2],
-                                                               cy=values[3]), distortion)
+            values = base.copy()
+            values[k] += sign * step
+            moved = replace(camera, fx=values[0], fy=values[1], cx=values[2], cy=values[3])
+            pose = estimate_board_pose(view.detection, moved, tuple(values[4:]) + k3)
             planes.append(np.append(pose.normal_cam, pose.offset_cam_m))
-        columns.append((planes[0] - planes[1]) / (2 * step_px))
+        columns.append((planes[0] - planes[1]) / (2 * step))
     return np.stack(columns, axis=1)
 
 

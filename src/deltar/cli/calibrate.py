@@ -187,6 +187,11 @@ def _report(result, nominal, out: Path, overwrite: bool, tolerance_s: float,
                        f"{k.cy:.2f} px; distortion " + ", ".join(f"{v:+.4f}" for v in
                                                                 calib.distortion)
                        + f" (reprojection RMS {board.intrinsics_rms_px:.2f} px)")
+            if board.camera is not None:
+                sd = board.camera.sd
+                typer.echo(f"intrinsics sd: fx {sd[0]:.2f}, fy {sd[1]:.2f}, cx {sd[2]:.2f}, "
+                           f"cy {sd[3]:.2f} px (the principal point turns the board "
+                           f"planes by {board.camera.principal_point_sd_deg:.2f} deg, 1 sd)")
     typer.echo(f"frames used: {used}, skipped: {skipped}"
                + (f", zone frames without an image within {tolerance_s} s: {result.unpaired}"
                   if result.unpaired else ""))
