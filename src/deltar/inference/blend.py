@@ -27,7 +27,6 @@ network's config (``confidence_blend``); a plane-select checkpoint without them 
 from __future__ import annotations
 
 import math
-import numbers
 import threading
 from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -35,10 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.inference.regions import REGIONS, regions_from_dict, regions_to_dict
+from deltar.inference.regions import RegionPair, check_coefficients
 from deltar.sensor.zone_frame import no_target_as_readings
-
-_REGION_KEYS = ("bias", "spread_slope")
 
 
 @dataclass(frozen=True)
@@ -55,12 +52,7 @@ class RegionBlend:
     spread_slope: float
 
     def __post_init__(self) -> None:
-        for name in _REGION_KEYS:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, numbers.Real)
-                                               and math.isfinite(value)):
-                raise ValueError(f"confidence blend {name} must be a finite number, got "
-                                 f"{value!r}")
+        check_coefficients(self, "confidence blend")
 
     def logit(self, log_relative_spread: np.ndarray) -> np.ndarray:
         """The weight's logit (float32, same shape) from ``log(uncertainty / depth)``."""
@@ -68,35 +60,12 @@ class RegionBlend:
 
 
 @dataclass(frozen=True)
-class ConfidenceBlend:
-    """Blend coefficients inside and beyond the zone grid (module docstring).
-
-    Attributes:
-        inside: coefficients for pixels inside the zone grid's bounding box.
-        outside: coefficients for the pixels beyond it.
-    """
+class ConfidenceBlend(RegionPair, region_type=RegionBlend, what="confidence blend"):
+    """Blend coefficients inside and beyond the zone grid (module docstring); the fields,
+    their checks and the JSON form (``to_dict`` / ``from_dict``) are :class:`RegionPair`'s."""
 
     inside: RegionBlend
     outside: RegionBlend
-
-    def __post_init__(self) -> None:
-        for name in REGIONS:
-            if not isinstance(getattr(self, name), RegionBlend):
-                raise ValueError(f"ConfidenceBlend.{name} must be a RegionBlend, got "
-                                 f"{getattr(self, name)!r}")
-
-    def to_dict(self) -> dict[str, dict[str, float]]:
-        """Plain floats, for a checkpoint's config or ONNX metadata (JSON)."""
-        return regions_to_dict(self, _REGION_KEYS)
-
-    @classmethod
-    def from_dict(cls, data: Mapping) -> ConfidenceBlend:
-        """The inverse of :meth:`to_dict`.
-
-        Raises:
-            ValueError: missing regions or coefficients, or values that are not finite.
-        """
-        return cls(**regions_from_dict(data, RegionBlend, _REGION_KEYS, "confidence blend"))
 
 
 #: The blend of a plane-select checkpoint that carries none: fitted with

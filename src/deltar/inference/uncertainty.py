@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltar.inference.regions import regions_from_dict, regions_to_dict
+from deltar.inference.regions import RegionPair, check_coefficients
 
 #: Fraction of a Gaussian within one and two standard deviations.
 GAUSSIAN_WITHIN_1 = math.erf(1 / math.sqrt(2))
@@ -43,7 +43,6 @@ GAUSSIAN_WITHIN_2 = math.erf(2 / math.sqrt(2))
 #: Ratios (b / a, c / a) tried by the fit (b: relative floor; c: blend disagreement).
 FLOOR_RATIOS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
 DISAGREEMENT_RATIOS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
-_REGION_KEYS = ("spread", "floor", "disagreement")
 
 
 @dataclass(frozen=True)
@@ -55,24 +54,16 @@ class RegionCalibration:
     disagreement: float
 
     def __post_init__(self) -> None:
-        for name in ("spread", "floor", "disagreement"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float))
-                                               and math.isfinite(value) and value >= 0):
-                raise ValueError(f"uncertainty calibration {name} must be a finite number "
-                                 f">= 0, got {value!r}")
+        check_coefficients(self, "uncertainty calibration", nonnegative=True)
         if self.spread == self.floor == self.disagreement == 0:
             raise ValueError("uncertainty calibration coefficients are all 0: sigma would be 0")
 
 
 @dataclass(frozen=True)
-class UncertaintyCalibration:
-    """Calibrated sigma inside and beyond the zone grid (module docstring).
-
-    Attributes:
-        inside: coefficients for pixels inside the zone grid's bounding box.
-        outside: coefficients for the pixels beyond it.
-    """
+class UncertaintyCalibration(RegionPair, region_type=RegionCalibration,
+                             what="uncertainty calibration"):
+    """Calibrated sigma inside and beyond the zone grid (module docstring); the fields,
+    their checks and the JSON form (``to_dict`` / ``from_dict``) are :class:`RegionPair`'s."""
 
     inside: RegionCalibration
     outside: RegionCalibration
@@ -93,20 +84,6 @@ class UncertaintyCalibration:
                                 + (region.floor * depth_m[mask]) ** 2
                                 + (region.disagreement * moved_m[mask]) ** 2)
         return out
-
-    def to_dict(self) -> dict[str, dict[str, float]]:
-        """Plain floats, for a checkpoint's config or ONNX metadata (JSON)."""
-        return regions_to_dict(self, _REGION_KEYS)
-
-    @classmethod
-    def from_dict(cls, data: Mapping) -> UncertaintyCalibration:
-        """The inverse of :meth:`to_dict`.
-
-        Raises:
-            ValueError: missing regions or coefficients, or invalid values.
-        """
-        return cls(**regions_from_dict(data, RegionCalibration, _REGION_KEYS,
-                                       "uncertainty calibration"))
 
 
 def resolve_uncertainty(uncertainty: UncertaintyCalibration | str | None, contract: Mapping
