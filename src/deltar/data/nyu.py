@@ -21,6 +21,7 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
+from deltar.data.sequence import checked_index
 from deltar.io.input_file import input_file
 from deltar.io.json_file import read_split_filenames
 
@@ -88,9 +89,7 @@ class NYULabeledReader(Sequence):
         return len(self.indices)
 
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
-        i = self.indices[index]
+        i = self.indices[checked_index(index, len(self))]
         # Opened per access: h5py handles must not be shared across DataLoader workers.
         with h5py.File(self.path, "r") as f:
             image = np.ascontiguousarray(f["images"][i].transpose(2, 1, 0))  # (3,W,H)->(H,W,3)
@@ -130,9 +129,7 @@ class NYUH5Reader(Sequence):
         return len(self.filenames)
 
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
-        rel = self.filenames[index]
+        rel = self.filenames[checked_index(index, len(self))]
         path = self.root / rel
         with _open_h5(path, "NYU frame file") as f:
             missing = [k for k in ("rgb", "depth") if k not in f]

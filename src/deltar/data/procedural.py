@@ -20,6 +20,7 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
+from deltar.data.sequence import checked_index
 
 #: Focal length as a fraction of the image width (NYU's Kinect: 518.9 px at 640 px).
 FOCAL_PER_WIDTH = 0.81
@@ -359,6 +360,5 @@ class ProceduralReader(Sequence):
         return self.num_frames
 
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
+        index = checked_index(index, len(self))
         return render_scene(self.seed + index % len(self), self.height, self.width)

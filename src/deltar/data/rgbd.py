@@ -30,6 +30,7 @@ from deltar.data.rgbd_files import (
     read_depth,
     read_intrinsics_matrix,
 )
+from deltar.data.sequence import checked_index
 from deltar.io.input_file import input_folder
 
 #: Name of the optional per-folder settings file read by :func:`open_rgbd`.
@@ -128,9 +129,7 @@ class RGBDReader(Sequence):
         return len(self._pairs)
 
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
-        name, color_path, depth_path, stamp = self._pairs[index]
+        name, color_path, depth_path, stamp = self._pairs[checked_index(index, len(self))]
         image = read_color(color_path)
         depth = read_depth(depth_path, self.depth_scale)
         if depth.shape != image.shape[:2]:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from deltar.camera import CameraIntrinsics
+from deltar.data.sequence import checked_index
 from deltar.data.zju_l5 import ZJUL5Sample
 from deltar.io.json_file import read_json, read_split_filenames
 from deltar.sensor.cnh import CNHConfig, zone_frame_from_cnh
@@ -179,9 +180,7 @@ class THDR3KDataset(Sequence):
         return len(self.filenames)
 
     def __getitem__(self, index: int) -> ZJUL5Sample:  # type: ignore[override]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"sample index {index} out of range for {len(self)} samples")
-        rel = self.filenames[index]
+        rel = self.filenames[checked_index(index, len(self), "sample")]
         return read_thdr3k_sample(self.root / rel, Path(rel).as_posix(),
                                   cnh_config=self.cnh_config, intrinsics=self.intrinsics)
 

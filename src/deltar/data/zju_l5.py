@@ -35,6 +35,7 @@ import h5py
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
+from deltar.data.sequence import checked_index
 from deltar.io.atomic import write_bytes_atomic, write_text_atomic
 from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_split_filenames
@@ -296,9 +297,7 @@ class ZJUL5Dataset(Sequence):
         return len(self.filenames)
 
     def __getitem__(self, index: int) -> ZJUL5Sample:  # type: ignore[override]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for {len(self)} frames")
-        rel = self.filenames[index]
+        rel = self.filenames[checked_index(index, len(self))]
         name = rel[:-3] if rel.endswith(".h5") else rel
         return _read_sample(self.root / rel, name, self.intrinsics)
 
