@@ -132,6 +132,21 @@ def test_unknown_layout_and_missing_intrinsics_file(tmp_path, rng):
         open_rgbd(tmp_path)
 
 
+def test_tum_lists_with_bad_lines_name_the_file_line_and_columns(tmp_path):
+    (tmp_path / "associations.txt").write_text("# t rgb t depth\n\n0.5 c.png 0.5\n")
+    with pytest.raises(ValueError, match=r"associations\.txt:3: expected 'timestamp rgb "
+                       r"timestamp depth', got '0\.5 c\.png 0\.5'"):
+        TUMReader(tmp_path)
+    (tmp_path / "associations.txt").write_text("0.5 c.png later d.png\n")
+    with pytest.raises(ValueError, match=r"associations\.txt:1: bad timestamp 'later'"):
+        TUMReader(tmp_path)
+    (tmp_path / "associations.txt").unlink()
+    (tmp_path / "rgb.txt").write_text("1.0\n")
+    (tmp_path / "depth.txt").write_text("1.0 d.png\n")
+    with pytest.raises(ValueError, match=r"rgb\.txt:1: expected 'timestamp path'"):
+        TUMReader(tmp_path)
+
+
 def test_sidecar_intrinsics_for_a_tum_folder_with_other_subfolders(tmp_path, rng):
     _write_rgb(tmp_path / "cam" / "c1.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
     _write_png16(tmp_path / "tof" / "d1.png", np.full((6, 8), 2000))

@@ -179,20 +179,38 @@ class SevenScenesReader(RGBDReader):
 
 
 # ---------------------------------------------------------------------- TUM
-def _read_tum_list(path: Path) -> list[tuple[float, str]]:
-    """Read a TUM ``rgb.txt`` / ``depth.txt`` list: ``timestamp path`` per line."""
+def _read_tum_table(path: Path, columns: tuple[str, ...]) -> list[tuple]:
+    """Rows of a TUM text file, one line a row of ``columns`` (extra fields ignored).
+
+    ``"timestamp"`` columns become float seconds, the others stay text; blank lines and
+    ``#`` comments are skipped.
+
+    Raises:
+        ValueError: ``"<path>:<line>: ..."`` for a short row or a bad timestamp.
+    """
     rows = []
     for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
             continue
-        if len(fields) < 2:
-            raise ValueError(f"{path}:{number}: expected 'timestamp path', got {line!r}")
-        try:
-            rows.append((float(fields[0]), fields[1]))
-        except ValueError as err:
-            raise ValueError(f"{path}:{number}: bad timestamp {fields[0]!r}") from err
+        if len(fields) < len(columns):
+            raise ValueError(f"{path}:{number}: expected '{' '.join(columns)}', got {line!r}")
+        row = []
+        for column, field in zip(columns, fields, strict=False):  # extra fields ignored
+            if column != "timestamp":
+                row.append(field)
+                continue
+            try:
+                row.append(float(field))
+            except ValueError as err:
+                raise ValueError(f"{path}:{number}: bad timestamp {field!r}") from err
+        rows.append(tuple(row))
     return rows
+
+
+def _read_tum_list(path: Path) -> list[tuple[float, str]]:
+    """Read a TUM ``rgb.txt`` / ``depth.txt`` list: ``timestamp path`` per line."""
+    return _read_tum_table(path, ("timestamp", "path"))
 
 
 def _associate(rgb: list[tuple[float, str]], depth: list[tuple[float, str]],
@@ -219,19 +237,7 @@ def _tum_rows(root: Path, associations: str = "associations.txt"
     """(t_rgb, rgb path, t_depth, depth path) rows of a TUM folder, paths relative to it."""
     assoc_path = root / associations
     if assoc_path.is_file():
-        rows = []
-        for number, line in enumerate(assoc_path.read_text(encoding="utf-8").splitlines(), 1):
-            fields = line.split()
-            if not fields or fields[0].startswith("#"):
-                continue
-            if len(fields) < 4:
-                raise ValueError(f"{assoc_path}:{number}: expected 'timestamp rgb timestamp "
-                                 f"depth', got {line!r}")
-            try:
-                rows.append((float(fields[0]), fields[1], float(fields[2]), fields[3]))
-            except ValueError as err:
-                raise ValueError(f"{assoc_path}:{number}: bad timestamp") from err
-        return rows
+        return _read_tum_table(assoc_path, ("timestamp", "rgb", "timestamp", "depth"))
     if (root / "rgb.txt").is_file() and (root / "depth.txt").is_file():
         return _associate(_read_tum_list(root / "rgb.txt"), _read_tum_list(root / "depth.txt"),
                           max_dt_s=0.02)
