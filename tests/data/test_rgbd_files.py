@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from deltar.data.rgbd_files import read_color, read_depth
+from deltar.data.rgbd_files import check_depth_scale, read_color, read_depth
 
 
 def _write_png16(path, array):
@@ -32,3 +32,12 @@ def test_corrupt_and_missing_colour_images_name_the_file(tmp_path, rng):
         read_color(truncated)
     with pytest.raises(FileNotFoundError, match=r"missing\.png"):
         read_color(tmp_path / "missing.png")
+
+
+def test_depth_scale_must_be_finite_and_positive(tmp_path):
+    assert check_depth_scale(1000) == 1000.0 and isinstance(check_depth_scale(1000), float)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="depth_scale must be finite and > 0"):
+            check_depth_scale(bad)
+    with pytest.raises(ValueError, match="depth_scale must be finite and > 0, got 0"):
+        read_depth(tmp_path / "missing.png", 0)

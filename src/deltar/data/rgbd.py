@@ -13,7 +13,6 @@ Per-folder option: a ``deltar_rgbd.json`` file in the dataset folder may set
 from __future__ import annotations
 
 import json
-import math
 import re
 import warnings
 from collections.abc import Sequence
@@ -24,6 +23,7 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics, check_image
 from deltar.data.rgbd_files import (
+    check_depth_scale,
     color_image_size,
     default_intrinsics,
     read_color,
@@ -107,10 +107,8 @@ class RGBDReader(Sequence):
                  source: Path) -> None:
         if not pairs:
             raise ValueError(f"no RGB-D frames found in {source}")
-        if not (math.isfinite(depth_scale) and depth_scale > 0):
-            raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
         self.root = source
-        self.depth_scale = float(depth_scale)
+        self.depth_scale = check_depth_scale(depth_scale)
         self._pairs = pairs
         self.intrinsics: CameraIntrinsics  # set by subclasses
         self.frame_intrinsics: dict[str, CameraIntrinsics] = {}

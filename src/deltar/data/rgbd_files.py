@@ -51,6 +51,17 @@ _DEPTH_LIKE_MODES = {"I;16": "16-bit", "I;16B": "16-bit", "I;16L": "16-bit",
                      "I;16N": "16-bit", "I": "32-bit integer", "F": "32-bit float"}
 
 
+def check_depth_scale(depth_scale: float) -> float:
+    """``depth_scale`` (raw depth units per metre) as a float.
+
+    Raises:
+        ValueError: not finite and > 0.
+    """
+    if not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
+    return float(depth_scale)
+
+
 def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     """Decode a depth image to (H, W) float32 metres, 0.0 where invalid.
 
@@ -63,8 +74,7 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
         ValueError: the file is corrupt, not single-channel, or ``depth_scale`` <= 0.
     """
     path = Path(path)
-    if not (math.isfinite(depth_scale) and depth_scale > 0):
-        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
+    depth_scale = check_depth_scale(depth_scale)
     input_file(path, "depth image")
     with reading(path, "depth image"):
         try:
