@@ -16,19 +16,16 @@ from deltar.cli.frame_options import (
 )
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 from deltar.cli.robotics import (
+    BAG_TOPICS,
     BagOption,
     BagStorageOption,
-    ImageTopicOption,
-    InfoTopicOption,
+    BagTopics,
     OutBagOption,
     PointsOption,
     RerunOption,
     RerunSaveOption,
-    TofFormatOption,
-    TofOrientationOption,
-    TofSigmaOption,
-    TofTopicOption,
     TopicPrefixOption,
+    bag_topic_options,
 )
 
 #: Largest depth a recording's 16-bit millimetre depth images hold, metres.
@@ -125,6 +122,7 @@ def record_command(
 
 
 @model_options
+@bag_topic_options
 def replay_command(
     recording: Path | None = typer.Argument(None, help="Recording folder (or give --bag)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (outside the "
@@ -145,12 +143,7 @@ def replay_command(
     bag: Path | None = BagOption,
     out_bag: Path | None = OutBagOption,
     bag_storage: str = BagStorageOption,
-    image_topic: str | None = ImageTopicOption,
-    info_topic: str | None = InfoTopicOption,
-    tof_topic: str | None = TofTopicOption,
-    tof_format: str = TofFormatOption,
-    tof_orientation: str = TofOrientationOption,
-    tof_sigma: float = TofSigmaOption,
+    topics: BagTopics = BAG_TOPICS,
     points: bool = PointsOption,
     topic_prefix: str = TopicPrefixOption,
     rerun: bool = RerunOption,
@@ -172,8 +165,7 @@ def replay_command(
             typer.echo(replay_bag_command(
                 bag, model.load,
                 load_calibration(calib), out=out, show=show, out_bag=out_bag,
-                storage=bag_storage, topics=(image_topic, info_topic, tof_topic),
-                tof=(tof_format, tof_orientation, tof_sigma), points=points,
+                storage=bag_storage, topics=topics, points=points,
                 prefix=topic_prefix, rerun=rerun, rerun_save=rerun_save,
                 tolerance=tolerance, every=every, limit=limit))
         except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:

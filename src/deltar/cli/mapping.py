@@ -10,14 +10,11 @@ import typer
 
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 from deltar.cli.robotics import (
-    ImageTopicOption,
-    InfoTopicOption,
+    BAG_TOPICS,
+    BagTopics,
     RerunOption,
     RerunSaveOption,
-    TofFormatOption,
-    TofOrientationOption,
-    TofSigmaOption,
-    TofTopicOption,
+    bag_topic_options,
 )
 
 
@@ -46,6 +43,7 @@ def _check_out(out: Path, recording: Path, overwrite: bool) -> None:
 
 
 @model_options
+@bag_topic_options
 def map_command(
     recording: Path = typer.Argument(..., help="Recording folder (deltar record) or ROS 2 bag "
                                      "folder."),
@@ -86,12 +84,7 @@ def map_command(
     every: int = typer.Option(1, min=1, help="Use every N-th frame."),
     limit: int | None = typer.Option(None, min=1, help="Map at most this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
-    image_topic: str | None = ImageTopicOption,
-    info_topic: str | None = InfoTopicOption,
-    tof_topic: str | None = TofTopicOption,
-    tof_format: str = TofFormatOption,
-    tof_orientation: str = TofOrientationOption,
-    tof_sigma: float = TofSigmaOption,
+    topics: BagTopics = BAG_TOPICS,
     rerun: bool = RerunOption,
     rerun_save: Path | None = RerunSaveOption,
 ) -> None:
@@ -133,14 +126,7 @@ def map_command(
         from deltar.calibration.rig import RigCalibration
 
         calibration = RigCalibration.load(calib)
-    bag_options = {}
-    if (recording / "metadata.yaml").is_file():
-        from deltar.cli.robotics import parse_orientation
-
-        bag_options = {"image_topic": image_topic, "info_topic": info_topic,
-                       "tof_topic": tof_topic, "tof_format": tof_format,
-                       "tof_orientation": parse_orientation(tof_orientation),
-                       "tof_sigma_m": tof_sigma}
+    bag_options = topics.bag_input_options() if (recording / "metadata.yaml").is_file() else {}
     source = FrameSource(recording, calibration=calibration, tolerance_s=tolerance,
                          every=every, limit=limit, bag_options=bag_options)
     settings = _settings(voxel, truncation, max_depth or source.depth_limit_m(), max_memory)

@@ -9,14 +9,14 @@ the three weight options alone (:data:`PresetOption`, ...).
 
 from __future__ import annotations
 
-import functools
-import inspect
 import warnings
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+from deltar.cli.option_groups import option_group
 
 if TYPE_CHECKING:
     from deltar.inference.estimator import DepthEstimator
@@ -155,30 +155,13 @@ _OPTION_TYPES = {"preset": PresetOption, "checkpoint": CheckpointOption,
                  "official": OfficialOption, "onnx": OnnxOption, "device": DeviceOption,
                  "precision": PrecisionOption, "size": SizeOption, "threads": ThreadsOption,
                  "flip": FlipOption, "network_only": NetworkOnlyOption}
-_PARAMETERS = [inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
-                                 default=f.default, annotation=_OPTION_TYPES[f.name])
-               for f in fields(ModelOptions)]
+_MODEL_GROUP = option_group("model", ModelOptions, _OPTION_TYPES)
 
 
 def model_options(command):
     """Replace the command's ``model: ModelOptions`` parameter by the ten model options.
 
     The options appear where ``model`` stands in the signature; the command receives
-    ``model=ModelOptions(...)``.
+    ``model=ModelOptions(...)`` (:func:`~deltar.cli.option_groups.option_group`).
     """
-    signature = inspect.signature(command, eval_str=True)
-    params = list(signature.parameters.values())
-    names = [p.name for p in params]
-    if "model" not in names:
-        raise TypeError(f"{command.__name__} has no 'model' parameter")
-    at = names.index("model")
-    params[at:at + 1] = _PARAMETERS
-
-    @functools.wraps(command)
-    def wrapper(**kwargs):
-        model = ModelOptions(**{p.name: kwargs.pop(p.name) for p in _PARAMETERS})
-        return command(model=model, **kwargs)
-
-    wrapper.__signature__ = signature.replace(parameters=params)
-    wrapper.__annotations__ = {p.name: p.annotation for p in params}
-    return wrapper
+    return _MODEL_GROUP(command)

@@ -7,10 +7,13 @@ the viewer is used.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+
+from deltar.cli.option_groups import option_group
 
 if TYPE_CHECKING:
     from deltar.capture.viewer import RerunLogger
@@ -26,20 +29,23 @@ BagOption = typer.Option(None, "--bag", help="Read this ROS 2 bag instead of a r
                          "folder (needs the 'ros' extra).")
 OutBagOption = typer.Option(None, "--out-bag", help="Write depth, uncertainty and CameraInfo "
                             "into this new ROS 2 bag.")
-ImageTopicOption = typer.Option(None, "--image-topic", help="Camera topic (Image rgb8/bgr8 "
-                                "or CompressedImage); found by type when unique.")
-InfoTopicOption = typer.Option(None, "--info-topic", help="CameraInfo topic; found by type "
-                               "when unique.")
-TofTopicOption = typer.Option(None, "--tof-topic", help="ToF topic; a deltar_msgs/msg/"
-                              "ZoneFrame topic is found by type when unique.")
-TofFormatOption = typer.Option("deltar", "--tof-format", help="ToF topic format: deltar "
-                               "(deltar_msgs/msg/ZoneFrame) or vl53l5cx_ros2 (that driver's "
-                               "32FC1 distance image).")
-TofOrientationOption = typer.Option("flip_ud", "--tof-orientation", help="vl53l5cx_ros2 only: "
-                                    "zone grid to image, a comma list of flip_ud, flip_lr, "
-                                    "rot90:K, or 'none'.")
-TofSigmaOption = typer.Option(0.0, "--tof-sigma", help="vl53l5cx_ros2 only: sigma in metres "
-                              "given to every zone (the driver publishes none).")
+ImageTopicOption = Annotated[str | None, typer.Option(
+    "--image-topic", help="Camera topic (Image rgb8/bgr8 or CompressedImage); found by type "
+    "when unique.")]
+InfoTopicOption = Annotated[str | None, typer.Option(
+    "--info-topic", help="CameraInfo topic; found by type when unique.")]
+TofTopicOption = Annotated[str | None, typer.Option(
+    "--tof-topic", help="ToF topic; a deltar_msgs/msg/ZoneFrame topic is found by type when "
+    "unique.")]
+TofFormatOption = Annotated[str, typer.Option(
+    "--tof-format", help="ToF topic format: deltar (deltar_msgs/msg/ZoneFrame) or "
+    "vl53l5cx_ros2 (that driver's 32FC1 distance image).")]
+TofOrientationOption = Annotated[str, typer.Option(
+    "--tof-orientation", help="vl53l5cx_ros2 only: zone grid to image, a comma list of "
+    "flip_ud, flip_lr, rot90:K, or 'none'.")]
+TofSigmaOption = Annotated[float, typer.Option(
+    "--tof-sigma", help="vl53l5cx_ros2 only: sigma in metres given to every zone (the driver "
+    "publishes none).")]
 PointsOption = typer.Option(False, "--points", help="Also write a coloured PointCloud2 per "
                             "frame into --out-bag.")
 TopicPrefixOption = typer.Option("/deltar", "--topic-prefix", help="Prefix of the topics "
@@ -67,6 +73,41 @@ def parse_orientation(text: str) -> Orientation:
     return Orientation(flip_ud=flip_ud, flip_lr=flip_lr, rot90=rot)
 
 
+@dataclass(frozen=True)
+class BagTopics:
+    """A bag's topics and ToF format as given on the command line (``--image-topic`` ...
+    ``--tof-sigma``; None: found by type)."""
+
+    image_topic: str | None = None
+    info_topic: str | None = None
+    tof_topic: str | None = None
+    tof_format: str = "deltar"
+    tof_orientation: str = "flip_ud"
+    tof_sigma: float = 0.0
+
+    def bag_input_options(self) -> dict[str, Any]:
+        """Keyword arguments of :class:`~deltar.io.rosbag_reader.BagInput` (the orientation
+        parsed; ``typer.BadParameter`` naming ``--tof-orientation`` if it is not valid)."""
+        return {"image_topic": self.image_topic, "info_topic": self.info_topic,
+                "tof_topic": self.tof_topic, "tof_format": self.tof_format,
+                "tof_orientation": parse_orientation(self.tof_orientation),
+                "tof_sigma_m": self.tof_sigma}
+
+
+#: Placeholder default of a command's ``topics`` parameter (the decorator replaces it).
+BAG_TOPICS = BagTopics()
+_BAG_TOPICS_GROUP = option_group("topics", BagTopics, {
+    "image_topic": ImageTopicOption, "info_topic": InfoTopicOption,
+    "tof_topic": TofTopicOption, "tof_format": TofFormatOption,
+    "tof_orientation": TofOrientationOption, "tof_sigma": TofSigmaOption})
+
+
+def bag_topic_options(command):
+    """Replace the command's ``topics: BagTopics`` parameter by the six bag topic options
+    (:func:`~deltar.cli.option_groups.option_group`)."""
+    return _BAG_TOPICS_GROUP(command)
+
+
 def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
     """A :class:`~deltar.capture.viewer.RerunLogger` when asked for, else None."""
     if not rerun and rerun_save is None:
@@ -77,7 +118,7 @@ def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
 
 
 def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, out_bag,
-                       storage: str, topics: tuple, tof: tuple, points: bool, prefix: str,
+                       storage: str, topics: BagTopics, points: bool, prefix: str,
                        rerun: bool, rerun_save: Path | None, tolerance: float, every: int,
                        limit: int | None) -> str:
     """Run ``deltar replay --bag``: write the output bag and/or feed the viewer.
@@ -86,8 +127,7 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
         bag: the input bag (only read).
         build_estimator: returns the depth estimator (called after the checks).
         calibration: a rig calibration, or None (nominal, from CameraInfo).
-        topics: (image, camera info, ToF) topic names, None = by type.
-        tof: (format, orientation text, sigma in metres) of the ToF topic.
+        topics: the bag's topics and ToF format.
         other arguments: the command's options.
 
     Returns:
@@ -103,12 +143,7 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
                                  "/ --rerun-save (not --out / --show)")
     if out_bag is None and not rerun and rerun_save is None:
         raise typer.BadParameter("give --out-bag BAG, --rerun or --rerun-save FILE")
-    image_topic, info_topic, tof_topic = topics
-    tof_format, tof_orientation, tof_sigma = tof
-    bag_input = BagInput(bag, image_topic=image_topic, info_topic=info_topic,
-                         tof_topic=tof_topic, tof_format=tof_format,
-                         tof_orientation=parse_orientation(tof_orientation),
-                         tof_sigma_m=tof_sigma)
+    bag_input = BagInput(bag, **topics.bag_input_options())
     estimator = build_estimator()  # after the bag is opened: a bad bag fails first
     viewer = open_viewer(rerun, rerun_save)
     kwargs = {"calibration": calibration, "tolerance_s": tolerance, "every": every,
