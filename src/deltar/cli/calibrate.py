@@ -38,7 +38,9 @@ def calibrate_command(
     calibrate_intrinsics: bool = typer.Option(False, "--calibrate-intrinsics", help="With "
                                               "--target: also estimate the camera "
                                               "intrinsics and lens distortion from the "
-                                              "board views."),
+                                              "board views (record about a third of them "
+                                              "close enough that the board fills most of "
+                                              "the image)."),
     time_offset: str = typer.Option("0", "--time-offset", help="Camera clock minus sensor "
                                     "clock, seconds, or 'auto' (with --target: estimated "
                                     "from the board's distance over time)."),
