@@ -242,6 +242,33 @@ class BoardDetector:
         return BoardDetection(img.reshape(-1, 2).astype(np.float32),
                               obj.reshape(-1, 3).astype(np.float32))
 
+    def refuse_few_views(self, recording, found: int, searched: int, needed: int,
+                         paired: bool = False) -> None:
+        """Refuse a recording where the board is found in too few images, saying why.
+
+        Args:
+            recording: the recording (its ``color_paths`` are sampled for the hint).
+            found: images with the board; searched: images looked at; needed: fewest.
+            paired: whether the images counted are those paired with a zone frame.
+
+        Raises:
+            ValueError: ``found < needed``, with a hint (a spec mismatch, or advice).
+        """
+        if found >= needed:
+            return
+        import cv2
+
+        sample = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+                  for p in recording.color_paths[::max(1, len(recording.color_paths) // 8)][:8]]
+        # Found in none: the spec may not be what is printed; found in some: it is.
+        hint = self.diagnose([s for s in sample if s is not None]) if found == 0 else ""
+        where = "paired with a zone frame" if paired else "of the recording"
+        advice = (f"the board spec {self.spec.text()} does not match what is detected: {hint}"
+                  if hint else "keep the whole board in view, sharp and evenly lit, 0.4-1.5 m "
+                  "from the camera, and check --target")
+        raise ValueError(f"too few views with the board: found in {found} of the {searched} "
+                         f"images {where} (need at least {needed}): {advice}")
+
     def diagnose(self, images: list[np.ndarray]) -> str:
         """Why the board is not found in ``images``: a hint about a spec mismatch, or ""."""
         import cv2

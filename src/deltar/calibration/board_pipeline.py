@@ -245,8 +245,8 @@ def calibrate_recording_with_board(
     if time_offset_s == "auto":
         found = [(t, d) for t, p in zip(recording.color_times_s, recording.color_paths,
                                         strict=True) if (d := detect(p)) is not None]
-        _refuse_few_views(detector, recording, len(found), len(recording.color_paths),
-                          MIN_BOARD_VIEWS)
+        detector.refuse_few_views(recording, len(found), len(recording.color_paths),
+                                  MIN_BOARD_VIEWS)
         cam_t = np.array([t for t, _ in found])
         poses = [estimate_board_pose(d, camera, distortion) for _, d in found]
         cam_d = np.array([p.offset_cam_m for p in poses])
@@ -288,8 +288,7 @@ def calibrate_recording_with_board(
         except ValueError as err:
             plane, reason = None, str(err)
         views.append(_View(name, plane, pose, detection, frame.flat()[0], reason))
-    _refuse_few_views(detector, recording, len(views), searched, MIN_BOARD_VIEWS,
-                      paired=True)
+    detector.refuse_few_views(recording, len(views), searched, MIN_BOARD_VIEWS, paired=True)
     intrinsics_rms = camera_fit = None
     if calibrate_intrinsics:
         # Board poses from intrinsics that are several % off disagree with the zones'
@@ -495,22 +494,3 @@ def _refuse_missing(views: list[_View], good: list[_View]) -> None:
             f"{len(good)} usable views (need {MIN_BOARD_VIEWS}): fix the board flat on a "
             "wall, door or table that fills the sensor's whole view around it, and keep "
             "other objects out of that view")
-
-
-def _refuse_few_views(detector: BoardDetector, recording, found: int, searched: int,
-                      needed: int, paired: bool = False) -> None:
-    """Refuse a recording where the board is found in too few images, saying why."""
-    if found >= needed:
-        return
-    import cv2
-
-    sample = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-              for p in recording.color_paths[::max(1, len(recording.color_paths) // 8)][:8]]
-    # Found in none: the spec may not be what is printed; found in some: it is.
-    hint = detector.diagnose([s for s in sample if s is not None]) if found == 0 else ""
-    where = "paired with a zone frame" if paired else "of the recording"
-    advice = (f"the board spec {detector.spec.text()} does not match what is detected: {hint}"
-              if hint else "keep the whole board in view, sharp and evenly lit, 0.4-1.5 m "
-              "from the camera, and check --target")
-    raise ValueError(f"too few views with the board: found in {found} of the {searched} "
-                     f"images {where} (need at least {needed}): {advice}")
