@@ -35,10 +35,13 @@ from deltar.calibration.board import (
     BoardDetector,
     BoardPose,
     BoardSpec,
-    CameraCalibration,
     board_points_in_view,
-    calibrate_camera,
     estimate_board_pose,
+)
+from deltar.calibration.board_camera import (
+    CameraCalibration,
+    board_plane_sensitivity,
+    calibrate_camera,
 )
 from deltar.calibration.board_uncertainty import ExtrinsicUncertainty, extrinsic_uncertainty
 from deltar.calibration.extrinsic import (
@@ -396,7 +399,7 @@ def _expected_error(views: list[_View], calibration, fov,
     kwargs = {"grid": calibration.grid, "fov_deg": fov}
     uncertainty = zones_only = extrinsic_uncertainty(planes, *args, **kwargs)
     if camera_fit is not None:
-        sensitivity = [_plane_sensitivity(v, camera_fit) for v in views]
+        sensitivity = [board_plane_sensitivity(v.detection, camera_fit) for v in views]
         uncertainty = extrinsic_uncertainty(planes, *args, **kwargs,
                                             zone_noise_m=zones_only.zone_noise_m,
                                             plane_sensitivity=sensitivity,
@@ -434,28 +437,6 @@ def _expected_error(views: list[_View], calibration, fov,
         f"{np.degrees(np.sqrt(camera_part)):.2f} deg; together {rotation:.2f} deg and "
         f"{1000 * translation:.1f} mm {wanted}: {advice}", stacklevel=3)
     return uncertainty
-
-
-def _plane_sensitivity(view: _View, camera_fit: CameraCalibration) -> np.ndarray:
-    """(4, 8) derivative of the view's board plane (normal, offset in metres) with
-    respect to fx, fy, cx, cy (pixels) and k1, k2, p1, p2, by solving its pose again
-    with each moved by half its standard deviation either way."""
-    camera = camera_fit.intrinsics
-    base = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
-                     *camera_fit.distortion[:4]], dtype=np.float64)
-    k3 = tuple(camera_fit.distortion[4:5])
-    steps = np.maximum(camera_fit.sd / 2, 1e-6 * np.maximum(np.abs(base), 1.0))
-    columns = []
-    for k, step in enumerate(steps):
-        planes = []
-        for sign in (1.0, -1.0):
-            values = base.copy()
-            values[k] += sign * step
-            moved = replace(camera, fx=values[0], fy=values[1], cx=values[2], cy=values[3])
-            pose = estimate_board_pose(view.detection, moved, tuple(values[4:]) + k3)
-            planes.append(np.append(pose.normal_cam, pose.offset_cam_m))
-        columns.append((planes[0] - planes[1]) / (2 * step))
-    return np.stack(columns, axis=1)
 
 
 def _frame_weight(view: _View, fov) -> float:
