@@ -97,7 +97,7 @@ def _unflagged_sample(far_truth: bool, seed: int):
     from deltar.data.zju_l5 import ZJUL5Sample
     from tests.evaluation.samples import make_sample
 
-    base = make_sample("scene/0001", seed)
+    base = make_sample(f"scene/{seed:04d}", seed)
     means = np.tile([1.0, 3.2, 0.0, 0.0], (4, 1))
     truth = means.copy()
     truth[:, 2:] = 6.0 if far_truth else 3.2
@@ -123,3 +123,16 @@ def test_no_target_rule_is_chosen_by_what_invalid_zones_hide(far_truth, expected
     assert errors[3.0] == errors[1.5] and len(set(errors.values())) == 3
     assert chosen == expected
     assert (errors[3.0] < errors[3.5] < errors[None]) == far_truth
+
+
+def test_cli_reports_and_stores_the_no_target_rule(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    data = write_zju_l5(tmp_path / "set", [_unflagged_sample(True, seed) for seed in range(2)])
+    out = tmp_path / "fitted.pt"
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "beside a valid zone reading >= 3 m" in result.output
+    assert load_checkpoint(out)[2]["output"]["no_target_min_neighbour_m"] == 3.0
