@@ -136,3 +136,28 @@ def test_cli_reports_and_stores_the_no_target_rule(tmp_path) -> None:
     assert result.exit_code == 0, result.output
     assert "beside a valid zone reading >= 3 m" in result.output
     assert load_checkpoint(out)[2]["output"]["no_target_min_neighbour_m"] == 3.0
+
+
+def test_the_fit_does_not_depend_on_the_rule_the_checkpoint_carried(tmp_path) -> None:
+    # The blend and sigma are fitted on the network alone: frames without flags reach it
+    # without the rule being refitted, so a checkpoint that carried one fits the same.
+    sets = [[_unflagged_sample(True, seed) for seed in range(2)]]
+    fits = []
+    for rule in (None, 0.0):
+        torch.manual_seed(0)
+        model = create_model("deltar-select", design_size=(32, 64))
+        model.set_output_contract(no_target_min_neighbour_m=rule)
+        source = save_checkpoint(tmp_path / f"select-{rule}.pt", model, "deltar-select")
+        fits.append(fit_checkpoint_uncertainty(source, sets, tmp_path / f"fitted-{rule}.pt",
+                                               min_pixels=100))
+    first, second = fits
+    assert second.no_target_min_neighbour_m == first.no_target_min_neighbour_m == 3.0
+    for name in ("network", "fill", "blend"):
+        assert second.relative_error[name] == pytest.approx(first.relative_error[name],
+                                                            rel=1e-6)
+    blend_a, blend_b = first.blend.to_dict(), second.blend.to_dict()
+    calib_a, calib_b = first.calibration.to_dict(), second.calibration.to_dict()
+    for a, b in ((blend_a, blend_b), (calib_a, calib_b)):
+        for region in ("inside", "outside"):
+            for key, value in a[region].items():
+                assert b[region][key] == pytest.approx(value, rel=1e-5, abs=1e-8), key

@@ -50,7 +50,8 @@ class UncertaintyFit:
         no_target_min_neighbour_m: the chosen no-target rule for frames without flags
             (metres, or None), :func:`fit_no_target_inference`.
         no_target_errors: mean relative error of each candidate rule over the frames
-            it changes (empty when the network reads no flags or no frame changed).
+            where some candidate reads a zone as no target (empty when the network reads
+            no flags or no such frame exists).
         path: the written checkpoint.
     """
 
@@ -75,7 +76,8 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
     Args:
         estimator: a :class:`~deltar.inference.estimator.DepthEstimator` without blend
             or calibration (``blend=None, uncertainty=None``): the network's depth and
-            raw spread.
+            raw spread (frames without no-target flags get them by the estimator's
+            rule; :func:`fit_checkpoint_uncertainty` sets none).
         sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample` (image, zones and
             ground-truth depth in metres).
         with_fill: also compute the zones' colorization fill
@@ -234,8 +236,11 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     model, preset, _ = load_checkpoint(source)
     blends = model.network_config.head.name == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
-    # original is what is saved, so the file is read once.
+    # original is what is saved, so the file is read once. The output stage being
+    # refitted (blend, sigma, no-target rule) is left out, so the fit depends on the
+    # network and the frames alone, not on what the checkpoint carried.
     estimator = DepthEstimator(copy.deepcopy(model), blend=None, uncertainty=None,
+                               no_target_min_neighbour_m=None,
                                weights=f"{preset} from {source}")
     pixels, frames = collect_pixels(estimator, sets, with_fill=blends,
                                     frames_per_set=frames_per_set,
