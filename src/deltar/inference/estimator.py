@@ -274,11 +274,12 @@ class DepthEstimator:
             they are): ``image`` (B, 3, h, w) float32 normalised, ``hypotheses`` (B, Z, K)
             float32 metres, ``zone_rects`` (B, Z, 4) float32 pixels of the network input,
             ``zone_valid`` (B, Z) bool, ``zone_no_target`` (B, Z) bool (the frames'
-            no-target flags), ``zone_targets`` (B, Z, T, 2) float32 (every target of each
-            zone, :func:`~deltar.sensor.targets.stacked_target_inputs`; T = 1 when
-            no frame reports more than one); and ``image_rects`` (B, Z, 4) rectangles in input-image
-            pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in pixels
-            (:meth:`network_size_for`).
+            no-target flags, inferred for a frame without them: :meth:`no_target_of`),
+            ``zone_targets`` (B, Z, T, 2) float32 (every target of each zone,
+            :func:`~deltar.sensor.targets.stacked_target_inputs`; T = 1 when no frame
+            reports more than one); and ``image_rects`` (B, Z, 4) rectangles in
+            input-image pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in
+            pixels (:meth:`network_size_for`).
         """
         if len(images) != len(frames) or not images:
             raise ValueError(f"need one zone frame per image, got {len(images)} images and "
