@@ -59,6 +59,12 @@ def test_bad_thresholds_are_refused_by_name(bad):
     assert check_min_neighbour_m(None) is None and check_min_neighbour_m(2) == 2.0
 
 
+@pytest.mark.parametrize("value", [np.float32(3.5), np.float64(3.5), np.int64(3)])
+def test_numpy_thresholds_are_numbers(value):
+    threshold = check_min_neighbour_m(value)
+    assert type(threshold) is float and threshold == float(value)
+
+
 def test_shapes_are_checked():
     with pytest.raises(ValueError, match=r"\(n, n\)"):
         infer_no_target(np.ones((8, 8)), np.ones((4, 4), bool), 3.0)

@@ -17,6 +17,7 @@ frames of the training scenes with their flags removed
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 
@@ -61,12 +62,16 @@ def infer_no_target(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
 def check_min_neighbour_m(value: object, name: str = "min_neighbour_m") -> float | None:
     """The rule's threshold as float metres, or None (no inference).
 
+    Args:
+        value: metres (any real number, numpy scalars too) or None.
+        name: the argument's name in the error message.
+
     Raises:
         ValueError: neither None nor a finite number >= 0 (the message names ``name``).
     """
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or \
             not (math.isfinite(value) and value >= 0):
         raise ValueError(f"{name} must be a finite number of metres >= 0 or None, got "
                          f"{value!r}")
