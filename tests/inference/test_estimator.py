@@ -284,3 +284,27 @@ def test_a_frame_without_flags_gets_them_by_the_weights_rule(rng):
     assert plain.predict(image, unflagged).depth_m[:, -8:].mean() < 3.5
     with pytest.raises(ValueError, match="no_target_min_neighbour_m"):
         DepthEstimator(model, weights="test", no_target_min_neighbour_m=-1.0)
+
+
+def test_a_batch_mixing_frames_with_and_without_flags_keeps_each_frames_own(rng):
+    from deltar.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96))
+    model.set_output_contract(no_target_min_neighbour_m=2.5)
+    image = random_image(rng, 64, 96)
+    valid = np.ones((8, 8), bool)
+    valid[:, 6:] = False
+    mean = np.where(valid, 1.5, 0.0)
+    mean[:, 5] = 3.0
+    sigma = np.full((8, 8), 0.02)
+    unflagged = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid)
+    # Flags carried, none set: these invalid zones are failed readings, not far.
+    none_far = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid,
+                         no_target=np.zeros((8, 8), bool))
+    estimator = DepthEstimator(model, weights="test")
+    batch = estimator.predict([image, image], [unflagged, none_far])
+    for result, frame in zip(batch, (unflagged, none_far), strict=True):
+        np.testing.assert_allclose(result.depth_m, estimator.predict(image, frame).depth_m,
+                                   atol=1e-4)
+    assert batch[0].depth_m[:, -8:].mean() > 4.0 > batch[1].depth_m[:, -8:].mean()
