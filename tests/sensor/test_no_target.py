@@ -70,3 +70,9 @@ def test_shapes_are_checked():
         infer_no_target(np.ones((8, 8)), np.ones((4, 4), bool), 3.0)
     with pytest.raises(ValueError, match=r"\(n, n\)"):
         infer_no_target(np.ones(64), np.ones(64, bool), 3.0)
+
+
+def test_a_frame_without_any_valid_zone_gets_no_flag():
+    # Nothing returned anywhere: a blocked sensor, not evidence of an empty view.
+    valid = np.zeros((8, 8), bool)
+    assert not infer_no_target(np.zeros((8, 8)), valid, 3.5).any()

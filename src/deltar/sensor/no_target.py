@@ -9,7 +9,9 @@ pulses), and reading every invalid zone as far would push failed zones among nea
 surfaces to 5 m. The rule here reads an invalid zone as *no target* only when a valid
 neighbour (of the eight around it) already reads at least ``min_neighbour_m``, or when
 none of its neighbours is valid: a zone that returned nothing next to one that sees far
-is most likely looking past the range. The threshold is fitted with the output stage on
+is most likely looking past the range. A frame without any valid zone gets no flag: with
+nothing returned anywhere, a blocked or failed sensor cannot be told from an empty
+view, and the estimate stays image-only. The threshold is fitted with the output stage on
 frames of the training scenes with their flags removed
 (:func:`deltar.evaluation.uncertainty.fit_no_target_inference`).
 """
@@ -34,10 +36,12 @@ def infer_no_target(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
         zone_mean_m: (n, n) zone readings in metres (ignored where not valid).
         zone_valid: (n, n) bool validity.
         min_neighbour_m: metres; an invalid zone is read as no target when one of its
-            eight neighbours is valid and reads at least this much, or none is valid.
+            eight neighbours is valid and reads at least this much, or none is valid
+            (while some zone of the frame is).
 
     Returns:
-        (n, n) bool, True at the invalid zones read as no target (never at valid ones).
+        (n, n) bool, True at the invalid zones read as no target (never at valid ones;
+        none when no zone is valid).
 
     Raises:
         ValueError: shapes differ or are not square, or ``min_neighbour_m`` is not a
@@ -50,6 +54,8 @@ def infer_no_target(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                          f"{mean.shape} and {valid.shape}")
     if check_min_neighbour_m(min_neighbour_m) is None:
         raise ValueError("min_neighbour_m must be a finite number of metres >= 0, got None")
+    if not valid.any():
+        return np.zeros_like(valid)
     n = valid.shape[0]
     # Invalid zones and the border read -inf, so they never count as a far neighbour.
     padded = np.pad(np.where(valid, mean, -np.inf), 1, constant_values=-np.inf)
