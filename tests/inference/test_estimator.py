@@ -260,18 +260,24 @@ def test_no_target_zones_of_a_frame_reach_the_plane_select_head(rng, flip_averag
     assert np.abs(depth_far - single).mean() < 0.05
 
 
-def test_a_frame_without_flags_gets_them_by_the_weights_rule(rng):
+def _far_column_reading(rng):
+    """A select model carrying the rule at 2.5 m, an image, and a frame without flags
+    whose right columns returned nothing beside a column reading 3 m (mean, sigma,
+    valid as (8, 8) arrays)."""
     from deltar.models import create_model
 
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=(64, 96))
     model.set_output_contract(no_target_min_neighbour_m=2.5)
-    image = random_image(rng, 64, 96)
     valid = np.ones((8, 8), bool)
-    valid[:, 6:] = False  # the right columns returned nothing; column 5 reads 3 m
+    valid[:, 6:] = False
     mean = np.where(valid, 1.5, 0.0)
     mean[:, 5] = 3.0
-    sigma = np.full((8, 8), 0.02)
+    return model, random_image(rng, 64, 96), (mean, np.full((8, 8), 0.02), valid)
+
+
+def test_a_frame_without_flags_gets_them_by_the_weights_rule(rng):
+    model, image, (mean, sigma, valid) = _far_column_reading(rng)
     unflagged = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid)
     flagged = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid, no_target=~valid)
     estimator = DepthEstimator(model, weights="test")
@@ -287,17 +293,7 @@ def test_a_frame_without_flags_gets_them_by_the_weights_rule(rng):
 
 
 def test_a_batch_mixing_frames_with_and_without_flags_keeps_each_frames_own(rng):
-    from deltar.models import create_model
-
-    torch.manual_seed(0)
-    model = create_model("deltar-select", design_size=(64, 96))
-    model.set_output_contract(no_target_min_neighbour_m=2.5)
-    image = random_image(rng, 64, 96)
-    valid = np.ones((8, 8), bool)
-    valid[:, 6:] = False
-    mean = np.where(valid, 1.5, 0.0)
-    mean[:, 5] = 3.0
-    sigma = np.full((8, 8), 0.02)
+    model, image, (mean, sigma, valid) = _far_column_reading(rng)
     unflagged = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid)
     # Flags carried, none set: these invalid zones are failed readings, not far.
     none_far = ZoneFrame(mean_m=mean, sigma_m=sigma, valid=valid,
