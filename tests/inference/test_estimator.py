@@ -284,7 +284,10 @@ def test_a_frame_without_flags_gets_them_by_the_weights_rule(rng):
     assert estimator.no_target_min_neighbour_m == 2.5
     np.testing.assert_allclose(estimator.predict(image, unflagged).depth_m,
                                estimator.predict(image, flagged).depth_m, atol=1e-5)
-    assert estimator.predict(image, unflagged).depth_m[:, -8:].mean() > 4.0
+    inferred = estimator.predict(image, unflagged)
+    assert inferred.depth_m[:, -8:].mean() > 4.0
+    # The prediction says which flags it used (the panel draws them).
+    np.testing.assert_array_equal(inferred.zone_no_target, (~valid).reshape(-1))
     # None: a frame without flags has no zone read as no target.
     plain = DepthEstimator(model, weights="test", no_target_min_neighbour_m=None)
     assert plain.predict(image, unflagged).depth_m[:, -8:].mean() < 3.5

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from deltar.camera import CameraIntrinsics
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.inference.outputs import (
     OUTPUT_KINDS,
     colorize,
@@ -20,6 +20,7 @@ from deltar.inference.outputs import (
 from deltar.inference.prediction import DepthPrediction
 from deltar.io.ply import read_ply
 from deltar.sensor.zone_frame import ZoneFrame
+from tests.inference.fakes import random_frame
 
 
 def test_png16_is_millimetres_with_zero_for_invalid(tmp_path):
@@ -113,3 +114,17 @@ def test_write_prediction_writes_every_kind_and_refuses_existing(tmp_path, rng):
     assert paths["png16"].read_bytes() == before
     with pytest.raises(ValueError, match="unknown output kinds"):
         write_prediction(tmp_path, "x", image, pred, kinds=("jpeg",))
+
+
+def test_the_panel_draws_the_flags_the_prediction_used(rng):
+    from deltar.inference.outputs import _panel_zones_and_range
+
+    frame = random_frame(rng, invalid=8)  # carries no flags
+    used = ~frame.valid.reshape(-1)
+    prediction = DepthPrediction(depth_m=np.ones((8, 8), np.float32),
+                                 uncertainty_m=np.ones((8, 8), np.float32),
+                                 zone_rects=np.zeros((64, 4), np.float32), zone_frame=frame,
+                                 intrinsics=ZJU_L5_INTRINSICS, zone_no_target=used)
+    _, _, far, _, title = _panel_zones_and_range(prediction)
+    np.testing.assert_array_equal(far, used)
+    assert "no target" in title

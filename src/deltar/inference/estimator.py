@@ -464,7 +464,8 @@ class DepthEstimator:
                                            network_size=tuple(inputs["network_size"]),
                                            network_depth_m=network_depth,
                                            uncertainty_calibrated=self.uncertainty
-                                           is not None))
+                                           is not None,
+                                           zone_no_target=inputs["zone_no_target"][i]))
         return results[0] if single else results
 
     def blend_fill_for(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray

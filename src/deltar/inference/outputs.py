@@ -266,7 +266,9 @@ def _panel_zones_and_range(prediction: DepthPrediction
     the zone tile's title."""
     frame = prediction.zone_frame
     mean, _, valid = frame.flat()
-    far_zones = frame.flat_no_target()
+    # The flags the prediction used: inferred ones too, for a frame that carried none.
+    far_zones = (frame.flat_no_target() if prediction.zone_no_target is None
+                 else np.asarray(prediction.zone_no_target, dtype=bool))
     depth = prediction.depth_m
     vmax = float(np.percentile(depth[np.isfinite(depth)], 99)) if np.isfinite(depth).any() \
         else 1.0

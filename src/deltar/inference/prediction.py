@@ -32,6 +32,10 @@ class DepthPrediction:
             ``depth_m`` is its confidence blend with the colorization fill
             (:mod:`deltar.inference.blend`); None when ``depth_m`` is the network's.
         uncertainty_calibrated: whether ``uncertainty_m`` is the calibrated sigma.
+        zone_no_target: (Z,) bool, the no-target flags the prediction used: the
+            frame's own, or those inferred for a frame without them
+            (:func:`deltar.sensor.no_target.frame_no_target`); None when unknown (then
+            the frame's own).
     """
 
     depth_m: np.ndarray
@@ -43,6 +47,7 @@ class DepthPrediction:
     network_size: tuple[int, int] | None = None
     network_depth_m: np.ndarray | None = None
     uncertainty_calibrated: bool = False
+    zone_no_target: np.ndarray | None = None
 
     @property
     def blended(self) -> bool:
