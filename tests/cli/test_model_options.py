@@ -9,8 +9,8 @@ from typer.testing import CliRunner
 from deltar.cli.main import app
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 
-TEN = ["--preset", "--checkpoint", "--official", "--onnx", "--device", "--precision",
-        "--size", "--threads", "--flip", "--network-only"]
+ALL = ["--preset", "--checkpoint", "--official", "--onnx", "--device", "--precision",
+       "--size", "--threads", "--flip", "--network-only", "--no-inferred-flags"]
 
 
 def _options(command: str) -> dict[str, str]:
@@ -18,14 +18,14 @@ def _options(command: str) -> dict[str, str]:
     return {p.opts[0]: p.help for p in group.commands[command].params}
 
 
-def test_predict_replay_and_wall_test_share_the_ten_options():
+def test_predict_replay_and_wall_test_share_the_model_options():
     reference = _options("predict")
     for command in ("predict", "replay", "wall-test"):
         options = _options(command)
-        assert [o for o in options if o in TEN] == TEN, command
-        assert {o: options[o] for o in TEN} == {o: reference[o] for o in TEN}
+        assert [o for o in options if o in ALL] == ALL, command
+        assert {o: options[o] for o in ALL} == {o: reference[o] for o in ALL}
     export = _options("export")
-    assert {o: export[o] for o in TEN[:3]} == {o: reference[o] for o in TEN[:3]}
+    assert {o: export[o] for o in ALL[:3]} == {o: reference[o] for o in ALL[:3]}
 
 
 def test_the_command_receives_one_model_object():
@@ -36,12 +36,13 @@ def test_the_command_receives_one_model_object():
         seen.append((out, model, last))
 
     command(out="o", last=2, **{name.lstrip("-").replace("-", "_"): value for name, value in
-                                zip(TEN, [None, "c.pt", None, None, "cpu", "float16", "64x64",
-                                           2, True, True], strict=True)})
+                                zip(ALL, [None, "c.pt", None, None, "cpu", "float16", "64x64",
+                                           2, True, True, True], strict=True)})
     out, model, last = seen[0]
     assert (out, last) == ("o", 2)
     assert model == ModelOptions(checkpoint="c.pt", precision="float16", size="64x64",
-                                 threads=2, flip=True, network_only=True)
+                                 threads=2, flip=True, network_only=True,
+                                 no_inferred_flags=True)
     assert model.source() == ("c.pt", "checkpoint")
     assert ModelOptions().source() == (None, None)
     with pytest.raises(TypeError, match="has no 'model' parameter"):
@@ -71,3 +72,9 @@ def test_network_only_turns_the_blend_off():
     """The bundled plane-select model blends by default; --network-only is the network."""
     assert ModelOptions().load().blend is not None
     assert ModelOptions(network_only=True).load().blend is None
+
+
+def test_no_inferred_flags_turns_the_no_target_rule_off():
+    """The bundled model infers flags for frames without them; --no-inferred-flags not."""
+    assert ModelOptions().load().no_target_min_neighbour_m is not None
+    assert ModelOptions(no_inferred_flags=True).load().no_target_min_neighbour_m is None
