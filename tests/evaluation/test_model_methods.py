@@ -60,3 +60,11 @@ def test_evaluation_runs_the_size_rule(tmp_path: Path) -> None:
     sample = make_sample("a", 0)
     depth = predictor(sample).depth_m
     assert depth.shape == sample.depth_m.shape and np.isfinite(depth).all()
+
+
+def test_uninferred_suffix_turns_the_no_target_rule_off() -> None:
+    from deltar.evaluation.model_methods import checkpoint_predictor
+
+    assert checkpoint_predictor("default").estimator.no_target_min_neighbour_m is not None
+    plain = checkpoint_predictor("default+network+uninferred").estimator
+    assert plain.no_target_min_neighbour_m is None and plain.blend is None

@@ -54,22 +54,30 @@ class EstimatorPredictor:
 FLIP_SUFFIX = "+flip"
 #: Method-name suffix asking for the network's depth without the confidence blend.
 NETWORK_SUFFIX = "+network"
+#: Method-name suffix asking the estimator not to infer no-target flags for samples
+#: without them (docs/inference.md, "Zones without no-target flags").
+UNINFERRED_SUFFIX = "+uninferred"
 
 
 def _split_suffixes(name: str) -> tuple[str, dict[str, object]]:
-    """(name, estimator keyword arguments) from ``+flip`` / ``+network`` suffixes."""
+    """(name, estimator keyword arguments) from ``+flip`` / ``+network`` /
+    ``+uninferred`` suffixes."""
     options: dict[str, object] = {}
     while True:
         if name.endswith(FLIP_SUFFIX):
             name, options["flip_average"] = name[: -len(FLIP_SUFFIX)], True
         elif name.endswith(NETWORK_SUFFIX):
             name, options["blend"] = name[: -len(NETWORK_SUFFIX)], None
+        elif name.endswith(UNINFERRED_SUFFIX):
+            name = name[: -len(UNINFERRED_SUFFIX)]
+            options["no_target_min_neighbour_m"] = None
         else:
             return name, options
 
 
 def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
-    """``model:NAME|PATH[+flip][+network]``: a bundled model name or a deltar checkpoint."""
+    """``model:NAME|PATH[+flip][+network][+uninferred]``: a bundled model name or a deltar
+    checkpoint."""
     from deltar.inference.loading import load_estimator
 
     name_or_path, options = _split_suffixes(name_or_path)
@@ -86,7 +94,8 @@ def official_predictor(path: str) -> EstimatorPredictor:
 
 
 def onnx_predictor(path: str) -> EstimatorPredictor:
-    """``onnx:PATH[+network]``: an exported ONNX model (``deltar export``, also ``--int8``).
+    """``onnx:PATH[+network][+uninferred]``: an exported ONNX model (``deltar export``,
+    also ``--int8``).
 
     It runs at its fixed input size; the sample's zone layout must fit the one it was
     exported for (else ``ValueError``; export with that layout).
