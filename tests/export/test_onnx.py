@@ -34,6 +34,18 @@ def _random_inputs(rects: np.ndarray, batch: int, seed: int):
             valid)
 
 
+def _plane_select_lite():
+    """A seeded deltar-lite plane-select network (descriptor decoder, 64x96) with its
+    channel weights spread over 0.5-1.5, in eval mode, torch on one thread."""
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", head="plane_select", decoder="descriptors",
+                         design_size=(64, 96)).eval()
+    with torch.no_grad():
+        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    return model
+
+
 def _export_and_run(model, path, seed: int, threads: int):
     """Export a 64x96 model, run file and model on random inputs at its example layout.
 
@@ -178,12 +190,7 @@ def test_zone_select_head_exports_with_parity(tmp_path):
 def test_plane_select_network_exports_with_parity(tmp_path):
     # No decoder: encoder descriptors, zone planes (closed-form 2x2 solves) and the
     # stride-4 head resized to the contract's stride 2, all in the graph.
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    model = create_model("deltar-lite", head="plane_select", decoder="descriptors",
-                         design_size=(64, 96)).eval()
-    with torch.no_grad():
-        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    model = _plane_select_lite()
     got, expected, rects, runner = _export_and_run(model, tmp_path / "plane.onnx", 7, threads=1)
     assert got["depth"].shape == (2, 1, 32, 48)
     assert np.abs(got["depth"] - expected["depth"]).max() < DEPTH_TOLERANCE_M
@@ -357,12 +364,7 @@ def test_several_sizes_share_one_weights_file_and_run_each_image_at_its_rule_siz
     from deltar.export.onnx import export_onnx_sizes
     from deltar.inference.onnx_runtime import SIZES_KEY
 
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    model = create_model("deltar-lite", head="plane_select", decoder="descriptors",
-                         design_size=(64, 96)).eval()
-    with torch.no_grad():
-        model.decoder.channel_weight.uniform_(0.5, 1.5)
+    model = _plane_select_lite()
     # 64x96 and 128x192 give the same network size: one file for both.
     camera_sizes = [(64, 96), (54, 128), (128, 192), (96, 64)]
     written = export_onnx_sizes(model, tmp_path / "net.onnx", camera_sizes)
