@@ -434,7 +434,8 @@ class DepthEstimator:
         inputs = self.prepare(images, frames, calibration, zone_rects)
         # The blend's fill needs only the image and the zones: it runs while the network
         # does (a worker thread; both release the GIL).
-        fills = [self._start_fill(images[i], frame, inputs["image_rects"][i])
+        fills = [self._start_fill(images[i], frame, inputs["image_rects"][i],
+                                  inputs["zone_no_target"][i])
                  for i, frame in enumerate(frames)] if self.blend is not None else None
         depth, uncertainty = self.run_network(inputs)
         size = inputs["image_size"]
@@ -482,16 +483,18 @@ class DepthEstimator:
             :func:`~deltar.inference.blend.blend_fill` of the zones (no-target zones read
             at the network's ``no_target_depth``), None without a valid zone on the image.
         """
-        return self._start_fill(image, frame, rects).result()
+        return self._start_fill(image, frame, rects, self.no_target_of(frame)).result()
 
     def no_target_of(self, frame: ZoneFrame) -> np.ndarray:
         """(Z,) bool: the frame's no-target flags, inferred when it carries none
         (:func:`~deltar.sensor.no_target.frame_no_target`)."""
         return frame_no_target(frame, self.no_target_min_neighbour_m)
 
-    def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray) -> Future:
-        """:func:`~deltar.inference.blend.start_blend_fill` for one frame (H, W metres)."""
+    def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray,
+                    no_target: np.ndarray) -> Future:
+        """:func:`~deltar.inference.blend.start_blend_fill` for one frame (H, W metres);
+        ``no_target`` (Z,) bool the flags the network read (:meth:`no_target_of`)."""
         mean, _, valid = frame.flat()
-        far = self.no_target_of(frame) if self.no_target_depth_m is not None else None
+        far = no_target if self.no_target_depth_m is not None else None
         return start_blend_fill(image, mean, valid, rects, zone_far=far,
                                 far_depth_m=self.no_target_depth_m)
