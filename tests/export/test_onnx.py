@@ -239,6 +239,55 @@ def test_plane_select_network_exports_with_parity(tmp_path):
     assert np.abs(alone["depth"] - flagged).max() < DEPTH_TOLERANCE_M
 
 
+def test_the_targets_work_runs_only_for_frames_that_report_further_targets(tmp_path):
+    """One graph, two branches: the network traced without the targets input serves
+    batches in which no valid zone reports a further target; both give PyTorch's depth
+    and uncertainty."""
+    import onnx
+
+    from deltar.export.onnx import example_inputs
+    from deltar.inference.onnx_runtime import TARGETS_INPUT
+
+    model = _plane_select_lite()
+    path = export_onnx(model, tmp_path / "plane.onnx", 64, 96)
+    graph = onnx.load(str(path)).graph
+    (branch,) = [n for n in graph.node if n.op_type == "If"]
+    several, single = (next(a.g for a in branch.attribute if a.name == name)
+                       for name in ("then_branch", "else_branch"))
+    # The encoder and descriptors run once, before the choice; the single-target branch
+    # never reads the targets and has less to do.
+    assert any("image_encoder" in n.name for n in graph.node)
+    assert not any("image_encoder" in n.name or "decoder" in n.name
+                   for g in (several, single) for n in g.node)
+    assert not any(TARGETS_INPUT in n.input for n in single.node)
+    assert len(single.node) < len(several.node)
+    rects = example_inputs(model, 64, 96)[2][0].numpy()
+    inputs = _random_inputs(rects, 2, 11)
+    runner = OnnxDepthModel(path, num_threads=1)
+    primary = inputs[1].mean(dim=2)
+    targets = torch.zeros(*inputs[3].shape, 2, 2)
+    targets[..., 0, 0], targets[..., 0, 1] = primary, 0.7
+    # Further targets in invalid zones alone: they count for nothing (single branch).
+    invalid_only = targets.clone()
+    invalid_only[..., 1, 0], invalid_only[..., 1, 1] = 3.0, 0.3
+    invalid_only = torch.where(inputs[3][..., None, None], targets, invalid_only)
+    # And in every fourth zone, valid or not (several-targets branch).
+    several_targets = targets.clone()
+    several_targets[:, ::4, 1, 0], several_targets[:, ::4, 1, 1] = primary[:, ::4] * 2.0, 0.3
+    with torch.inference_mode():
+        plain = model(*inputs)
+    for given in (None, targets, invalid_only, several_targets):
+        with torch.inference_mode():
+            expected = model(*inputs, zone_targets=given) if given is not None else plain
+        got = runner.run(*(t.numpy() for t in inputs), None,
+                         None if given is None else given.numpy())
+        for key in ("depth", "uncertainty"):
+            assert np.abs(got[key] - expected[key].numpy()).max() < 1e-4
+    with torch.inference_mode():
+        moved = model(*inputs, zone_targets=several_targets)["depth"]
+    assert np.abs(moved.numpy() - plain["depth"].numpy()).max() > 0.05
+
+
 @pytest.mark.parametrize("size", [(480, 480), (720, 1280)])
 def test_export_runs_at_the_size_rule_like_the_estimator(tmp_path, rng, size):
     """A non-4:3 camera: the file's fixed input is the size the estimator runs the model

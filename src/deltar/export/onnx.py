@@ -180,11 +180,23 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     traced = _tuple_outputs(model)
     with atomic_path(path, overwrite=overwrite) as tmp, _traceable(model), \
             torch.no_grad(), _quiet_tracer(), _static_same_padding(traced, inputs):
-        torch.onnx.export(traced, inputs, str(tmp), input_names=input_names,
-                          output_names=list(OUTPUT_NAMES), dynamic_axes=dynamic,
-                          opset_version=OPSET, dynamo=False)
-        proto = onnx.load(str(tmp))
-        _fold_pads_into_convs(proto)
+
+        def trace(count: int) -> onnx.ModelProto:
+            names = input_names[:count]
+            torch.onnx.export(traced, inputs[:count], str(tmp), input_names=names,
+                              output_names=list(OUTPUT_NAMES),
+                              dynamic_axes={k: v for k, v in dynamic.items()
+                                            if k in names or k in OUTPUT_NAMES},
+                              opset_version=OPSET, dynamo=False)
+            traced_proto = onnx.load(str(tmp))
+            _fold_pads_into_convs(traced_proto)
+            return traced_proto
+
+        proto = trace(len(inputs))
+        if TARGETS_INPUT in input_names:
+            # Frames whose zones report one target each (most) run the graph traced
+            # without the targets, the same outputs in less time.
+            proto = _single_target_branch(proto, trace(len(inputs) - 1))
         extra = {SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
                  "deltar_image_size": f"{height}x{width}",
                  "deltar_input_size": f"{net_height}x{net_width}",
@@ -314,6 +326,154 @@ def _point_to_shared(proto: onnx.ModelProto, where: dict[str, tuple[int, int]],
                       "uint64_data"):
             tensor.ClearField(field)
         tensor.data_location = onnx.TensorProto.EXTERNAL
+
+
+def _structural_keys(graph: onnx.GraphProto) -> dict[str, str]:
+    """Each value's structural key: equal keys, the same computation (same graph inputs,
+    initializer contents, operators and attributes), whatever the values are named."""
+    import hashlib
+
+    from onnx import numpy_helper
+
+    keys = {value.name: "input:" + value.name for value in graph.input}
+    for tensor in graph.initializer:
+        array = numpy_helper.to_array(tensor)
+        keys[tensor.name] = "initializer:" + hashlib.sha1(
+            f"{array.dtype}{array.shape}".encode() + array.tobytes()).hexdigest()
+    for node in graph.node:
+        digest = hashlib.sha1("|".join([node.op_type, node.domain, *(
+            keys[name] if name else "" for name in node.input)]).encode())
+        for attribute in sorted(node.attribute, key=lambda a: a.name):
+            digest.update(attribute.SerializeToString())
+        for index, name in enumerate(node.output):
+            keys[name] = f"{digest.hexdigest()}:{index}"
+    return keys
+
+
+def _single_target_branch(with_targets: onnx.ModelProto, single: onnx.ModelProto
+                          ) -> onnx.ModelProto:
+    """One graph of both exports: the several-targets work only for frames that need it.
+
+    ``with_targets`` reads ``zone_targets``; ``single`` is the same network exported
+    without that input (the primary readings alone), which gives the same outputs when
+    no valid zone reports a further target, in less time. The result computes what both
+    share once, then an ``If`` runs ``with_targets``' own nodes when some valid zone of
+    the batch reports a further target (a distance > 0 in a slot beyond the first) and
+    ``single``'s own nodes otherwise. Same inputs and outputs as ``with_targets``.
+    """
+    import onnx
+    from onnx import helper
+
+    graph, other = with_targets.graph, single.graph
+    keys, other_keys = _structural_keys(graph), _structural_keys(other)
+    shared = set(keys.values()) & set(other_keys.values())
+    by_key = {}
+    for name, key in keys.items():
+        by_key.setdefault(key, name)
+    # What both compute goes to the outer graph, except a Transpose that only branch
+    # nodes read: each branch that reads it computes it, so that onnxruntime can still
+    # fuse it into the MatMul it feeds (outside a branch it runs as a copy).
+    readers: dict[str, list[str]] = {}
+    for node, node_keys in [(n, keys) for n in graph.node] + [(n, other_keys) for n in other.node]:
+        for name in node.input:
+            if name:
+                readers.setdefault(node_keys[name], []).append(node_keys[node.output[0]])
+    graph_outputs = {keys[v.name] for v in graph.output}
+    for node in graph.node:
+        key = keys[node.output[0]]
+        if node.op_type == "Transpose" and key in shared and key not in graph_outputs and \
+                not any(reader in shared for reader in readers.get(key, [])):
+            shared = shared - {key}
+    outer_nodes = [n for n in graph.node if all(keys[o] in shared for o in n.output)]
+    then_nodes = [n for n in graph.node if not all(keys[o] in shared for o in n.output)]
+    else_nodes = [n for n in other.node if not all(other_keys[o] in shared for o in n.output)]
+    # The single branch's own values get a prefix (names are unique across a model and
+    # its branches); what it shares with the outer graph reads the outer graph's names.
+    prefix = "single_target/"
+
+    def renamed(name: str) -> str:
+        if not name:
+            return name
+        key = other_keys[name]
+        return by_key[key] if key in shared else prefix + name
+
+    branch_initializers = []
+    for tensor in other.initializer:
+        if other_keys[tensor.name] not in shared:
+            copy = onnx.TensorProto()
+            copy.CopyFrom(tensor)
+            copy.name = prefix + tensor.name
+            branch_initializers.append(copy)
+    renamed_nodes = []
+    for node in else_nodes:
+        copy = onnx.NodeProto()
+        copy.CopyFrom(node)
+        copy.name = prefix + node.name
+        copy.input[:] = [renamed(name) for name in node.input]
+        copy.output[:] = [prefix + name for name in node.output]
+        renamed_nodes.append(copy)
+
+    def branch(name: str, nodes: list, outputs: list[str], initializers: list
+               ) -> onnx.GraphProto:
+        # Each branch output gets its own name (an Identity), as the If's outputs take
+        # the graph outputs' names.
+        results = []
+        for value, source in zip(graph.output, outputs, strict=True):
+            local = f"{name}/output/{value.name}"
+            nodes = [*nodes, helper.make_node("Identity", [source], [local],
+                                              name=f"{name}/{value.name}/Identity")]
+            info = onnx.ValueInfoProto()
+            info.CopyFrom(value)
+            info.name = local
+            results.append(info)
+        return helper.make_graph(nodes, name, [], results, initializer=initializers)
+
+    then_graph = branch("several_targets", then_nodes, [v.name for v in graph.output], [])
+    else_graph = branch("single_target", renamed_nodes,
+                        [renamed(v.name) for v in other.output], branch_initializers)
+    # Some valid zone of the batch reports a further target: (B, Z, T - 1) distances > 0.
+    from deltar.inference.onnx_runtime import TARGETS_INPUT
+
+    constants = {
+        "several_targets/starts": np.array([1, 0], np.int64),
+        "several_targets/ends": np.array([np.iinfo(np.int64).max, 1], np.int64),
+        "several_targets/axes": np.array([2, 3], np.int64),
+        "several_targets/zero": np.array(0.0, np.float32),
+    }
+    from onnx import numpy_helper
+
+    condition = [
+        helper.make_node("Slice", [TARGETS_INPUT, "several_targets/starts",
+                                   "several_targets/ends", "several_targets/axes"],
+                         ["several_targets/distances"], name="several_targets/Slice"),
+        helper.make_node("Greater", ["several_targets/distances", "several_targets/zero"],
+                         ["several_targets/reported"], name="several_targets/Greater"),
+        helper.make_node("Unsqueeze", ["zone_valid", "several_targets/unsqueeze_axes"],
+                         ["several_targets/valid"], name="several_targets/Unsqueeze"),
+        helper.make_node("Unsqueeze", ["several_targets/valid", "several_targets/unsqueeze_axes"],
+                         ["several_targets/valid4"], name="several_targets/Unsqueeze_1"),
+        helper.make_node("And", ["several_targets/reported", "several_targets/valid4"],
+                         ["several_targets/present"], name="several_targets/And"),
+        helper.make_node("Cast", ["several_targets/present"], ["several_targets/count"],
+                         to=onnx.TensorProto.FLOAT, name="several_targets/Cast"),
+        helper.make_node("ReduceMax", ["several_targets/count"], ["several_targets/any"],
+                         keepdims=0, name="several_targets/ReduceMax"),
+        helper.make_node("Greater", ["several_targets/any", "several_targets/zero"],
+                         ["several_targets/condition"], name="several_targets/Greater_1"),
+        helper.make_node("If", ["several_targets/condition"], [v.name for v in graph.output],
+                         then_branch=then_graph, else_branch=else_graph,
+                         name="several_targets/If"),
+    ]
+    constants["several_targets/unsqueeze_axes"] = np.array([-1], np.int64)
+    merged = helper.make_graph(
+        outer_nodes + condition, graph.name, list(graph.input), list(graph.output),
+        initializer=list(graph.initializer) + [numpy_helper.from_array(v, k)
+                                               for k, v in constants.items()])
+    model = helper.make_model(merged, opset_imports=list(with_targets.opset_import),
+                              producer_name=with_targets.producer_name,
+                              producer_version=with_targets.producer_version)
+    model.ir_version = with_targets.ir_version
+    return model
 
 
 @contextlib.contextmanager

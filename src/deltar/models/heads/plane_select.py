@@ -248,6 +248,9 @@ class PlanarSelectHead(DepthHead):
         hypotheses with borrowed descriptors (:func:`secondary_descriptors`), and every
         target's log share is added to its weight's logit.
         """
+        if torch.onnx.is_in_onnx_export() and self.planar:
+            return self._export_forward(descriptors, zone_mean_m, zone_valid, zone_rects,
+                                        stride, zone_no_target, zone_scale_m, zone_targets)
         _, _, height, width = descriptors.shape
         dtype = descriptors.dtype
         valid = zone_valid.bool()
@@ -329,6 +332,107 @@ class PlanarSelectHead(DepthHead):
             scale = zone_scale_m.to(dtype)
             low, high = low / scale, high / scale
         return selection_outputs(log_depth + centre[:, :, None], spread, chosen,
+                                 (height, width), self.edges, low, high)
+
+    def _export_forward(self, descriptors: torch.Tensor, zone_mean_m: torch.Tensor,
+                        zone_valid: torch.Tensor, zone_rects: torch.Tensor, stride: float,
+                        zone_no_target: torch.Tensor | None,
+                        zone_scale_m: torch.Tensor | None,
+                        zone_targets: torch.Tensor | None) -> HeadOutput:
+        """:meth:`forward` (planar) as the ONNX export writes it: the same values to float32
+        rounding, in fewer passes over the (B, h, w, N) per-cell tensors, which onnxruntime
+        runs one operator at a time.
+
+        Every hypothesis, a zone's plane or a further target's constant depth, is one
+        *column* described by small per-column tensors: its descriptor (scaled by the
+        temperature), its prior's row and column log-weights (with its log share and,
+        for an unreported target slot, the -1e4 of a masked logit folded in), its log
+        depth and its plane's inverse-depth ratio along rows and columns (slopes 0 for a
+        constant). The per-cell work is then one product, two broadcast sums, the
+        clamped softmax and one chain for the hypotheses, on all columns at once: no
+        gathers, concatenations or masks on per-cell tensors. A constant's ratio is 1,
+        so its hypothesis is exactly its log depth.
+        """
+        batch, _, height, width = descriptors.shape
+        dtype = descriptors.dtype
+        valid = zone_valid.bool()
+        far = None if zone_no_target is None or not self.uses_no_target else \
+            zone_no_target.bool() & ~valid
+        chosen = valid if far is None else valid | far
+        means = zone_mean_m.to(dtype)
+        log_mean = torch.log(means.clamp_min(1e-3))
+        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
+        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
+        if far is not None:
+            log_far = math.log(self.no_target_depth) - centre
+            if zone_scale_m is not None:
+                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
+            log_mean = torch.where(far, log_far.to(dtype), log_mean)
+        rects = zone_rects.to(dtype)
+        log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
+        pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
+        # The planes' inverse-depth ratio, separable: ratio_y (B, h, Z) + ratio_x (B, w, Z).
+        slope_y, slope_x = zone_planes(means, valid, rects)
+        centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
+        rows = (torch.arange(height, dtype=dtype) + 0.5) * stride
+        cols = (torch.arange(width, dtype=dtype) + 0.5) * stride
+        ratio_y = 1.0 + slope_y[:, None, :] * (
+            (rows[None, :, None] - centre_y[:, None, :]) / zone_h[:, None])
+        ratio_x = slope_x[:, None, :] * ((cols[None, :, None] - centre_x[:, None, :])
+                                         / zone_w[:, None])
+        table = pooled * self.temperature.to(dtype)
+        if zone_targets is not None and zone_targets.shape[2] > 1:
+            targets = zone_targets.to(dtype)
+            share, present = target_shares(targets, valid)
+            slots = present.shape[-1]
+            descriptors_2 = secondary_descriptors(pooled, means, valid, zone_rects,
+                                                  targets[..., 1:, 0])
+            log_share = torch.log(share.clamp_min(1e-6))
+            present = present.flatten(1)
+            kept = min(SECONDARY_HYPOTHESES, present.shape[1])
+            order = torch.topk(torch.where(present, log_share[..., 1:].flatten(1), -1e4),
+                               kept, dim=1).indices  # (B, K)
+            present = present.gather(1, order)
+            zone_of = torch.div(order, slots, rounding_mode="floor")
+            has_more = torch.zeros_like(log_share[..., 0]).scatter_add(
+                1, zone_of, present.to(dtype)) > 0
+            log_wy_1 = log_wy + torch.where(has_more, log_share[..., 0], 0.0)[:, None, :]
+            extra_bias = log_share[..., 1:].flatten(1).gather(1, order)  # (B, K)
+            # An unreported slot's logit sits at -1e4 (as the masked logit does): the
+            # clamped softmax gives it the same floor weight.
+            log_wy_2 = torch.where(present[:, None, :], log_wy.gather(
+                2, zone_of[:, None, :].expand(-1, height, -1)) + extra_bias[:, None, :],
+                torch.tensor(-1e4, dtype=dtype))
+            log_wx_2 = torch.where(present[:, None, :], log_wx.gather(
+                2, zone_of[:, None, :].expand(-1, width, -1)), torch.tensor(0.0, dtype=dtype))
+            log_extra = (torch.log(targets[..., 1:, 0].clamp_min(1e-3)).flatten(1)
+                         .gather(1, order) - centre).masked_fill(~present, 0.0)
+            table = torch.cat([table, self.temperature.to(dtype) * descriptors_2.gather(
+                2, order[:, None, :].expand(-1, descriptors_2.shape[1], -1))], dim=2)
+            log_wy = torch.cat([log_wy_1, log_wy_2], dim=2)
+            log_wx = torch.cat([log_wx, log_wx_2], dim=2)
+            log_mean = torch.cat([log_mean, log_extra], dim=1)
+            ratio_y = torch.cat([ratio_y, torch.ones_like(log_wy_2)], dim=2)
+            ratio_x = torch.cat([ratio_x, torch.zeros_like(log_wx_2)], dim=2)
+        columns = table.shape[2]
+        pixels = descriptors.flatten(2).transpose(1, 2)  # (B, h*w, C)
+        logits = (pixels @ table).reshape(batch, height, width, columns) + \
+            log_wy[:, :, None, :] + log_wx[:, None, :, :]
+        # softmax_over_zones' clamp, as a floor: the softmax subtracts the same peak.
+        peak = logits.amax(dim=-1, keepdim=True)
+        weights = torch.softmax(torch.maximum(logits, peak - 80.0), dim=-1)
+        ratio = (ratio_y[:, :, None, :] + ratio_x[:, None, :, :]).clamp(
+            1.0 / self.max_ratio, self.max_ratio)
+        hypotheses = log_mean[:, None, None, :] - torch.log(ratio)
+        log_depth = (weights * hypotheses).sum(-1, keepdim=True)
+        deviation = hypotheses - log_depth
+        spread = (weights * deviation * deviation).sum(-1, keepdim=True).sqrt()
+        low, high = self.min_depth, self.max_depth
+        if zone_scale_m is not None:
+            scale = zone_scale_m.to(dtype)
+            low, high = low / scale, high / scale
+        return selection_outputs(log_depth.reshape(batch, height * width, 1) + centre[:, :, None],
+                                 spread.reshape(batch, height * width, 1), chosen,
                                  (height, width), self.edges, low, high)
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
