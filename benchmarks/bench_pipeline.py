@@ -1,9 +1,11 @@
 """Benchmark: end-to-end ``DepthEstimator.predict`` vs the bare network, PyTorch and ONNX.
 
-End to end = PNG decode + zone placement + hypothesis sampling + network + resize of
-depth and uncertainty to the input size, and for plane-select networks (the bundled
-``default``) the confidence blend with the colorization fill that the estimator applies
-by default; "no blend" = the same with ``blend=None`` (``--network-only``); bare = the
+End to end = ``DepthEstimator.predict`` on a decoded RGB image and its zone frame, as a
+camera or a driver hands them over: zone placement + hypothesis sampling + network +
+for plane-select networks (the bundled ``default``) the confidence blend with the
+colorization fill that the estimator applies by default + resize to the input size;
+"e2e from PNG" = the same with the PNG decode before it (a recording replayed from
+files); "no blend" = from the image with ``blend=None`` (``--network-only``); bare = the
 network call alone on prepared inputs. Presets run with random weights (speed does not
 depend on them). Each ONNX model is exported first (not timed). Prints frames per second
 (medians over the repeats; the runs alternate so that load from other processes hits
@@ -105,29 +107,33 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
     inputs = estimator.prepare([_decode(png)], [frame])
     blend = estimator.blend
 
+    image = _decode(png)
+
     def network_only():
         estimator.blend = None
         try:
-            estimator.predict(_decode(png), frame)
+            estimator.predict(image, frame)
         finally:
             estimator.blend = blend
 
-    image = _decode(png)
     rects = inputs["image_rects"][0]
+    grid = tuple(side // 2 for side in inputs["network_size"])  # as predict asks for it
 
     def fill_only():
         if blend is not None:
-            estimator.blend_fill_for(image, frame, rects)
+            estimator.blend_fill_for(image, frame, rects, out_size=grid)
 
     matmul = matmul_gflop_s()
-    bare, full, plain, decode, fill = _interleaved_medians(
-        [lambda: estimator.run_network(inputs), lambda: estimator.predict(_decode(png), frame),
-         network_only, lambda: _decode(png), fill_only], repeats)
+    bare, full, from_png, plain, decode, fill = _interleaved_medians(
+        [lambda: estimator.run_network(inputs), lambda: estimator.predict(image, frame),
+         lambda: estimator.predict(_decode(png), frame), network_only, lambda: _decode(png),
+         fill_only], repeats)
     matmul = max(matmul, matmul_gflop_s())
     return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
             "blend": blend is not None, "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full,
-            "no_blend_fps": 1.0 / plain, "overhead": full / bare - 1.0,
-            "e2e_ratio": bare / full, "gflop": gflop, "matmul_gflop_s": matmul,
+            "png_fps": 1.0 / from_png, "no_blend_fps": 1.0 / plain,
+            "overhead": full / bare - 1.0, "e2e_ratio": bare / full,
+            "png_ratio": bare / from_png, "gflop": gflop, "matmul_gflop_s": matmul,
             "matmul_fraction": gflop / bare / matmul, "decode_ms": 1e3 * decode,
             "fill_ms": 1e3 * fill if blend is not None else float("nan")}
 
@@ -160,6 +166,7 @@ def main() -> None:
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
              f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9} {'e2e/bare':>9} " \
+             f"{'from PNG fps':>13} {'/bare':>6} " \
              f"{'GFLOP':>6} {'network rate':>30} {'decode ms':>9} {'fill ms':>7}"
     print(header)
     print("-" * len(header))
@@ -167,7 +174,8 @@ def main() -> None:
         print(f"{r['preset']:<16} {r['size']:>8} {r['backend']:>8} {r['bare_fps']:>9.2f} "
               f"{r['e2e_fps']:>8.2f} {'yes' if r['blend'] else 'no':>6} "
               f"{r['no_blend_fps']:>13.2f} {100 * r['overhead']:>8.1f}% "
-              f"{r['e2e_ratio']:>8.2f}x {r['gflop']:>6.2f} "
+              f"{r['e2e_ratio']:>8.2f}x {r['png_fps']:>13.2f} {r['png_ratio']:>5.2f}x "
+              f"{r['gflop']:>6.2f} "
               f"{r['gflop'] / (1.0 / r['bare_fps']):>6.1f} GFLOP/s, "
               f"{100 * r['matmul_fraction']:>3.0f}% of matmul "
               f"({r['matmul_gflop_s']:.0f}) {r['decode_ms']:>9.2f} {r['fill_ms']:>7.2f}")

@@ -13,12 +13,15 @@ from deltar.inference.blend import (
     ConfidenceBlend,
     RegionBlend,
     blend_depth,
+    blend_fill,
     blend_weight,
+    blend_with_fill,
     fit_confidence_blend,
     zone_grid_mask,
 )
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.loading import load_estimator
+from deltar.inference.preprocess import resize_to_image, scale_rects
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -91,7 +94,9 @@ def test_blend_goes_from_the_network_to_the_fill(rng):
     np.testing.assert_array_equal(sure, network)
     unsure = blend_depth(network, np.full_like(network, 10.0), image, means, valid, rects,
                          FILL_ONLY)
-    np.testing.assert_allclose(unsure, fill, rtol=1e-5)
+    np.testing.assert_allclose(unsure, blend_fill(image, means, valid, rects), rtol=1e-5)
+    # The blend's fill is the baseline's solve on a coarser grid: the same away from edges.
+    assert np.median(np.abs(unsure / fill - 1.0)) < 1e-3
     # The fill follows the image: the bright half near 1 m, the dark half near 3 m.
     assert abs(np.median(unsure[:, :20]) - 1.0) < 0.1
     assert abs(np.median(unsure[:, -20:]) - 3.0) < 0.1
@@ -136,6 +141,21 @@ def _select_estimator(**kwargs) -> DepthEstimator:
                           weights="test", **kwargs)
 
 
+def _blended_on_grid(estimator: DepthEstimator, image: np.ndarray, frame: ZoneFrame,
+                     blend: ConfidenceBlend) -> np.ndarray:
+    """What ``predict`` returns with ``blend``: the network's depth blended with the fill
+    on the network's output grid, then resized to the image (metres)."""
+    inputs = estimator.prepare([image], [frame])
+    depth, spread = estimator.run_network(inputs)
+    grid = depth.shape[2:]
+    rects = inputs["image_rects"][0]
+    fill = blend_fill(image, frame.flat()[0], frame.flat()[2], rects,
+                      zone_far=frame.flat_no_target(), far_depth_m=5.0, out_size=grid)
+    mixed = blend_with_fill(depth[0, 0], spread[0, 0], fill,
+                            scale_rects(rects, image.shape[:2], grid), blend)
+    return resize_to_image(mixed[None, None], image.shape[:2])[0, 0]
+
+
 def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
     mean = rng.uniform(0.8, 3.0, (8, 8))
@@ -146,10 +166,13 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
     result, raw = blended.predict(image, frame), plain.predict(image, frame)
     assert raw.network_depth_m is None
     np.testing.assert_allclose(result.network_depth_m, raw.depth_m, rtol=1e-6)
-    expected = blend_depth(raw.depth_m, raw.uncertainty_m, image, frame.flat()[0],
-                           frame.flat()[2], result.zone_rects, DEFAULT_BLEND,
-                           zone_far=frame.flat_no_target(), far_depth_m=5.0)
-    np.testing.assert_allclose(result.depth_m, expected, rtol=1e-5)
+    np.testing.assert_allclose(result.depth_m,
+                               _blended_on_grid(plain, image, frame, DEFAULT_BLEND), rtol=1e-5)
+    # Blending on the grid then resizing is close to blending at the image's size.
+    at_image_size = blend_depth(raw.depth_m, raw.uncertainty_m, image, frame.flat()[0],
+                                frame.flat()[2], result.zone_rects, DEFAULT_BLEND,
+                                zone_far=frame.flat_no_target(), far_depth_m=5.0)
+    assert np.median(np.abs(result.depth_m / at_image_size - 1.0)) < 0.01
     assert not np.allclose(result.depth_m, raw.depth_m)  # the random net is unsure
     np.testing.assert_array_equal(result.uncertainty_m, raw.uncertainty_m)
     # Other heads were not validated with the blend: off unless asked for.
@@ -244,9 +267,8 @@ def test_blend_follows_the_flip_averaged_network_and_batches(rng):
     frame = ZoneFrame(rng.uniform(0.8, 3.0, (8, 8)), np.full((8, 8), 0.02),
                       np.ones((8, 8), bool))
     flipped = _select_estimator(flip_average=True).predict(image, frame)
-    expected = blend_depth(flipped.network_depth_m, flipped.uncertainty_m, image,
-                           frame.flat()[0], frame.flat()[2], flipped.zone_rects,
-                           DEFAULT_BLEND, zone_far=frame.flat_no_target(), far_depth_m=5.0)
+    expected = _blended_on_grid(_select_estimator(flip_average=True), image, frame,
+                                DEFAULT_BLEND)
     np.testing.assert_allclose(flipped.depth_m, expected, rtol=1e-5)
     # A batch with an image-only frame: that one keeps the network's depth, the other is
     # blended exactly as alone.

@@ -102,8 +102,13 @@ def test_affinity_weights_are_the_nan_window_formula(shape):
 def test_the_blend_fill_is_the_baseline_fill_to_a_millionth(rng):
     """The blend's fill stops refining at BLEND_FILL_TOLERANCE; the classical baseline
     refines to float64. On textured frames with edges they agree within 1e-6 of the
-    readings' largest value (the float32 LU alone is off by up to ~3e-4 of it)."""
-    from deltar.inference.blend import BLEND_FILL_TOLERANCE
+    readings' largest value (the float32 LU alone is off by up to ~3e-4 of it). The blend
+    solves that system on BLEND_FILL_CELLS cells."""
+    from deltar.inference.blend import (
+        BLEND_FILL_CELLS,
+        BLEND_FILL_SEED_SIDE,
+        BLEND_FILL_TOLERANCE,
+    )
     from deltar.inference.colorization import colorize_zones
 
     for _ in range(4):
@@ -112,7 +117,33 @@ def test_the_blend_fill_is_the_baseline_fill_to_a_millionth(rng):
         exact = colorize_zones(image, means, valid, rects)
         fast = colorize_zones(image, means, valid, rects, tolerance=BLEND_FILL_TOLERANCE)
         np.testing.assert_allclose(fast, exact, rtol=0, atol=1e-6 * means[valid].max())
-        np.testing.assert_array_equal(blend_fill(image, means, valid, rects), fast)
+        np.testing.assert_array_equal(
+            blend_fill(image, means, valid, rects),
+            colorize_zones(image, means, valid, rects, solve_cells=BLEND_FILL_CELLS,
+                           seed_side=BLEND_FILL_SEED_SIDE, tolerance=BLEND_FILL_TOLERANCE))
     for bad in (0.0, 1.0, -1e-3, "1e-3"):
         with pytest.raises(ValueError, match="tolerance"):
             colorize_zones(image, means, valid, rects, tolerance=bad)
+
+
+def test_the_fill_at_another_output_size_is_the_same_solution_resampled(rng):
+    """``out_size`` resamples the one solution: the estimator asks for its network's
+    output grid; the map covers the whole image either way."""
+    import cv2
+
+    from deltar.inference.colorization import colorize_zones
+
+    image, means, valid, rects, _ = _zones(rng, 96, 128)
+    image[:, 40:] //= 4
+    full = colorize_zones(image, means, valid, rects)
+    half = colorize_zones(image, means, valid, rects, out_size=(48, 64))
+    assert half.shape == (48, 64) and half.dtype == np.float32
+    # Both are bilinear resamplings of the same small solution: the full map shrunk by
+    # area averaging is within the interpolation's difference of the half-size one.
+    shrunk = cv2.resize(full, (64, 48), interpolation=cv2.INTER_AREA)
+    assert np.median(np.abs(shrunk - half)) < 1e-3 * means[valid].max()
+    assert half.min() >= means[valid].min() - 1e-6 and half.max() <= means[valid].max() + 1e-6
+    assert blend_fill(image, means, valid, rects, out_size=(30, 40)).shape == (30, 40)
+    for bad in ((0, 64), (48,), (48.0, 64), "48x64"):
+        with pytest.raises(ValueError, match="out_size"):
+            colorize_zones(image, means, valid, rects, out_size=bad)

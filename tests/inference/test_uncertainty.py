@@ -100,11 +100,18 @@ def test_estimator_applies_the_calibration_the_weights_carry(lite_model, rng) ->
     assert result.uncertainty_calibrated
     np.testing.assert_allclose(result.depth_m, raw.depth_m)
     from deltar.inference.blend import zone_grid_mask
+    from deltar.inference.preprocess import resize_to_image, scale_rects
 
-    inside = zone_grid_mask(result.zone_rects, result.depth_m.shape)
+    # Computed on the network's output grid, then resized to the image.
+    estimator = DepthEstimator(lite_model, fold_batch_norms=False)
+    depth, spread = (m[0, 0] for m in estimator.run_network(estimator.prepare([image],
+                                                                              [frame])))
+    inside = zone_grid_mask(scale_rects(result.zone_rects, image.shape[:2], depth.shape),
+                            depth.shape)
     assert inside.any() and (~inside).any()
-    expected = np.where(inside, np.hypot(2.0 * raw.uncertainty_m, 0.05 * raw.depth_m),
-                        np.hypot(3.0 * raw.uncertainty_m, 0.1 * raw.depth_m))
+    expected = np.where(inside, np.hypot(2.0 * spread, 0.05 * depth),
+                        np.hypot(3.0 * spread, 0.1 * depth))
+    expected = resize_to_image(expected[None, None], image.shape[:2])[0, 0]
     np.testing.assert_allclose(result.uncertainty_m, expected, rtol=1e-5)
     # uncertainty=None keeps the raw spread whatever the weights carry.
     lite_model.set_output_contract(uncertainty_calibration=calibration.to_dict())

@@ -176,21 +176,27 @@ def _logistic(logit: np.ndarray) -> np.ndarray:
 #: step of the single-precision LU, which leaves about 1e-7 of the readings' scale
 #: (float32's own rounding), where the classical baseline refines to float64's 1e-10.
 BLEND_FILL_TOLERANCE = 1e-3
+#: Cells of the blend's fill solve (``colorize_zones``' ``solve_cells``) and the side of
+#: each zone's seed square in them.
+BLEND_FILL_CELLS = 2400
+BLEND_FILL_SEED_SIDE = 3
 
 
 def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
-               far_depth_m: float | None = None) -> np.ndarray | None:
+               far_depth_m: float | None = None, out_size: tuple[int, int] | None = None
+               ) -> np.ndarray | None:
     """The fill that :func:`blend_depth` blends with: the zones' colorization (metres).
 
     It needs only the image and the zones, so a stream can compute it while the network
-    runs (:func:`start_blend_fill`). Arguments as :func:`blend_depth`'s. Solved to
-    :data:`BLEND_FILL_TOLERANCE` (within 1e-6 of the readings' scale of the float64
-    solution the ``colorization`` baseline gives; tested).
+    runs (:func:`start_blend_fill`). Arguments as :func:`blend_depth`'s; ``out_size``
+    (h, w) pixels of the returned map covering the whole image (the image's size by
+    default; the estimator asks for its network's output grid and blends there). Solved
+    on :data:`BLEND_FILL_CELLS` cells to :data:`BLEND_FILL_TOLERANCE`.
 
     Returns:
-        (H, W) float32 fill, metres, or None when no valid zone (on the image) is there
-        to fill from.
+        (H, W) (or ``out_size``) float32 fill, metres, or None when no valid zone (on
+        the image) is there to fill from.
 
     Raises:
         ValueError: as :func:`blend_depth` for the zone and image arguments.
@@ -212,7 +218,9 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
             raise ValueError(f"zone_far must have zone_mean_m's shape {means.shape}, got "
                              f"{np.shape(zone_far)}")
         means, valid = no_target_as_readings(means, valid, zone_far, far_depth_m)
-    return colorize_zones(image_rgb, means, valid, zone_rects, tolerance=BLEND_FILL_TOLERANCE)
+    return colorize_zones(image_rgb, means, valid, zone_rects, solve_cells=BLEND_FILL_CELLS,
+                          seed_side=BLEND_FILL_SEED_SIDE, tolerance=BLEND_FILL_TOLERANCE,
+                          out_size=out_size)
 
 
 _FILL_WORKER: ThreadPoolExecutor | None = None
@@ -221,7 +229,8 @@ _FILL_WORKER_LOCK = threading.Lock()
 
 def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                      zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
-                     far_depth_m: float | None = None) -> Future:
+                     far_depth_m: float | None = None,
+                     out_size: tuple[int, int] | None = None) -> Future:
     """:func:`blend_fill` on a worker thread; its ``Future`` gives the fill (or raises).
 
     The fill spends most of its time in LAPACK and OpenCV, which release the GIL, so it
@@ -233,7 +242,7 @@ def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid:
         if _FILL_WORKER is None:
             _FILL_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deltar-fill")
     return _FILL_WORKER.submit(blend_fill, image_rgb, zone_mean_m, zone_valid, zone_rects,
-                               zone_far, far_depth_m)
+                               zone_far, far_depth_m, out_size)
 
 
 def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.ndarray,

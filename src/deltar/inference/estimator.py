@@ -29,12 +29,11 @@ from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import (
     ConfidenceBlend,
-    blend_with_fill,
     resolve_blend,
     start_blend_fill,
-    zone_grid_mask,
 )
 from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
+from deltar.inference.output_stage import apply_output_stage
 from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
     check_input_size,
@@ -432,45 +431,38 @@ class DepthEstimator:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
         inputs = self.prepare(images, frames, calibration, zone_rects)
+        size, net_size = inputs["image_size"], inputs["network_size"]
+        grid = (net_size[0] // 2, net_size[1] // 2)  # the network's output grid
         # The blend's fill needs only the image and the zones: it runs while the network
         # does (a worker thread; both release the GIL).
         fills = [self._start_fill(images[i], frame, inputs["image_rects"][i],
-                                  inputs["zone_no_target"][i])
+                                  inputs["zone_no_target"][i], grid)
                  for i, frame in enumerate(frames)] if self.blend is not None else None
-        depth, uncertainty = self.run_network(inputs)
-        size = inputs["image_size"]
-        both = resize_to_image(np.concatenate([depth, uncertainty], axis=1), size)
+        depths, spreads = self.run_network(inputs)
         intrinsics = self.image_intrinsics(size, calibration)
         results = []
         for i, frame in enumerate(frames):
-            depth, spread = both[i, 0], both[i, 1]  # float32 already (resize_to_image)
-            if frame.valid_count == 0:  # image-only: the metric scale is unknown
-                spread = np.maximum(spread, depth)
-            network_depth = None
-            rects = inputs["image_rects"][i]
+            # Blend and sigma on the network's output grid, then one resize of what is
+            # returned (deltar.inference.output_stage).
+            grid_rects = scale_rects(inputs["image_rects"][i], size, depths.shape[2:])
             fill = fills[i].result() if fills is not None else None
-            if fill is not None:  # else no blend, or no valid zone (on the image) to fill from
-                network_depth = depth
-                depth = blend_with_fill(depth, spread, fill, rects, self.blend)
-            if self.uncertainty is not None:
-                moved = (np.zeros_like(depth) if network_depth is None
-                         else np.abs(network_depth - depth))
-                calibrated = self.uncertainty.sigma(spread, depth, moved,
-                                                    zone_grid_mask(rects, depth.shape))
-                spread = calibrated if frame.valid_count else np.maximum(calibrated, depth)
-            results.append(DepthPrediction(depth_m=depth, uncertainty_m=spread,
+            maps = [m for m in apply_output_stage(depths[i, 0], spreads[i, 0], fill, grid_rects,
+                                                  self.blend, self.uncertainty,
+                                                  frame.valid_count == 0) if m is not None]
+            maps = resize_to_image(np.stack(maps)[None], size)[0]
+            results.append(DepthPrediction(depth_m=maps[0], uncertainty_m=maps[1],
                                            zone_rects=inputs["image_rects"][i],
                                            zone_frame=frame, intrinsics=intrinsics,
                                            zones_used=frame.valid_count,
-                                           network_size=tuple(inputs["network_size"]),
-                                           network_depth_m=network_depth,
+                                           network_size=tuple(net_size),
+                                           network_depth_m=maps[2] if len(maps) > 2 else None,
                                            uncertainty_calibrated=self.uncertainty
                                            is not None,
                                            zone_no_target=inputs["zone_no_target"][i]))
         return results[0] if single else results
 
-    def blend_fill_for(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray
-                       ) -> np.ndarray | None:
+    def blend_fill_for(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray,
+                       out_size: tuple[int, int] | None = None) -> np.ndarray | None:
         """The fill the blend mixes with for one frame: (H, W) float32 metres, or None.
 
         Args:
@@ -478,12 +470,16 @@ class DepthEstimator:
             frame: its zone frame.
             rects: (Z, 4) zone rectangles in pixels of ``image``
                 (``DepthPrediction.zone_rects``).
+            out_size: (h, w) pixels of the returned map (it covers the whole image);
+                the image's size by default (``predict`` asks for its network's output
+                grid).
 
         Returns:
             :func:`~deltar.inference.blend.blend_fill` of the zones (no-target zones read
             at the network's ``no_target_depth``), None without a valid zone on the image.
         """
-        return self._start_fill(image, frame, rects, self.no_target_of(frame)).result()
+        return self._start_fill(image, frame, rects, self.no_target_of(frame),
+                                out_size).result()
 
     def no_target_of(self, frame: ZoneFrame) -> np.ndarray:
         """(Z,) bool: the frame's no-target flags, inferred when it carries none
@@ -491,10 +487,12 @@ class DepthEstimator:
         return frame_no_target(frame, self.no_target_min_neighbour_m)
 
     def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray,
-                    no_target: np.ndarray) -> Future:
-        """:func:`~deltar.inference.blend.start_blend_fill` for one frame (H, W metres);
-        ``no_target`` (Z,) bool the flags the network read (:meth:`no_target_of`)."""
+                    no_target: np.ndarray, out_size: tuple[int, int] | None = None
+                    ) -> Future:
+        """:func:`~deltar.inference.blend.start_blend_fill` for one frame (metres, at
+        ``out_size`` or the image's size); ``no_target`` (Z,) bool the flags the network
+        read (:meth:`no_target_of`)."""
         mean, _, valid = frame.flat()
         far = no_target if self.no_target_depth_m is not None else None
         return start_blend_fill(image, mean, valid, rects, zone_far=far,
-                                far_depth_m=self.no_target_depth_m)
+                                far_depth_m=self.no_target_depth_m, out_size=out_size)
