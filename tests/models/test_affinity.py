@@ -309,3 +309,49 @@ def test_the_exported_descriptors_are_the_descriptors(image_size):
         expected = descriptors(features, zones)
         got = descriptors._export_forward(features, (height // 4, width // 4))
     torch.testing.assert_close(got, expected, rtol=0, atol=2e-6)
+
+
+@pytest.mark.parametrize("image_size", [(64, 96), (56, 88), (96, 64)])
+def test_the_factored_descriptors_give_the_descriptors_products(image_size):
+    """The export's factored form (coarse maps, bilinear matrices, per-cell factors whose
+    norms come from neighbouring coarse cells) gives the descriptors themselves, their
+    footprint sums and their dot products with a table, as forward's descriptors do;
+    56x88 resizes by a fractional factor."""
+    from deltar.models.affinity import FactoredDescriptors
+
+    torch.manual_seed(4)
+    descriptors = EncoderDescriptors([16, 24, 40, 112], strides=(8, 16), out_stride=4)
+    with torch.no_grad():
+        descriptors.channel_weight.uniform_(0.5, 1.5)
+    height, width = image_size
+    features = [torch.randn(2, c, -(-height // s), -(-width // s))
+                for c, s in zip([16, 24, 40, 112], (2, 4, 8, 16), strict=True)]
+    with torch.no_grad():
+        expected = descriptors(features, DecoderZones(image_size=image_size))
+        factored = descriptors._factored(features, (height // 4, width // 4))
+        assert isinstance(factored, FactoredDescriptors)
+        assert tuple(factored.shape) == tuple(expected.shape)
+        torch.testing.assert_close(factored.materialise(), expected, rtol=0, atol=2e-6)
+        h, w = expected.shape[-2:]
+        weights_y, weights_x = torch.rand(2, h, 5), torch.rand(2, w, 5)
+        pooled = torch.einsum("bchw,bhz,bwz->bcz", expected, weights_y, weights_x)
+        torch.testing.assert_close(factored.pool(weights_y, weights_x), pooled,
+                                   rtol=1e-5, atol=1e-5)
+        table = torch.randn(2, expected.shape[1], 7)
+        dots = torch.einsum("bchw,bcn->bhwn", expected, table)
+        torch.testing.assert_close(factored.dot(table), dots, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(("coarse", "fine"), [((16, 20), (64, 80)), ((4, 6), (7, 11)),
+                                              ((6, 5), (3, 4)), ((1, 3), (4, 9))])
+def test_upsampled_square_norms_from_the_coarse_map(coarse, fine):
+    from deltar.models.affinity import _upsampled_square_norms, bilinear_matrix
+
+    torch.manual_seed(5)
+    part = torch.randn(2, 6, *coarse)
+    kernel = torch.rand(2, 6)
+    rows, cols = bilinear_matrix(coarse[0], fine[0]), bilinear_matrix(coarse[1], fine[1])
+    upsampled = torch.from_numpy(rows) @ part @ torch.from_numpy(cols).T
+    expected = torch.einsum("kc,bchw->bkhw", kernel, upsampled * upsampled)
+    torch.testing.assert_close(_upsampled_square_norms(part, kernel, rows, cols), expected,
+                               rtol=1e-5, atol=1e-5)

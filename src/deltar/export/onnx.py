@@ -197,6 +197,8 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
             # Frames whose zones report one target each (most) run the graph traced
             # without the targets, the same outputs in less time.
             proto = _single_target_branch(proto, trace(len(inputs) - 1))
+        _merge_equal_constants(proto)
+        _short_value_names(proto)
         extra = {SIGNATURE_KEY: json.dumps(signature), "deltar_grid": str(grid),
                  "deltar_image_size": f"{height}x{width}",
                  "deltar_input_size": f"{net_height}x{net_width}",
@@ -267,6 +269,8 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
             single = export_onnx(model, Path(tmp) / f"{size_text(size)}.onnx", height, width,
                                  metadata=metadata)
             protos[size] = onnx.load(str(single))
+        for proto in protos.values():
+            _name_constants_by_contents(proto)
         blob, where = _shared_weights(list(protos.values()))
         with atomic_path(data_path, overwrite=overwrite) as tmp_data:
             tmp_data.write_bytes(blob)
@@ -279,15 +283,152 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
     return targets
 
 
+def _name_constants_by_contents(proto: onnx.ModelProto) -> None:
+    """Rename the large initializers the exporter named by a counter (``onnx::...``, e.g.
+    folded batch norms) after their contents, in place, references in branches too.
+
+    The counter's numbers depend on how many values the trace made before, which can
+    differ between input sizes; names from the contents let exports at several sizes
+    share the same tensors (:func:`_shared_weights`).
+    """
+    import hashlib
+
+    from onnx import numpy_helper
+
+    renames = {}
+    for tensor in proto.graph.initializer:
+        array = numpy_helper.to_array(tensor)
+        if tensor.name.startswith("onnx::") and array.nbytes >= SHARED_MIN_BYTES:
+            digest = hashlib.sha1(f"{array.dtype}{array.shape}".encode() + array.tobytes())
+            renames[tensor.name] = f"constant_{digest.hexdigest()[:16]}"
+    if not renames:
+        return
+    kept, seen = [], set()
+    for tensor in proto.graph.initializer:
+        tensor.name = renames.get(tensor.name, tensor.name)
+        if tensor.name not in seen:  # equal contents: one tensor
+            seen.add(tensor.name)
+            kept.append(tensor)
+    del proto.graph.initializer[:]
+    proto.graph.initializer.extend(kept)
+
+    def rename_in(graph: onnx.GraphProto) -> None:
+        for node in graph.node:
+            node.input[:] = [renames.get(name, name) for name in node.input]
+            for attribute in node.attribute:
+                if attribute.HasField("g"):
+                    rename_in(attribute.g)
+                for sub in attribute.graphs:
+                    rename_in(sub)
+
+    rename_in(proto.graph)
+
+
+def _merge_equal_constants(proto: onnx.ModelProto) -> int:
+    """Replace ``Constant`` nodes that hold the same tensor, in the graph and its ``If``
+    branches, by one initializer of the outer graph, in place (a branch reads outer
+    values). The trace writes a constant each time the code builds one (an interpolation
+    matrix read by several products, or by both branches).
+
+    Returns:
+        Number of ``Constant`` nodes removed.
+    """
+    import hashlib
+
+    from onnx import numpy_helper
+
+    graph = proto.graph
+    by_contents: dict[str, str] = {}
+    for tensor in graph.initializer:
+        array = numpy_helper.to_array(tensor)
+        by_contents.setdefault(hashlib.sha1(
+            f"{array.dtype}{array.shape}".encode() + array.tobytes()).hexdigest(), tensor.name)
+    removed = 0
+
+    def merge(sub: onnx.GraphProto) -> None:
+        nonlocal removed
+        renames: dict[str, str] = {}
+        kept = []
+        for node in sub.node:
+            value = next((a.t for a in node.attribute if a.name == "value"), None)
+            if node.op_type == "Constant" and node.domain in ("", "ai.onnx") and \
+                    value is not None and len(node.attribute) == 1:
+                array = numpy_helper.to_array(value)
+                key = hashlib.sha1(f"{array.dtype}{array.shape}".encode()
+                                   + array.tobytes()).hexdigest()
+                if key not in by_contents:
+                    by_contents[key] = node.output[0]
+                    graph.initializer.append(numpy_helper.from_array(array, node.output[0]))
+                renames[node.output[0]] = by_contents[key]
+                removed += 1
+                continue
+            kept.append(node)
+        del sub.node[:]
+        sub.node.extend(kept)
+        for node in sub.node:
+            node.input[:] = [renames.get(name, name) for name in node.input]
+        for value in sub.output:
+            if value.name in renames:  # an output must be produced in its graph
+                sub.node.append(onnx.helper.make_node("Identity", [renames[value.name]],
+                                                      [value.name]))
+        for node in sub.node:
+            for attribute in node.attribute:
+                if attribute.HasField("g"):
+                    merge(attribute.g)
+                    # The branch may read what this graph renamed.
+                    for inner in attribute.g.node:
+                        inner.input[:] = [renames.get(name, name) for name in inner.input]
+
+    merge(graph)
+    return removed
+
+
+def _short_value_names(proto: onnx.ModelProto) -> None:
+    """Name the values the graph's nodes compute with short numbers, in place (branches
+    too); graph inputs, outputs, initializers and node names are kept (profiles name the
+    nodes). The tracer's names (module path, operator, output index) repeated at every
+    producer and reader were a third of a graph file's bytes."""
+    graph = proto.graph
+    kept = {v.name for v in graph.input} | {v.name for v in graph.output}
+    renames: dict[str, str] = {}
+
+    def collect(sub: onnx.GraphProto) -> None:
+        for node in sub.node:
+            for name in node.output:
+                if name and name not in kept and name not in renames:
+                    renames[name] = f"v{len(renames):x}"
+            for attribute in node.attribute:
+                if attribute.HasField("g"):
+                    collect(attribute.g)
+
+    def apply(sub: onnx.GraphProto) -> None:
+        for node in sub.node:
+            node.input[:] = [renames.get(name, name) for name in node.input]
+            node.output[:] = [renames.get(name, name) for name in node.output]
+            for attribute in node.attribute:
+                if attribute.HasField("g"):
+                    apply(attribute.g)
+        for value in [*sub.output, *sub.value_info]:
+            value.name = renames.get(value.name, value.name)
+
+    collect(graph)
+    apply(graph)
+
+
 def _shared_weights(protos: list[onnx.ModelProto]) -> tuple[bytes, dict[str, tuple[int, int]]]:
     """The large initializers of several exports of one network as one blob.
+
+    Only those equal (same name, same contents) in every export are shared; the others
+    (constants that depend on the input size, such as interpolation weights) stay in
+    their own graph.
 
     Returns:
         The blob (each tensor's little-endian bytes, at 64-byte aligned offsets) and
         name -> (offset, length).
 
     Raises:
-        ValueError: the exports' large initializers differ (not one network's weights).
+        ValueError: the exports' network weights (the module's parameters and buffers)
+            differ: not one network's exports.
     """
     from onnx import numpy_helper
 
@@ -298,9 +439,12 @@ def _shared_weights(protos: list[onnx.ModelProto]) -> tuple[bytes, dict[str, tup
 
     tensors = large(protos[0])
     for proto in protos[1:]:
-        if large(proto) != tensors:
+        other = large(proto)
+        if any(name.startswith("inner.") and other.get(name) != data
+               for name, data in tensors.items()):
             raise ValueError("the exports' weights differ: only one network's exports at "
                              "several sizes can share a weights file")
+        tensors = {name: data for name, data in tensors.items() if other.get(name) == data}
     blob, where = bytearray(), {}
     for name, data in tensors.items():
         blob.extend(b"\0" * (-len(blob) % 64))

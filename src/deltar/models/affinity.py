@@ -55,6 +55,9 @@ class EncoderDescriptors(nn.Module):
         self.out_stride = int(out_stride)
         self.channels = sum(int(encoder_channels[i]) for i in self.levels)
         self.channel_weight = nn.Parameter(torch.ones(self.channels))
+        #: Under ONNX export, return :class:`FactoredDescriptors` (set by the network
+        #: when its head reads them; plain PyTorch never does).
+        self.factored_export = False
 
     def forward(self, features: Sequence[torch.Tensor], zones: DecoderZones
                 ) -> torch.Tensor:
@@ -72,6 +75,8 @@ class EncoderDescriptors(nn.Module):
         height, width = zones.image_size
         size = (height // self.out_stride, width // self.out_stride)
         if torch.onnx.is_in_onnx_export() and bool((self.channel_weight != 0).all()):
+            if self.factored_export:
+                return self._factored(features, size)
             return self._export_forward(features, size)
         parts = []
         for level in self.levels:
@@ -131,6 +136,137 @@ class EncoderDescriptors(nn.Module):
         total = torch.rsqrt(sum(weighted_sums).clamp_min(eps2))
         return torch.cat([part * (inverse * total)
                           for part, inverse in zip(scaled, inverse_norms, strict=True)], dim=1)
+
+
+    def _factored(self, features: Sequence[torch.Tensor], size: tuple[int, int]
+                  ) -> FactoredDescriptors:
+        """:meth:`forward`'s descriptors for the ONNX export, never formed: each scale as its
+        coarse map (centred, weighted per channel), its constant bilinear matrices and a
+        per-cell factor that holds both normalisations, which
+        :class:`FactoredDescriptors` applies inside the products the head needs.
+
+        The factors need each cell's squared norm of the upsampled map; a bilinear cell
+        mixes at most 2 x 2 neighbouring coarse cells, so it is a sum over the coarse
+        map's products with its right, lower and diagonal neighbours
+        (:func:`_upsampled_square_norms`), all at the coarse size. Needs every channel
+        weight non-zero (checked by the caller).
+        """
+        eps2 = 1e-24  # unit_channels' eps squared
+        size = (int(size[0]), int(size[1]))
+        parts, rows_all, cols_all, inverse_norms, weighted_sums = [], [], [], [], []
+        start = 0
+        for level in self.levels:
+            part = features[level]
+            channels = int(part.shape[1])
+            weight = self.channel_weight[start:start + channels]
+            start += channels
+            coarse = (int(part.shape[-2]), int(part.shape[-1]))
+            rows = bilinear_matrix(coarse[0], size[0])
+            cols = bilinear_matrix(coarse[1], size[1])
+            # The upsampled map's spatial mean, from the coarse cells each weighed by
+            # its share of the upsampling (uniform for whole factors).
+            share = np.outer(rows.sum(0, dtype=np.float64), cols.sum(0, dtype=np.float64))
+            share = torch.from_numpy((share / share.sum()).astype(np.float32).reshape(-1, 1))
+            part = part - torch.matmul(part.flatten(2), share)[..., None]  # one product
+            part = part * weight[None, :, None, None]
+            kernel = torch.stack([1.0 / (weight * weight), torch.ones_like(weight)])
+            sums = _upsampled_square_norms(part, kernel, rows, cols)  # (B, 2, h, w)
+            inverse = torch.rsqrt(sums[:, :1].clamp_min(eps2))  # 1 / |p|
+            parts.append(part)
+            rows_all.append(torch.from_numpy(rows))
+            cols_all.append(torch.from_numpy(cols))
+            inverse_norms.append(inverse)
+            weighted_sums.append(sums[:, 1:] * inverse * inverse)
+        total = torch.rsqrt(sum(weighted_sums).clamp_min(eps2))
+        return FactoredDescriptors(parts, rows_all, cols_all,
+                                   [inverse * total for inverse in inverse_norms])
+
+
+class FactoredDescriptors:
+    """Descriptors ``cat_k(factor_k * rows_k @ part_k @ cols_k^T)`` kept in factors (ONNX
+    export): the two products the plane head needs are computed at the coarse sizes.
+
+    Args:
+        parts: per scale k, (B, C_k, h_k, w_k) coarse maps.
+        rows, cols: per scale, (h, h_k) and (w, w_k) bilinear matrices.
+        factors: per scale, (B, 1, h, w) per-cell factors.
+
+    Attributes:
+        shape: (B, C, h, w) of the descriptors they stand for; dtype likewise.
+    """
+
+    def __init__(self, parts: list[torch.Tensor], rows: list[torch.Tensor],
+                 cols: list[torch.Tensor], factors: list[torch.Tensor]) -> None:
+        self.parts, self.rows, self.cols, self.factors = parts, rows, cols, factors
+        first = parts[0]
+        self.shape = torch.Size((first.shape[0], sum(int(p.shape[1]) for p in parts),
+                                 rows[0].shape[0], cols[0].shape[0]))
+        self.dtype = first.dtype
+
+    def pool(self, weights_y: torch.Tensor, weights_x: torch.Tensor) -> torch.Tensor:
+        """(B, C, Z) sums over the cells of the descriptors times separable weights
+        ``weights_y[:, i, z] * weights_x[:, j, z]`` ((B, h, Z) and (B, w, Z)): per scale
+        ``part_k . (rows_k^T (factor_k * W_z) cols_k)`` (the weights brought to the coarse
+        cells)."""
+        batch = self.shape[0]
+        footprint = weights_y.transpose(1, 2)[..., :, None] * \
+            weights_x.transpose(1, 2)[..., None, :]  # (B, Z, h, w)
+        pooled = []
+        for part, rows, cols, factor in zip(self.parts, self.rows, self.cols, self.factors,
+                                            strict=True):
+            coarse = torch.matmul(rows.t(), torch.matmul(footprint * factor, cols))
+            pooled.append(torch.matmul(part.reshape(batch, part.shape[1], -1),
+                                       coarse.flatten(2).transpose(1, 2)))
+        return torch.cat(pooled, dim=1)
+
+    def dot(self, table: torch.Tensor) -> torch.Tensor:
+        """(B, h, w, N) each cell's descriptor dotted with the columns of ``table``
+        (B, C, N): per scale the coarse cells' products, upsampled, times the factor."""
+        batch, height, width = self.shape[0], self.shape[2], self.shape[3]
+        columns = table.shape[2]
+        total, start = None, 0
+        for part, rows, cols, factor in zip(self.parts, self.rows, self.cols, self.factors,
+                                            strict=True):
+            channels, coarse_h, coarse_w = (int(v) for v in part.shape[1:])
+            coarse = torch.matmul(part.reshape(batch, channels, -1).transpose(1, 2),
+                                  table[:, start:start + channels])  # (B, h_k*w_k, N)
+            start += channels
+            upsampled = torch.matmul(cols, coarse.reshape(batch, coarse_h, coarse_w, columns))
+            upsampled = torch.matmul(rows, upsampled.reshape(batch, coarse_h, -1))
+            term = upsampled.reshape(batch, height, width, columns) * \
+                factor.reshape(batch, height, width, 1)
+            total = term if total is None else total + term
+        return total
+
+    def materialise(self) -> torch.Tensor:
+        """(B, C, h, w) the descriptors themselves."""
+        return torch.cat([torch.matmul(rows, torch.matmul(part, cols.t())) * factor
+                          for part, rows, cols, factor in zip(
+                              self.parts, self.rows, self.cols, self.factors, strict=True)],
+                         dim=1)
+
+
+def _upsampled_square_norms(part: torch.Tensor, kernel: torch.Tensor, rows: np.ndarray,
+                            cols: np.ndarray) -> torch.Tensor:
+    """(B, K, h, w) per cell, ``sum_c kernel[k, c] * u[c]^2`` of the bilinear upsampling
+    ``u = rows @ part @ cols^T`` of a (B, C, h_k, w_k) map, without forming ``u``.
+
+    The map is upsampled along its rows' width only (``part @ cols^T``, h_k x w); each
+    row of ``rows`` then weighs at most two neighbouring coarse rows
+    (:func:`bilinear_matrix`), so ``u^2`` is ``rows^2`` times the squares plus twice
+    ``rows[:, k] rows[:, k + 1]`` times the products of neighbouring rows, both summed
+    over channels by ``kernel`` (K, C) at the coarse height.
+    """
+    coarse_h = int(part.shape[-2])
+    wide = torch.matmul(part, torch.from_numpy(cols.T.copy()))  # (B, C, h_k, w)
+    rows64 = rows.astype(np.float64)
+    fine = torch.matmul(torch.from_numpy((rows64 * rows64).astype(np.float32)),
+                        F.conv2d(wide * wide, kernel[:, :, None, None]))
+    if coarse_h > 1:
+        pairs = F.conv2d(wide[:, :, :-1] * wide[:, :, 1:], kernel[:, :, None, None])
+        weights = 2.0 * rows64[:, :-1] * rows64[:, 1:]
+        fine = fine + torch.matmul(torch.from_numpy(weights.astype(np.float32)), pairs)
+    return fine
 
 
 def bilinear_matrix(size_in: int, size_out: int) -> np.ndarray:

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from deltar.models.affinity import FactoredDescriptors
 from deltar.models.heads.base import DepthHead, HeadOutput, ZoneInputs
 from deltar.models.heads.footprints import (
     footprint_pool,
@@ -205,6 +206,8 @@ class PlanarSelectHead(DepthHead):
     """
 
     uses_targets = True
+    #: The ONNX export may hand :meth:`forward` :class:`FactoredDescriptors`.
+    reads_factored_descriptors = True
 
     def __init__(self, temperature: float = 5.0, planar: bool = True, max_ratio: float = 2.0,
                  n_bins: int = 64, min_depth: float = 1e-3, max_depth: float = 10.0,
@@ -251,6 +254,8 @@ class PlanarSelectHead(DepthHead):
         if torch.onnx.is_in_onnx_export() and self.planar:
             return self._export_forward(descriptors, zone_mean_m, zone_valid, zone_rects,
                                         stride, zone_no_target, zone_scale_m, zone_targets)
+        if isinstance(descriptors, FactoredDescriptors):
+            descriptors = descriptors.materialise()
         _, _, height, width = descriptors.shape
         dtype = descriptors.dtype
         valid = zone_valid.bool()
@@ -352,6 +357,11 @@ class PlanarSelectHead(DepthHead):
         clamped softmax and one chain for the hypotheses, on all columns at once: no
         gathers, concatenations or masks on per-cell tensors. A constant's ratio is 1,
         so its hypothesis is exactly its log depth.
+
+        ``descriptors`` may be :class:`~deltar.models.affinity.FactoredDescriptors` (the
+        export of :class:`~deltar.models.affinity.EncoderDescriptors`): the footprint sums
+        and the per-cell dot products are then computed from the coarse encoder maps,
+        the descriptors never formed.
         """
         batch, _, height, width = descriptors.shape
         dtype = descriptors.dtype
@@ -370,7 +380,17 @@ class PlanarSelectHead(DepthHead):
             log_mean = torch.where(far, log_far.to(dtype), log_mean)
         rects = zone_rects.to(dtype)
         log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
-        pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
+        if isinstance(descriptors, FactoredDescriptors):
+            # Footprints up to each zone's largest, floored at e^-30 per axis (a change
+            # of ~1e-13 after the normalisation below): their products with the
+            # descriptors' factors must stay far from subnormal floats, which make the
+            # matrix products many times slower.
+            pooled = descriptors.pool(
+                *(torch.exp((w - w.amax(dim=1, keepdim=True)).clamp_min(-30.0))
+                  for w in (log_wy, log_wx)))
+        else:
+            pooled = footprint_pool(descriptors, log_wy, log_wx)
+        pooled = F.normalize(pooled, dim=1)  # (B, C, Z)
         # The planes' inverse-depth ratio, separable: ratio_y (B, h, Z) + ratio_x (B, w, Z).
         slope_y, slope_x = zone_planes(means, valid, rects)
         centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
@@ -415,9 +435,12 @@ class PlanarSelectHead(DepthHead):
             ratio_y = torch.cat([ratio_y, torch.ones_like(log_wy_2)], dim=2)
             ratio_x = torch.cat([ratio_x, torch.zeros_like(log_wx_2)], dim=2)
         columns = table.shape[2]
-        pixels = descriptors.flatten(2).transpose(1, 2)  # (B, h*w, C)
-        logits = (pixels @ table).reshape(batch, height, width, columns) + \
-            log_wy[:, :, None, :] + log_wx[:, None, :, :]
+        if isinstance(descriptors, FactoredDescriptors):
+            affinity = descriptors.dot(table)  # (B, h, w, N)
+        else:
+            affinity = (descriptors.flatten(2).transpose(1, 2) @ table).reshape(
+                batch, height, width, columns)
+        logits = affinity + log_wy[:, :, None, :] + log_wx[:, None, :, :]
         # softmax_over_zones' clamp, as a floor: the softmax subtracts the same peak.
         peak = logits.amax(dim=-1, keepdim=True)
         weights = torch.softmax(torch.maximum(logits, peak - 80.0), dim=-1)
