@@ -72,8 +72,8 @@ class ConfidenceBlend(RegionPair, region_type=RegionBlend, what="confidence blen
 #: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones,
 #: simulated with up to four targets per zone)
 #: with the bundled model (docs/training.md).
-DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-4.953, -2.953),
-                                outside=RegionBlend(-3.864, -2.581))
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.200, -3.223),
+                                outside=RegionBlend(-3.261, -2.257))
 
 
 def resolve_blend(blend: ConfidenceBlend | str | None, contract: Mapping
