@@ -386,8 +386,9 @@ def _merge_equal_constants(proto: onnx.ModelProto) -> int:
 def _short_value_names(proto: onnx.ModelProto) -> None:
     """Name the values the graph's nodes compute with short numbers, in place (branches
     too); graph inputs, outputs, initializers and node names are kept (profiles name the
-    nodes). The tracer's names (module path, operator, output index) repeated at every
-    producer and reader were a third of a graph file's bytes."""
+    nodes; those onnxruntime rewrites take their output's name). The tracer's names
+    (module path, operator, output index), repeated at every producer and reader, were
+    a third of a graph file's bytes."""
     graph = proto.graph
     kept = {v.name for v in graph.input} | {v.name for v in graph.output}
     renames: dict[str, str] = {}
