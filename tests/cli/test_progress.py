@@ -24,3 +24,14 @@ def test_progress_lines_are_rate_limited(capsys, monkeypatch):
             progress.advance()
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 1 and lines[0].startswith("simulating: 50/50 frames")
+
+
+def test_progress_total_can_be_set_once_known(capsys, monkeypatch):
+    monkeypatch.setenv("DELTAR_PROGRESS_SECONDS", "0")
+    with ProgressReport("fitting", terminal=False) as progress:
+        progress.advance()
+        progress.set_total(2)
+        progress.advance()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("fitting: 1 frames") and "ETA" not in lines[0]
+    assert lines[-1].startswith("fitting: 2/2 frames") and "done in" in lines[-1]

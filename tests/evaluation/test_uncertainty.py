@@ -29,9 +29,13 @@ def _checkpoint(path: Path) -> Path:
 def test_fit_writes_a_checkpoint_the_estimator_calibrates_with(tmp_path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     source = _checkpoint(tmp_path / "model.pt")
+    passes, visits = [], []
     fit = fit_checkpoint_uncertainty(source, [ZJUL5Dataset(data)], tmp_path / "cal.pt",
-                                     min_pixels=100)
+                                     min_pixels=100, on_frame=lambda: visits.append(1),
+                                     on_passes=passes.append)
     assert fit.frames == 3 and fit.pixels["inside"] + fit.pixels["outside"] == 3 * 32 * 48
+    # A network that reads no flags: one pass, so the progress total is the visits.
+    assert passes == [1] and len(visits) == 3
     for name in ("inside", "outside"):
         within_1, within_2 = fit.coverage[name]
         assert 0.55 <= within_1 <= 0.85 and within_2 >= within_1

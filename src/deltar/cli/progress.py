@@ -82,6 +82,12 @@ class ProgressReport:
         elif self.done and exc_info[0] is None:
             self._line()
 
+    def set_total(self, total: int | None) -> None:
+        """Change the number of steps once the job knows it better."""
+        self.total = total
+        if self._bar is not None:
+            self._bar.update(self._task, total=total)
+
     def advance(self, steps: int = 1) -> None:
         """Count ``steps`` more steps done."""
         self.update(self.done + steps)

@@ -129,14 +129,17 @@ def fit_uncertainty_command(
         sets = [open_zone_set(path) for path in data]
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
-    # Each frame is visited twice: the blend and sigma, then the no-target rule.
-    total = 2 * sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
-                    for s in sets)
-    with ProgressReport("fitting the output stage", total=total) as progress:
+    frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
+                 for s in sets)
+    with ProgressReport("fitting the output stage") as progress:
+        # Each frame is visited once, or twice for a network that reads no-target flags
+        # (then the no-target rule is fitted too).
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
                                          overwrite=overwrite, blend_objective=blend_objective,
-                                         on_frame=progress.advance)
+                                         on_frame=progress.advance,
+                                         on_passes=lambda passes: progress.set_total(
+                                             passes * frames))
     if fit.blend is not None:
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)

@@ -206,7 +206,9 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                                out: str | os.PathLike, *, frames_per_set: int | None = None,
                                pixels_per_frame: int = 4000, min_pixels: int = 1000,
                                overwrite: bool = False, blend_objective: str = "relative",
-                               on_frame: Callable[[], None] | None = None) -> UncertaintyFit:
+                               on_frame: Callable[[], None] | None = None,
+                               on_passes: Callable[[int], None] | None = None
+                               ) -> UncertaintyFit:
     """Fit a checkpoint's blend (plane-select networks) and sigma calibration on sets
     with ground truth (module docstring); write them into a new checkpoint file.
 
@@ -221,6 +223,9 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
             (:data:`~deltar.inference.blend.BLEND_OBJECTIVES`).
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
+        on_passes: called once the checkpoint is read, with how many times the fit
+            visits each frame: 2 for networks that read no-target flags (the blend and
+            sigma, then the no-target rule), else 1.
 
     Raises:
         ValueError: ``out`` is the checkpoint itself, or too few pixels to fit.
@@ -234,6 +239,8 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     if out.exists() and out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
+    if on_passes is not None:
+        on_passes(2 if model.uses_no_target else 1)
     blends = model.network_config.head.name == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
     # original is what is saved, so the file is read once. The output stage being
