@@ -269,20 +269,16 @@ class DeltarNet(nn.Module):
         The traceable path computes the same outputs with operators the TorchScript
         tracer records: the zone resampling matrices are built as one-hot products
         (see :mod:`~deltar.models.zone_patches`) and the mViT head avoids PyTorch's
-        fused transformer kernel. Under ONNX export, encoder descriptors feeding a head
-        that reads them stay in factors
-        (:class:`~deltar.models.affinity.FactoredDescriptors`). It uses more memory;
-        leave it off otherwise.
+        fused transformer kernel; under ONNX export, descriptors stay in factors for a
+        head that reads them. It uses more memory; leave it off otherwise.
 
         Returns:
             The network itself.
         """
         self.traceable = bool(enabled)
         self.head.traceable = self.traceable
-        if hasattr(self.decoder, "factored_export"):
-            # Descriptors kept in factors under ONNX export, for a head that reads them.
-            self.decoder.factored_export = self.traceable and bool(
-                getattr(self.head, "reads_factored_descriptors", False))
+        if hasattr(self.decoder, "factored_export"):  # FactoredDescriptors, export only
+            self.decoder.factored_export = self.traceable and self.head.reads_factored_descriptors
         return self
 
     def forward(

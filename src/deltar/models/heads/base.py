@@ -156,6 +156,9 @@ class DepthHead(nn.Module):
     uses_no_target: bool = False
     #: Whether :meth:`predict` reads ``ZoneInputs.targets`` (several targets per zone).
     uses_targets: bool = False
+    #: Whether the ONNX export may hand the head
+    #: :class:`~deltar.models.affinity.FactoredDescriptors` as its features.
+    reads_factored_descriptors: bool = False
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
         """Depth, bin edges and uncertainty from decoder features.
