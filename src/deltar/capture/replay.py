@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from deltar.calibration.rig import RigCalibration
+from deltar.io.read_ahead import read_ahead
 from deltar.io.recording import Recording, RecordingPair
 from deltar.sensor.geometry import SensorExtrinsics
 
@@ -109,21 +110,32 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     offset = calib.time_offset_s if time_offset_s is None else float(time_offset_s)
     pairs = rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
     check_gaps(rec, pairs)
+
+    def selected() -> Iterator[RecordingPair]:
+        for pair in pairs[::int(every)]:
+            if pair.zone_frame.valid_count == 0:
+                what = "skipped" if skip_no_zones else "image-only estimate"
+                warnings.warn(f"{rec.folder}: zone frame at t = "
+                              f"{pair.zone_frame.timestamp_s:.3f} s has no valid zone; {what}",
+                              stacklevel=5)
+                if skip_no_zones:
+                    continue
+            yield pair
+
     done = 0
-    for pair in pairs[::int(every)]:
+    # The next pair's images are read while the estimator works on this one.
+    for pair, loaded in read_ahead(selected(), _load_pair):
         if limit is not None and done >= limit:
             break
-        if pair.zone_frame.valid_count == 0:
-            what = "skipped" if skip_no_zones else "image-only estimate"
-            warnings.warn(f"{rec.folder}: zone frame at t = {pair.zone_frame.timestamp_s:.3f} s "
-                          f"has no valid zone; {what}", stacklevel=2)
-            if skip_no_zones:
-                continue
-        image = pair.load_color()
-        reference = pair.load_depth() if pair.depth_path is not None else None
+        image, reference = loaded.result()
         prediction = estimator.predict(image, pair.zone_frame, calib)
         done += 1
         yield ReplayItem(pair, image, prediction, reference)
+
+
+def _load_pair(pair: RecordingPair) -> tuple[np.ndarray, np.ndarray | None]:
+    """A pair's colour image and its recorded depth (None without one)."""
+    return pair.load_color(), pair.load_depth() if pair.depth_path is not None else None
 
 
 def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,

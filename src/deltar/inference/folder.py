@@ -148,15 +148,20 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
     """
     from deltar.data.rgbd_files import read_color
     from deltar.inference.outputs import write_prediction
+    from deltar.io.read_ahead import read_ahead
     from deltar.io.zone_file import load_zone_frame
 
+    def load(indexed: tuple[int, FrameJob]) -> tuple[Any, ZoneFrame]:
+        index, job = indexed
+        if index == 0 and first is not None:
+            return first
+        return read_color(job.image), load_zone_frame(job.zones)
+
     summary = JobSummary()
-    for index, job in enumerate(jobs):
+    # The next job's files are read while the estimator works on this one.
+    for (_, job), loaded in read_ahead(enumerate(jobs), load):
         try:
-            if index == 0 and first is not None:
-                rgb, frame = first
-            else:
-                rgb, frame = read_color(job.image), load_zone_frame(job.zones)
+            rgb, frame = loaded.result()
             check_valid_zones(frame, job.zones, allow_no_zones, allow_option)
             try:
                 prediction = estimator.predict(rgb, frame, calibration)
