@@ -47,6 +47,10 @@ def test_pairs_take_the_nearest_images_within_tolerance(tmp_path):
     depth = pairs[0].load_depth()
     assert depth.dtype == np.float32 and depth[0, 0] == pytest.approx(1.234)
     assert pairs[2].zone_frame.mean_m[0, 0] == pytest.approx(1.3)
+    color, with_depth = pairs[0].load_images()
+    np.testing.assert_array_equal(color, pairs[0].load_color())
+    np.testing.assert_array_equal(with_depth, depth)
+    assert pairs[1].load_images()[1] is None
 
 
 def test_meta_and_layout_on_disk(tmp_path):

@@ -124,7 +124,7 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
 
     done = 0
     # The next pair's images are read while the estimator works on this one.
-    for pair, loaded in read_ahead(selected(), _load_pair):
+    for pair, loaded in read_ahead(selected(), RecordingPair.load_images):
         if limit is not None and done >= limit:
             break
         image, reference = loaded.result()
@@ -132,10 +132,6 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         done += 1
         yield ReplayItem(pair, image, prediction, reference)
 
-
-def _load_pair(pair: RecordingPair) -> tuple[np.ndarray, np.ndarray | None]:
-    """A pair's colour image and its recorded depth (None without one)."""
-    return pair.load_color(), pair.load_depth() if pair.depth_path is not None else None
 
 
 def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,

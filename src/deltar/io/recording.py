@@ -206,6 +206,10 @@ class RecordingPair:
             raise ValueError(f"{self.depth_path}: expected a single-channel uint16 PNG")
         return depth.astype(np.float32) / 1000.0
 
+    def load_images(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """(:meth:`load_color`, :meth:`load_depth` or None when the pair has no depth)."""
+        return self.load_color(), None if self.depth_path is None else self.load_depth()
+
 
 class Recording:
     """Reader of a recording folder.

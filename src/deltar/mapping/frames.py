@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from deltar.io.read_ahead import read_ahead
 from deltar.sensor.zone_values import sensor_max_range_m
 
 if TYPE_CHECKING:
@@ -131,7 +132,10 @@ class FrameSource:
     def load(self, frames: list[MapFrame] | None = None) -> Iterator[MapFrame]:
         """Yield ``frames`` (default: all, in order) with their image (and recorded depth).
 
-        A frame's image is released again when the next one is loaded.
+        A frame's image is released again when the next one is yielded; from a
+        recording the next frame's files are read while the caller works on the
+        current one (:func:`~deltar.io.read_ahead.read_ahead`), so at most two frames'
+        images are held.
         """
         wanted = {id(f) for f in (self.frames if frames is None else frames)}
         chosen = [(p, f) for p, f in zip(self._pairs, self.frames, strict=True)
@@ -144,10 +148,9 @@ class FrameSource:
                 yield frame
                 frame.image = None
             return
-        for pair, frame in chosen:
-            frame.image = pair.load_color()
-            frame.recorded_depth_m = pair.load_depth() if pair.depth_path is not None \
-                else None
+        for (_, frame), loaded in read_ahead(chosen, lambda chosen_pair:
+                                             chosen_pair[0].load_images()):
+            frame.image, frame.recorded_depth_m = loaded.result()
             yield frame
             frame.image, frame.recorded_depth_m = None, None
 
