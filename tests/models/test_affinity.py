@@ -292,18 +292,26 @@ def test_bilinear_matrix_is_torch_linear_resizing(size_in, size_out):
     torch.testing.assert_close(got, expected, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("image_size", [(64, 96), (56, 88), (96, 64)])
-def test_the_exported_descriptors_are_the_descriptors(image_size):
-    """The export's form (centred and weighted before a whole-factor upsampling, resized
-    by matrix products, both norms from one convolution) gives forward's values; 56x88
-    has stride-16 maps of 3.5x5.5 cells, resized by a fractional factor."""
-    torch.manual_seed(3)
+def _weighted_descriptors(image_size: tuple[int, int], seed: int):
+    """Descriptors over four encoder levels with random channel weights, and random
+    encoder maps (batch 2) for an image of ``image_size`` pixels."""
+    torch.manual_seed(seed)
     descriptors = EncoderDescriptors([16, 24, 40, 112], strides=(8, 16), out_stride=4)
     with torch.no_grad():
         descriptors.channel_weight.uniform_(0.5, 1.5)
     height, width = image_size
     features = [torch.randn(2, c, -(-height // s), -(-width // s))
                 for c, s in zip([16, 24, 40, 112], (2, 4, 8, 16), strict=True)]
+    return descriptors, features
+
+
+@pytest.mark.parametrize("image_size", [(64, 96), (56, 88), (96, 64)])
+def test_the_exported_descriptors_are_the_descriptors(image_size):
+    """The export's form (centred and weighted before a whole-factor upsampling, resized
+    by matrix products, both norms from one convolution) gives forward's values; 56x88
+    has stride-16 maps of 3.5x5.5 cells, resized by a fractional factor."""
+    descriptors, features = _weighted_descriptors(image_size, seed=3)
+    height, width = image_size
     zones = DecoderZones(image_size=image_size)
     with torch.no_grad():
         expected = descriptors(features, zones)
@@ -319,13 +327,8 @@ def test_the_factored_descriptors_give_the_descriptors_products(image_size):
     56x88 resizes by a fractional factor."""
     from deltar.models.affinity import FactoredDescriptors
 
-    torch.manual_seed(4)
-    descriptors = EncoderDescriptors([16, 24, 40, 112], strides=(8, 16), out_stride=4)
-    with torch.no_grad():
-        descriptors.channel_weight.uniform_(0.5, 1.5)
+    descriptors, features = _weighted_descriptors(image_size, seed=4)
     height, width = image_size
-    features = [torch.randn(2, c, -(-height // s), -(-width // s))
-                for c, s in zip([16, 24, 40, 112], (2, 4, 8, 16), strict=True)]
     with torch.no_grad():
         expected = descriptors(features, DecoderZones(image_size=image_size))
         factored = descriptors._factored(features, (height // 4, width // 4))

@@ -8,7 +8,7 @@ train, the encoder's chosen scales resized, centred and normalised
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -110,13 +110,7 @@ class EncoderDescriptors(nn.Module):
         eps2 = 1e-24  # unit_channels' eps squared
         size = (int(size[0]), int(size[1]))  # fixed by the export
         scaled, inverse_norms, weighted_sums = [], [], []
-        start = 0
-        for level in self.levels:
-            part = features[level]
-            channels = int(part.shape[1])
-            weight = self.channel_weight[start:start + channels]
-            start += channels
-            coarse = (int(part.shape[-2]), int(part.shape[-1]))
+        for part, weight, coarse in self._weighted_levels(features):
             whole = size[0] % coarse[0] == 0 and size[1] % coarse[1] == 0
             if whole:
                 part = part - part.mean(dim=(2, 3), keepdim=True)
@@ -138,6 +132,18 @@ class EncoderDescriptors(nn.Module):
                           for part, inverse in zip(scaled, inverse_norms, strict=True)], dim=1)
 
 
+    def _weighted_levels(self, features: Sequence[torch.Tensor]
+                         ) -> Iterator[tuple[torch.Tensor, torch.Tensor, tuple[int, int]]]:
+        """For each encoder level read: its map (B, C, h, w), its channel weights (C,)
+        and its (h, w) cells."""
+        start = 0
+        for level in self.levels:
+            part = features[level]
+            channels = int(part.shape[1])
+            yield part, self.channel_weight[start:start + channels], (int(part.shape[-2]),
+                                                                      int(part.shape[-1]))
+            start += channels
+
     def _factored(self, features: Sequence[torch.Tensor], size: tuple[int, int]
                   ) -> FactoredDescriptors:
         """:meth:`forward`'s descriptors for the ONNX export, never formed: each scale as its
@@ -154,13 +160,7 @@ class EncoderDescriptors(nn.Module):
         eps2 = 1e-24  # unit_channels' eps squared
         size = (int(size[0]), int(size[1]))
         parts, rows_all, cols_all, inverse_norms, weighted_sums = [], [], [], [], []
-        start = 0
-        for level in self.levels:
-            part = features[level]
-            channels = int(part.shape[1])
-            weight = self.channel_weight[start:start + channels]
-            start += channels
-            coarse = (int(part.shape[-2]), int(part.shape[-1]))
+        for part, weight, coarse in self._weighted_levels(features):
             rows = bilinear_matrix(coarse[0], size[0])
             cols = bilinear_matrix(coarse[1], size[1])
             # The upsampled map's spatial mean, from the coarse cells each weighed by

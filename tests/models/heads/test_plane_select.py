@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from deltar.models.heads.plane_select import PlanarSelectHead, target_shares
+from deltar.models.heads.plane_select import PlanarSelectHead
 
 
 def _edge_scene(second_share: float):
@@ -73,17 +73,6 @@ def test_the_share_weighs_the_second_target():
     assert depths[1] > depths[0] + 0.1
 
 
-def test_target_shares_normalise_and_default_to_equal():
-    targets = torch.tensor([[[[1.0, 3.0], [2.0, 1.0], [0.0, 0.0]],
-                             [[1.5, 0.0], [2.5, 0.0], [3.5, 0.0]],
-                             [[0.0, 0.0], [2.0, 1.0], [0.0, 0.0]]]])
-    valid = torch.tensor([[True, True, False]])
-    share, present = target_shares(targets, valid)
-    torch.testing.assert_close(share[0, 0], torch.tensor([0.75, 0.25, 0.0]))
-    torch.testing.assert_close(share[0, 1], torch.full((3,), 1 / 3))
-    assert present.tolist() == [[[True, False], [True, True], [False, False]]]
-
-
 def test_network_takes_zone_targets_and_checks_them():
     from deltar.models import create_model
 
@@ -113,7 +102,7 @@ def test_network_takes_zone_targets_and_checks_them():
 
 
 def test_only_the_frames_largest_further_targets_are_weighed():
-    from deltar.models.heads.plane_select import SECONDARY_HYPOTHESES
+    from deltar.models.heads.further_targets import SECONDARY_HYPOTHESES
 
     torch.manual_seed(3)
     rows, cols = torch.meshgrid(torch.arange(8), torch.arange(8), indexing="ij")

@@ -166,3 +166,20 @@ def selection_outputs(log_depth: torch.Tensor, spread: torch.Tensor, zone_valid:
     uncertainty = depth * spread.reshape(batch, 1, *size)
     typical = torch.exp(log_depth.mean(dim=(1, 2)))[:, None]
     return HeadOutput(depth, typical * torch.exp(log_edges)[None], uncertainty)
+
+
+def zone_geometry(rects: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Zone centres (B, Z) and the frame's mean zone height and width (B, 1), pixels."""
+    centre_y = 0.5 * (rects[..., 0] + rects[..., 2])
+    centre_x = 0.5 * (rects[..., 1] + rects[..., 3])
+    zone_h = (rects[..., 2] - rects[..., 0]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    zone_w = (rects[..., 3] - rects[..., 1]).mean(dim=1, keepdim=True).clamp_min(1e-6)
+    return centre_y, centre_x, zone_h, zone_w
+
+
+def zone_offsets(rects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, k, j) offsets of zone j's centre from zone k's, in mean zone heights / widths."""
+    centre_y, centre_x, zone_h, zone_w = zone_geometry(rects)
+    return ((centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None],
+            (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None])

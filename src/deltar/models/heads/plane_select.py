@@ -15,8 +15,8 @@ geometric mean over the zones of each zone's *local plane* evaluated at that pix
   their slope inside a zone and past the edge of the sensor's field of view;
 - a zone that reports more than one target (a depth edge inside the zone: the sensor
   separates surfaces at least 0.6 m apart) offers each further target as a hypothesis
-  of its own (:func:`secondary_descriptors`): the zone's spatial prior, a descriptor
-  borrowed from the neighbours that read like that target, and the log of each
+  of its own (:mod:`deltar.models.heads.further_targets`): the zone's spatial prior,
+  a descriptor borrowed from the neighbours that read like that target, and the log of each
   target's share of the zone as prior weight, so a pixel takes the second surface when
   it looks like the neighbours on that surface.
 
@@ -40,25 +40,11 @@ from deltar.models.heads.footprints import (
     selection_outputs,
     softmax_over_zones,
     zone_gaussians,
+    zone_geometry,
+    zone_offsets,
 )
+from deltar.models.heads.further_targets import further_targets
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
-
-
-def _zone_geometry(rects: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Zone centres (B, Z) and the frame's mean zone height and width (B, 1), pixels."""
-    centre_y = 0.5 * (rects[..., 0] + rects[..., 2])
-    centre_x = 0.5 * (rects[..., 1] + rects[..., 3])
-    zone_h = (rects[..., 2] - rects[..., 0]).mean(dim=1, keepdim=True).clamp_min(1e-6)
-    zone_w = (rects[..., 3] - rects[..., 1]).mean(dim=1, keepdim=True).clamp_min(1e-6)
-    return centre_y, centre_x, zone_h, zone_w
-
-
-def _zone_offsets(rects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, k, j) offsets of zone j's centre from zone k's, in mean zone heights / widths."""
-    centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
-    return ((centre_y[:, None, :] - centre_y[:, :, None]) / zone_h[..., None],
-            (centre_x[:, None, :] - centre_x[:, :, None]) / zone_w[..., None])
 
 
 def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects: torch.Tensor,
@@ -87,7 +73,7 @@ def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects:
         ``(slope_y, slope_x)``: (B, Z) relative inverse-depth change per zone height and
         per zone width (0 for invalid zones).
     """
-    dy, dx = _zone_offsets(zone_rects.to(zone_mean_m.dtype))
+    dy, dx = zone_offsets(zone_rects.to(zone_mean_m.dtype))
     valid = zone_valid.bool()
     log_mean = torch.log(zone_mean_m.clamp_min(1e-3))
     log_ratio = log_mean[:, None, :] - log_mean[:, :, None]  # log(m_j / m_k)
@@ -105,85 +91,6 @@ def zone_planes(zone_mean_m: torch.Tensor, zone_valid: torch.Tensor, zone_rects:
     slope_y = (sxx * ry - sxy * rx) / det
     slope_x = (syy * rx - sxy * ry) / det
     return slope_y.masked_fill(~valid, 0.0), slope_x.masked_fill(~valid, 0.0)
-
-
-#: Neighbour range (zone sizes per axis) and log-depth similarity of the neighbours a
-#: further target borrows its descriptor from (:func:`secondary_descriptors`).
-SECONDARY_NEIGHBOURHOOD = 1.6
-SECONDARY_SIMILARITY = 0.1
-#: Least summed neighbour weight for a borrowed descriptor; below it the target keeps
-#: its own zone's descriptor.
-SECONDARY_MIN_SUPPORT = 0.05
-#: Further targets per frame the head weighs at each pixel, the largest shares first: a
-#: fixed count, so the exported graph's extra work is that many hypotheses, not one per
-#: zone; more than any protocol frame needs (benchmarks/RESULTS.md, several targets per
-#: zone through the network).
-SECONDARY_HYPOTHESES = 24
-
-
-def target_shares(zone_targets: torch.Tensor, zone_valid: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each reported target's share of its zone, and which targets beyond the first exist.
-
-    Args:
-        zone_targets: (B, Z, T, 2) per target ``[distance, share]``: the distance in the
-            units of the zone readings (0: no target in that slot) and the target's
-            share of the zone's footprint (any non-negative scale; normalised here over
-            the zone's reported targets; all 0 gives equal shares). Target 0 is the
-            zone's primary reading.
-        zone_valid: (B, Z) bool.
-
-    Returns:
-        ``(share, present)``: (B, Z, T) shares summing to 1 over each valid zone's
-        reported targets (target 0 alone: 1), and (B, Z, T - 1) bool, the further targets
-        that are reported by a valid zone.
-    """
-    valid = zone_valid.bool()
-    present = (zone_targets[..., 1:, 0] > 0) & valid[..., None]
-    reported = torch.cat([valid[..., None], present], dim=-1).to(zone_targets.dtype)
-    raw = zone_targets[..., 1].clamp_min(0.0) * reported
-    total = raw.sum(-1, keepdim=True)
-    count = reported.sum(-1, keepdim=True).clamp_min(1.0)
-    share = torch.where(total > 0, raw / total.clamp_min(1e-12), reported / count)
-    return share, present
-
-
-def secondary_descriptors(pooled: torch.Tensor, zone_mean_m: torch.Tensor,
-                          zone_valid: torch.Tensor, zone_rects: torch.Tensor,
-                          target_m: torch.Tensor) -> torch.Tensor:
-    """The descriptor of each further target: borrowed from neighbours that read like it.
-
-    Zone k's further target at distance d is the surface beside the one its primary
-    reading describes; the neighbours whose readings lie near d (weight
-    ``exp(-0.5 (log(m_j / d) / SECONDARY_SIMILARITY)^2)`` over the valid neighbours
-    within :data:`SECONDARY_NEIGHBOURHOOD` zone sizes) show how that surface looks. With
-    too little support (< :data:`SECONDARY_MIN_SUPPORT`) the zone's own descriptor is
-    kept.
-
-    Args:
-        pooled: (B, C, Z) unit zone descriptors.
-        zone_mean_m: (B, Z) primary readings (units of ``target_m``).
-        zone_valid: (B, Z) bool.
-        zone_rects: (B, Z, 4) (y0, x0, y1, x1), pixels.
-        target_m: (B, Z, S) further targets' distances (0 where none).
-
-    Returns:
-        (B, C, Z * S) unit descriptors, zone-major (zone k's targets at k * S ...).
-    """
-    batch, zones, slots = target_m.shape
-    dy, dx = _zone_offsets(zone_rects.to(pooled.dtype))
-    index = torch.arange(zones, device=pooled.device)
-    eye = index[:, None] == index[None, :]  # (a bool eye exports to ops every runtime has)
-    near = (dy.abs() < SECONDARY_NEIGHBOURHOOD) & (dx.abs() < SECONDARY_NEIGHBOURHOOD) & \
-        zone_valid.bool()[:, None, :] & ~eye
-    log_ratio = torch.log(zone_mean_m.clamp_min(1e-3))[:, None, None, :] - \
-        torch.log(target_m.clamp_min(1e-3))[..., None]  # (B, k, s, j)
-    weight = torch.exp(-0.5 * (log_ratio / SECONDARY_SIMILARITY) ** 2) * near[:, :, None, :]
-    weight = weight.reshape(batch, zones * slots, zones)
-    borrowed = pooled @ weight.transpose(1, 2)  # (B, C, Z * S)
-    own = pooled.repeat_interleave(slots, dim=2)
-    supported = weight.sum(-1) >= SECONDARY_MIN_SUPPORT  # (B, Z * S)
-    return F.normalize(torch.where(supported[:, None, :], borrowed, own), dim=1)
 
 
 class PlanarSelectHead(DepthHead):
@@ -246,9 +153,10 @@ class PlanarSelectHead(DepthHead):
         ``zone_scale_m`` (B,), optional: metres per unit of ``zone_mean_m`` (when the
         readings were divided by the frame's scale), to place that absolute depth.
         ``zone_targets`` (B, Z, T, 2), optional: every target each zone reported,
-        ``[distance, share]`` (:func:`target_shares`; distances in the units of
-        ``zone_mean_m``); targets beyond the first join the choice as constant
-        hypotheses with borrowed descriptors (:func:`secondary_descriptors`), and every
+        ``[distance, share]`` (:func:`~deltar.models.heads.further_targets.target_shares`;
+        distances in the units of ``zone_mean_m``); the frame's largest targets beyond
+        the first join the choice as constant hypotheses with borrowed descriptors
+        (:func:`~deltar.models.heads.further_targets.further_targets`), and every
         target's log share is added to its weight's logit.
         """
         if torch.onnx.is_in_onnx_export() and self.planar:
@@ -258,22 +166,8 @@ class PlanarSelectHead(DepthHead):
             descriptors = descriptors.materialise()
         _, _, height, width = descriptors.shape
         dtype = descriptors.dtype
-        valid = zone_valid.bool()
-        far = None if zone_no_target is None or not self.uses_no_target else \
-            zone_no_target.bool() & ~valid
-        chosen = valid if far is None else valid | far
-        means = zone_mean_m.to(dtype)
-        log_mean = torch.log(means.clamp_min(1e-3))
-        # Log depths relative to the frame's mean valid reading: small numbers, so the
-        # sums below keep float32's relative precision.
-        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
-        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
-        if far is not None:
-            # Absolute: the range limit does not scale with the scene.
-            log_far = math.log(self.no_target_depth) - centre
-            if zone_scale_m is not None:
-                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
-            log_mean = torch.where(far, log_far.to(dtype), log_mean)
+        valid, chosen, means, log_mean, centre = self._zone_log_depths(
+            zone_mean_m, zone_valid, zone_no_target, zone_scale_m, dtype)
         log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
         pooled = F.normalize(footprint_pool(descriptors, log_wy, log_wx), dim=1)  # (B, C, Z)
         pixels = descriptors.flatten(2).transpose(1, 2)  # (B, h*w, C)
@@ -282,34 +176,15 @@ class PlanarSelectHead(DepthHead):
         logits = prior_logits + self.temperature.to(dtype) * cosine
         log_extra = None  # (B, K) the further targets' log depths
         if zone_targets is not None and zone_targets.shape[2] > 1:
-            targets = zone_targets.to(dtype)
-            share, present = target_shares(targets, valid)
-            slots = present.shape[-1]
-            descriptors_2 = secondary_descriptors(pooled, means, valid, zone_rects,
-                                                  targets[..., 1:, 0])
-            log_share = torch.log(share.clamp_min(1e-6))
-            # The per-pixel work only for the frame's SECONDARY_HYPOTHESES largest further
-            # targets (the others, when there are more, are dropped as if not reported).
-            present = present.flatten(1)  # (B, Z * S), zone-major
-            kept = min(SECONDARY_HYPOTHESES, present.shape[1])
-            order = torch.topk(torch.where(present, log_share[..., 1:].flatten(1), -1e4),
-                               kept, dim=1).indices  # (B, K)
-            present = present.gather(1, order)
-            zone_of = torch.div(order, slots, rounding_mode="floor")
-            # The primary's share only where the zone keeps a further target.
-            has_more = torch.zeros_like(log_share[..., 0]).scatter_add(
-                1, zone_of, present.to(dtype)) > 0
-            logits = logits + torch.where(has_more, log_share[..., 0], 0.0)[:, None, :]
-            cosine_2 = pixels @ descriptors_2.gather(
-                2, order[:, None, :].expand(-1, descriptors_2.shape[1], -1))  # (B, h*w, K)
-            logits_2 = prior_logits.gather(2, zone_of[:, None, :].expand(
+            further = further_targets(zone_targets, valid, pooled, means, zone_rects, centre)
+            logits = logits + further.primary_log_share[:, None, :]
+            cosine_2 = pixels @ further.descriptors  # (B, h*w, K)
+            logits_2 = prior_logits.gather(2, further.zone[:, None, :].expand(
                 -1, prior_logits.shape[1], -1)) + self.temperature.to(dtype) * cosine_2 + \
-                log_share[..., 1:].flatten(1).gather(1, order)[:, None, :]
-            logits_2 = logits_2.masked_fill(~present[:, None, :], -1e4)
+                further.log_share[:, None, :]
+            logits_2 = logits_2.masked_fill(~further.present[:, None, :], -1e4)
             logits = torch.cat([logits, logits_2], dim=-1)
-            # Constant hypotheses, relative to the frame's centre like the readings.
-            log_extra = (torch.log(targets[..., 1:, 0].clamp_min(1e-3)).flatten(1)
-                         .gather(1, order) - centre).masked_fill(~present, 0.0)
+            log_extra = further.log_depth  # constant hypotheses
         weights = softmax_over_zones(logits)
         if self.planar:
             hypotheses = log_mean[:, None, :] - torch.log(
@@ -331,11 +206,7 @@ class PlanarSelectHead(DepthHead):
         # place of nearly 0) that differs between runtimes and moves the confidence blend.
         deviation = hypotheses - log_depth
         spread = (weights * deviation * deviation).sum(-1, keepdim=True).sqrt()
-        low, high = self.min_depth, self.max_depth
-        if zone_scale_m is not None:
-            # The clamp is in metres: readings divided by the frame's scale are not.
-            scale = zone_scale_m.to(dtype)
-            low, high = low / scale, high / scale
+        low, high = self._output_range(zone_scale_m, dtype)
         return selection_outputs(log_depth + centre[:, :, None], spread, chosen,
                                  (height, width), self.edges, low, high)
 
@@ -365,19 +236,8 @@ class PlanarSelectHead(DepthHead):
         """
         batch, _, height, width = descriptors.shape
         dtype = descriptors.dtype
-        valid = zone_valid.bool()
-        far = None if zone_no_target is None or not self.uses_no_target else \
-            zone_no_target.bool() & ~valid
-        chosen = valid if far is None else valid | far
-        means = zone_mean_m.to(dtype)
-        log_mean = torch.log(means.clamp_min(1e-3))
-        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
-        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
-        if far is not None:
-            log_far = math.log(self.no_target_depth) - centre
-            if zone_scale_m is not None:
-                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
-            log_mean = torch.where(far, log_far.to(dtype), log_mean)
+        valid, chosen, means, log_mean, centre = self._zone_log_depths(
+            zone_mean_m, zone_valid, zone_no_target, zone_scale_m, dtype)
         rects = zone_rects.to(dtype)
         log_wy, log_wx = zone_gaussians(zone_rects, chosen, (height, width), stride, dtype)
         if isinstance(descriptors, FactoredDescriptors):
@@ -393,7 +253,7 @@ class PlanarSelectHead(DepthHead):
         pooled = F.normalize(pooled, dim=1)  # (B, C, Z)
         # The planes' inverse-depth ratio, separable: ratio_y (B, h, Z) + ratio_x (B, w, Z).
         slope_y, slope_x = zone_planes(means, valid, rects)
-        centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
+        centre_y, centre_x, zone_h, zone_w = zone_geometry(rects)
         rows = (torch.arange(height, dtype=dtype) + 0.5) * stride
         cols = (torch.arange(width, dtype=dtype) + 0.5) * stride
         ratio_y = 1.0 + slope_y[:, None, :] * (
@@ -402,33 +262,18 @@ class PlanarSelectHead(DepthHead):
                                          / zone_w[:, None])
         table = pooled * self.temperature.to(dtype)
         if zone_targets is not None and zone_targets.shape[2] > 1:
-            targets = zone_targets.to(dtype)
-            share, present = target_shares(targets, valid)
-            slots = present.shape[-1]
-            descriptors_2 = secondary_descriptors(pooled, means, valid, zone_rects,
-                                                  targets[..., 1:, 0])
-            log_share = torch.log(share.clamp_min(1e-6))
-            present = present.flatten(1)
-            kept = min(SECONDARY_HYPOTHESES, present.shape[1])
-            order = torch.topk(torch.where(present, log_share[..., 1:].flatten(1), -1e4),
-                               kept, dim=1).indices  # (B, K)
-            present = present.gather(1, order)
-            zone_of = torch.div(order, slots, rounding_mode="floor")
-            has_more = torch.zeros_like(log_share[..., 0]).scatter_add(
-                1, zone_of, present.to(dtype)) > 0
-            log_wy_1 = log_wy + torch.where(has_more, log_share[..., 0], 0.0)[:, None, :]
-            extra_bias = log_share[..., 1:].flatten(1).gather(1, order)  # (B, K)
+            further = further_targets(zone_targets, valid, pooled, means, zone_rects, centre)
+            present, zone_of = further.present[:, None, :], further.zone[:, None, :]
+            log_wy_1 = log_wy + further.primary_log_share[:, None, :]
             # An unreported slot's logit sits at -1e4 (as the masked logit does): the
             # clamped softmax gives it the same floor weight.
-            log_wy_2 = torch.where(present[:, None, :], log_wy.gather(
-                2, zone_of[:, None, :].expand(-1, height, -1)) + extra_bias[:, None, :],
-                torch.tensor(-1e4, dtype=dtype))
-            log_wx_2 = torch.where(present[:, None, :], log_wx.gather(
-                2, zone_of[:, None, :].expand(-1, width, -1)), torch.tensor(0.0, dtype=dtype))
-            log_extra = (torch.log(targets[..., 1:, 0].clamp_min(1e-3)).flatten(1)
-                         .gather(1, order) - centre).masked_fill(~present, 0.0)
-            table = torch.cat([table, self.temperature.to(dtype) * descriptors_2.gather(
-                2, order[:, None, :].expand(-1, descriptors_2.shape[1], -1))], dim=2)
+            log_wy_2 = torch.where(present, log_wy.gather(2, zone_of.expand(-1, height, -1))
+                                   + further.log_share[:, None, :],
+                                   torch.tensor(-1e4, dtype=dtype))
+            log_wx_2 = torch.where(present, log_wx.gather(2, zone_of.expand(-1, width, -1)),
+                                   torch.tensor(0.0, dtype=dtype))
+            log_extra = further.log_depth
+            table = torch.cat([table, self.temperature.to(dtype) * further.descriptors], dim=2)
             log_wy = torch.cat([log_wy_1, log_wy_2], dim=2)
             log_wx = torch.cat([log_wx, log_wx_2], dim=2)
             log_mean = torch.cat([log_mean, log_extra], dim=1)
@@ -450,10 +295,7 @@ class PlanarSelectHead(DepthHead):
         log_depth = (weights * hypotheses).sum(-1, keepdim=True)
         deviation = hypotheses - log_depth
         spread = (weights * deviation * deviation).sum(-1, keepdim=True).sqrt()
-        low, high = self.min_depth, self.max_depth
-        if zone_scale_m is not None:
-            scale = zone_scale_m.to(dtype)
-            low, high = low / scale, high / scale
+        low, high = self._output_range(zone_scale_m, dtype)
         return selection_outputs(log_depth.reshape(batch, height * width, 1) + centre[:, :, None],
                                  spread.reshape(batch, height * width, 1), chosen,
                                  (height, width), self.edges, low, high)
@@ -463,11 +305,52 @@ class PlanarSelectHead(DepthHead):
         return self(features, zones.mean_m(features.dtype), zones.valid, zones.rects,
                     zones.stride, zones.no_target, zones.scale_m, zones.targets)
 
+    def _output_range(self, zone_scale_m: torch.Tensor | None, dtype: torch.dtype
+                      ) -> tuple[float | torch.Tensor, float | torch.Tensor]:
+        """The output clamp (low, high) in the readings' units: metres, or (B,) when the
+        readings were divided by the frame's scale ``zone_scale_m``."""
+        low, high = self.min_depth, self.max_depth
+        if zone_scale_m is not None:
+            scale = zone_scale_m.to(dtype)
+            low, high = low / scale, high / scale
+        return low, high
+
+    def _zone_log_depths(self, zone_mean_m: torch.Tensor, zone_valid: torch.Tensor,
+                         zone_no_target: torch.Tensor | None,
+                         zone_scale_m: torch.Tensor | None, dtype: torch.dtype
+                         ) -> tuple[torch.Tensor, ...]:
+        """The zones' log depths, relative to the frame's mean valid reading.
+
+        Returns:
+            ``(valid, chosen, means, log_mean, centre)``: (B, Z) bool valid zones; (B, Z)
+            bool zones that join the choice (the valid ones, and the no-target ones for
+            a head that reads the flags); (B, Z) readings in metres; (B, Z) log readings
+            minus ``centre`` (no-target zones at the range limit, other invalid zones 0);
+            (B, 1) ``centre``, the mean log reading of the valid zones.
+        """
+        valid = zone_valid.bool()
+        far = None if zone_no_target is None or not self.uses_no_target else \
+            zone_no_target.bool() & ~valid
+        chosen = valid if far is None else valid | far
+        means = zone_mean_m.to(dtype)
+        log_mean = torch.log(means.clamp_min(1e-3))
+        # Relative to the frame's mean valid reading: small numbers, so the sums over
+        # pixels keep float32's relative precision.
+        centre = (log_mean * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
+        log_mean = (log_mean - centre).masked_fill(~valid, 0.0)
+        if far is not None:
+            # Absolute: the range limit does not scale with the scene.
+            log_far = math.log(self.no_target_depth) - centre
+            if zone_scale_m is not None:
+                log_far = log_far - torch.log(zone_scale_m.to(dtype))[:, None]
+            log_mean = torch.where(far, log_far.to(dtype), log_mean)
+        return valid, chosen, means, log_mean, centre
+
     def _plane_ratio(self, means: torch.Tensor, valid: torch.Tensor, rects: torch.Tensor,
                      size: tuple[int, int], stride: float) -> torch.Tensor:
         """(B, h*w, Z) inverse depth of each zone's plane at each cell, over its reading."""
         slope_y, slope_x = zone_planes(means, valid, rects)
-        centre_y, centre_x, zone_h, zone_w = _zone_geometry(rects)
+        centre_y, centre_x, zone_h, zone_w = zone_geometry(rects)
         rows = (torch.arange(size[0], device=rects.device, dtype=rects.dtype) + 0.5) * stride
         cols = (torch.arange(size[1], device=rects.device, dtype=rects.dtype) + 0.5) * stride
         offset_y = (rows[None, :, None] - centre_y[:, None, :]) / zone_h[:, None]  # (B, h, Z)
