@@ -7,6 +7,7 @@ intrinsics and sensor field of view, sensor and camera assumed at the same place
 
 from __future__ import annotations
 
+import itertools
 import os
 import warnings
 from collections.abc import Callable, Iterator
@@ -122,16 +123,13 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
                     continue
             yield pair
 
-    done = 0
-    # The next pair's images are read while the estimator works on this one.
-    for pair, loaded in read_ahead(selected(), RecordingPair.load_images):
-        if limit is not None and done >= limit:
-            break
+    # `limit` pairs at most (after the skipped ones), none read beyond them; the next
+    # pair's images are read while the estimator works on this one.
+    wanted = selected() if limit is None else itertools.islice(selected(), max(0, int(limit)))
+    for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
         image, reference = loaded.result()
-        prediction = estimator.predict(image, pair.zone_frame, calib)
-        done += 1
-        yield ReplayItem(pair, image, prediction, reference)
-
+        yield ReplayItem(pair, image, estimator.predict(image, pair.zone_frame, calib),
+                         reference)
 
 
 def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,

@@ -230,7 +230,8 @@ def _solve_rows_banded(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarra
     # the time on image grids); the solves use the factors transposed.
     storage = _band_storage(weights, diagonal, offsets, band, np.float32, transposed=True)
     # Subnormal fill-in read as zero (deltar.inference.denormals): the factors differ
-    # by less than 1.2e-38 an entry, which the refinement corrects; 2.5x faster.
+    # by less than 1.2e-38 an entry, which the refinement corrects, and x86 cores slow
+    # down on subnormals.
     with flush_denormals():
         factors, pivots, info = scipy.linalg.lapack.sgbtrf(storage, band, band,
                                                            overwrite_ab=True)

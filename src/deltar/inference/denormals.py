@@ -3,8 +3,8 @@
 The fill factors a banded system in float32 (:mod:`deltar.inference.colorization`). Its
 fill-in decays geometrically away from the diagonal, and on a 60 x 80 grid thousands of
 the factors' entries fall below float32's smallest normal number (1.2e-38). x86 cores
-compute with such subnormal numbers through a slow microcode path, and the
-factorisation takes about 2.5 times as long as with them read as zero. Entries that
+compute with such subnormal numbers through a slow microcode path, which slows the
+factorisation several times over (benchmarks/RESULTS.md). Entries that
 small change nothing the refinement with float64 residuals does not correct, so the
 solve turns on the processor's flush-to-zero modes for its own duration and thread
 (x86-64: MXCSR's FTZ and DAZ bits; AArch64: FPCR's FZ bit), through glibc's
@@ -29,9 +29,10 @@ _FPCR_FLUSH = 1 << 24
 
 
 @functools.cache
-def _fenv() -> tuple[ctypes.CDLL, type[ctypes.Structure], str, int] | None:
-    """(libm, glibc's fenv_t layout, name of its control field, flush bits), or None
-    where this process cannot set the mode (not glibc on x86-64 / AArch64)."""
+def _fenv() -> tuple[ctypes.CDLL, type[ctypes.Structure], int] | None:
+    """(libm, glibc's fenv_t layout with its mode register as ``control``, the flush
+    bits), or None where this process cannot set the mode (not glibc on x86-64 /
+    AArch64)."""
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return None
     machine = platform.machine().lower()
@@ -54,7 +55,7 @@ def _fenv() -> tuple[ctypes.CDLL, type[ctypes.Structure], str, int] | None:
         return None
     get.argtypes = put.argtypes = [ctypes.c_void_p]
     layout = type("FloatEnvironment", (ctypes.Structure,), {"_fields_": fields})
-    return libm, layout, "control", bits
+    return libm, layout, bits
 
 
 def flush_supported() -> bool:
@@ -74,13 +75,13 @@ def flush_denormals() -> Iterator[None]:
     if found is None:
         yield
         return
-    libm, layout, field, bits = found
+    libm, layout, bits = found
     saved = layout()
     if libm.fegetenv(ctypes.byref(saved)) != 0:
         yield
         return
     flushing = layout.from_buffer_copy(saved)
-    setattr(flushing, field, getattr(saved, field) | bits)
+    flushing.control |= bits
     libm.fesetenv(ctypes.byref(flushing))
     try:
         yield

@@ -2,10 +2,10 @@
 
 :meth:`~deltar.inference.estimator.DepthEstimator.predict` applies both on the grid the
 network returns its maps on (half its input size) and resizes only what it returns to
-the image's size: the maps carry no finer detail, and at 480 x 640 the blend and the
-sigma then cost a tenth of what they cost at the image's size. Blending before or after
-the resize differs only where the blend weight changes within a grid cell (on the
-ten-scene protocol the mean REL and RMSE moved by less than 0.1 %, RESULTS.md).
+the image's size: the maps carry no finer detail, and the per-pixel work shrinks with
+the pixel count (a 480 x 640 image has 15 times the cells of its 128 x 160 grid).
+Blending before or after the resize differs only where the blend weight changes within
+a grid cell (what that does on the ten-scene protocol: benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations

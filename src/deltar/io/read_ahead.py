@@ -1,9 +1,10 @@
 """Read the next frame while the current one is processed.
 
-Decoding a 480 x 640 PNG takes about 7 ms on one core, most of a frame's time beside
-the network; OpenCV releases Python's GIL while it decodes, so a stream that reads its
-next frame on a worker thread while the estimator works on the current one runs
-faster (``deltar replay`` and ``deltar predict`` on folders: benchmarks/RESULTS.md).
+Decoding a frame's PNG files is a large part of a frame's time beside the network;
+OpenCV releases Python's GIL while it decodes, so a stream that reads its next frame on
+a worker thread while the estimator works on the current one runs faster (``deltar
+replay``, ``deltar predict`` on folders, ``deltar map``; measured in
+benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
