@@ -10,7 +10,8 @@ from deltar.cli.main import app
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 
 ALL = ["--preset", "--checkpoint", "--official", "--onnx", "--device", "--precision",
-       "--size", "--threads", "--flip", "--network-only", "--no-inferred-flags"]
+       "--size", "--threads", "--flip", "--network-only", "--no-inferred-flags",
+       "--keep-outlier-zones"]
 
 
 def _options(command: str) -> dict[str, str]:
@@ -37,12 +38,12 @@ def test_the_command_receives_one_model_object():
 
     command(out="o", last=2, **{name.lstrip("-").replace("-", "_"): value for name, value in
                                 zip(ALL, [None, "c.pt", None, None, "cpu", "float16", "64x64",
-                                           2, True, True, True], strict=True)})
+                                           2, True, True, True, True], strict=True)})
     out, model, last = seen[0]
     assert (out, last) == ("o", 2)
     assert model == ModelOptions(checkpoint="c.pt", precision="float16", size="64x64",
                                  threads=2, flip=True, network_only=True,
-                                 no_inferred_flags=True)
+                                 no_inferred_flags=True, keep_outlier_zones=True)
     assert model.source() == ("c.pt", "checkpoint")
     assert ModelOptions().source() == (None, None)
     with pytest.raises(TypeError, match="has no 'model' parameter"):
@@ -78,3 +79,15 @@ def test_no_inferred_flags_turns_the_no_target_rule_off():
     """The bundled model infers flags for frames without them; --no-inferred-flags not."""
     assert ModelOptions().load().no_target_min_neighbour_m is not None
     assert ModelOptions(no_inferred_flags=True).load().no_target_min_neighbour_m is None
+
+
+def test_keep_outlier_zones_turns_the_outlier_rule_off(tmp_path):
+    from deltar.models import create_model
+    from deltar.models.checkpoint import save_checkpoint
+    from deltar.sensor.zone_outliers import OutlierRule
+
+    model = create_model("deltar-select", design_size=(32, 64))
+    model.set_output_contract(zone_outlier_rule=OutlierRule(0.05, min_zones=3).to_dict())
+    path = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    assert ModelOptions(checkpoint=path).load().zone_outliers == OutlierRule(0.05, min_zones=3)
+    assert ModelOptions(checkpoint=path, keep_outlier_zones=True).load().zone_outliers is None

@@ -34,8 +34,9 @@ def test_fit_writes_a_checkpoint_the_estimator_calibrates_with(tmp_path, tiny_sa
                                      min_pixels=100, on_frame=lambda: visits.append(1),
                                      on_passes=passes.append)
     assert fit.frames == 3 and fit.pixels["inside"] + fit.pixels["outside"] == 3 * 32 * 48
-    # A network that reads no flags: one pass, so the progress total is the visits.
-    assert passes == [1] and len(visits) == 3
+    # A network that reads no flags: two passes (outlier rule; blend and sigma), so the
+    # progress total is the visits.
+    assert passes == [2] and len(visits) == 6
     for name in ("inside", "outside"):
         within_1, within_2 = fit.coverage[name]
         assert 0.55 <= within_1 <= 0.85 and within_2 >= within_1
@@ -165,3 +166,57 @@ def test_the_fit_does_not_depend_on_the_rule_the_checkpoint_carried(tmp_path) ->
         for region in ("inside", "outside"):
             for key, value in a[region].items():
                 assert b[region][key] == pytest.approx(value, rel=1e-5, abs=1e-8), key
+
+
+def _wall_sample(seed: int, outliers_real: bool):
+    """A 4 x 4 frame of a wall at 2 m whose three zones read 2.6 m: a noisy sensor's
+    outliers (the truth is the wall) or three recesses in it (``outliers_real``: the
+    truth follows the readings)."""
+    from deltar.data.zju_l5 import ZJUL5Sample
+    from tests.evaluation.samples import make_sample
+
+    base = make_sample(f"wall/{seed:04d}", seed)
+    means = np.full((4, 4), 2.0)
+    for row, col in ((1, 1), (1, 3), (3, 1)):  # apart, each with >= 5 neighbours
+        means[row, col] = 2.6
+    truth = means if outliers_real else np.full((4, 4), 2.0)
+    depth = np.pad(np.kron(truth, np.ones((8, 8))), ((0, 0), (8, 8)), mode="edge")
+    depth *= np.random.default_rng(seed).normal(1.0, 0.01, depth.shape)  # a rough wall
+    mean_sigma = np.stack([means.reshape(-1), np.full(16, 0.05)], 1)
+    return ZJUL5Sample(rgb=base.rgb, depth_m=depth.astype(np.float32),
+                       zone_mean_sigma=mean_sigma, zone_rects=base.zone_rects,
+                       zone_valid=np.ones(16, bool), name=base.name)
+
+
+@pytest.mark.parametrize("outliers_real", [False, True])
+def test_outlier_rule_is_chosen_by_what_rejecting_does_to_the_error(outliers_real) -> None:
+    from deltar.evaluation.uncertainty import OUTLIER_CANDIDATES, fit_outlier_rule
+    from deltar.sensor.zone_outliers import OutlierRule
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    estimator = DepthEstimator(model, blend=None, uncertainty=None, zone_outliers=None)
+    samples = [_wall_sample(seed, outliers_real) for seed in range(2)]
+    chosen, errors = fit_outlier_rule(estimator, [samples])
+    # Only the candidate that asks for three outliers per frame rejects any here.
+    assert set(errors) == set(OUTLIER_CANDIDATES)
+    assert errors[OUTLIER_CANDIDATES[1]] == errors[None] == errors[OUTLIER_CANDIDATES[3]]
+    rejecting = OutlierRule(0.05, min_zones=3)
+    assert (errors[rejecting] < errors[None]) != outliers_real
+    assert chosen == (None if outliers_real else rejecting)
+    assert estimator.zone_outliers is None  # restored
+
+
+def test_cli_reports_and_stores_the_outlier_rule(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    data = write_zju_l5(tmp_path / "set", [_wall_sample(seed, False) for seed in range(2)])
+    out = tmp_path / "fitted.pt"
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "zone outliers: rejected beyond 0.05 log distance" in result.output
+    stored = load_checkpoint(out)[2]["output"]["zone_outlier_rule"]
+    assert stored == {"tolerance": 0.05, "min_zones": 3, "min_neighbours": 4}
+    assert DepthEstimator(load_checkpoint(out)[0]).zone_outliers.min_zones == 3

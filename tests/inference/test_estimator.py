@@ -307,3 +307,38 @@ def test_a_batch_mixing_frames_with_and_without_flags_keeps_each_frames_own(rng)
         np.testing.assert_allclose(result.depth_m, estimator.predict(image, frame).depth_m,
                                    atol=1e-4)
     assert batch[0].depth_m[:, -8:].mean() > 4.0 > batch[1].depth_m[:, -8:].mean()
+
+
+def test_zones_disagreeing_with_all_neighbours_are_set_aside_by_the_weights_rule(rng):
+    from deltar.models import create_model
+    from deltar.sensor.zone_outliers import OutlierRule
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96))
+    model.set_output_contract(zone_outlier_rule=OutlierRule(0.05, min_zones=3).to_dict())
+    image = random_image(rng, 64, 96)
+    mean = np.full((8, 8), 2.0)
+    spikes = ((2, 2), (2, 5), (5, 3))
+    for row, col in spikes:
+        mean[row, col] = 2.6  # a noisy sensor's outliers on a flat wall
+    frame = ZoneFrame(mean_m=mean, sigma_m=np.full((8, 8), 0.02), valid=np.ones((8, 8), bool),
+                      no_target=np.zeros((8, 8), bool))
+    screened = DepthEstimator(model, weights="test")
+    assert screened.zone_outliers == OutlierRule(0.05, min_zones=3)
+    result = screened.predict(image, frame)
+    expected = np.zeros((8, 8), bool)
+    expected[tuple(zip(*spikes, strict=True))] = True
+    np.testing.assert_array_equal(result.zone_rejected, expected.reshape(-1))
+    assert result.zones_used == 61 and not result.zone_frame.valid[2, 2]
+    kept = DepthEstimator(model, weights="test", zone_outliers=None).predict(image, frame)
+    assert kept.zone_rejected is None and kept.zones_used == 64
+    # Over a rejected zone the depth follows its neighbours, not its reading.
+    y0, x0, y1, x1 = np.round(result.zone_rects[2 * 8 + 2]).astype(int)
+    screened_depth = float(np.median(result.depth_m[y0:y1, x0:x1]))
+    kept_depth = float(np.median(kept.depth_m[y0:y1, x0:x1]))
+    assert abs(screened_depth - 2.0) < 0.05 and kept_depth > screened_depth + 0.1
+    # A frame with fewer outliers than the rule asks for is kept whole.
+    mean[5, 3] = 2.0
+    few = ZoneFrame(mean_m=mean, sigma_m=frame.sigma_m, valid=frame.valid,
+                    no_target=frame.no_target)
+    assert not screened.predict(image, few).zone_rejected.any()

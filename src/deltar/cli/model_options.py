@@ -1,7 +1,7 @@
 """The model options of ``predict``, ``replay`` and ``wall-test``, defined once.
 
 A command takes one parameter ``model: ModelOptions = MODEL_OPTIONS`` and is decorated with
-:func:`model_options`; the decorator puts the eleven options in its place (same names
+:func:`model_options`; the decorator puts the twelve options in its place (same names
 and help in every command) and hands the command a :class:`ModelOptions`, whose
 :meth:`~ModelOptions.load` is :func:`deltar.inference.load_estimator`. ``export`` uses
 the three weight options alone (:data:`PresetOption`, ...).
@@ -51,6 +51,10 @@ KeepUnflaggedOption = Annotated[bool, typer.Option(
     "--no-inferred-flags", help="For zone frames without no-target flags (e.g. ZJU-L5 "
     "files), read no invalid zone as beyond the range; by default the estimator infers the "
     "flags by the rule the weights carry (docs/inference.md).")]
+KeepOutliersOption = Annotated[bool, typer.Option(
+    "--keep-outlier-zones", help="Use every valid zone; by default the estimator sets aside "
+    "zones that disagree with all their neighbours by the rule the weights carry, if any "
+    "(docs/inference.md).")]
 
 
 def parse_size(text: str | None, option: str = "--size") -> tuple[int, int] | None:
@@ -84,6 +88,7 @@ class ModelOptions:
     flip: bool = False
     network_only: bool = False
     no_inferred_flags: bool = False
+    keep_outlier_zones: bool = False
 
     def source(self) -> tuple[str | Path | None, str | None]:
         """``(source, kind)`` for :func:`~deltar.inference.load_estimator`."""
@@ -148,7 +153,9 @@ class ModelOptions:
                                        threads=self.threads, flip_average=self.flip,
                                        **({"blend": None} if self.network_only else {}),
                                        **({"no_target_min_neighbour_m": None}
-                                          if self.no_inferred_flags else {}))
+                                          if self.no_inferred_flags else {}),
+                                       **({"zone_outliers": None}
+                                          if self.keep_outlier_zones else {}))
         if kind == "preset":
             warn(f"preset {self.preset!r} has random, untrained weights: its depth is "
                  "meaningless")
@@ -163,12 +170,13 @@ _OPTION_TYPES = {"preset": PresetOption, "checkpoint": CheckpointOption,
                  "official": OfficialOption, "onnx": OnnxOption, "device": DeviceOption,
                  "precision": PrecisionOption, "size": SizeOption, "threads": ThreadsOption,
                  "flip": FlipOption, "network_only": NetworkOnlyOption,
-                 "no_inferred_flags": KeepUnflaggedOption}
+                 "no_inferred_flags": KeepUnflaggedOption,
+                 "keep_outlier_zones": KeepOutliersOption}
 _MODEL_GROUP = option_group("model", ModelOptions, _OPTION_TYPES)
 
 
 def model_options(command):
-    """Replace the command's ``model: ModelOptions`` parameter by the eleven model options.
+    """Replace the command's ``model: ModelOptions`` parameter by the twelve model options.
 
     The options appear where ``model`` stands in the signature; the command receives
     ``model=ModelOptions(...)`` (:func:`~deltar.cli.option_groups.option_group`).

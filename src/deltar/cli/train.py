@@ -100,10 +100,12 @@ def fit_uncertainty_command(
                                         "more)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
-    """Fit a model's output stage on frames with ground truth: blend, sigma, no-target rule.
+    """Fit a model's output stage on frames with ground truth: outliers, blend, sigma, flags.
 
-    For a plane-select model (the bundled default's kind) it first fits how the
-    estimator blends the network's depth with the zones' colorization fill, then (every
+    It first chooses when the estimator sets aside zones that disagree with every
+    neighbour (a noisy sensor's outliers; or never), by the error on these frames. For
+    a plane-select model (the bundled default's kind) it then fits how the estimator
+    blends the network's depth with the zones' colorization fill, then (every
     model) how it turns the network's spread into a sigma that holds 68% of the errors
     within one sigma and 95% within two (inside and beyond the zone grid), and writes the
     checkpoint with both; deltar predict and the estimator then use them. For a model
@@ -132,14 +134,18 @@ def fit_uncertainty_command(
     frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
                  for s in sets)
     with ProgressReport("fitting the output stage") as progress:
-        # Each frame is visited once, or twice for a network that reads no-target flags
-        # (then the no-target rule is fitted too).
+        # Each frame is visited twice (outlier rule; blend and sigma), or three times for
+        # a network that reads no-target flags (then the no-target rule is fitted too).
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
                                          overwrite=overwrite, blend_objective=blend_objective,
                                          on_frame=progress.advance,
                                          on_passes=lambda passes: progress.set_total(
                                              passes * frames))
+    if fit.outlier_errors:
+        tried = ", ".join(f"{_rule_text(c)} {e:.4f}" for c, e in fit.outlier_errors.items())
+        typer.echo(f"zone outliers: {_rule_text(fit.outlier_rule)} (mean relative error "
+                   f"where a candidate rejects a zone: {tried})")
     if fit.blend is not None:
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)
@@ -163,3 +169,11 @@ def fit_uncertainty_command(
                    + ("never" if chosen is None else f"beside a valid zone reading >= "
                       f"{chosen:g} m") + f" (mean relative error with flags removed: {tried})")
     typer.echo(f"wrote {fit.path} ({fit.frames} frames)")
+
+
+def _rule_text(rule) -> str:
+    """A zone outlier rule in words (None: never)."""
+    if rule is None:
+        return "kept"
+    return (f"rejected beyond {rule.tolerance:g} log distance of all neighbours, in "
+            f"frames with >= {rule.min_zones}")

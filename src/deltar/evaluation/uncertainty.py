@@ -1,8 +1,12 @@
-"""Fit a checkpoint's output stage on frames with ground truth: blend, sigma, no-target rule.
+"""Fit a checkpoint's output stage on frames with ground truth: outlier rule, blend, sigma,
+no-target rule.
 
-The estimator runs the checkpoint's network over the frames; for a network the
-estimator blends with the zones' colorization fill (plane-select heads) the fill is
-computed too, and :func:`deltar.inference.blend.fit_confidence_blend` fits the blend's
+First the rule that sets aside zones disagreeing with every neighbour
+(:mod:`deltar.sensor.zone_outliers`) is chosen among candidates, no rejection included,
+by the estimator's mean relative error on the frames (:func:`fit_outlier_rule`); the
+rest is fitted with it. The estimator runs the checkpoint's network over the frames; for
+a network the estimator blends with the zones' colorization fill (plane-select heads)
+the fill is computed too, and :func:`deltar.inference.blend.fit_confidence_blend` fits the blend's
 coefficients on sampled pixels. The blend is per pixel, so the blended depth of those
 same pixels is exact; their absolute errors and the network's spread then fit the
 sigma (:func:`deltar.inference.uncertainty.fit_uncertainty_calibration`), so the sigma
@@ -12,7 +16,8 @@ into ``DepthEstimator``, ``deltar predict`` and the ONNX export. Fit on the trai
 scenes' frames only: an output stage fitted on the frames it is judged on says nothing.
 Last, for networks that read no-target flags, the threshold of the rule that infers them
 for readings without flags is chosen on the same frames with their flags removed
-(:func:`fit_no_target_inference`) and written as ``no_target_min_neighbour_m``.
+(:func:`fit_no_target_inference`) and written as ``no_target_min_neighbour_m``; the
+outlier rule is written as ``zone_outlier_rule``.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from deltar.inference.uncertainty import (
     coverage,
     fit_uncertainty_calibration,
 )
+from deltar.sensor.zone_outliers import OutlierRule
 
 
 @dataclass
@@ -52,6 +58,10 @@ class UncertaintyFit:
         no_target_errors: mean relative error of each candidate rule over the frames
             where some candidate reads a zone as no target (empty when the network reads
             no flags or no such frame exists).
+        outlier_rule: the chosen zone outlier rule (None: keep every zone),
+            :func:`fit_outlier_rule`.
+        outlier_errors: mean relative error of each candidate outlier rule (None: no
+            rejection) over the frames where some candidate rejects a zone.
         path: the written checkpoint.
     """
 
@@ -64,6 +74,8 @@ class UncertaintyFit:
     relative_error: dict[str, float]
     no_target_min_neighbour_m: float | None
     no_target_errors: dict[float | None, float]
+    outlier_rule: OutlierRule | None
+    outlier_errors: dict[OutlierRule | None, float]
     path: Path
 
 
@@ -108,7 +120,8 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
             if chosen.size:
                 if chosen.size > pixels_per_frame:
                     chosen = rng.choice(chosen, size=pixels_per_frame, replace=False)
-                fill = (estimator.blend_fill_for(sample.rgb, frame, result.zone_rects)
+                fill = (estimator.blend_fill_for(sample.rgb, result.zone_frame,
+                                                 result.zone_rects)
                         if with_fill else None)
                 fill = result.depth_m if fill is None else fill
                 inside = zone_grid_mask(result.zone_rects, truth.shape)
@@ -169,22 +182,39 @@ def fit_no_target_inference(estimator, sets: Sequence[Sequence], *,
     """
     from dataclasses import replace
 
-    from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
     from deltar.sensor.no_target import infer_no_target
 
-    errors: dict[float | None, list[float]] = {c: [] for c in candidates}
+    def variants(frame):
+        for c in candidates:
+            mask = (np.zeros_like(frame.valid) if c is None else
+                    infer_no_target(frame.mean_m, frame.valid, c))
+            yield c, replace(frame, no_target=mask), mask
+
+    return _choose_candidate(estimator, sets, variants, candidates, frames_per_set,
+                             min_depth, max_depth, on_frame)
+
+
+def _choose_candidate(estimator, sets, variants, candidates, frames_per_set, min_depth,
+                      max_depth, on_frame):
+    """The candidate with the lowest mean relative error of the estimator over the frames,
+    the first on a tie, and each candidate's mean: what :func:`fit_no_target_inference`
+    and :func:`fit_outlier_rule` share. ``variants(frame)`` yields (candidate, the frame
+    as that candidate changes it, (n, n) or (Z,) bool mask of what it changed); frames
+    where no candidate changes anything are skipped, and candidates with the same mask
+    are predicted once."""
+    from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
+
+    errors: dict = {c: [] for c in candidates}
     for samples in sets:
         for index in _picks(len(samples), frames_per_set):
             sample = samples[index]
-            frame = sample.zone_frame()
-            flags = {c: np.zeros_like(frame.valid) if c is None else
-                     infer_no_target(frame.mean_m, frame.valid, c) for c in candidates}
-            if any(mask.any() for mask in flags.values()):
-                scored: dict[bytes, float] = {}  # candidates that infer the same flags
-                for c, mask in flags.items():
+            changed = list(variants(sample.zone_frame()))
+            if any(mask.any() for _, _, mask in changed):
+                scored: dict[bytes, float] = {}  # candidates that change the same zones
+                for c, frame, mask in changed:
                     key = np.packbits(mask).tobytes()
                     if key not in scored:
-                        depth = estimator.predict(sample.rgb, replace(frame, no_target=mask),
+                        depth = estimator.predict(sample.rgb, frame,
                                                   zone_rects=sample.zone_rects).depth_m
                         try:
                             scored[key] = depth_metrics(depth, sample.depth_m, min_depth,
@@ -202,10 +232,67 @@ def fit_no_target_inference(estimator, sets: Sequence[Sequence], *,
     return next(c for c in candidates if means.get(c) == best), means
 
 
+#: Outlier rules :func:`fit_outlier_rule` tries (None: keep every zone), most cautious
+#: first: a zone must lie 5 % (or 3 %) beyond all its neighbours, in a frame with at
+#: least 3 (4) such zones.
+OUTLIER_CANDIDATES: tuple[OutlierRule | None, ...] = (
+    None, OutlierRule(0.05, min_zones=5), OutlierRule(0.05, min_zones=3),
+    OutlierRule(0.03, min_zones=4))
+
+
+def fit_outlier_rule(estimator, sets: Sequence[Sequence], *,
+                     candidates: Sequence[OutlierRule | None] = OUTLIER_CANDIDATES,
+                     frames_per_set: int | None = None, min_depth: float = 1e-3,
+                     max_depth: float = 10.0, on_frame: Callable[[], None] | None = None
+                     ) -> tuple[OutlierRule | None, dict[OutlierRule | None, float]]:
+    """Choose the zone outlier rule (:mod:`deltar.sensor.zone_outliers`) on frames with
+    ground truth.
+
+    Each candidate's rejected zones are set invalid and the estimator (as given: fit with
+    ``blend=None`` so the choice does not depend on a blend fitted without the rule)
+    predicts; the candidate with the lowest mean relative error over the frames wins,
+    the most cautious on a tie. Frames where no candidate rejects a zone are skipped
+    (every candidate is the same there). Fit on frames of the training scenes, clean and
+    with degraded zones, so that the rule weighs what rejecting costs on clean readings
+    against what it saves on noisy ones.
+
+    Args:
+        estimator: a :class:`~deltar.inference.estimator.DepthEstimator`; its own
+            ``zone_outliers`` is replaced while it runs and restored after.
+        sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample` (image, zones and
+            ground-truth depth in metres).
+        candidates: rules to try (None: keep every zone), cautious first.
+        frames_per_set: at most this many frames of each set, spread evenly.
+        min_depth, max_depth: ground-truth range in metres.
+        on_frame: called after each frame (progress).
+
+    Returns:
+        (the chosen rule or None, mean relative error per candidate; empty when no
+        candidate rejected any zone, then the choice is None).
+    """
+    from deltar.sensor.zone_outliers import reject_outlier_zones
+
+    def variants(frame):
+        no_target = estimator.no_target_of(frame)
+        for c in candidates:
+            screened, mask = reject_outlier_zones(frame, c, no_target)
+            yield c, screened, mask
+
+    kept = estimator.zone_outliers
+    try:
+        estimator.zone_outliers = None
+        return _choose_candidate(estimator, sets, variants, candidates, frames_per_set,
+                                 min_depth, max_depth, on_frame)
+    finally:
+        estimator.zone_outliers = kept
+
+
 def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Sequence],
                                out: str | os.PathLike, *, frames_per_set: int | None = None,
                                pixels_per_frame: int = 4000, min_pixels: int = 1000,
                                overwrite: bool = False, blend_objective: str = "relative",
+                               outlier_candidates: Sequence[OutlierRule | None] =
+                               OUTLIER_CANDIDATES,
                                on_frame: Callable[[], None] | None = None,
                                on_passes: Callable[[int], None] | None = None
                                ) -> UncertaintyFit:
@@ -221,11 +308,13 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         min_pixels: fewest pixels each region (inside, beyond the zone grid) needs.
         blend_objective: what the blend's fit minimises
             (:data:`~deltar.inference.blend.BLEND_OBJECTIVES`).
+        outlier_candidates: zone outlier rules to choose among
+            (:func:`fit_outlier_rule`); ``(None,)`` keeps every zone without trying.
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
         on_passes: called once the checkpoint is read, with how many times the fit
-            visits each frame: 2 for networks that read no-target flags (the blend and
-            sigma, then the no-target rule), else 1.
+            visits each frame: the outlier rule, the blend and sigma, and for networks
+            that read no-target flags the no-target rule.
 
     Raises:
         ValueError: ``out`` is the checkpoint itself, or too few pixels to fit.
@@ -240,15 +329,20 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
     if on_passes is not None:
-        on_passes(2 if model.uses_no_target else 1)
+        on_passes(3 if model.uses_no_target else 2)
     blends = model.network_config.head.name == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
     # original is what is saved, so the file is read once. The output stage being
-    # refitted (blend, sigma, no-target rule) is left out, so the fit depends on the
-    # network and the frames alone, not on what the checkpoint carried.
+    # refitted (outlier rule, blend, sigma, no-target rule) is left out, so the fit
+    # depends on the network and the frames alone, not on what the checkpoint carried.
     estimator = DepthEstimator(copy.deepcopy(model), blend=None, uncertainty=None,
-                               no_target_min_neighbour_m=None,
+                               no_target_min_neighbour_m=None, zone_outliers=None,
                                weights=f"{preset} from {source}")
+    # The outlier rule first: it changes the zones everything after it reads.
+    outlier_rule, outlier_errors = fit_outlier_rule(
+        estimator, sets, candidates=outlier_candidates, frames_per_set=frames_per_set,
+        on_frame=on_frame)
+    estimator.zone_outliers = outlier_rule
     pixels, frames = collect_pixels(estimator, sets, with_fill=blends,
                                     frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
@@ -276,9 +370,12 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         coverage={name: coverage(error[m], sigma[m]) for name, m in regions.items()},
         relative_error={name: float(np.mean(np.abs(v - pixels.truth_m) / pixels.truth_m))
                         for name, v in relative.items()},
-        no_target_min_neighbour_m=rule, no_target_errors=rule_errors, path=out)
+        no_target_min_neighbour_m=rule, no_target_errors=rule_errors,
+        outlier_rule=outlier_rule, outlier_errors=outlier_errors, path=out)
     model.set_output_contract(uncertainty_calibration=calibration.to_dict(),
-                              no_target_min_neighbour_m=rule)
+                              no_target_min_neighbour_m=rule,
+                              zone_outlier_rule=None if outlier_rule is None
+                              else outlier_rule.to_dict())
     if blend is not None:
         model.set_output_contract(confidence_blend=blend.to_dict())
     save_checkpoint(out, model, preset, overwrite=overwrite)

@@ -19,7 +19,6 @@ config (checkpoints: :mod:`deltar.models.checkpoint`) or the ONNX file's metadat
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -49,6 +48,11 @@ from deltar.sensor.no_target import check_min_neighbour_m, frame_no_target
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.targets import stacked_target_inputs
 from deltar.sensor.zone_frame import ZoneFrame
+from deltar.sensor.zone_outliers import (
+    OutlierRule,
+    reject_outlier_zones,
+    resolve_outlier_rule,
+)
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -128,6 +132,9 @@ class DepthEstimator:
             the weights carry (``config["no_target_min_neighbour_m"]``, fitted with
             ``deltar fit-uncertainty``; :func:`~deltar.sensor.no_target.infer_no_target`),
             a number of metres uses that threshold, None reads none so.
+        zone_outliers: set aside zones that disagree with every neighbour
+            (:mod:`deltar.sensor.zone_outliers`): ``"auto"`` (default) by the rule the
+            weights carry (``config["zone_outlier_rule"]``), an ``OutlierRule``, or None.
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -139,7 +146,8 @@ class DepthEstimator:
                  flip_average: bool = False, max_range_m: float | None = None,
                  blend: ConfidenceBlend | str | None = "auto",
                  uncertainty: UncertaintyCalibration | str | None = "auto",
-                 no_target_min_neighbour_m: float | str | None = "auto") -> None:
+                 no_target_min_neighbour_m: float | str | None = "auto",
+                 zone_outliers: OutlierRule | str | None = "auto") -> None:
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         check_backend_options(precision, flip_average, onnx_model is not None)
@@ -173,7 +181,6 @@ class DepthEstimator:
                              f"{max_range_m!r}")
         self.max_range_m = max_range_m
         self.onnx_model = onnx_model
-        self._stretch_warned: set[tuple[int, int]] = set()
         self.model = None
         if model is not None:
             model.eval()
@@ -203,6 +210,7 @@ class DepthEstimator:
         self.no_target_min_neighbour_m = check_min_neighbour_m(
             contract.get("no_target_min_neighbour_m") if no_target_min_neighbour_m == "auto"
             else no_target_min_neighbour_m, "no_target_min_neighbour_m")
+        self.zone_outliers = resolve_outlier_rule(zone_outliers, contract)
 
     # ------------------------------------------------------------------ prediction
     def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:
@@ -300,7 +308,8 @@ class DepthEstimator:
                 raise ValueError(f"frames[{i}]: {problem}")
         check_calibration(calibration)
         net_size = self.network_size_for(size)
-        self._warn_if_stretched(size, net_size)
+        if self.onnx_model is not None:
+            self.onnx_model.warn_if_stretched(size, net_size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)
             expected = (len(frames), frames[0].zone_count, 4)
@@ -319,24 +328,6 @@ class DepthEstimator:
                 "zone_no_target": np.stack([self.no_target_of(f) for f in frames]),
                 "zone_targets": stacked_target_inputs(frames),
                 "image_rects": rects, "image_size": size, "network_size": net_size}
-
-    def _warn_if_stretched(self, image_size: tuple[int, int], net_size: tuple[int, int]
-                           ) -> None:
-        """Warn (once per image size) when an ONNX model's exported sizes stretch an image
-        that the weights' size rule would run at another size, as PyTorch does."""
-        if self.onnx_model is None:
-            return
-        design = self.onnx_model.contract.get("design_size")
-        if design is None or tuple(image_size) in self._stretch_warned:
-            return
-        rule = network_input_size(*image_size, design_size=tuple(design))
-        if tuple(rule) != tuple(net_size):
-            self._stretch_warned.add(tuple(image_size))
-            warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "
-                          f"model's {net_size[0]}x{net_size[1]} input, the exported size "
-                          f"nearest in aspect (PyTorch runs them at {rule[0]}x{rule[1]}; pip "
-                          f"install \"deltar[torch]\" for that, or export for this size with "
-                          "deltar export --size)", UserWarning, stacklevel=3)
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Run the network on :meth:`prepare`'s output: the one backend interface, numpy
@@ -422,6 +413,9 @@ class DepthEstimator:
         """
 
         single, images, frames = batch_arguments(image, zone_frame)
+        # Outlying zones are set aside first: the network and the fill read the same zones.
+        screened = [self.screen_zones(f) for f in frames]
+        frames, rejected = [f for f, _ in screened], [r for _, r in screened]
         check_calibration(calibration)  # before it undistorts the images
         if getattr(calibration, "has_distortion", False):  # other types refused in prepare
             # The zones are placed with the pinhole intrinsics: predict on the
@@ -458,7 +452,8 @@ class DepthEstimator:
                                            network_depth_m=maps[2] if len(maps) > 2 else None,
                                            uncertainty_calibrated=self.uncertainty
                                            is not None,
-                                           zone_no_target=inputs["zone_no_target"][i]))
+                                           zone_no_target=inputs["zone_no_target"][i],
+                                           zone_rejected=rejected[i]))
         return results[0] if single else results
 
     def blend_fill_for(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray,
@@ -480,6 +475,13 @@ class DepthEstimator:
         """
         return self._start_fill(image, frame, rects, self.no_target_of(frame),
                                 out_size).result()
+
+    def screen_zones(self, frame: ZoneFrame) -> tuple[ZoneFrame, np.ndarray]:
+        """:func:`~deltar.sensor.zone_outliers.reject_outlier_zones` with the estimator's
+        rule; (frame, None) without one (or for a wrong type: :meth:`prepare` refuses it)."""
+        if self.zone_outliers is None or not isinstance(frame, ZoneFrame):
+            return frame, None
+        return reject_outlier_zones(frame, self.zone_outliers, self.no_target_of(frame))
 
     def no_target_of(self, frame: ZoneFrame) -> np.ndarray:
         """(Z,) bool: the frame's no-target flags, inferred when it carries none

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -132,6 +133,7 @@ class OnnxDepthModel:
         except Exception as err:  # onnxruntime raises its own exception types
             raise ValueError(f"{path}: cannot load ONNX model: {err}") from err
         self.path = path
+        self._stretch_warned: set[tuple[int, int]] = set()
         names = [i.name for i in self.session.get_inputs()]
         if names not in (list(INPUT_NAMES), [*INPUT_NAMES, NO_TARGET_INPUT],
                          [*INPUT_NAMES, NO_TARGET_INPUT, TARGETS_INPUT]):
@@ -215,6 +217,25 @@ class OnnxDepthModel:
                              f"the model was exported for {self.signature}; re-export with "
                              "this layout (deltar export --layout-from) or use the PyTorch "
                              "backend")
+
+    def warn_if_stretched(self, image_size: tuple[int, int], net_size: tuple[int, int]
+                          ) -> None:
+        """Warn (once per image size) when the exported sizes stretch an image of
+        ``image_size`` (H, W pixels) to ``net_size`` where the weights' size rule would run
+        it at another size, as PyTorch does."""
+        from deltar.inference.preprocess import network_input_size
+
+        design = self.contract.get("design_size")
+        if design is None or tuple(image_size) in self._stretch_warned:
+            return
+        rule = network_input_size(*image_size, design_size=tuple(design))
+        if tuple(rule) != tuple(net_size):
+            self._stretch_warned.add(tuple(image_size))
+            warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "
+                          f"model's {net_size[0]}x{net_size[1]} input, the exported size "
+                          f"nearest in aspect (PyTorch runs them at {rule[0]}x{rule[1]}; pip "
+                          f"install \"deltar[torch]\" for that, or export for this size with "
+                          "deltar export --size)", UserWarning, stacklevel=3)
 
     def run(self, image: np.ndarray, hypotheses: np.ndarray, zone_rects: np.ndarray,
             zone_valid: np.ndarray, zone_no_target: np.ndarray | None = None,

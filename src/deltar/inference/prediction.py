@@ -23,7 +23,7 @@ class DepthPrediction:
             network's own depth distribution (the network's also when ``depth_m`` is
             blended).
         zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
-        zone_frame: the zone frame the prediction used.
+        zone_frame: the zone frame the prediction used (after outlier rejection).
         intrinsics: camera intrinsics of the input image (calibrated or nominal).
         zones_used: number of valid zones the network saw (None when unknown).
         network_size: (h, w) network input size in pixels the image was resized to
@@ -36,6 +36,9 @@ class DepthPrediction:
             frame's own, or those inferred for a frame without them
             (:func:`deltar.sensor.no_target.frame_no_target`); None when unknown (then
             the frame's own).
+        zone_rejected: (Z,) bool, valid zones the estimator set aside as outliers
+            (:mod:`deltar.sensor.zone_outliers`; ``zone_frame`` has them invalid); None
+            when the estimator has no outlier rule.
     """
 
     depth_m: np.ndarray
@@ -48,6 +51,7 @@ class DepthPrediction:
     network_depth_m: np.ndarray | None = None
     uncertainty_calibrated: bool = False
     zone_no_target: np.ndarray | None = None
+    zone_rejected: np.ndarray | None = None
 
     @property
     def blended(self) -> bool:

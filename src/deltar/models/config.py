@@ -33,6 +33,7 @@ from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.fusion import FUSION_MODES, LAYER_KINDS
 from deltar.sensor.no_target import check_min_neighbour_m
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
+from deltar.sensor.zone_outliers import OutlierRule
 
 #: Heads that choose among the zone readings (the only ones the descriptor decoder,
 #: which gives the head no zone information, can feed).
@@ -250,6 +251,9 @@ class OutputConfig:
             estimator reads an invalid zone as no target when a valid neighbour reads at
             least this much (:func:`deltar.sensor.no_target.infer_no_target`); None
             reads none so. Fitted with the output stage; does not change the network.
+        zone_outlier_rule: when the estimator sets aside valid zones that disagree with
+            every neighbour (:meth:`deltar.sensor.zone_outliers.OutlierRule.to_dict`), or
+            None (never). Fitted with the output stage; does not change the network.
     """
 
     min_depth: float = 1e-3
@@ -258,6 +262,7 @@ class OutputConfig:
     uncertainty_calibration: dict[str, Any] | None = None
     confidence_blend: dict[str, Any] | None = None
     no_target_min_neighbour_m: float | None = None
+    zone_outlier_rule: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if not 0 < self.min_depth < self.max_depth:
@@ -277,7 +282,15 @@ class OutputConfig:
             _set(self, name, None if value is None else dict(value))
         _set(self, "no_target_min_neighbour_m", check_min_neighbour_m(
             self.no_target_min_neighbour_m, "no_target_min_neighbour_m"))
+        if self.zone_outlier_rule is not None:  # checked, kept in its stored form
+            _set(self, "zone_outlier_rule",
+                 OutlierRule.from_dict(self.zone_outlier_rule).to_dict())
 
+
+#: Output-contract options fitted after training (``deltar fit-uncertainty``) that do not
+#: change the network (:meth:`deltar.models.network.DeltarNet.set_output_contract`).
+OUTPUT_STAGE_OPTIONS = ("uncertainty_calibration", "confidence_blend",
+                        "no_target_min_neighbour_m", "zone_outlier_rule")
 
 #: Each section's config classes by kind name; parts of one kind only under None.
 PART_CLASSES: dict[str, dict[str | None, type]] = {
@@ -304,7 +317,8 @@ FLAT_OPTIONS: dict[str, tuple[str, str]] = {
     "planar": ("head", "planar"),
     **{name: ("output", name) for name in ("min_depth", "max_depth", "no_target_depth",
                                            "uncertainty_calibration", "confidence_blend",
-                                           "no_target_min_neighbour_m")},
+                                           "no_target_min_neighbour_m",
+                                           "zone_outlier_rule")},
 }
 
 

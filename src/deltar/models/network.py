@@ -21,6 +21,7 @@ from deltar.models.affinity import EncoderDescriptors, descriptor_levels
 from deltar.models.config import (
     DECODER_CONFIGS,
     HEAD_CONFIGS,
+    OUTPUT_STAGE_OPTIONS,
     DecoderConfig,
     EncoderConfig,
     FusionConfig,
@@ -236,8 +237,7 @@ class DeltarNet(nn.Module):
 
     def set_output_contract(self, **options: Any) -> DeltarNet:
         """Replace output-contract options that do not change the network
-        (``uncertainty_calibration``, ``confidence_blend``,
-        ``no_target_min_neighbour_m``), e.g. after fitting them.
+        (:data:`~deltar.models.config.OUTPUT_STAGE_OPTIONS`), e.g. after fitting them.
 
         Returns:
             The network itself.
@@ -245,10 +245,10 @@ class DeltarNet(nn.Module):
         Raises:
             ValueError: another option, or a bad value.
         """
-        allowed = ("uncertainty_calibration", "confidence_blend", "no_target_min_neighbour_m")
-        unknown = sorted(set(options) - set(allowed))
+        unknown = sorted(set(options) - set(OUTPUT_STAGE_OPTIONS))
         if unknown:
-            raise ValueError(f"only {allowed} can be set on a built network, got {unknown}")
+            raise ValueError(f"only {OUTPUT_STAGE_OPTIONS} can be set on a built network, "
+                             f"got {unknown}")
         self.network_config = replace(self.network_config,
                                       output=replace(self.network_config.output, **options))
         return self
