@@ -68,3 +68,17 @@ def test_uninferred_suffix_turns_the_no_target_rule_off() -> None:
     assert checkpoint_predictor("default").estimator.no_target_min_neighbour_m is not None
     plain = checkpoint_predictor("default+network+uninferred").estimator
     assert plain.no_target_min_neighbour_m is None and plain.blend is None
+
+
+def test_kept_suffix_turns_the_outlier_rule_off(tmp_path) -> None:
+    from deltar.evaluation.model_methods import checkpoint_predictor
+    from deltar.models import create_model
+    from deltar.models.checkpoint import save_checkpoint
+    from deltar.sensor.zone_outliers import OutlierRule
+
+    model = create_model("deltar-select", design_size=(32, 64))
+    model.set_output_contract(zone_outlier_rule=OutlierRule(0.05, min_zones=3).to_dict())
+    path = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    assert checkpoint_predictor(str(path)).estimator.zone_outliers is not None
+    kept = checkpoint_predictor(f"{path}+network+kept").estimator
+    assert kept.zone_outliers is None and kept.blend is None

@@ -57,11 +57,14 @@ NETWORK_SUFFIX = "+network"
 #: Method-name suffix asking the estimator not to infer no-target flags for samples
 #: without them (docs/inference.md, "Zones without no-target flags").
 UNINFERRED_SUFFIX = "+uninferred"
+#: Method-name suffix asking the estimator to keep every zone, without the outlier rule
+#: the weights carry (:mod:`deltar.sensor.zone_outliers`).
+KEPT_SUFFIX = "+kept"
 
 
 def _split_suffixes(name: str) -> tuple[str, dict[str, object]]:
     """(name, estimator keyword arguments) from ``+flip`` / ``+network`` /
-    ``+uninferred`` suffixes."""
+    ``+uninferred`` / ``+kept`` suffixes."""
     options: dict[str, object] = {}
     while True:
         if name.endswith(FLIP_SUFFIX):
@@ -71,12 +74,14 @@ def _split_suffixes(name: str) -> tuple[str, dict[str, object]]:
         elif name.endswith(UNINFERRED_SUFFIX):
             name = name[: -len(UNINFERRED_SUFFIX)]
             options["no_target_min_neighbour_m"] = None
+        elif name.endswith(KEPT_SUFFIX):
+            name, options["zone_outliers"] = name[: -len(KEPT_SUFFIX)], None
         else:
             return name, options
 
 
 def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
-    """``model:NAME|PATH[+flip][+network][+uninferred]``: a bundled model name or a deltar
+    """``model:NAME|PATH[+flip][+network][+uninferred][+kept]``: a bundled model name or a deltar
     checkpoint."""
     from deltar.inference.loading import load_estimator
 
@@ -94,7 +99,7 @@ def official_predictor(path: str) -> EstimatorPredictor:
 
 
 def onnx_predictor(path: str) -> EstimatorPredictor:
-    """``onnx:PATH[+network][+uninferred]``: an exported ONNX model (``deltar export``,
+    """``onnx:PATH[+network][+uninferred][+kept]``: an exported ONNX model (``deltar export``,
     also ``--int8``).
 
     It runs at its fixed input size; the sample's zone layout must fit the one it was
