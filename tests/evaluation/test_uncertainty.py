@@ -216,7 +216,8 @@ def test_cli_reports_and_stores_the_outlier_rule(tmp_path) -> None:
     result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
                                  "--out", str(out)])
     assert result.exit_code == 0, result.output
-    assert "zone outliers: rejected beyond 0.05 log distance" in result.output
+    assert "zone outliers: set aside beyond 0.05 log distance" in result.output
+    assert "kept " in result.output and "0.05 / 3 " in result.output
     stored = load_checkpoint(out)[2]["output"]["zone_outlier_rule"]
     assert stored == {"tolerance": 0.05, "min_zones": 3, "min_neighbours": 4}
     assert DepthEstimator(load_checkpoint(out)[0]).zone_outliers.min_zones == 3

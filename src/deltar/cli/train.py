@@ -143,9 +143,11 @@ def fit_uncertainty_command(
                                          on_passes=lambda passes: progress.set_total(
                                              passes * frames))
     if fit.outlier_errors:
-        tried = ", ".join(f"{_rule_text(c)} {e:.4f}" for c, e in fit.outlier_errors.items())
+        tried = ", ".join(f"{_rule_text(c, short=True)} {e:.4f}"
+                          for c, e in fit.outlier_errors.items())
         typer.echo(f"zone outliers: {_rule_text(fit.outlier_rule)} (mean relative error "
-                   f"where a candidate rejects a zone: {tried})")
+                   f"where a candidate sets a zone aside, tolerance / fewest outliers: "
+                   f"{tried})")
     if fit.blend is not None:
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)
@@ -171,9 +173,11 @@ def fit_uncertainty_command(
     typer.echo(f"wrote {fit.path} ({fit.frames} frames)")
 
 
-def _rule_text(rule) -> str:
-    """A zone outlier rule in words (None: never)."""
+def _rule_text(rule, short: bool = False) -> str:
+    """A zone outlier rule in words (None: every zone kept)."""
     if rule is None:
-        return "kept"
-    return (f"rejected beyond {rule.tolerance:g} log distance of all neighbours, in "
-            f"frames with >= {rule.min_zones}")
+        return "kept" if short else "every zone kept"
+    if short:
+        return f"{rule.tolerance:g} / {rule.min_zones}"
+    return (f"set aside beyond {rule.tolerance:g} log distance of all neighbours, in "
+            f"frames with >= {rule.min_zones} such zones")
