@@ -221,3 +221,50 @@ def test_cli_reports_and_stores_the_outlier_rule(tmp_path) -> None:
     stored = load_checkpoint(out)[2]["output"]["zone_outlier_rule"]
     assert stored == {"tolerance": 0.05, "min_zones": 3, "min_neighbours": 4}
     assert DepthEstimator(load_checkpoint(out)[0]).zone_outliers.min_zones == 3
+
+
+def _far_sample(seed: int, far_truth_m: float):
+    """A 4 x 4 frame whose right half reported no target (flags carried) in front of a
+    wall ``far_truth_m`` away; the left half reads 2 m."""
+    from deltar.data.zju_l5 import ZJUL5Sample
+    from tests.evaluation.samples import make_sample
+
+    base = make_sample(f"far/{seed:04d}", seed)
+    means = np.tile([2.0, 2.0, 0.0, 0.0], (4, 1))
+    truth = np.where(means > 0, means, far_truth_m)
+    depth = np.pad(np.kron(truth, np.ones((8, 8))), ((0, 0), (8, 8)), mode="edge")
+    valid = (means > 0).reshape(-1)
+    mean_sigma = np.stack([means.reshape(-1), np.full(16, 0.05)], 1)
+    return ZJUL5Sample(rgb=base.rgb, depth_m=depth.astype(np.float32),
+                       zone_mean_sigma=mean_sigma, zone_rects=base.zone_rects,
+                       zone_valid=valid, zone_no_target=~valid, name=base.name)
+
+
+@pytest.mark.parametrize("far_truth_m", [5.0, 6.5])
+def test_no_target_depth_is_chosen_by_how_far_the_unseen_surfaces_are(far_truth_m) -> None:
+    from deltar.evaluation.uncertainty import fit_no_target_depth
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    estimator = DepthEstimator(model, blend=None, uncertainty=None)
+    chosen, errors = fit_no_target_depth(estimator, [[_far_sample(s, far_truth_m)
+                                                      for s in range(2)]])
+    assert sorted(errors) == [5.0, 5.5, 6.0, 6.5, 7.0] and chosen == far_truth_m
+    # The estimator is left at the chosen depth: network and fill.
+    assert estimator.no_target_depth_m == chosen == estimator.model.head.no_target_depth
+    assert estimator.model.contract()["no_target_depth"] == chosen
+
+
+def test_cli_reports_and_stores_the_no_target_depth(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    data = write_zju_l5(tmp_path / "set", [_far_sample(seed, 6.0) for seed in range(2)])
+    out = tmp_path / "fitted.pt"
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "zones that reported no target read at 6 m" in result.output
+    fitted = load_checkpoint(out)[0]
+    assert fitted.contract()["no_target_depth"] == 6.0 == fitted.head.no_target_depth
+    assert DepthEstimator(fitted).no_target_depth_m == 6.0

@@ -225,3 +225,19 @@ def test_traceable_path_gives_the_same_outputs(network_inputs, head):
     assert not model.traceable and not model.head.traceable
     for key in ("depth", "bin_edges", "uncertainty"):
         torch.testing.assert_close(traced[key], eager[key], atol=1e-6, rtol=1e-6)
+
+
+def test_output_stage_options_set_on_a_built_network():
+    from deltar.models.config import OUTPUT_STAGE_OPTIONS
+
+    select = create_model("deltar-select", design_size=(32, 64))
+    assert select.set_output_contract(no_target_depth=6.5, zone_outlier_rule=None) is select
+    assert select.head.no_target_depth == 6.5 == select.contract()["no_target_depth"]
+    assert "no_target_depth" in OUTPUT_STAGE_OPTIONS
+    with pytest.raises(ValueError, match="no_target_depth must lie in"):
+        select.set_output_contract(no_target_depth=20.0)
+    lite = create_model("deltar-lite", head="zone_select", design_size=(32, 64))
+    with pytest.raises(ValueError, match="no_target_depth on a head that reads no-target"):
+        lite.set_output_contract(no_target_depth=6.0)
+    with pytest.raises(ValueError, match="can be set on a built network"):
+        select.set_output_contract(head="bins")

@@ -148,6 +148,10 @@ def fit_uncertainty_command(
         typer.echo(f"zone outliers: {_rule_text(fit.outlier_rule)} (mean relative error "
                    f"where a candidate sets a zone aside, tolerance / fewest outliers: "
                    f"{tried})")
+    if fit.no_target_depth_errors:
+        tried = ", ".join(f"{c:g} m {e:.4f}" for c, e in fit.no_target_depth_errors.items())
+        typer.echo(f"zones that reported no target read at {fit.no_target_depth_m:g} m (mean "
+                   f"relative error on frames with such zones: {tried})")
     if fit.blend is not None:
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)

@@ -4,12 +4,14 @@ no-target rule.
 First the rule that sets aside zones disagreeing with every neighbour
 (:mod:`deltar.sensor.zone_outliers`) is chosen among candidates, no rejection included,
 by the estimator's mean relative error on the frames (:func:`fit_outlier_rule`); the
-rest is fitted with it. The estimator runs the checkpoint's network over the frames; for
-a network the estimator blends with the zones' colorization fill (plane-select heads)
-the fill is computed too, and :func:`deltar.inference.blend.fit_confidence_blend` fits the blend's
-coefficients on sampled pixels. The blend is per pixel, so the blended depth of those
-same pixels is exact; their absolute errors and the network's spread then fit the
-sigma (:func:`deltar.inference.uncertainty.fit_uncertainty_calibration`), so the sigma
+rest is fitted with it. For plane-select networks that read no-target flags, the depth
+such a zone stands for is chosen next (:func:`fit_no_target_depth`). The estimator runs
+the checkpoint's network over the frames; for a network the estimator blends with the
+zones' colorization fill (plane-select heads) the fill is computed too, and
+:func:`deltar.inference.blend.fit_confidence_blend` fits the blend's coefficients on
+sampled pixels. The blend is per pixel, so the blended depth of those same pixels is
+exact; their absolute errors and the network's spread then fit the sigma
+(:func:`deltar.inference.uncertainty.fit_uncertainty_calibration`), so the sigma
 describes the depth that is returned. Both results are written into a new checkpoint's
 config (``confidence_blend``, ``uncertainty_calibration``) and travel with the weights
 into ``DepthEstimator``, ``deltar predict`` and the ONNX export. Fit on the training
@@ -37,6 +39,7 @@ from deltar.inference.uncertainty import (
     coverage,
     fit_uncertainty_calibration,
 )
+from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 from deltar.sensor.zone_outliers import OutlierRule
 
 
@@ -62,6 +65,10 @@ class UncertaintyFit:
             :func:`fit_outlier_rule`.
         outlier_errors: mean relative error of each candidate outlier rule (None: no
             rejection) over the frames where some candidate rejects a zone.
+        no_target_depth_m: the chosen depth of no-target zones, metres
+            (:func:`fit_no_target_depth`; None for networks that read no flags).
+        no_target_depth_errors: mean relative error of each candidate depth over the
+            frames with a no-target zone.
         path: the written checkpoint.
     """
 
@@ -76,6 +83,8 @@ class UncertaintyFit:
     no_target_errors: dict[float | None, float]
     outlier_rule: OutlierRule | None
     outlier_errors: dict[OutlierRule | None, float]
+    no_target_depth_m: float | None
+    no_target_depth_errors: dict[float, float]
     path: Path
 
 
@@ -287,6 +296,69 @@ def fit_outlier_rule(estimator, sets: Sequence[Sequence], *,
         estimator.zone_outliers = kept
 
 
+#: No-target depths :func:`fit_no_target_depth` tries, metres, the prior first.
+NO_TARGET_DEPTH_CANDIDATES_M: tuple[float, ...] = (NO_TARGET_DEPTH_M, 5.5, 6.0, 6.5, 7.0)
+
+
+def fit_no_target_depth(estimator, sets: Sequence[Sequence], *,
+                        candidates: Sequence[float] = NO_TARGET_DEPTH_CANDIDATES_M,
+                        frames_per_set: int | None = None, min_depth: float = 1e-3,
+                        max_depth: float = 10.0, on_frame: Callable[[], None] | None = None
+                        ) -> tuple[float, dict[float, float]]:
+    """Choose the depth a zone that reported *no target* stands for (the plane-select
+    head's hypothesis and the fill's reading there) on frames with ground truth.
+
+    Such a zone says only that its surface lies beyond the sensor's range; how far
+    beyond is a prior, here the one that fits the training scenes best: each candidate
+    runs the estimator on the frames that have a no-target zone, and the one with the
+    lowest mean relative error wins, the first on a tie (the 5 m prior).
+
+    Args:
+        estimator: a :class:`~deltar.inference.estimator.DepthEstimator` with a PyTorch
+            plane-select model that reads the flags; it is left at the chosen depth.
+        sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample`.
+        candidates: depths to try, metres, the prior first.
+        frames_per_set: at most this many frames of each set, spread evenly.
+        min_depth, max_depth: ground-truth range in metres.
+        on_frame: called after each frame (progress).
+
+    Returns:
+        (the chosen depth in metres, mean relative error per candidate; empty when no
+        frame has a no-target zone, then the choice is the first candidate).
+    """
+    from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
+
+    errors: dict[float, list[float]] = {float(c): [] for c in candidates}
+    for samples in sets:
+        for index in _picks(len(samples), frames_per_set):
+            sample = samples[index]
+            frame = sample.zone_frame()
+            if estimator.no_target_of(frame).any():
+                for depth_m in errors:
+                    _set_no_target_depth(estimator, depth_m)
+                    depth = estimator.predict(sample.rgb, frame,
+                                              zone_rects=sample.zone_rects).depth_m
+                    try:
+                        errors[depth_m].append(depth_metrics(depth, sample.depth_m, min_depth,
+                                                             max_depth)["rel"])
+                    except EmptyFrameError:
+                        errors[depth_m].append(float("nan"))
+            if on_frame is not None:
+                on_frame()
+    means = {c: float(np.nanmean(v)) for c, v in errors.items() if v and
+             not np.all(np.isnan(v))}
+    chosen = float(candidates[0]) if not means else \
+        next(c for c in errors if means.get(c) == min(means.values()))
+    _set_no_target_depth(estimator, chosen)
+    return chosen, means
+
+
+def _set_no_target_depth(estimator, depth_m: float) -> None:
+    """Point the estimator's network and fill at a no-target depth (metres)."""
+    estimator.model.set_output_contract(no_target_depth=depth_m)
+    estimator.no_target_depth_m = depth_m
+
+
 def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Sequence],
                                out: str | os.PathLike, *, frames_per_set: int | None = None,
                                pixels_per_frame: int = 4000, min_pixels: int = 1000,
@@ -314,7 +386,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         on_frame: called after each frame (progress).
         on_passes: called once the checkpoint is read, with how many times the fit
             visits each frame: the outlier rule, the blend and sigma, and for networks
-            that read no-target flags the no-target rule.
+            that read no-target flags the no-target depth and rule.
 
     Raises:
         ValueError: ``out`` is the checkpoint itself, or too few pixels to fit.
@@ -329,7 +401,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
     if on_passes is not None:
-        on_passes(3 if model.uses_no_target else 2)
+        on_passes(4 if model.uses_no_target else 2)
     blends = model.network_config.head.name == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
     # original is what is saved, so the file is read once. The output stage being
@@ -343,6 +415,10 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         estimator, sets, candidates=outlier_candidates, frames_per_set=frames_per_set,
         on_frame=on_frame)
     estimator.zone_outliers = outlier_rule
+    # Then the no-target depth: the head's far hypothesis, which the pixels below read.
+    far_depth, far_errors = fit_no_target_depth(
+        estimator, sets, frames_per_set=frames_per_set, on_frame=on_frame) \
+        if model.uses_no_target and blends else (None, {})
     pixels, frames = collect_pixels(estimator, sets, with_fill=blends,
                                     frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
@@ -371,11 +447,13 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         relative_error={name: float(np.mean(np.abs(v - pixels.truth_m) / pixels.truth_m))
                         for name, v in relative.items()},
         no_target_min_neighbour_m=rule, no_target_errors=rule_errors,
-        outlier_rule=outlier_rule, outlier_errors=outlier_errors, path=out)
+        outlier_rule=outlier_rule, outlier_errors=outlier_errors,
+        no_target_depth_m=far_depth, no_target_depth_errors=far_errors, path=out)
     model.set_output_contract(uncertainty_calibration=calibration.to_dict(),
                               no_target_min_neighbour_m=rule,
                               zone_outlier_rule=None if outlier_rule is None
-                              else outlier_rule.to_dict())
+                              else outlier_rule.to_dict(),
+                              **({} if far_depth is None else {"no_target_depth": far_depth}))
     if blend is not None:
         model.set_output_contract(confidence_blend=blend.to_dict())
     save_checkpoint(out, model, preset, overwrite=overwrite)

@@ -287,10 +287,12 @@ class OutputConfig:
                  OutlierRule.from_dict(self.zone_outlier_rule).to_dict())
 
 
-#: Output-contract options fitted after training (``deltar fit-uncertainty``) that do not
-#: change the network (:meth:`deltar.models.network.DeltarNet.set_output_contract`).
+#: Output-contract options fitted after training (``deltar fit-uncertainty``)
+#: (:meth:`deltar.models.network.DeltarNet.set_output_contract`); all but
+#: ``no_target_depth`` (the plane-select head's no-target hypothesis) leave the network
+#: as it is.
 OUTPUT_STAGE_OPTIONS = ("uncertainty_calibration", "confidence_blend",
-                        "no_target_min_neighbour_m", "zone_outlier_rule")
+                        "no_target_min_neighbour_m", "zone_outlier_rule", "no_target_depth")
 
 #: Each section's config classes by kind name; parts of one kind only under None.
 PART_CLASSES: dict[str, dict[str | None, type]] = {

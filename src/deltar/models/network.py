@@ -236,21 +236,26 @@ class DeltarNet(nn.Module):
         return network_contract(self.config())
 
     def set_output_contract(self, **options: Any) -> DeltarNet:
-        """Replace output-contract options that do not change the network
-        (:data:`~deltar.models.config.OUTPUT_STAGE_OPTIONS`), e.g. after fitting them.
+        """Replace output-contract options fitted after training
+        (:data:`~deltar.models.config.OUTPUT_STAGE_OPTIONS`), e.g. after fitting them;
+        ``no_target_depth`` (metres) also moves the head's no-target hypothesis.
 
         Returns:
             The network itself.
 
         Raises:
-            ValueError: another option, or a bad value.
+            ValueError: another option, a bad value, or ``no_target_depth`` for a head
+                that reads no flags.
         """
         unknown = sorted(set(options) - set(OUTPUT_STAGE_OPTIONS))
-        if unknown:
-            raise ValueError(f"only {OUTPUT_STAGE_OPTIONS} can be set on a built network, "
-                             f"got {unknown}")
+        if unknown or ("no_target_depth" in options and not self.uses_no_target):
+            raise ValueError(f"only {OUTPUT_STAGE_OPTIONS} can be set on a built network "
+                             f"(no_target_depth on a head that reads no-target flags), got "
+                             f"{sorted(options)}")
         self.network_config = replace(self.network_config,
                                       output=replace(self.network_config.output, **options))
+        if "no_target_depth" in options:
+            self.head.no_target_depth = self.network_config.output.no_target_depth
         return self
 
     @property
@@ -398,9 +403,7 @@ class DeltarNet(nn.Module):
         if not torch.isfinite(image).all():
             raise ValueError("image contains NaN or infinite values")
         if hypotheses.ndim != 3 or hypotheses.shape[0] != batch:
-            raise ValueError(
-                f"hypotheses must be (B={batch}, Z, K), got {tuple(hypotheses.shape)}"
-            )
+            raise ValueError(f"hypotheses must be (B={batch}, Z, K), got {tuple(hypotheses.shape)}")
         zones = hypotheses.shape[1]
         grid = math.isqrt(zones)
         if zones == 0 or grid * grid != zones:
@@ -408,9 +411,8 @@ class DeltarNet(nn.Module):
         if not torch.isfinite(hypotheses).all() or (hypotheses < 0).any():
             raise ValueError("hypotheses must be finite and non-negative (metres)")
         if tuple(zone_rects.shape) != (batch, zones, 4):
-            raise ValueError(
-                f"zone_rects must be (B={batch}, Z={zones}, 4), got {tuple(zone_rects.shape)}"
-            )
+            raise ValueError(f"zone_rects must be (B={batch}, Z={zones}, 4), got "
+                             f"{tuple(zone_rects.shape)}")
         if not torch.isfinite(zone_rects).all():
             raise ValueError("zone_rects contains NaN or infinite values")
         y0, x0, y1, x1 = zone_rects.unbind(-1)
@@ -418,17 +420,14 @@ class DeltarNet(nn.Module):
         if empty.any():
             raise ValueError("zone_rects: every zone needs y1 > y0 and x1 > x0")
         if tuple(zone_valid.shape) != (batch, zones):
-            raise ValueError(
-                f"zone_valid must be (B={batch}, Z={zones}), got {tuple(zone_valid.shape)}"
-            )
+            raise ValueError(f"zone_valid must be (B={batch}, Z={zones}), got "
+                             f"{tuple(zone_valid.shape)}")
         if zone_valid.dtype != torch.bool:
             raise ValueError(f"zone_valid must be a bool tensor, got {zone_valid.dtype}")
         if zone_mean_sigma is not None:
             if tuple(zone_mean_sigma.shape) != (batch, zones, 2):
-                raise ValueError(
-                    f"zone_mean_sigma must be (B={batch}, Z={zones}, 2), "
-                    f"got {tuple(zone_mean_sigma.shape)}"
-                )
+                raise ValueError(f"zone_mean_sigma must be (B={batch}, Z={zones}, 2), got "
+                                 f"{tuple(zone_mean_sigma.shape)}")
             if not torch.isfinite(zone_mean_sigma).all() or (zone_mean_sigma < 0).any():
                 raise ValueError("zone_mean_sigma must be finite and non-negative (metres)")
         if zone_no_target is not None:
