@@ -45,6 +45,7 @@ def test_nyu_official_matches_the_release_recipe():
     ("data.sources.0.holdout_fraction=1.0", "holdout_fraction"),
     ("data.sources.0.role=val", "no source has role 'train'"),
     ("data.zone_layout=diagonal", "data.zone_layout"),
+    ("data.max_targets=5", "data.max_targets must be 1, 2, 3 or 4"),
 ])
 def test_invalid_values_raise_naming_the_key(override, message):
     data = _minimal()

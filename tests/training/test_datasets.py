@@ -289,3 +289,44 @@ def test_flipped_zone_rects_cover_the_mirrored_pixels(tmp_path, rng):
     rect = flipped["zone_rects"].numpy()
     np.testing.assert_allclose(rect[:, 1], 48 - sample.zone_rects[order, 3])
     np.testing.assert_allclose(rect[:, 3], 48 - sample.zone_rects[order, 1])
+
+
+def test_several_targets_per_zone_reach_the_items_as_the_sensor_reports_them():
+    # Two walls 1.5 m and 3 m away: the zones on the seam see both.
+    depth = np.full((64, 64), 1.5, dtype=np.float32)
+    depth[:, 29:] = 3.0
+    reader = _ListReader([_frame(depth)])
+    single = SimulatedL5Dataset(reader, grid=4)[0]
+    assert "zone_targets" not in single
+    item = SimulatedL5Dataset(reader, grid=4, max_targets=4)[0]
+    targets = item["zone_targets"]
+    assert tuple(targets.shape) == (16, 2, 2)
+    # Slot 0 is the primary reading; the seam zones' second slot is the other wall.
+    torch.testing.assert_close(targets[:, 0, 0], item["zone_mean_sigma"][:, 0])
+    second = targets[:, 1, 0] > 0
+    assert second.any() and not second.all()
+    assert torch.all((targets[second, 1, 0] - 3.0).abs() < 0.1)
+    torch.testing.assert_close(targets[second].sum(dim=1)[:, 1], torch.ones(int(second.sum())))
+    # The same sensor reading otherwise.
+    torch.testing.assert_close(item["zone_mean_sigma"], single["zone_mean_sigma"])
+    # A dropped zone loses all its targets.
+    dropped = SimulatedL5Dataset(reader, grid=4, max_targets=4, signal_augmentation=(
+        SignalAugmentation(drop_fraction=0.5, noise_prob=0.0)))[0]
+    invalid = ~dropped["zone_valid"]
+    assert invalid.any() and torch.all(dropped["zone_targets"][invalid] == 0)
+    with pytest.raises(ValueError, match="max_targets"):
+        SimulatedL5Dataset(reader, max_targets=5)
+
+
+def test_zju_items_carry_their_targets_and_flip_them_with_their_zones(tmp_path, rng):
+    samples, sample = _zju_set(tmp_path, rng)
+    plain = ZJUL5TrainingDataset(samples, with_targets=True)[0]
+    flipped = ZJUL5TrainingDataset(samples, with_targets=True, flip_prob=1.0)[0]
+    assert "zone_targets" not in ZJUL5TrainingDataset(samples)[0]
+    targets = plain["zone_targets"].numpy()
+    # The set reports one target per zone: slot 0 is the reading, slot 1 empty.
+    valid = sample.zone_valid
+    np.testing.assert_allclose(targets[valid, 0, 0], sample.zone_mean_sigma[valid, 0])
+    assert np.all(targets[:, 1] == 0) and np.all(targets[~valid] == 0)
+    order = np.arange(16).reshape(4, 4)[:, ::-1].ravel()
+    np.testing.assert_array_equal(flipped["zone_targets"].numpy(), targets[order])

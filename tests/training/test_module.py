@@ -195,3 +195,22 @@ def test_format_2_training_checkpoints_still_load(tmp_path):
     assert restored.network_config == model.network_config
     for name, tensor in model.state_dict().items():
         assert torch.equal(restored.state_dict()[name], tensor), name
+
+
+def test_the_batch_targets_reach_the_network(rng):
+    # A plane-select network reads every target a zone reported: a batch whose zones
+    # report a second surface predicts otherwise than one without.
+    torch.manual_seed(0)
+    select = DeltarSystem("deltar-select", {"design_size": [64, 96]}, OptimConfig(lr=1e-2))
+    batch = {"image": torch.from_numpy(rng.standard_normal((1, 3, 64, 96)).astype(np.float32)),
+             "hypotheses": torch.full((1, 64, 16), 2.0),
+             "zone_rects": torch.tensor([[[r * 8.0, c * 12.0, r * 8.0 + 8, c * 12.0 + 12]
+                                          for r in range(8) for c in range(8)]]),
+             "zone_valid": torch.ones(1, 64, dtype=torch.bool)}
+    targets = torch.zeros(1, 64, 2, 2)
+    targets[..., 0, 0], targets[..., 0, 1] = 2.0, 0.5
+    targets[..., 1, 0], targets[..., 1, 1] = 4.0, 0.5
+    with torch.no_grad():
+        plain = select(batch)["depth"]
+        both = select({**batch, "zone_targets": targets})["depth"]
+    assert (both - plain).abs().max() > 0.1

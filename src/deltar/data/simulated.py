@@ -15,6 +15,7 @@ from deltar.data.rgbd import RGBDFrame
 from deltar.sensor.augment import SignalAugmentation, training_zone_rects
 from deltar.sensor.geometry import zone_rects
 from deltar.sensor.simulator_config import SimulatorConfig
+from deltar.sensor.targets import readings_changed
 
 #: Zone layouts of :func:`simulate_set` (``deltar simulate --layout``).
 SET_LAYOUTS: tuple[str, ...] = ("calibrated", "aligned")
@@ -93,22 +94,9 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
             valid = valid & (mean > 0) & (mean <= SimulatorConfig().max_range_m)
             mean, sigma = mean * valid, sigma * valid
             if targets:
-                # The zone's bias scales all its targets; a dropped zone loses them all.
-                before = zones.mean_m.reshape(-1)
-                factor = np.where(before > 0, mean.numpy() / np.maximum(before, 1e-6), 0.0)
-                # As for the primary: a target biased past the range is not reported.
-                scaled = targets["target_mean_m"] * factor[:, None]
-                keep = valid.numpy()[:, None] & targets["target_valid"] & (
-                    scaled <= SimulatorConfig().max_range_m)
-                targets["target_valid"] = keep
-                targets["target_mean_m"] = np.where(keep, scaled, 0.0).astype(np.float32)
-                targets["target_sigma_m"] = np.where(
-                    keep, targets["target_sigma_m"] * factor[:, None], 0.0).astype(np.float32)
-                targets["target_signal"] = np.where(keep, targets["target_signal"], 0.0)
-                # Target 0 is the primary reading as degraded.
-                targets["target_mean_m"][:, 0] = mean.numpy()
-                targets["target_sigma_m"][:, 0] = sigma.numpy()
-                targets["target_valid"][:, 0] = valid.numpy()
+                targets = readings_changed(targets, zones.mean_m.reshape(-1), mean.numpy(),
+                                           sigma.numpy(), valid.numpy(),
+                                           SimulatorConfig().max_range_m)
             zones = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in (mean, sigma, valid)),
                               no_target=zones.no_target)
         valid_counts.append(int(np.count_nonzero(zones.valid)))

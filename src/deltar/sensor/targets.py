@@ -17,8 +17,8 @@ import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
 
-__all__ = ["NETWORK_TARGET_SLOTS", "fixed_target_slots", "stacked_target_inputs",
-           "target_inputs"]
+__all__ = ["NETWORK_TARGET_SLOTS", "fixed_target_slots", "readings_changed",
+           "stacked_target_inputs", "target_inputs"]
 
 #: Targets per zone the network reads: the primary reading and the largest other one
 #: (a zone rarely reports a third: benchmarks/RESULTS.md, several targets per zone
@@ -111,4 +111,41 @@ def fixed_target_slots(zone_targets: np.ndarray | None, batch_zones: tuple[int, 
                          f"{targets.shape}")
     used = min(slots, targets.shape[2])
     out[:, :, :used] = targets[:, :, :used]
+    return out
+
+
+def readings_changed(targets: dict[str, np.ndarray], before_mean_m: np.ndarray,
+                     mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.ndarray,
+                     max_range_m: float) -> dict[str, np.ndarray]:
+    """A zone's targets after its primary reading was changed (a bias, a dropped zone):
+    what the degraded sets and the training items report.
+
+    A zone's change scales all its targets (a bias in the timing moves every return); a
+    zone that became invalid loses them all; a target scaled past the sensor's range is
+    not reported. Target 0 becomes the changed primary reading.
+
+    Args:
+        targets: ``target_mean_m``, ``target_sigma_m`` (metres), ``target_valid`` (bool)
+            and ``target_signal`` (Z, T) arrays of the zones as simulated.
+        before_mean_m: (Z,) primary readings as simulated, metres.
+        mean_m, sigma_m, valid: (Z,) the changed primary readings (metres) and validity.
+        max_range_m: the sensor's range, metres.
+
+    Returns:
+        The four (Z, T) arrays, changed (new arrays; float32 distances).
+    """
+    mean, sigma = np.asarray(mean_m, np.float32), np.asarray(sigma_m, np.float32)
+    valid = np.asarray(valid, bool)
+    before = np.asarray(before_mean_m, np.float64)
+    factor = np.where(before > 0, mean / np.maximum(before, 1e-6), 0.0)
+    scaled = targets["target_mean_m"] * factor[:, None]
+    keep = valid[:, None] & targets["target_valid"] & (scaled <= max_range_m)
+    out = {"target_valid": keep,
+           "target_mean_m": np.where(keep, scaled, 0.0).astype(np.float32),
+           "target_sigma_m": np.where(keep, targets["target_sigma_m"] * factor[:, None],
+                                      0.0).astype(np.float32),
+           "target_signal": np.where(keep, targets["target_signal"], 0.0)}
+    out["target_mean_m"][:, 0] = np.where(valid, mean, 0.0)
+    out["target_sigma_m"][:, 0] = np.where(valid, sigma, 0.0)
+    out["target_valid"][:, 0] = valid
     return out

@@ -191,6 +191,9 @@ class DataConfig:
         layout_jitter_px: training zone layouts handed to the network are shifted by up
             to this many pixels (a calibration error; zones are simulated unshifted).
         layout_rotation_deg: ... and rotated about the image centre by up to this.
+        max_targets: targets per zone the simulated sensor reports (1..4, ST's
+            targets-per-zone setting); above 1 every item carries ``zone_targets``
+            (real ZJU-L5 samples their own targets, or their primary reading alone).
     """
 
     sources: list[SourceConfig] = field(default_factory=list)
@@ -211,9 +214,13 @@ class DataConfig:
     depth_scale_range: list[float] | None = None
     layout_jitter_px: float = 0.0
     layout_rotation_deg: float = 0.0
+    max_targets: int = 1
 
     def validate(self, where: str) -> None:
         scale = self.depth_scale_range
+        if isinstance(self.max_targets, bool) or self.max_targets not in (1, 2, 3, 4):
+            raise ValueError(f"{where}.max_targets must be 1, 2, 3 or 4, got "
+                             f"{self.max_targets!r}")
         if scale is not None and (len(scale) != 2 or not 0 < scale[0] <= scale[1]):
             raise ValueError(f"{where}.depth_scale_range must be [low, high] with "
                              f"0 < low <= high, got {scale}")

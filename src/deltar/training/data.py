@@ -202,7 +202,7 @@ def build_datasets(config: DataConfig, seed: int = 0,
                                if train and config.depth_scale_range else None),
             layout_jitter_px=config.layout_jitter_px if train else 0.0,
             layout_rotation_deg=config.layout_rotation_deg if train else 0.0,
-            image_mean=image_mean, image_std=image_std)
+            image_mean=image_mean, image_std=image_std, max_targets=config.max_targets)
 
     train_parts: list[Dataset] = []
     val_parts: list[Dataset] = []
@@ -230,7 +230,8 @@ def build_datasets(config: DataConfig, seed: int = 0,
                     train and config.image_augmentation.enabled) else 0.0
                 parts.append(ZJUL5TrainingDataset(subset, config.num_hypotheses,
                                                   config.sampling, flip, source_seed,
-                                                  image_mean, image_std))
+                                                  image_mean, image_std,
+                                                  with_targets=config.max_targets > 1))
             else:
                 parts.append(simulated(subset, train, source_seed))
     return IndexedConcat(train_parts), IndexedConcat(val_parts)

@@ -27,7 +27,15 @@ from deltar.sensor.augment import SignalAugmentation, training_zone_rects
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, mirror_zone_rects, zone_rects
 from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
 from deltar.sensor.simulate import simulate_zones
+from deltar.sensor.simulate_frame import check_target_options
 from deltar.sensor.simulator_config import SimulatorConfig
+from deltar.sensor.targets import (
+    NETWORK_TARGET_SLOTS,
+    fixed_target_slots,
+    readings_changed,
+    target_inputs,
+)
+from deltar.sensor.zone_frame import ZoneFrame
 from deltar.training.config import ZONE_LAYOUTS
 
 
@@ -68,13 +76,17 @@ class SimulatedL5Dataset(Dataset):
             rotated about the image centre by up to +- this many degrees.
         image_mean, image_std: per-channel normalisation of ``image`` (the network's
             input contract, ``model.network_config.inputs.image_mean`` / ``image_std``).
+        max_targets: targets per zone the simulated sensor reports (1..4, ST's
+            targets-per-zone setting); above 1 items also carry ``zone_targets``.
 
     Items are dicts of tensors: ``image`` (3, H, W) float32 ImageNet-normalised,
     ``image_rgb`` (H, W, 3) uint8, ``depth`` (1, H, W) float32 metres (0 invalid),
     ``zone_mean_sigma`` (Z, 2) float32 metres, ``zone_valid`` (Z,) bool,
     ``zone_no_target`` (Z,) bool (invalid zones with no target in range), ``zone_rects``
     (Z, 4) float32 pixels, ``hypotheses`` (Z, K) float32 metres, ``intrinsics`` (4,) float32
-    fx, fy, cx, cy in pixels of the returned image.
+    fx, fy, cx, cy in pixels of the returned image; with ``max_targets`` > 1 also
+    ``zone_targets`` (Z, NETWORK_TARGET_SLOTS, 2) float32 ``[metres, share]``
+    (:func:`deltar.sensor.targets.target_inputs` of the reading as augmented).
     """
 
     def __init__(
@@ -98,7 +110,10 @@ class SimulatedL5Dataset(Dataset):
         layout_rotation_deg: float = 0.0,
         image_mean: Sequence[float] = IMAGENET_MEAN,
         image_std: Sequence[float] = IMAGENET_STD,
+        max_targets: int = 1,
     ) -> None:
+        check_target_options(max_targets, "strongest")
+        self.max_targets = int(max_targets)
         if isinstance(zone_layout, str):
             if zone_layout not in ZONE_LAYOUTS:
                 raise ValueError(f"zone_layout must be one of {ZONE_LAYOUTS} or a (Z, 4) "
@@ -190,7 +205,8 @@ class SimulatedL5Dataset(Dataset):
             depth = depth * np.float32(np.exp(rng.uniform(low, high)))
 
         zones = simulate_zones(torch.from_numpy(np.ascontiguousarray(depth)),
-                               torch.from_numpy(rects), self.simulator)
+                               torch.from_numpy(rects), self.simulator,
+                               max_targets=self.max_targets)
         rects = perturb_layout(rects, (height, width), self.layout_jitter_px,
                                self.layout_rotation_deg, rng)
         mean, sigma, valid = zones.mean_m, zones.sigma_m, zones.valid
@@ -199,7 +215,9 @@ class SimulatedL5Dataset(Dataset):
             mean, sigma, valid = self.signal_augmentation(mean, sigma, valid, generator)
         hypotheses = sample_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
         image_rgb = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        return {
+        targets = {} if self.max_targets == 1 else {
+            "zone_targets": torch.from_numpy(self._target_slots(zones, mean, sigma, valid))}
+        return {**targets,
             "image": torch.from_numpy(normalise_image(image, self.image_mean, self.image_std)),
             "image_rgb": torch.from_numpy(image_rgb),
             "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None],
@@ -211,6 +229,22 @@ class SimulatedL5Dataset(Dataset):
             "intrinsics": torch.tensor([intr.fx, intr.fy, intr.cx, intr.cy],
                                        dtype=torch.float32),
         }
+
+    def _target_slots(self, zones, mean: torch.Tensor, sigma: torch.Tensor,
+                      valid: torch.Tensor) -> np.ndarray:
+        """(Z, NETWORK_TARGET_SLOTS, 2) float32 network target inputs of the simulated
+        zones with their primary readings as augmented (:func:`readings_changed`)."""
+        grid = math.isqrt(mean.shape[0])
+        simulated = {name: getattr(zones, name).numpy() for name in
+                     ("target_mean_m", "target_sigma_m", "target_valid", "target_signal")}
+        valid = valid.bool() & (mean > 0)
+        changed = readings_changed(simulated, zones.mean_m.numpy(), mean.numpy(),
+                                   sigma.numpy(), valid.numpy(), self.simulator.max_range_m)
+        frame = ZoneFrame(*(a.numpy().reshape(grid, grid) for a in
+                            (mean * valid, sigma * valid, valid)),
+                          **{k: v.reshape(grid, grid, -1) for k, v in changed.items()})
+        return fixed_target_slots(target_inputs(frame)[None], (1, mean.shape[0]),
+                                  NETWORK_TARGET_SLOTS)[0]
 
 
 def perturb_layout(rects: np.ndarray, image_size: tuple[int, int], max_offset_px: float,
@@ -260,13 +294,16 @@ class ZJUL5TrainingDataset(Dataset):
         flip_prob: probability of a horizontal flip.
         seed: base seed; item ``i`` of epoch ``e`` draws from ``(seed, e, i)``.
         image_mean, image_std: per-channel image normalisation (the network's contract).
+        with_targets: items also carry ``zone_targets`` (Z, NETWORK_TARGET_SLOTS, 2),
+            the sample's own targets (its primary reading alone when it has none).
     """
 
     def __init__(self, samples: Sequence, num_hypotheses: int = 16, sampling: str = "icdf",
                  flip_prob: float = 0.0, seed: int = 0,
                  image_mean: Sequence[float] = IMAGENET_MEAN,
-                 image_std: Sequence[float] = IMAGENET_STD) -> None:
+                 image_std: Sequence[float] = IMAGENET_STD, with_targets: bool = False) -> None:
         self.samples, self.num_hypotheses, self.sampling = samples, num_hypotheses, sampling
+        self.with_targets = bool(with_targets)
         self.flip_prob, self.seed, self.epoch = flip_prob, int(seed), 0
         self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
 
@@ -287,6 +324,9 @@ class ZJUL5TrainingDataset(Dataset):
                      else sample.zone_no_target.copy())
         counts = sample.hist_counts
         intr = sample.intrinsics
+        targets = (fixed_target_slots(target_inputs(sample.zone_frame())[None],
+                                      (1, len(valid)), NETWORK_TARGET_SLOTS)[0]
+                   if self.with_targets else None)
         if rng.random() < self.flip_prob:
             width = image.shape[1]
             image, depth = image[:, ::-1], depth[:, ::-1]
@@ -295,6 +335,7 @@ class ZJUL5TrainingDataset(Dataset):
             rects = mirror_zone_rects(rects, width, sample.grid)
             mean_sigma, valid, no_target = mean_sigma[order], valid[order], no_target[order]
             counts = None if counts is None else counts[order]
+            targets = None if targets is None else targets[order]
             if intr is not None:
                 intr = flip_intrinsics(intr)
         mean_sigma = np.where(valid[:, None], mean_sigma, 0.0).astype(np.float32)
@@ -310,7 +351,8 @@ class ZJUL5TrainingDataset(Dataset):
                                            self.sampling)
         intrinsics = ([intr.fx, intr.fy, intr.cx, intr.cy] if intr is not None
                       else [float("nan")] * 4)
-        return {
+        extra = {} if targets is None else {"zone_targets": torch.from_numpy(targets)}
+        return {**extra,
             "image": torch.from_numpy(normalise_image(np.ascontiguousarray(image),
                                                       self.image_mean, self.image_std)),
             "image_rgb": torch.from_numpy(np.ascontiguousarray(

@@ -79,9 +79,11 @@ class DeltarSystem(L.LightningModule):
             The network's outputs: ``depth`` (B, 1, H/2, W/2) metres, ``bin_edges``
             (B, N + 1) metres, ``uncertainty`` (B, 1, H/2, W/2) metres.
         """
-        # Batches from other readers may lack the no-target flags: then none is known.
+        # Batches from other readers may lack the no-target flags (then none is known)
+        # and the further targets (then each zone reports its primary reading alone).
         return self.model(*(batch[key] for key in MODEL_INPUTS),
-                          zone_no_target=batch.get("zone_no_target"))
+                          zone_no_target=batch.get("zone_no_target"),
+                          zone_targets=batch.get("zone_targets"))
 
     def loss(self, pred_m: torch.Tensor, target_m: torch.Tensor) -> torch.Tensor:
         """Scaled SI loss between (B, 1, h, w) predictions and (B, 1, H, W) ground truth.
