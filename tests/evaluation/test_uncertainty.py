@@ -130,17 +130,25 @@ def test_no_target_rule_is_chosen_by_what_invalid_zones_hide(far_truth, expected
     assert (errors[3.0] < errors[3.5] < errors[None]) == far_truth
 
 
-def test_cli_reports_and_stores_the_no_target_rule(tmp_path) -> None:
+def _fit_with_cli(tmp_path, samples) -> tuple[str, Path]:
+    """``deltar fit-uncertainty`` of an untrained plane-select model on ``samples``:
+    (its output, the written checkpoint)."""
     torch.manual_seed(0)
     model = create_model("deltar-select", design_size=(32, 64))
     source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
-    data = write_zju_l5(tmp_path / "set", [_unflagged_sample(True, seed) for seed in range(2)])
+    data = write_zju_l5(tmp_path / "set", samples)
     out = tmp_path / "fitted.pt"
     result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
                                  "--out", str(out)])
     assert result.exit_code == 0, result.output
-    assert "beside a valid zone reading >= 3 m" in result.output
+    return result.output, out
+
+
+def test_cli_reports_and_stores_the_no_target_rule(tmp_path) -> None:
+    output, out = _fit_with_cli(tmp_path, [_unflagged_sample(True, seed) for seed in range(2)])
+    assert "beside a valid zone reading >= 3 m" in output
     assert load_checkpoint(out)[2]["output"]["no_target_min_neighbour_m"] == 3.0
+
 
 
 def test_the_fit_does_not_depend_on_the_rule_the_checkpoint_carried(tmp_path) -> None:
@@ -208,16 +216,9 @@ def test_outlier_rule_is_chosen_by_what_rejecting_does_to_the_error(outliers_rea
 
 
 def test_cli_reports_and_stores_the_outlier_rule(tmp_path) -> None:
-    torch.manual_seed(0)
-    model = create_model("deltar-select", design_size=(32, 64))
-    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
-    data = write_zju_l5(tmp_path / "set", [_wall_sample(seed, False) for seed in range(2)])
-    out = tmp_path / "fitted.pt"
-    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
-                                 "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    assert "zone outliers: set aside beyond 0.05 log distance" in result.output
-    assert "kept " in result.output and "0.05 / 3 " in result.output
+    output, out = _fit_with_cli(tmp_path, [_wall_sample(seed, False) for seed in range(2)])
+    assert "zone outliers: set aside beyond 0.05 log distance" in output
+    assert "kept " in output and "0.05 / 3 " in output
     stored = load_checkpoint(out)[2]["output"]["zone_outlier_rule"]
     assert stored == {"tolerance": 0.05, "min_zones": 3, "min_neighbours": 4}
     assert DepthEstimator(load_checkpoint(out)[0]).zone_outliers.min_zones == 3
@@ -256,15 +257,8 @@ def test_no_target_depth_is_chosen_by_how_far_the_unseen_surfaces_are(far_truth_
 
 
 def test_cli_reports_and_stores_the_no_target_depth(tmp_path) -> None:
-    torch.manual_seed(0)
-    model = create_model("deltar-select", design_size=(32, 64))
-    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
-    data = write_zju_l5(tmp_path / "set", [_far_sample(seed, 6.0) for seed in range(2)])
-    out = tmp_path / "fitted.pt"
-    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
-                                 "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    assert "zones that reported no target read at 6 m" in result.output
+    output, out = _fit_with_cli(tmp_path, [_far_sample(seed, 6.0) for seed in range(2)])
+    assert "zones that reported no target read at 6 m" in output
     fitted = load_checkpoint(out)[0]
     assert fitted.contract()["no_target_depth"] == 6.0 == fitted.head.no_target_depth
     assert DepthEstimator(fitted).no_target_depth_m == 6.0
