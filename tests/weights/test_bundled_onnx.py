@@ -70,6 +70,8 @@ def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame):
     assert full.model is not None and lean.onnx_model is not None
     assert lean.blend == full.blend and lean.uncertainty == full.uncertainty
     assert lean.no_target_min_neighbour_m == full.no_target_min_neighbour_m is not None
+    assert lean.zone_outliers == full.zone_outliers
+    assert lean.no_target_depth_m == full.no_target_depth_m is not None
     a, b = lean.predict(image, zones), full.predict(image, zones)
     assert a.network_size == b.network_size == (256, 320)
     assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4
