@@ -46,9 +46,12 @@ def test_benchmark_reports_flops_and_fraction_with_overrides():
     assert result["gflop"] > 0
     assert result["gflop_s"] == pytest.approx(result["gflop"] / (result["latency_ms_min"] / 1e3),
                                               rel=0.02)
-    # Rounded to three decimals.
-    assert 0 < result["matmul_fraction"] == pytest.approx(
-        result["gflop_s"] / result["matmul_gflop_s"], abs=6e-4)
+    # The fraction is rounded to three decimals and the reported reference rate to one,
+    # so the recomputed ratio may differ by both roundings (the reference is slow at
+    # this small size, where its rounding counts).
+    ratio = result["gflop_s"] / result["matmul_gflop_s"]
+    tolerance = 5e-4 + ratio * 0.05 / result["matmul_gflop_s"] + 1e-6
+    assert 0 < result["matmul_fraction"] == pytest.approx(ratio, abs=tolerance)
     skipped = benchmark_preset("deltar-lite", 64, 96, threads=1, repeats=1, warmup=0,
                                matmul_size=0)
     assert skipped["matmul_gflop_s"] is None and skipped["matmul_fraction"] is None
