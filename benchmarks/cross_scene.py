@@ -8,7 +8,7 @@ eight other scenes with ``deltar train``, simulate each left-out scene's zones w
 biased by N(+0.10, 0.15) m); and without no-target flags (as the released ZJU-L5 files
 store them) -- and score every classical baseline and the trained model on it with
 ``deltar evaluate``, each baseline also in its ``+far`` form (zones that reported no
-target read as 5 m, as the model reads them). The model is scored twice: ``trained``, as
+target read as 5 m, the model's prior). The model is scored twice: ``trained``, as
 ``DepthEstimator`` runs it (for the plane-select recipe: blended with the colorization
 fill where the network is unsure), and ``network``, the network alone (``+network``).
 Prints each scene's table and the mean over scenes (each scene weighs the same), with
@@ -70,7 +70,7 @@ CONDITIONS: dict[str, list[str]] = {
 }
 BASELINES = ("median", "nearest", "bilinear", "bicubic", "guided_filter", "joint_bilateral",
              "colorization")
-#: The same baselines reading the zones that reported no target at 5 m, as the model does:
+#: The same baselines reading the zones that reported no target at 5 m (the model's prior):
 #: what a classical method gains from that flag alone.
 FAR_BASELINES = tuple(name + "+far" for name in BASELINES)
 METRICS = ("d1", "rel", "rmse", "log10")
