@@ -186,6 +186,31 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
         DepthEstimator(lite_model, weights="test", blend="on")
 
 
+def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatch):
+    """The fill needs only the image and the zones: predict starts it from prepare's
+    ``on_zones`` hook, so it runs while the images are resized, with the zone inputs
+    prepare returns."""
+    import deltar.inference.estimator as estimator_module
+
+    image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    frame = ZoneFrame(rng.uniform(0.8, 3.0, (8, 8)), np.full((8, 8), 0.02),
+                      np.ones((8, 8), bool))
+    estimator = _select_estimator()
+    order: list[str] = []
+    normalise, start = estimator_module.normalise_images, estimator_module.start_blend_fill
+    monkeypatch.setattr(estimator_module, "normalise_images",
+                        lambda *a, **k: order.append("normalise") or normalise(*a, **k))
+    monkeypatch.setattr(estimator_module, "start_blend_fill",
+                        lambda *a, **k: order.append("fill") or start(*a, **k))
+    result = estimator.predict(image, frame)
+    assert order == ["fill", "normalise"]
+    seen = {}
+    inputs = estimator.prepare([image], [frame], on_zones=lambda zones: seen.update(zones))
+    assert "image" not in seen and set(inputs) == set(seen) | {"image"}
+    np.testing.assert_array_equal(seen["image_rects"], inputs["image_rects"])
+    np.testing.assert_array_equal(result.zone_rects, inputs["image_rects"][0])
+
+
 def test_image_only_frames_are_not_blended(rng):
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
     frame = ZoneFrame(np.zeros((8, 8)), np.zeros((8, 8)), np.zeros((8, 8), bool))

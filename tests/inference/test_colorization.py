@@ -126,6 +126,38 @@ def test_the_blend_fill_is_the_baseline_fill_to_a_millionth(rng):
             colorize_zones(image, means, valid, rects, tolerance=bad)
 
 
+def test_the_blend_fill_reads_a_halved_guide_of_large_images(rng):
+    """Above twice the solve grid's resolution the blend's fill reads the image halved
+    (2 x 2 area means, while both sides stay even), with the zones scaled to it; the
+    grid, and so the solution's resolution, stays the one of the full image."""
+    from deltar.inference.blend import (
+        BLEND_FILL_CELLS,
+        BLEND_FILL_SEED_SIDE,
+        BLEND_FILL_TOLERANCE,
+        halved_guide,
+    )
+    from deltar.inference.colorization import colorize_zones
+    from deltar.inference.preprocess import scale_rects
+
+    for size, halved in (((480, 640), (120, 160)), ((720, 1280), (90, 160)),
+                         ((240, 320), (120, 160)), ((96, 128), (96, 128)),
+                         ((481, 640), (481, 640)), ((486, 648), (243, 324))):
+        assert halved_guide(np.zeros((*size, 3), np.uint8), BLEND_FILL_CELLS).shape[:2] \
+            == halved, size
+    image, means, valid, rects, _ = _zones(rng, 480, 640)
+    guide = halved_guide(image, BLEND_FILL_CELLS)
+    means_4x4 = image.astype(np.float64).reshape(120, 4, 160, 4, 3).mean(axis=(1, 3))
+    assert np.abs(guide - means_4x4).max() <= 1.0  # two halvings, each rounded to uint8
+    assert np.abs(guide - means_4x4).mean() < 0.5
+    small_rects = scale_rects(rects, (480, 640), (120, 160))
+    np.testing.assert_array_equal(
+        blend_fill(image, means, valid, rects, out_size=(240, 320)),
+        colorize_zones(guide, means, valid, small_rects, solve_cells=BLEND_FILL_CELLS,
+                       seed_side=BLEND_FILL_SEED_SIDE, tolerance=BLEND_FILL_TOLERANCE,
+                       out_size=(240, 320)))
+    assert blend_fill(image, means, valid, rects).shape == (480, 640)
+
+
 def test_the_fill_at_another_output_size_is_the_same_solution_resampled(rng):
     """``out_size`` resamples the one solution: the estimator asks for its network's
     output grid; the map covers the whole image either way."""

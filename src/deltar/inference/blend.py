@@ -218,9 +218,45 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
             raise ValueError(f"zone_far must have zone_mean_m's shape {means.shape}, got "
                              f"{np.shape(zone_far)}")
         means, valid = no_target_as_readings(means, valid, zone_far, far_depth_m)
-    return colorize_zones(image_rgb, means, valid, zone_rects, solve_cells=BLEND_FILL_CELLS,
+    from deltar.camera import check_image
+
+    guide = halved_guide(check_image(image_rgb, "image_rgb"), BLEND_FILL_CELLS)
+    if guide.shape != np.shape(image_rgb):
+        from deltar.inference.preprocess import scale_rects
+
+        zone_rects = scale_rects(zone_rects, np.shape(image_rgb)[:2], guide.shape[:2])
+        out_size = np.shape(image_rgb)[:2] if out_size is None else out_size
+    return colorize_zones(guide, means, valid, zone_rects, solve_cells=BLEND_FILL_CELLS,
                           seed_side=BLEND_FILL_SEED_SIDE, tolerance=BLEND_FILL_TOLERANCE,
                           out_size=out_size)
+
+
+def halved_guide(image_rgb: np.ndarray, solve_cells: int) -> np.ndarray:
+    """The fill's guide image halved (2 x 2 area means) while it keeps at least twice
+    the resolution of a ``solve_cells`` grid along each side and both sides stay even.
+
+    OpenCV's area resize has a fast path for exact halving only; its general path, which
+    the solve grid's size (e.g. 42 x 57 for 480 x 640) needs, costs about as much per
+    *input* pixel as the rest of the fill. From the halved image it reads 4 to 16 times
+    fewer pixels, and averages the same areas (to the halvings' uint8 roundings).
+
+    Args:
+        image_rgb: (H, W, 3) uint8 RGB image.
+        solve_cells: cells of the fill's solve grid.
+
+    Returns:
+        (H / 2^n, W / 2^n, 3) uint8 (``image_rgb`` itself when n = 0).
+    """
+    import cv2  # on use
+
+    height, width = np.shape(image_rgb)[:2]
+    scale = math.sqrt(solve_cells / max(1, height * width))
+    grid_h, grid_w = height * scale, width * scale
+    while height % 2 == 0 and width % 2 == 0 and height // 2 >= 2 * grid_h \
+            and width // 2 >= 2 * grid_w:
+        height, width = height // 2, width // 2
+        image_rgb = cv2.resize(image_rgb, (width, height), interpolation=cv2.INTER_AREA)
+    return image_rgb
 
 
 _FILL_WORKER: ThreadPoolExecutor | None = None

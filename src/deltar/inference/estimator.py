@@ -19,7 +19,7 @@ config (checkpoints: :mod:`deltar.models.checkpoint`) or the ONNX file's metadat
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -265,7 +265,8 @@ class DepthEstimator:
 
     def prepare(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                 calibration: RigCalibration | None = None,
-                zone_rects: np.ndarray | None = None) -> dict[str, Any]:
+                zone_rects: np.ndarray | None = None,
+                on_zones: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Build the network inputs for a batch of same-size images.
 
         Args:
@@ -275,6 +276,9 @@ class DepthEstimator:
             zone_rects: optional (B, Z, 4) (y0, x0, y1, x1) zone rectangles in pixels of
                 the input images (e.g. a ZJU-L5 file's ``fr``); they replace the
                 calibrated or nominal placement.
+            on_zones: optional, called with the returned dict before its ``image`` is
+                made: work that needs only the zones (:meth:`predict` starts the blend's
+                fill there) then runs while the images are resized and normalised.
 
         Returns:
             dict of numpy arrays, the network inputs (:meth:`run_network` takes them as
@@ -320,14 +324,16 @@ class DepthEstimator:
             rects = np.stack([self.zone_rects_for(f, size, calibration) for f in frames])
         for i, frame in enumerate(frames):
             check_zones_in_image(rects[i], frame.flat()[2], size, f"frames[{i}]")
-        net_rects = scale_rects(rects, size, net_size)
-        hypotheses = np.stack([self.hypotheses_for(f) for f in frames])
-        return {"image": normalise_images(checked, net_size, self.image_mean, self.image_std),
-                "hypotheses": hypotheses, "zone_rects": net_rects,
-                "zone_valid": np.stack([f.flat()[2] for f in frames]),
-                "zone_no_target": np.stack([self.no_target_of(f) for f in frames]),
-                "zone_targets": stacked_target_inputs(frames),
-                "image_rects": rects, "image_size": size, "network_size": net_size}
+        inputs = {"hypotheses": np.stack([self.hypotheses_for(f) for f in frames]),
+                  "zone_rects": scale_rects(rects, size, net_size),
+                  "zone_valid": np.stack([f.flat()[2] for f in frames]),
+                  "zone_no_target": np.stack([self.no_target_of(f) for f in frames]),
+                  "zone_targets": stacked_target_inputs(frames),
+                  "image_rects": rects, "image_size": size, "network_size": net_size}
+        if on_zones is not None:
+            on_zones(inputs)
+        inputs["image"] = normalise_images(checked, net_size, self.image_mean, self.image_std)
+        return inputs
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Run the network on :meth:`prepare`'s output: the one backend interface, numpy
@@ -424,14 +430,21 @@ class DepthEstimator:
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
-        inputs = self.prepare(images, frames, calibration, zone_rects)
+        fills: list[Future] = []
+
+        def start_fills(zones: dict[str, Any]) -> None:
+            # The blend's fill needs only the image and the zones: it runs while the
+            # images are normalised and the network runs (a worker thread; all of them
+            # release the GIL).
+            net_size = zones["network_size"]
+            grid = (net_size[0] // 2, net_size[1] // 2)  # the network's output grid
+            fills.extend(self._start_fill(images[i], frame, zones["image_rects"][i],
+                                          zones["zone_no_target"][i], grid)
+                         for i, frame in enumerate(frames))
+
+        inputs = self.prepare(images, frames, calibration, zone_rects,
+                              on_zones=start_fills if self.blend is not None else None)
         size, net_size = inputs["image_size"], inputs["network_size"]
-        grid = (net_size[0] // 2, net_size[1] // 2)  # the network's output grid
-        # The blend's fill needs only the image and the zones: it runs while the network
-        # does (a worker thread; both release the GIL).
-        fills = [self._start_fill(images[i], frame, inputs["image_rects"][i],
-                                  inputs["zone_no_target"][i], grid)
-                 for i, frame in enumerate(frames)] if self.blend is not None else None
         depths, spreads = self.run_network(inputs)
         intrinsics = self.image_intrinsics(size, calibration)
         results = []
@@ -439,7 +452,7 @@ class DepthEstimator:
             # Blend and sigma on the network's output grid, then one resize of what is
             # returned (deltar.inference.output_stage).
             grid_rects = scale_rects(inputs["image_rects"][i], size, depths.shape[2:])
-            fill = fills[i].result() if fills is not None else None
+            fill = fills[i].result() if fills else None
             maps = [m for m in apply_output_stage(depths[i, 0], spreads[i, 0], fill, grid_rects,
                                                   self.blend, self.uncertainty,
                                                   frame.valid_count == 0) if m is not None]
