@@ -170,3 +170,28 @@ def test_normalise_images_is_the_contracts_normaliser_at_the_network_size(rng, m
     for got, image in zip(out, images, strict=True):
         expected = normalise_image(image, mean or IMAGENET_MEAN, std or IMAGENET_STD)
         np.testing.assert_allclose(got, expected, atol=1e-5)
+
+
+def test_normalise_images_halves_large_images_first(rng):
+    """A large image is halved (OpenCV's fast 2 x 2 area path) while both sides keep 90 %
+    of the network's size, then resized the rest of the way: 480 x 640 to 256 x 320 via
+    240 x 320; close to a direct area resize, for a fraction of its cost."""
+    import cv2
+
+    from deltar.contract import normalise_image
+    from deltar.inference.preprocess import halved_while, normalise_images
+
+    coarse = rng.uniform(0, 255, (30, 40, 3)).astype(np.float32)
+    image = np.clip(cv2.resize(coarse, (640, 480), interpolation=cv2.INTER_CUBIC)
+                    + rng.normal(0, 4, (480, 640, 3)), 0, 255).astype(np.uint8)
+    halved = cv2.resize(image, (320, 240), interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(halved_while(image, (230.4, 288.0)), halved)
+    expected = normalise_image(cv2.resize(halved, (320, 256), interpolation=cv2.INTER_LINEAR))
+    got = normalise_images([image], (256, 320))[0]
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    direct = normalise_image(cv2.resize(image, (320, 256), interpolation=cv2.INTER_AREA))
+    assert np.abs(got - direct).mean() < 0.02  # about one grey level in 255
+    # Odd sides, or a halved side below 90 % of the size: no halving.
+    assert halved_while(image[:479], (10, 10)).shape == (479, 640, 3)
+    assert halved_while(image, (241, 10)).shape == (480, 640, 3)
+    assert halved_while(image, (60, 80)).shape == (60, 80, 3)

@@ -232,13 +232,12 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
 
 
 def halved_guide(image_rgb: np.ndarray, solve_cells: int) -> np.ndarray:
-    """The fill's guide image halved (2 x 2 area means) while it keeps at least twice
-    the resolution of a ``solve_cells`` grid along each side and both sides stay even.
+    """The fill's guide image halved (2 x 2 area means,
+    :func:`~deltar.inference.preprocess.halved_while`) while it keeps at least twice the
+    resolution of a ``solve_cells`` grid along each side and both sides stay even.
 
-    OpenCV's area resize has a fast path for exact halving only; its general path, which
-    the solve grid's size (e.g. 42 x 57 for 480 x 640) needs, costs about as much per
-    *input* pixel as the rest of the fill. From the halved image it reads 4 to 16 times
-    fewer pixels, and averages the same areas (to the halvings' uint8 roundings).
+    The fill's area resize to its grid (e.g. 42 x 57 for 480 x 640) then reads 4 to 16
+    times fewer pixels, and averages the same areas (to the halvings' uint8 roundings).
 
     Args:
         image_rgb: (H, W, 3) uint8 RGB image.
@@ -247,16 +246,11 @@ def halved_guide(image_rgb: np.ndarray, solve_cells: int) -> np.ndarray:
     Returns:
         (H / 2^n, W / 2^n, 3) uint8 (``image_rgb`` itself when n = 0).
     """
-    import cv2  # on use
+    from deltar.inference.preprocess import halved_while
 
     height, width = np.shape(image_rgb)[:2]
     scale = math.sqrt(solve_cells / max(1, height * width))
-    grid_h, grid_w = height * scale, width * scale
-    while height % 2 == 0 and width % 2 == 0 and height // 2 >= 2 * grid_h \
-            and width // 2 >= 2 * grid_w:
-        height, width = height // 2, width // 2
-        image_rgb = cv2.resize(image_rgb, (width, height), interpolation=cv2.INTER_AREA)
-    return image_rgb
+    return halved_while(image_rgb, (2 * height * scale, 2 * width * scale))
 
 
 _FILL_WORKER: ThreadPoolExecutor | None = None

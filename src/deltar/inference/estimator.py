@@ -105,28 +105,24 @@ class DepthEstimator:
             padding copy (faster; outputs change only by float rounding: the release's
             parity fixture still holds, tested). Pass False to keep a model you will go on
             training.
-        flip_average: test-time augmentation: also run the left-right mirrored image
-            with the mirrored zone layout and average the two depth maps (twice the
-            network time; PyTorch backend only).
+        flip_average: test-time augmentation: also run the mirrored image with the
+            mirrored zones and average the two depths (twice the time; PyTorch only).
         max_range_m: largest distance a valid zone may read, metres; by default each
             frame's sensor model's range (4 m for the VL53L5CX/L8CX, see
             :data:`~deltar.sensor.zone_values.SENSOR_MAX_RANGE_M`).
         blend: blend the network's depth with the colorization fill of the zones where
             the network is unsure (:class:`~deltar.inference.blend.ConfidenceBlend`;
             lower RMSE on rooms the model never saw; its fill runs on a worker thread
-            while the network does):
-            ``"auto"`` (default) does so for plane-select networks (``head ==
-            "plane_select"``, e.g. the bundled ``default``) with the coefficients the
-            weights carry (``config["confidence_blend"]``, fitted with ``deltar
-            fit-uncertainty``) or, without them,
-            :data:`~deltar.inference.blend.DEFAULT_BLEND`, and not for other networks; a
-            ``ConfidenceBlend`` always; None never (the network alone, fastest).
+            while the network does): ``"auto"`` (default) does so for plane-select
+            networks (``head == "plane_select"``, e.g. the bundled ``default``) with the
+            coefficients the weights carry (``config["confidence_blend"]``, fitted with
+            ``deltar fit-uncertainty``) or :data:`~deltar.inference.blend.DEFAULT_BLEND`,
+            not for other networks; a ``ConfidenceBlend`` always; None never (fastest).
         uncertainty: how ``uncertainty_m`` is computed
             (:class:`~deltar.inference.uncertainty.UncertaintyCalibration`): ``"auto"``
-            (default) uses the calibration the weights carry
-            (``config["uncertainty_calibration"]``, fitted with ``deltar
-            fit-uncertainty``) and the network's raw spread when they carry none; a
-            calibration always; None the raw spread.
+            (default) the calibration the weights carry (``config[
+            "uncertainty_calibration"]``, fitted with ``deltar fit-uncertainty``), else
+            the network's raw spread; a calibration always; None the raw spread.
         no_target_min_neighbour_m: for frames without no-target flags (e.g. ZJU-L5
             files): ``"auto"`` (default) reads invalid zones as no target by the rule
             the weights carry (``config["no_target_min_neighbour_m"]``, fitted with
@@ -277,8 +273,7 @@ class DepthEstimator:
                 the input images (e.g. a ZJU-L5 file's ``fr``); they replace the
                 calibrated or nominal placement.
             on_zones: optional, called with the returned dict before its ``image`` is
-                made: work that needs only the zones (:meth:`predict` starts the blend's
-                fill there) then runs while the images are resized and normalised.
+                made (:meth:`predict` starts the blend's fill there).
 
         Returns:
             dict of numpy arrays, the network inputs (:meth:`run_network` takes them as
@@ -399,9 +394,8 @@ class DepthEstimator:
             image: (H, W, 3) uint8 RGB image, or a list of them (one size).
             zone_frame: the matching ``ZoneFrame`` (or a list, one per image).
             calibration: optional rig calibration for images of its resolution; without
-                it zones are placed with the nominal geometry. A calibration with lens
-                distortion undistorts the images first (same intrinsics): the depth is then
-                for the undistorted image.
+                it zones are placed with the nominal geometry. One with lens distortion
+                undistorts the images first: the depth is for the undistorted image.
             zone_rects: optional (Z, 4) rectangles (or (B, Z, 4) for a batch) in pixels of
                 the input image, replacing the calibrated or nominal placement.
 
@@ -417,7 +411,6 @@ class DepthEstimator:
             ValueError: bad image, zone frame (e.g. valid zones outside the sensor's
                 range) or a calibration for another resolution.
         """
-
         single, images, frames = batch_arguments(image, zone_frame)
         # Outlying zones are set aside first: the network and the fill read the same zones.
         screened = [self.screen_zones(f) for f in frames]
@@ -430,20 +423,15 @@ class DepthEstimator:
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
+        # The blend's fill needs only the image and the zones: started once they are
+        # placed, it runs while the images are resized and the network runs (a worker
+        # thread; all of them release the GIL), on the network's output grid.
         fills: list[Future] = []
-
-        def start_fills(zones: dict[str, Any]) -> None:
-            # The blend's fill needs only the image and the zones: it runs while the
-            # images are normalised and the network runs (a worker thread; all of them
-            # release the GIL).
-            net_size = zones["network_size"]
-            grid = (net_size[0] // 2, net_size[1] // 2)  # the network's output grid
-            fills.extend(self._start_fill(images[i], frame, zones["image_rects"][i],
-                                          zones["zone_no_target"][i], grid)
-                         for i, frame in enumerate(frames))
-
-        inputs = self.prepare(images, frames, calibration, zone_rects,
-                              on_zones=start_fills if self.blend is not None else None)
+        inputs = self.prepare(images, frames, calibration, zone_rects, on_zones=None if (
+            self.blend is None) else lambda zones: fills.extend(self._start_fill(
+                images[i], frame, zones["image_rects"][i], zones["zone_no_target"][i],
+                tuple(side // 2 for side in zones["network_size"]))
+            for i, frame in enumerate(frames)))
         size, net_size = inputs["image_size"], inputs["network_size"]
         depths, spreads = self.run_network(inputs)
         intrinsics = self.image_intrinsics(size, calibration)
@@ -474,13 +462,11 @@ class DepthEstimator:
         """The fill the blend mixes with for one frame: (H, W) float32 metres, or None.
 
         Args:
-            image: (H, W, 3) uint8 RGB image.
-            frame: its zone frame.
-            rects: (Z, 4) zone rectangles in pixels of ``image``
-                (``DepthPrediction.zone_rects``).
-            out_size: (h, w) pixels of the returned map (it covers the whole image);
-                the image's size by default (``predict`` asks for its network's output
-                grid).
+            image: (H, W, 3) uint8 RGB image; ``frame`` its zone frame.
+            rects: (Z, 4) zone rectangles in pixels of ``image`` (``DepthPrediction.
+                zone_rects``).
+            out_size: (h, w) pixels of the returned map (it covers the whole image); the
+                image's size by default (``predict`` asks for its network's output grid).
 
         Returns:
             :func:`~deltar.inference.blend.blend_fill` of the zones (no-target zones read

@@ -137,6 +137,9 @@ def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
     offset = (-np.asarray(mean) / np.asarray(std)).astype(np.float32)
     out = np.empty((len(images), 3, height, width), dtype=np.float32)
     for i, image in enumerate(images):
+        # 480 x 640 to 256 x 320: halved to 240 x 320, then bilinearly to 256 rows (a
+        # 2 x 2 box where an area resize's is 1.875 x 2 pixels).
+        image = halved_while(image, (HALVING_FLOOR * height, HALVING_FLOOR * width))
         if image.shape[:2] != (height, width):
             shrink = image.shape[0] > height or image.shape[1] > width
             # Area averaging when shrinking (no aliasing), bilinear when enlarging; both
@@ -149,6 +152,34 @@ def normalise_images(images: Sequence[np.ndarray], size: tuple[int, int],
             np.multiply(plane, scale[channel], out=out[i, channel], dtype=np.float32)
             out[i, channel] += offset[channel]
     return out
+
+
+#: :func:`normalise_images` halves an image (:func:`halved_while`) while both halved
+#: sides keep at least this fraction of the network's input size.
+HALVING_FLOOR = 0.9
+
+
+def halved_while(image: np.ndarray, min_size: tuple[float, float]) -> np.ndarray:
+    """An image halved (2 x 2 area means) while both its sides are even and both halved
+    sides stay at least ``min_size``; the image itself when no halving applies.
+
+    OpenCV's area resize has a fast path for exact halving only; its general path costs
+    several times more per input pixel (1.8 ms for 480 x 640 to 256 x 320 on one core,
+    against 0.2 ms for halving it), so a large image is halved first and resized the
+    rest of the way from there.
+
+    Args:
+        image: (H, W, C) image.
+        min_size: (h, w) pixels each halved side must keep.
+    """
+    import cv2
+
+    height, width = image.shape[:2]
+    while height % 2 == 0 and width % 2 == 0 and height // 2 >= min_size[0] \
+            and width // 2 >= min_size[1]:
+        height, width = height // 2, width // 2
+        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    return image
 
 
 def resize_to_image(maps: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
