@@ -185,14 +185,10 @@ class DepthEstimator:
 
                 prepare_for_inference(model)
             self.model = model.to(device=self.device, dtype=self.dtype)
-            contract = model.contract()
-            self.design_size = (tuple(contract["design_size"])
-                                if contract.get("design_size") is not None else None)
-        else:
-            contract = onnx_model.contract
-            # The size rule picks among the exported sizes (network_size_for).
-            self.design_size = (tuple(contract["design_size"])
-                                if contract.get("design_size") is not None else None)
+        contract = model.contract() if model is not None else onnx_model.contract
+        # For an ONNX model the size rule picks among the exported sizes (network_size_for).
+        self.design_size = (tuple(contract["design_size"])
+                            if contract.get("design_size") is not None else None)
         # The input contract travels with the weights: hypotheses and normalisation.
         self.num_hypotheses = int(contract["num_hypotheses"])
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
@@ -423,15 +419,17 @@ class DepthEstimator:
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
-        # The blend's fill needs only the image and the zones: started once they are
-        # placed, it runs while the images are resized and the network runs (a worker
-        # thread; all of them release the GIL), on the network's output grid.
+        # The blend's fill needs only the image and the zones: started once they are placed,
+        # it runs while the images are resized and the network runs (all release the GIL).
         fills: list[Future] = []
-        inputs = self.prepare(images, frames, calibration, zone_rects, on_zones=None if (
-            self.blend is None) else lambda zones: fills.extend(self._start_fill(
-                images[i], frame, zones["image_rects"][i], zones["zone_no_target"][i],
-                tuple(side // 2 for side in zones["network_size"]))
-            for i, frame in enumerate(frames)))
+
+        def start_fills(zones: dict[str, Any]) -> None:
+            grid = tuple(side // 2 for side in zones["network_size"])
+            fills.extend(self._start_fills(images, frames, zones["image_rects"],
+                                           zones["zone_no_target"], grid))
+
+        inputs = self.prepare(images, frames, calibration, zone_rects,
+                              on_zones=None if self.blend is None else start_fills)
         size, net_size = inputs["image_size"], inputs["network_size"]
         depths, spreads = self.run_network(inputs)
         intrinsics = self.image_intrinsics(size, calibration)
@@ -472,8 +470,8 @@ class DepthEstimator:
             :func:`~deltar.inference.blend.blend_fill` of the zones (no-target zones read
             at the network's ``no_target_depth``), None without a valid zone on the image.
         """
-        return self._start_fill(image, frame, rects, self.no_target_of(frame),
-                                out_size).result()
+        return self._start_fills([image], [frame], [rects], [self.no_target_of(frame)],
+                                 out_size)[0].result()
 
     def screen_zones(self, frame: ZoneFrame) -> tuple[ZoneFrame, np.ndarray]:
         """:func:`~deltar.sensor.zone_outliers.reject_outlier_zones` with the estimator's
@@ -487,13 +485,15 @@ class DepthEstimator:
         (:func:`~deltar.sensor.no_target.frame_no_target`)."""
         return frame_no_target(frame, self.no_target_min_neighbour_m)
 
-    def _start_fill(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray,
-                    no_target: np.ndarray, out_size: tuple[int, int] | None = None
-                    ) -> Future:
-        """:func:`~deltar.inference.blend.start_blend_fill` for one frame (metres, at
-        ``out_size`` or the image's size); ``no_target`` (Z,) bool the flags the network
-        read (:meth:`no_target_of`)."""
-        mean, _, valid = frame.flat()
-        far = no_target if self.no_target_depth_m is not None else None
-        return start_blend_fill(image, mean, valid, rects, zone_far=far,
-                                far_depth_m=self.no_target_depth_m, out_size=out_size)
+    def _start_fills(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
+                     rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
+                     out_size: tuple[int, int] | None = None) -> list[Future]:
+        """:func:`~deltar.inference.blend.start_blend_fill` for each frame (metres, at
+        ``out_size`` or the image's size): its (Z, 4) zone rectangles in image pixels and
+        (Z,) bool no-target flags, those the network reads (:meth:`no_target_of`)."""
+        far_depth = self.no_target_depth_m
+        return [start_blend_fill(image, frame.flat()[0], frame.flat()[2], frame_rects,
+                                 zone_far=None if far_depth is None else flags,
+                                 far_depth_m=far_depth, out_size=out_size)
+                for image, frame, frame_rects, flags in zip(images, frames, rects,
+                                                            no_target, strict=True)]
