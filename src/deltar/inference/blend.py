@@ -220,12 +220,13 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
         means, valid = no_target_as_readings(means, valid, zone_far, far_depth_m)
     from deltar.camera import check_image
 
-    guide = halved_guide(check_image(image_rgb, "image_rgb"), BLEND_FILL_CELLS)
-    if guide.shape != np.shape(image_rgb):
+    image_rgb = check_image(image_rgb, "image_rgb")
+    guide = halved_guide(image_rgb, BLEND_FILL_CELLS)
+    if guide.shape != image_rgb.shape:
         from deltar.inference.preprocess import scale_rects
 
-        zone_rects = scale_rects(zone_rects, np.shape(image_rgb)[:2], guide.shape[:2])
-        out_size = np.shape(image_rgb)[:2] if out_size is None else out_size
+        zone_rects = scale_rects(zone_rects, image_rgb.shape[:2], guide.shape[:2])
+        out_size = image_rgb.shape[:2] if out_size is None else out_size
     return colorize_zones(guide, means, valid, zone_rects, solve_cells=BLEND_FILL_CELLS,
                           seed_side=BLEND_FILL_SEED_SIDE, tolerance=BLEND_FILL_TOLERANCE,
                           out_size=out_size)

@@ -492,8 +492,8 @@ class DepthEstimator:
         ``out_size`` or the image's size): its (Z, 4) zone rectangles in image pixels and
         (Z,) bool no-target flags, those the network reads (:meth:`no_target_of`)."""
         far_depth = self.no_target_depth_m
-        return [start_blend_fill(image, frame.flat()[0], frame.flat()[2], frame_rects,
+        return [start_blend_fill(image, mean, valid, frame_rects,
                                  zone_far=None if far_depth is None else flags,
                                  far_depth_m=far_depth, out_size=out_size)
-                for image, frame, frame_rects, flags in zip(images, frames, rects,
-                                                            no_target, strict=True)]
+                for image, (mean, _, valid), frame_rects, flags in zip(
+                    images, (frame.flat() for frame in frames), rects, no_target, strict=True)]
