@@ -74,6 +74,10 @@ BASELINES = ("median", "nearest", "bilinear", "bicubic", "guided_filter", "joint
 #: what a classical method gains from that flag alone.
 FAR_BASELINES = tuple(name + "+far" for name in BASELINES)
 METRICS = ("d1", "rel", "rmse", "log10")
+#: Frames of each training scene (clean and degraded) a fold's output stage is fitted on
+#: (scenes with fewer give all theirs). Six left the fitted zone rules to near-ties (the
+#: no-target threshold of one fold: 0.0908 against 0.0910, RESULTS.md 2026-12-05).
+CALIBRATION_FRAMES = 12
 #: Uncertainty coverage of the model rows (fractions within one and two sigma).
 COVERAGE = ("within_1sigma", "within_2sigma")
 
@@ -176,18 +180,29 @@ def evaluate(out: Path, index: Path, models: dict[str, str], tag: str) -> dict[s
     return rows
 
 
-def calibration_set(out: Path, scene: str, condition: str, frames: int = 6,
-                    targets: int = 1) -> Path:
+def calibration_set(out: Path, scene: str, condition: str,
+                    frames: int = CALIBRATION_FRAMES, targets: int = 1) -> Path:
     """A few frames of a training scene (clean or degraded), made once: what a fold's
-    uncertainty calibration is fitted on (the fold's own training scenes only)."""
+    output stage is fitted on (the fold's own training scenes only).
+
+    Raises:
+        SystemExit: the folder already holds this set with another number of frames (a
+            run resumed with another ``--calibration-frames``).
+    """
     from deltar.data.rgbd import open_rgbd
 
     folder, intrinsics, _ = SCENES[scene]
     target = out / "calibration-sets" / (scene if condition == "clean"
                                          else f"{scene}-{condition}")
     index = target / "data.json"
-    if not index.is_file():
-        step = max(1, len(open_rgbd(DATA / folder).names) // frames)
+    available = len(open_rgbd(DATA / folder).names)
+    if index.is_file():
+        held = sum(len(names) for names in json.loads(index.read_text()).values())
+        if held != min(frames, available):
+            raise SystemExit(f"{index} holds {held} frames, not the {min(frames, available)} "
+                             f"of --calibration-frames {frames}: use another --out")
+    else:
+        step = max(1, available // frames)
         args = ["simulate", str(DATA / folder), str(target), "--step", str(step),
                 "--limit", str(frames), "--targets", str(targets)]
         if intrinsics:
@@ -196,16 +211,18 @@ def calibration_set(out: Path, scene: str, condition: str, frames: int = 6,
     return index
 
 
-def calibrate_fold(out: Path, fold: str, model: Path, targets: int = 1) -> Path:
-    """The fold's model with its sigma calibrated on its training scenes (made once)."""
+def calibrate_fold(out: Path, fold: str, model: Path, targets: int = 1,
+                   frames: int = CALIBRATION_FRAMES) -> Path:
+    """The fold's model with its output stage (blend, sigma, zone rules) fitted on
+    ``frames`` frames of each of its training scenes, clean and degraded (made once)."""
     calibrated = model.with_name("model-calibrated.pt")
     if not calibrated.is_file():
         args = ["fit-uncertainty", str(model), "--out", str(calibrated)]
         for scene in SCENES:
             if scene not in FOLDS[fold]:
                 for condition in ("clean", "degraded"):
-                    args += ["--data", str(calibration_set(out, scene, condition,
-                                                           targets=targets))]
+                    args += ["--data", str(calibration_set(out, scene, condition, frames,
+                                                           targets))]
         deltar(*args)
     return calibrated
 
@@ -234,9 +251,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--targets", type=int, default=1, choices=range(1, 5),
                         help="targets per zone the simulated sensor reports (test and "
                         "calibration sets; default 1, the primary reading alone)")
+    parser.add_argument("--calibration-frames", type=int, default=CALIBRATION_FRAMES,
+                        help="frames of each training scene, clean and degraded, the "
+                        f"fold's output stage is fitted on (default {CALIBRATION_FRAMES})")
     parser.add_argument("--extra-model", action="append", default=[], metavar="NAME_OR_PATH",
                         help="also evaluate this checkpoint (e.g. 'default') on every fold")
     args = parser.parse_args(argv)
+    if args.calibration_frames < 1:
+        parser.error(f"--calibration-frames must be >= 1, got {args.calibration_frames}")
     template = yaml.safe_load(args.config.read_text())
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -247,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
         summary["train_seconds"][fold] = seconds
         # Same weights, sigma calibrated on the fold's training scenes: the depth metrics
         # are the model's, the coverage ones the calibration's.
-        model = calibrate_fold(args.out, fold, model, args.targets)
+        model = calibrate_fold(args.out, fold, model, args.targets, args.calibration_frames)
         # "trained" is the estimator as users run it (for the plane-select recipe: the
         # network blended with the colorization fill where it is unsure); "network" is the
         # network's own depth (the estimator without the blend).
