@@ -72,8 +72,8 @@ class ConfidenceBlend(RegionPair, region_type=RegionBlend, what="confidence blen
 #: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones,
 #: simulated with up to four targets per zone)
 #: with the bundled model (docs/training.md).
-DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.120, -3.188),
-                                outside=RegionBlend(-5.019, -3.903))
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.539, -3.760),
+                                outside=RegionBlend(-5.024, -4.171))
 
 
 def resolve_blend(blend: ConfidenceBlend | str | None, contract: Mapping
