@@ -9,6 +9,7 @@ import torch
 from typer.testing import CliRunner
 
 from deltar.cli.main import app
+from tests.models.rounding import ratio_bounds
 
 
 @pytest.fixture(scope="module")
@@ -60,9 +61,7 @@ def test_bench_writes_json(runner, tmp_path):
     assert data["gflop"] > 0 and data["matmul_gflop_s"] > 0
     # The JSON rounds gflop_s to 0.01, matmul_gflop_s to 0.1 and the fraction to 0.001;
     # the fraction must lie within what those roundings allow.
-    rate, reference = data["gflop_s"], data["matmul_gflop_s"]
-    low = (rate - 0.005) / (reference + 0.05) - 5e-4
-    high = (rate + 0.005) / (reference - 0.05) + 5e-4
+    low, high = ratio_bounds(data["gflop_s"], 0.01, data["matmul_gflop_s"], 0.1, 1e-3)
     assert low <= data["matmul_fraction"] <= high
     # Never overwrite without being asked.
     again = runner.invoke(app, args)

@@ -13,6 +13,7 @@ from deltar.models.benchmark import (
     matmul_gflop_s,
     synthetic_inputs,
 )
+from tests.models.rounding import ratio_bounds
 
 
 def test_count_gflop_of_a_convolution_matches_the_formula():
@@ -46,9 +47,8 @@ def test_benchmark_reports_flops_and_fraction_with_overrides():
     assert result["gflop"] > 0
     # gflop is rounded to 0.001 and the latency to 0.1 ms: the rate must lie within what
     # those roundings allow (a fast machine runs this small input in a few ms).
-    gflop, latency_s = result["gflop"], result["latency_ms_min"] / 1e3
-    low = (gflop - 5e-4) / (latency_s + 5e-5) - 0.005
-    high = (gflop + 5e-4) / max(latency_s - 5e-5, 1e-9) + 0.005
+    low, high = ratio_bounds(result["gflop"], 1e-3, result["latency_ms_min"] / 1e3, 1e-4,
+                             0.01)
     assert low <= result["gflop_s"] <= high
     # The fraction is rounded to three decimals and the reported reference rate to one,
     # so the recomputed ratio may differ by both roundings (the reference is slow at
