@@ -73,6 +73,7 @@ def test_map_with_the_bundled_model_and_a_baseline(wall_recording, tmp_path):
     assert len(mesh.triangles) > 0
     # The zones say 2 m; the model's wall is near it (tolerance: a model, not a ruler).
     assert np.median(np.asarray(mesh.vertices)[:, 2]) == pytest.approx(WALL_Z_M, abs=0.3)
+    assert json.loads((tmp_path / "model" / "map.json").read_text())["beyond_grid"] is False
     result = _run(wall_recording, "--out", tmp_path / "bilinear", "--method", "bilinear",
                   *COARSE)
     assert result.exit_code == 0, result.output
@@ -158,6 +159,9 @@ def test_usage_errors(wall_recording, tmp_path):
     assert result.exit_code == 2 and "not both" in result.output
     result = _run(wall_recording, "--out", tmp_path / "m", "--blend", "--network-only")
     assert result.exit_code == 2 and "not both" in result.output
+    result = _run(wall_recording, "--out", tmp_path / "m", "--method", "bilinear",
+                  "--beyond-grid")
+    assert result.exit_code == 2 and "--beyond-grid" in result.output
     result = _run(wall_recording, "--out", wall_recording / "inside", "--method", "recorded")
     _error(result, "is inside the input")
     result = _run(tmp_path / "missing", "--out", tmp_path / "m", "--method", "recorded")

@@ -85,3 +85,29 @@ def test_the_map_refuses_weights_made_for_another_truncation():
     source = DepthSource(estimator=object(), truncation_m=0.05)
     with pytest.raises(ValueError, match=r"truncation of 0\.05 m, the map's is 0\.08 m"):
         build_map(None, source, None, MapSettings())
+
+
+def test_the_models_pixels_beyond_the_zone_grid_are_left_out_unless_asked():
+    from types import SimpleNamespace
+
+    depth = np.full((40, 60), 2.0, dtype=np.float32)
+    sigma = np.full_like(depth, 0.05)
+    # Two zones spanning rows 10-30 and columns 15-45 (y0, x0, y1, x1): the grid's box.
+    rects = np.array([[10, 15, 30, 30], [10, 30, 30, 45]], dtype=np.float32)
+
+    class Estimator:
+        weights = "fake"
+
+        def predict(self, image, zone_frame, calibration):
+            return SimpleNamespace(depth_m=depth, uncertainty_m=sigma, zone_rects=rects)
+
+    frame = SimpleNamespace(image=np.zeros((40, 60, 3), np.uint8), zone_frame=None,
+                            calibration=None, name="f")
+    expected = confidence_weight(depth, sigma, truncation_m=0.08, max_relative_sigma=0.15)
+    _, weight = DepthSource(Estimator(), truncation_m=0.08)(frame)
+    inside = np.zeros(depth.shape, dtype=bool)
+    inside[10:30, 15:45] = True
+    np.testing.assert_array_equal(weight[inside], expected[inside])
+    assert expected[~inside].min() > 0 and not weight[~inside].any()
+    _, weight = DepthSource(Estimator(), truncation_m=0.08, beyond_grid=True)(frame)
+    np.testing.assert_array_equal(weight, expected)

@@ -75,6 +75,9 @@ def map_command(
                                              "pixels whose uncertainty / depth exceeds this "
                                              "are skipped; below, a pixel weighs "
                                              "1 / (1 + (sigma / truncation)^2)."),
+    beyond_grid: bool = typer.Option(False, "--beyond-grid", help="Also fuse model pixels "
+                                     "beyond the 8x8 zone grid (extrapolated from the "
+                                     "image; still gated by --max-relative-sigma)."),
     max_memory: float = typer.Option(2048.0, "--max-memory", help="Memory budget of the "
                                      "volume, MiB (it never grows past it)."),
     tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
@@ -91,10 +94,11 @@ def map_command(
     """Fuse every frame's depth into a TSDF map (Open3D) and write its mesh and points.
 
     The model runs without its colorization blend (--blend keeps it). Each pixel of
-    the model's depth is weighted by its confidence; depth beyond the
-    sensor's range is not used. Poses: the recording's pose/ folder, --trajectory, the
-    bag's /tf or --pose-topic, else RGB-D odometry. Everything is checked (inputs, poses,
-    memory) before the first depth map is made.
+    the model's depth inside the zone grid is weighted by its confidence (--beyond-grid
+    adds the pixels beyond it); depth beyond the sensor's range is not used. Poses: the
+    recording's pose/ folder, --trajectory, the bag's /tf or --pose-topic, else RGB-D
+    odometry. Everything is checked (inputs, poses, memory) before the first depth map
+    is made.
     """
     from deltar.cli.checks import finite
     from deltar.cli.errors import warn
@@ -113,6 +117,9 @@ def map_command(
     if method is not None and model.source()[0] is not None:
         raise typer.BadParameter("give a model option or --method, not both",
                                  param_hint="--method")
+    if beyond_grid and method is not None:
+        raise typer.BadParameter("--beyond-grid is for the model's pixels; a --method "
+                                 "baseline's are all integrated", param_hint="--beyond-grid")
     if blend and model.network_only:
         raise typer.BadParameter("give --blend or --network-only, not both",
                                  param_hint="--blend")
@@ -144,7 +151,7 @@ def map_command(
                f"{settings.truncation_m * 100:g} cm, depth <= {settings.max_depth_m:g} m)")
     if depth is None:
         depth = DepthSource(model.load(), max_relative_sigma=max_relative_sigma,
-                            truncation_m=settings.truncation_m)
+                            truncation_m=settings.truncation_m, beyond_grid=beyond_grid)
     viewer = None
     if rerun or rerun_save is not None:
         from deltar.mapping.viewer import MapViewer
@@ -169,6 +176,7 @@ def map_command(
         "frames": len(result.poses), "empty_frames": result.empty_frames,
         "voxel_size_m": settings.voxel_size_m, "truncation_m": settings.truncation_m,
         "max_depth_m": settings.max_depth_m, "max_relative_sigma": max_relative_sigma,
+        "beyond_grid": beyond_grid if method is None else None,
         "blocks": volume.block_count, "capacity_blocks": volume.capacity_blocks,
         "memory_bytes": volume.memory_bytes, "used_bytes": volume.used_bytes,
         "frames_over_capacity": volume.full_frames,
