@@ -12,10 +12,10 @@ from deltar.inference.blend import (
     blend_fill,
     blend_weight,
     blend_with_fill,
-    start_blend_fill,
     zone_grid_mask,
 )
 from deltar.inference.colorization import colorization_fill
+from deltar.inference.fill_schedule import fill_beside_network, start_blend_fill
 
 
 @pytest.mark.parametrize("shape", [(12, 17), (17, 12)])
@@ -47,15 +47,36 @@ def _zones(rng: np.random.Generator, height: int = 48, width: int = 64):
     return image, means, valid, rects, far
 
 
-def test_the_fill_on_the_worker_thread_is_the_fill(rng):
+@pytest.mark.parametrize("beside", [True, False])
+def test_the_fill_on_the_worker_thread_or_at_once_is_the_fill(rng, beside):
     image, means, valid, rects, far = _zones(rng)
-    futures = [start_blend_fill(image, means, valid, rects, far, 5.0) for _ in range(3)]
+    futures = [start_blend_fill(image, means, valid, rects, far, 5.0, beside=beside)
+               for _ in range(3)]
     expected = blend_fill(image, means, valid, rects, far, 5.0)
     for future in futures:
         np.testing.assert_array_equal(future.result(), expected)
-    assert start_blend_fill(image, means, np.zeros(16, bool), rects).result() is None
+    assert start_blend_fill(image, means, np.zeros(16, bool), rects,
+                            beside=beside).result() is None
+    # A bad argument raises from result(), on either schedule.
     with pytest.raises(ValueError, match="far_depth_m"):
-        start_blend_fill(image, means, valid, rects, far, None).result()
+        start_blend_fill(image, means, valid, rects, far, None, beside=beside).result()
+
+
+def test_the_fill_runs_beside_pytorch_only_with_a_core_to_spare(monkeypatch):
+    import os
+
+    import torch
+
+    assert fill_beside_network(torch_backend=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert not fill_beside_network(torch_backend=True)
+        torch.set_num_threads(1)
+        assert fill_beside_network(torch_backend=True)
+    finally:
+        torch.set_num_threads(previous)
 
 
 def test_blend_with_fill_is_the_weighted_mixture(rng):

@@ -27,9 +27,7 @@ network's config (``confidence_blend``); a plane-select checkpoint without them 
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -189,10 +187,11 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
     """The fill that :func:`blend_depth` blends with: the zones' colorization (metres).
 
     It needs only the image and the zones, so a stream can compute it while the network
-    runs (:func:`start_blend_fill`). Arguments as :func:`blend_depth`'s; ``out_size``
-    (h, w) pixels of the returned map covering the whole image (the image's size by
-    default; the estimator asks for its network's output grid and blends there). Solved
-    on :data:`BLEND_FILL_CELLS` cells to :data:`BLEND_FILL_TOLERANCE`.
+    runs (:func:`deltar.inference.fill_schedule.start_blend_fill`). Arguments as
+    :func:`blend_depth`'s; ``out_size`` (h, w) pixels of the returned map covering the
+    whole image (the image's size by default; the estimator asks for its network's
+    output grid and blends there). Solved on :data:`BLEND_FILL_CELLS` cells to
+    :data:`BLEND_FILL_TOLERANCE`.
 
     Returns:
         (H, W) (or ``out_size``) float32 fill, metres, or None when no valid zone (on
@@ -252,28 +251,6 @@ def halved_guide(image_rgb: np.ndarray, solve_cells: int) -> np.ndarray:
     height, width = np.shape(image_rgb)[:2]
     scale = math.sqrt(solve_cells / max(1, height * width))
     return halved_while(image_rgb, (2 * height * scale, 2 * width * scale))
-
-
-_FILL_WORKER: ThreadPoolExecutor | None = None
-_FILL_WORKER_LOCK = threading.Lock()
-
-
-def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
-                     zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
-                     far_depth_m: float | None = None,
-                     out_size: tuple[int, int] | None = None) -> Future:
-    """:func:`blend_fill` on a worker thread; its ``Future`` gives the fill (or raises).
-
-    The fill spends most of its time in LAPACK and OpenCV, which release the GIL, so it
-    runs beside the network (onnxruntime and PyTorch release the GIL too). One worker
-    thread, shared by all estimators, started on first use.
-    """
-    global _FILL_WORKER
-    with _FILL_WORKER_LOCK:
-        if _FILL_WORKER is None:
-            _FILL_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deltar-fill")
-    return _FILL_WORKER.submit(blend_fill, image_rgb, zone_mean_m, zone_valid, zone_rects,
-                               zone_far, far_depth_m, out_size)
 
 
 def blend_with_fill(depth_m: np.ndarray, uncertainty_m: np.ndarray, fill_m: np.ndarray,

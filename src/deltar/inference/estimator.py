@@ -26,12 +26,9 @@ import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
-from deltar.inference.blend import (
-    ConfidenceBlend,
-    resolve_blend,
-    start_blend_fill,
-)
+from deltar.inference.blend import ConfidenceBlend, resolve_blend
 from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
+from deltar.inference.fill_schedule import fill_beside_network, start_blend_fill
 from deltar.inference.output_stage import apply_output_stage
 from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
@@ -488,12 +485,12 @@ class DepthEstimator:
     def _start_fills(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                      rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
                      out_size: tuple[int, int] | None = None) -> list[Future]:
-        """:func:`~deltar.inference.blend.start_blend_fill` for each frame (metres, at
+        """:func:`~deltar.inference.fill_schedule.start_blend_fill` for each frame (metres, at
         ``out_size`` or the image's size): its (Z, 4) zone rectangles in image pixels and
         (Z,) bool no-target flags, those the network reads (:meth:`no_target_of`)."""
-        far_depth = self.no_target_depth_m
+        far_depth, beside = self.no_target_depth_m, fill_beside_network(self.model is not None)
         return [start_blend_fill(image, mean, valid, frame_rects,
                                  zone_far=None if far_depth is None else flags,
-                                 far_depth_m=far_depth, out_size=out_size)
+                                 far_depth_m=far_depth, out_size=out_size, beside=beside)
                 for image, (mean, _, valid), frame_rects, flags in zip(
                     images, (frame.flat() for frame in frames), rects, no_target, strict=True)]
