@@ -15,6 +15,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from deltar.inference.blend import blend_fill
+from deltar.io.resources import cpu_count
 
 _FILL_WORKER: ThreadPoolExecutor | None = None
 _FILL_WORKER_LOCK = threading.Lock()
@@ -63,10 +64,6 @@ def fill_beside_network(torch_backend: bool) -> bool:
     """
     if not torch_backend:
         return True
-    import os
-
     import torch
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
-        else (os.cpu_count() or 1)
-    return torch.get_num_threads() < cores
+    return torch.get_num_threads() < cpu_count()
