@@ -214,8 +214,9 @@ class DepthSource:
             zone grid (still gated by ``max_relative_sigma``). Off by default: no zone
             reads those pixels, their depth is the image's extrapolation, and whether
             their calibrated sigma passes the gate hangs on a relative floor fitted to
-            the training scenes (0.13-0.20 across the protocol's folds, around the
-            gate's 0.15); other views see the same surfaces inside their grids.
+            the training scenes, which falls on either side of the gate from one model
+            to another (benchmarks/RESULTS.md); other views see the same surfaces
+            inside their grids.
     """
 
     def __init__(self, estimator: DepthEstimator | None = None, method: str | None = None,
