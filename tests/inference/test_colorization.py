@@ -35,6 +35,51 @@ def test_single_precision_lu_is_refined_to_the_double_precision_solve(shape, mon
     assert refined.max() <= values[known].max() + 1e-9
 
 
+def test_seed_squares_are_painted_in_zone_order(rng):
+    """Squares cut at the border; where they overlap the later zone's value, as painting
+    each square in turn would leave."""
+    height, width, side = 9, 11, 3
+    rows, cols = rng.integers(-1, height + 1, 40), rng.integers(-1, width + 1, 40)
+    values = rng.uniform(0.5, 4.0, 40)
+    known, known_values = colorization._seed_squares(rows, cols, values, side,
+                                                     (height, width))
+    painted, painted_values = np.zeros((height, width), bool), np.zeros((height, width))
+    for row, col, value in zip(rows, cols, values, strict=True):
+        square = (slice(max(0, row - 1), max(0, row + 2)), slice(max(0, col - 1),
+                                                                 max(0, col + 2)))
+        painted[square], painted_values[square] = True, value
+    np.testing.assert_array_equal(known, painted)
+    np.testing.assert_array_equal(known_values, painted_values)
+
+
+@pytest.mark.parametrize("swaps", [False, True])
+def test_band_solves_from_the_factors_match_lapack(swaps):
+    """The triangular band solves read sgbtrf's factors as gbtrs does; a factorisation
+    that swapped rows is solved by gbtrs itself."""
+    import scipy.linalg.lapack
+
+    rng = np.random.default_rng(5)
+    shape, band = (6, 5), 6
+    size = shape[0] * shape[1]
+    dense = np.zeros((size, size))
+    for shift in range(-band, band + 1):
+        dense += np.diag(rng.uniform(-1, 1, size - abs(shift)), shift)
+    # Diagonally dominant columns need no swaps; a weak diagonal forces them.
+    dense[np.diag_indices(size)] = (np.abs(dense).sum(axis=0) + 1) * (0.01 if swaps else 1)
+    storage = np.zeros((3 * band + 1, size), np.float32)
+    for i, j in zip(*np.nonzero(dense), strict=True):
+        storage[2 * band + i - j, j] = dense[i, j]
+    factors, pivots, info = scipy.linalg.lapack.sgbtrf(storage, band, band)
+    assert info == 0 and np.array_equal(pivots, np.arange(size)) != swaps
+    values = rng.uniform(-1, 1, size)
+    solved = colorization._factor_solver(factors, pivots, band, shape)(values)
+    # The factors are of the transpose: the solve is of the system whose transpose it is.
+    np.testing.assert_allclose(dense.T @ solved.reshape(-1), values, atol=2e-4)
+    expected = scipy.linalg.lapack.sgbtrs(factors, band, band, values.astype(np.float32),
+                                          pivots, trans=1)[0]
+    np.testing.assert_allclose(solved.reshape(-1), expected, rtol=1e-5, atol=1e-5)
+
+
 def _zones(rng: np.random.Generator, height: int = 48, width: int = 64):
     image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
     rows, cols = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
@@ -47,19 +92,16 @@ def _zones(rng: np.random.Generator, height: int = 48, width: int = 64):
     return image, means, valid, rects, far
 
 
-@pytest.mark.parametrize("beside", [True, False])
-def test_the_fill_on_the_worker_thread_or_at_once_is_the_fill(rng, beside):
+def test_the_fill_on_the_worker_thread_is_the_fill(rng):
     image, means, valid, rects, far = _zones(rng)
-    futures = [start_blend_fill(image, means, valid, rects, far, 5.0, beside=beside)
-               for _ in range(3)]
+    futures = [start_blend_fill(image, means, valid, rects, far, 5.0) for _ in range(3)]
     expected = blend_fill(image, means, valid, rects, far, 5.0)
     for future in futures:
         np.testing.assert_array_equal(future.result(), expected)
-    assert start_blend_fill(image, means, np.zeros(16, bool), rects,
-                            beside=beside).result() is None
-    # A bad argument raises from result(), on either schedule.
+    assert start_blend_fill(image, means, np.zeros(16, bool), rects).result() is None
+    # A bad argument raises from result(), not on the calling thread.
     with pytest.raises(ValueError, match="far_depth_m"):
-        start_blend_fill(image, means, valid, rects, far, None, beside=beside).result()
+        start_blend_fill(image, means, valid, rects, far, None).result()
 
 
 def test_the_fill_runs_beside_pytorch_only_with_a_core_to_spare(monkeypatch):

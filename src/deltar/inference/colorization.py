@@ -10,12 +10,15 @@ whatever the image size, then upsampled. The classical ``colorization`` baseline
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
+from collections.abc import Callable
 
 import cv2
 import numpy as np
 import scipy.linalg
+import scipy.linalg.blas
 import scipy.linalg.lapack
 import scipy.sparse
 import scipy.sparse.linalg
@@ -49,21 +52,46 @@ def _affinity_weights(gray: np.ndarray) -> np.ndarray:
     padded = np.pad(gray, 1)
     neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
                            for dy, dx in _NEIGHBOUR_OFFSETS])  # (8, H, W), 0 outside
-    inside = _inside_mask(height, width)
-    count = inside.sum(axis=0) + 1.0  # cells in each window, the centre included
-    mean = (neighbours.sum(axis=0) + gray) / count
-    deviation = (neighbours - mean) * inside
+    inside, count, outside_penalty = _window_constants(height, width)
+    # In place where the order of the roundings stays that of the plain expressions.
+    mean = neighbours.sum(axis=0)
+    mean += gray
+    mean /= count
+    deviation = neighbours - mean
+    deviation *= inside
     deviation *= deviation
-    variance = (deviation.sum(axis=0) + (gray - mean) ** 2) / count
-    sq_diff = neighbours - gray
+    centre = gray - mean
+    centre *= centre
+    variance = deviation.sum(axis=0)
+    variance += centre
+    variance /= count
+    sq_diff = neighbours  # the neighbours are not needed again
+    sq_diff -= gray
     sq_diff *= sq_diff
-    min_sq_diff = (sq_diff + (1.0 - inside) * np.finfo(np.float64).max).min(axis=0)
-    scale = np.maximum(0.6 * variance, -min_sq_diff / math.log(0.01))
-    scale = np.maximum(scale, 2e-6)
-    weights = np.exp(-sq_diff / scale)
+    penalised = sq_diff + outside_penalty
+    min_sq_diff = penalised.min(axis=0)
+    variance *= 0.6
+    scale = np.maximum(variance, min_sq_diff / -math.log(0.01))
+    np.maximum(scale, 2e-6, out=scale)
+    weights = np.divide(sq_diff, scale, out=penalised)
+    np.negative(weights, out=weights)
+    np.exp(weights, out=weights)
     weights *= inside
     weights /= weights.sum(axis=0)
     return weights
+
+
+@functools.lru_cache(maxsize=8)
+def _window_constants(height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(inside, count, outside_penalty) of a grid's 3x3 windows, read-only, kept per size:
+    :func:`_inside_mask`, the cells in each window (centre included) and float64's
+    largest value where a neighbour is outside (so a minimum over neighbours skips it)."""
+    inside = _inside_mask(height, width)
+    count = inside.sum(axis=0) + 1.0
+    outside_penalty = (1.0 - inside) * np.finfo(np.float64).max
+    for constant in (inside, count, outside_penalty):
+        constant.setflags(write=False)
+    return inside, count, outside_penalty
 
 
 def _inside_mask(height: int, width: int) -> np.ndarray:
@@ -236,12 +264,7 @@ def _solve_rows_banded(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarra
         factors, pivots, info = scipy.linalg.lapack.sgbtrf(storage, band, band,
                                                            overwrite_ab=True)
     if info == 0:
-        def solve(values: np.ndarray) -> np.ndarray:
-            with flush_denormals():
-                return scipy.linalg.lapack.sgbtrs(factors, band, band,
-                                                  values.reshape(-1).astype(np.float32),
-                                                  pivots, trans=1)[0].reshape(height, width)
-
+        solve = _factor_solver(factors, pivots, band, (height, width))
         solution = solve(rhs).astype(np.float64)
         for _ in range(_REFINEMENT_STEPS):
             correction = solve(rhs - _stencil_product(weights, diagonal, solution, offsets))
@@ -255,6 +278,39 @@ def _solve_rows_banded(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarra
     if info != 0:
         raise np.linalg.LinAlgError(f"colorization system is singular (LAPACK info {info})")
     return solution.reshape(height, width)
+
+
+def _factor_solver(factors: np.ndarray, pivots: np.ndarray, band: int,
+                   shape: tuple[int, int]) -> Callable[[np.ndarray], np.ndarray]:
+    """``values -> x`` with ``system @ x = values`` (float32, ``shape``) from ``sgbtrf``'s
+    factors of the system's transpose.
+
+    Without row swaps the transpose is ``L U`` with both factors ``band`` wide, and the
+    system ``U^T L^T``: two triangular band solves (BLAS ``tbsv``) on those widths. LAPACK's
+    ``gbtrs`` instead reads U as twice as wide (room for swaps' fill-in) and applies L a
+    column at a time, which took twice as long on the fill's 42 x 57 grid. With a swap,
+    ``gbtrs`` solves. SciPy's wrappers of both hold Python's GIL while they solve (its
+    ``gbtrf`` releases it), so the shorter solves also hold it for less.
+    """
+    if not np.array_equal(pivots, np.arange(pivots.size)):  # scipy's pivots count from 0
+        def solve_swapped(values: np.ndarray) -> np.ndarray:
+            with flush_denormals():
+                return scipy.linalg.lapack.sgbtrs(factors, band, band,
+                                                  values.reshape(-1).astype(np.float32),
+                                                  pivots, trans=1)[0].reshape(shape)
+        return solve_swapped
+    # gbtrf's storage (3 band + 1 rows): U's diagonal in row 2 band with its band
+    # superdiagonals above it, L's multipliers below; tbsv reads each as (band + 1, n).
+    upper = np.asfortranarray(factors[band:2 * band + 1])
+    lower = np.asfortranarray(factors[2 * band:])
+
+    def solve(values: np.ndarray) -> np.ndarray:
+        with flush_denormals():
+            partial = scipy.linalg.blas.stbsv(band, upper, values.reshape(-1).astype(np.float32),
+                                              trans=1)
+            return scipy.linalg.blas.stbsv(band, lower, partial, lower=1, trans=1, diag=1,
+                                           overwrite_x=1).reshape(shape)
+    return solve
 
 
 def _sparse_system(weights: np.ndarray, diagonal: np.ndarray,
@@ -360,13 +416,7 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
                  0, small_h - 1).astype(int)
     cx = np.clip(np.rint(0.5 * (np.clip(x0, 0, small_w - 1) + np.clip(x1, 0, small_w - 1))),
                  0, small_w - 1).astype(int)
-    half = seed_side // 2
-    known = np.zeros((small_h, small_w), dtype=bool)
-    known_values = np.zeros((small_h, small_w))
-    for y, x, value in zip(cy, cx, values, strict=True):
-        window = (slice(max(0, y - half), y + half + 1), slice(max(0, x - half), x + half + 1))
-        known[window] = True
-        known_values[window] = value
+    known, known_values = _seed_squares(cy, cx, values, seed_side, (small_h, small_w))
     filled = colorization_fill(gray, known_values, known, tolerance=tolerance)
     out_h, out_w = (height, width) if out_size is None else (int(v) for v in out_size)
     depth = cv2.resize(filled.astype(np.float32), (out_w, out_h),
@@ -374,3 +424,27 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     return np.clip(depth, low, high)
 
 
+
+
+def _seed_squares(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, side: int,
+                  shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Each value on the ``side`` x ``side`` square of cells centred at (row, col), cut
+    at the grid's border; where squares overlap, the later zone's value.
+
+    Returns:
+        (known, known_values): (h, w) bool and float64 maps.
+    """
+    height, width = shape
+    steps = np.arange(side) - side // 2
+    square_rows = np.asarray(rows)[:, None, None] + steps[None, :, None]
+    square_cols = np.asarray(cols)[:, None, None] + steps[None, None, :]
+    on_grid = (square_rows >= 0) & (square_rows < height) & (square_cols >= 0) \
+        & (square_cols < width)
+    cells = (square_rows * width + square_cols)[on_grid]
+    zones = np.broadcast_to(np.arange(len(values))[:, None, None], on_grid.shape)[on_grid]
+    # The highest zone index covering a cell wins, as if the squares were painted in turn.
+    winner = np.full(height * width, -1)
+    np.maximum.at(winner, cells, zones)
+    known = winner >= 0
+    known_values = np.where(known, np.asarray(values, dtype=np.float64)[winner], 0.0)
+    return known.reshape(shape), known_values.reshape(shape)
