@@ -94,7 +94,7 @@ def test_killed_run_resumes_on_the_same_loss_curve(tmp_path, tiny_config, every,
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     result = subprocess.run([sys.executable, str(HERE / "killable_run.py"), str(killed),
                              str(kill_at), *overrides], env=env, capture_output=True,
-                            text=True, timeout=120, check=False)
+                            text=True, timeout=300, check=False)
     assert result.returncode == -signal.SIGKILL, result.stderr[-2000:]
     last = torch.load(killed / "checkpoints" / "last.ckpt", weights_only=False)
     assert last["global_step"] == checkpoint_step and last["epoch"] == 0
@@ -130,7 +130,7 @@ def test_two_processes_share_the_data_and_end_with_identical_weights(tmp_path):
         "-o", "data.signal_augmentation.enabled=false",
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=150,
+    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=300,
                             check=False)
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
 
