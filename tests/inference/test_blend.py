@@ -211,29 +211,6 @@ def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatc
     np.testing.assert_array_equal(result.zone_rects, inputs["image_rects"][0])
 
 
-@pytest.mark.parametrize("beside", [False, True])
-def test_the_fill_is_finished_before_the_network_unless_it_runs_beside(rng, monkeypatch,
-                                                                        beside):
-    import deltar.inference.estimator as estimator_module
-    from deltar.inference import fill_schedule
-
-    image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
-    frame = ZoneFrame(rng.uniform(0.8, 3.0, (8, 8)), np.full((8, 8), 0.02),
-                      np.ones((8, 8), bool))
-    estimator = _select_estimator()
-    started, waited, done_at_network = [], [], []
-    start, run = estimator_module.start_blend_fill, estimator.run_network
-    monkeypatch.setattr(fill_schedule, "fill_beside_network", lambda torch_backend: beside)
-    monkeypatch.setattr(fill_schedule, "wait", lambda fills: waited.append(list(fills)))
-    monkeypatch.setattr(estimator_module, "start_blend_fill",
-                        lambda *a, **k: started.append(start(*a, **k)) or started[-1])
-    monkeypatch.setattr(estimator, "run_network",
-                        lambda inputs: done_at_network.append(len(waited)) or run(inputs))
-    estimator.predict(image, frame)
-    assert len(started) == 1 and done_at_network == [0 if beside else 1]
-    assert waited == ([] if beside else [started])
-
-
 def test_image_only_frames_are_not_blended(rng):
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
     frame = ZoneFrame(np.zeros((8, 8)), np.zeros((8, 8)), np.zeros((8, 8), bool))

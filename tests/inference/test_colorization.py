@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+
 import numpy as np
 import pytest
 
@@ -92,16 +96,52 @@ def _zones(rng: np.random.Generator, height: int = 48, width: int = 64):
     return image, means, valid, rects, far
 
 
-def test_the_fill_on_the_worker_thread_is_the_fill(rng):
+@pytest.mark.parametrize("beside", [True, False])
+def test_the_fill_on_the_worker_thread_or_at_once_is_the_fill(rng, beside):
     image, means, valid, rects, far = _zones(rng)
-    futures = [start_blend_fill(image, means, valid, rects, far, 5.0) for _ in range(3)]
+    futures = [start_blend_fill(image, means, valid, rects, far, 5.0, beside=beside)
+               for _ in range(3)]
     expected = blend_fill(image, means, valid, rects, far, 5.0)
     for future in futures:
         np.testing.assert_array_equal(future.result(), expected)
-    assert start_blend_fill(image, means, np.zeros(16, bool), rects).result() is None
-    # A bad argument raises from result(), not on the calling thread.
+    assert start_blend_fill(image, means, np.zeros(16, bool), rects,
+                            beside=beside).result() is None
+    # A bad argument raises from result(), not from the call, on either schedule.
+    failed = start_blend_fill(image, means, valid, rects, far, None, beside=beside)
     with pytest.raises(ValueError, match="far_depth_m"):
-        start_blend_fill(image, means, valid, rects, far, None).result()
+        failed.result()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="POSIX fork")
+def test_a_forked_child_gets_its_own_fill_worker(rng):
+    """The parent's worker thread does not survive a fork: a fill started in the child
+    must run on a worker of the child's (not wait forever on the parent's queue)."""
+    image, means, valid, rects, far = _zones(rng)
+    expected = start_blend_fill(image, means, valid, rects, far, 5.0).result()  # worker up
+    reader, writer = os.pipe()
+    child = os.fork()
+    if child == 0:  # the child: the fill through the worker, its bytes to the parent
+        code = 1
+        try:
+            fill = start_blend_fill(image, means, valid, rects, far, 5.0).result(timeout=60)
+            os.write(writer, fill.astype(np.float32).tobytes())
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(writer)
+    deadline = time.monotonic() + 90
+    while (done := os.waitpid(child, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if done[0] == 0:
+        os.kill(child, signal.SIGKILL)
+        os.waitpid(child, 0)
+    received = b""
+    while chunk := os.read(reader, 1 << 16):
+        received += chunk
+    os.close(reader)
+    assert done[0] == child and os.waitstatus_to_exitcode(done[1]) == 0
+    np.testing.assert_array_equal(np.frombuffer(received, np.float32).reshape(expected.shape),
+                                  expected)
 
 
 def test_the_fill_runs_beside_pytorch_only_with_a_core_to_spare(monkeypatch):

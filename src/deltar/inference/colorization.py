@@ -424,12 +424,11 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     return np.clip(depth, low, high)
 
 
-
-
 def _seed_squares(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, side: int,
                   shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Each value on the ``side`` x ``side`` square of cells centred at (row, col), cut
-    at the grid's border; where squares overlap, the later zone's value.
+    """Each value on the ``side`` x ``side`` square of cells centred at (row, col), the
+    part of it on the grid; where squares overlap, the later zone's value (as painting
+    the squares in turn leaves it).
 
     Returns:
         (known, known_values): (h, w) bool and float64 maps.

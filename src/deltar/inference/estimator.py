@@ -28,7 +28,7 @@ from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import ConfidenceBlend, resolve_blend
 from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
-from deltar.inference.fill_schedule import start_blend_fill, wait_unless_beside_network
+from deltar.inference.fill_schedule import fill_beside_network, start_blend_fill
 from deltar.inference.output_stage import apply_output_stage
 from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
@@ -417,8 +417,7 @@ class DepthEstimator:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
         # The blend's fill needs only the image and the zones: started once they are placed,
-        # it runs while the images are resized, and beside the network where that pays
-        # (deltar.inference.fill_schedule; all of them release the GIL).
+        # it runs while the images are resized and the network runs (all release the GIL).
         fills: list[Future] = []
 
         def start_fills(zones: dict[str, Any]) -> None:
@@ -429,7 +428,6 @@ class DepthEstimator:
         inputs = self.prepare(images, frames, calibration, zone_rects,
                               on_zones=None if self.blend is None else start_fills)
         size, net_size = inputs["image_size"], inputs["network_size"]
-        wait_unless_beside_network(fills, torch_backend=self.model is not None)
         depths, spreads = self.run_network(inputs)
         intrinsics = self.image_intrinsics(size, calibration)
         results = []
@@ -490,9 +488,9 @@ class DepthEstimator:
         """:func:`~deltar.inference.fill_schedule.start_blend_fill` for each frame (metres, at
         ``out_size`` or the image's size): its (Z, 4) zone rectangles in image pixels and
         (Z,) bool no-target flags, those the network reads (:meth:`no_target_of`)."""
-        far_depth = self.no_target_depth_m
+        far_depth, beside = self.no_target_depth_m, fill_beside_network(self.model is not None)
         return [start_blend_fill(image, mean, valid, frame_rects,
                                  zone_far=None if far_depth is None else flags,
-                                 far_depth_m=far_depth, out_size=out_size)
+                                 far_depth_m=far_depth, out_size=out_size, beside=beside)
                 for image, (mean, _, valid), frame_rects, flags in zip(
                     images, (frame.flat() for frame in frames), rects, no_target, strict=True)]
