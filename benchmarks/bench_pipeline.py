@@ -16,7 +16,8 @@ same threads before and after the runs (:func:`deltar.models.benchmark.matmul_gf
 the better of the two): ``NN% of matmul`` = GFLOP / median bare network time / that rate.
 Two parts of end to end are also timed alone, in the same alternation: the PNG decode and
 (for networks with the blend) the blend's colorization fill (``blend_fill``, milliseconds;
-in ``predict`` it runs on a worker thread beside the network).
+in ``predict`` it runs on a worker thread beside the network, or before a PyTorch network
+whose threads take every core).
 
     python benchmarks/bench_pipeline.py [--threads 2] [--repeats 5] \
         [--presets deltar-lite deltar-official] [--sizes 240x320 480x640] \
