@@ -84,6 +84,19 @@ def test_band_solves_from_the_factors_match_lapack(swaps):
     np.testing.assert_allclose(solved.reshape(-1), expected, rtol=1e-5, atol=1e-5)
 
 
+def test_only_small_grids_keep_their_window_constants(monkeypatch):
+    """The solve grids reuse their constants; a full-size image's are not kept (tens of
+    MB each), and both ways give the same weights."""
+    gray = np.random.default_rng(2).random((30, 40))
+    colorization._window_constants.cache_clear()
+    cached = colorization._affinity_weights(gray)
+    assert colorization._window_constants.cache_info().currsize == 1
+    monkeypatch.setattr(colorization, "_CACHED_WINDOW_CELLS", 30 * 40 - 1)
+    colorization._window_constants.cache_clear()
+    np.testing.assert_array_equal(colorization._affinity_weights(gray), cached)
+    assert colorization._window_constants.cache_info().currsize == 0
+
+
 def _zones(rng: np.random.Generator, height: int = 48, width: int = 64):
     image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
     rows, cols = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")

@@ -52,7 +52,9 @@ def _affinity_weights(gray: np.ndarray) -> np.ndarray:
     padded = np.pad(gray, 1)
     neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
                            for dy, dx in _NEIGHBOUR_OFFSETS])  # (8, H, W), 0 outside
-    inside, count, outside_penalty = _window_constants(height, width)
+    window = _window_constants if height * width <= _CACHED_WINDOW_CELLS \
+        else _window_constants.__wrapped__  # a full-size image's would hold tens of MB
+    inside, count, outside_penalty = window(height, width)
     # In place where the order of the roundings stays that of the plain expressions.
     mean = neighbours.sum(axis=0)
     mean += gray
@@ -79,6 +81,11 @@ def _affinity_weights(gray: np.ndarray) -> np.ndarray:
     weights *= inside
     weights /= weights.sum(axis=0)
     return weights
+
+
+#: Grids up to this many cells keep their window constants between calls (the solve
+#: grids: 2400 and 4800 cells; about 80 bytes a cell).
+_CACHED_WINDOW_CELLS = 20_000
 
 
 @functools.lru_cache(maxsize=8)
