@@ -158,8 +158,6 @@ def test_a_forked_child_gets_its_own_fill_worker(rng):
 
 
 def test_the_fill_runs_beside_pytorch_only_with_a_core_to_spare(monkeypatch):
-    import os
-
     import torch
 
     assert fill_beside_network(torch_backend=False)
