@@ -254,7 +254,7 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
     """The grid solver's banded LU (either numbering) and its sparse fallback agree."""
     import scipy.sparse.linalg
 
-    from deltar.inference import colorization
+    from deltar.inference import colorization, stencil_solver
 
     rng = np.random.default_rng(3)
     gray = rng.random(shape)
@@ -266,7 +266,7 @@ def test_colorization_banded_solve_is_the_sparse_solve(shape, monkeypatch) -> No
         known.ravel().astype(float))
     reference = scipy.sparse.linalg.spsolve(system.tocsc(), (known * values).ravel())
     np.testing.assert_allclose(banded.ravel(), reference, rtol=1e-9, atol=1e-12)
-    monkeypatch.setattr(colorization, "_MAX_BANDED_ENTRIES", 0)
+    monkeypatch.setattr(stencil_solver, "_MAX_BANDED_ENTRIES", 0)
     np.testing.assert_allclose(colorization_fill(gray, values, known), banded, rtol=1e-9,
                                atol=1e-12)
 

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from deltar.inference import colorization
+from deltar.inference import colorization, stencil_solver
 from deltar.inference.blend import (
     ConfidenceBlend,
     RegionBlend,
@@ -32,7 +32,7 @@ def test_single_precision_lu_is_refined_to_the_double_precision_solve(shape, mon
     known[1, 1] = True
     values = rng.uniform(0.5, 4.0, shape)
     refined = colorization_fill(gray, values, known)
-    monkeypatch.setattr(colorization, "_REFINEMENT_STEPS", 0)  # straight to float64
+    monkeypatch.setattr(stencil_solver, "_REFINEMENT_STEPS", 0)  # straight to float64
     double = colorization_fill(gray, values, known)
     np.testing.assert_allclose(refined, double, rtol=1e-10, atol=1e-12)
     assert refined.min() >= values[known].min() - 1e-9
@@ -76,7 +76,7 @@ def test_band_solves_from_the_factors_match_lapack(swaps):
     factors, pivots, info = scipy.linalg.lapack.sgbtrf(storage, band, band)
     assert info == 0 and np.array_equal(pivots, np.arange(size)) != swaps
     values = rng.uniform(-1, 1, size)
-    solved = colorization._factor_solver(factors, pivots, band, shape)(values)
+    solved = stencil_solver._factor_solver(factors, pivots, band, shape)(values)
     # The factors are of the transpose: the solve is of the system whose transpose it is.
     np.testing.assert_allclose(dense.T @ solved.reshape(-1), values, atol=2e-4)
     expected = scipy.linalg.lapack.sgbtrs(factors, band, band, values.astype(np.float32),
@@ -194,7 +194,7 @@ def _reference_weights(gray: np.ndarray) -> np.ndarray:
     height, width = gray.shape
     padded = np.pad(gray, 1, mode="constant", constant_values=np.nan)
     neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-                           for dy, dx in colorization._NEIGHBOUR_OFFSETS])
+                           for dy, dx in stencil_solver.NEIGHBOUR_OFFSETS])
     inside = ~np.isnan(neighbours)
     variance = np.nanvar(np.concatenate([neighbours, gray[None]]), axis=0)
     sq_diff = (neighbours - gray) ** 2

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.linalg.lapack
 
-from deltar.inference import colorization
+from deltar.inference import colorization, stencil_solver
 from deltar.inference.denormals import flush_denormals, flush_supported
 
 SUBNORMAL = np.float32(1e-39)
@@ -62,8 +62,8 @@ def test_flush_is_per_thread():
 def test_fill_is_the_same_with_subnormals_flushed(monkeypatch):
     image = _blocky_image()
     weights = colorization._affinity_weights(image)
-    offsets = [(dx, dy) for dy, dx in colorization._NEIGHBOUR_OFFSETS]
-    storage = colorization._band_storage(weights.transpose(0, 2, 1), np.full((80, 60), 1.5),
+    offsets = [(dx, dy) for dy, dx in stencil_solver.NEIGHBOUR_OFFSETS]
+    storage = stencil_solver._band_storage(weights.transpose(0, 2, 1), np.full((80, 60), 1.5),
                                          offsets, 61, np.float32, transposed=True)
     factors = scipy.linalg.lapack.sgbtrf(storage, 61, 61)[0]
     tiny = np.finfo(np.float32).tiny
@@ -76,6 +76,6 @@ def test_fill_is_the_same_with_subnormals_flushed(monkeypatch):
     for tolerance, atol in ((colorization.EXACT_TOLERANCE, 1e-9), (1e-3, 1e-6)):
         flushed = colorization.colorization_fill(image, values, known, tolerance=tolerance)
         with monkeypatch.context() as patch:
-            patch.setattr(colorization, "flush_denormals", contextlib.nullcontext)
+            patch.setattr(stencil_solver, "flush_denormals", contextlib.nullcontext)
             exact = colorization.colorization_fill(image, values, known, tolerance=tolerance)
         np.testing.assert_allclose(flushed, exact, rtol=0, atol=atol)

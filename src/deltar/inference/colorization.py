@@ -13,18 +13,18 @@ from __future__ import annotations
 import functools
 import math
 import numbers
-from collections.abc import Callable
 
 import cv2
 import numpy as np
-import scipy.linalg
-import scipy.linalg.blas
-import scipy.linalg.lapack
 import scipy.sparse
-import scipy.sparse.linalg
 
 from deltar.camera import check_image
-from deltar.inference.denormals import flush_denormals
+from deltar.inference.stencil_solver import (
+    EXACT_TOLERANCE,
+    NEIGHBOUR_OFFSETS,
+    solve_stencil_system,
+    sparse_system,
+)
 
 #: Cells of the colorization solve (60 x 80 for a 4:3 image, whatever its size).
 COLORIZATION_SOLVE_CELLS = 4800
@@ -32,15 +32,10 @@ COLORIZATION_SOLVE_CELLS = 4800
 COLORIZATION_SEED_SIDE = 3
 
 
-#: The 8 neighbours (dy, dx) of a cell in the colorization system, in a fixed order.
-_NEIGHBOUR_OFFSETS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
-                           if (dy, dx) != (0, 0))
-
-
 def _affinity_weights(gray: np.ndarray) -> np.ndarray:
     """(8, h, w) row-normalised neighbour weights of :func:`colorization_matrix`.
 
-    Entry [k, y, x] is ``w_pq`` for p = (y, x) and q = p + ``_NEIGHBOUR_OFFSETS[k]``;
+    Entry [k, y, x] is ``w_pq`` for p = (y, x) and q = p + ``NEIGHBOUR_OFFSETS[k]``;
     0 where q is outside the image. Each cell's weights sum to 1. Float64 throughout:
     the window statistics are those of NumPy's ``nanvar`` / ``nanmin`` over the cell and
     its neighbours inside the image (the same sums in another order, so equal to a few
@@ -51,7 +46,7 @@ def _affinity_weights(gray: np.ndarray) -> np.ndarray:
     height, width = gray.shape
     padded = np.pad(gray, 1)
     neighbours = np.stack([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-                           for dy, dx in _NEIGHBOUR_OFFSETS])  # (8, H, W), 0 outside
+                           for dy, dx in NEIGHBOUR_OFFSETS])  # (8, H, W), 0 outside
     window = _window_constants if height * width <= _CACHED_WINDOW_CELLS \
         else _window_constants.__wrapped__  # a full-size image's would hold tens of MB
     inside, count, outside_penalty = window(height, width)
@@ -102,11 +97,11 @@ def _window_constants(height: int, width: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _inside_mask(height: int, width: int) -> np.ndarray:
-    """(8, h, w) float64: 1 where the neighbour ``_NEIGHBOUR_OFFSETS[k]`` is on the grid."""
+    """(8, h, w) float64: 1 where the neighbour ``NEIGHBOUR_OFFSETS[k]`` is on the grid."""
     rows = np.arange(height)[None, :, None]
     cols = np.arange(width)[None, None, :]
-    dy = np.array([dy for dy, _ in _NEIGHBOUR_OFFSETS])[:, None, None]
-    dx = np.array([dx for _, dx in _NEIGHBOUR_OFFSETS])[:, None, None]
+    dy = np.array([dy for dy, _ in NEIGHBOUR_OFFSETS])[:, None, None]
+    dx = np.array([dx for _, dx in NEIGHBOUR_OFFSETS])[:, None, None]
     return ((rows + dy >= 0) & (rows + dy < height) & (cols + dx >= 0)
             & (cols + dx < width)).astype(np.float64)
 
@@ -124,14 +119,8 @@ def colorization_matrix(gray: np.ndarray) -> scipy.sparse.csr_matrix:
         neighbour keeps a weight of at least 1 % (and by 2e-6).
     """
     gray = np.asarray(gray, dtype=np.float64)
-    return _sparse_system(_affinity_weights(gray), np.ones(gray.shape),
-                          list(_NEIGHBOUR_OFFSETS)).tocsr()
-
-
-#: Default relative accuracy of :func:`colorization_fill`: float64's, for the classical
-#: ``colorization`` baseline (module docstring of the refinement in
-#: :func:`_solve_stencil_system`).
-EXACT_TOLERANCE = 1e-10
+    return sparse_system(_affinity_weights(gray), np.ones(gray.shape),
+                          list(NEIGHBOUR_OFFSETS)).tocsr()
 
 
 def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np.ndarray,
@@ -141,8 +130,9 @@ def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np
     Solves ``(L + alpha D) x = alpha D v`` where L is the colorization affinity Laplacian
     of ``gray`` (:func:`colorization_matrix`), D the diagonal of ``known_mask`` and v the
     known values. The solution is a weighted average of the known values, so it stays
-    inside their range. The solve is direct (:func:`_solve_stencil_system`): with the
-    default ``tolerance`` the result is the exact solution up to float64 rounding.
+    inside their range. The solve is direct
+    (:func:`~deltar.inference.stencil_solver.solve_stencil_system`): with the default
+    ``tolerance`` the result is the exact solution up to float64 rounding.
 
     Args:
         gray: (h, w) float intensity image in [0, 1].
@@ -167,173 +157,13 @@ def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np
     _check_tolerance(tolerance)
     data = alpha * known_mask.astype(np.float64)
     rhs = data * np.where(known_mask, known_values, 0.0)
-    return _solve_stencil_system(_affinity_weights(gray), 1.0 + data, rhs, float(tolerance))
+    return solve_stencil_system(_affinity_weights(gray), 1.0 + data, rhs, float(tolerance))
 
 
 def _check_tolerance(tolerance: float) -> None:
     if isinstance(tolerance, bool) or not (isinstance(tolerance, numbers.Real)
                                            and 0.0 < tolerance < 1.0):
         raise ValueError(f"tolerance must be a fraction in (0, 1), got {tolerance!r}")
-
-
-#: Largest banded-matrix buffer (entries) the grid solver builds (about 32 MB in float64).
-_MAX_BANDED_ENTRIES = 4_000_000
-#: Iterative refinement of the single-precision LU: steps at most (each step shrinks the
-#: error by about 1e-4 or more, so the error left is far below float64's 1e-12 needs).
-_REFINEMENT_STEPS = 6
-
-
-def _solve_stencil_system(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarray,
-                          tolerance: float = EXACT_TOLERANCE) -> np.ndarray:
-    """Solve ``diagonal_p x_p - sum_k weights[k, p] x_(p + offset_k) = rhs_p`` on a grid.
-
-    Args:
-        weights: (8, h, w) neighbour weights (``_NEIGHBOUR_OFFSETS`` order; 0 outside).
-        diagonal: (h, w) diagonal of the system.
-        rhs: (h, w) right-hand side.
-        tolerance: relative size of the refinement's last correction
-            (:func:`colorization_fill`).
-
-    Returns:
-        (h, w) float64 solution.
-
-    Numbered along the shorter side the matrix is banded (half-bandwidth min(h, w) + 1).
-    The banded LU (LAPACK ``gbtrf`` of the transposed system, which needs no row swaps)
-    runs in float32, which halves
-    its memory traffic and doubles its SIMD width against float64, and iterative
-    refinement with float64 residuals brings the solution to the accuracy asked for
-    (float64's: two or three steps; a system too ill-conditioned for that is solved in
-    float64 instead). LAPACK releases the GIL while it factors, so the fill can run
-    beside the network in another thread. A large grid, whose band would not fit in
-    memory, takes SciPy's sparse LU.
-    """
-    height, width = diagonal.shape
-    if height < width:  # number along the columns: the grid transposed, row-major
-        offsets = [(dx, dy) for dy, dx in _NEIGHBOUR_OFFSETS]
-        solution = _solve_rows_banded(weights.transpose(0, 2, 1), diagonal.T, rhs.T, offsets,
-                                      tolerance)
-        return solution.T
-    return _solve_rows_banded(weights, diagonal, rhs, list(_NEIGHBOUR_OFFSETS), tolerance)
-
-
-def _stencil_product(weights: np.ndarray, diagonal: np.ndarray, values: np.ndarray,
-                     offsets: list[tuple[int, int]]) -> np.ndarray:
-    """(h, w) ``diagonal * values - sum_k weights[k] * values shifted by offsets[k]``."""
-    height, width = values.shape
-    padded = np.pad(values, 1)
-    product = diagonal * values
-    for k, (dy, dx) in enumerate(offsets):
-        product -= weights[k] * padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-    return product
-
-
-def _band_storage(weights: np.ndarray, diagonal: np.ndarray, offsets: list[tuple[int, int]],
-                  band: int, dtype: type, transposed: bool = False) -> np.ndarray:
-    """LAPACK ``gbtrf`` storage (3 band + 1, n) of the stencil system (or of its transpose),
-    unknowns row-major."""
-    height, width = diagonal.shape
-    size = height * width
-    storage = np.zeros((3 * band + 1, size), dtype=dtype)
-    storage[2 * band] = diagonal.reshape(-1)
-    for k, (dy, dx) in enumerate(offsets):
-        # Entry (i, j = i + shift) sits at [2 band + i - j, j]; in the transpose it is
-        # entry (j, i), at [2 band + shift, i].
-        shift = dy * width + dx
-        rows = slice(max(0, -shift), min(size, size - shift))
-        if transposed:
-            storage[2 * band + shift, rows] = -weights[k].reshape(-1)[rows]
-        else:
-            storage[2 * band - shift, rows.start + shift:rows.stop + shift] = \
-                -weights[k].reshape(-1)[rows]
-    return storage
-
-
-def _solve_rows_banded(weights: np.ndarray, diagonal: np.ndarray, rhs: np.ndarray,
-                       offsets: list[tuple[int, int]], tolerance: float) -> np.ndarray:
-    """:func:`_solve_stencil_system` with the unknowns numbered row-major (width <= height)."""
-    height, width = diagonal.shape
-    size = height * width
-    band = width + 1
-    if (3 * band + 1) * size > _MAX_BANDED_ENTRIES:
-        system = _sparse_system(weights, diagonal, offsets)
-        return scipy.sparse.linalg.spsolve(system, rhs.reshape(-1),
-                                           permc_spec="MMD_AT_PLUS_A").reshape(height, width)
-    # The transpose is factored: each row of the system has a diagonal at least the sum
-    # of its other entries' sizes, so each column of the transpose does, and partial
-    # pivoting swaps no rows there. Without swaps U keeps the band's width instead of
-    # growing towards twice it (the system itself took a few hundred swaps and 1.3-1.4x
-    # the time on image grids); the solves use the factors transposed.
-    storage = _band_storage(weights, diagonal, offsets, band, np.float32, transposed=True)
-    # Subnormal fill-in read as zero (deltar.inference.denormals): the factors differ
-    # by less than 1.2e-38 an entry, which the refinement corrects, and x86 cores slow
-    # down on subnormals.
-    with flush_denormals():
-        factors, pivots, info = scipy.linalg.lapack.sgbtrf(storage, band, band,
-                                                           overwrite_ab=True)
-    if info == 0:
-        solve = _factor_solver(factors, pivots, band, (height, width))
-        solution = solve(rhs).astype(np.float64)
-        for _ in range(_REFINEMENT_STEPS):
-            correction = solve(rhs - _stencil_product(weights, diagonal, solution, offsets))
-            solution += correction
-            if np.abs(correction).max() <= tolerance * np.abs(solution).max():
-                return solution
-    # Too ill-conditioned for single precision: the float64 LU.
-    storage = _band_storage(weights, diagonal, offsets, band, np.float64)
-    solution, info = scipy.linalg.lapack.dgbsv(band, band, storage, rhs.reshape(-1),
-                                               overwrite_ab=True)[2:]
-    if info != 0:
-        raise np.linalg.LinAlgError(f"colorization system is singular (LAPACK info {info})")
-    return solution.reshape(height, width)
-
-
-def _factor_solver(factors: np.ndarray, pivots: np.ndarray, band: int,
-                   shape: tuple[int, int]) -> Callable[[np.ndarray], np.ndarray]:
-    """``values -> x`` with ``system @ x = values`` (float32, ``shape``) from ``sgbtrf``'s
-    factors of the system's transpose.
-
-    Without row swaps the transpose is ``L U`` with both factors ``band`` wide, and the
-    system ``U^T L^T``: two triangular band solves (BLAS ``tbsv``) on those widths. LAPACK's
-    ``gbtrs`` instead reads U as twice as wide (room for swaps' fill-in) and applies L a
-    column at a time, which took twice as long on the fill's 42 x 57 grid. With a swap,
-    ``gbtrs`` solves. SciPy's wrappers of both hold Python's GIL while they solve (its
-    ``gbtrf`` releases it), so the shorter solves also hold it for less.
-    """
-    if not np.array_equal(pivots, np.arange(pivots.size)):  # scipy's pivots count from 0
-        def solve_swapped(values: np.ndarray) -> np.ndarray:
-            with flush_denormals():
-                return scipy.linalg.lapack.sgbtrs(factors, band, band,
-                                                  values.reshape(-1).astype(np.float32),
-                                                  pivots, trans=1)[0].reshape(shape)
-        return solve_swapped
-    # gbtrf's storage (3 band + 1 rows): U's diagonal in row 2 band with its band
-    # superdiagonals above it, L's multipliers below; tbsv reads each as (band + 1, n).
-    upper = np.asfortranarray(factors[band:2 * band + 1])
-    lower = np.asfortranarray(factors[2 * band:])
-
-    def solve(values: np.ndarray) -> np.ndarray:
-        with flush_denormals():
-            partial = scipy.linalg.blas.stbsv(band, upper, values.reshape(-1).astype(np.float32),
-                                              trans=1)
-            return scipy.linalg.blas.stbsv(band, lower, partial, lower=1, trans=1, diag=1,
-                                           overwrite_x=1).reshape(shape)
-    return solve
-
-
-def _sparse_system(weights: np.ndarray, diagonal: np.ndarray,
-                   offsets: list[tuple[int, int]]) -> scipy.sparse.csc_matrix:
-    """The stencil system as a sparse CSC matrix over the row-major unknowns."""
-    height, width = diagonal.shape
-    index = np.arange(height * width).reshape(height, width)
-    padded_index = np.pad(index, 1, mode="constant", constant_values=-1)
-    neighbour_index = np.stack([padded_index[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-                                for dy, dx in offsets])
-    inside = neighbour_index >= 0
-    rows = np.broadcast_to(index[None], weights.shape)[inside]
-    size = height * width
-    affinity = scipy.sparse.csr_matrix((weights[inside], (rows, neighbour_index[inside])),
-                                       shape=(size, size))
-    return (scipy.sparse.diags(diagonal.reshape(-1)) - affinity).tocsc()
 
 
 def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
