@@ -85,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="at most this many frames of each test set (default all)")
     args = parser.parse_args(argv)
 
-    from deltar.inference.blend import BlendPixels, ConfidenceBlend
+    from deltar.inference.blend import ConfidenceBlend
+    from deltar.inference.blend_fit import BlendPixels
     from deltar.inference.estimator import DepthEstimator
     from deltar.inference.uncertainty import (
         CalibrationPixels,

@@ -9,14 +9,12 @@ import torch
 from deltar.evaluation.baselines import run_baseline
 from deltar.inference.blend import (
     DEFAULT_BLEND,
-    BlendPixels,
     ConfidenceBlend,
     RegionBlend,
     blend_depth,
     blend_fill,
     blend_weight,
     blend_with_fill,
-    fit_confidence_blend,
     zone_grid_mask,
 )
 from deltar.inference.estimator import DepthEstimator
@@ -187,9 +185,9 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
 
 
 def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatch):
-    """The fill needs only the image and the zones: predict starts it from prepare's
-    ``on_zones`` hook, so it runs while the images are resized, with the zone inputs
-    prepare returns."""
+    """The fill's image part needs no zone: predict starts it before it screens the zones.
+    The rest needs the zones: predict starts it from prepare's ``on_zones`` hook, so it
+    runs while the images are resized, with the zone inputs prepare returns."""
     import deltar.inference.estimator as estimator_module
 
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
@@ -197,13 +195,20 @@ def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatc
                       np.ones((8, 8), bool))
     estimator = _select_estimator()
     order: list[str] = []
-    normalise, start = estimator_module.normalise_images, estimator_module.start_blend_fill
-    monkeypatch.setattr(estimator_module, "normalise_images",
-                        lambda *a, **k: order.append("normalise") or normalise(*a, **k))
-    monkeypatch.setattr(estimator_module, "start_blend_fill",
-                        lambda *a, **k: order.append("fill") or start(*a, **k))
+
+    def spy(name, function):
+        monkeypatch.setattr(estimator_module, name,
+                            lambda *a, **k: order.append(name) or function(*a, **k))
+
+    for name in ("start_fill_guide", "start_frame_fills", "normalise_images"):
+        spy(name, getattr(estimator_module, name))
+    screen = estimator.screen_zones
+    monkeypatch.setattr(estimator, "screen_zones",
+                        lambda *a: order.append("screen_zones") or screen(*a))
     result = estimator.predict(image, frame)
-    assert order == ["fill", "normalise"]
+    assert order == ["start_fill_guide", "screen_zones", "start_frame_fills",
+                     "normalise_images"]
+    np.testing.assert_array_equal(result.depth_m, estimator.predict(image, frame).depth_m)
     seen = {}
     inputs = estimator.prepare([image], [frame], on_zones=lambda zones: seen.update(zones))
     assert "image" not in seen and set(inputs) == set(seen) | {"image"}
@@ -329,47 +334,6 @@ def test_onnx_refuses_flip_in_evaluation_names():
 
     with pytest.raises(ValueError, match=r"\+flip needs a PyTorch model"):
         onnx_predictor("model.onnx+flip")
-
-
-def _synthetic_pixels(rng: np.random.Generator, count: int) -> BlendPixels:
-    """Pixels where the network is right when its spread is small and the fill when it is
-    large (inside the grid the switch is at 5 % relative spread, beyond it at 20 %)."""
-    truth = rng.uniform(0.5, 4.0, count)
-    inside = rng.random(count) < 0.6
-    relative = np.exp(rng.uniform(np.log(0.01), np.log(0.5), count))
-    switch = np.where(inside, 0.05, 0.2)
-    network_error = np.where(relative < switch, 0.01, 0.3) * rng.standard_normal(count)
-    fill_error = 0.08 * rng.standard_normal(count)
-    network = truth * np.exp(network_error)
-    return BlendPixels(truth, network, truth * np.exp(fill_error), relative * network, inside)
-
-
-@pytest.mark.parametrize("objective", ["relative", "squared"])
-def test_fitted_blend_beats_network_and_fill_on_new_pixels(rng, objective):
-    fitted = fit_confidence_blend(_synthetic_pixels(rng, 20000), objective=objective)
-    # Less sure, less weight, in both regions.
-    assert fitted.inside.spread_slope < 0 and fitted.outside.spread_slope < 0
-    new = _synthetic_pixels(rng, 20000)
-
-    def relative_error(depth):
-        return np.mean(np.abs(depth - new.truth_m) / new.truth_m)
-
-    blended = relative_error(new.blended(fitted))
-    assert blended < 0.8 * min(relative_error(new.network_m), relative_error(new.fill_m))
-    # The per-pixel path equals the map path of blend_weight / blend_with_fill.
-    weight = blend_weight(new.network_m[None], new.spread_m[None], new.inside[None],
-                          fitted)[0]
-    expected = np.exp(weight * np.log(new.network_m) + (1 - weight) * np.log(new.fill_m))
-    np.testing.assert_allclose(new.blended(fitted), expected, rtol=1e-5)
-
-
-def test_blend_fit_needs_pixels_in_both_regions(rng):
-    pixels = _synthetic_pixels(rng, 3000)
-    pixels.inside[:] = True
-    with pytest.raises(ValueError, match="0 pixels with ground truth outside the zone grid"):
-        fit_confidence_blend(pixels)
-    with pytest.raises(ValueError, match="objective must be one of"):
-        fit_confidence_blend(_synthetic_pixels(rng, 3000), objective="rmse")
 
 
 def test_blend_with_fill_is_blend_weight_then_mix_log_depth(rng):

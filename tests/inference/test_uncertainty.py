@@ -123,3 +123,22 @@ def test_estimator_applies_the_calibration_the_weights_carry(lite_model, rng) ->
     np.testing.assert_allclose(plain.uncertainty_m, raw.uncertainty_m)
     with pytest.raises(ValueError, match="uncertainty must be"):
         DepthEstimator(lite_model, fold_batch_norms=False, uncertainty="calibrated")
+
+
+def test_sigma_in_a_box_is_sigma_with_its_mask(rng) -> None:
+    from deltar.inference.blend import grid_box, zone_grid_mask
+
+    calibration = UncertaintyCalibration(inside=RegionCalibration(1.2, 0.03, 0.5),
+                                         outside=RegionCalibration(2.5, 0.08, 1.0))
+    spread, depth, moved = (rng.uniform(0.0, 3.0, (40, 50)).astype(np.float32)
+                            for _ in range(3))
+    rects = np.array([[5.5, 7.2, 20.0, 30.9], [18.0, 25.0, 33.3, 41.0]], np.float32)
+    with_mask = calibration.sigma(spread, depth, moved, zone_grid_mask(rects, (40, 50)))
+    with_box = calibration.sigma(spread, depth, moved, grid_box(rects, (40, 50)))
+    assert with_box.dtype == np.float32
+    np.testing.assert_array_equal(with_box, with_mask)
+    inside = calibration.inside
+    np.testing.assert_allclose(with_box[10, 10], np.sqrt((inside.spread * spread[10, 10]) ** 2
+                                                         + (inside.floor * depth[10, 10]) ** 2
+                                                         + (inside.disagreement
+                                                            * moved[10, 10]) ** 2), rtol=1e-6)

@@ -119,7 +119,7 @@ def fit_uncertainty_command(
     from deltar.cli.progress import ProgressReport
     from deltar.data.zone_sets import open_zone_set
     from deltar.evaluation.uncertainty import fit_checkpoint_uncertainty
-    from deltar.inference.blend import BLEND_OBJECTIVES
+    from deltar.inference.blend_fit import BLEND_OBJECTIVES
     from deltar.io.input_file import refuse_input_as_output
 
     if blend_objective not in BLEND_OBJECTIVES:

@@ -8,7 +8,7 @@ rest is fitted with it. For plane-select networks that read no-target flags, the
 such a zone stands for is chosen next (:func:`fit_no_target_depth`). The estimator runs
 the checkpoint's network over the frames; for a network the estimator blends with the
 zones' colorization fill (plane-select heads) the fill is computed too, and
-:func:`deltar.inference.blend.fit_confidence_blend` fits the blend's coefficients on
+:func:`deltar.inference.blend_fit.fit_confidence_blend` fits the blend's coefficients on
 sampled pixels. The blend is per pixel, so the blended depth of those same pixels is
 exact; their absolute errors and the network's spread then fit the sigma
 (:func:`deltar.inference.uncertainty.fit_uncertainty_calibration`), so the sigma
@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.inference.blend import BlendPixels, ConfidenceBlend, fit_confidence_blend
+from deltar.inference.blend import ConfidenceBlend
+from deltar.inference.blend_fit import BlendPixels, fit_confidence_blend
 from deltar.inference.uncertainty import (
     CalibrationPixels,
     UncertaintyCalibration,
@@ -379,7 +380,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         frames_per_set, pixels_per_frame: see :func:`collect_pixels`.
         min_pixels: fewest pixels each region (inside, beyond the zone grid) needs.
         blend_objective: what the blend's fit minimises
-            (:data:`~deltar.inference.blend.BLEND_OBJECTIVES`).
+            (:data:`~deltar.inference.blend_fit.BLEND_OBJECTIVES`).
         outlier_candidates: zone outlier rules to choose among
             (:func:`fit_outlier_rule`); ``(None,)`` keeps every zone without trying.
         overwrite: replace an existing ``out``.

@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import math
 import numbers
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -155,9 +156,15 @@ def colorization_fill(gray: np.ndarray, known_values: np.ndarray, known_mask: np
     if not known_mask.any():
         raise ValueError("known_mask must mark at least one pixel")
     _check_tolerance(tolerance)
+    return _fill(_affinity_weights(gray), known_values, known_mask, alpha, tolerance)
+
+
+def _fill(weights: np.ndarray, known_values: np.ndarray, known_mask: np.ndarray,
+          alpha: float, tolerance: float) -> np.ndarray:
+    """:func:`colorization_fill` with the grid's (8, h, w) affinity weights given."""
     data = alpha * known_mask.astype(np.float64)
     rhs = data * np.where(known_mask, known_values, 0.0)
-    return solve_stencil_system(_affinity_weights(gray), 1.0 + data, rhs, float(tolerance))
+    return solve_stencil_system(weights, 1.0 + data, rhs, float(tolerance))
 
 
 def _check_tolerance(tolerance: float) -> None:
@@ -166,7 +173,68 @@ def _check_tolerance(tolerance: float) -> None:
         raise ValueError(f"tolerance must be a fraction in (0, 1), got {tolerance!r}")
 
 
-def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
+@dataclass(frozen=True, eq=False)
+class ColorizationGuide:
+    """The image's part of :func:`colorize_zones`, which needs no zone: the solve grid's
+    intensities and affinity weights (:func:`colorization_guide`). A stream can make it
+    while the zones are still being read and placed.
+
+    Attributes:
+        image_size: (H, W) pixels of the image the grid was resized from (the zone
+            rectangles given with it are in its pixels).
+        solve_cells: the ``solve_cells`` it was made for.
+        gray: (h, w) float64 grid intensities in [0, 1].
+        weights: (8, h, w) float64 affinity weights of the grid
+            (:func:`colorization_matrix`'s, in ``NEIGHBOUR_OFFSETS`` order).
+        source_size: (H, W) pixels of the image the caller started from, before any
+            halving (:func:`deltar.inference.blend.blend_fill_guide`); ``image_size``
+            by default.
+    """
+
+    image_size: tuple[int, int]
+    solve_cells: int
+    gray: np.ndarray
+    weights: np.ndarray
+    source_size: tuple[int, int]
+
+
+def colorization_guide(image_rgb: np.ndarray, solve_cells: int = COLORIZATION_SOLVE_CELLS,
+                       source_size: tuple[int, int] | None = None) -> ColorizationGuide:
+    """The :class:`ColorizationGuide` of an image: resized by area means to about
+    ``solve_cells`` cells with its aspect, to gray, and the grid's affinity weights.
+
+    Args:
+        image_rgb: (H, W, 3) uint8 RGB image.
+        solve_cells: cells of the solve grid (integer >= 4; clipped to the pixel count).
+        source_size: (H, W) of the image the caller started from, when ``image_rgb`` is
+            a reduced copy of it; ``image_rgb``'s size by default.
+
+    Raises:
+        ValueError: a bad image or ``solve_cells``.
+    """
+    _check_solve_cells(solve_cells)
+    image_rgb = check_image(image_rgb, "image_rgb")
+    height, width = image_rgb.shape[0], image_rgb.shape[1]
+    scale = min(1.0, math.sqrt(solve_cells / (height * width)))
+    small_h = max(2, round(height * scale))
+    small_w = max(2, round(width * scale))
+    image = cv2.resize(image_rgb, (small_w, small_h), interpolation=cv2.INTER_AREA)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0
+    size = (height, width)
+    return ColorizationGuide(image_size=size, solve_cells=int(solve_cells), gray=gray,
+                             weights=_affinity_weights(gray),
+                             source_size=size if source_size is None
+                             else (int(source_size[0]), int(source_size[1])))
+
+
+def _check_solve_cells(solve_cells: int) -> None:
+    if isinstance(solve_cells, bool) or not isinstance(solve_cells, numbers.Integral) \
+            or solve_cells < 4:
+        raise ValueError(f"solve_cells must be an integer >= 4, got {solve_cells!r}")
+
+
+def colorize_zones(image_rgb: np.ndarray | ColorizationGuide, zone_mean_m: np.ndarray,
+                   zone_valid: np.ndarray,
                    zone_rects: np.ndarray, solve_cells: int = COLORIZATION_SOLVE_CELLS,
                    seed_side: int = COLORIZATION_SEED_SIDE,
                    tolerance: float = EXACT_TOLERANCE,
@@ -182,7 +250,8 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     zone's overlap with the image; zones that do not overlap the image are skipped.
 
     Args:
-        image_rgb: (H, W, 3) uint8 RGB image (the guide).
+        image_rgb: (H, W, 3) uint8 RGB image (the guide), or its
+            :class:`ColorizationGuide` made earlier for the same ``solve_cells``.
         zone_mean_m: (Z,) zone readings, metres.
         zone_valid: (Z,) bool, at least one True.
         zone_rects: (Z, 4) (y0, x0, y1, x1) zone rectangles in image pixels.
@@ -200,17 +269,21 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
 
     Raises:
         ValueError: bad ``solve_cells`` / ``seed_side`` / ``tolerance``, an image that
-            is not (H, W, 3) uint8, zone arrays of mismatched shapes, no valid zone, or a
-            non-finite or non-positive valid reading (the message names the argument).
+            is not (H, W, 3) uint8 or a guide made for other ``solve_cells``, zone arrays
+            of mismatched shapes, no valid zone, or a non-finite or non-positive valid
+            reading (the message names the argument).
     """
-    if isinstance(solve_cells, bool) or not isinstance(solve_cells, numbers.Integral) \
-            or solve_cells < 4:
-        raise ValueError(f"solve_cells must be an integer >= 4, got {solve_cells!r}")
+    _check_solve_cells(solve_cells)
     if isinstance(seed_side, bool) or not isinstance(seed_side, numbers.Integral) \
             or seed_side < 1 or seed_side % 2 == 0:
         raise ValueError(f"seed_side must be a positive odd integer (cells), got {seed_side!r}")
     _check_tolerance(tolerance)
-    image_rgb = check_image(image_rgb, "image_rgb")
+    if isinstance(image_rgb, ColorizationGuide):
+        if image_rgb.solve_cells != solve_cells:
+            raise ValueError(f"image_rgb is a guide for {image_rgb.solve_cells} cells, "
+                             f"solve_cells is {solve_cells}")
+    else:
+        image_rgb = check_image(image_rgb, "image_rgb")
     if out_size is not None and not (len(out_size) == 2 and all(
             isinstance(v, numbers.Integral) and not isinstance(v, bool) and v > 0
             for v in out_size)):
@@ -229,13 +302,11 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
             and np.all(np.isfinite(zone_rects))):
         raise ValueError("zone_mean_m must be finite and > 0 where zone_valid, and zone_rects "
                          "finite")
-    height, width = image_rgb.shape[0], image_rgb.shape[1]
-    scale = min(1.0, math.sqrt(solve_cells / (height * width)))
-    small_h = max(2, round(height * scale))
-    small_w = max(2, round(width * scale))
+    guide = image_rgb if isinstance(image_rgb, ColorizationGuide) \
+        else colorization_guide(image_rgb, solve_cells)
+    height, width = guide.image_size
+    small_h, small_w = guide.gray.shape
     sy, sx = small_h / height, small_w / width
-    image = cv2.resize(image_rgb, (small_w, small_h), interpolation=cv2.INTER_AREA)
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0
     # Pixel centres sit at integer coordinates, so coordinates scale about -0.5.
     rects = zone_rects[zone_valid]
     y0, y1 = (rects[:, 0] + 0.5) * sy - 0.5, (rects[:, 2] + 0.5) * sy - 0.5
@@ -254,7 +325,7 @@ def colorize_zones(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: n
     cx = np.clip(np.rint(0.5 * (np.clip(x0, 0, small_w - 1) + np.clip(x1, 0, small_w - 1))),
                  0, small_w - 1).astype(int)
     known, known_values = _seed_squares(cy, cx, values, seed_side, (small_h, small_w))
-    filled = colorization_fill(gray, known_values, known, tolerance=tolerance)
+    filled = _fill(guide.weights, known_values, known, 1.0, tolerance)
     out_h, out_w = (height, width) if out_size is None else (int(v) for v in out_size)
     depth = cv2.resize(filled.astype(np.float32), (out_w, out_h),
                        interpolation=cv2.INTER_LINEAR)

@@ -28,7 +28,11 @@ from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
 from deltar.inference.blend import ConfidenceBlend, resolve_blend
 from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
-from deltar.inference.fill_schedule import fill_beside_network, start_blend_fill
+from deltar.inference.fill_schedule import (
+    fill_beside_network,
+    start_fill_guide,
+    start_frame_fills,
+)
 from deltar.inference.output_stage import apply_output_stage
 from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
@@ -405,14 +409,17 @@ class DepthEstimator:
                 range) or a calibration for another resolution.
         """
         single, images, frames = batch_arguments(image, zone_frame)
-        # Outlying zones are set aside first: the network and the fill read the same zones.
-        screened = [self.screen_zones(f) for f in frames]
-        frames, rejected = [f for f, _ in screened], [r for _, r in screened]
         check_calibration(calibration)  # before it undistorts the images
         if getattr(calibration, "has_distortion", False):  # other types refused in prepare
             # The zones are placed with the pinhole intrinsics: predict on the
             # undistorted image (same intrinsics), so depth is for that image.
             images = [calibration.undistort_image(np.asarray(im)) for im in images]
+        # The fill's image part needs no zone: it runs while they are screened and placed.
+        guides = [start_fill_guide(im, fill_beside_network(self.model is not None))
+                  for im in images] if self.blend else None
+        # Outlying zones are set aside first: the network and the fill read the same zones.
+        screened = [self.screen_zones(f) for f in frames]
+        frames, rejected = [f for f, _ in screened], [r for _, r in screened]
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
@@ -423,7 +430,7 @@ class DepthEstimator:
         def start_fills(zones: dict[str, Any]) -> None:
             grid = tuple(side // 2 for side in zones["network_size"])
             fills.extend(self._start_fills(images, frames, zones["image_rects"],
-                                           zones["zone_no_target"], grid))
+                                           zones["zone_no_target"], grid, guides))
 
         inputs = self.prepare(images, frames, calibration, zone_rects,
                               on_zones=None if self.blend is None else start_fills)
@@ -484,13 +491,9 @@ class DepthEstimator:
 
     def _start_fills(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                      rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
-                     out_size: tuple[int, int] | None = None) -> list[Future]:
-        """:func:`~deltar.inference.fill_schedule.start_blend_fill` for each frame (metres, at
-        ``out_size`` or the image's size): its (Z, 4) zone rectangles in image pixels and
-        (Z,) bool no-target flags, those the network reads (:meth:`no_target_of`)."""
-        far_depth, beside = self.no_target_depth_m, fill_beside_network(self.model is not None)
-        return [start_blend_fill(image, mean, valid, frame_rects,
-                                 zone_far=None if far_depth is None else flags,
-                                 far_depth_m=far_depth, out_size=out_size, beside=beside)
-                for image, (mean, _, valid), frame_rects, flags in zip(
-                    images, (frame.flat() for frame in frames), rects, no_target, strict=True)]
+                     out_size: tuple[int, int] | None = None,
+                     guides: Sequence[Future] | None = None) -> list[Future]:
+        """:func:`~deltar.inference.fill_schedule.start_frame_fills` with the estimator's
+        no-target depth and schedule (arguments as there)."""
+        return start_frame_fills(images, frames, rects, no_target, self.no_target_depth_m,
+                                 fill_beside_network(self.model is not None), out_size, guides)

@@ -11,12 +11,17 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.inference.blend import blend_fill
+from deltar.inference.blend import blend_fill, blend_fill_guide
 from deltar.io.resources import cpu_count
+
+if TYPE_CHECKING:
+    from deltar.sensor.zone_frame import ZoneFrame
 
 _FILL_WORKER: ThreadPoolExecutor | None = None
 _FILL_WORKER_LOCK = threading.Lock()
@@ -37,20 +42,64 @@ if hasattr(os, "register_at_fork"):  # POSIX
 def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                      zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
                      far_depth_m: float | None = None,
-                     out_size: tuple[int, int] | None = None, beside: bool = True) -> Future:
+                     out_size: tuple[int, int] | None = None, beside: bool = True,
+                     guide: Future | None = None) -> Future:
     """:func:`blend_fill` on a worker thread; its ``Future`` gives the fill (or raises).
 
-    The fill spends most of its time in LAPACK and OpenCV, which release the GIL, so it
-    runs beside the network (onnxruntime and PyTorch release the GIL too). One worker
-    thread, shared by all estimators, started on first use. ``beside=False`` computes
-    the fill now, on the calling thread, and returns it as a finished ``Future``
-    (:func:`fill_beside_network` says which).
+    The fill spends most of its time in LAPACK (or numba's compiled solver) and OpenCV,
+    which release the GIL, so it runs beside the network (onnxruntime and PyTorch release
+    the GIL too). One worker thread, shared by all estimators, started on first use.
+    ``beside=False`` computes the fill now, on the calling thread, and returns it as a
+    finished ``Future`` (:func:`fill_beside_network` says which). ``guide``: the
+    ``Future`` of :func:`start_fill_guide` for this image, started earlier with the same
+    ``beside``, so the fill waits for nothing (the worker runs its tasks in order).
     """
+    def fill() -> np.ndarray | None:
+        return blend_fill(image_rgb, zone_mean_m, zone_valid, zone_rects, zone_far,
+                          far_depth_m, out_size, None if guide is None else guide.result())
+
+    return _run(fill, beside)
+
+
+def start_frame_fills(images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
+                      rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
+                      far_depth_m: float | None, beside: bool,
+                      out_size: tuple[int, int] | None = None,
+                      guides: Sequence[Future] | None = None) -> list[Future]:
+    """:func:`start_blend_fill` for each frame of a batch (metres, at ``out_size`` or the
+    image's size).
+
+    Args:
+        images: B (H, W, 3) uint8 RGB images; ``frames`` their B zone frames.
+        rects: B (Z, 4) zone rectangles in image pixels.
+        no_target: B (Z,) bool no-target flags (those the network reads), read at
+            ``far_depth_m`` metres; ignored when that is None.
+        beside: as :func:`start_blend_fill`'s.
+        guides: B :func:`start_fill_guide` futures started earlier, or None.
+    """
+    return [start_blend_fill(image, mean, valid, frame_rects,
+                             zone_far=None if far_depth_m is None else flags,
+                             far_depth_m=far_depth_m, out_size=out_size, beside=beside,
+                             guide=guide)
+            for image, (mean, _, valid), frame_rects, flags, guide in zip(
+                images, (frame.flat() for frame in frames), rects, no_target,
+                guides or [None] * len(images), strict=True)]
+
+
+def start_fill_guide(image_rgb: np.ndarray, beside: bool = True) -> Future:
+    """:func:`~deltar.inference.blend.blend_fill_guide` (the fill's image part, no zones
+    needed) on the worker thread, or at once with ``beside=False``; its ``Future`` goes to
+    :func:`start_blend_fill`. Started before the zones are screened and placed, it runs
+    while the calling thread does that."""
+    return _run(lambda: blend_fill_guide(image_rgb), beside)
+
+
+def _run(task: Callable[[], Any], beside: bool) -> Future:
+    """``task`` on the shared worker thread, or now on this one (a finished ``Future``)."""
     if not beside:
         done: Future = Future()
         try:
-            done.set_result(blend_fill(image_rgb, zone_mean_m, zone_valid, zone_rects,
-                                       zone_far, far_depth_m, out_size))
+            done.set_result(task())
         except Exception as error:  # raised by result(), as from the worker
             done.set_exception(error)
         return done
@@ -58,8 +107,7 @@ def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid:
     with _FILL_WORKER_LOCK:
         if _FILL_WORKER is None:
             _FILL_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deltar-fill")
-    return _FILL_WORKER.submit(blend_fill, image_rgb, zone_mean_m, zone_valid, zone_rects,
-                               zone_far, far_depth_m, out_size)
+    return _FILL_WORKER.submit(task)
 
 
 def fill_beside_network(torch_backend: bool) -> bool:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deltar.inference.blend import ConfidenceBlend, blend_with_fill, zone_grid_mask
+from deltar.inference.blend import ConfidenceBlend, blend_with_fill, grid_box
 from deltar.inference.preprocess import resize_to_image
 from deltar.inference.uncertainty import UncertaintyCalibration
 
@@ -51,7 +51,7 @@ def apply_output_stage(depth_m: np.ndarray, spread_m: np.ndarray, fill_m: np.nda
     sigma = spread_m
     if uncertainty is not None:
         moved = np.zeros_like(depth) if network_depth is None else np.abs(network_depth - depth)
-        sigma = uncertainty.sigma(spread_m, depth, moved, zone_grid_mask(zone_rects, depth.shape))
+        sigma = uncertainty.sigma(spread_m, depth, moved, grid_box(zone_rects, depth.shape))
         if image_only:
             sigma = np.maximum(sigma, depth)
     return depth, sigma, network_depth

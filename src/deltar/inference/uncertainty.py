@@ -58,6 +58,15 @@ class RegionCalibration:
         if self.spread == self.floor == self.disagreement == 0:
             raise ValueError("uncertainty calibration coefficients are all 0: sigma would be 0")
 
+    def sigma(self, spread_m: np.ndarray, depth_m: np.ndarray, moved_m: np.ndarray
+              ) -> np.ndarray:
+        """Sigma in metres of pixels of this region (arrays of one shape, as
+        :meth:`UncertaintyCalibration.sigma`'s), in the arrays' float type."""
+        total = np.square(self.spread * spread_m)
+        total += np.square(self.floor * depth_m)
+        total += np.square(self.disagreement * moved_m)
+        return np.sqrt(total, out=total)
+
 
 @dataclass(frozen=True)
 class UncertaintyCalibration(RegionPair, region_type=RegionCalibration,
@@ -69,20 +78,23 @@ class UncertaintyCalibration(RegionPair, region_type=RegionCalibration,
     outside: RegionCalibration
 
     def sigma(self, spread_m: np.ndarray, depth_m: np.ndarray, moved_m: np.ndarray,
-              inside: np.ndarray) -> np.ndarray:
+              inside: np.ndarray | tuple[slice, slice]) -> np.ndarray:
         """(H, W) float32 calibrated sigma in metres.
 
         Args:
             spread_m: (H, W) the network's spread, metres.
             depth_m: (H, W) the returned (possibly blended) depth, metres.
             moved_m: (H, W) |network depth - returned depth|, metres (0 without a blend).
-            inside: (H, W) bool, True inside the zone grid's bounding box.
+            inside: (H, W) bool, True inside the zone grid's bounding box; or that box
+                as (rows, cols) slices (the same values, without masks' gathers).
         """
+        if isinstance(inside, tuple):
+            out = self.outside.sigma(spread_m, depth_m, moved_m).astype(np.float32, copy=False)
+            out[inside] = self.inside.sigma(spread_m[inside], depth_m[inside], moved_m[inside])
+            return out
         out = np.empty(np.shape(depth_m), dtype=np.float32)
         for region, mask in ((self.inside, inside), (self.outside, ~inside)):
-            out[mask] = np.sqrt((region.spread * spread_m[mask]) ** 2
-                                + (region.floor * depth_m[mask]) ** 2
-                                + (region.disagreement * moved_m[mask]) ** 2)
+            out[mask] = region.sigma(spread_m[mask], depth_m[mask], moved_m[mask])
         return out
 
 
