@@ -94,6 +94,12 @@ def start_fill_guide(image_rgb: np.ndarray, beside: bool = True) -> Future:
     return _run(lambda: blend_fill_guide(image_rgb), beside)
 
 
+def start_task(task: Callable[[], Any]) -> Future:
+    """Any work of a frame that releases the GIL (e.g. the network's input, before the
+    network runs) on the shared worker thread, after what is queued there."""
+    return _run(task, True)
+
+
 def _run(task: Callable[[], Any], beside: bool) -> Future:
     """``task`` on the shared worker thread, or now on this one (a finished ``Future``)."""
     if not beside:
