@@ -1,10 +1,14 @@
 """When and where the confidence blend's fill runs: beside the network or before it.
 
 The fill (:func:`deltar.inference.blend.blend_fill`) needs only the image and the zones,
-so the estimator starts it once the zones are placed, before the network runs.
-:func:`start_blend_fill` runs it on one worker thread shared by all estimators, beside
-the network, or at once on the calling thread; :func:`fill_beside_network` says which
-suits the network's backend and the cores there are.
+so the estimator starts its image part (:func:`start_fill_guide`) before it screens the
+zones and the rest (:func:`start_blend_fill`, :func:`start_frame_fills`) once they are
+placed, before the network runs. Both run on one worker thread shared by all estimators,
+beside the network, or at once on the calling thread; :func:`fill_beside_network` says
+which suits the network's backend and the cores there are. The worker also makes the
+network's input (:func:`start_task`) while the calling thread places the zones. Its
+tasks run in the order they were started, so estimators predicting on several threads
+at once queue their frames' work there.
 """
 
 from __future__ import annotations
