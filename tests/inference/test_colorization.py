@@ -24,17 +24,13 @@ from deltar.inference.fill_schedule import (
     start_blend_fill,
     start_fill_guide,
 )
+from tests.inference.grid_problems import edge_problem
 
 
 @pytest.mark.parametrize("shape", [(12, 17), (17, 12)])
 def test_single_precision_lu_is_refined_to_the_double_precision_solve(shape, monkeypatch):
     """The float32 LU with float64 refinement and the plain float64 LU give one solution."""
-    rng = np.random.default_rng(11)
-    gray = rng.random(shape)
-    gray[:, shape[1] // 2:] += 0.8  # an edge: weights across it are small
-    known = rng.random(shape) < 0.1
-    known[1, 1] = True
-    values = rng.uniform(0.5, 4.0, shape)
+    gray, known, values = edge_problem(np.random.default_rng(11), shape, 0.1)
     refined = colorization_fill(gray, values, known)
     monkeypatch.setattr(stencil_solver, "_REFINEMENT_STEPS", 0)  # straight to float64
     double = colorization_fill(gray, values, known)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from deltar.inference import colorization, stencil_solver
+from tests.inference.grid_problems import dense_solution, edge_problem
 
 
 @pytest.mark.parametrize("shape", [(1, 6), (2, 2), (2, 9), (9, 2), (3, 7), (14, 11)])
@@ -13,14 +14,8 @@ def test_lapack_path_is_the_dense_solve_on_narrow_grids(shape, monkeypatch):
     """On grids one or two cells wide two neighbours share a band diagonal (one of them
     off the grid): their entries add up instead of one replacing the other."""
     monkeypatch.setattr(stencil_solver, "compiled_solver", lambda: None)
-    rng = np.random.default_rng(17)
-    gray = rng.random(shape)
-    known = rng.random(shape) < 0.2
-    known[0, 0] = True
-    values = rng.uniform(0.5, 4.0, shape)
+    gray, known, values = edge_problem(np.random.default_rng(17), shape, 0.2)
     weights = colorization._affinity_weights(gray)
-    diagonal = 1.0 + known
-    system = stencil_solver.sparse_system(weights, diagonal, list(stencil_solver.NEIGHBOUR_OFFSETS))
-    exact = np.linalg.solve(system.toarray(), (known * values).reshape(-1)).reshape(shape)
-    solved = stencil_solver.solve_stencil_system(weights, diagonal, known * values)
+    exact = dense_solution(weights, 1.0 + known, known * values)
+    solved = stencil_solver.solve_stencil_system(weights, 1.0 + known, known * values)
     np.testing.assert_allclose(solved, exact, rtol=1e-10, atol=1e-12)

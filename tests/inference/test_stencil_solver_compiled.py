@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from deltar.inference import colorization, stencil_solver
+from tests.inference.grid_problems import dense_solution, edge_problem
 
 pytest.importorskip("numba")
 from deltar.inference import stencil_solver_compiled as compiled
@@ -50,16 +51,9 @@ def test_factor_and_solve_are_the_dense_solve(size, band):
                                    (42, 57)])
 def test_compiled_and_lapack_fills_are_the_float64_solve(shape, monkeypatch):
     """Both paths refine the float32 LU to the float64 solution (either orientation)."""
-    rng = np.random.default_rng(7)
-    gray = rng.random(shape)
-    gray[:, shape[1] // 2:] += 0.8  # an edge: weights across it are small
-    known = rng.random(shape) < 0.15
-    known[0, 0] = True
-    values = rng.uniform(0.5, 4.0, shape)
+    gray, known, values = edge_problem(np.random.default_rng(7), shape, 0.15)
     weights = colorization._affinity_weights(gray) if gray.size > 1 else np.zeros((8, 1, 1))
-    system = stencil_solver.sparse_system(weights, 1.0 + known,
-                                         list(stencil_solver.NEIGHBOUR_OFFSETS))
-    exact = np.linalg.solve(system.toarray(), (known * values).reshape(-1)).reshape(shape)
+    exact = dense_solution(weights, 1.0 + known, known * values)
     assert stencil_solver.compiled_solver() is compiled
     fast = stencil_solver.solve_stencil_system(weights, 1.0 + known, known * values)
     monkeypatch.setattr(stencil_solver, "compiled_solver", lambda: None)
