@@ -184,11 +184,10 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
         DepthEstimator(lite_model, weights="test", blend="on")
 
 
-def test_predict_starts_what_needs_no_zone_before_it_screens_them(rng, monkeypatch):
-    """The network's input and the fill's image part need no zone: predict starts them
-    on the worker before it screens the zones. The fill's zones part needs the zones:
-    predict starts it from prepare's ``on_zones`` hook, with the zone inputs prepare
-    returns. The network reads the input made on the worker, made once."""
+def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatch):
+    """The fill's image part needs no zone: predict starts it before it screens the zones.
+    The rest needs the zones: predict starts it from prepare's ``on_zones`` hook, so it
+    runs while the images are resized, with the zone inputs prepare returns."""
     import deltar.inference.estimator as estimator_module
 
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
@@ -201,24 +200,20 @@ def test_predict_starts_what_needs_no_zone_before_it_screens_them(rng, monkeypat
         monkeypatch.setattr(estimator_module, name,
                             lambda *a, **k: order.append(name) or function(*a, **k))
 
-    for name in ("start_task", "start_fill_guide", "start_frame_fills", "normalise_images"):
+    for name in ("start_fill_guide", "start_frame_fills", "normalise_images"):
         spy(name, getattr(estimator_module, name))
     screen = estimator.screen_zones
     monkeypatch.setattr(estimator, "screen_zones",
                         lambda *a: order.append("screen_zones") or screen(*a))
     result = estimator.predict(image, frame)
-    assert order.count("normalise_images") == 1
-    order.remove("normalise_images")  # on the worker, whenever it gets there
-    assert order == ["start_task", "start_fill_guide", "screen_zones", "start_frame_fills"]
+    assert order == ["start_fill_guide", "screen_zones", "start_frame_fills",
+                     "normalise_images"]
     np.testing.assert_array_equal(result.depth_m, estimator.predict(image, frame).depth_m)
     seen = {}
     inputs = estimator.prepare([image], [frame], on_zones=lambda zones: seen.update(zones))
     assert "image" not in seen and set(inputs) == set(seen) | {"image"}
     np.testing.assert_array_equal(seen["image_rects"], inputs["image_rects"])
     np.testing.assert_array_equal(result.zone_rects, inputs["image_rects"][0])
-    # The network read the input made on the worker: its depth is the unblended one's.
-    np.testing.assert_array_equal(_select_estimator(blend=None).predict(image, frame).depth_m,
-                                  result.network_depth_m)
 
 
 def test_image_only_frames_are_not_blended(rng):
@@ -358,3 +353,25 @@ def test_blend_with_fill_is_blend_weight_then_mix_log_depth(rng):
     assert got.dtype == np.float32
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=0)
     np.testing.assert_array_equal(got[weight >= 1.0], depth[weight >= 1.0])
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (1, 1), (3,), (2, 5), (40, 7)])
+def test_the_blend_takes_arrays_of_any_shape_and_size(rng, shape):
+    """OpenCV reads arrays of up to four values as scalars: small ones take NumPy's log and
+    exp; all give the NumPy formula, and views are exponentiated in place."""
+    from deltar.inference.blend import _exp_in_place, mix_log_depth
+
+    depth = np.asarray(rng.uniform(0.3, 6.0, shape), dtype=np.float32)
+    fill = np.asarray(rng.uniform(0.3, 6.0, shape), dtype=np.float32)
+    spread = np.asarray(depth * rng.uniform(0.01, 0.5, shape), dtype=np.float32)
+    weight = blend_weight(depth, spread, np.ones(shape, bool), DEFAULT_BLEND)
+    expected = np.exp(weight * np.log(depth) + (1 - weight) * np.log(fill))
+    np.testing.assert_allclose(weight, 1 / (1 + np.exp(-(DEFAULT_BLEND.inside.bias
+                               + DEFAULT_BLEND.inside.spread_slope * np.log(spread / depth)))),
+                               rtol=1e-5)
+    np.testing.assert_allclose(mix_log_depth(depth, fill, weight), expected, rtol=1e-5)
+    values = rng.uniform(-2, 2, (6, 10)).astype(np.float32)
+    view = values[:, :7]
+    expected_view = np.exp(view)
+    _exp_in_place(view)
+    np.testing.assert_allclose(values[:, :7], expected_view, rtol=1e-6)

@@ -113,3 +113,32 @@ def test_without_numba_the_lapack_path_solves(monkeypatch):
     finally:
         stencil_solver.compiled_solver.cache_clear()
     assert stencil_solver.compiled_solver() is compiled
+
+
+def test_an_unusable_numba_leaves_the_lapack_path(monkeypatch):
+    """numba installed but its compiled module failing to import (e.g. built for another
+    NumPy): the solves take LAPACK's LU instead of failing."""
+    import sys
+
+    stencil_solver.compiled_solver.cache_clear()
+    try:
+        with monkeypatch.context() as patch:
+            patch.setitem(sys.modules, "deltar.inference.stencil_solver_compiled", None)
+            assert stencil_solver.compiled_solver() is None
+    finally:
+        stencil_solver.compiled_solver.cache_clear()
+    assert stencil_solver.compiled_solver() is compiled
+
+
+@pytest.mark.parametrize("path", ["compiled", "lapack"])
+def test_a_singular_system_is_refused_the_same_way_on_both_paths(path, monkeypatch):
+    """A zero pivot gives non-finite factors in the compiled LU (no exception): the
+    refinement refuses them and the float64 LU reports the system singular, as LAPACK's
+    path does."""
+    if path == "lapack":
+        monkeypatch.setattr(stencil_solver, "compiled_solver", lambda: None)
+    weights = np.zeros((8, 6, 9))
+    diagonal = np.ones((6, 9))
+    diagonal[2, 3] = 0.0  # a cell with no neighbour and no data
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        stencil_solver.solve_stencil_system(weights, diagonal, np.ones((6, 9)))

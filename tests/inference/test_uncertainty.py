@@ -142,3 +142,8 @@ def test_sigma_in_a_box_is_sigma_with_its_mask(rng) -> None:
                                                          + (inside.floor * depth[10, 10]) ** 2
                                                          + (inside.disagreement
                                                             * moved[10, 10]) ** 2), rtol=1e-6)
+
+
+def test_region_sigma_takes_scalars() -> None:
+    region = RegionCalibration(1.5, 0.02, 0.5)
+    assert np.isclose(region.sigma(0.1, 2.0, 0.2), np.sqrt(0.15 ** 2 + 0.04 ** 2 + 0.1 ** 2))

@@ -18,7 +18,8 @@ the blended depth by ``k``. (A third term on the disagreement ``|log(network / f
 fitted lower errors on the training scenes and higher ones on the scenes left out, so
 the weight reads the network's own uncertainty alone.)
 
-The coefficients are fitted on frames with ground truth (:func:`fit_confidence_blend`,
+The coefficients are fitted on frames with ground truth
+(:func:`deltar.inference.blend_fit.fit_confidence_blend`,
 run by ``deltar fit-uncertainty`` on a model's training scenes) and travel in the
 network's config (``confidence_blend``); a plane-select checkpoint without them uses
 :data:`DEFAULT_BLEND`.
@@ -71,9 +72,9 @@ class ConfidenceBlend(RegionPair, region_type=RegionBlend, what="confidence blen
 
 
 #: The blend of a plane-select checkpoint that carries none: fitted with
-#: :func:`fit_confidence_blend` on the ten shared RGB-D scenes (clean and degraded zones,
-#: simulated with up to four targets per zone)
-#: with the bundled model (docs/training.md).
+#: :func:`~deltar.inference.blend_fit.fit_confidence_blend` on the ten shared RGB-D
+#: scenes (clean and degraded zones, simulated with up to four targets per zone) with the
+#: bundled model (docs/training.md).
 DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.539, -3.760),
                                 outside=RegionBlend(-5.024, -4.171))
 
@@ -159,7 +160,7 @@ def _log_floored(values: np.ndarray) -> np.ndarray:
     import cv2
 
     values = np.ascontiguousarray(values, dtype=np.float32)
-    if values.size == 0:
+    if values.size < 8:  # OpenCV reads an array of up to four values as a scalar
         return np.log(np.maximum(values, np.float32(1e-6)))
     floored = cv2.max(values.reshape(-1, 1), 1e-6)  # OpenCV reads (N, 1) as a matrix
     cv2.log(floored, floored)
@@ -170,9 +171,10 @@ def _exp_in_place(values: np.ndarray) -> np.ndarray:
     """``exp`` of a contiguous float32 array, in place (OpenCV's, as :func:`_log_floored`)."""
     import cv2
 
-    if values.size:
-        flat = values.reshape(-1, 1)
-        cv2.exp(flat, flat)
+    if values.size < 8 or not values.flags.c_contiguous:  # as _log_floored; a view
+        return np.exp(values, out=values)
+    flat = values.reshape(-1, 1)
+    cv2.exp(flat, flat)
     return values
 
 

@@ -32,7 +32,6 @@ from deltar.inference.fill_schedule import (
     fill_beside_network,
     start_fill_guide,
     start_frame_fills,
-    start_task,
 )
 from deltar.inference.output_stage import apply_output_stage
 from deltar.inference.prediction import DepthPrediction
@@ -260,8 +259,7 @@ class DepthEstimator:
     def prepare(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                 calibration: RigCalibration | None = None,
                 zone_rects: np.ndarray | None = None,
-                on_zones: Callable[[dict[str, Any]], None] | None = None,
-                image_input: Callable[[], np.ndarray] | None = None) -> dict[str, Any]:
+                on_zones: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Build the network inputs for a batch of same-size images.
 
         Args:
@@ -273,8 +271,6 @@ class DepthEstimator:
                 calibrated or nominal placement.
             on_zones: optional, called with the returned dict before its ``image`` is
                 made (:meth:`predict` starts the blend's fill there).
-            image_input: optional, returns ``image`` (:func:`normalise_images` of the
-                images, which :meth:`predict` starts on another thread).
 
         Returns:
             dict of numpy arrays, the network inputs (:meth:`run_network` takes them as
@@ -328,8 +324,7 @@ class DepthEstimator:
                   "image_rects": rects, "image_size": size, "network_size": net_size}
         if on_zones is not None:
             on_zones(inputs)
-        inputs["image"] = image_input() if image_input is not None \
-            else normalise_images(checked, net_size, self.image_mean, self.image_std)
+        inputs["image"] = normalise_images(checked, net_size, self.image_mean, self.image_std)
         return inputs
 
     def run_network(self, inputs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -416,32 +411,29 @@ class DepthEstimator:
         single, images, frames = batch_arguments(image, zone_frame)
         check_calibration(calibration)  # before it undistorts the images
         if getattr(calibration, "has_distortion", False):  # other types refused in prepare
-            # Zones are placed with the pinhole intrinsics: depth is for the undistorted image.
+            # The zones are placed with the pinhole intrinsics: predict on the
+            # undistorted image (same intrinsics), so depth is for that image.
             images = [calibration.undistort_image(np.asarray(im)) for im in images]
-        # What needs no zone runs on the worker while the zones are screened and placed:
-        # the network's input first (the network waits for it), then the fill's image part.
-        network_input = start_task(lambda: normalise_images(
-            images, self.network_size_for(np.shape(images[0])[:2]), self.image_mean,
-            self.image_std))
-        beside = fill_beside_network(self.model is not None)
-        guides = [start_fill_guide(im, beside) for im in images] if self.blend else None
+        # The fill's image part needs no zone: it runs while they are screened and placed.
+        guides = [start_fill_guide(im, fill_beside_network(self.model is not None))
+                  for im in images] if self.blend else None
         # Outlying zones are set aside first: the network and the fill read the same zones.
         screened = [self.screen_zones(f) for f in frames]
         frames, rejected = [f for f, _ in screened], [r for _, r in screened]
         if zone_rects is not None:
             zone_rects = np.asarray(zone_rects, dtype=np.float32)
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
-        fills: list[Future] = []  # the fill's zones part, started once they are placed
+        # The blend's fill needs only the image and the zones: started once they are placed,
+        # it runs while the images are resized and the network runs (all release the GIL).
+        fills: list[Future] = []
 
         def start_fills(zones: dict[str, Any]) -> None:
             grid = tuple(side // 2 for side in zones["network_size"])
-            fills.extend(start_frame_fills(images, frames, zones["image_rects"],
-                                           zones["zone_no_target"], self.no_target_depth_m,
-                                           beside, grid, guides))
+            fills.extend(self._start_fills(images, frames, zones["image_rects"],
+                                           zones["zone_no_target"], grid, guides))
 
         inputs = self.prepare(images, frames, calibration, zone_rects,
-                              on_zones=None if self.blend is None else start_fills,
-                              image_input=network_input.result)
+                              on_zones=None if self.blend is None else start_fills)
         size, net_size = inputs["image_size"], inputs["network_size"]
         depths, spreads = self.run_network(inputs)
         intrinsics = self.image_intrinsics(size, calibration)
@@ -482,9 +474,8 @@ class DepthEstimator:
             :func:`~deltar.inference.blend.blend_fill` of the zones (no-target zones read
             at the network's ``no_target_depth``), None without a valid zone on the image.
         """
-        return start_frame_fills([image], [frame], [rects], [self.no_target_of(frame)],
-                                 self.no_target_depth_m,
-                                 fill_beside_network(self.model is not None), out_size)[0].result()
+        return self._start_fills([image], [frame], [rects], [self.no_target_of(frame)],
+                                 out_size)[0].result()
 
     def screen_zones(self, frame: ZoneFrame) -> tuple[ZoneFrame, np.ndarray]:
         """:func:`~deltar.sensor.zone_outliers.reject_outlier_zones` with the estimator's
@@ -498,3 +489,11 @@ class DepthEstimator:
         (:func:`~deltar.sensor.no_target.frame_no_target`)."""
         return frame_no_target(frame, self.no_target_min_neighbour_m)
 
+    def _start_fills(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
+                     rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
+                     out_size: tuple[int, int] | None = None,
+                     guides: Sequence[Future] | None = None) -> list[Future]:
+        """:func:`~deltar.inference.fill_schedule.start_frame_fills` with the estimator's
+        no-target depth and schedule (arguments as there)."""
+        return start_frame_fills(images, frames, rects, no_target, self.no_target_depth_m,
+                                 fill_beside_network(self.model is not None), out_size, guides)

@@ -5,10 +5,9 @@ so the estimator starts its image part (:func:`start_fill_guide`) before it scre
 zones and the rest (:func:`start_blend_fill`, :func:`start_frame_fills`) once they are
 placed, before the network runs. Both run on one worker thread shared by all estimators,
 beside the network, or at once on the calling thread; :func:`fill_beside_network` says
-which suits the network's backend and the cores there are. The worker also makes the
-network's input (:func:`start_task`) while the calling thread places the zones. Its
-tasks run in the order they were started, so estimators predicting on several threads
-at once queue their frames' work there.
+which suits the network's backend and the cores there are. Its tasks run in the order
+they were started, so estimators predicting on several threads at once queue their
+frames' fills there.
 """
 
 from __future__ import annotations
@@ -96,12 +95,6 @@ def start_fill_guide(image_rgb: np.ndarray, beside: bool = True) -> Future:
     :func:`start_blend_fill`. Started before the zones are screened and placed, it runs
     while the calling thread does that."""
     return _run(lambda: blend_fill_guide(image_rgb), beside)
-
-
-def start_task(task: Callable[[], Any]) -> Future:
-    """Any work of a frame that releases the GIL (e.g. the network's input, before the
-    network runs) on the shared worker thread, after what is queued there."""
-    return _run(task, True)
 
 
 def _run(task: Callable[[], Any], beside: bool) -> Future:

@@ -11,6 +11,7 @@ sparse LU where the band would not fit in memory.
 from __future__ import annotations
 
 import functools
+import importlib
 import importlib.util
 from collections.abc import Callable
 from types import ModuleType
@@ -139,9 +140,10 @@ def compiled_solver() -> ModuleType | None:
     extra), else None: the grid solves then take LAPACK's banded LU."""
     if importlib.util.find_spec("numba") is None:
         return None
-    from deltar.inference import stencil_solver_compiled
-
-    return stencil_solver_compiled
+    try:
+        return importlib.import_module("deltar.inference.stencil_solver_compiled")
+    except ImportError:  # installed but unusable (e.g. built for another NumPy)
+        return None
 
 
 def _solve_compiled(compiled: ModuleType, weights: np.ndarray, diagonal: np.ndarray,

@@ -46,8 +46,12 @@ def band_width(band: int) -> int:
 
 
 #: Compiled without the GIL, cached on disk (next to this file, or in numba's user-wide
-#: cache where that is read-only).
-_jit = numba.njit(nogil=True, fastmath=True, boundscheck=False, cache=True)
+#: cache where that is read-only). Fast-math reassociation and contraction (the vectorised
+#: updates and dot products) but not its no-NaN / no-infinity assumptions, and NumPy's
+#: division (a zero pivot gives infinities, not an exception): a degenerate system shows
+#: as a non-finite solution, which is refused so the float64 LU takes over.
+_jit = numba.njit(nogil=True, fastmath={"reassoc", "contract", "arcp", "nsz"},
+                  error_model="numpy", boundscheck=False, cache=True)
 
 
 @_jit
@@ -204,7 +208,8 @@ def solve_refined(a, band, weights, diagonal, shifts, rhs, tolerance, steps):
 
     Returns:
         ((n,) float64 solution, converged): converged once a correction is at most
-        ``tolerance`` times the solution's largest value (the LAPACK path's rule).
+        ``tolerance`` times the solution's largest value (the LAPACK path's rule); never
+        with a non-finite value.
     """
     n = rhs.shape[0]
     work = rhs.astype(np.float32)
@@ -222,7 +227,20 @@ def solve_refined(a, band, weights, diagonal, shifts, rhs, tolerance, steps):
             solution[i] += work[i]
             largest_correction = max(largest_correction, abs(np.float64(work[i])))
             largest_value = max(largest_value, abs(solution[i]))
+        if not _all_finite(solution):
+            return solution, False
         if largest_correction <= tolerance * largest_value:
             return solution, True
     return solution, False
+
+
+@_jit
+def _all_finite(values):
+    """Whether no float64 value is NaN or infinite, read from the exponent bits (fast-math
+    reassociation lets the compiler assume ``isfinite``)."""
+    bits = values.view(np.int64)
+    for i in range(bits.shape[0]):
+        if (bits[i] >> 52) & 0x7FF == 0x7FF:
+            return False
+    return True
 

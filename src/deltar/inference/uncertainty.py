@@ -65,7 +65,7 @@ class RegionCalibration:
         total = np.square(self.spread * spread_m)
         total += np.square(self.floor * depth_m)
         total += np.square(self.disagreement * moved_m)
-        return np.sqrt(total, out=total)
+        return np.sqrt(total)
 
 
 @dataclass(frozen=True)
