@@ -101,7 +101,7 @@ def factor(a, band):
     below the diagonal (unit diagonal implied), U on and above it."""
     n = a.shape[0]
     base = band + PAD
-    length = -(-band // _LANES) * _LANES  # update_length(band)
+    length = a.shape[1] - (band + PAD + 1)  # update_length(band): band_width's rest
     rows = np.zeros((_BLOCK, length), np.float32)
     pivots = np.zeros(10, np.float32)
     k = 0
