@@ -262,3 +262,38 @@ def test_cli_reports_and_stores_the_no_target_depth(tmp_path) -> None:
     fitted = load_checkpoint(out)[0]
     assert fitted.contract()["no_target_depth"] == 6.0 == fitted.head.no_target_depth
     assert DepthEstimator(fitted).no_target_depth_m == 6.0
+
+
+def test_a_detector_trained_on_clean_sets_joins_the_outlier_candidates(tmp_path) -> None:
+    from deltar.evaluation.uncertainty import DETECTOR_THRESHOLDS, OUTLIER_CANDIDATES
+    from deltar.sensor.zone_outlier_detector import OutlierDetector
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(32, 64))
+    source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
+    noisy = [[_wall_sample(seed, False) for seed in range(2)]]
+    clean = [[_wall_sample(seed, True) for seed in range(2, 6)]]  # readings = truth
+    fit = fit_checkpoint_uncertainty(source, noisy, tmp_path / "fitted.pt", min_pixels=100,
+                                     detector_sets=clean,
+                                     detector_noise={"bias_prob": 0.5, "bias_mean_m": 0.5})
+    detectors = [c for c in fit.outlier_errors if isinstance(c, OutlierDetector)]
+    assert sorted(d.threshold for d in detectors) == sorted(DETECTOR_THRESHOLDS)
+    assert set(fit.outlier_errors) - set(detectors) == set(OUTLIER_CANDIDATES)
+    stored = load_checkpoint(tmp_path / "fitted.pt")[2]["output"]["zone_outlier_rule"]
+    chosen = fit.outlier_rule
+    assert stored == (None if chosen is None else chosen.to_dict())
+
+
+def test_cli_refuses_a_bad_detector_noise_or_set(tmp_path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    source = _checkpoint(tmp_path / "model.pt")
+    out = tmp_path / "cal.pt"
+    for noise in ("0.2,0.3", "0.2,0,0.1,0.15", "a,b,c,d"):
+        result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                     "--detector-noise", noise, "--out", str(out)])
+        assert result.exit_code == 2 and "--detector-noise" in result.output, noise
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--detector-data", str(tmp_path / "missing.json"),
+                                 "--out", str(out)])
+    assert result.exit_code == 2 and "--detector-data" in result.output
+    assert not out.exists()

@@ -57,12 +57,12 @@ def test_default_carries_its_fitted_blend_and_sigma_calibration():
 
 def test_default_carries_its_fitted_outlier_rule_and_no_target_depth():
     from deltar.evaluation.uncertainty import NO_TARGET_DEPTH_CANDIDATES_M
-    from deltar.sensor.zone_outliers import OutlierRule
+    from deltar.sensor.zone_outliers import outlier_rule_from_dict
 
     estimator = load_estimator("default")
     _, _, config = load_checkpoint(resolve_checkpoint("default"))
     rule = config["output"]["zone_outlier_rule"]
-    assert rule is not None and estimator.zone_outliers == OutlierRule.from_dict(rule)
+    assert rule is not None and estimator.zone_outliers == outlier_rule_from_dict(rule)
     depth = config["output"]["no_target_depth"]
     assert depth in NO_TARGET_DEPTH_CANDIDATES_M and estimator.no_target_depth_m == depth
     # The head's hypothesis for a no-target zone is the one the fill uses.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -98,12 +99,23 @@ def fit_uncertainty_command(
                                         "(a smoothed absolute log error, about REL) or "
                                         "'squared' (squared log error, weighs large errors "
                                         "more)."),
+    detector_data: list[Path] = typer.Option([], "--detector-data", help="A set of the "
+                                             "training scenes whose zones are right (a "
+                                             "clean simulation; repeatable): a detector of "
+                                             "biased zones is trained on it and joins the "
+                                             "outlier candidates."),
+    detector_noise: str = typer.Option("0.2,0.3,0.10,0.15", "--detector-noise",
+                                       help="The degradation the detector learns, "
+                                       "'DROP,PROB,MEAN,STD' as deltar simulate's "
+                                       "--drop-fraction, --bias-prob, --bias-mean, "
+                                       "--bias-std (metres)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
     """Fit a model's output stage on frames with ground truth: outliers, blend, sigma, flags.
 
     It first chooses when the estimator sets aside zones that disagree with every
-    neighbour (a noisy sensor's outliers; or never), by the error on these frames. For
+    neighbour (a noisy sensor's outliers; or never), by the error on these frames; with
+    --detector-data a learned detector of biased zones is among the choices. For
     a plane-select model (the bundled default's kind) it then fits how the estimator
     blends the network's depth with the zones' colorization fill, then (every
     model) how it turns the network's spread into a sigma that holds 68% of the errors
@@ -125,12 +137,17 @@ def fit_uncertainty_command(
     if blend_objective not in BLEND_OBJECTIVES:
         raise typer.BadParameter(f"must be one of {', '.join(BLEND_OBJECTIVES)}, got "
                                  f"{blend_objective!r}", param_hint="--blend-objective")
-    refuse_input_as_output(out, [Path(checkpoint), *data], "--out")
+    noise = _detector_noise(detector_noise)
+    refuse_input_as_output(out, [Path(checkpoint), *data, *detector_data], "--out")
     output_file(out, "--out", overwrite)
     try:
         sets = [open_zone_set(path) for path in data]
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
+    try:
+        detector_sets = [open_zone_set(path) for path in detector_data]
+    except (OSError, ValueError) as err:
+        raise typer.BadParameter(str(err), param_hint="--detector-data") from err
     frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
                  for s in sets)
     with ProgressReport("fitting the output stage") as progress:
@@ -139,6 +156,7 @@ def fit_uncertainty_command(
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
                                          overwrite=overwrite, blend_objective=blend_objective,
+                                         detector_sets=detector_sets, detector_noise=noise,
                                          on_frame=progress.advance,
                                          on_passes=lambda passes: progress.set_total(
                                              passes * frames))
@@ -146,8 +164,8 @@ def fit_uncertainty_command(
         tried = ", ".join(f"{_rule_text(c, short=True)} {e:.4f}"
                           for c, e in fit.outlier_errors.items())
         typer.echo(f"zone outliers: {_rule_text(fit.outlier_rule)} (mean relative error "
-                   f"where a candidate sets a zone aside, tolerance / fewest outliers: "
-                   f"{tried})")
+                   f"where a candidate sets a zone aside; rules by tolerance / fewest "
+                   f"outliers, the detector by probability: {tried})")
     if fit.no_target_depth_errors:
         tried = ", ".join(f"{c:g} m {e:.4f}" for c, e in fit.no_target_depth_errors.items())
         typer.echo(f"zones that reported no target read at {fit.no_target_depth_m:g} m (mean "
@@ -177,10 +195,28 @@ def fit_uncertainty_command(
     typer.echo(f"wrote {fit.path} ({fit.frames} frames)")
 
 
+def _detector_noise(text: str) -> dict[str, float]:
+    """--detector-noise 'DROP,PROB,MEAN,STD' as ``fit_outlier_detector``'s arguments."""
+    try:
+        drop, prob, mean, std = (float(v) for v in text.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"must be four numbers 'DROP,PROB,MEAN,STD', got {text!r}",
+                                 param_hint="--detector-noise") from None
+    if not (0 <= drop <= 1 and 0 < prob <= 1 and math.isfinite(mean) and
+            math.isfinite(std) and std >= 0):
+        raise typer.BadParameter(f"needs DROP in [0, 1], PROB in (0, 1], MEAN finite and "
+                                 f"STD >= 0, got {text!r}", param_hint="--detector-noise")
+    return {"drop_fraction": drop, "bias_prob": prob, "bias_mean_m": mean,
+            "bias_std_m": std}
+
+
 def _rule_text(rule, short: bool = False) -> str:
-    """A zone outlier rule in words (None: every zone kept)."""
+    """A zone outlier rule or detector in words (None: every zone kept)."""
     if rule is None:
         return "kept" if short else "every zone kept"
+    if hasattr(rule, "threshold"):
+        return f"detector > {rule.threshold:g}" if short else \
+            f"set aside where the learned detector gives > {rule.threshold:g}"
     if short:
         return f"{rule.tolerance:g} / {rule.min_zones}"
     return (f"set aside beyond {rule.tolerance:g} log distance of all neighbours, in "

@@ -3,8 +3,10 @@ no-target rule.
 
 First the rule that sets aside zones disagreeing with every neighbour
 (:mod:`deltar.sensor.zone_outliers`) is chosen among candidates, no rejection included,
-by the estimator's mean relative error on the frames (:func:`fit_outlier_rule`); the
-rest is fitted with it. For plane-select networks that read no-target flags, the depth
+by the estimator's mean relative error on the frames (:func:`fit_outlier_rule`); given
+clean sets, a learned detector of biased zones trained on them
+(:mod:`deltar.sensor.zone_outlier_detector`) is among the candidates too. The rest is
+fitted with what was chosen. For plane-select networks that read no-target flags, the depth
 such a zone stands for is chosen next (:func:`fit_no_target_depth`). The estimator runs
 the checkpoint's network over the frames; for a network the estimator blends with the
 zones' colorization fill (plane-select heads) the fill is computed too, and
@@ -26,7 +28,7 @@ from __future__ import annotations
 
 import copy
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +43,7 @@ from deltar.inference.uncertainty import (
     fit_uncertainty_calibration,
 )
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
+from deltar.sensor.zone_outlier_detector import OutlierDetector
 from deltar.sensor.zone_outliers import OutlierRule
 
 
@@ -82,8 +85,8 @@ class UncertaintyFit:
     relative_error: dict[str, float]
     no_target_min_neighbour_m: float | None
     no_target_errors: dict[float | None, float]
-    outlier_rule: OutlierRule | None
-    outlier_errors: dict[OutlierRule | None, float]
+    outlier_rule: OutlierRule | OutlierDetector | None
+    outlier_errors: dict[OutlierRule | OutlierDetector | None, float]
     no_target_depth_m: float | None
     no_target_depth_errors: dict[float, float]
     path: Path
@@ -248,13 +251,17 @@ def _choose_candidate(estimator, sets, variants, candidates, frames_per_set, min
 OUTLIER_CANDIDATES: tuple[OutlierRule | None, ...] = (
     None, OutlierRule(0.05, min_zones=5), OutlierRule(0.05, min_zones=3),
     OutlierRule(0.03, min_zones=4))
+#: Thresholds at which a trained zone outlier detector joins those candidates (probability
+#: that a zone is biased), most cautious first.
+DETECTOR_THRESHOLDS: tuple[float, ...] = (0.95, 0.85, 0.7, 0.5)
 
 
 def fit_outlier_rule(estimator, sets: Sequence[Sequence], *,
-                     candidates: Sequence[OutlierRule | None] = OUTLIER_CANDIDATES,
+                     candidates: Sequence[OutlierRule | OutlierDetector | None] =
+                     OUTLIER_CANDIDATES,
                      frames_per_set: int | None = None, min_depth: float = 1e-3,
                      max_depth: float = 10.0, on_frame: Callable[[], None] | None = None
-                     ) -> tuple[OutlierRule | None, dict[OutlierRule | None, float]]:
+                     ) -> tuple[OutlierRule | OutlierDetector | None, dict]:
     """Choose the zone outlier rule (:mod:`deltar.sensor.zone_outliers`) on frames with
     ground truth.
 
@@ -366,6 +373,8 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                                overwrite: bool = False, blend_objective: str = "relative",
                                outlier_candidates: Sequence[OutlierRule | None] =
                                OUTLIER_CANDIDATES,
+                               detector_sets: Sequence[Sequence] = (),
+                               detector_noise: Mapping[str, float] | None = None,
                                on_frame: Callable[[], None] | None = None,
                                on_passes: Callable[[int], None] | None = None
                                ) -> UncertaintyFit:
@@ -383,6 +392,14 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
             (:data:`~deltar.inference.blend_fit.BLEND_OBJECTIVES`).
         outlier_candidates: zone outlier rules to choose among
             (:func:`fit_outlier_rule`); ``(None,)`` keeps every zone without trying.
+        detector_sets: sets whose zones are right (clean simulations of the training
+            scenes): a zone outlier detector is trained on them
+            (:func:`~deltar.sensor.zone_outlier_detector.fit_outlier_detector`, their
+            ``frames_per_set``) and joins the candidates at each of
+            :data:`DETECTOR_THRESHOLDS`. Empty: no detector.
+        detector_noise: the degradation it learns (``fit_outlier_detector``'s
+            ``drop_fraction``, ``bias_prob``, ``bias_mean_m``, ``bias_std_m``); None: its
+            defaults, those of ``deltar simulate``'s degraded sets.
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
         on_passes: called once the checkpoint is read, with how many times the fit
@@ -412,6 +429,14 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                                no_target_min_neighbour_m=None, zone_outliers=None,
                                weights=f"{preset} from {source}")
     # The outlier rule first: it changes the zones everything after it reads.
+    if detector_sets:
+        from deltar.sensor.zone_outlier_detector import fit_outlier_detector
+
+        detector = fit_outlier_detector(
+            [samples[i].zone_frame() for samples in detector_sets
+             for i in _picks(len(samples), frames_per_set)], **(detector_noise or {}))
+        outlier_candidates = (*outlier_candidates,
+                              *(detector.with_threshold(t) for t in DETECTOR_THRESHOLDS))
     outlier_rule, outlier_errors = fit_outlier_rule(
         estimator, sets, candidates=outlier_candidates, frames_per_set=frames_per_set,
         on_frame=on_frame)

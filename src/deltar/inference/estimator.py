@@ -49,11 +49,8 @@ from deltar.sensor.no_target import check_min_neighbour_m, frame_no_target
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.targets import stacked_target_inputs
 from deltar.sensor.zone_frame import ZoneFrame
-from deltar.sensor.zone_outliers import (
-    OutlierRule,
-    reject_outlier_zones,
-    resolve_outlier_rule,
-)
+from deltar.sensor.zone_outlier_detector import OutlierDetector
+from deltar.sensor.zone_outliers import OutlierRule, reject_outlier_zones, resolve_outlier_rule
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -129,9 +126,10 @@ class DepthEstimator:
             the weights carry (``config["no_target_min_neighbour_m"]``, fitted with
             ``deltar fit-uncertainty``; :func:`~deltar.sensor.no_target.infer_no_target`),
             a number of metres uses that threshold, None reads none so.
-        zone_outliers: set aside zones that disagree with every neighbour
-            (:mod:`deltar.sensor.zone_outliers`): ``"auto"`` (default) by the rule the
-            weights carry (``config["zone_outlier_rule"]``), an ``OutlierRule``, or None.
+        zone_outliers: set aside zones that disagree with their neighbours
+            (:mod:`deltar.sensor.zone_outliers`): ``"auto"`` (default) by the rule or
+            detector the weights carry (``config["zone_outlier_rule"]``), an
+            ``OutlierRule`` or ``OutlierDetector``, or None.
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -144,7 +142,7 @@ class DepthEstimator:
                  blend: ConfidenceBlend | str | None = "auto",
                  uncertainty: UncertaintyCalibration | str | None = "auto",
                  no_target_min_neighbour_m: float | str | None = "auto",
-                 zone_outliers: OutlierRule | str | None = "auto") -> None:
+                 zone_outliers: OutlierRule | OutlierDetector | str | None = "auto") -> None:
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         check_backend_options(precision, flip_average, onnx_model is not None)

@@ -33,7 +33,7 @@ from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.fusion import FUSION_MODES, LAYER_KINDS
 from deltar.sensor.no_target import check_min_neighbour_m
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
-from deltar.sensor.zone_outliers import OutlierRule
+from deltar.sensor.zone_outliers import outlier_rule_from_dict
 
 #: Heads that choose among the zone readings (the only ones the descriptor decoder,
 #: which gives the head no zone information, can feed).
@@ -252,7 +252,9 @@ class OutputConfig:
             least this much (:func:`deltar.sensor.no_target.infer_no_target`); None
             reads none so. Fitted with the output stage; does not change the network.
         zone_outlier_rule: when the estimator sets aside valid zones that disagree with
-            every neighbour (:meth:`deltar.sensor.zone_outliers.OutlierRule.to_dict`), or
+            every neighbour (:meth:`deltar.sensor.zone_outliers.OutlierRule.to_dict`) or
+            that a learned detector finds biased
+            (:meth:`deltar.sensor.zone_outlier_detector.OutlierDetector.to_dict`), or
             None (never). Fitted with the output stage; does not change the network.
     """
 
@@ -284,7 +286,7 @@ class OutputConfig:
             self.no_target_min_neighbour_m, "no_target_min_neighbour_m"))
         if self.zone_outlier_rule is not None:  # checked, kept in its stored form
             _set(self, "zone_outlier_rule",
-                 OutlierRule.from_dict(self.zone_outlier_rule).to_dict())
+                 outlier_rule_from_dict(self.zone_outlier_rule).to_dict())
 
 
 #: Output-contract options fitted after training (``deltar fit-uncertainty``)

@@ -31,8 +31,10 @@ from typing import Any
 import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
+from deltar.sensor.zone_outlier_detector import OutlierDetector
 
-__all__ = ["OutlierRule", "find_outlier_zones", "reject_outlier_zones", "resolve_outlier_rule"]
+__all__ = ["OutlierRule", "find_outlier_zones", "outlier_rule_from_dict", "reject_outlier_zones",
+           "resolve_outlier_rule"]
 
 
 @dataclass(frozen=True)
@@ -88,20 +90,33 @@ class OutlierRule:
         return cls(**data)
 
 
-def resolve_outlier_rule(rule: OutlierRule | str | None, contract: Mapping
-                         ) -> OutlierRule | None:
+def outlier_rule_from_dict(data: Mapping[str, Any]) -> OutlierRule | OutlierDetector:
+    """A stored ``zone_outlier_rule``: an :class:`OutlierRule` or, when it names a
+    ``detector``, an :class:`~deltar.sensor.zone_outlier_detector.OutlierDetector`.
+
+    Raises:
+        ValueError: neither form reads (the message says why).
+    """
+    if isinstance(data, Mapping) and "detector" in data:
+        return OutlierDetector.from_dict(data)
+    return OutlierRule.from_dict(data)
+
+
+def resolve_outlier_rule(rule: OutlierRule | OutlierDetector | str | None, contract: Mapping
+                         ) -> OutlierRule | OutlierDetector | None:
     """The rule an estimator uses (its ``zone_outliers`` argument) given the weights'
     contract: ``"auto"`` the one they carry (``contract["zone_outlier_rule"]``, or None),
-    a rule as it is, None no rejection.
+    a rule or detector as it is, None no rejection.
 
     Raises:
         ValueError: anything else, or a stored rule that does not read.
     """
     if rule == "auto":
         stored = contract.get("zone_outlier_rule")
-        return None if stored is None else OutlierRule.from_dict(stored)
-    if rule is not None and not isinstance(rule, OutlierRule):
-        raise ValueError(f"zone_outliers must be 'auto', an OutlierRule or None, got {rule!r}")
+        return None if stored is None else outlier_rule_from_dict(stored)
+    if rule is not None and not isinstance(rule, OutlierRule | OutlierDetector):
+        raise ValueError(f"zone_outliers must be 'auto', an OutlierRule, an OutlierDetector "
+                         f"or None, got {rule!r}")
     return rule
 
 
@@ -140,14 +155,14 @@ def find_outlier_zones(zone_mean_m: np.ndarray, zone_valid: np.ndarray, toleranc
     return judged & ((nearest_above > tolerance) | (nearest_below < -tolerance))
 
 
-def reject_outlier_zones(frame: ZoneFrame, rule: OutlierRule | None,
+def reject_outlier_zones(frame: ZoneFrame, rule: OutlierRule | OutlierDetector | None,
                          no_target: np.ndarray) -> tuple[ZoneFrame, np.ndarray]:
-    """The frame with its outlying zones set invalid, when it has at least
-    ``rule.min_zones`` of them.
+    """The frame with its outlying zones set invalid: for a rule, when it has at least
+    ``rule.min_zones`` of them; for a detector, the zones it finds.
 
     Args:
         frame: the zone frame.
-        rule: the rule; None rejects nothing.
+        rule: the rule or detector; None rejects nothing.
         no_target: (Z,) bool, the no-target flags the estimator reads for ``frame``
             (its own or inferred): the returned frame carries them explicitly, so that
             a rejected zone is never inferred to be *no target* afterwards.
@@ -159,10 +174,15 @@ def reject_outlier_zones(frame: ZoneFrame, rule: OutlierRule | None,
     rejected = np.zeros(frame.zone_count, dtype=bool)
     if rule is None:
         return frame, rejected
-    outliers = find_outlier_zones(frame.mean_m, frame.valid, rule.tolerance,
-                                  rule.min_neighbours)
-    if int(outliers.sum()) < rule.min_zones:
-        return frame, rejected
+    if isinstance(rule, OutlierDetector):
+        outliers = rule.find(frame)
+        if not outliers.any():
+            return frame, rejected
+    else:
+        outliers = find_outlier_zones(frame.mean_m, frame.valid, rule.tolerance,
+                                      rule.min_neighbours)
+        if int(outliers.sum()) < rule.min_zones:
+            return frame, rejected
     changes: dict[str, Any] = {"valid": frame.valid & ~outliers,
                                "no_target": np.asarray(no_target, dtype=bool).reshape(
                                    frame.valid.shape)}
