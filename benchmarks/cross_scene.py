@@ -212,17 +212,24 @@ def calibration_set(out: Path, scene: str, condition: str,
 
 
 def calibrate_fold(out: Path, fold: str, model: Path, targets: int = 1,
-                   frames: int = CALIBRATION_FRAMES) -> Path:
-    """The fold's model with its output stage (blend, sigma, zone rules) fitted on
-    ``frames`` frames of each of its training scenes, clean and degraded (made once)."""
+                   frames: int = CALIBRATION_FRAMES, detector: bool = False) -> Path:
+    """The fold's model with its output stage (zone outlier rule, blend, sigma,
+    no-target rules) fitted on ``frames`` frames of each of its training scenes, clean
+    and degraded (made once); with ``detector`` a learned zone outlier detector is
+    among the outlier candidates."""
     calibrated = model.with_name("model-calibrated.pt")
     if not calibrated.is_file():
         args = ["fit-uncertainty", str(model), "--out", str(calibrated)]
+        if detector:
+            args += ["--detector-noise", ",".join(CONDITIONS["degraded"][1::2])]
         for scene in SCENES:
             if scene not in FOLDS[fold]:
                 for condition in ("clean", "degraded"):
                     args += ["--data", str(calibration_set(out, scene, condition, frames,
                                                            targets))]
+                if detector:  # it learns the degraded condition's noise on clean frames
+                    args += ["--detector-data", str(calibration_set(
+                        out, scene, "clean", frames, targets))]
         deltar(*args)
     return calibrated
 
@@ -254,6 +261,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calibration-frames", type=int, default=CALIBRATION_FRAMES,
                         help="frames of each training scene, clean and degraded, the "
                         f"fold's output stage is fitted on (default {CALIBRATION_FRAMES})")
+    parser.add_argument("--outlier-detector", action="store_true",
+                        help="also offer each fold's output-stage fit a zone outlier detector "
+                        "trained on its clean calibration frames (deltar fit-uncertainty "
+                        "--detector-data); folds already calibrated keep their fit")
     parser.add_argument("--extra-model", action="append", default=[], metavar="NAME_OR_PATH",
                         help="also evaluate this checkpoint (e.g. 'default') on every fold")
     args = parser.parse_args(argv)
@@ -269,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         summary["train_seconds"][fold] = seconds
         # Same weights, sigma calibrated on the fold's training scenes: the depth metrics
         # are the model's, the coverage ones the calibration's.
-        model = calibrate_fold(args.out, fold, model, args.targets, args.calibration_frames)
+        model = calibrate_fold(args.out, fold, model, args.targets, args.calibration_frames,
+                               args.outlier_detector)
         # "trained" is the estimator as users run it (for the plane-select recipe: the
         # network blended with the colorization fill where it is unsure); "network" is the
         # network's own depth (the estimator without the blend).
