@@ -13,7 +13,8 @@ target read as 5 m, the model's prior). The model is scored twice: ``trained``, 
 fill where the network is unsure), and ``network``, the network alone (``+network``).
 Prints each scene's table and the mean over scenes (each scene weighs the same), with
 both rows' REL and RMSE change against the best classical baseline of each scene and
-against the best ``+far`` one.
+against the best ``+far`` one; on the means against the baseline best on the means, the
+best of each fold and the best of each scene.
 
     python benchmarks/cross_scene.py --out cross-scene/           # all five folds
     python benchmarks/cross_scene.py --out cs/ --folds kitchen-shelf --steps 100  # a look
@@ -316,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
             for row in ("trained", "network"):
                 report.append(_comparison(label, group,
                                           [summary[s][condition] for s in scenes],
-                                          mean_rows, row))
+                                          mean_rows, row,
+                                          [len(FOLDS[fold]) for fold in args.folds]))
         summary[f"mean_{condition}"] = mean_rows
     text = "\n".join(report)
     print(text)
@@ -359,11 +361,14 @@ def markdown(summary: dict, scenes: list[str], conditions: list[str]) -> str:
 
 
 def _comparison(label: str, group: tuple[str, ...], folds: list[dict], mean_rows: dict,
-                row: str = "trained") -> str:
+                row: str = "trained", fold_sizes: list[int] | None = None) -> str:
     """One line: the ``row`` method's REL and RMSE gain over the best of ``group``.
 
     Per scene against that scene's best; on the means against the best of the group's
-    rows of the mean over scenes, and the count of scenes better in both.
+    rows of the mean over scenes, and the count of scenes better in both. With
+    ``fold_sizes`` (consecutive scenes of ``folds`` per fold) also the mean against
+    each fold's best (the method of ``group`` with the lowest mean over the fold's
+    scenes) and against each scene's best, both stricter than the means' best.
     """
     gains: dict[str, list[float]] = {"rel": [], "rmse": []}
     for rows in folds:
@@ -372,10 +377,26 @@ def _comparison(label: str, group: tuple[str, ...], folds: list[dict], mean_rows
     best = {k: min(mean_rows[b][k] for b in group) for k in gains}
     both = sum(rel > 0 and rmse > 0
                for rel, rmse in zip(gains["rel"], gains["rmse"], strict=True))
-    return (f"{row} vs {label} (+ = {row} better), per scene: REL {_percent(gains['rel'])}, "
+    line = (f"{row} vs {label} (+ = {row} better), per scene: REL {_percent(gains['rel'])}, "
             f"RMSE {_percent(gains['rmse'])}; better in both on {both} of {len(folds)}; on "
             f"the means: REL {100 * (1 - mean_rows[row]['rel'] / best['rel']):+.1f}%, RMSE "
             f"{100 * (1 - mean_rows[row]['rmse'] / best['rmse']):+.1f}%")
+    if fold_sizes:
+        stricter = {"fold": {}, "scene": {}}
+        for key in gains:
+            fold_best, scene_best, start = [], [], 0
+            for size in fold_sizes:
+                part = folds[start:start + size]
+                chosen = min(group, key=lambda b, part=part: sum(r[b][key] for r in part))
+                fold_best += [r[chosen][key] for r in part]
+                scene_best += [min(r[b][key] for b in group) for r in part]
+                start += size
+            model = sum(r[row][key] for r in folds)
+            stricter["fold"][key] = 1.0 - model / sum(fold_best)
+            stricter["scene"][key] = 1.0 - model / sum(scene_best)
+        line += "".join(f"; against each {kind}'s best: REL {100 * g['rel']:+.1f}%, RMSE "
+                        f"{100 * g['rmse']:+.1f}%" for kind, g in stricter.items())
+    return line
 
 
 def _percent(values: list[float]) -> str:

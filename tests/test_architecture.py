@@ -207,6 +207,7 @@ CROSS_CUTTING_TESTS: dict[str, str] = {
     "weights/test_bundled_model.py": "the model file the package ships (deltar.weights)",
     "weights/test_bundled_onnx.py": "the bundled model's ONNX file (deltar.weights)",
     "cli/test_without_torch.py": "the commands of the base install, without PyTorch",
+    "benchmarks/test_cross_scene.py": "the protocol script's comparisons (benchmarks/)",
 }
 
 

@@ -1,0 +1,40 @@
+"""The protocol script's comparisons (benchmarks/cross_scene.py), on made-up metrics."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from pathlib import Path
+
+import pytest
+
+_SPEC = importlib.util.spec_from_file_location(
+    "cross_scene", Path(__file__).resolve().parents[2] / "benchmarks" / "cross_scene.py")
+cross_scene = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(cross_scene)
+
+
+def _rows(model: float, a: float, b: float) -> dict[str, dict[str, float]]:
+    return {"trained": {"rel": model, "rmse": model}, "a": {"rel": a, "rmse": a},
+            "b": {"rel": b, "rmse": b}}
+
+
+def test_margins_against_the_means_each_folds_and_each_scenes_best() -> None:
+    # Two folds of two scenes. Method a is best on the means; b wins the second fold
+    # and the last scene.
+    scenes = [_rows(0.8, 1.0, 2.0), _rows(0.8, 1.0, 2.0), _rows(0.9, 1.2, 1.3),
+              _rows(0.9, 1.6, 1.0)]
+    means = {name: {k: sum(r[name][k] for r in scenes) / 4 for k in ("rel", "rmse")}
+             for name in ("trained", "a", "b")}
+    line = cross_scene._comparison("the best classical baseline", ("a", "b"), scenes, means,
+                                   "trained", [2, 2])
+    model = 0.8 + 0.8 + 0.9 + 0.9
+    expected = {"the means": 1 - model / (1.0 + 1.0 + 1.2 + 1.6),
+                "each fold's best": 1 - model / (1.0 + 1.0 + 1.3 + 1.0),  # a, then b
+                "each scene's best": 1 - model / (1.0 + 1.0 + 1.2 + 1.0)}
+    for label, gain in expected.items():
+        found = re.search(re.escape(label) + r": REL ([+-][\d.]+)%", line)
+        assert found and float(found.group(1)) == pytest.approx(100 * gain, abs=0.05), label
+    assert "better in both on 4 of 4" in line
+    # Without folds, the line stops at the means.
+    assert "each fold" not in cross_scene._comparison("x", ("a", "b"), scenes, means)
