@@ -382,6 +382,9 @@ def _comparison(label: str, group: tuple[str, ...], folds: list[dict], mean_rows
             f"the means: REL {100 * (1 - mean_rows[row]['rel'] / best['rel']):+.1f}%, RMSE "
             f"{100 * (1 - mean_rows[row]['rmse'] / best['rmse']):+.1f}%")
     if fold_sizes:
+        if sum(fold_sizes) != len(folds):
+            raise ValueError(f"fold_sizes {fold_sizes} do not add up to the {len(folds)} "
+                             f"scenes")
         stricter = {"fold": {}, "scene": {}}
         for key in gains:
             fold_best, scene_best, start = [], [], 0

@@ -36,5 +36,7 @@ def test_margins_against_the_means_each_folds_and_each_scenes_best() -> None:
         found = re.search(re.escape(label) + r": REL ([+-][\d.]+)%", line)
         assert found and float(found.group(1)) == pytest.approx(100 * gain, abs=0.05), label
     assert "better in both on 4 of 4" in line
-    # Without folds, the line stops at the means.
+    # Without folds, the line stops at the means; folds that miss scenes are refused.
     assert "each fold" not in cross_scene._comparison("x", ("a", "b"), scenes, means)
+    with pytest.raises(ValueError, match="do not add up"):
+        cross_scene._comparison("x", ("a", "b"), scenes, means, "trained", [2, 1])

@@ -264,6 +264,19 @@ def test_cli_reports_and_stores_the_no_target_depth(tmp_path) -> None:
     assert DepthEstimator(fitted).no_target_depth_m == 6.0
 
 
+def _tilted_wall(seed: int):
+    """A 4 x 4 reading of a wall 1.5-3 m away, tilted at random, read right."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:4, 0:4]
+    means = rng.uniform(1.5, 3.0) * np.exp(rng.normal(0, 0.03) * rows +
+                                           rng.normal(0, 0.03) * cols)
+    sample = _wall_sample(seed, True)
+    return replace(sample, zone_mean_sigma=np.stack([means.reshape(-1),
+                                                     0.02 * means.reshape(-1)], 1))
+
+
 def test_a_detector_trained_on_clean_sets_joins_the_outlier_candidates(tmp_path) -> None:
     from deltar.evaluation.uncertainty import DETECTOR_THRESHOLDS, OUTLIER_CANDIDATES
     from deltar.sensor.zone_outlier_detector import OutlierDetector
@@ -272,7 +285,7 @@ def test_a_detector_trained_on_clean_sets_joins_the_outlier_candidates(tmp_path)
     model = create_model("deltar-select", design_size=(32, 64))
     source = save_checkpoint(tmp_path / "select.pt", model, "deltar-select")
     noisy = [[_wall_sample(seed, False) for seed in range(2)]]
-    clean = [[_wall_sample(seed, True) for seed in range(2, 6)]]  # readings = truth
+    clean = [[_tilted_wall(seed) for seed in range(2, 8)]]
     fit = fit_checkpoint_uncertainty(source, noisy, tmp_path / "fitted.pt", min_pixels=100,
                                      detector_sets=clean,
                                      detector_noise={"bias_prob": 0.5, "bias_mean_m": 0.5})
@@ -282,16 +295,25 @@ def test_a_detector_trained_on_clean_sets_joins_the_outlier_candidates(tmp_path)
     stored = load_checkpoint(tmp_path / "fitted.pt")[2]["output"]["zone_outlier_rule"]
     chosen = fit.outlier_rule
     assert stored == (None if chosen is None else chosen.to_dict())
+    # A detector the weights carry is read back by the estimator, unchanged.
+    detector = detectors[0]
+    model.set_output_contract(zone_outlier_rule=detector.to_dict())
+    path = save_checkpoint(tmp_path / "with-detector.pt", model, "deltar-select")
+    assert DepthEstimator(load_checkpoint(path)[0]).zone_outliers == detector
 
 
 def test_cli_refuses_a_bad_detector_noise_or_set(tmp_path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     source = _checkpoint(tmp_path / "model.pt")
     out = tmp_path / "cal.pt"
-    for noise in ("0.2,0.3", "0.2,0,0.1,0.15", "a,b,c,d"):
+    for noise in ("0.2,0.3", "0.2,0,0.1,0.15", "1,0.3,0.1,0.15", "a,b,c,d"):
         result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
-                                     "--detector-noise", noise, "--out", str(out)])
+                                     "--detector-data", str(data), "--detector-noise", noise,
+                                     "--out", str(out)])
         assert result.exit_code == 2 and "--detector-noise" in result.output, noise
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--detector-noise", "0.1,0.3,0.1,0.15", "--out", str(out)])
+    assert result.exit_code == 2 and "give --detector-data too" in result.output
     result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
                                  "--detector-data", str(tmp_path / "missing.json"),
                                  "--out", str(out)])

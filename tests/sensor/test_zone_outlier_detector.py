@@ -66,11 +66,19 @@ def test_features_skip_invalid_zones_and_lone_zones_read_zero() -> None:
     assert features[4, 4, FEATURE["valid_neighbours"]] == 0
     assert features[4, 4, FEATURE["nearest_log_difference"]] == 0.0
     valid[4, 5] = True
-    mean[4, 6] = 9.0  # invalid: neither counts nor moves anything
+    mean[4, 6] = 0.5  # invalid: neither counts nor moves anything
     features = zone_outlier_features(mean, 0.02 * mean, valid, np.full((8, 8), 2))
     assert features[4, 4, FEATURE["valid_neighbours"]] == 1
-    assert features[4, 5, FEATURE["farthest_log_difference"]] == 0.0
+    assert features[4, 5, FEATURE["valid_neighbours"]] == 1
+    assert features[4, 5, FEATURE["nearest_log_difference"]] == 0.0
     assert features[4, 4, FEATURE["targets"]] == 2
+    # A "valid" reading that is not a finite distance is left out like an invalid one.
+    for bad in (np.inf, np.nan, -1.0):
+        mean[4, 6] = bad
+        valid[4, 6] = True
+        odd = zone_outlier_features(mean, 0.02 * np.abs(mean), valid)
+        assert np.all(np.isfinite(odd))
+        assert odd[4, 5, FEATURE["valid_neighbours"]] == 1, bad
     with pytest.raises(ValueError, match="must all be"):
         zone_outlier_features(mean, mean[:4], valid)
 
@@ -117,6 +125,9 @@ def test_detector_round_trips_through_json_and_refuses_bad_dicts() -> None:
     assert isinstance(again, OutlierDetector) and again.threshold == 0.7
     assert again == detector and hash(again) == hash(detector)
     assert detector.with_threshold(0.5) != detector and len({again, detector}) == 1
+    # It keeps read-only copies: what it is hashed on cannot change under it.
+    layers[0][0][0, 0] += 1.0
+    assert detector == again and not detector.layers[0][0].flags.writeable
     mean = rng.uniform(1, 3, (8, 8))
     assert np.array_equal(again.probability(_frame(mean)), detector.probability(_frame(mean)))
     assert resolve_outlier_rule("auto", {"zone_outlier_rule": stored}).threshold == 0.7
@@ -188,3 +199,7 @@ def test_fit_refuses_what_it_cannot_learn_from() -> None:
         fit_outlier_detector(rooms, draws=0)
     with pytest.raises(ValueError, match="no biased zone"):
         fit_outlier_detector(rooms, bias_prob=0.0)
+    with pytest.raises(ValueError, match="weight_decay"):
+        fit_outlier_detector(rooms, weight_decay=float("nan"))
+    with pytest.raises(ValueError, match="threshold"):
+        fit_outlier_detector(rooms, threshold=1.0)

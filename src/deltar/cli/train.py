@@ -7,6 +7,10 @@ from pathlib import Path
 
 import typer
 
+#: --detector-noise's default: the degraded sets of ``deltar simulate --drop-fraction 0.2
+#: --bias-prob 0.3`` (its bias defaults).
+_DEFAULT_DETECTOR_NOISE = "0.2,0.3,0.10,0.15"
+
 
 def train_command(
     config: Path | None = typer.Option(None, "--config", "-c", help="YAML training config "
@@ -104,7 +108,7 @@ def fit_uncertainty_command(
                                              "clean simulation; repeatable): a detector of "
                                              "biased zones is trained on it and joins the "
                                              "outlier candidates."),
-    detector_noise: str = typer.Option("0.2,0.3,0.10,0.15", "--detector-noise",
+    detector_noise: str = typer.Option(_DEFAULT_DETECTOR_NOISE, "--detector-noise",
                                        help="The degradation the detector learns, "
                                        "'DROP,PROB,MEAN,STD' as deltar simulate's "
                                        "--drop-fraction, --bias-prob, --bias-mean, "
@@ -138,6 +142,9 @@ def fit_uncertainty_command(
         raise typer.BadParameter(f"must be one of {', '.join(BLEND_OBJECTIVES)}, got "
                                  f"{blend_objective!r}", param_hint="--blend-objective")
     noise = _detector_noise(detector_noise)
+    if detector_noise != _DEFAULT_DETECTOR_NOISE and not detector_data:
+        raise typer.BadParameter("describes the noise of the detector --detector-data trains; "
+                                 "give --detector-data too", param_hint="--detector-noise")
     refuse_input_as_output(out, [Path(checkpoint), *data, *detector_data], "--out")
     output_file(out, "--out", overwrite)
     try:
@@ -202,9 +209,9 @@ def _detector_noise(text: str) -> dict[str, float]:
     except ValueError:
         raise typer.BadParameter(f"must be four numbers 'DROP,PROB,MEAN,STD', got {text!r}",
                                  param_hint="--detector-noise") from None
-    if not (0 <= drop <= 1 and 0 < prob <= 1 and math.isfinite(mean) and
+    if not (0 <= drop < 1 and 0 < prob <= 1 and math.isfinite(mean) and
             math.isfinite(std) and std >= 0):
-        raise typer.BadParameter(f"needs DROP in [0, 1], PROB in (0, 1], MEAN finite and "
+        raise typer.BadParameter(f"needs DROP in [0, 1), PROB in (0, 1], MEAN finite and "
                                  f"STD >= 0, got {text!r}", param_hint="--detector-noise")
     return {"drop_fraction": drop, "bias_prob": prob, "bias_mean_m": mean,
             "bias_std_m": std}

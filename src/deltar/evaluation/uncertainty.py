@@ -391,7 +391,8 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         blend_objective: what the blend's fit minimises
             (:data:`~deltar.inference.blend_fit.BLEND_OBJECTIVES`).
         outlier_candidates: zone outlier rules to choose among
-            (:func:`fit_outlier_rule`); ``(None,)`` keeps every zone without trying.
+            (:func:`fit_outlier_rule`); ``(None,)`` (and no ``detector_sets``) keeps every
+            zone without trying.
         detector_sets: sets whose zones are right (clean simulations of the training
             scenes): a zone outlier detector is trained on them
             (:func:`~deltar.sensor.zone_outlier_detector.fit_outlier_detector`, their

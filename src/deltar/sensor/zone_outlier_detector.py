@@ -43,7 +43,7 @@ ZONE_FEATURE_NAMES = (
     "nearest_log_difference",      # min over neighbours of log(zone) - log(neighbour)
     "farthest_log_difference",     # max of the same
     "median_log_difference",       # median of the same
-    "median_sigma_difference",     # median of (zone - neighbour) / hypot(sigmas), metres/metres
+    "median_sigma_difference",     # median of (zone - neighbour) / hypot(sigmas, 1 cm)
     "lowest_sigma_difference",     # min of the same
     "fraction_nearer",             # neighbours more than 3 % nearer than the zone, fraction
     "log_difference_to_median_5x5",  # log(zone) - median log of its 24 neighbours (5 x 5)
@@ -109,7 +109,9 @@ def zone_outlier_features(mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.nda
             any(a.shape != valid.shape for a in (mean, sigma, count)):
         raise ValueError(f"mean_m, sigma_m, valid and target_count must all be (n, n), got "
                          f"{mean.shape}, {sigma.shape}, {valid.shape}, {count.shape}")
-    safe_mean = np.maximum(mean, 1e-6)
+    # A reading that is not a finite positive distance cannot be judged: left out.
+    valid = valid & np.isfinite(mean) & (mean > 0) & np.isfinite(sigma)
+    safe_mean = np.where(valid, np.maximum(mean, 1e-6), 1.0)
     log_mean = np.where(valid, np.log(safe_mean), np.nan)
     # One stack of the 24 zones around each (5 x 5); its first eight are the 3 x 3 ring.
     wide = _neighbour_stack(log_mean, _NEIGHBOURS_5x5_RING_FIRST)
@@ -118,10 +120,10 @@ def zone_outlier_features(mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.nda
     valid_neighbours = known.sum(axis=0)
     some = valid_neighbours > 0
     neighbour_metres = _neighbour_stack(np.where(valid, mean, np.nan), _NEIGHBOURS_3x3)
-    neighbour_sigma = _neighbour_stack(sigma, _NEIGHBOURS_3x3)
+    neighbour_sigma = _neighbour_stack(np.where(valid, sigma, np.nan), _NEIGHBOURS_3x3)
     # The 1 cm floor keeps two sharp readings of one wall from reading as far apart.
-    in_sigmas = (mean[None] - neighbour_metres) / np.sqrt(
-        sigma[None] ** 2 + neighbour_sigma ** 2 + 1e-4)
+    in_sigmas = (safe_mean[None] - neighbour_metres) / np.sqrt(
+        np.where(valid, sigma, 0.0)[None] ** 2 + neighbour_sigma ** 2 + 1e-4)
     filled = np.where(known, difference, 0.0)
     wide_known = ~np.isnan(wide)
     features = np.stack([
@@ -134,7 +136,7 @@ def zone_outlier_features(mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.nda
         (filled > _NEARER_MARGIN).sum(axis=0) / np.maximum(valid_neighbours, 1),
         np.where(wide_known.any(axis=0) & valid,
                  log_mean - _median_over_known(wide, wide_known), 0.0),
-        np.where(valid, sigma / safe_mean, 0.0),
+        np.where(valid, np.where(valid, sigma, 0.0) / safe_mean, 0.0),
         np.where(valid, log_mean, 0.0),
         count,
     ], axis=-1)
@@ -166,8 +168,8 @@ class OutlierDetector:
 
     def __post_init__(self) -> None:
         size = len(ZONE_FEATURE_NAMES)
-        mean = np.asarray(self.feature_mean, dtype=np.float64)
-        scale = np.asarray(self.feature_scale, dtype=np.float64)
+        mean = np.array(self.feature_mean, dtype=np.float64)
+        scale = np.array(self.feature_scale, dtype=np.float64)
         if mean.shape != (size,) or scale.shape != (size,) or not np.all(scale > 0) or \
                 not (np.all(np.isfinite(mean)) and np.all(np.isfinite(scale))):
             raise ValueError(f"outlier detector feature_mean and feature_scale must be "
@@ -176,7 +178,7 @@ class OutlierDetector:
         layers = []
         width = size
         for index, pair in enumerate(self.layers):
-            weight, bias = (np.asarray(a, dtype=np.float64) for a in pair)
+            weight, bias = (np.array(a, dtype=np.float64) for a in pair)
             if weight.ndim != 2 or weight.shape[0] != width or bias.shape != \
                     (weight.shape[1],) or not (np.all(np.isfinite(weight)) and
                                                np.all(np.isfinite(bias))):
@@ -192,6 +194,9 @@ class OutlierDetector:
                 not 0.0 < threshold < 1.0:
             raise ValueError(f"outlier detector threshold must be a probability in (0, 1), "
                              f"got {threshold!r}")
+        # Own, read-only copies: the detector is hashed on them.
+        for array in (mean, scale, *(a for pair in layers for a in pair)):
+            array.setflags(write=False)
         object.__setattr__(self, "feature_mean", mean)
         object.__setattr__(self, "feature_scale", scale)
         object.__setattr__(self, "layers", tuple(layers))
@@ -309,6 +314,12 @@ def fit_outlier_detector(frames: Sequence[ZoneFrame], *, drop_fraction: float = 
     for name, value in (("draws", draws), ("hidden", hidden)):
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    if not (isinstance(weight_decay, numbers.Real) and math.isfinite(weight_decay)
+            and weight_decay >= 0):
+        raise ValueError(f"weight_decay must be a finite number >= 0, got {weight_decay!r}")
+    if isinstance(threshold, bool) or not isinstance(threshold, numbers.Real) or \
+            not 0.0 < threshold < 1.0:
+        raise ValueError(f"threshold must be a probability in (0, 1), got {threshold!r}")
     augmentation = SignalAugmentation(drop_fraction, bias_prob, bias_mean_m, bias_std_m)
     generator = torch.Generator().manual_seed(seed)
     features, labels = [], []
@@ -341,6 +352,7 @@ def _train_perceptron(inputs: np.ndarray, targets: np.ndarray, hidden: int,
                       ) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
     """Two ReLU layers of ``hidden`` units and a logistic output, fitted by L-BFGS."""
     from scipy.optimize import minimize  # scipy: on use
+    from scipy.special import expit
 
     sizes = [inputs.shape[1], hidden, hidden, 1]
     shapes = list(itertools.pairwise(sizes))
@@ -363,7 +375,7 @@ def _train_perceptron(inputs: np.ndarray, targets: np.ndarray, hidden: int,
         logit = activations[-1][:, 0]
         value = np.mean(np.logaddexp(0.0, logit) - targets * logit) + weight_decay * sum(
             float(np.sum(w * w)) for w, _ in layers)
-        delta = ((1.0 / (1.0 + np.exp(-logit)) - targets) / targets.size)[:, None]
+        delta = ((expit(logit) - targets) / targets.size)[:, None]
         grads = []
         for index in range(len(layers) - 1, -1, -1):
             weight, _ = layers[index]
