@@ -96,6 +96,9 @@ def test_a_frame_with_enough_outliers_has_them_set_invalid(targets) -> None:
     # Fewer outliers than the rule's minimum: the frame is kept whole.
     kept, none = reject_outlier_zones(frame, OutlierRule(0.05, min_zones=4), no_target)
     assert kept is frame and not none.any()
+    # What the rule finds is what is set aside.
+    assert np.array_equal(OutlierRule(0.05, min_zones=3).find(frame).reshape(-1), rejected)
+    assert not OutlierRule(0.05, min_zones=4).find(frame).any()
     assert reject_outlier_zones(frame, None, no_target)[0] is frame
 
 

@@ -256,7 +256,7 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
     image_rgb = check_image(image_rgb, "image_rgb")
     size = image_rgb.shape[:2]
     if guide is None:
-        guide = blend_fill_guide(image_rgb)
+        guide = _checked_image_guide(image_rgb)
     elif guide.source_size != size or guide.solve_cells != BLEND_FILL_CELLS:
         raise ValueError(f"guide was made for a {guide.source_size[0]}x{guide.source_size[1]} "
                          f"image and {guide.solve_cells} cells, image_rgb is "
@@ -283,9 +283,14 @@ def blend_fill_guide(image_rgb: np.ndarray) -> ColorizationGuide:
         ValueError: a bad image.
     """
     from deltar.camera import check_image
+
+    return _checked_image_guide(check_image(image_rgb, "image_rgb"))
+
+
+def _checked_image_guide(image_rgb: np.ndarray) -> ColorizationGuide:
+    """:func:`blend_fill_guide` of an image already checked."""
     from deltar.inference.colorization import colorization_guide
 
-    image_rgb = check_image(image_rgb, "image_rgb")
     return colorization_guide(halved_guide(image_rgb, BLEND_FILL_CELLS), BLEND_FILL_CELLS,
                               source_size=image_rgb.shape[:2])
 

@@ -413,8 +413,8 @@ class DepthEstimator:
             # undistorted image (same intrinsics), so depth is for that image.
             images = [calibration.undistort_image(np.asarray(im)) for im in images]
         # The fill's image part needs no zone: it runs while they are screened and placed.
-        guides = [start_fill_guide(im, fill_beside_network(self.model is not None))
-                  for im in images] if self.blend else None
+        beside = fill_beside_network(self.model is not None)
+        guides = [start_fill_guide(im, beside) for im in images] if self.blend else None
         # Outlying zones are set aside first: the network and the fill read the same zones.
         screened = [self.screen_zones(f) for f in frames]
         frames, rejected = [f for f, _ in screened], [r for _, r in screened]

@@ -120,10 +120,11 @@ def zone_outlier_features(mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.nda
     valid_neighbours = known.sum(axis=0)
     some = valid_neighbours > 0
     neighbour_metres = _neighbour_stack(np.where(valid, mean, np.nan), _NEIGHBOURS_3x3)
+    own_sigma = np.where(valid, sigma, 0.0)
     neighbour_sigma = _neighbour_stack(np.where(valid, sigma, np.nan), _NEIGHBOURS_3x3)
     # The 1 cm floor keeps two sharp readings of one wall from reading as far apart.
     in_sigmas = (safe_mean[None] - neighbour_metres) / np.sqrt(
-        np.where(valid, sigma, 0.0)[None] ** 2 + neighbour_sigma ** 2 + 1e-4)
+        own_sigma[None] ** 2 + neighbour_sigma ** 2 + 1e-4)
     filled = np.where(known, difference, 0.0)
     wide_known = ~np.isnan(wide)
     features = np.stack([
@@ -136,7 +137,7 @@ def zone_outlier_features(mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.nda
         (filled > _NEARER_MARGIN).sum(axis=0) / np.maximum(valid_neighbours, 1),
         np.where(wide_known.any(axis=0) & valid,
                  log_mean - _median_over_known(wide, wide_known), 0.0),
-        np.where(valid, np.where(valid, sigma, 0.0) / safe_mean, 0.0),
+        own_sigma / safe_mean,  # 0 where not valid
         np.where(valid, log_mean, 0.0),
         count,
     ], axis=-1)

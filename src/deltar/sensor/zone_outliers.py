@@ -69,6 +69,13 @@ class OutlierRule:
         object.__setattr__(self, "min_zones", int(self.min_zones))
         object.__setattr__(self, "min_neighbours", int(self.min_neighbours))
 
+    def find(self, frame: ZoneFrame) -> np.ndarray:
+        """(n, n) bool, the frame's outliers (:func:`find_outlier_zones`) when it has at
+        least ``min_zones`` of them, else none."""
+        outliers = find_outlier_zones(frame.mean_m, frame.valid, self.tolerance,
+                                      self.min_neighbours)
+        return outliers if int(outliers.sum()) >= self.min_zones else np.zeros_like(outliers)
+
     def to_dict(self) -> dict[str, float | int]:
         """The rule as a JSON-ready dict (a checkpoint's ``config["zone_outlier_rule"]``)."""
         return {"tolerance": self.tolerance, "min_zones": self.min_zones,
@@ -174,15 +181,9 @@ def reject_outlier_zones(frame: ZoneFrame, rule: OutlierRule | OutlierDetector |
     rejected = np.zeros(frame.zone_count, dtype=bool)
     if rule is None:
         return frame, rejected
-    if isinstance(rule, OutlierDetector):
-        outliers = rule.find(frame)
-        if not outliers.any():
-            return frame, rejected
-    else:
-        outliers = find_outlier_zones(frame.mean_m, frame.valid, rule.tolerance,
-                                      rule.min_neighbours)
-        if int(outliers.sum()) < rule.min_zones:
-            return frame, rejected
+    outliers = rule.find(frame)
+    if not outliers.any():
+        return frame, rejected
     changes: dict[str, Any] = {"valid": frame.valid & ~outliers,
                                "no_target": np.asarray(no_target, dtype=bool).reshape(
                                    frame.valid.shape)}
