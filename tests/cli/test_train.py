@@ -37,3 +37,21 @@ def test_cli_reports_missing_data_without_a_traceback(tmp_path):
     assert result.exit_code == 1
     assert str(missing) in result.output
     assert not (tmp_path / "run" / "config.yaml").exists()
+
+
+def test_fit_uncertainty_names_each_outlier_choice_in_words():
+    """The fit's report tells "every zone kept", a rule and a detector apart."""
+    import numpy as np
+
+    from deltar.cli.train import _rule_text
+    from deltar.sensor.zone_outlier_detector import ZONE_FEATURE_NAMES, OutlierDetector
+    from deltar.sensor.zone_outliers import OutlierRule
+
+    size = len(ZONE_FEATURE_NAMES)
+    detector = OutlierDetector(np.zeros(size), np.ones(size),
+                               ((np.zeros((size, 1)), np.zeros(1)),), threshold=0.85)
+    assert _rule_text(None) == "every zone kept"
+    assert _rule_text(OutlierRule(0.05, min_zones=3), short=True) == "0.05 / 3"
+    assert "frames with >= 3 such zones" in _rule_text(OutlierRule(0.05, min_zones=3))
+    assert _rule_text(detector, short=True) == "detector > 0.85"
+    assert "learned detector gives > 0.85" in _rule_text(detector)

@@ -219,9 +219,11 @@ def _detector_noise(text: str) -> dict[str, float]:
 
 def _rule_text(rule, short: bool = False) -> str:
     """A zone outlier rule or detector in words (None: every zone kept)."""
+    from deltar.sensor.zone_outlier_detector import OutlierDetector
+
     if rule is None:
         return "kept" if short else "every zone kept"
-    if hasattr(rule, "threshold"):
+    if isinstance(rule, OutlierDetector):
         return f"detector > {rule.threshold:g}" if short else \
             f"set aside where the learned detector gives > {rule.threshold:g}"
     if short:
