@@ -409,13 +409,14 @@ def cases() -> list[Case]:
                                           "{in}/frames", "--out", "{out}", *LITE],
              needles=("f3.json",), early=False),
         # ---- predict: valid inputs
-        Case("predict-valid", _predict(), expect="ok"),
+        Case("predict-valid", _predict(), expect="ok", needles=("no --calib", "nominal")),
         Case("predict-valid-4x4", _predict(zones="z4.json"), expect="ok"),
         Case("predict-valid-driver-dump", _predict(zones="driver.json"), expect="ok"),
         Case("predict-valid-int-values", _predict(zones="z_ints.json"), expect="ok"),
         Case("predict-valid-grey-image", _predict("grey.png"), expect="ok"),
         Case("predict-valid-rgba-image", _predict("rgba.png"), expect="ok"),
-        Case("predict-valid-calib", [*_predict(), "--calib", "{in}/calib.json"], expect="ok"),
+        Case("predict-valid-calib", [*_predict(), "--calib", "{in}/calib.json"], expect="ok",
+             forbid=("no --calib",)),
         # ---- Python API
         Case("api-image-2d", _api("predict", np.zeros((48, 64), np.uint8),
                                   lambda v: v["frame"]), needles=("(H, W, 3)", "(48, 64)")),

@@ -35,3 +35,25 @@ def test_progress_total_can_be_set_once_known(capsys, monkeypatch):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("fitting: 1 frames") and "ETA" not in lines[0]
     assert lines[-1].startswith("fitting: 2/2 frames") and "done in" in lines[-1]
+
+
+def test_tables_printed_to_a_log_keep_every_cell(capsys, monkeypatch):
+    """Off a terminal rich would cut tables to 80 columns; table_console does not."""
+    from rich.table import Table
+
+    from deltar.cli.progress import LOG_WIDTH, table_console
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    table = Table(title="methods")
+    for header in ("method", "δ1", "δ2", "δ3", "REL", "RMSE", "log10", "≤1σ", "≤2σ", "s/frame"):
+        table.add_column(header)
+    table.add_row("model:deltar_select_default", *(f"{v:.4f}" for v in range(9)))
+    table.add_row("joint_bilateral+far", *(f"{v:.4f}" for v in range(9)))
+    console = table_console()
+    assert console.width == LOG_WIDTH
+    console.print(table)
+    out = capsys.readouterr().out
+    assert "…" not in out
+    assert "model:deltar_select_default" in out and "joint_bilateral+far" in out
+    monkeypatch.setenv("COLUMNS", "60")  # the user's own width is kept
+    assert table_console().width == 60

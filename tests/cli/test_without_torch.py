@@ -142,4 +142,19 @@ def test_torch_only_commands_name_the_extra(tmp_path, demo_without_torch):
     assert line.endswith('pip install "deltar[train]"')
     line = _one_error_line(run_without_torch(tmp_path, "export", "--out", "x.onnx"))
     assert line.endswith('pip install "deltar[export]"')
+    # A file that is not there is said first: the extra would not help.
+    line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "c",
+                                             "--checkpoint", "missing.pt"))
+    assert "'missing.pt' is neither a bundled model" in line and "torch" not in line
+    line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "d",
+                                             "--official", "missing.pt"))
+    assert "not found: missing.pt" in line and "torch" not in line
+    # simulate runs without PyTorch, but its degraded readings and histograms need it.
+    line = _one_error_line(run_without_torch(tmp_path, "simulate", "procedural:1", "sim1",
+                                             "--drop-fraction", "0.2"))
+    assert "--drop-fraction" in line and line.endswith('pip install "deltar[torch]"')
+    line = _one_error_line(run_without_torch(tmp_path, "simulate", "procedural:1", "sim2",
+                                             "--cnh"))
+    assert "--cnh" in line and line.endswith('pip install "deltar[torch]"')
+    assert not (tmp_path / "sim1").exists() and not (tmp_path / "sim2").exists()
     assert EXTRA_OF_MODULE["torch"] == "torch"

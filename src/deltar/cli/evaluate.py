@@ -88,18 +88,17 @@ def evaluate(
     Metrics are computed per frame over pixels with ground truth in (min-depth,
     max-depth) metres and averaged over frames, as in the official release.
     """
-    from rich.console import Console
     from rich.markup import escape
 
     from deltar.cli.checks import output_file, output_folder
-    from deltar.cli.progress import ProgressReport
+    from deltar.cli.progress import ProgressReport, table_console
     from deltar.data.zone_sets import open_zone_set
     from deltar.evaluation.runner import create_predictor, evaluate_methods, resolve_method_names
     from deltar.evaluation.visualize import safe_filename, save_frame_panel
     from deltar.io.atomic import write_text_atomic
     from deltar.io.input_file import refuse_input_as_output
 
-    console = Console()
+    console = table_console()
     specs = [m for m in (method or "").split(",") if m.strip()]
     models = [f"model:{c}" for c in checkpoint]
     if official is not None:
@@ -190,11 +189,11 @@ def wall_test_command(
     overwrite: bool = typer.Option(False, help="Replace existing result files."),
 ) -> None:
     """Bias and jitter against a robust plane fit, per distance, network vs raw zones."""
-    from rich.console import Console
     from rich.markup import escape
     from rich.table import Table
 
     from deltar.cli.checks import output_folder
+    from deltar.cli.progress import table_console
     from deltar.evaluation.wall_test import wall_test, write_results
     from deltar.io.input_file import refuse_input_as_output
     from deltar.io.recording import Recording
@@ -226,5 +225,5 @@ def wall_test_command(
         table.add_row(f"{r.distance_m:.3f}", str(r.frames), r.reference,
                       f"{1000 * r.network_bias_m:.1f}", f"{1000 * r.network_jitter_m:.1f}",
                       f"{1000 * r.zones_bias_m:.1f}", f"{1000 * r.zones_jitter_m:.1f}")
-    Console().print(table)
+    table_console().print(table)
     typer.echo(f"wrote {', '.join(str(p) for p in paths.values())}")

@@ -37,10 +37,10 @@ def check_official_command(
     threads: int = typer.Option(2, help="torch threads."),
 ) -> None:
     """Check that deltar-official reproduces the release's outputs stored in FIXTURE."""
-    from rich.console import Console
     from rich.markup import escape
     from rich.table import Table
 
+    from deltar.cli.progress import table_console
     from deltar.io.resources import check_threads
     from deltar.models.benchmark import (
         DEPTH_TOLERANCE_M,
@@ -62,7 +62,7 @@ def check_official_command(
         table.add_row(result.name, f"{result.depth_max_error_m:.3g}",
                       f"{result.edges_max_error_m:.3g}",
                       "[green]pass[/green]" if result.passed else "[red]FAIL[/red]")
-    Console().print(table)
+    table_console().print(table)
     if not all(result.passed for result in results):
         raise typer.Exit(code=1)
 
@@ -86,9 +86,9 @@ def bench_command(
     overwrite: bool = typer.Option(False, help="Replace an existing --json file."),
 ) -> None:
     """Forward latency, peak memory, counted GFLOP and the fraction of the float32 matmul rate."""
-    from rich.console import Console
     from rich.table import Table
 
+    from deltar.cli.progress import table_console
     from deltar.io.atomic import write_text_atomic
     from deltar.io.resources import check_memory, check_threads
     from deltar.models.benchmark import benchmark_preset
@@ -109,6 +109,6 @@ def bench_command(
     table.add_column("value", justify="right")
     for key, value in result.items():
         table.add_row(key, str(value))
-    Console().print(table)
+    table_console().print(table)
     if json_out is not None:
         write_text_atomic(json_out, json.dumps(result, indent=2) + "\n", overwrite=overwrite)

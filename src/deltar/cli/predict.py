@@ -102,6 +102,10 @@ def predict_command(
         typer.echo(f"nothing to do: every output exists in {out}")
         return
     estimator = model.load()
+    if calibration is None:
+        warn("no --calib: the zones are placed by the nominal geometry (the ZJU-L5 rig's "
+             "camera scaled to the image, the sensor on its axis); give your rig's "
+             "calibration with --calib (docs/calibration.md)")
     viewer = open_viewer(rerun, rerun_save)
 
     def on_prediction(job, rgb, prediction) -> None:

@@ -20,6 +20,23 @@ INTERVAL_ENV = "DELTAR_PROGRESS_SECONDS"
 DEFAULT_INTERVAL_S = 10.0
 
 
+#: Width of printed tables when stdout is not a terminal (a log file, a pipe) and
+#: ``COLUMNS`` is not set: wide enough for every table the commands print, where rich's
+#: default of 80 columns would cut the method names and figures to ellipses.
+LOG_WIDTH = 160
+
+
+def table_console() -> Any:
+    """A ``rich.console.Console`` for printing tables: the terminal's own width on a
+    terminal; elsewhere ``COLUMNS`` when set, else :data:`LOG_WIDTH` columns."""
+    from rich.console import Console
+
+    console = Console()
+    if not console.is_terminal and "COLUMNS" not in os.environ:
+        console = Console(width=LOG_WIDTH)
+    return console
+
+
 def _interval_s() -> float:
     try:
         return max(0.0, float(os.environ.get(INTERVAL_ENV, DEFAULT_INTERVAL_S)))

@@ -133,9 +133,8 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
     Returns:
         A one-line summary for the terminal.
     """
-    from rich.progress import Progress
-
     from deltar.capture.bag_replay import replay_bag, replay_bag_to_bag
+    from deltar.cli.progress import ProgressReport
     from deltar.io.rosbag_reader import BagInput
 
     if out is not None or show:
@@ -148,15 +147,14 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
     viewer = open_viewer(rerun, rerun_save)
     kwargs = {"calibration": calibration, "tolerance_s": tolerance, "every": every,
               "limit": limit}
-    with Progress(transient=True) as progress:
-        task = progress.add_task("replaying", total=None)
+    with ProgressReport("replaying") as progress:
 
         def each(item) -> None:
             if viewer is not None:
                 viewer.log_prediction(item.image, item.prediction,
                                       calibration=item.calibration,
                                       time_s=item.pair.image_stamp_ns / 1e9)
-            progress.advance(task)
+            progress.advance()
 
         try:
             if out_bag is not None:

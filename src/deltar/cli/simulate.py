@@ -103,6 +103,7 @@ def simulate_command(
     from deltar.cli.progress import ProgressReport
     from deltar.data.simulated import simulate_set
     from deltar.data.sources import open_source
+    from deltar.extras import require_extra
     from deltar.io.input_file import refuse_input_as_output
     from deltar.io.resources import check_free_space
     from deltar.sensor.augment import SignalAugmentation
@@ -118,6 +119,12 @@ def simulate_command(
     finite(bias_mean, "--bias-mean")
     finite(bias_std, "--bias-std")
     cnh_config = _cnh_config(cnh, cnh_bins, cnh_range)
+    # Both draw or bin with PyTorch (the training pipeline's code, so a set is the same
+    # whichever install makes it): say so before any work, naming the option.
+    if drop_fraction > 0 or bias_prob > 0:
+        require_extra("torch", "--drop-fraction / --bias-prob (degraded readings)")
+    if cnh_config is not None:
+        require_extra("torch", "--cnh (histograms)")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "
                                  "to write into it", param_hint="OUT")

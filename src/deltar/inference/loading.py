@@ -166,11 +166,17 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
                    if bundled else f"onnx {text}")
         return DepthEstimator(onnx_model=onnx_model, weights=weights, precision=precision,
                               **kwargs)
-    require_torch(f"the {kind} model {text!r}")
-    kwargs.update(device=device, precision=precision)
+    # A file that is not there is said before PyTorch is asked for: installing the extra
+    # would not help.
     if kind == "bundled" and text not in BUNDLED_MODELS:
         raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
                                 f"{', '.join(BUNDLED_MODELS)}")
+    if kind == "checkpoint":
+        resolve_checkpoint(text)
+    elif kind == "official":
+        input_file(Path(text), "official weights")
+    require_torch(f"the {kind} model {text!r}")
+    kwargs.update(device=device, precision=precision)
     if kind in ("bundled", "checkpoint"):
         from deltar.models.checkpoint import load_checkpoint
 
