@@ -49,7 +49,7 @@ def demo(
 
     Writes OUT/scenes (a ZJU-L5-layout set), OUT/panels (one PNG per frame and method),
     OUT/metrics.json and OUT/sample (image.png, zones.json, calib.json: inputs for
-    ``deltar predict``); prints the paper's metrics table.
+    'deltar predict'); prints the paper's metrics table.
     """
     from deltar.cli.checks import image_size, output_folder
     from deltar.cli.evaluate import evaluate
