@@ -44,6 +44,9 @@ def test_tables_printed_to_a_log_keep_every_cell(capsys, monkeypatch):
     from deltar.cli.progress import LOG_WIDTH, table_console
 
     monkeypatch.delenv("COLUMNS", raising=False)
+    # CI runners often force colour, which rich takes for a terminal: still a log here.
+    monkeypatch.setenv("FORCE_COLOR", "1")
+    monkeypatch.setenv("TTY_COMPATIBLE", "1")
     table = Table(title="methods")
     for header in ("method", "δ1", "δ2", "δ3", "REL", "RMSE", "log10", "≤1σ", "≤2σ", "s/frame"):
         table.add_column(header)
@@ -57,3 +60,5 @@ def test_tables_printed_to_a_log_keep_every_cell(capsys, monkeypatch):
     assert "model:deltar_select_default" in out and "joint_bilateral+far" in out
     monkeypatch.setenv("COLUMNS", "60")  # the user's own width is kept
     assert table_console().width == 60
+    monkeypatch.setenv("COLUMNS", "")  # not a width: the log's
+    assert table_console().width == LOG_WIDTH

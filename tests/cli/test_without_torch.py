@@ -144,11 +144,15 @@ def test_torch_only_commands_name_the_extra(tmp_path, demo_without_torch):
     assert line.endswith('pip install "deltar[export]"')
     # A file that is not there is said first: the extra would not help.
     line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "c",
-                                             "--checkpoint", "missing.pt"))
+                                             "--checkpoint", "missing.pt", "--threads", "1"))
     assert "'missing.pt' is neither a bundled model" in line and "torch" not in line
     line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "d",
                                              "--official", "missing.pt"))
     assert "not found: missing.pt" in line and "torch" not in line
+    (tmp_path / "weights").mkdir()
+    line = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "e",
+                                             "--checkpoint", "weights"))
+    assert "folder" in line and "torch" not in line
     # simulate runs without PyTorch, but its degraded readings and histograms need it.
     line = _one_error_line(run_without_torch(tmp_path, "simulate", "procedural:1", "sim1",
                                              "--drop-fraction", "0.2"))

@@ -8,7 +8,6 @@ import typer
 
 from deltar.cli.frame_options import (
     AllowNoZonesOption,
-    CalibOption,
     load_calibration,
     parse_outputs,
 )
@@ -33,7 +32,9 @@ def predict_command(
                                        "mode, paired with --zones-dir by file stem)."),
     zones_dir: Path | None = typer.Option(None, "--zones-dir", help="Folder of zone frames."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
-    calib: Path | None = CalibOption,
+    calib: Path | None = typer.Option(
+        None, "--calib", help="Rig calibration JSON (deltar calibrate); without it the zones "
+        "are placed by a nominal geometry (the ZJU-L5 rig's camera scaled to the image)."),
     model: ModelOptions = MODEL_OPTIONS,
     outputs: str = typer.Option(_DEFAULT_OUTPUTS, help="Comma list of png16 (uint16 mm), "
                                 "npy (float32 m), color, ply (point cloud), panel."),

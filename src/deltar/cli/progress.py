@@ -27,14 +27,19 @@ LOG_WIDTH = 160
 
 
 def table_console() -> Any:
-    """A ``rich.console.Console`` for printing tables: the terminal's own width on a
-    terminal; elsewhere ``COLUMNS`` when set, else :data:`LOG_WIDTH` columns."""
+    """A ``rich.console.Console`` for printing tables: the terminal's own width when
+    stdout is a terminal; elsewhere ``COLUMNS`` when it is a number, else
+    :data:`LOG_WIDTH` columns.
+
+    Whether stdout is a terminal is asked of stdout itself, as for the progress lines:
+    rich counts ``FORCE_COLOR`` (set by many CI runners) as a terminal and would then
+    fall back to 80 columns in a log.
+    """
     from rich.console import Console
 
-    console = Console()
-    if not console.is_terminal and "COLUMNS" not in os.environ:
-        console = Console(width=LOG_WIDTH)
-    return console
+    if sys.stdout.isatty() or os.environ.get("COLUMNS", "").strip().isdigit():
+        return Console()
+    return Console(width=LOG_WIDTH)
 
 
 def _interval_s() -> float:

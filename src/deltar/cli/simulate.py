@@ -124,7 +124,7 @@ def simulate_command(
     if drop_fraction > 0 or bias_prob > 0:
         require_extra("torch", "--drop-fraction / --bias-prob (degraded readings)")
     if cnh_config is not None:
-        require_extra("torch", "--cnh (histograms)")
+        require_extra("torch", "--cnh / --cnh-bins / --cnh-range (histograms)")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise typer.BadParameter(f"output {out} exists and is not an empty folder; refusing "
                                  "to write into it", param_hint="OUT")

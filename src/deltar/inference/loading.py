@@ -146,6 +146,19 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
         # Without PyTorch a bundled model runs from its ONNX export (same depth).
         kind, text = "onnx", _bundled_onnx_path(text, device, precision, flip_average)
     check_backend_options(precision, flip_average, kind == "onnx")
+    if kind != "onnx":
+        # A file that is not there is said before PyTorch is asked for: installing the
+        # extra would not help.
+        if kind == "bundled" and text not in BUNDLED_MODELS:
+            raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
+                                    f"{', '.join(BUNDLED_MODELS)}")
+        if kind == "checkpoint":
+            path = resolve_checkpoint(text)
+            if text not in BUNDLED_MODELS:
+                input_file(path, "checkpoint")
+        elif kind == "official":
+            input_file(Path(text), "official weights")
+        require_torch(f"the {kind} model {text!r}")
     if input_size is not None:
         input_size = check_input_size(input_size, "input_size")
     if threads is not None:
@@ -166,16 +179,6 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
                    if bundled else f"onnx {text}")
         return DepthEstimator(onnx_model=onnx_model, weights=weights, precision=precision,
                               **kwargs)
-    # A file that is not there is said before PyTorch is asked for: installing the extra
-    # would not help.
-    if kind == "bundled" and text not in BUNDLED_MODELS:
-        raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
-                                f"{', '.join(BUNDLED_MODELS)}")
-    if kind == "checkpoint":
-        resolve_checkpoint(text)
-    elif kind == "official":
-        input_file(Path(text), "official weights")
-    require_torch(f"the {kind} model {text!r}")
     kwargs.update(device=device, precision=precision)
     if kind in ("bundled", "checkpoint"):
         from deltar.models.checkpoint import load_checkpoint
