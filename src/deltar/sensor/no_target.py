@@ -24,6 +24,7 @@ import numbers
 import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
+from deltar.sensor.zone_values import zone_neighbours
 
 __all__ = ["check_min_neighbour_m", "frame_no_target", "infer_no_target"]
 
@@ -56,12 +57,8 @@ def infer_no_target(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
         raise ValueError("min_neighbour_m must be a finite number of metres >= 0, got None")
     if not valid.any():
         return np.zeros_like(valid)
-    n = valid.shape[0]
     # Invalid zones and the border read -inf, so they never count as a far neighbour.
-    padded = np.pad(np.where(valid, mean, -np.inf), 1, constant_values=-np.inf)
-    neighbours = np.stack([padded[1 + dy:1 + dy + n, 1 + dx:1 + dx + n]
-                           for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
-    farthest = neighbours.max(axis=0)
+    farthest = zone_neighbours(np.where(valid, mean, -np.inf), fill=-np.inf).max(axis=0)
     return ~valid & ((farthest >= min_neighbour_m) | np.isneginf(farthest))
 
 

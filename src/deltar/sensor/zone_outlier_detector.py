@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
+from deltar.sensor.zone_values import NEIGHBOURS_3x3, zone_neighbours
 
 __all__ = ["ZONE_FEATURE_NAMES", "OutlierDetector", "fit_outlier_detector",
            "zone_outlier_features"]
@@ -56,20 +57,8 @@ ZONE_FEATURE_NAMES = (
 BIAS_LOG_THRESHOLD = 0.05
 #: Margin, in log distance, below which a neighbour does not count as nearer.
 _NEARER_MARGIN = 0.03
-_NEIGHBOURS_3x3 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
-_NEIGHBOURS_5x5_RING_FIRST = _NEIGHBOURS_3x3 + tuple(
+_NEIGHBOURS_5x5_RING_FIRST = NEIGHBOURS_3x3 + tuple(
     (dy, dx) for dy in range(-2, 3) for dx in range(-2, 3) if max(abs(dy), abs(dx)) == 2)
-
-
-def _neighbour_stack(values: np.ndarray, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
-    """(len(offsets), n, n): entry [k, y, x] is ``values[y + dy_k, x + dx_k]``, NaN off
-    the grid (offsets within 2)."""
-    n = values.shape[0]
-    padded = np.full((n + 4, n + 4), np.nan)
-    padded[2:-2, 2:-2] = values
-    windows = np.lib.stride_tricks.sliding_window_view(padded, (5, 5))  # (n, n, 5, 5)
-    rows, cols = zip(*((2 + dy, 2 + dx) for dy, dx in offsets), strict=True)
-    return np.moveaxis(windows[:, :, list(rows), list(cols)], -1, 0)
 
 
 def _median_over_known(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -114,14 +103,14 @@ def zone_outlier_features(mean_m: np.ndarray, sigma_m: np.ndarray, valid: np.nda
     safe_mean = np.where(valid, np.maximum(mean, 1e-6), 1.0)
     log_mean = np.where(valid, np.log(safe_mean), np.nan)
     # One stack of the 24 zones around each (5 x 5); its first eight are the 3 x 3 ring.
-    wide = _neighbour_stack(log_mean, _NEIGHBOURS_5x5_RING_FIRST)
+    wide = zone_neighbours(log_mean, _NEIGHBOURS_5x5_RING_FIRST)
     difference = log_mean[None] - wide[:8]  # NaN where a neighbour or the zone is missing
     known = ~np.isnan(difference)
     valid_neighbours = known.sum(axis=0)
     some = valid_neighbours > 0
-    neighbour_metres = _neighbour_stack(np.where(valid, mean, np.nan), _NEIGHBOURS_3x3)
+    neighbour_metres = zone_neighbours(np.where(valid, mean, np.nan), NEIGHBOURS_3x3)
     own_sigma = np.where(valid, sigma, 0.0)
-    neighbour_sigma = _neighbour_stack(np.where(valid, sigma, np.nan), _NEIGHBOURS_3x3)
+    neighbour_sigma = zone_neighbours(np.where(valid, sigma, np.nan), NEIGHBOURS_3x3)
     # The 1 cm floor keeps two sharp readings of one wall from reading as far apart.
     in_sigmas = (safe_mean[None] - neighbour_metres) / np.sqrt(
         own_sigma[None] ** 2 + neighbour_sigma ** 2 + 1e-4)

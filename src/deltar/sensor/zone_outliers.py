@@ -32,6 +32,7 @@ import numpy as np
 
 from deltar.sensor.zone_frame import ZoneFrame
 from deltar.sensor.zone_outlier_detector import OutlierDetector
+from deltar.sensor.zone_values import zone_neighbours
 
 __all__ = ["OutlierRule", "find_outlier_zones", "outlier_rule_from_dict", "reject_outlier_zones",
            "resolve_outlier_rule"]
@@ -148,11 +149,8 @@ def find_outlier_zones(zone_mean_m: np.ndarray, zone_valid: np.ndarray, toleranc
     if valid.ndim != 2 or valid.shape[0] != valid.shape[1] or mean.shape != valid.shape:
         raise ValueError(f"zone_mean_m and zone_valid must both be (n, n), got "
                          f"{mean.shape} and {valid.shape}")
-    n = valid.shape[0]
     log_mean = np.where(valid, np.log(np.maximum(mean, 1e-6)), np.nan)
-    padded = np.pad(log_mean, 1, constant_values=np.nan)
-    neighbours = np.stack([padded[1 + dy:1 + dy + n, 1 + dx:1 + dx + n]
-                           for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+    neighbours = zone_neighbours(log_mean)
     known = ~np.isnan(neighbours)
     # Differences to invalid neighbours are left out of both extremes.
     difference = log_mean[None] - neighbours

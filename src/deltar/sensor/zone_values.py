@@ -19,6 +19,9 @@ MAX_TARGETS_PER_ZONE = 4
 TARGET_ORDERS: tuple[str, ...] = ("strongest", "closest")
 
 SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
+#: The eight neighbours of a zone, (dy, dx) row by row.
+NEIGHBOURS_3x3: tuple[tuple[int, int], ...] = tuple(
+    (dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
 #: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
 #: A valid zone must read ``0 < d <= range``; unknown models have no upper limit.
@@ -111,3 +114,25 @@ def grid_from_count(count: int, name: str) -> int:
     if n * n != count or n not in SUPPORTED_GRIDS:
         raise ValueError(f"{name} has {count} zones; expected 16 (4x4) or 64 (8x8)")
     return n
+
+
+def zone_neighbours(values: np.ndarray, offsets: tuple[tuple[int, int], ...] = NEIGHBOURS_3x3,
+                    fill: float = np.nan) -> np.ndarray:
+    """Each zone's neighbours' values.
+
+    Args:
+        values: (n, n) one value per zone.
+        offsets: (dy, dx) of the neighbours, each within 2 zones.
+        fill: the value of a neighbour off the grid.
+
+    Returns:
+        (len(offsets), n, n), the dtype of ``values`` and ``fill`` together (float32
+        readings stay float32): entry [k, y, x] is ``values[y + dy_k, x + dx_k]``,
+        ``fill`` off the grid.
+    """
+    n = values.shape[0]
+    padded = np.full((n + 4, n + 4), fill, dtype=np.result_type(values, fill))
+    padded[2:-2, 2:-2] = values
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (5, 5))  # (n, n, 5, 5)
+    rows, cols = zip(*((2 + dy, 2 + dx) for dy, dx in offsets), strict=True)
+    return np.moveaxis(windows[:, :, list(rows), list(cols)], -1, 0)
