@@ -146,16 +146,17 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
         # Without PyTorch a bundled model runs from its ONNX export (same depth).
         kind, text = "onnx", _bundled_onnx_path(text, device, precision, flip_average)
     check_backend_options(precision, flip_average, kind == "onnx")
+    checkpoint = None
     if kind != "onnx":
         # A file that is not there is said before PyTorch is asked for: installing the
         # extra would not help.
         if kind == "bundled" and text not in BUNDLED_MODELS:
             raise FileNotFoundError(f"no bundled model {text!r}; bundled: "
                                     f"{', '.join(BUNDLED_MODELS)}")
-        if kind == "checkpoint":
-            path = resolve_checkpoint(text)
+        if kind in ("bundled", "checkpoint"):
+            checkpoint = resolve_checkpoint(text)
             if text not in BUNDLED_MODELS:
-                input_file(path, "checkpoint")
+                input_file(checkpoint, "checkpoint")
         elif kind == "official":
             input_file(Path(text), "official weights")
         require_torch(f"the {kind} model {text!r}")
@@ -180,10 +181,10 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
         return DepthEstimator(onnx_model=onnx_model, weights=weights, precision=precision,
                               **kwargs)
     kwargs.update(device=device, precision=precision)
-    if kind in ("bundled", "checkpoint"):
+    if checkpoint is not None:
         from deltar.models.checkpoint import load_checkpoint
 
-        model, preset, _ = load_checkpoint(resolve_checkpoint(text))
+        model, preset, _ = load_checkpoint(checkpoint)
         return DepthEstimator(model, weights=f"{preset} from {text}", **kwargs)
     if kind == "official":
         return DepthEstimator(_official_model(Path(text)), weights=f"deltar-official from {text}",
@@ -214,15 +215,14 @@ def _bundled_onnx_path(name: str, device: str, precision: str, flip_average: boo
 
 
 def _official_model(path: Path) -> DeltarNet:
-    """The released architecture with the officially released weights (e.g. ``nyu.pt``).
+    """The released architecture with the officially released weights (e.g. ``nyu.pt``,
+    a file :func:`load_estimator` has checked exists).
 
     Raises:
-        FileNotFoundError: no such file.
         ValueError: the file's weights do not fit the released architecture.
     """
     from deltar.models import create_model, load_official_weights
 
-    input_file(path, "official weights")
     model = create_model("deltar-official")
     try:
         report = load_official_weights(model, path)
