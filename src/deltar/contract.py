@@ -29,7 +29,7 @@ NETWORK_CONFIG_SECTIONS = ("input", "encoder", "decoder", "head", "output")
 #: What :func:`network_contract` returns: the input section's keys, the head's name and
 #: the output section's keys.
 _CONTRACT_INPUT_KEYS = ("design_size", "image_mean", "image_std", "num_hypotheses",
-                        "hypothesis_sampling", "zone_scale_norm")
+                        "hypothesis_sampling", "histogram_hypotheses", "zone_scale_norm")
 _CONTRACT_OUTPUT_KEYS = ("min_depth", "max_depth", "no_target_depth",
                          "uncertainty_calibration", "confidence_blend",
                          "no_target_min_neighbour_m", "zone_outlier_rule")
@@ -53,7 +53,8 @@ def network_contract(config: Mapping[str, Any]) -> dict[str, Any]:
 
     Returns:
         ``design_size`` (H, W pixels), ``image_mean`` / ``image_std``,
-        ``num_hypotheses``, ``hypothesis_sampling``, ``zone_scale_norm``, ``head`` (its
+        ``num_hypotheses``, ``hypothesis_sampling``, ``histogram_hypotheses``,
+        ``zone_scale_norm``, ``head`` (its
         name), ``min_depth`` / ``max_depth`` / ``no_target_depth`` (metres) and
         ``uncertainty_calibration`` / ``confidence_blend`` (dicts or None) and
         ``no_target_min_neighbour_m`` (metres or None) and ``zone_outlier_rule`` (dict

@@ -22,7 +22,8 @@ def untrained_prior_checkpoint(path: Path) -> Path:
 
 
 def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_path):
-    """A THDR3K sample carries CNH histograms: the model's hypotheses come from them."""
+    """A THDR3K sample carries CNH histograms: a model trained on histograms draws its
+    hypotheses from them."""
     from deltar.data.thdr3k import read_thdr3k_sample
     from deltar.evaluation.model_methods import EstimatorPredictor
     from deltar.inference.estimator import DepthEstimator
@@ -32,7 +33,9 @@ def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_pa
 
     write_sample(tmp_path / "s", seed=3, height=64, width=96)
     sample = read_thdr3k_sample(tmp_path / "s")
-    estimator = DepthEstimator(ZonePainterNet(), weights="painter", input_size=(64, 96))
+    net = ZonePainterNet()
+    net.contract_values["histogram_hypotheses"] = True
+    estimator = DepthEstimator(net, weights="painter", input_size=(64, 96))
     depth = EstimatorPredictor(estimator)(sample).depth_m
     expected = sample_hypotheses_from_histogram(
         torch.from_numpy(sample.hist_edges_m), torch.from_numpy(sample.hist_counts),

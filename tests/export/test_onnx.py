@@ -385,3 +385,28 @@ def test_several_sizes_share_one_weights_file_and_run_each_image_at_its_rule_siz
     written[2].unlink()
     with pytest.raises(ValueError, match=r"96x64 export .*net\.96x64\.onnx.* missing"):
         OnnxDepthModel(written[0])
+
+
+def test_the_hypotheses_source_travels_with_checkpoint_and_onnx_file(tmp_path):
+    """A network trained on histogram hypotheses says so in its checkpoint and its ONNX
+    file, and both backends then draw a CNH frame's hypotheses from its histograms."""
+    from deltar.models.checkpoint import save_checkpoint
+    from deltar.sensor.cnh import zone_frame_from_cnh
+    from deltar.sensor.hypotheses import zone_hypotheses_from_histogram
+
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", design_size=(64, 96), histogram_hypotheses=True).eval()
+    save_checkpoint(tmp_path / "hist.pt", model, "deltar-lite")
+    export_onnx(model, tmp_path / "hist.onnx", 64, 96)
+    rng = np.random.default_rng(0)
+    values = rng.uniform(0, 50, size=(64, 18))
+    values[np.arange(64), rng.integers(0, 18, 64)] += 2000.0
+    frame = zone_frame_from_cnh(np.full(64, 1500.0), values)
+    _, _, valid = frame.flat()
+    expected = zone_hypotheses_from_histogram(frame.hist_edges_m,
+                                              frame.hist_counts.reshape(64, -1), valid, 16)
+    for path, kind in ((tmp_path / "hist.pt", "checkpoint"), (tmp_path / "hist.onnx", "onnx")):
+        estimator = load_estimator(path, kind=kind, threads=1)
+        assert estimator.histogram_hypotheses
+        np.testing.assert_array_equal(estimator.hypotheses_for(frame), expected)
+

@@ -74,13 +74,15 @@ def test_bfloat16_precision_runs(lite_model, rng):
     lite_model.float()  # the session fixture is shared
 
 
-def test_histogram_frames_are_sampled_from_the_histogram(rng):
+def test_histogram_frames_are_sampled_from_the_histogram_for_weights_trained_so(rng):
     edges = np.linspace(0.0, 4.0, 101, dtype=np.float32)
     counts = np.zeros((8, 8, 100), np.float32)
     counts[..., 50] = 10.0  # every zone: all mass in [2.00, 2.04)
     frame = ZoneFrame(np.full((8, 8), 1.0), np.full((8, 8), 0.5), np.ones((8, 8), bool),
                       hist_edges_m=edges, hist_counts=counts)
-    hyp = DepthEstimator(ZonePainterNet(), weights="x").hypotheses_for(frame)
+    net = ZonePainterNet()
+    net.contract_values["histogram_hypotheses"] = True
+    hyp = DepthEstimator(net, weights="x").hypotheses_for(frame)
     assert hyp.shape == (64, 16)
     # The Gaussian (mean 1, sigma 0.5) would spread far; the histogram keeps them in the bin.
     assert float(hyp.min()) >= 2.0 and float(hyp.max()) <= 2.04 + 1e-6

@@ -15,6 +15,7 @@ from deltar.sensor.cnh import (
     simulate_cnh,
     zone_frame_from_cnh,
 )
+from deltar.sensor.hypotheses import zone_hypotheses
 from deltar.sensor.sampling import icdf_probabilities, sample_hypotheses_from_histogram
 from deltar.sensor.zone_frame import Orientation
 from tests.inference.fakes import ZonePainterNet
@@ -119,8 +120,9 @@ def test_sampler_reads_cnh_shaped_histograms_end_to_end():
     cfg = CNHConfig()
     values = _peaked_cnh(peaks, rng=rng)
     frame = zone_frame_from_cnh(np.full(64, 1500.0), values, config=cfg)
-    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
-    hypotheses = estimator.hypotheses_for(frame)  # (64, 16)
+    net = ZonePainterNet()
+    net.contract_values["histogram_hypotheses"] = True  # weights trained on histograms
+    hypotheses = DepthEstimator(net, weights="painter").hypotheses_for(frame)  # (64, 16)
     assert hypotheses.shape == (64, 16)
     # Independent reference: invert the piecewise-uniform CDF of each clipped histogram.
     edges = cfg.edges_m()
@@ -139,6 +141,28 @@ def test_sampler_reads_cnh_shaped_histograms_end_to_end():
                                               torch.from_numpy(frame.hist_counts.reshape(64, 18)),
                                               torch.from_numpy(frame.valid.reshape(-1)), 16)
     np.testing.assert_allclose(direct.numpy(), hypotheses, atol=1e-6)
+
+
+def test_estimator_reads_cnh_frames_by_their_mean_and_sigma_unless_trained_on_histograms():
+    """Weights that do not say they were trained on histograms (the bundled ones, the
+    release) get the Gaussian hypotheses of the frame's reported mean and sigma; the
+    argument overrides what the weights say either way."""
+    rng = np.random.default_rng(5)
+    frame = zone_frame_from_cnh(np.full(64, 1500.0), _peaked_cnh(rng.integers(0, 17, 64),
+                                                                 rng=rng))
+    mean, sigma, valid = frame.flat()
+    gaussian = zone_hypotheses(mean, sigma, valid, 16, "icdf")
+    net = ZonePainterNet()
+    np.testing.assert_array_equal(DepthEstimator(net, weights="p").hypotheses_for(frame),
+                                  gaussian)
+    from_histogram = DepthEstimator(net, weights="p",
+                                    histogram_hypotheses=True).hypotheses_for(frame)
+    assert np.abs(from_histogram - gaussian).max() > 0.05
+    net.contract_values["histogram_hypotheses"] = True
+    np.testing.assert_array_equal(DepthEstimator(net, weights="p").hypotheses_for(frame),
+                                  from_histogram)
+    np.testing.assert_array_equal(DepthEstimator(net, weights="p", histogram_hypotheses=False)
+                                  .hypotheses_for(frame), gaussian)
 
 
 def test_simulate_cnh_puts_a_flat_wall_in_its_bin():

@@ -164,7 +164,9 @@ def test_nyu_release_layout_source_with_border_crop(tmp_path, rng):
 
 
 def test_thdr3k_source_trains_from_its_histograms_and_flips_them(tmp_path):
-    from deltar.sensor.sampling import sample_hypotheses_from_histogram
+    """With the network's ``histogram_hypotheses`` the items' hypotheses are the
+    histograms' quantiles (mirrored with the image); without it, the Gaussian's."""
+    from deltar.sensor.sampling import sample_hypotheses, sample_hypotheses_from_histogram
     from tests.data.thdr3k_set import write_set
 
     list_path = write_set(tmp_path / "thdr", train=3, test=1, height=64, width=96)
@@ -173,7 +175,8 @@ def test_thdr3k_source_trains_from_its_histograms_and_flips_them(tmp_path):
         SourceConfig(kind="thdr3k", path=str(list_path), split="test", role="val")],
         num_hypotheses=8)
     config.image_augmentation.flip_prob = 1.0
-    train, val = build_datasets(config, seed=0)
+    gaussian = build_datasets(config, seed=0)[1][0]["hypotheses"]
+    train, val = build_datasets(config, seed=0, histogram_hypotheses=True)
     assert (len(train), len(val)) == (3, 1)
     item, flipped = val[0], train[0]
     sample = train.datasets[0].samples[0]
@@ -184,6 +187,13 @@ def test_thdr3k_source_trains_from_its_histograms_and_flips_them(tmp_path):
     torch.testing.assert_close(flipped["hypotheses"], expected[order])
     assert item["hypotheses"].shape == (64, 8) and item["depth"].shape == (1, 64, 96)
     assert not bool(item["zone_valid"].all())  # the no-target zone stays invalid
+    test_sample = val.datasets[0].samples[0]
+    mean_sigma = torch.from_numpy(test_sample.zone_mean_sigma).float()
+    valid = torch.from_numpy(test_sample.zone_valid)
+    torch.testing.assert_close(gaussian, sample_hypotheses(
+        torch.where(valid, mean_sigma[:, 0], 0.0), torch.where(valid, mean_sigma[:, 1], 0.0),
+        valid, 8, config.sampling))
+    assert not torch.allclose(gaussian, item["hypotheses"], atol=1e-3)
 
 
 def test_thdr3k_sources_refuse_resize():

@@ -20,7 +20,7 @@ import torch
 from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
 from deltar.models import create_model
 from deltar.training.module import export_model
-from deltar.training.run import build_system, read_history, train
+from deltar.training.run import build_data_module, build_system, read_history, train
 
 HERE = Path(__file__).resolve().parent
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
@@ -65,6 +65,15 @@ def test_finetune_on_zju_layout_starts_from_given_weights(tmp_path, rng, tiny_co
     history = read_history(run / "history" / "rank0.jsonl")
     assert sorted(history) == [1, 2]  # 4 training frames (last 2 held out), batch 2
     assert sorted(i for r in history.values() for i in r["indices"]) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("from_histograms", [False, True])
+def test_the_data_draws_hypotheses_as_the_network_was_configured(tiny_config,
+                                                                  from_histograms):
+    config = tiny_config(f"model.overrides.histogram_hypotheses={str(from_histograms).lower()}")
+    system = build_system(config)
+    assert system.model.network_config.inputs.histogram_hypotheses is from_histograms
+    assert build_data_module(config, system).histogram_hypotheses is from_histograms
 
 
 def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_config):

@@ -35,6 +35,8 @@ def test_default_is_a_small_float16_select_model_with_its_input_contract():
     assert config["decoder"]["name"] == "descriptors"
     assert inputs["image_mean"] == (0.5, 0.5, 0.5) and inputs["image_std"] == (0.5, 0.5, 0.5)
     assert inputs["zone_scale_norm"] and inputs["design_size"] == (256, 320)
+    # Trained on (mean, sigma) hypotheses: frames with histograms are read the same way.
+    assert not model.network_config.inputs.histogram_hypotheses
 
 
 def test_default_carries_its_fitted_blend_and_sigma_calibration():

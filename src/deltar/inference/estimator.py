@@ -44,7 +44,7 @@ from deltar.inference.preprocess import (
 )
 from deltar.inference.uncertainty import UncertaintyCalibration, resolve_uncertainty
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
-from deltar.sensor.hypotheses import zone_hypotheses, zone_hypotheses_from_histogram
+from deltar.sensor.hypotheses import frame_hypotheses
 from deltar.sensor.no_target import check_min_neighbour_m, frame_no_target
 from deltar.sensor.placement import nominal_zone_rects
 from deltar.sensor.targets import stacked_target_inputs
@@ -92,9 +92,12 @@ class DepthEstimator:
         intrinsics: nominal camera intrinsics used without a calibration (scaled to
             each image); the ZJU-L5 RealSense camera by default.
         fov_deg: sensor field of view for the nominal zone placement, degrees.
-        sampling: hypothesis sampling for frames without a histogram ("icdf" or
+        sampling: how hypotheses are drawn from N(mean, sigma) ("icdf" or
             "uniform"); None: the one the weights were trained with
             (``model.network_config.inputs.hypothesis_sampling``, or the ONNX file's metadata).
+        histogram_hypotheses: draw the hypotheses of frames with per-zone histograms
+            (CNH) from them; None: as the weights were trained (their input contract's
+            ``histogram_hypotheses``, False for weights that do not say).
         weights: free text saying where the weights come from (shown by the CLI).
         fold_batch_norms: apply every inference optimisation in place
             (:func:`~deltar.models.optimize.prepare_for_inference`): fold all batch
@@ -137,6 +140,7 @@ class DepthEstimator:
                  precision: str = "float32", input_size: tuple[int, int] | None = None,
                  intrinsics: CameraIntrinsics = ZJU_L5_INTRINSICS,
                  fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, sampling: str | None = None,
+                 histogram_hypotheses: bool | None = None,
                  weights: str = "unknown", fold_batch_norms: bool = True,
                  flip_average: bool = False, max_range_m: float | None = None,
                  blend: ConfidenceBlend | str | None = "auto",
@@ -191,6 +195,9 @@ class DepthEstimator:
         # The input contract travels with the weights: hypotheses and normalisation.
         self.num_hypotheses = int(contract["num_hypotheses"])
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
+        self.histogram_hypotheses = (bool(contract.get("histogram_hypotheses", False))
+                                     if histogram_hypotheses is None
+                                     else bool(histogram_hypotheses))
         self.image_mean = tuple(contract.get("image_mean", IMAGENET_MEAN))
         self.image_std = tuple(contract.get("image_std", IMAGENET_STD))
         self.blend = resolve_blend(blend, contract)
@@ -242,17 +249,12 @@ class DepthEstimator:
         return self.intrinsics.scaled(*image_size)
 
     def hypotheses_for(self, frame: ZoneFrame) -> np.ndarray:
-        """(Z, K) float32 depth hypotheses in metres for one frame (zeros where invalid).
-
-        Frames with a histogram are sampled from it; others from N(mean, sigma)
-        (:mod:`deltar.sensor.hypotheses`, numpy for both backends).
-        """
-        mean, sigma, valid = frame.flat()
-        if frame.hist_counts is not None:
-            counts = frame.hist_counts.reshape(frame.zone_count, -1)
-            return zone_hypotheses_from_histogram(frame.hist_edges_m, counts, valid,
-                                                  self.num_hypotheses)
-        return zone_hypotheses(mean, sigma, valid, self.num_hypotheses, self.sampling)
+        """(Z, K) float32 depth hypotheses in metres for one frame (zeros where invalid):
+        from its histograms when it has them and the weights were trained so
+        (``histogram_hypotheses``), else from N(mean, sigma)
+        (:func:`~deltar.sensor.hypotheses.frame_hypotheses`, numpy for both backends)."""
+        return frame_hypotheses(frame, self.num_hypotheses, self.sampling,
+                                self.histogram_hypotheses)
 
     def prepare(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                 calibration: RigCalibration | None = None,

@@ -58,6 +58,11 @@ class InputConfig:
         num_hypotheses: K depth hypotheses per zone the network is designed for.
         hypothesis_sampling: how the data pipeline draws the hypotheses ("icdf" or
             "uniform"); read by the estimator, does not change the network.
+        histogram_hypotheses: the network was trained on hypotheses drawn from the
+            zones' histograms where a reading carries them (CNH, THDR3K sets): the data
+            pipeline and the estimator then draw them so; False (default): always from
+            each zone's (mean, sigma), histograms or not. A network trained on one kind
+            reads the other worse (benchmarks/RESULTS.md); does not change the network.
         zone_scale_norm: take the metric scale from the sensor: the zone readings are
             divided by each frame's median valid zone mean ``s`` before the network sees
             them and depth, uncertainty and bin edges multiplied by ``s`` afterwards
@@ -69,6 +74,7 @@ class InputConfig:
     image_std: tuple[float, float, float] = IMAGENET_STD
     num_hypotheses: int = 16
     hypothesis_sampling: str = "icdf"
+    histogram_hypotheses: bool = False
     zone_scale_norm: bool = False
 
     def __post_init__(self) -> None:
@@ -76,6 +82,7 @@ class InputConfig:
         _set(self, "image_mean", tuple(float(v) for v in self.image_mean))
         _set(self, "image_std", tuple(float(v) for v in self.image_std))
         _set(self, "zone_scale_norm", bool(self.zone_scale_norm))
+        _set(self, "histogram_hypotheses", bool(self.histogram_hypotheses))
         if (len(self.design_size) != 2 or self.design_size[0] % SIZE_DIVISOR
                 or self.design_size[1] % SIZE_DIVISOR):
             raise ValueError(f"design_size must be (H, W) divisible by {SIZE_DIVISOR}: "
@@ -307,7 +314,7 @@ assert tuple(PART_CLASSES) == NETWORK_CONFIG_SECTIONS
 FLAT_OPTIONS: dict[str, tuple[str, str]] = {
     **{name: ("input", name) for name in ("design_size", "image_mean", "image_std",
                                           "num_hypotheses", "hypothesis_sampling",
-                                          "zone_scale_norm")},
+                                          "histogram_hypotheses", "zone_scale_norm")},
     **{name: ("encoder", name) for name in ("backbone", "stem_activation", "image_input")},
     "decoder": ("decoder", "name"),
     "decoder_channels": ("decoder", "channels"),

@@ -9,17 +9,21 @@ them within float32 rounding (tested). Invalid zones get all-zero hypotheses.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.special import erfinv
 
 from deltar.contract import HYPOTHESIS_SAMPLINGS
 
+if TYPE_CHECKING:
+    from deltar.sensor.zone_frame import ZoneFrame
+
 #: Lowest and highest probability used for inverse-CDF sampling (the release's values).
 ICDF_PROBABILITY_MARGIN = 1e-3
 
-__all__ = ["ICDF_PROBABILITY_MARGIN", "icdf_probabilities", "zone_hypotheses",
-           "zone_hypotheses_from_histogram"]
+__all__ = ["ICDF_PROBABILITY_MARGIN", "frame_hypotheses", "icdf_probabilities",
+           "zone_hypotheses", "zone_hypotheses_from_histogram"]
 
 
 def icdf_probabilities(num_samples: int) -> np.ndarray:
@@ -133,6 +137,29 @@ def zone_hypotheses_from_histogram(edges_m: np.ndarray, counts: np.ndarray,
     samples = edges[index] + np.clip(fraction, 0.0, 1.0) * (edges[index + 1] - edges[index])
     samples = np.where(usable[..., None], samples, 0.0)
     return samples.astype(np.float32)
+
+
+def frame_hypotheses(frame: ZoneFrame, num_samples: int = 16, method: str = "icdf",
+                     from_histogram: bool = False) -> np.ndarray:
+    """One frame's hypotheses as a network's input contract asks for them.
+
+    Args:
+        frame: the zone frame.
+        num_samples: K, hypotheses per zone.
+        method: sampling of N(mean, sigma) (:func:`zone_hypotheses`).
+        from_histogram: draw them from the frame's per-zone histograms when it carries
+            them (:func:`zone_hypotheses_from_histogram`; the network's
+            ``histogram_hypotheses``); otherwise, and for frames without histograms,
+            from each zone's mean and sigma.
+
+    Returns:
+        (Z, K) float32 metres (Z = grid * grid, row-major); zeros for invalid zones.
+    """
+    mean, sigma, valid = frame.flat()
+    if from_histogram and frame.hist_counts is not None:
+        counts = frame.hist_counts.reshape(frame.zone_count, -1)
+        return zone_hypotheses_from_histogram(frame.hist_edges_m, counts, valid, num_samples)
+    return zone_hypotheses(mean, sigma, valid, num_samples, method)
 
 
 def _check_num_samples(num_samples: int) -> None:

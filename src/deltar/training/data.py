@@ -153,7 +153,7 @@ def _native_size(source: SourceConfig) -> tuple[int, int]:
 def build_datasets(config: DataConfig, seed: int = 0,
                    image_mean: Sequence[float] = IMAGENET_MEAN,
                    image_std: Sequence[float] = IMAGENET_STD,
-                   ) -> tuple[IndexedConcat, IndexedConcat]:
+                   histogram_hypotheses: bool = False) -> tuple[IndexedConcat, IndexedConcat]:
     """Training and validation datasets described by a data config.
 
     Each ``train_val`` source is split into training frames and one contiguous held-out
@@ -166,6 +166,8 @@ def build_datasets(config: DataConfig, seed: int = 0,
         seed: base seed of all item randomness.
         image_mean, image_std: per-channel image normalisation, the network's input
             contract (``model.network_config.inputs.image_mean`` / ``image_std``).
+        histogram_hypotheses: draw the hypotheses of zone sets that carry histograms
+            from them (the contract's ``inputs.histogram_hypotheses``).
 
     Returns:
         ``(train, val)`` datasets of item dicts (see the module docstring).
@@ -231,7 +233,8 @@ def build_datasets(config: DataConfig, seed: int = 0,
                 parts.append(ZJUL5TrainingDataset(subset, config.num_hypotheses,
                                                   config.sampling, flip, source_seed,
                                                   image_mean, image_std,
-                                                  with_targets=config.max_targets > 1))
+                                                  with_targets=config.max_targets > 1,
+                                                  from_histograms=histogram_hypotheses))
             else:
                 parts.append(simulated(subset, train, source_seed))
     return IndexedConcat(train_parts), IndexedConcat(val_parts)
@@ -348,22 +351,27 @@ class DeltarDataModule(L.LightningDataModule):
         seed: base seed of data order and item randomness.
         image_mean, image_std: per-channel image normalisation of the network's input
             contract (``model.network_config.inputs.image_mean`` / ``image_std``).
+        histogram_hypotheses: the contract's ``inputs.histogram_hypotheses``
+            (:func:`build_datasets`).
     """
 
     def __init__(self, config: DataConfig, seed: int = 0,
                  image_mean: Sequence[float] = IMAGENET_MEAN,
-                 image_std: Sequence[float] = IMAGENET_STD) -> None:
+                 image_std: Sequence[float] = IMAGENET_STD,
+                 histogram_hypotheses: bool = False) -> None:
         super().__init__()
         self.config, self.seed = config, int(seed)
         self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
+        self.histogram_hypotheses = bool(histogram_hypotheses)
         self.train_set: IndexedConcat | None = None
         self.val_set: IndexedConcat | None = None
 
     def setup(self, stage: str | None = None) -> None:
         """Open the sources and split them (once)."""
         if self.train_set is None:
-            self.train_set, self.val_set = build_datasets(self.config, self.seed,
-                                                          self.image_mean, self.image_std)
+            self.train_set, self.val_set = build_datasets(
+                self.config, self.seed, self.image_mean, self.image_std,
+                self.histogram_hypotheses)
 
     def _rank_world(self) -> tuple[int, int]:
         trainer = self.trainer

@@ -283,7 +283,8 @@ class ZJUL5TrainingDataset(Dataset):
     """Real-zone ZJU-L5 samples as training items (for fine-tuning and validation).
 
     Hypotheses are sampled from each zone's histogram when the samples carry one
-    (histogram sensors, e.g. THDR3K), else from its measured mean and sigma. The only
+    (histogram sensors, e.g. THDR3K) and ``from_histograms`` is set (the network's
+    ``histogram_hypotheses``), else from its measured mean and sigma. The only
     augmentation is an optional horizontal flip (zone rectangles and their order are
     mirrored with the image).
 
@@ -296,14 +297,17 @@ class ZJUL5TrainingDataset(Dataset):
         image_mean, image_std: per-channel image normalisation (the network's contract).
         with_targets: items also carry ``zone_targets`` (Z, NETWORK_TARGET_SLOTS, 2),
             the sample's own targets (its primary reading alone when it has none).
+        from_histograms: draw hypotheses from the samples' histograms where they have
+            them.
     """
 
     def __init__(self, samples: Sequence, num_hypotheses: int = 16, sampling: str = "icdf",
                  flip_prob: float = 0.0, seed: int = 0,
                  image_mean: Sequence[float] = IMAGENET_MEAN,
-                 image_std: Sequence[float] = IMAGENET_STD, with_targets: bool = False) -> None:
+                 image_std: Sequence[float] = IMAGENET_STD, with_targets: bool = False,
+                 from_histograms: bool = False) -> None:
         self.samples, self.num_hypotheses, self.sampling = samples, num_hypotheses, sampling
-        self.with_targets = bool(with_targets)
+        self.with_targets, self.from_histograms = bool(with_targets), bool(from_histograms)
         self.flip_prob, self.seed, self.epoch = flip_prob, int(seed), 0
         self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
 
@@ -322,7 +326,7 @@ class ZJUL5TrainingDataset(Dataset):
         mean_sigma, valid = sample.zone_mean_sigma.copy(), sample.zone_valid.copy()
         no_target = (np.zeros_like(valid) if sample.zone_no_target is None
                      else sample.zone_no_target.copy())
-        counts = sample.hist_counts
+        counts = sample.hist_counts if self.from_histograms else None
         intr = sample.intrinsics
         targets = (fixed_target_slots(target_inputs(sample.zone_frame())[None],
                                       (1, len(valid)), NETWORK_TARGET_SLOTS)[0]

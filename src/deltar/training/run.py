@@ -154,6 +154,15 @@ def build_system(config: TrainConfig) -> DeltarSystem:
     return system
 
 
+def build_data_module(config: TrainConfig, system: DeltarSystem) -> DeltarDataModule:
+    """The run's data, drawn as the network's input contract says: the image
+    normalisation and whether hypotheses come from zone histograms."""
+    inputs = system.model.network_config.inputs
+    return DeltarDataModule(config.data, config.seed, image_mean=inputs.image_mean,
+                            image_std=inputs.image_std,
+                            histogram_hypotheses=inputs.histogram_hypotheses)
+
+
 def build_trainer(config: TrainConfig, run_dir: Path,
                   extra_callbacks: list[Callback] | tuple[Callback, ...] = ()) -> L.Trainer:
     """A Lightning trainer for the configuration, writing into ``run_dir``.
@@ -227,10 +236,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         torch.set_num_threads(config.trainer.num_threads)
     L.seed_everything(config.seed, workers=True, verbose=False)
     system = build_system(config)
-    # The image normalisation is part of the network's input contract.
-    inputs = system.model.network_config.inputs
-    data = DeltarDataModule(config.data, config.seed, image_mean=inputs.image_mean,
-                            image_std=inputs.image_std)
+    data = build_data_module(config, system)
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)
