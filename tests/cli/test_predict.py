@@ -150,6 +150,17 @@ def test_predict_flip_runs_and_onnx_refuses_it(tmp_path, rng):
     assert refused.exit_code != 0 and "--flip" in refused.output
 
 
+def test_predict_onnx_default_runs_the_bundled_export_with_the_pytorch_depth(tmp_path, rng):
+    image, zones = _inputs(tmp_path / "in", "a", rng)
+    for name, extra in (("torch", []), ("onnx", ["--onnx", "default"])):
+        result = runner.invoke(app, ["predict", "--image", str(image), "--zones", str(zones),
+                                     "--out", str(tmp_path / name), "--outputs", "npy",
+                                     "--threads", "1", *extra])
+        assert result.exit_code == 0, result.output
+    depths = [np.load(tmp_path / name / "a_depth_m.npy") for name in ("torch", "onnx")]
+    assert np.abs(depths[0] - depths[1]).max() <= 1e-4
+
+
 def test_export_int8_needs_a_calibration_folder(tmp_path):
     out = tmp_path / "int8.onnx"
     alone = runner.invoke(app, ["export", "--preset", "deltar-lite", "--out", str(out),

@@ -50,6 +50,28 @@ def test_bundled_default_and_its_file_as_a_checkpoint():
     assert bundled.network_size_for((480, 640)) == bundled.model.network_config.inputs.design_size
 
 
+def test_the_bundled_models_onnx_export_by_name_where_pytorch_is_installed(rng):
+    from deltar.weights import bundled_onnx
+
+    lean = load_estimator("default", kind="onnx", threads=1)
+    assert lean.model is None and lean.onnx_model is not None
+    assert lean.weights.endswith("(onnxruntime)")
+    assert str(lean.onnx_model.path) == str(bundled_onnx("default"))
+    image, frame = random_image(rng, 240, 320), random_frame(rng)
+    full = load_estimator("default", threads=1)
+    assert full.model is not None
+    assert np.abs(lean.predict(image, frame).depth_m - full.predict(image, frame).depth_m
+                  ).max() <= 1e-4
+
+
+def test_the_bundled_name_as_onnx_without_its_export_names_it(monkeypatch):
+    import deltar.inference.loading as loading
+
+    monkeypatch.setattr(loading, "bundled_onnx", lambda name: None)
+    with pytest.raises(FileNotFoundError, match="no ONNX export of the bundled model 'default'"):
+        load_estimator("default", kind="onnx")
+
+
 def test_checkpoint_predicts_like_the_constructor(tmp_path):
     # A model of its own: estimators fold the batch norms of the model they are given.
     torch.manual_seed(0)
