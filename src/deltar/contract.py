@@ -70,6 +70,17 @@ def network_contract(config: Mapping[str, Any]) -> dict[str, Any]:
     return {key: flat[key] for key in keys if key in flat}
 
 
+def as_switch(name: str, value: Any) -> bool:
+    """An on/off option as a bool: True / False (numpy's too) or their names as text in
+    any case (a quoted YAML value); anything else is a ``ValueError`` naming the option.
+    (``bool("false")`` would be True.)"""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+        return value.strip().lower() == "true"
+    raise ValueError(f"{name} must be true or false, got {value!r}")
+
+
 def normalise_image(image: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,
                     std: Sequence[float] = IMAGENET_STD) -> np.ndarray:
     """An RGB image as the network's input: ``(rgb - mean) / std`` with rgb in [0, 1].

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from deltar.models import create_model
@@ -21,12 +22,15 @@ def untrained_prior_checkpoint(path: Path) -> Path:
     return save_checkpoint(path, model, "deltar-lite")
 
 
-def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_path):
+@pytest.mark.parametrize("trained_on_histograms", [True, False])
+def test_estimator_predictor_samples_histogram_sets_as_the_weights_were_trained(
+        tmp_path, trained_on_histograms):
     """A THDR3K sample carries CNH histograms: a model trained on histograms draws its
-    hypotheses from them."""
+    hypotheses from them, any other model from the zones' reported mean and sigma."""
     from deltar.data.thdr3k import read_thdr3k_sample
     from deltar.evaluation.model_methods import EstimatorPredictor
     from deltar.inference.estimator import DepthEstimator
+    from deltar.sensor.hypotheses import zone_hypotheses
     from deltar.sensor.sampling import sample_hypotheses_from_histogram
     from tests.data.thdr3k_set import write_sample
     from tests.inference.fakes import ZonePainterNet
@@ -34,17 +38,21 @@ def test_estimator_predictor_samples_histogram_sets_from_their_histograms(tmp_pa
     write_sample(tmp_path / "s", seed=3, height=64, width=96)
     sample = read_thdr3k_sample(tmp_path / "s")
     net = ZonePainterNet()
-    net.contract_values["histogram_hypotheses"] = True
+    if trained_on_histograms:
+        net.contract_values["histogram_hypotheses"] = True
     estimator = DepthEstimator(net, weights="painter", input_size=(64, 96))
     depth = EstimatorPredictor(estimator)(sample).depth_m
-    expected = sample_hypotheses_from_histogram(
+    from_histogram = sample_hypotheses_from_histogram(
         torch.from_numpy(sample.hist_edges_m), torch.from_numpy(sample.hist_counts),
         torch.from_numpy(sample.zone_valid), 16).mean(-1).numpy()
+    gaussian = zone_hypotheses(sample.zone_mean_sigma[:, 0], sample.zone_mean_sigma[:, 1],
+                               sample.zone_valid, 16).mean(-1)
+    # The two differ here: the histogram's mean is not the reported distance.
+    assert abs(from_histogram[10] - gaussian[10]) > 1e-3
+    expected = from_histogram if trained_on_histograms else gaussian
     # The painter writes each zone's mean hypothesis over the zone (8 px zones here).
     y0, x0, y1, x1 = sample.zone_rects[10].astype(int)
     np.testing.assert_allclose(depth[y0 + 2:y1 - 2, x0 + 2:x1 - 2], expected[10], atol=1e-4)
-    # ... which is the histogram's, not the Gaussian around the reported distance.
-    assert abs(expected[10] - sample.zone_mean_sigma[10, 0]) > 1e-3
 
 
 def test_evaluation_runs_the_size_rule(tmp_path: Path) -> None:

@@ -410,3 +410,22 @@ def test_the_hypotheses_source_travels_with_checkpoint_and_onnx_file(tmp_path):
         assert estimator.histogram_hypotheses
         np.testing.assert_array_equal(estimator.hypotheses_for(frame), expected)
 
+
+def test_an_onnx_file_from_before_the_key_reads_mean_and_sigma(lite_export, tmp_path):
+    """Files exported before ``histogram_hypotheses`` existed (their config has no such
+    key) are read as weights trained without histograms."""
+    import json
+
+    import onnx
+
+    _, path = lite_export
+    graph = onnx.load(path)
+    for prop in graph.metadata_props:
+        if prop.key == "deltar_config":
+            config = json.loads(prop.value)
+            del config["input"]["histogram_hypotheses"]
+            prop.value = json.dumps(config)
+    onnx.save(graph, tmp_path / "old.onnx")
+    estimator = load_estimator(tmp_path / "old.onnx", kind="onnx", threads=1)
+    assert "histogram_hypotheses" not in estimator.onnx_model.contract
+    assert estimator.histogram_hypotheses is False

@@ -106,6 +106,28 @@ def test_quantize_rejects_bad_input(exported, tmp_path):
         export_int8(_small_model(), tmp_path / "x.onnx", *SIZE, tmp_path / "no_such_folder")
 
 
+def test_weights_trained_on_histograms_calibrate_on_histogram_hypotheses(exported):
+    """Their feeds carry the hypotheses of ST's example CNH bins, as a CH part's
+    frames give them at run time, not the Gaussian ones of the other feeds."""
+    from deltar.data.rgbd import open_rgbd
+    from deltar.sensor.cnh import CNHConfig, simulate_cnh
+    from deltar.sensor.hypotheses import zone_hypotheses_from_histogram
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    float_path, _, gaussian, shared = exported
+    estimator = load_estimator(float_path, kind="onnx", threads=1, histogram_hypotheses=True)
+    feeds = calibration_feeds(estimator, shared / "icl_livingroom1", frames=3)
+    reader = open_rgbd(shared / "icl_livingroom1")
+    frame = reader[0]  # the first of the evenly spread picks
+    layout = ZoneFrame(np.ones((8, 8)), np.zeros((8, 8)), np.ones((8, 8), bool))
+    rects = estimator.zone_rects_for(layout, frame.image.shape[:2])
+    expected = zone_hypotheses_from_histogram(
+        CNHConfig().edges_m(), simulate_cnh(frame.depth_m, rects, CNHConfig()),
+        feeds[0]["zone_valid"][0], 16)
+    np.testing.assert_allclose(feeds[0]["hypotheses"][0], expected, atol=1e-5)
+    assert not np.allclose(feeds[0]["hypotheses"], gaussian[0]["hypotheses"], atol=1e-3)
+
+
 def test_a_file_that_takes_the_no_target_flags_quantises_with_them(tmp_path):
     # The plane-select network (the bundled model's) takes a fifth input, and several
     # targets per zone as a sixth; the real office frames have zones beyond 4 m, so the

@@ -64,6 +64,13 @@ def test_the_bundled_models_onnx_export_by_name_where_pytorch_is_installed(rng):
                   ).max() <= 1e-4
 
 
+def test_a_file_named_like_the_bundled_model_wins_as_onnx(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "default").write_bytes(b"not an ONNX file")
+    with pytest.raises(ValueError, match="default"):
+        load_estimator("default", kind="onnx")
+
+
 def test_the_bundled_name_as_onnx_without_its_export_names_it(monkeypatch):
     import deltar.inference.loading as loading
 

@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,26 @@ def test_the_data_draws_hypotheses_as_the_network_was_configured(tiny_config,
     system = build_system(config)
     assert system.model.network_config.inputs.histogram_hypotheses is from_histograms
     assert build_data_module(config, system).histogram_hypotheses is from_histograms
+
+
+def test_a_switch_given_as_text_is_read_as_written_or_refused(tiny_config):
+    """A quoted YAML value is text: 'false' stays off; other text is an error naming it."""
+    off = tiny_config("model.overrides.histogram_hypotheses='false'")
+    assert build_system(off).model.network_config.inputs.histogram_hypotheses is False
+    with pytest.raises(ValueError, match="histogram_hypotheses must be true or false"):
+        build_system(tiny_config("model.overrides.histogram_hypotheses=maybe"))
+
+
+def test_fine_tuning_says_when_it_reads_the_zones_otherwise(tmp_path, tiny_config):
+    start = create_model("deltar-lite", **TINY_MODEL, histogram_hypotheses=True)
+    weights = tmp_path / "start.pt"
+    torch.save(export_model(start, "deltar-lite"), weights)
+    with pytest.warns(UserWarning, match="histogram_hypotheses=true; this run uses false"):
+        build_system(tiny_config(f"model.init_checkpoint={weights}"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        build_system(tiny_config(f"model.init_checkpoint={weights}",
+                                 "model.overrides.histogram_hypotheses=true"))
 
 
 def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_config):

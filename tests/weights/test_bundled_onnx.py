@@ -78,12 +78,19 @@ def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame):
     assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
 
 
-def test_an_aspect_not_exported_is_stretched_with_a_warning_naming_the_torch_extra():
+@pytest.mark.parametrize(("torch_installed", "remedy"), [
+    (False, r"pip install \"deltar\[torch\]\" for that"),
+    (True, r"the PyTorch backend \(without --onnx\) for that")])
+def test_an_aspect_not_exported_is_stretched_with_a_warning_naming_the_remedy(
+        monkeypatch, torch_installed, remedy):
+    import deltar.inference.onnx_runtime as onnx_runtime
+
+    monkeypatch.setattr(onnx_runtime, "torch_available", lambda: torch_installed)
     # 2:1: the size rule gives 192x416, not exported; the nearest aspect exported is 16:9.
     frame = render_scene(3, 240, 480)
     zones = simulate_zone_frame(frame.depth_m, zone_rects(frame.intrinsics, 8))
     lean = load_estimator(bundled_onnx("default"), threads=2)
-    with pytest.warns(UserWarning, match=r"stretched .* 224x384 .*192x416.*deltar\[torch\]"):
+    with pytest.warns(UserWarning, match=r"stretched .* 224x384 .*192x416; " + remedy):
         result = lean.predict(frame.image, zones)
     assert result.network_size == (224, 384) and result.depth_m.shape == (240, 480)
 

@@ -30,7 +30,8 @@ OfficialOption = Annotated[Path | None, typer.Option(
     "--official", help="Officially released weights (e.g. nyu.pt).")]
 OnnxOption = Annotated[Path | None, typer.Option(
     "--onnx", help="ONNX model from 'deltar export' (onnxruntime backend), or 'default' "
-    "for the bundled model's shipped export (also with PyTorch installed).")]
+    "for the bundled model's shipped export (also with PyTorch installed; a file named "
+    "'default' here wins).")]
 DeviceOption = Annotated[str, typer.Option(help="Torch device (PyTorch backend).")]
 PrecisionOption = Annotated[str, typer.Option(
     help="float32, float16 or bfloat16 (PyTorch).")]

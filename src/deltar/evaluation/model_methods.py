@@ -2,7 +2,8 @@
 
 ``model:default`` is the bundled model, ``model:runs/x/model.pt`` any deltar checkpoint,
 ``official:nyu.pt`` the officially released weights, ``onnx:model.onnx`` an exported
-(float32 or int8) model run by onnxruntime. A ``+flip`` suffix
+(float32 or int8) model run by onnxruntime (``onnx:default`` the bundled model's shipped
+export). A ``+flip`` suffix
 (``model:default+flip``) adds test-time flip averaging (not for ``onnx:``); a ``+network``
 suffix (``model:default+network``, also ``onnx:x.onnx+network``) scores the network
 alone, without the estimator's confidence blend with the colorization fill
@@ -42,7 +43,8 @@ class EstimatorPredictor:
         """The estimator's prediction (depth and sigma, (H, W) metres) for one sample.
 
         Hypotheses come from the sample's histogram when it has one (histogram
-        sensors, e.g. THDR3K), else from each zone's mean and sigma. Zones flagged valid
+        sensors, e.g. THDR3K) and the weights were trained on histograms
+        (``histogram_hypotheses``), else from each zone's mean and sigma. Zones flagged valid
         but reporting no distance (mean <= 0) are treated as invalid, as the classical
         baselines treat them.
         """
@@ -100,7 +102,7 @@ def official_predictor(path: str) -> EstimatorPredictor:
 
 def onnx_predictor(path: str) -> EstimatorPredictor:
     """``onnx:PATH[+network][+uninferred][+kept]``: an exported ONNX model (``deltar export``,
-    also ``--int8``).
+    also ``--int8``), or ``onnx:default``, the bundled model's shipped export.
 
     It runs at its fixed input size; the sample's zone layout must fit the one it was
     exported for (else ``ValueError``; export with that layout).

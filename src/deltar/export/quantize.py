@@ -42,8 +42,9 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
     """Network inputs for ``frames`` RGB-D frames spread evenly over ``source``.
 
     Each frame's zone reading is simulated from its depth (mean, sigma and the
-    no-target flags, as a VL53L5CX reports) on the estimator's zone layout for the
-    image, then prepared exactly as ``estimator.predict`` would.
+    no-target flags, as a VL53L5CX reports; with CNH histograms too when the weights
+    were trained on them, ``estimator.histogram_hypotheses``) on the estimator's zone
+    layout for the image, then prepared exactly as ``estimator.predict`` would.
 
     Args:
         estimator: the estimator of the exported model (its layout and input size).
@@ -89,10 +90,17 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         model = estimator.onnx_model
         slots = 1 if model is None else model.target_slots
         zones = simulate_zone_frame(frame.depth_m, rects, max_targets=slots)
-        # The reading as a CX part reports it: no histogram.
+        # The reading as a CX part reports it (no histogram), or for weights trained on
+        # histograms as a CH part does, in ST's example CNH bins (`deltar simulate --cnh`).
         targets = {} if zones.target_mean_m is None else {
             name: getattr(zones, name) for name in ("target_mean_m", "target_sigma_m",
                                                     "target_valid", "target_signal")}
+        if estimator.histogram_hypotheses:
+            from deltar.sensor.cnh import CNHConfig, simulate_cnh
+
+            counts = simulate_cnh(frame.depth_m, rects, CNHConfig())
+            targets.update(hist_edges_m=CNHConfig().edges_m().astype(np.float32),
+                           hist_counts=counts.reshape(grid, grid, -1))
         reading = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
                             no_target=zones.no_target, **targets)
         inputs = estimator.prepare([frame.image], [reading], zone_rects=rects[None])

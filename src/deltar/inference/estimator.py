@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
-from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD
+from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD, as_switch
 from deltar.inference.blend import ConfidenceBlend, resolve_blend
 from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
 from deltar.inference.fill_schedule import (
@@ -195,9 +195,9 @@ class DepthEstimator:
         # The input contract travels with the weights: hypotheses and normalisation.
         self.num_hypotheses = int(contract["num_hypotheses"])
         self.sampling = sampling or contract.get("hypothesis_sampling", "icdf")
-        self.histogram_hypotheses = (bool(contract.get("histogram_hypotheses", False))
-                                     if histogram_hypotheses is None
-                                     else bool(histogram_hypotheses))
+        self.histogram_hypotheses = as_switch("histogram_hypotheses", contract.get(
+            "histogram_hypotheses", False) if histogram_hypotheses is None
+            else histogram_hypotheses)
         self.image_mean = tuple(contract.get("image_mean", IMAGENET_MEAN))
         self.image_std = tuple(contract.get("image_std", IMAGENET_STD))
         self.blend = resolve_blend(blend, contract)

@@ -14,7 +14,8 @@ A model source is one of (``kind``):
   a packaged model; see :mod:`deltar.models.checkpoint`), or a bundled name;
 - ``"official"``: the officially released DELTAR weights (e.g. ``nyu.pt``);
 - ``"onnx"``: an ONNX file written by ``deltar export`` (onnxruntime, CPU, float32), or
-  a bundled model's name for its shipped export (also where PyTorch is installed);
+  a bundled model's name for its shipped export (also where PyTorch is installed; an
+  existing file of that name wins);
 - ``"preset"``: a :func:`~deltar.models.create_model` preset with RANDOM weights
   (pipeline tests and timing only; a ``UserWarning`` says so).
 
@@ -146,7 +147,8 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
     if kind in ("bundled", "checkpoint") and text in BUNDLED_MODELS and not torch_available():
         # Without PyTorch a bundled model runs from its ONNX export (same depth).
         kind, text = "onnx", _bundled_onnx_path(text, device, precision, flip_average)
-    elif kind == "onnx" and text in BUNDLED_ONNX:  # asked for by name: the shipped export
+    elif kind == "onnx" and text in BUNDLED_ONNX and not Path(text).exists():
+        # Asked for by name (no file of that name here): the shipped export.
         path = bundled_onnx(text)
         if path is None:
             raise FileNotFoundError(f"this installation has no ONNX export of the bundled "

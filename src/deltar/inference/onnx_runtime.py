@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from deltar.contract import network_contract
+from deltar.extras import torch_available
 from deltar.io.input_file import input_file
 from deltar.sensor.targets import fixed_target_slots
 
@@ -231,11 +232,13 @@ class OnnxDepthModel:
         rule = network_input_size(*image_size, design_size=tuple(design))
         if tuple(rule) != tuple(net_size):
             self._stretch_warned.add(tuple(image_size))
+            remedy = ("the PyTorch backend (without --onnx) for that" if torch_available()
+                      else 'pip install "deltar[torch]" for that')
             warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "
                           f"model's {net_size[0]}x{net_size[1]} input, the exported size "
-                          f"nearest in aspect (PyTorch runs them at {rule[0]}x{rule[1]}; pip "
-                          f"install \"deltar[torch]\" for that, or export for this size with "
-                          "deltar export --size)", UserWarning, stacklevel=3)
+                          f"nearest in aspect (PyTorch runs them at {rule[0]}x{rule[1]}; "
+                          f"{remedy}, or export for this size with deltar export --size)",
+                          UserWarning, stacklevel=3)
 
     def run(self, image: np.ndarray, hypotheses: np.ndarray, zone_rects: np.ndarray,
             zone_valid: np.ndarray, zone_no_target: np.ndarray | None = None,

@@ -12,7 +12,8 @@ models, the estimator, export and evaluation). A ``torch.save`` file holding::
 The config is the network's own :meth:`DeltarNet.config`, one section per part
 (:mod:`deltar.models.config`), so it carries the input contract of the weights
 (``input``: ``image_mean`` / ``image_std``, ``design_size``, ``hypothesis_sampling``,
-``num_hypotheses``, ``zone_scale_norm``) and the output contract (``output``). Readers
+``histogram_hypotheses``, ``num_hypotheses``, ``zone_scale_norm``) and the output
+contract (``output``). Readers
 take these from the file, never from a preset's current defaults.
 
 Format 2 stored the same options flat (``{"backbone": ..., "n_bins": ..., ...}``, the

@@ -28,6 +28,7 @@ from deltar.contract import (
     IMAGENET_STD,
     NETWORK_CONFIG_SECTIONS,
     SIZE_DIVISOR,
+    as_switch,
 )
 from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.fusion import FUSION_MODES, LAYER_KINDS
@@ -81,8 +82,8 @@ class InputConfig:
         _set(self, "design_size", tuple(int(v) for v in self.design_size))
         _set(self, "image_mean", tuple(float(v) for v in self.image_mean))
         _set(self, "image_std", tuple(float(v) for v in self.image_std))
-        _set(self, "zone_scale_norm", bool(self.zone_scale_norm))
-        _set(self, "histogram_hypotheses", bool(self.histogram_hypotheses))
+        for switch in ("zone_scale_norm", "histogram_hypotheses"):
+            _set(self, switch, as_switch(switch, getattr(self, switch)))
         if (len(self.design_size) != 2 or self.design_size[0] % SIZE_DIVISOR
                 or self.design_size[1] % SIZE_DIVISOR):
             raise ValueError(f"design_size must be (H, W) divisible by {SIZE_DIVISOR}: "
@@ -112,7 +113,7 @@ class EncoderConfig:
     image_input: str = "rgb"
 
     def __post_init__(self) -> None:
-        _set(self, "stem_activation", bool(self.stem_activation))
+        _set(self, "stem_activation", as_switch("stem_activation", self.stem_activation))
         _check_choice("image_input", self.image_input, IMAGE_INPUTS)
 
 
@@ -226,7 +227,7 @@ class PlaneSelectConfig(HeadConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         _set(self, "temperature", float(self.temperature))
-        _set(self, "planar", bool(self.planar))
+        _set(self, "planar", as_switch("planar", self.planar))
 
 
 #: Each head's config class by name (one file each under :mod:`deltar.models.heads`;

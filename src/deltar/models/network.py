@@ -229,7 +229,8 @@ class DeltarNet(nn.Module):
     def contract(self) -> dict[str, Any]:
         """The input and output contract readers need, flat
         (:func:`deltar.contract.network_contract`): ``design_size``, ``image_mean``,
-        ``image_std``, ``num_hypotheses``, ``hypothesis_sampling``, ``head``,
+        ``image_std``, ``num_hypotheses``, ``hypothesis_sampling``,
+        ``histogram_hypotheses``, ``head``,
         ``no_target_depth``, ``uncertainty_calibration``, ``confidence_blend``, ..."""
         from deltar.contract import network_contract
 

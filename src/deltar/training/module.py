@@ -9,6 +9,7 @@ OneCycle schedule and validation with the paper's per-frame metrics.
 from __future__ import annotations
 
 import random
+import warnings
 from typing import Any
 
 import lightning as L
@@ -279,6 +280,10 @@ def _load_weights_file(path: str, map_location: str = "cpu",
 def initial_weights(model: nn.Module, path: str) -> None:
     """Load a previous run's weights (``.ckpt`` or ``model.pt``) into ``model`` (fine-tuning).
 
+    Only the weights are taken: the configured model's input contract stays, and a
+    ``UserWarning`` says so where it reads the zones otherwise than the weights were
+    trained to (``histogram_hypotheses``).
+
     Raises:
         ValueError: the architectures differ (the message lists mismatching keys).
     """
@@ -287,3 +292,12 @@ def initial_weights(model: nn.Module, path: str) -> None:
         model.load_state_dict(source.state_dict())
     except RuntimeError as err:
         raise ValueError(f"weights in {path} do not fit the configured model: {err}") from err
+    was = getattr(getattr(source, "network_config", None), "inputs", None)
+    now = getattr(getattr(model, "network_config", None), "inputs", None)
+    if was is not None and now is not None and \
+            was.histogram_hypotheses != now.histogram_hypotheses:
+        warnings.warn(f"{path} was trained with histogram_hypotheses="
+                      f"{str(was.histogram_hypotheses).lower()}; this run uses "
+                      f"{str(now.histogram_hypotheses).lower()} (set "
+                      "model.overrides.histogram_hypotheses to keep it)", UserWarning,
+                      stacklevel=2)
