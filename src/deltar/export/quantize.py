@@ -98,9 +98,10 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         if estimator.histogram_hypotheses:
             from deltar.sensor.cnh import CNHConfig, simulate_cnh
 
-            counts = simulate_cnh(frame.depth_m, rects, CNHConfig())
-            targets.update(hist_edges_m=CNHConfig().edges_m().astype(np.float32),
-                           hist_counts=counts.reshape(grid, grid, -1))
+            cnh = CNHConfig()
+            targets.update(hist_edges_m=cnh.edges_m().astype(np.float32),
+                           hist_counts=simulate_cnh(frame.depth_m, rects, cnh)
+                           .reshape(grid, grid, -1))
         reading = ZoneFrame(mean_m=zones.mean_m, sigma_m=zones.sigma_m, valid=zones.valid,
                             no_target=zones.no_target, **targets)
         inputs = estimator.prepare([frame.image], [reading], zone_rects=rects[None])

@@ -20,7 +20,7 @@ from torch import nn
 
 from deltar.evaluation.metrics import METRIC_KEYS, EmptyFrameError, depth_metrics
 from deltar.io.torch_file import read_torch_file
-from deltar.models import create_model, scaled_si_loss
+from deltar.models import DeltarNet, create_model, scaled_si_loss
 from deltar.models.checkpoint import (
     CHECKPOINT_FORMAT_VERSION,
     READABLE_FORMAT_VERSIONS,
@@ -277,7 +277,7 @@ def _load_weights_file(path: str, map_location: str = "cpu",
     return model, recipe
 
 
-def initial_weights(model: nn.Module, path: str) -> None:
+def initial_weights(model: DeltarNet, path: str) -> None:
     """Load a previous run's weights (``.ckpt`` or ``model.pt``) into ``model`` (fine-tuning).
 
     Only the weights are taken: the configured model's input contract stays, and a
@@ -292,10 +292,8 @@ def initial_weights(model: nn.Module, path: str) -> None:
         model.load_state_dict(source.state_dict())
     except RuntimeError as err:
         raise ValueError(f"weights in {path} do not fit the configured model: {err}") from err
-    was = getattr(getattr(source, "network_config", None), "inputs", None)
-    now = getattr(getattr(model, "network_config", None), "inputs", None)
-    if was is not None and now is not None and \
-            was.histogram_hypotheses != now.histogram_hypotheses:
+    was, now = source.network_config.inputs, model.network_config.inputs
+    if was.histogram_hypotheses != now.histogram_hypotheses:
         warnings.warn(f"{path} was trained with histogram_hypotheses="
                       f"{str(was.histogram_hypotheses).lower()}; this run uses "
                       f"{str(now.histogram_hypotheses).lower()} (set "
