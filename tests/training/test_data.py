@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from deltar.models.config import InputConfig
 from deltar.training.config import DataConfig, SourceConfig
 from deltar.training.data import (
     ResumableDataLoader,
@@ -176,7 +177,7 @@ def test_thdr3k_source_trains_from_its_histograms_and_flips_them(tmp_path):
         num_hypotheses=8)
     config.image_augmentation.flip_prob = 1.0
     gaussian = build_datasets(config, seed=0)[1][0]["hypotheses"]
-    train, val = build_datasets(config, seed=0, histogram_hypotheses=True)
+    train, val = build_datasets(config, seed=0, inputs=InputConfig(histogram_hypotheses=True))
     assert (len(train), len(val)) == (3, 1)
     item, flipped = val[0], train[0]
     sample = train.datasets[0].samples[0]

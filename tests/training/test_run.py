@@ -74,7 +74,10 @@ def test_the_data_draws_hypotheses_as_the_network_was_configured(tiny_config,
     config = tiny_config(f"model.overrides.histogram_hypotheses={str(from_histograms).lower()}")
     system = build_system(config)
     assert system.model.network_config.inputs.histogram_hypotheses is from_histograms
-    assert build_data_module(config, system).histogram_hypotheses is from_histograms
+    inputs = build_data_module(config, system).inputs
+    assert inputs.histogram_hypotheses is from_histograms
+    # The images are normalised as the network's contract says, too.
+    assert inputs.image_mean == system.model.network_config.inputs.image_mean
 
 
 def test_a_switch_given_as_text_is_read_as_written_or_refused(tiny_config):

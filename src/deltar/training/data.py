@@ -24,10 +24,10 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from deltar.camera import CameraIntrinsics
-from deltar.contract import IMAGENET_MEAN, IMAGENET_STD
 from deltar.data.rgbd import RGBDFrame
 from deltar.data.transforms import ImageAugmentation
 from deltar.data.zone_sets import open_zone_set
+from deltar.models.config import InputConfig
 from deltar.sensor.augment import SignalAugmentation
 from deltar.training.config import ZONE_SET_SOURCE_KINDS, DataConfig, SourceConfig
 from deltar.training.datasets import IndexedConcat, SimulatedL5Dataset, ZJUL5TrainingDataset
@@ -150,10 +150,8 @@ def _native_size(source: SourceConfig) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------------- datasets
-def build_datasets(config: DataConfig, seed: int = 0,
-                   image_mean: Sequence[float] = IMAGENET_MEAN,
-                   image_std: Sequence[float] = IMAGENET_STD,
-                   histogram_hypotheses: bool = False) -> tuple[IndexedConcat, IndexedConcat]:
+def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None = None
+                   ) -> tuple[IndexedConcat, IndexedConcat]:
     """Training and validation datasets described by a data config.
 
     Each ``train_val`` source is split into training frames and one contiguous held-out
@@ -164,10 +162,11 @@ def build_datasets(config: DataConfig, seed: int = 0,
     Args:
         config: the data section of a training config.
         seed: base seed of all item randomness.
-        image_mean, image_std: per-channel image normalisation, the network's input
-            contract (``model.network_config.inputs.image_mean`` / ``image_std``).
-        histogram_hypotheses: draw the hypotheses of zone sets that carry histograms
-            from them (the contract's ``inputs.histogram_hypotheses``).
+        inputs: the network's input contract (``model.network_config.inputs``): its
+            ``image_mean`` / ``image_std`` normalise the images, and with
+            ``histogram_hypotheses`` the hypotheses of zone sets that carry histograms
+            are drawn from them. None: ``InputConfig()`` (ImageNet's normalisation,
+            hypotheses from each zone's mean and sigma).
 
     Returns:
         ``(train, val)`` datasets of item dicts (see the module docstring).
@@ -176,6 +175,8 @@ def build_datasets(config: DataConfig, seed: int = 0,
         FileNotFoundError: a source path does not exist.
         ValueError: a source is empty or too small to split.
     """
+    inputs = InputConfig() if inputs is None else inputs
+    image_mean, image_std = inputs.image_mean, inputs.image_std
     image_aug = None
     if config.image_augmentation.enabled:
         aug = config.image_augmentation
@@ -234,7 +235,7 @@ def build_datasets(config: DataConfig, seed: int = 0,
                                                   config.sampling, flip, source_seed,
                                                   image_mean, image_std,
                                                   with_targets=config.max_targets > 1,
-                                                  from_histograms=histogram_hypotheses))
+                                                  from_histograms=inputs.histogram_hypotheses))
             else:
                 parts.append(simulated(subset, train, source_seed))
     return IndexedConcat(train_parts), IndexedConcat(val_parts)
@@ -349,29 +350,23 @@ class DeltarDataModule(L.LightningDataModule):
     Args:
         config: data configuration.
         seed: base seed of data order and item randomness.
-        image_mean, image_std: per-channel image normalisation of the network's input
-            contract (``model.network_config.inputs.image_mean`` / ``image_std``).
-        histogram_hypotheses: the contract's ``inputs.histogram_hypotheses``
-            (:func:`build_datasets`).
+        inputs: the network's input contract (``model.network_config.inputs``), which
+            says how the items are drawn (:func:`build_datasets`); None:
+            ``InputConfig()``.
     """
 
     def __init__(self, config: DataConfig, seed: int = 0,
-                 image_mean: Sequence[float] = IMAGENET_MEAN,
-                 image_std: Sequence[float] = IMAGENET_STD,
-                 histogram_hypotheses: bool = False) -> None:
+                 inputs: InputConfig | None = None) -> None:
         super().__init__()
         self.config, self.seed = config, int(seed)
-        self.image_mean, self.image_std = tuple(image_mean), tuple(image_std)
-        self.histogram_hypotheses = bool(histogram_hypotheses)
+        self.inputs = InputConfig() if inputs is None else inputs
         self.train_set: IndexedConcat | None = None
         self.val_set: IndexedConcat | None = None
 
     def setup(self, stage: str | None = None) -> None:
         """Open the sources and split them (once)."""
         if self.train_set is None:
-            self.train_set, self.val_set = build_datasets(
-                self.config, self.seed, self.image_mean, self.image_std,
-                self.histogram_hypotheses)
+            self.train_set, self.val_set = build_datasets(self.config, self.seed, self.inputs)
 
     def _rank_world(self) -> tuple[int, int]:
         trainer = self.trainer

@@ -157,10 +157,7 @@ def build_system(config: TrainConfig) -> DeltarSystem:
 def build_data_module(config: TrainConfig, system: DeltarSystem) -> DeltarDataModule:
     """The run's data, drawn as the network's input contract says: the image
     normalisation and whether hypotheses come from zone histograms."""
-    inputs = system.model.network_config.inputs
-    return DeltarDataModule(config.data, config.seed, image_mean=inputs.image_mean,
-                            image_std=inputs.image_std,
-                            histogram_hypotheses=inputs.histogram_hypotheses)
+    return DeltarDataModule(config.data, config.seed, system.model.network_config.inputs)
 
 
 def build_trainer(config: TrainConfig, run_dir: Path,
