@@ -756,6 +756,18 @@ def test_mismatches_and_option_values_named_before_work(inputs, tmp_path, record
     assert not (tmp_path / "r").exists() and not (tmp_path / "m.onnx").exists()
 
 
+def test_export_of_several_sizes_refuses_their_weights_file_before_the_model(tmp_path):
+    weights = tmp_path / "m.onnx.data"
+    weights.write_bytes(b"an earlier export's weights")
+    result = _run(["export", "--preset", "deltar-lite", "--out", tmp_path / "m.onnx", "--size",
+                   "480x640,720x1280"])
+    assert result.exit_code == 1, result.output
+    assert _one_error_line(result) == (f"error: --out {weights} exists; pass --overwrite to "
+                                       "replace it")
+    assert MODEL_BUILT not in result.output
+    assert weights.read_bytes() == b"an earlier export's weights"
+
+
 def test_wall_test_refuses_a_recording_given_twice_and_text_is_no_checkpoint(recording,
                                                                             tmp_path):
     result = _run(["wall-test", recording, recording, "--out", tmp_path / "o", *LITE])

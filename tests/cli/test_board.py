@@ -65,7 +65,7 @@ def test_calibrate_with_a_board_then_check_it(board_recording, tmp_path):
     bumped.save(tmp_path / "bumped.json")
     check = _run("check-calibration", board_recording, "--calib", tmp_path / "bumped.json",
                  "--target", TARGET, "--plot", tmp_path / "check.png")
-    assert check.exit_code == 0 and "does NOT fit" in check.output
+    assert check.exit_code == 3 and "does NOT fit" in check.output
     assert (tmp_path / "check.png").stat().st_size > 5000
     median = float(re.search(r"median \|r\| ([\d.]+) cm", check.output).group(1))
     assert median > 2.5

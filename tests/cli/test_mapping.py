@@ -208,6 +208,11 @@ def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
     np.testing.assert_allclose(trajectory[:, 1], 0.05 * np.arange(4), atol=1e-6)
     vertices = np.asarray(_read_mesh(tmp_path / "map" / "mesh.ply").vertices)
     assert np.median(vertices[:, 2]) == pytest.approx(WALL_Z_M, abs=0.1)
+    # A bag's depth topic is not read: --method recorded is refused before any pose.
+    refused = _run(tmp_path / "bag", "--out", tmp_path / "map2", "--method", "recorded",
+                   "--pose-topic", "/camera/pose", *COARSE)
+    _error(refused, "--method", "ROS 2 bag")
+    assert "poses:" not in refused.output and not (tmp_path / "map2").exists()
 
 
 def test_rerun_save_writes_the_growing_map(wall_recording, tmp_path):

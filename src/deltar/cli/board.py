@@ -34,6 +34,10 @@ def calibration_board_command(
                "print at 100 % and measure a square before calibrating")
 
 
+#: Exit status of ``check-calibration`` when the calibration does not fit the recording.
+CALIBRATION_DOES_NOT_FIT = 3
+
+
 def check_calibration_command(
     recording: Path = typer.Argument(..., help="Recording folder (meta.json, zones.jsonl, "
                                      "color/, and depth/ unless --target)."),
@@ -49,7 +53,8 @@ def check_calibration_command(
 ) -> None:
     """Score a calibration on a recording: per-zone residuals against the board or depth.
 
-    Exits with status 0 either way; the last line says whether the rig still fits.
+    The last line says whether the rig still fits; the exit status says it to scripts:
+    0 when it fits, 3 when it does not (1 and 2 are bad input, as everywhere).
     """
     import numpy as np
 
@@ -89,3 +94,4 @@ def check_calibration_command(
         typer.echo("the calibration does NOT fit this recording (median |r| > "
                    f"{100 * FIT_MEDIAN_ABS_M:g} cm or |bias| > {100 * FIT_BIAS_M:g} cm): the rig "
                    "has moved or the calibration is for another rig; recalibrate")
+        raise typer.Exit(CALIBRATION_DOES_NOT_FIT)

@@ -76,6 +76,8 @@ def export_command(
                                  param_hint="--size")
     refuse_input_as_output(out, [checkpoint, official, layout_from, calibration], "--out")
     output_file(out, "--out", overwrite)
+    if len(sizes) > 1:  # the sizes share the weights file beside OUT: checked before the model
+        output_file(out.with_name(out.name + ".data"), "--out", overwrite)
     if layout_from is not None and not layout_from.exists():
         raise FileNotFoundError(f"--layout-from {layout_from}: no such calibration file or "
                                 "recording folder")

@@ -104,7 +104,7 @@ def map_command(
     from deltar.cli.errors import warn
     from deltar.cli.progress import ProgressReport
     from deltar.mapping.builder import build_map, plan_map
-    from deltar.mapping.frames import DepthSource, FrameSource
+    from deltar.mapping.frames import RECORDED, DepthSource, FrameSource
     from deltar.mapping.poses import write_tum_trajectory
     from deltar.mapping.tsdf import require_open3d
 
@@ -140,6 +140,10 @@ def map_command(
     # A bad method name fails here, before the poses and the model.
     depth = DepthSource(method=method, max_relative_sigma=max_relative_sigma) \
         if method is not None else None
+    if method == RECORDED and source.kind == "bag":
+        raise typer.BadParameter(f"{recording} is a ROS 2 bag; --method recorded reads the "
+                                 "depth/ images of a recording folder, not a bag's depth "
+                                 "topic", param_hint="--method")
     plan = plan_map(source, settings, trajectory=trajectory, pose_topic=pose_topic,
                     force_odometry=odometry, tolerance_s=pose_tolerance)
     if plan.skipped_no_pose:

@@ -267,7 +267,8 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
     targets = [path.with_name(name) for name in names.values()] + [data_path]
     for target in targets:
         if target.exists() and not overwrite:
-            raise FileExistsError(f"refusing to overwrite existing file: {target}")
+            raise FileExistsError(f"refusing to overwrite existing file: {target} (overwrite "
+                                  "replaces it: --overwrite)")
     listing = json.dumps({size_text(size): name for size, name in names.items()})
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".deltar-export-") as tmp:
         protos = {}

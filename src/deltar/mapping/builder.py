@@ -11,7 +11,7 @@ Poses, in this order:
 2. a TUM trajectory file (``trajectory``);
 3. a bag's ``PoseStamped`` topic (``pose_topic``) or its ``/tf`` chain to the camera's
    frame;
-4. RGB-D odometry on the predicted depth (:mod:`deltar.mapping.odometry`), also when
+4. RGB-D odometry on the mapped depth (:mod:`deltar.mapping.odometry`), also when
    ``force_odometry`` (then the poses above, if any, are the reference its trajectory
    error is measured against).
 """
@@ -156,7 +156,7 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
                          "near it)")
     given = _given_poses(source, trajectory, pose_topic, tolerance_s)
     frames, poses, reference, skipped = source.frames, None, None, 0
-    description = "RGB-D odometry on the predicted depth"
+    description = "RGB-D odometry on the mapped depth"
     if given is not None:
         all_poses, covered, where = given
         skipped = int(np.count_nonzero(~covered))
