@@ -32,7 +32,8 @@ _CONTRACT_INPUT_KEYS = ("design_size", "image_mean", "image_std", "num_hypothese
                         "hypothesis_sampling", "histogram_hypotheses", "zone_scale_norm")
 _CONTRACT_OUTPUT_KEYS = ("min_depth", "max_depth", "no_target_depth",
                          "uncertainty_calibration", "confidence_blend",
-                         "no_target_min_neighbour_m", "zone_outlier_rule")
+                         "no_target_min_neighbour_m", "zone_outlier_rule",
+                         "zone_consistency")
 
 
 def is_sectioned_config(config: Mapping[str, Any]) -> bool:
@@ -57,8 +58,8 @@ def network_contract(config: Mapping[str, Any]) -> dict[str, Any]:
         ``zone_scale_norm``, ``head`` (its
         name), ``min_depth`` / ``max_depth`` / ``no_target_depth`` (metres) and
         ``uncertainty_calibration`` / ``confidence_blend`` (dicts or None) and
-        ``no_target_min_neighbour_m`` (metres or None) and ``zone_outlier_rule`` (dict
-        or None): those the config holds.
+        ``no_target_min_neighbour_m`` (metres or None), ``zone_outlier_rule`` (dict
+        or None) and ``zone_consistency`` (in [0, 1]): those the config holds.
     """
     keys = (*_CONTRACT_INPUT_KEYS, "head", *_CONTRACT_OUTPUT_KEYS)
     if not is_sectioned_config(config):  # format 2: flat options of the same names

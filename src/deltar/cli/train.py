@@ -158,8 +158,8 @@ def fit_uncertainty_command(
     frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
                  for s in sets)
     with ProgressReport("fitting the output stage") as progress:
-        # Each frame is visited twice (outlier rule; blend and sigma), or three times for
-        # a network that reads no-target flags (then the no-target rule is fitted too).
+        # Each frame is visited three times (outlier rule; zone consistency; blend and
+        # sigma), five for a network that reads no-target flags (its depth and rule too).
         fit = fit_checkpoint_uncertainty(checkpoint, sets, out, frames_per_set=frames_per_set,
                                          pixels_per_frame=pixels_per_frame,
                                          overwrite=overwrite, blend_objective=blend_objective,
@@ -173,6 +173,10 @@ def fit_uncertainty_command(
         typer.echo(f"zone outliers: {_rule_text(fit.outlier_rule)} (mean relative error "
                    f"where a candidate sets a zone aside; rules by tolerance / fewest "
                    f"outliers, the detector by probability: {tried})")
+    if fit.zone_consistency_errors:
+        tried = ", ".join(f"{c:g} {e:.4f}" for c, e in fit.zone_consistency_errors.items())
+        typer.echo(f"zone consistency: {fit.zone_consistency:g} (mean relative error of each "
+                   f"strength: {tried})")
     if fit.no_target_depth_errors:
         tried = ", ".join(f"{c:g} m {e:.4f}" for c, e in fit.no_target_depth_errors.items())
         typer.echo(f"zones that reported no target read at {fit.no_target_depth_m:g} m (mean "

@@ -1,5 +1,5 @@
-"""Fit a checkpoint's output stage on frames with ground truth: outlier rule, blend, sigma,
-no-target rule.
+"""Fit a checkpoint's output stage on frames with ground truth: outlier rule, zone
+consistency, blend, sigma, no-target rule.
 
 First the rule that sets aside zones disagreeing with every neighbour
 (:mod:`deltar.sensor.zone_outliers`) is chosen among candidates, no rejection included,
@@ -7,23 +7,21 @@ by the estimator's mean relative error on the frames (:func:`fit_outlier_rule`);
 clean sets, a learned detector of biased zones trained on them
 (:mod:`deltar.sensor.zone_outlier_detector`) is among the candidates too. The rest is
 fitted with what was chosen. For plane-select networks that read no-target flags, the depth
-such a zone stands for is chosen next (:func:`fit_no_target_depth`). The estimator runs
-the checkpoint's network over the frames; for a network the estimator blends with the
-zones' colorization fill (plane-select heads) the fill is computed too, and
-:func:`deltar.inference.blend_fit.fit_confidence_blend` fits the blend's coefficients on
-sampled pixels. The blend is per pixel, so the blended depth of those same pixels is
-exact; their absolute errors and the network's spread then fit the sigma
+such a zone stands for is chosen next (:func:`fit_no_target_depth`), then how far the
+depth moves to reproduce the zones' readings
+(:func:`deltar.inference.zone_consistency.fit_zone_consistency`). The estimator runs the
+network over the frames; for plane-select heads the zones' colorization fill is computed
+too, and :func:`deltar.inference.blend_fit.fit_confidence_blend` fits the blend's
+coefficients on sampled pixels. The blend is per pixel, so the blended depth of those
+pixels is exact; their absolute errors and the network's spread then fit the sigma
 (:func:`deltar.inference.uncertainty.fit_uncertainty_calibration`), so the sigma
-describes the depth that is returned. Both results are written into a new checkpoint's
-config (``confidence_blend``, ``uncertainty_calibration``) and travel with the weights
-into ``DepthEstimator``, ``deltar predict`` and the ONNX export. Fit on the training
-scenes' frames only: an output stage fitted on the frames it is judged on says nothing.
-Last, for networks that read no-target flags, the threshold of the rule that infers them
-for readings without flags is chosen on the same frames with their flags removed
-(:func:`fit_no_target_inference`) and written as ``no_target_min_neighbour_m``; the
-outlier rule is written as ``zone_outlier_rule``.
+describes the depth that is returned. All of it is written into a new checkpoint's
+config and travels with the weights into ``DepthEstimator``, ``deltar predict`` and the
+ONNX export. Fit on the training scenes' frames only: an output stage fitted on the
+frames it is judged on says nothing. Last, for networks that read no-target flags, the
+threshold of the rule that infers them for readings without flags is chosen on the same
+frames with their flags removed (:func:`fit_no_target_inference`).
 """
-
 from __future__ import annotations
 
 import copy
@@ -42,6 +40,7 @@ from deltar.inference.uncertainty import (
     coverage,
     fit_uncertainty_calibration,
 )
+from deltar.inference.zone_consistency import STRENGTH_CANDIDATES, fit_zone_consistency
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 from deltar.sensor.zone_outlier_detector import OutlierDetector
 from deltar.sensor.zone_outliers import OutlierRule
@@ -73,6 +72,8 @@ class UncertaintyFit:
             (:func:`fit_no_target_depth`; None for networks that read no flags).
         no_target_depth_errors: mean relative error of each candidate depth over the
             frames with a no-target zone.
+        zone_consistency: the chosen zone-consistency strength, ``zone_consistency_errors``
+            each candidate's mean relative error (``fit_zone_consistency``).
         path: the written checkpoint.
     """
 
@@ -89,6 +90,8 @@ class UncertaintyFit:
     outlier_errors: dict[OutlierRule | OutlierDetector | None, float]
     no_target_depth_m: float | None
     no_target_depth_errors: dict[float, float]
+    zone_consistency: float
+    zone_consistency_errors: dict[float, float]
     path: Path
 
 
@@ -375,6 +378,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                                OUTLIER_CANDIDATES,
                                detector_sets: Sequence[Sequence] = (),
                                detector_noise: Mapping[str, float] | None = None,
+                               consistency_candidates: Sequence[float] = STRENGTH_CANDIDATES,
                                on_frame: Callable[[], None] | None = None,
                                on_passes: Callable[[int], None] | None = None
                                ) -> UncertaintyFit:
@@ -401,11 +405,14 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         detector_noise: the degradation it learns (``fit_outlier_detector``'s
             ``drop_fraction``, ``bias_prob``, ``bias_mean_m``, ``bias_std_m``); None: its
             defaults, those of ``deltar simulate``'s degraded sets.
+        consistency_candidates: zone-consistency strengths to choose among
+            (:func:`~deltar.inference.zone_consistency.fit_zone_consistency`); ``(0.0,)``
+            keeps the network's depth without trying.
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
         on_passes: called once the checkpoint is read, with how many times the fit
-            visits each frame: the outlier rule, the blend and sigma, and for networks
-            that read no-target flags the no-target depth and rule.
+            visits each frame: the outlier rule, the zone consistency, the blend and sigma,
+            and for networks that read no-target flags the no-target depth and rule.
 
     Raises:
         ValueError: ``out`` is the checkpoint itself, or too few pixels to fit.
@@ -420,7 +427,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
     model, preset, _ = load_checkpoint(source)
     if on_passes is not None:
-        on_passes(4 if model.uses_no_target else 2)
+        on_passes(5 if model.uses_no_target else 3)
     blends = model.network_config.head.name == "plane_select"
     # A copy serves the estimator (it prepares its model for inference in place); the
     # original is what is saved, so the file is read once. The output stage being
@@ -428,7 +435,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     # depends on the network and the frames alone, not on what the checkpoint carried.
     estimator = DepthEstimator(copy.deepcopy(model), blend=None, uncertainty=None,
                                no_target_min_neighbour_m=None, zone_outliers=None,
-                               weights=f"{preset} from {source}")
+                               zone_consistency=0.0, weights=f"{preset} from {source}")
     # The outlier rule first: it changes the zones everything after it reads.
     if detector_sets:
         from deltar.sensor.zone_outlier_detector import fit_outlier_detector
@@ -446,6 +453,11 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     far_depth, far_errors = fit_no_target_depth(
         estimator, sets, frames_per_set=frames_per_set, on_frame=on_frame) \
         if model.uses_no_target and blends else (None, {})
+    # Then the zone consistency: it changes the network's depth the blend and sigma read.
+    consistency, consistency_errors = (0.0, {}) if tuple(consistency_candidates) == (0.0,) \
+        else fit_zone_consistency(estimator, sets, candidates=consistency_candidates,
+                                  frames_per_set=frames_per_set, on_frame=on_frame)
+    estimator.zone_consistency = consistency
     pixels, frames = collect_pixels(estimator, sets, with_fill=blends,
                                     frames_per_set=frames_per_set,
                                     pixels_per_frame=pixels_per_frame, on_frame=on_frame)
@@ -475,9 +487,10 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
                         for name, v in relative.items()},
         no_target_min_neighbour_m=rule, no_target_errors=rule_errors,
         outlier_rule=outlier_rule, outlier_errors=outlier_errors,
-        no_target_depth_m=far_depth, no_target_depth_errors=far_errors, path=out)
+        no_target_depth_m=far_depth, no_target_depth_errors=far_errors,
+        zone_consistency=consistency, zone_consistency_errors=consistency_errors, path=out)
     model.set_output_contract(uncertainty_calibration=calibration.to_dict(),
-                              no_target_min_neighbour_m=rule,
+                              no_target_min_neighbour_m=rule, zone_consistency=consistency,
                               zone_outlier_rule=None if outlier_rule is None
                               else outlier_rule.to_dict(),
                               **({} if far_depth is None else {"no_target_depth": far_depth}))

@@ -43,6 +43,25 @@ def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
 _IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"
 
 
+def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | None:
+    """The estimator's fixed network input size (h, w) pixels, checked: as given, or an
+    ONNX model's one exported size; None lets the size rule choose.
+
+    Raises:
+        ValueError: a bad size, or one the ONNX model was not exported at.
+    """
+    from deltar.inference.preprocess import check_input_size
+
+    if onnx_model is not None:
+        sizes = onnx_model.input_sizes
+        if input_size is not None and tuple(input_size) not in sizes:
+            raise ValueError(f"input_size {tuple(input_size)} is not one the ONNX model "
+                             f"was exported at: {', '.join(map(str, sizes))}")
+        if len(sizes) == 1:
+            input_size = sizes[0]
+    return None if input_size is None else check_input_size(input_size, "input_size")
+
+
 def describe_argument(value: Any) -> str:
     """A short description of a wrongly typed argument, with a hint where one helps."""
     kind = type(value).__name__

@@ -7,7 +7,7 @@ network input by the one size rule of :mod:`deltar.inference.preprocess` (which 
 maps the zone rectangles into the network input and the output back), runs the network
 (PyTorch, optionally flip-averaged by :mod:`deltar.inference.flip`, or onnxruntime via
 :mod:`deltar.inference.onnx_runtime`) and returns depth and uncertainty at the input
-resolution.
+resolution, through the output stage (:mod:`deltar.inference.output_stage`).
 
 An estimator is built from a loaded model; :func:`deltar.inference.loading.load_estimator`
 is the one factory that loads any model source (bundled name, checkpoint, released
@@ -26,8 +26,8 @@ import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD, as_switch
+from deltar.inference import checks
 from deltar.inference.blend import ConfidenceBlend, resolve_blend
-from deltar.inference.checks import batch_arguments, check_backend_options, check_calibration
 from deltar.inference.fill_schedule import (
     fill_beside_network,
     start_fill_guide,
@@ -36,13 +36,13 @@ from deltar.inference.fill_schedule import (
 from deltar.inference.output_stage import apply_output_stage
 from deltar.inference.prediction import DepthPrediction
 from deltar.inference.preprocess import (
-    check_input_size,
     network_input_size,
     normalise_images,
     resize_to_image,
     scale_rects,
 )
 from deltar.inference.uncertainty import UncertaintyCalibration, resolve_uncertainty
+from deltar.inference.zone_consistency import check_strength
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
 from deltar.sensor.hypotheses import frame_hypotheses
 from deltar.sensor.no_target import check_min_neighbour_m, frame_no_target
@@ -133,6 +133,8 @@ class DepthEstimator:
             (:mod:`deltar.sensor.zone_outliers`): ``"auto"`` (default) by the rule or
             detector the weights carry (``config["zone_outlier_rule"]``), an
             ``OutlierRule`` or ``OutlierDetector``, or None.
+        zone_consistency: in [0, 1], how far the depth moves to reproduce the zones'
+            readings (:mod:`deltar.inference.zone_consistency`); None: as the weights say.
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -146,22 +148,15 @@ class DepthEstimator:
                  blend: ConfidenceBlend | str | None = "auto",
                  uncertainty: UncertaintyCalibration | str | None = "auto",
                  no_target_min_neighbour_m: float | str | None = "auto",
-                 zone_outliers: OutlierRule | OutlierDetector | str | None = "auto") -> None:
+                 zone_outliers: OutlierRule | OutlierDetector | str | None = "auto",
+                 zone_consistency: float | None = None) -> None:
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
-        check_backend_options(precision, flip_average, onnx_model is not None)
+        checks.check_backend_options(precision, flip_average, onnx_model is not None)
         if sampling is not None and sampling not in HYPOTHESIS_SAMPLINGS:
             raise ValueError(f"sampling must be one of {HYPOTHESIS_SAMPLINGS}, got "
                              f"{sampling!r}")
-        if onnx_model is not None:
-            sizes = onnx_model.input_sizes
-            if input_size is not None and tuple(input_size) not in sizes:
-                raise ValueError(f"input_size {tuple(input_size)} is not one the ONNX model "
-                                 f"was exported at: {', '.join(map(str, sizes))}")
-            if len(sizes) == 1:
-                input_size = sizes[0]
-        if input_size is not None:
-            input_size = check_input_size(input_size, "input_size")
+        input_size = checks.resolve_input_size(input_size, onnx_model)
         # The PyTorch backend's device and dtype; an ONNX model runs without torch.
         self.device = self.dtype = None
         if model is not None:
@@ -209,6 +204,8 @@ class DepthEstimator:
             contract.get("no_target_min_neighbour_m") if no_target_min_neighbour_m == "auto"
             else no_target_min_neighbour_m, "no_target_min_neighbour_m")
         self.zone_outliers = resolve_outlier_rule(zone_outliers, contract)
+        self.zone_consistency = check_strength(contract.get("zone_consistency", 0.0)
+                                               if zone_consistency is None else zone_consistency)
 
     # ------------------------------------------------------------------ prediction
     def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:
@@ -302,7 +299,7 @@ class DepthEstimator:
             problem = frame.physical_error(self.max_range_m)
             if problem is not None:
                 raise ValueError(f"frames[{i}]: {problem}")
-        check_calibration(calibration)
+        checks.check_calibration(calibration)
         net_size = self.network_size_for(size)
         if self.onnx_model is not None:
             self.onnx_model.warn_if_stretched(size, net_size)
@@ -408,8 +405,8 @@ class DepthEstimator:
             ValueError: bad image, zone frame (e.g. valid zones outside the sensor's
                 range) or a calibration for another resolution.
         """
-        single, images, frames = batch_arguments(image, zone_frame)
-        check_calibration(calibration)  # before it undistorts the images
+        single, images, frames = checks.batch_arguments(image, zone_frame)
+        checks.check_calibration(calibration)  # before it undistorts the images
         if getattr(calibration, "has_distortion", False):  # other types refused in prepare
             # The zones are placed with the pinhole intrinsics: predict on the
             # undistorted image (same intrinsics), so depth is for that image.
@@ -445,7 +442,8 @@ class DepthEstimator:
             fill = fills[i].result() if fills else None
             maps = [m for m in apply_output_stage(depths[i, 0], spreads[i, 0], fill, grid_rects,
                                                   self.blend, self.uncertainty,
-                                                  frame.valid_count == 0) if m is not None]
+                                                  frame.valid_count == 0, frame.flat(),
+                                                  self.zone_consistency) if m is not None]
             maps = resize_to_image(np.stack(maps)[None], size)[0]
             results.append(DepthPrediction(depth_m=maps[0], uncertainty_m=maps[1],
                                            zone_rects=inputs["image_rects"][i],

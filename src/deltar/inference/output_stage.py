@@ -1,4 +1,5 @@
-"""The output stage on the network's output grid: confidence blend, then calibrated sigma.
+"""The output stage on the network's output grid: the zones' readings reproduced, the
+confidence blend, then calibrated sigma.
 
 :meth:`~deltar.inference.estimator.DepthEstimator.predict` applies both on the grid the
 network returns its maps on (half its input size) and resizes only what it returns to
@@ -15,13 +16,16 @@ import numpy as np
 from deltar.inference.blend import ConfidenceBlend, blend_with_fill, grid_box
 from deltar.inference.preprocess import resize_to_image
 from deltar.inference.uncertainty import UncertaintyCalibration
+from deltar.inference.zone_consistency import zone_consistent_depth
 
 
 def apply_output_stage(depth_m: np.ndarray, spread_m: np.ndarray, fill_m: np.ndarray | None,
                        zone_rects: np.ndarray, blend: ConfidenceBlend | None,
-                       uncertainty: UncertaintyCalibration | None, image_only: bool
+                       uncertainty: UncertaintyCalibration | None, image_only: bool,
+                       zone_readings: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                       zone_consistency: float = 0.0
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Blend and calibrate one frame's maps on the network's output grid.
+    """Correct, blend and calibrate one frame's maps on the network's output grid.
 
     Args:
         depth_m: (h, w) the network's depth, metres.
@@ -34,6 +38,11 @@ def apply_output_stage(depth_m: np.ndarray, spread_m: np.ndarray, fill_m: np.nda
         uncertainty: the sigma calibration, or None for the raw spread.
         image_only: the frame has no valid zone: the metric scale is unknown, so the
             returned sigma is at least the depth.
+        zone_readings: (mean_m, sigma_m, valid) of the frame's zones as screened, each
+            (Z,) or (n, n), for the zone-consistency step; None skips it.
+        zone_consistency: its strength in [0, 1]
+            (:func:`~deltar.inference.zone_consistency.zone_consistent_depth`); the
+            corrected depth is then the network's depth everything after reads.
 
     Returns:
         (depth, sigma, network depth) (h, w) float32 metres; the network's depth is None
@@ -41,6 +50,8 @@ def apply_output_stage(depth_m: np.ndarray, spread_m: np.ndarray, fill_m: np.nda
     """
     if image_only:
         spread_m = np.maximum(spread_m, depth_m)
+    if zone_readings is not None and zone_consistency > 0 and not image_only:
+        depth_m = zone_consistent_depth(depth_m, zone_rects, *zone_readings, zone_consistency)
     network_depth = None
     depth = depth_m
     if fill_m is not None and blend is not None:

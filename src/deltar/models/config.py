@@ -264,6 +264,9 @@ class OutputConfig:
             that a learned detector finds biased
             (:meth:`deltar.sensor.zone_outlier_detector.OutlierDetector.to_dict`), or
             None (never). Fitted with the output stage; does not change the network.
+        zone_consistency: in [0, 1], how far the estimator moves the network's depth to
+            reproduce each zone's reading (:mod:`deltar.inference.zone_consistency`); 0
+            (default) not at all. Fitted with the output stage; does not change the network.
     """
 
     min_depth: float = 1e-3
@@ -273,8 +276,14 @@ class OutputConfig:
     confidence_blend: dict[str, Any] | None = None
     no_target_min_neighbour_m: float | None = None
     zone_outlier_rule: dict[str, Any] | None = None
+    zone_consistency: float = 0.0
 
     def __post_init__(self) -> None:
+        strength = self.zone_consistency
+        if isinstance(strength, bool) or not (isinstance(strength, (int, float)) and
+                                              0.0 <= strength <= 1.0):
+            raise ValueError(f"zone_consistency must be a number in [0, 1], got {strength!r}")
+        _set(self, "zone_consistency", float(strength))
         if not 0 < self.min_depth < self.max_depth:
             raise ValueError(f"need 0 < min_depth < max_depth, got {self.min_depth}, "
                              f"{self.max_depth}")
@@ -302,7 +311,8 @@ class OutputConfig:
 #: ``no_target_depth`` (the plane-select head's no-target hypothesis) leave the network
 #: as it is.
 OUTPUT_STAGE_OPTIONS = ("uncertainty_calibration", "confidence_blend",
-                        "no_target_min_neighbour_m", "zone_outlier_rule", "no_target_depth")
+                        "no_target_min_neighbour_m", "zone_outlier_rule", "no_target_depth",
+                        "zone_consistency")
 
 #: Each section's config classes by kind name; parts of one kind only under None.
 PART_CLASSES: dict[str, dict[str | None, type]] = {

@@ -1,0 +1,194 @@
+"""The network's depth made to reproduce each zone's reading: the zone-consistency step.
+
+A zone reports the mean of the strongest cluster of the depths in its footprint (one
+target, as the sensor reports it: :mod:`deltar.sensor.simulate_frame`), yet nothing in
+the network makes its depth average back to that reading. This step measures, for each
+valid zone, the ratio of its reading to the mean of the network's depth over the
+footprint's cells that lie on the reported target (within :data:`WINDOW_SIGMAS` of the
+zone's sigma, at least :data:`WINDOW_RELATIVE` of its reading), spreads the log ratios
+between the zone centres (bilinearly; a zone without a ratio takes its neighbours'
+mean, the image beyond the grid its nearest zones') and multiplies the depth by
+``exp(strength * field)``. ``strength`` is part of the output contract
+(``zone_consistency``), chosen with the rest of the output stage on frames of the
+training scenes (:func:`fit_zone_consistency`): 0 leaves the depth as the network made it.
+A zone whose footprint holds too little of its target (:data:`MIN_TARGET_FRACTION`: the
+target is a surface the network puts elsewhere) gives no ratio. On the ten-scene
+protocol the step lowered clean REL on 8-9 of the ten rooms left out
+(benchmarks/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Callable, Sequence
+
+import cv2
+import numpy as np
+
+__all__ = ["STRENGTH_CANDIDATES", "check_strength", "fit_zone_consistency",
+           "zone_consistency_field", "zone_consistent_depth"]
+
+#: A footprint cell counts as on the zone's target within this many of its sigmas ...
+WINDOW_SIGMAS = 3.0
+#: ... or within this fraction of its reading, whichever is wider.
+WINDOW_RELATIVE = 0.05
+#: A zone gives a ratio only when at least this fraction of its footprint is on target.
+MIN_TARGET_FRACTION = 0.25
+#: Strengths :func:`fit_zone_consistency` tries, none first.
+STRENGTH_CANDIDATES: tuple[float, ...] = (0.0, 0.5, 1.0)
+
+
+def check_strength(strength: float, name: str = "zone_consistency") -> float:
+    """``strength`` as a float in [0, 1]; a ``ValueError`` naming ``name`` otherwise."""
+    if isinstance(strength, bool) or not isinstance(strength, numbers.Real) or \
+            not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
+        raise ValueError(f"{name} must be a number in [0, 1], got {strength!r}")
+    return float(strength)
+
+
+def _footprint_labels(zone_rects: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) int index of the zone whose rectangle holds each cell's centre, -1 for none
+    (where rectangles overlap, the later zone)."""
+    height, width = shape
+    labels = np.full(shape, -1, dtype=np.int64)
+    bounds = np.ceil(np.asarray(zone_rects, dtype=np.float64))
+    bounds[:, [0, 2]] = np.clip(bounds[:, [0, 2]], 0, height)
+    bounds[:, [1, 3]] = np.clip(bounds[:, [1, 3]], 0, width)
+    for zone, (y0, x0, y1, x1) in enumerate(bounds.astype(np.int64)):
+        labels[y0:y1, x0:x1] = zone
+    return labels
+
+
+def zone_consistency_field(depth_m: np.ndarray, zone_rects: np.ndarray,
+                           zone_mean_m: np.ndarray, zone_sigma_m: np.ndarray,
+                           zone_valid: np.ndarray) -> np.ndarray | None:
+    """The log correction that makes ``depth_m`` reproduce the zones' readings.
+
+    Args:
+        depth_m: (h, w) the network's depth, metres.
+        zone_rects: (n * n, 4) (y0, x0, y1, x1) zone rectangles in pixels of ``depth_m``,
+            row-major over the square zone grid.
+        zone_mean_m, zone_sigma_m: (n, n) or (n * n,) each zone's reading and sigma, metres.
+        zone_valid: (n, n) or (n * n,) bool, the zones to use (screened, on the image).
+
+    Returns:
+        (h, w) float32 log ratios (natural log of reading over depth), or None when no
+        zone gives one.
+    """
+    depth = np.asarray(depth_m, dtype=np.float32)
+    mean = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
+    sigma = np.asarray(zone_sigma_m, dtype=np.float64).reshape(-1)
+    valid = np.asarray(zone_valid, dtype=bool).reshape(-1) & np.isfinite(mean) & (mean > 0)
+    count = mean.size
+    grid = math.isqrt(count)
+    rects = np.asarray(zone_rects, dtype=np.float64)
+    if grid * grid != count or rects.shape != (count, 4) or sigma.size != count:
+        raise ValueError(f"zone_rects must be (n * n, 4) and the readings (n * n,) alike, "
+                         f"got {rects.shape}, {mean.shape}, {sigma.shape}")
+    labels = _footprint_labels(rects, depth.shape)
+    inside = labels >= 0
+    label = labels[inside]
+    values = depth[inside].astype(np.float64)
+    window = np.maximum(WINDOW_SIGMAS * np.nan_to_num(sigma), WINDOW_RELATIVE * mean)
+    on_target = valid[label] & (np.abs(values - mean[label]) < window[label])
+    cells = np.bincount(label, minlength=count)
+    hits = np.bincount(label[on_target], minlength=count)
+    sums = np.bincount(label[on_target], weights=values[on_target], minlength=count)
+    usable = valid & (hits > 0) & (hits >= MIN_TARGET_FRACTION * cells)
+    if not usable.any():
+        return None
+    ratios = np.zeros(count)
+    ratios[usable] = np.log(mean[usable] * hits[usable] / sums[usable])
+    # A zone without a ratio takes the mean of its neighbours' (0 where none has one).
+    known = usable.reshape(grid, grid).astype(np.float64)
+    field = ratios.reshape(grid, grid)
+    box = (3, 3)
+    total = cv2.boxFilter(field * known, -1, box, normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    weight = cv2.boxFilter(known, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    field = np.where(known > 0, field, np.where(weight > 0, total / np.maximum(weight, 1), 0.0))
+    # Bilinear between zone centres (the mean centre of each zone row and column), the
+    # nearest zones' value beyond them.
+    centres_y = ((rects[:, 0] + rects[:, 2]) / 2).reshape(grid, grid).mean(axis=1)
+    centres_x = ((rects[:, 1] + rects[:, 3]) / 2).reshape(grid, grid).mean(axis=0)
+    height, width = depth.shape
+    # Cell centres sit at integer coordinates in the rectangles' frame (scale_rects).
+    rows = np.interp(np.arange(height), centres_y, np.arange(grid)).astype(np.float32)
+    cols = np.interp(np.arange(width), centres_x, np.arange(grid)).astype(np.float32)
+    map_x, map_y = np.meshgrid(cols, rows)
+    return cv2.remap(field.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+
+
+def zone_consistent_depth(depth_m: np.ndarray, zone_rects: np.ndarray,
+                          zone_mean_m: np.ndarray, zone_sigma_m: np.ndarray,
+                          zone_valid: np.ndarray, strength: float) -> np.ndarray:
+    """``depth_m * exp(strength * zone_consistency_field(...))``: (h, w) float32 metres
+    (arguments as :func:`zone_consistency_field`'s; ``strength`` in [0, 1]). The depth
+    as it is when ``strength`` is 0 or no zone gives a ratio."""
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if check_strength(strength) == 0.0:
+        return depth
+    field = zone_consistency_field(depth, zone_rects, zone_mean_m, zone_sigma_m, zone_valid)
+    if field is None:
+        return depth
+    field *= np.float32(strength)
+    return depth * np.exp(field)
+
+
+def fit_zone_consistency(estimator, sets: Sequence[Sequence], *,
+                         candidates: Sequence[float] = STRENGTH_CANDIDATES,
+                         frames_per_set: int | None = None, min_depth: float = 1e-3,
+                         max_depth: float = 10.0,
+                         on_frame: Callable[[], None] | None = None
+                         ) -> tuple[float, dict[float, float]]:
+    """Choose the zone-consistency strength on frames with ground truth.
+
+    The estimator (as given, with its zone outlier rule; fit with ``blend=None`` so the
+    choice does not depend on a blend fitted without it) predicts each frame with each
+    candidate; the one with the lowest mean relative error wins, the first on a tie.
+
+    Args:
+        estimator: a :class:`~deltar.inference.estimator.DepthEstimator`; its own
+            ``zone_consistency`` is replaced while it runs and restored after.
+        sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample` (image, zones and
+            ground-truth depth in metres), of the training scenes.
+        candidates: strengths in [0, 1] to try.
+        frames_per_set: at most this many frames of each set, spread evenly.
+        min_depth, max_depth: ground-truth range in metres.
+        on_frame: called after each frame (progress).
+
+    Returns:
+        (the chosen strength, mean relative error per candidate).
+    """
+    from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
+    from deltar.evaluation.uncertainty import _picks  # the output stage's frame choice
+
+    candidates = [check_strength(c, "candidates") for c in candidates]
+    if not candidates:
+        raise ValueError("fit_zone_consistency needs at least one candidate")
+    errors: dict[float, list[float]] = {c: [] for c in candidates}
+    kept = estimator.zone_consistency
+    try:
+        for samples in sets:
+            for index in _picks(len(samples), frames_per_set):
+                sample = samples[index]
+                for strength in candidates:
+                    estimator.zone_consistency = strength
+                    depth = estimator.predict(sample.rgb, sample.zone_frame(),
+                                              zone_rects=sample.zone_rects).depth_m
+                    try:
+                        errors[strength].append(depth_metrics(depth, sample.depth_m,
+                                                              min_depth, max_depth)["rel"])
+                    except EmptyFrameError:
+                        pass
+                if on_frame is not None:
+                    on_frame()
+    finally:
+        estimator.zone_consistency = kept
+    means = {c: float(np.mean(v)) for c, v in errors.items() if v}
+    if not means:
+        raise ValueError("no frame has ground truth to choose the zone consistency on")
+    best = min(means.values())
+    return next(c for c in candidates if means.get(c) == best), means
