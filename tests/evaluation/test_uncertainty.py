@@ -34,15 +34,20 @@ def test_fit_writes_a_checkpoint_the_estimator_calibrates_with(tmp_path, tiny_sa
                                      min_pixels=100, on_frame=lambda: visits.append(1),
                                      on_passes=passes.append)
     assert fit.frames == 3 and fit.pixels["inside"] + fit.pixels["outside"] == 3 * 32 * 48
-    # A network that reads no flags: two passes (outlier rule; blend and sigma), so the
-    # progress total is the visits.
-    assert passes == [2] and len(visits) == 6
+    # A network that reads no flags: three passes (outlier rule; zone consistency; blend
+    # and sigma), so the progress total is the visits.
+    assert passes == [3] and len(visits) == 9
+    assert set(fit.zone_consistency_errors) == {0.0, 0.5, 1.0}
+    assert fit.zone_consistency == min(fit.zone_consistency_errors,
+                                       key=fit.zone_consistency_errors.get)
     for name in ("inside", "outside"):
         within_1, within_2 = fit.coverage[name]
         assert 0.55 <= within_1 <= 0.85 and within_2 >= within_1
     model, _, config = load_checkpoint(fit.path)
     assert config["output"]["uncertainty_calibration"] == fit.calibration.to_dict()
+    assert config["output"]["zone_consistency"] == fit.zone_consistency
     estimator = DepthEstimator(model)
+    assert estimator.zone_consistency == fit.zone_consistency
     assert estimator.uncertainty == fit.calibration
     sample = tiny_samples[0]
     assert estimator.predict(sample.rgb, sample.zone_frame(),

@@ -344,3 +344,32 @@ def test_zones_disagreeing_with_all_neighbours_are_set_aside_by_the_weights_rule
     few = ZoneFrame(mean_m=mean, sigma_m=frame.sigma_m, valid=frame.valid,
                     no_target=frame.no_target)
     assert not screened.predict(image, few).zone_rejected.any()
+
+
+def test_the_depth_moves_to_reproduce_the_zones_readings_as_the_weights_say(rng):
+    from deltar.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("deltar-select", design_size=(64, 96))
+    model.set_output_contract(zone_consistency=1.0)
+    image = random_image(rng, 64, 96)
+    mean = 2.0 + 0.1 * (np.indices((8, 8)).sum(axis=0) % 2)  # a checkerboard of readings
+    frame = ZoneFrame(mean_m=mean, sigma_m=np.full((8, 8), 0.02), valid=np.ones((8, 8), bool))
+    consistent = DepthEstimator(model, weights="test", blend=None)
+    plain = DepthEstimator(model, weights="test", blend=None, zone_consistency=0.0)
+    assert consistent.zone_consistency == 1.0 and plain.zone_consistency == 0.0
+
+    def misfit(result) -> float:
+        """Mean |log(reading / mean depth over the zone's footprint)| over the zones."""
+        gaps = []
+        for zone, (y0, x0, y1, x1) in enumerate(np.ceil(result.zone_rects).astype(int)):
+            cells = result.depth_m[max(y0, 0):y1, max(x0, 0):x1]
+            if cells.size:
+                gaps.append(abs(np.log(mean.flat[zone] / cells.mean())))
+        return float(np.mean(gaps))
+
+    before, after = misfit(plain.predict(image, frame)), misfit(consistent.predict(image, frame))
+    # Smoothed between zone centres, the correction closes part of each gap.
+    assert after < 0.85 * before
+    with pytest.raises(ValueError, match="zone_consistency"):
+        DepthEstimator(model, weights="test", zone_consistency=-0.1)

@@ -19,9 +19,11 @@ protocol the step lowered clean REL on 8-9 of the ten rooms left out
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -47,17 +49,45 @@ def check_strength(strength: float, name: str = "zone_consistency") -> float:
     return float(strength)
 
 
-def _footprint_labels(zone_rects: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(h, w) int index of the zone whose rectangle holds each cell's centre, -1 for none
-    (where rectangles overlap, the later zone)."""
+@dataclass(frozen=True)
+class _Layout:
+    """What a zone layout and grid shape fix, kept between frames (a rig's zones fall on
+    the same cells every frame): each footprint cell's flat index and zone, and the
+    remap coordinates that spread the zones' values over the grid."""
+
+    cells: np.ndarray   # (N,) flat indices of the cells inside some zone
+    zones: np.ndarray   # (N,) their zone
+    counts: np.ndarray  # (Z,) cells per zone
+    map_x: np.ndarray   # (h, w) float32 zone-column coordinate of each cell
+    map_y: np.ndarray   # (h, w) float32 zone-row coordinate
+
+
+@functools.lru_cache(maxsize=8)
+def _layout(rect_bytes: bytes, count: int, shape: tuple[int, int]) -> _Layout:
     height, width = shape
+    rects = np.frombuffer(rect_bytes, dtype=np.float64).reshape(count, 4)
+    grid = math.isqrt(count)
+    # A cell belongs to the zone whose rectangle holds its centre (cell centres at
+    # integer coordinates, as scale_rects maps them); where rectangles overlap, the later.
     labels = np.full(shape, -1, dtype=np.int64)
-    bounds = np.ceil(np.asarray(zone_rects, dtype=np.float64))
+    bounds = np.ceil(rects)
     bounds[:, [0, 2]] = np.clip(bounds[:, [0, 2]], 0, height)
     bounds[:, [1, 3]] = np.clip(bounds[:, [1, 3]], 0, width)
     for zone, (y0, x0, y1, x1) in enumerate(bounds.astype(np.int64)):
         labels[y0:y1, x0:x1] = zone
-    return labels
+    cells = np.flatnonzero(labels.reshape(-1) >= 0)
+    zones = labels.reshape(-1)[cells]
+    # Bilinear between zone centres (the mean centre of each zone row and column), the
+    # nearest zones' value beyond them.
+    centres_y = ((rects[:, 0] + rects[:, 2]) / 2).reshape(grid, grid).mean(axis=1)
+    centres_x = ((rects[:, 1] + rects[:, 3]) / 2).reshape(grid, grid).mean(axis=0)
+    rows = np.interp(np.arange(height), centres_y, np.arange(grid)).astype(np.float32)
+    cols = np.interp(np.arange(width), centres_x, np.arange(grid)).astype(np.float32)
+    map_x, map_y = np.meshgrid(cols, rows)
+    layout = _Layout(cells, zones, np.bincount(zones, minlength=count), map_x, map_y)
+    for array in (layout.cells, layout.zones, layout.counts, layout.map_x, layout.map_y):
+        array.setflags(write=False)
+    return layout
 
 
 def zone_consistency_field(depth_m: np.ndarray, zone_rects: np.ndarray,
@@ -82,20 +112,20 @@ def zone_consistency_field(depth_m: np.ndarray, zone_rects: np.ndarray,
     valid = np.asarray(zone_valid, dtype=bool).reshape(-1) & np.isfinite(mean) & (mean > 0)
     count = mean.size
     grid = math.isqrt(count)
-    rects = np.asarray(zone_rects, dtype=np.float64)
-    if grid * grid != count or rects.shape != (count, 4) or sigma.size != count:
-        raise ValueError(f"zone_rects must be (n * n, 4) and the readings (n * n,) alike, "
-                         f"got {rects.shape}, {mean.shape}, {sigma.shape}")
-    labels = _footprint_labels(rects, depth.shape)
-    inside = labels >= 0
-    label = labels[inside]
-    values = depth[inside].astype(np.float64)
+    rects = np.ascontiguousarray(zone_rects, dtype=np.float64)
+    if grid * grid != count or rects.shape != (count, 4) or sigma.size != count or \
+            depth.ndim != 2:
+        raise ValueError(f"depth_m must be (h, w), zone_rects (n * n, 4) and the readings "
+                         f"(n * n,) alike, got {depth.shape}, {rects.shape}, {mean.shape}, "
+                         f"{sigma.shape}")
+    layout = _layout(rects.tobytes(), count, depth.shape)
+    zones = layout.zones
+    values = depth.reshape(-1)[layout.cells].astype(np.float64)
     window = np.maximum(WINDOW_SIGMAS * np.nan_to_num(sigma), WINDOW_RELATIVE * mean)
-    on_target = valid[label] & (np.abs(values - mean[label]) < window[label])
-    cells = np.bincount(label, minlength=count)
-    hits = np.bincount(label[on_target], minlength=count)
-    sums = np.bincount(label[on_target], weights=values[on_target], minlength=count)
-    usable = valid & (hits > 0) & (hits >= MIN_TARGET_FRACTION * cells)
+    on_target = valid[zones] & (np.abs(values - mean[zones]) < window[zones])
+    hits = np.bincount(zones[on_target], minlength=count)
+    sums = np.bincount(zones[on_target], weights=values[on_target], minlength=count)
+    usable = valid & (hits > 0) & (hits >= MIN_TARGET_FRACTION * layout.counts)
     if not usable.any():
         return None
     ratios = np.zeros(count)
@@ -103,21 +133,11 @@ def zone_consistency_field(depth_m: np.ndarray, zone_rects: np.ndarray,
     # A zone without a ratio takes the mean of its neighbours' (0 where none has one).
     known = usable.reshape(grid, grid).astype(np.float64)
     field = ratios.reshape(grid, grid)
-    box = (3, 3)
-    total = cv2.boxFilter(field * known, -1, box, normalize=False,
+    total = cv2.boxFilter(field * known, -1, (3, 3), normalize=False,
                           borderType=cv2.BORDER_CONSTANT)
-    weight = cv2.boxFilter(known, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    weight = cv2.boxFilter(known, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
     field = np.where(known > 0, field, np.where(weight > 0, total / np.maximum(weight, 1), 0.0))
-    # Bilinear between zone centres (the mean centre of each zone row and column), the
-    # nearest zones' value beyond them.
-    centres_y = ((rects[:, 0] + rects[:, 2]) / 2).reshape(grid, grid).mean(axis=1)
-    centres_x = ((rects[:, 1] + rects[:, 3]) / 2).reshape(grid, grid).mean(axis=0)
-    height, width = depth.shape
-    # Cell centres sit at integer coordinates in the rectangles' frame (scale_rects).
-    rows = np.interp(np.arange(height), centres_y, np.arange(grid)).astype(np.float32)
-    cols = np.interp(np.arange(width), centres_x, np.arange(grid)).astype(np.float32)
-    map_x, map_y = np.meshgrid(cols, rows)
-    return cv2.remap(field.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
+    return cv2.remap(field.astype(np.float32), layout.map_x, layout.map_y, cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
 
 

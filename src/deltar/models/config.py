@@ -340,7 +340,7 @@ FLAT_OPTIONS: dict[str, tuple[str, str]] = {
     **{name: ("output", name) for name in ("min_depth", "max_depth", "no_target_depth",
                                            "uncertainty_calibration", "confidence_blend",
                                            "no_target_min_neighbour_m",
-                                           "zone_outlier_rule")},
+                                           "zone_outlier_rule", "zone_consistency")},
 }
 
 
