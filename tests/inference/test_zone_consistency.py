@@ -23,7 +23,7 @@ def _grid_rects(height: int = 72, width: int = 120, grid: int = 8) -> np.ndarray
 
 def _centre(rects: np.ndarray, zone: int) -> tuple[int, int]:
     y0, x0, y1, x1 = rects[zone]
-    return int(round((y0 + y1) / 2)), int(round((x0 + x1) / 2))
+    return round(float(y0 + y1) / 2), round(float(x0 + x1) / 2)
 
 
 def _wall(reading_m: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
