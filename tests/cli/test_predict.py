@@ -171,3 +171,31 @@ def test_export_int8_needs_a_calibration_folder(tmp_path):
                                   str(tmp_path / "nowhere")])
     assert missing.exit_code != 0 and "calibration RGB-D folder not found" in missing.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("folder_mode", [False, True])
+def test_a_raw_driver_dump_is_reoriented_as_asked(tmp_path, rng, folder_mode):
+    image, _ = _inputs(tmp_path / "in", "a", rng)
+    (tmp_path / "in" / "a.json").unlink()
+    # ST's order: the driver's first rows read near (1.0 m), its last rows far (2.4 m).
+    rows = np.repeat(np.arange(8), 8)
+    (tmp_path / "in" / "a.json").write_text(json.dumps({
+        "distance_mm": (1000 + 200 * rows).tolist(), "range_sigma_mm": [20] * 64,
+        "target_status": [5] * 64}))
+    inputs = (["--images", str(tmp_path / "in"), "--zones-dir", str(tmp_path / "in")]
+              if folder_mode else ["--image", str(image), "--zones", str(tmp_path / "in" /
+                                                                        "a.json")])
+    top_minus_bottom = {}
+    for orientation in ("none", "flip_ud"):
+        out = tmp_path / orientation
+        result = runner.invoke(app, ["predict", *inputs, "--out", str(out), "--outputs", "npy",
+                                     "--driver-orientation", orientation, "--preset",
+                                     "deltar-select", "--threads", "1"])
+        assert result.exit_code == 0, result.output
+        depth = np.load(out / "a_depth_m.npy")
+        top_minus_bottom[orientation] = depth[:16].mean() - depth[-16:].mean()
+    assert top_minus_bottom["none"] < -0.5 and top_minus_bottom["flip_ud"] > 0.5
+    bad = runner.invoke(app, ["predict", *inputs, "--out", str(tmp_path / "x"),
+                              "--driver-orientation", "upside", "--preset", "deltar-select"])
+    assert bad.exit_code == 2 and "--driver-orientation" in bad.output
+    assert not (tmp_path / "x").exists()

@@ -31,6 +31,10 @@ def predict_command(
     images: Path | None = typer.Option(None, "--images", help="Folder of images (folder "
                                        "mode, paired with --zones-dir by file stem)."),
     zones_dir: Path | None = typer.Option(None, "--zones-dir", help="Folder of zone frames."),
+    driver_orientation: str = typer.Option(
+        "none", "--driver-orientation", help="Raw driver dumps only: how the driver's zone "
+        "grid maps onto the image, a comma list of flip_ud, flip_lr, rot90:K or none "
+        "(e.g. flip_ud for vl53l5cx-ctypes, docs/formats.md)."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     calib: Path | None = typer.Option(
         None, "--calib", help="Rig calibration JSON (deltar calibrate); without it the zones "
@@ -66,6 +70,9 @@ def predict_command(
     if overwrite and skip_existing:
         raise typer.BadParameter("give --overwrite or --skip-existing, not both")
     kinds = parse_outputs(outputs)
+    from deltar.cli.robotics import parse_orientation
+
+    orientation = parse_orientation(driver_orientation, "--driver-orientation")
     model.check()
     first = None
     if single:
@@ -73,7 +80,7 @@ def predict_command(
         from deltar.io.zone_file import load_zone_frame
 
         pairs, unpaired = [(image, zones)], []
-        first = (read_color(image), load_zone_frame(zones))
+        first = (read_color(image), load_zone_frame(zones, orientation=orientation))
         check_valid_zones(first[1], zones, allow_no_zones, _ALLOW)
     else:
         pairs, unpaired = pair_by_stem(images, zones_dir)
@@ -123,6 +130,7 @@ def predict_command(
         summary = run_jobs(
             jobs, estimator, out, calibration=calibration, overwrite=overwrite,
             keep_going=keep_going, allow_no_zones=allow_no_zones, allow_option=_ALLOW,
+            orientation=orientation,
             first=first if first is not None and jobs else None,
             on_prediction=on_prediction,
             on_failure=lambda name, err: warn(f"skipped {name}: {format_error(err)}"),

@@ -52,8 +52,9 @@ TopicPrefixOption = typer.Option("/deltar", "--topic-prefix", help="Prefix of th
                                  "written into --out-bag.")
 
 
-def parse_orientation(text: str) -> Orientation:
-    """``"flip_ud"``, ``"flip_lr,rot90:1"``, ``"none"``... -> :class:`Orientation`."""
+def parse_orientation(text: str, option: str = "--tof-orientation") -> Orientation:
+    """``"flip_ud"``, ``"flip_lr,rot90:1"``, ``"none"``... -> :class:`Orientation` (a
+    ``typer.BadParameter`` naming ``option`` for anything else)."""
     from deltar.sensor.zone_frame import Orientation
 
     flip_ud = flip_lr = False
@@ -69,7 +70,7 @@ def parse_orientation(text: str) -> Orientation:
             rot = int(part[6:])
         else:
             raise typer.BadParameter(f"unknown orientation part {part!r}; use flip_ud, "
-                                     "flip_lr, rot90:K or none", param_hint="--tof-orientation")
+                                     "flip_lr, rot90:K or none", param_hint=option)
     return Orientation(flip_ud=flip_ud, flip_lr=flip_lr, rot90=rot)
 
 

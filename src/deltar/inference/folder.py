@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from deltar.inference.estimator import DepthEstimator
-    from deltar.sensor.zone_frame import ZoneFrame
+    from deltar.sensor.zone_frame import Orientation, ZoneFrame
 
 #: Errors of one frame's input (bad or missing files, wrong values) that ``keep_going``
 #: skips; anything else is a bug and always stops the run.
@@ -123,7 +123,8 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
              on_prediction: Callable[[FrameJob, Any, Any], None] | None = None,
              on_failure: Callable[[str, BaseException], None] | None = None,
              on_frame: Callable[[], None] | None = None,
-             allow_option: str = "allow_no_zones") -> JobSummary:
+             allow_option: str = "allow_no_zones",
+             orientation: Orientation | None = None) -> JobSummary:
     """Predict and write every job.
 
     Args:
@@ -142,6 +143,8 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
         on_failure: ``callable(image name, error)`` for each skipped frame.
         on_frame: called after each frame, written or not (e.g. a progress bar).
         allow_option: how the no-valid-zone refusal names ``allow_no_zones``.
+        orientation: how raw driver dumps' zone grids map onto the images
+            (:func:`~deltar.io.zone_file.load_zone_frame`); None: as stored.
 
     Returns:
         A :class:`JobSummary`.
@@ -155,7 +158,7 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
         index, job = indexed
         if index == 0 and first is not None:
             return first
-        return read_color(job.image), load_zone_frame(job.zones)
+        return read_color(job.image), load_zone_frame(job.zones, orientation=orientation)
 
     summary = JobSummary()
     # The next job's files are read while the estimator works on this one.
