@@ -138,8 +138,9 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
         raise ValueError(f"{source}: schema is {data.get('schema')!r}, expected {SCHEMA_NAME!r}")
     version = data.get("schema_version")
     if version != SCHEMA_VERSION:
-        raise ValueError(f"{source}: unsupported schema_version {version!r} "
-                         f"(this version reads {SCHEMA_VERSION})")
+        found = "no schema_version" if version is None else \
+            f"unsupported schema_version {version!r}"
+        raise ValueError(f"{source}: {found} (this version reads {SCHEMA_VERSION})")
     missing = [k for k in ("mean_m", "sigma_m", "valid") if k not in data]
     if missing:
         raise ValueError(f"{source}: missing keys {missing} (and no driver fields "
