@@ -103,6 +103,9 @@ def test_driver_values_must_be_numbers_and_out_of_range_zones_are_invalid():
     ("timestamp_s", "12.5", "timestamp_s must be a number, got '12.5'"),
     ("valid", ["true"] * 64, "valid must hold booleans"),
     ("sensor_model", 5, "sensor_model must be a string"),
+    # Seven numbers and a one-number list in the first row: 64 numbers, not a grid.
+    ("mean_m", [[1.5] * 7 + [[1.0]]] + [[1.5] * 8] * 7,
+     "mean_m must be a flat list of numbers or rows of equal length"),
 ])
 def test_zone_files_refuse_strings_and_booleans(tmp_path, key, value, words):
     data = zone_frame_to_dict(_frame())

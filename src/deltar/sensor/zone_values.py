@@ -44,7 +44,8 @@ def number_array(values, name: str) -> np.ndarray:
         name: what the values are, for the error message (e.g. ``"zones.json: mean_m"``).
 
     Raises:
-        ValueError: ``"<name> must hold numbers, got ..."``.
+        ValueError: ``"<name> must hold numbers, got ..."``, or nested lists that are
+            not rows of one length.
     """
     if isinstance(values, np.ndarray):
         if values.dtype.kind not in "iuf":
@@ -65,7 +66,11 @@ def number_array(values, name: str) -> np.ndarray:
     if bad:
         raise ValueError(f"{name} must hold numbers, got {type(bad[0]).__name__} "
                          f"{bad[0]!r}" + (f" and {len(bad) - 1} more" if len(bad) > 1 else ""))
-    return np.asarray(flat, dtype=np.float64)
+    try:  # nested lists must be rows of one length (a grid), not a ragged mix
+        return np.asarray(values, dtype=np.float64).reshape(-1)
+    except ValueError:
+        raise ValueError(f"{name} must be a flat list of numbers or rows of equal length, "
+                         "got nested lists of different lengths") from None
 
 
 def status_codes(values, name: str) -> np.ndarray:
