@@ -768,6 +768,17 @@ def test_export_of_several_sizes_refuses_their_weights_file_before_the_model(tmp
     assert weights.read_bytes() == b"an earlier export's weights"
 
 
+def test_export_names_layout_from_when_its_file_is_no_calibration(tmp_path):
+    picture = tmp_path / "notimage.png"
+    picture.write_bytes(b"not a picture and not JSON")
+    result = _run(["export", "--preset", "deltar-lite", "--out", tmp_path / "m.onnx",
+                   "--layout-from", picture])
+    assert result.exit_code == 1, result.output
+    line = _one_error_line(result)
+    assert line.startswith("error: --layout-from: ") and str(picture) in line
+    assert MODEL_BUILT not in result.output and not (tmp_path / "m.onnx").exists()
+
+
 def test_wall_test_refuses_a_recording_given_twice_and_text_is_no_checkpoint(recording,
                                                                             tmp_path):
     result = _run(["wall-test", recording, recording, "--out", tmp_path / "o", *LITE])

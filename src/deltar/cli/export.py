@@ -22,10 +22,11 @@ def _layout_rects(source: Path, height: int, width: int):
     from deltar.inference.preprocess import scale_rects
     from deltar.io.recording import Recording
 
-    if source.is_dir():
-        calibration = recording_calibration(Recording(source))
-    else:
-        calibration = RigCalibration.load(source)
+    try:
+        calibration = recording_calibration(Recording(source)) if source.is_dir() \
+            else RigCalibration.load(source)
+    except (ValueError, FileNotFoundError) as err:
+        raise ValueError(f"--layout-from: {err}") from err
     intr = calibration.intrinsics
     # Zones placed at 2 m; with parallax, other distances may need their own export.
     rects = calibration.zone_rects_for(2.0, (intr.height, intr.width))
