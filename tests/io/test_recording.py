@@ -150,3 +150,14 @@ def test_recording_round_trip_keeps_the_targets(tmp_path, rng):
     assert len(pairs) == 2
     for pair, frame in zip(pairs, frames, strict=True):
         _assert_same_targets(pair.zone_frame, frame)
+
+
+def test_a_bag_or_an_empty_folder_is_no_recording_and_a_bag_is_named_so(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="recording has no meta.json") as info:
+        Recording(tmp_path / "empty")
+    assert "bag" not in str(info.value)
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    with pytest.raises(FileNotFoundError, match="a ROS 2 bag, not a recording folder"):
+        Recording(tmp_path / "bag")

@@ -227,7 +227,9 @@ class Recording:
         self.folder = input_folder(folder, "recording folder")
         meta_path = self.folder / META_FILE
         if not meta_path.exists():
-            raise FileNotFoundError(f"recording has no {META_FILE}: {meta_path}")
+            hint = " (it is a ROS 2 bag, not a recording folder; 'deltar replay --bag' " \
+                "reads bags)" if (self.folder / "metadata.yaml").is_file() else ""
+            raise FileNotFoundError(f"recording has no {META_FILE}: {meta_path}{hint}")
         with reading(meta_path, "recording metadata"):
             self.meta = RecordingMeta.from_dict(read_json(meta_path, "recording metadata"),
                                                 str(meta_path))
