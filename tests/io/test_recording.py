@@ -154,9 +154,9 @@ def test_recording_round_trip_keeps_the_targets(tmp_path, rng):
 
 def test_a_bag_or_an_empty_folder_is_no_recording_and_a_bag_is_named_so(tmp_path):
     (tmp_path / "empty").mkdir()
-    with pytest.raises(FileNotFoundError, match="recording has no meta.json") as info:
+    with pytest.raises(FileNotFoundError, match=r"recording has no meta\.json") as info:
         Recording(tmp_path / "empty")
-    assert "bag" not in str(info.value)
+    assert "ROS 2 bag" not in str(info.value)
     (tmp_path / "bag").mkdir()
     (tmp_path / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     with pytest.raises(FileNotFoundError, match="a ROS 2 bag, not a recording folder"):
