@@ -71,6 +71,16 @@ def test_default_carries_its_fitted_outlier_rule_and_no_target_depth():
     assert estimator.model.head.no_target_depth == depth
 
 
+def test_default_carries_its_fitted_zone_consistency_in_both_backends():
+    from deltar.inference.zone_consistency import STRENGTH_CANDIDATES
+
+    _, _, config = load_checkpoint(resolve_checkpoint("default"))
+    strength = config["output"]["zone_consistency"]
+    assert strength in STRENGTH_CANDIDATES
+    assert load_estimator("default").zone_consistency == strength
+    assert load_estimator("default", kind="onnx").zone_consistency == strength
+
+
 def test_default_keeps_the_sensor_scale_on_a_real_frame(shared_data):
     torch.set_num_threads(2)
     frame = open_source(str(shared_data / "realsense_floor"))[3]
