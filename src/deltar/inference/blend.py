@@ -75,8 +75,8 @@ class ConfidenceBlend(RegionPair, region_type=RegionBlend, what="confidence blen
 #: :func:`~deltar.inference.blend_fit.fit_confidence_blend` on the ten shared RGB-D
 #: scenes (clean and degraded zones, simulated with up to four targets per zone) with the
 #: bundled model (docs/training.md).
-DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-5.539, -3.760),
-                                outside=RegionBlend(-5.024, -4.171))
+DEFAULT_BLEND = ConfidenceBlend(inside=RegionBlend(-6.184, -4.392),
+                                outside=RegionBlend(-4.913, -3.810))
 
 
 def resolve_blend(blend: ConfidenceBlend | str | None, contract: Mapping
