@@ -1,16 +1,9 @@
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
-from deltar.inference.zone_consistency import (
-    STRENGTH_CANDIDATES,
-    fit_zone_consistency,
-    zone_consistency_field,
-    zone_consistent_depth,
-)
+from deltar.inference.zone_consistency import zone_consistency_field, zone_consistent_depth
 
 
 def _grid_rects(height: int = 72, width: int = 120, grid: int = 8) -> np.ndarray:
@@ -94,35 +87,3 @@ def test_invalid_zones_and_bad_arguments():
         zone_consistency_field(depth, rects[:60], mean, sigma, valid)
     with pytest.raises(ValueError, match="depth_m must be"):
         zone_consistency_field(depth[None], rects, mean, sigma, valid)
-
-
-class _StubEstimator:
-    """Predicts the truth off by a factor that depends on ``zone_consistency``."""
-
-    def __init__(self, factors: dict[float, float]) -> None:
-        self.factors, self.zone_consistency, self.seen = factors, 0.25, []
-
-    def predict(self, rgb, frame, zone_rects=None):
-        self.seen.append(self.zone_consistency)
-        return SimpleNamespace(depth_m=rgb * self.factors[self.zone_consistency])
-
-
-def _sample(truth: np.ndarray) -> SimpleNamespace:
-    return SimpleNamespace(rgb=truth, depth_m=truth, zone_rects=None,
-                           zone_frame=lambda: None)
-
-
-def test_the_fit_chooses_the_strength_with_the_lowest_error_and_restores_the_estimator():
-    truth = np.full((4, 4), 2.0, np.float32)
-    estimator = _StubEstimator({0.0: 1.10, 0.5: 1.02, 1.0: 0.95})
-    chosen, errors = fit_zone_consistency(estimator, [[_sample(truth)] * 3],
-                                          frames_per_set=2)
-    assert chosen == 0.5
-    assert errors == pytest.approx({0.0: 0.10, 0.5: 0.02, 1.0: 0.05}, abs=1e-6)
-    assert estimator.zone_consistency == 0.25  # restored
-    assert len(estimator.seen) == 2 * len(STRENGTH_CANDIDATES)  # two frames, each strength
-    # On a tie the first candidate (none) wins.
-    tie = _StubEstimator({0.0: 1.05, 0.5: 0.95, 1.0: 1.05})
-    assert fit_zone_consistency(tie, [[_sample(truth)]])[0] == 0.0
-    with pytest.raises(ValueError, match="candidates must be a number in"):
-        fit_zone_consistency(tie, [[_sample(truth)]], candidates=(0.0, 2.0))

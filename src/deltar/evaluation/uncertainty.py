@@ -9,8 +9,8 @@ clean sets, a learned detector of biased zones trained on them
 fitted with what was chosen. For plane-select networks that read no-target flags, the depth
 such a zone stands for is chosen next (:func:`fit_no_target_depth`), then how far the
 depth moves to reproduce the zones' readings
-(:func:`deltar.inference.zone_consistency.fit_zone_consistency`). The estimator runs the
-network over the frames; for plane-select heads the zones' colorization fill is computed
+(:func:`deltar.evaluation.zone_consistency_fit.fit_zone_consistency`). The estimator runs
+the network over the frames; for plane-select heads the zones' colorization fill is computed
 too, and :func:`deltar.inference.blend_fit.fit_confidence_blend` fits the blend's
 coefficients on sampled pixels. The blend is per pixel, so the blended depth of those
 pixels is exact; their absolute errors and the network's spread then fit the sigma
@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.evaluation.zone_consistency_fit import fit_zone_consistency, frame_picks
 from deltar.inference.blend import ConfidenceBlend
 from deltar.inference.blend_fit import BlendPixels, fit_confidence_blend
 from deltar.inference.uncertainty import (
@@ -40,7 +41,7 @@ from deltar.inference.uncertainty import (
     coverage,
     fit_uncertainty_calibration,
 )
-from deltar.inference.zone_consistency import STRENGTH_CANDIDATES, fit_zone_consistency
+from deltar.inference.zone_consistency import STRENGTH_CANDIDATES
 from deltar.sensor.zone_frame import NO_TARGET_DEPTH_M
 from deltar.sensor.zone_outlier_detector import OutlierDetector
 from deltar.sensor.zone_outliers import OutlierRule
@@ -127,7 +128,7 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
     rng = np.random.default_rng(seed)
     parts, frames = [], 0
     for samples in sets:
-        for index in _picks(len(samples), frames_per_set):
+        for index in frame_picks(len(samples), frames_per_set):
             sample = samples[index]
             frame = sample.zone_frame()
             result = estimator.predict(sample.rgb, frame, zone_rects=sample.zone_rects)
@@ -158,13 +159,6 @@ def collect_pixels(estimator, sets: Sequence[Sequence], *, with_fill: bool,
 #: Thresholds :func:`fit_no_target_inference` tries, metres, most cautious first (None:
 #: a frame without flags has no zone read as no target).
 NO_TARGET_CANDIDATES_M: tuple[float | None, ...] = (None, 3.5, 3.0, 2.5, 2.0, 1.5)
-
-
-def _picks(count: int, frames_per_set: int | None) -> Sequence[int]:
-    """Indices of at most ``frames_per_set`` frames of ``count``, spread evenly."""
-    if frames_per_set is None or frames_per_set >= count:
-        return range(count)
-    return [int(i) for i in np.linspace(0, count - 1, frames_per_set).round()]
 
 
 def fit_no_target_inference(estimator, sets: Sequence[Sequence], *,
@@ -222,7 +216,7 @@ def _choose_candidate(estimator, sets, variants, candidates, frames_per_set, min
 
     errors: dict = {c: [] for c in candidates}
     for samples in sets:
-        for index in _picks(len(samples), frames_per_set):
+        for index in frame_picks(len(samples), frames_per_set):
             sample = samples[index]
             changed = list(variants(sample.zone_frame()))
             if any(mask.any() for _, _, mask in changed):
@@ -341,7 +335,7 @@ def fit_no_target_depth(estimator, sets: Sequence[Sequence], *,
 
     errors: dict[float, list[float]] = {float(c): [] for c in candidates}
     for samples in sets:
-        for index in _picks(len(samples), frames_per_set):
+        for index in frame_picks(len(samples), frames_per_set):
             sample = samples[index]
             frame = sample.zone_frame()
             if estimator.no_target_of(frame).any():
@@ -406,7 +400,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
             ``drop_fraction``, ``bias_prob``, ``bias_mean_m``, ``bias_std_m``); None: its
             defaults, those of ``deltar simulate``'s degraded sets.
         consistency_candidates: zone-consistency strengths to choose among
-            (:func:`~deltar.inference.zone_consistency.fit_zone_consistency`); ``(0.0,)``
+            (:func:`~deltar.evaluation.zone_consistency_fit.fit_zone_consistency`); ``(0.0,)``
             keeps the network's depth without trying.
         overwrite: replace an existing ``out``.
         on_frame: called after each frame (progress).
@@ -442,7 +436,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
 
         detector = fit_outlier_detector(
             [samples[i].zone_frame() for samples in detector_sets
-             for i in _picks(len(samples), frames_per_set)], **(detector_noise or {}))
+             for i in frame_picks(len(samples), frames_per_set)], **(detector_noise or {}))
         outlier_candidates = (*outlier_candidates,
                               *(detector.with_threshold(t) for t in DETECTOR_THRESHOLDS))
     outlier_rule, outlier_errors = fit_outlier_rule(

@@ -10,7 +10,8 @@ between the zone centres (bilinearly; a zone without a ratio takes its neighbour
 mean, the image beyond the grid its nearest zones') and multiplies the depth by
 ``exp(strength * field)``. ``strength`` is part of the output contract
 (``zone_consistency``), chosen with the rest of the output stage on frames of the
-training scenes (:func:`fit_zone_consistency`): 0 leaves the depth as the network made it.
+training scenes (:func:`deltar.evaluation.zone_consistency_fit.fit_zone_consistency`): 0
+leaves the depth as the network made it.
 A zone whose footprint holds too little of its target (:data:`MIN_TARGET_FRACTION`: the
 target is a surface the network puts elsewhere) gives no ratio. On the ten-scene
 protocol the step lowered clean REL on 8-9 of the ten rooms left out
@@ -22,14 +23,13 @@ from __future__ import annotations
 import functools
 import math
 import numbers
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-__all__ = ["STRENGTH_CANDIDATES", "check_strength", "fit_zone_consistency",
-           "zone_consistency_field", "zone_consistent_depth"]
+__all__ = ["STRENGTH_CANDIDATES", "check_strength", "zone_consistency_field",
+           "zone_consistent_depth"]
 
 #: A footprint cell counts as on the zone's target within this many of its sigmas ...
 WINDOW_SIGMAS = 3.0
@@ -37,7 +37,7 @@ WINDOW_SIGMAS = 3.0
 WINDOW_RELATIVE = 0.05
 #: A zone gives a ratio only when at least this fraction of its footprint is on target.
 MIN_TARGET_FRACTION = 0.25
-#: Strengths :func:`fit_zone_consistency` tries, none first.
+#: Strengths ``deltar fit-uncertainty`` tries (``fit_zone_consistency``), none first.
 STRENGTH_CANDIDATES: tuple[float, ...] = (0.0, 0.5, 1.0)
 
 
@@ -155,60 +155,3 @@ def zone_consistent_depth(depth_m: np.ndarray, zone_rects: np.ndarray,
         return depth
     field *= np.float32(strength)
     return depth * np.exp(field)
-
-
-def fit_zone_consistency(estimator, sets: Sequence[Sequence], *,
-                         candidates: Sequence[float] = STRENGTH_CANDIDATES,
-                         frames_per_set: int | None = None, min_depth: float = 1e-3,
-                         max_depth: float = 10.0,
-                         on_frame: Callable[[], None] | None = None
-                         ) -> tuple[float, dict[float, float]]:
-    """Choose the zone-consistency strength on frames with ground truth.
-
-    The estimator (as given, with its zone outlier rule; fit with ``blend=None`` so the
-    choice does not depend on a blend fitted without it) predicts each frame with each
-    candidate; the one with the lowest mean relative error wins, the first on a tie.
-
-    Args:
-        estimator: a :class:`~deltar.inference.estimator.DepthEstimator`; its own
-            ``zone_consistency`` is replaced while it runs and restored after.
-        sets: sequences of :class:`~deltar.data.zju_l5.ZJUL5Sample` (image, zones and
-            ground-truth depth in metres), of the training scenes.
-        candidates: strengths in [0, 1] to try.
-        frames_per_set: at most this many frames of each set, spread evenly.
-        min_depth, max_depth: ground-truth range in metres.
-        on_frame: called after each frame (progress).
-
-    Returns:
-        (the chosen strength, mean relative error per candidate).
-    """
-    from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
-    from deltar.evaluation.uncertainty import _picks  # the output stage's frame choice
-
-    candidates = [check_strength(c, "candidates") for c in candidates]
-    if not candidates:
-        raise ValueError("fit_zone_consistency needs at least one candidate")
-    errors: dict[float, list[float]] = {c: [] for c in candidates}
-    kept = estimator.zone_consistency
-    try:
-        for samples in sets:
-            for index in _picks(len(samples), frames_per_set):
-                sample = samples[index]
-                for strength in candidates:
-                    estimator.zone_consistency = strength
-                    depth = estimator.predict(sample.rgb, sample.zone_frame(),
-                                              zone_rects=sample.zone_rects).depth_m
-                    try:
-                        errors[strength].append(depth_metrics(depth, sample.depth_m,
-                                                              min_depth, max_depth)["rel"])
-                    except EmptyFrameError:
-                        pass
-                if on_frame is not None:
-                    on_frame()
-    finally:
-        estimator.zone_consistency = kept
-    means = {c: float(np.mean(v)) for c, v in errors.items() if v}
-    if not means:
-        raise ValueError("no frame has ground truth to choose the zone consistency on")
-    best = min(means.values())
-    return next(c for c in candidates if means.get(c) == best), means
