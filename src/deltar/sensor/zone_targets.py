@@ -248,7 +248,7 @@ def driver_readings(
             detected = detected[:16]
         if detected.size != zones:
             raise ValueError(f"nb_target_detected has {detected.size} entries; expected "
-                             f"{zones} (one per zone of a {n}x{n} grid)")
+                             f"{zones} (one per zone of the {n}x{n} grid)")
     for name, arr in arrays.items():
         # Zone-major: target t of zone z at z * per_zone + t.
         arrays[name] = arr[: zones * per_zone].reshape(zones, per_zone)
