@@ -10,6 +10,8 @@ maps camera images onto the contract.
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -80,6 +82,15 @@ def as_switch(name: str, value: Any) -> bool:
     if isinstance(value, str) and value.strip().lower() in ("true", "false"):
         return value.strip().lower() == "true"
     raise ValueError(f"{name} must be true or false, got {value!r}")
+
+
+def check_strength(strength: Any, name: str = "zone_consistency") -> float:
+    """A strength in [0, 1] (the output contract's ``zone_consistency``) as a float; a
+    ``ValueError`` naming ``name`` for anything else (booleans, NaN, text)."""
+    if isinstance(strength, bool) or not isinstance(strength, numbers.Real) or \
+            not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
+        raise ValueError(f"{name} must be a number in [0, 1], got {strength!r}")
+    return float(strength)
 
 
 def normalise_image(image: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,

@@ -22,6 +22,7 @@ frames it is judged on says nothing. Last, for networks that read no-target flag
 threshold of the rule that infers them for readings without flags is chosen on the same
 frames with their flags removed (:func:`fit_no_target_inference`).
 """
+
 from __future__ import annotations
 
 import copy

@@ -8,8 +8,9 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from deltar.contract import check_strength
 from deltar.evaluation.metrics import EmptyFrameError, depth_metrics
-from deltar.inference.zone_consistency import STRENGTH_CANDIDATES, check_strength
+from deltar.inference.zone_consistency import STRENGTH_CANDIDATES
 
 __all__ = ["fit_zone_consistency", "frame_picks"]
 

@@ -42,7 +42,7 @@ from deltar.inference.preprocess import (
     scale_rects,
 )
 from deltar.inference.uncertainty import UncertaintyCalibration, resolve_uncertainty
-from deltar.inference.zone_consistency import check_strength
+from deltar.inference.zone_consistency import resolve_zone_consistency
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, check_zones_in_image
 from deltar.sensor.hypotheses import frame_hypotheses
 from deltar.sensor.no_target import check_min_neighbour_m, frame_no_target
@@ -204,8 +204,7 @@ class DepthEstimator:
             contract.get("no_target_min_neighbour_m") if no_target_min_neighbour_m == "auto"
             else no_target_min_neighbour_m, "no_target_min_neighbour_m")
         self.zone_outliers = resolve_outlier_rule(zone_outliers, contract)
-        self.zone_consistency = check_strength(contract.get("zone_consistency", 0.0)
-                                               if zone_consistency is None else zone_consistency)
+        self.zone_consistency = resolve_zone_consistency(zone_consistency, contract)
 
     # ------------------------------------------------------------------ prediction
     def network_size_for(self, image_size: tuple[int, int]) -> tuple[int, int]:

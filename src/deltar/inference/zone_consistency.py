@@ -22,13 +22,16 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
-__all__ = ["STRENGTH_CANDIDATES", "check_strength", "zone_consistency_field",
+from deltar.contract import check_strength
+
+__all__ = ["STRENGTH_CANDIDATES", "resolve_zone_consistency", "zone_consistency_field",
            "zone_consistent_depth"]
 
 #: A footprint cell counts as on the zone's target within this many of its sigmas ...
@@ -41,12 +44,15 @@ MIN_TARGET_FRACTION = 0.25
 STRENGTH_CANDIDATES: tuple[float, ...] = (0.0, 0.5, 1.0)
 
 
-def check_strength(strength: float, name: str = "zone_consistency") -> float:
-    """``strength`` as a float in [0, 1]; a ``ValueError`` naming ``name`` otherwise."""
-    if isinstance(strength, bool) or not isinstance(strength, numbers.Real) or \
-            not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
-        raise ValueError(f"{name} must be a number in [0, 1], got {strength!r}")
-    return float(strength)
+def resolve_zone_consistency(strength: float | None, contract: Mapping[str, Any]) -> float:
+    """The strength an estimator uses (its ``zone_consistency`` argument) given the
+    weights' contract: None takes the contract's (0 when it has none).
+
+    Raises:
+        ValueError: a strength outside [0, 1], given or stored.
+    """
+    return check_strength(contract.get("zone_consistency", 0.0) if strength is None
+                          else strength)
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from deltar.contract import (
     NETWORK_CONFIG_SECTIONS,
     SIZE_DIVISOR,
     as_switch,
+    check_strength,
 )
 from deltar.models.encoders import FEATURE_STRIDES
 from deltar.models.fusion import FUSION_MODES, LAYER_KINDS
@@ -279,11 +280,7 @@ class OutputConfig:
     zone_consistency: float = 0.0
 
     def __post_init__(self) -> None:
-        strength = self.zone_consistency
-        if isinstance(strength, bool) or not (isinstance(strength, (int, float)) and
-                                              0.0 <= strength <= 1.0):
-            raise ValueError(f"zone_consistency must be a number in [0, 1], got {strength!r}")
-        _set(self, "zone_consistency", float(strength))
+        _set(self, "zone_consistency", check_strength(self.zone_consistency))
         if not 0 < self.min_depth < self.max_depth:
             raise ValueError(f"need 0 < min_depth < max_depth, got {self.min_depth}, "
                              f"{self.max_depth}")
