@@ -49,3 +49,45 @@ def test_record_targets_out_of_range_is_refused(tmp_path):
                                  "--targets", "5"])
     assert result.exit_code != 0 and "--targets" in result.output
     assert not (tmp_path / "rec").exists()
+
+
+def _posed_folder(folder, frames=4):
+    """A small RGB-D folder (color/, depth/, camera-intrinsics.txt) with pose/ files."""
+    import cv2
+
+    from deltar.io.pose_file import write_pose_file
+
+    rng = np.random.default_rng(0)
+    for sub in ("color", "depth", "pose"):
+        (folder / sub).mkdir(parents=True)
+    (folder / "camera-intrinsics.txt").write_text("60 0 31.5\n0 60 23.5\n0 0 1\n")
+    for i in range(frames):
+        cv2.imwrite(str(folder / "color" / f"{i:06d}.png"),
+                    rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+        cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.full((48, 64), 1500, np.uint16))
+        pose = np.eye(4)
+        pose[:3, 3] = (0.05 * i, 0.0, 0.0)
+        write_pose_file(folder / "pose" / f"{i:06d}.txt", pose)
+    return folder
+
+
+def test_record_simulate_carries_the_sources_poses_and_appends_after_its_end(tmp_path):
+    from deltar.mapping.poses import read_bag_poses, read_pose_folder
+
+    source, out = _posed_folder(tmp_path / "scene"), tmp_path / "rec"
+    for run in (1, 2):  # the second run appends, its clock after the first's end
+        result = runner.invoke(app, ["record", str(out), "--simulate", str(source)])
+        assert result.exit_code == 0, result.output
+        assert "4 camera poses" in result.output
+        assert len(Recording(out).color_paths) == 4 * run
+    found = read_pose_folder(out / "pose")
+    order = np.argsort([int(name) for name in found.names])
+    np.testing.assert_allclose(found.poses[order, 0, 3], [0.0, 0.05, 0.1, 0.15] * 2)
+    times = [frame.timestamp_s for frame in Recording(out).zone_frames()]
+    assert len(times) == 4 and np.all(np.diff(times) > 0)
+    bag = tmp_path / "bag"
+    result = runner.invoke(app, ["record", str(bag), "--bag", "--simulate", str(source)])
+    assert result.exit_code == 0, result.output
+    from_bag = read_bag_poses(bag)  # deltar's own pose topic, no --pose-topic needed
+    np.testing.assert_allclose(from_bag.poses[:, 0, 3], [0.0, 0.05, 0.1, 0.15], atol=1e-9)
+    np.testing.assert_allclose(from_bag.times_s, np.arange(4) / 30.0, atol=1e-9)

@@ -173,3 +173,29 @@ def test_per_frame_intrinsics_folder(shared_data):
     # Intrinsics given by the caller win over the per-frame files.
     given = CameraIntrinsics(600.0, 600.0, 320.0, 240.0, width=640, height=480)
     assert open_rgbd(folder, intrinsics=given)[1].intrinsics == given
+
+
+def test_the_frames_poses_from_the_folders_pose_files(shared_data, tmp_path, rng):
+    from deltar.io.pose_file import read_pose_file
+
+    cabinet = open_rgbd(shared_data / "tum_fr3_cabinet")
+    poses = cabinet.poses()
+    assert len(poses) == len(cabinet) == 58
+    np.testing.assert_array_equal(
+        poses[3], read_pose_file(shared_data / "tum_fr3_cabinet" / "pose" / "000003.txt"))
+    kitchen = open_rgbd(shared_data / "7scenes_redkitchen").poses()
+    assert all(pose is not None for pose in kitchen) and len(kitchen) == 500
+    assert open_rgbd(shared_data / "apc_shelf").poses() is None
+    # A folder whose frames only partly have poses; a pose that is no rotation is named.
+    intr = CameraIntrinsics(10.0, 10.0, 3.5, 2.5, 8, 6)
+    for stem in ("a", "b"):
+        _write_rgb(tmp_path / "color" / f"{stem}.png",
+                   rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+        _write_png16(tmp_path / "depth" / f"{stem}.png", np.full((6, 8), 1000))
+    (tmp_path / "pose").mkdir()
+    (tmp_path / "pose" / "b.txt").write_text("1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    partial = FolderReader(tmp_path, 1000.0, intr).poses()
+    assert partial[0] is None and partial[1][0, 3] == 0.5
+    (tmp_path / "pose" / "a.txt").write_text("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"a\.txt: the pose's 3x3 block is not a rotation"):
+        FolderReader(tmp_path, 1000.0, intr).poses()

@@ -81,6 +81,27 @@ def test_writer_appends_but_never_overwrites(tmp_path):
         RecordingWriter(tmp_path / "rec", RecordingMeta(other, grid=4))
 
 
+def test_poses_are_written_by_time_and_the_end_time_covers_every_item(tmp_path):
+    from deltar.io.pose_file import read_pose_file
+
+    writer = _write(tmp_path / "rec", [0.5, 2.25], [0.5, 1.0], [1.5])
+    pose = np.eye(4)
+    pose[:3, 3] = (0.1, -0.2, 1.5)
+    path = writer.add_pose(1.0, pose)
+    assert path == tmp_path / "rec" / "pose" / "1000000000.txt"
+    np.testing.assert_allclose(read_pose_file(path), pose)
+    with pytest.raises(FileExistsError):
+        writer.add_pose(1.0, np.eye(4))
+    with pytest.raises(ValueError, match="not a rotation"):
+        writer.add_pose(2.0, np.diag([2.0, 1.0, 1.0, 1.0]))
+    # The latest of colour (1.0), depth (1.5) and zones (2.25).
+    assert Recording(tmp_path / "rec").end_time_s() == pytest.approx(2.25)
+    _write(tmp_path / "depth_last", [0.5], [0.5], [3.0])
+    assert Recording(tmp_path / "depth_last").end_time_s() == pytest.approx(3.0)
+    RecordingWriter(tmp_path / "empty", RecordingMeta(CAMERA, grid=4))
+    assert Recording(tmp_path / "empty").end_time_s() is None
+
+
 def test_writer_rejects_wrong_image_size(tmp_path):
     writer = _write(tmp_path / "rec", [], [])
     with pytest.raises(ValueError, match="image_rgb"):

@@ -275,12 +275,15 @@ class Capture:
         image: (H, W, 3) uint8 RGB or None.
         zone_frame: a zone frame with ``timestamp_s`` or None.
         depth_m: (H, W) float32 reference depth in metres (simulated rigs) or None.
+        pose: (4, 4) float64 camera-to-world pose of the camera when ``image`` was taken
+            (metres; simulated rigs whose source has poses) or None.
     """
 
     image_time_s: float | None = None
     image: np.ndarray | None = None
     zone_frame: ZoneFrame | None = None
     depth_m: np.ndarray | None = None
+    pose: np.ndarray | None = None
 
 
 class HardwareRig:
@@ -311,6 +314,10 @@ class HardwareRig:
         return Capture(image_time_s=got[0], image=got[1], zone_frame=frame)
 
 
+#: The simulated camera's default frame rate, Hz.
+SIMULATED_CAMERA_HZ = 30.0
+
+
 class SimulatedRig:
     """A camera and a simulated ToF sensor played from an RGB-D source.
 
@@ -333,22 +340,28 @@ class SimulatedRig:
         max_targets: targets per zone the simulated sensor reports, 1..4 (see
             :func:`~deltar.sensor.simulate_frame.simulate_zone_frame`; 1 by default).
         target_order: order of targets 1.., ``"strongest"`` or ``"closest"``.
+        poses: optional per source frame (4, 4) camera-to-world pose in metres, or None
+            for a frame without one; delivered with each image (``Capture.pose``).
     """
 
     sensor_model = "simulated"
 
     def __init__(self, source: Sequence[Any], grid: int = 8,
                  fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
-                 extrinsics: SensorExtrinsics | None = None, camera_hz: float = 30.0,
+                 extrinsics: SensorExtrinsics | None = None,
+                 camera_hz: float = SIMULATED_CAMERA_HZ,
                  sensor_hz: float = 15.0, sensor_delay_s: float = 0.004,
                  start_time_s: float = 0.0, config: Any = None,
                  with_histogram: bool = False, max_targets: int = 1,
-                 target_order: str = "strongest") -> None:
+                 target_order: str = "strongest",
+                 poses: Sequence[np.ndarray | None] | None = None) -> None:
         from deltar.sensor.simulate_frame import check_target_options
 
         check_target_options(max_targets, target_order)
         if len(source) == 0:
             raise ValueError("the RGB-D source has no frames")
+        if poses is not None and len(poses) != len(source):
+            raise ValueError(f"poses: {len(poses)} for a source of {len(source)} frames")
         if not 0 < sensor_hz <= camera_hz:
             raise ValueError(f"need 0 < sensor_hz <= camera_hz, got {sensor_hz}, {camera_hz}")
         self.source = source
@@ -362,6 +375,7 @@ class SimulatedRig:
         self.with_histogram = with_histogram
         self.max_targets = max_targets
         self.target_order = target_order
+        self.poses = poses
         self.intrinsics: CameraIntrinsics = source[0].intrinsics
         self._index = 0
 
@@ -384,7 +398,8 @@ class SimulatedRig:
             raise ValueError(f"source frame {frame.name!r} has other intrinsics than the "
                              "first frame; a recording has one camera")
         image_time = self.start_time_s + i / self.camera_hz
-        capture = Capture(image_time_s=image_time, image=frame.image, depth_m=frame.depth_m)
+        capture = Capture(image_time_s=image_time, image=frame.image, depth_m=frame.depth_m,
+                          pose=None if self.poses is None else self.poses[i])
         every = self.camera_hz / self.sensor_hz
         if int(i // every) != int((i - 1) // every):
             depth = frame.depth_m

@@ -1,9 +1,11 @@
 """Record camera frames and ToF zone frames, with timestamps, into a recording folder.
 
 The folder layout is :mod:`deltar.io.recording` (``meta.json``, ``zones.jsonl``,
-``color/<ns>.png``, optional ``depth/<ns>.png``). Nothing in a recording is ever
-overwritten: recording into an existing folder appends (same camera and sensor), and
-a frame whose file already exists raises ``FileExistsError``. With ``bag_storage`` the
+``color/<ns>.png``, optional ``depth/<ns>.png`` and ``pose/<ns>.txt``). Nothing in a
+recording is ever overwritten: recording into an existing folder appends (same camera
+and sensor; a simulated rig's clock must then start after the recording's end,
+``Recording.end_time_s``), and a frame whose file already exists raises
+``FileExistsError``. With ``bag_storage`` the
 same items go into a new ROS 2 bag instead (:class:`deltar.io.rosbag_writer.BagRecordingWriter`).
 """
 
@@ -33,6 +35,7 @@ class RecordSummary:
         images: colour images written.
         zone_frames: zone frames written.
         depth_maps: reference depth maps written (simulated rigs).
+        poses: camera poses written (simulated rigs whose source has poses).
         duration_s: time span covered, seconds.
     """
 
@@ -40,6 +43,7 @@ class RecordSummary:
     images: int = 0
     zone_frames: int = 0
     depth_maps: int = 0
+    poses: int = 0
     duration_s: float = 0.0
 
 
@@ -120,6 +124,9 @@ def record(out: str | os.PathLike, rig, *, max_frames: int | None = None,
                     if save_depth and capture.depth_m is not None:
                         writer.add_depth(capture.image_time_s, capture.depth_m)
                         summary.depth_maps += 1
+                    if capture.pose is not None:
+                        writer.add_pose(capture.image_time_s, capture.pose)
+                        summary.poses += 1
                 if capture.zone_frame is not None:
                     writer.add_zone_frame(capture.zone_frame)
                     summary.zone_frames += 1

@@ -94,7 +94,8 @@ def record_command(
                                  "a recording's depth images (16-bit millimetres, at most "
                                  f"{MAX_RECORDED_DEPTH_M} m)")
             rig = SimulatedRig(source, grid=grid, sensor_hz=sensor_hz,
-                               max_targets=targets or 1)
+                               max_targets=targets or 1, poses=_source_poses(source),
+                               start_time_s=_append_start_s(out, bag))
         else:
             calibration = load_calibration(calib)
             if calibration is None:
@@ -117,8 +118,10 @@ def record_command(
             viewer.close()
     except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
         fail(err)
+    poses = f", {summary.poses} camera poses" if summary.poses else ""
     typer.echo(f"recorded {summary.images} images, {summary.zone_frames} zone frames, "
-               f"{summary.depth_maps} depth maps over {summary.duration_s:.2f} s into {out}")
+               f"{summary.depth_maps} depth maps{poses} over {summary.duration_s:.2f} s "
+               f"into {out}")
 
 
 @model_options
@@ -274,3 +277,23 @@ def _show_live(items) -> None:
         if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
             break
     cv2.destroyAllWindows()
+
+
+def _source_poses(source) -> list | None:
+    """The per-frame camera poses of an RGB-D folder source (pose files beside its
+    frames, ``RGBDReader.poses``), or None (other sources, or a folder without any)."""
+    from deltar.data.rgbd import RGBDReader
+
+    return source.poses() if isinstance(source, RGBDReader) else None
+
+
+def _append_start_s(out: Path, bag: bool) -> float:
+    """Seconds at which a simulated rig's clock starts: after the end of the recording
+    already in ``out`` (it appends; its files are named by time), else 0."""
+    from deltar.capture.drivers import SIMULATED_CAMERA_HZ
+    from deltar.io.recording import META_FILE, Recording
+
+    if bag or not (out / META_FILE).is_file():
+        return 0.0
+    end = Recording(out).end_time_s()
+    return 0.0 if end is None else end + 1.0 / SIMULATED_CAMERA_HZ

@@ -32,6 +32,7 @@ from deltar.data.rgbd_files import (
 )
 from deltar.data.sequence import checked_index
 from deltar.io.input_file import input_folder
+from deltar.io.pose_file import frame_pose_file, read_pose_file
 
 #: Name of the optional per-folder settings file read by :func:`open_rgbd`.
 SIDECAR_NAME = "deltar_rgbd.json"
@@ -125,6 +126,24 @@ class RGBDReader(Sequence):
 
     def __len__(self) -> int:
         return len(self._pairs)
+
+    def poses(self) -> list[np.ndarray | None] | None:
+        """Each frame's camera pose from the folder's pose files, checked.
+
+        Reads ``pose/<name>.txt`` (the shared TUM keyframes, recordings) or
+        ``<name>.pose.txt`` (7-Scenes) for each frame (:mod:`deltar.io.pose_file`).
+
+        Returns:
+            Per frame in reading order a (4, 4) float64 camera-to-world transform in
+            metres, or None for a frame without a pose file; None when no frame has one.
+
+        Raises:
+            ValueError: a pose file that is not a rigid transform (naming it).
+        """
+        paths = [frame_pose_file(self.root, name) for name in self.names]
+        if all(path is None for path in paths):
+            return None
+        return [None if path is None else read_pose_file(path) for path in paths]
 
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
         name, color_path, depth_path, stamp = self._pairs[checked_index(index, len(self))]

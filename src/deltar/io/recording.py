@@ -7,6 +7,7 @@ A recording is a folder::
                          timestamp_s), timestamps strictly increasing
     color/<ns>.png       RGB images, file name = capture time in integer nanoseconds
     depth/<ns>.png       optional depth maps, uint16 millimetres, 0 = invalid
+    pose/<ns>.txt        optional camera poses, 4x4 camera-to-world (deltar.io.pose_file)
 
 All timestamps are seconds on one clock shared by the sensor and the cameras.
 """
@@ -26,6 +27,7 @@ from deltar.camera import CameraIntrinsics, check_image, strict_integer, strict_
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.input_file import input_file, input_folder, reading
 from deltar.io.json_file import read_json
+from deltar.io.pose_file import POSE_DIR, write_pose_file
 from deltar.io.zone_file import zone_frame_from_dict, zone_frame_to_dict
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 from deltar.sensor.zone_frame import ZoneFrame
@@ -157,6 +159,18 @@ class RecordingWriter:
         (self.folder / DEPTH_DIR).mkdir(exist_ok=True)
         return self._write_png(DEPTH_DIR, timestamp_s, np.round(depth * 1000).astype(np.uint16))
 
+    def add_pose(self, timestamp_s: float, pose: np.ndarray) -> Path:
+        """Write ``pose/<ns>.txt``: the colour camera's (4, 4) camera-to-world pose
+        (metres) when the colour image of the same time was taken.
+
+        Raises:
+            ValueError: not a rigid transform (:func:`deltar.io.pose_file.check_pose`).
+            FileExistsError: a pose of that time exists.
+        """
+        (self.folder / POSE_DIR).mkdir(exist_ok=True)
+        return write_pose_file(self.folder / POSE_DIR / f"{timestamp_to_ns(timestamp_s)}.txt",
+                               pose)
+
     def _write_png(self, subdir: str, timestamp_s: float, image: np.ndarray) -> Path:
         import cv2
 
@@ -239,6 +253,15 @@ class Recording:
     @property
     def zones_path(self) -> Path:
         return self.folder / ZONES_FILE
+
+    def end_time_s(self) -> float | None:
+        """The latest time of any colour image, depth map or zone frame, seconds; None
+        for an empty recording (what a clock that appends must start after)."""
+        times = [float(t[-1]) for t in (self.color_times_s, self.depth_times_s) if t.size]
+        last_zone = _last_zone_timestamp(self.zones_path)
+        if last_zone is not None:
+            times.append(float(last_zone))
+        return max(times) if times else None
 
     def zone_frames(self) -> list[ZoneFrame]:
         """All zone frames in file order (timestamps strictly increasing, checked)."""

@@ -39,9 +39,13 @@ STORAGES: tuple[str, ...] = ("sqlite3", "mcap")
 #: finds by type).
 RECORD_TOPICS = {"image": "/camera/color/image_raw",
                  "camera_info": "/camera/color/camera_info",
-                 "depth": "/camera/depth/image", "zones": "/tof/zones"}
-#: Frame ids of recorded messages.
-RECORD_FRAME_IDS = {"camera": "camera_color_optical_frame", "tof": "tof_sensor"}
+                 "depth": "/camera/depth/image", "zones": "/tof/zones",
+                 "pose": "/camera/pose"}
+#: Frame ids of recorded messages (``world``: the frame the recorded poses are in).
+RECORD_FRAME_IDS = {"camera": "camera_color_optical_frame", "tof": "tof_sensor",
+                    "world": "world"}
+#: The message type of camera poses.
+POSE_MSGTYPE = "geometry_msgs/msg/PoseStamped"
 #: Output topics of ``deltar replay --out-bag`` below its prefix (default ``/deltar``).
 OUTPUT_TOPICS = {"depth": "depth", "uncertainty": "uncertainty",
                  "camera_info": "camera_info", "points": "points"}
@@ -158,6 +162,25 @@ class BagWriter:
             r=np.eye(3).reshape(-1), p=p, binning_x=0, binning_y=0, roi=roi)
         self._write(topic, CAMERA_INFO_TYPE, msg, stamp_ns if log_ns is None else log_ns)
 
+    def add_pose(self, topic: str, stamp_ns: int, frame_id: str, pose: np.ndarray,
+                 log_ns: int | None = None) -> None:
+        """A (4, 4) camera-to-world transform (metres) as ``geometry_msgs/msg/PoseStamped``
+        in ``frame_id`` (the world frame)."""
+        from scipy.spatial.transform import Rotation
+
+        from deltar.io.pose_file import check_pose
+
+        matrix = check_pose(pose, "pose")
+        types = typestore().types
+        x, y, z = (float(v) for v in matrix[:3, 3])
+        qx, qy, qz, qw = (float(v) for v in Rotation.from_matrix(matrix[:3, :3]).as_quat())
+        msg = types[POSE_MSGTYPE](
+            header=stamped_header(stamp_ns, frame_id),
+            pose=types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+        self._write(topic, POSE_MSGTYPE, msg, stamp_ns if log_ns is None else log_ns)
+
     def add_point_cloud(self, topic: str, stamp_ns: int, frame_id: str, points: np.ndarray,
                         colors: np.ndarray, log_ns: int | None = None) -> None:
         """(N, 3) float32 metres + (N, 3) uint8 RGB as ``PointCloud2`` (x y z rgb).
@@ -268,10 +291,11 @@ class BagRecordingWriter:
 
     Same methods as :class:`deltar.io.recording.RecordingWriter`; writes the topics of
     :data:`RECORD_TOPICS`: colour images (``rgb8``) each with a ``CameraInfo``,
-    reference depth (``32FC1``, metres, NaN = invalid) and zone frames
+    reference depth (``32FC1``, metres, NaN = invalid), zone frames
     (``deltar_msgs/msg/ZoneFrame``, or ``MultiTargetZoneFrame`` with every target and its
-    signal when the first frame holds several targets per zone). Stamps are the capture
-    times; the bag is complete when :meth:`close` is called.
+    signal when the first frame holds several targets per zone) and camera poses
+    (``PoseStamped`` in ``world``). Stamps are the capture times; the bag is complete
+    when :meth:`close` is called.
 
     Args:
         path: the bag folder to create (must not exist).
@@ -308,6 +332,11 @@ class BagRecordingWriter:
             raise ValueError("frame.timestamp_s is required in a recording")
         self.writer.add_zone_frame(RECORD_TOPICS["zones"], self._ns(frame.timestamp_s),
                                    RECORD_FRAME_IDS["tof"], frame)
+
+    def add_pose(self, timestamp_s: float, pose: np.ndarray) -> None:
+        """The colour camera's (4, 4) camera-to-world pose (metres) at ``timestamp_s``."""
+        self.writer.add_pose(RECORD_TOPICS["pose"], self._ns(timestamp_s),
+                             RECORD_FRAME_IDS["world"], pose)
 
     def close(self) -> None:
         """Finish the bag and move it to its path."""

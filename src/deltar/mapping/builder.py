@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.io.pose_file import POSE_DIR
 from deltar.io.resources import available_memory_bytes
 from deltar.mapping.frames import DepthSource, FrameSource, MapFrame
 from deltar.mapping.odometry import OdometryReport, RGBDOdometry, check_motion
@@ -45,8 +46,6 @@ from deltar.mapping.tsdf import (
     estimate_blocks,
 )
 
-#: Folder of per-frame poses inside a recording (4x4 camera-to-world, ``<ns>.txt``).
-POSE_DIR = "pose"
 #: Frames sampled evenly for the odometry motion check.
 _MOTION_SAMPLES = 24
 

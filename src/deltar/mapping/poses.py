@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.io.input_file import input_file, input_folder, reading
-from deltar.io.tum import ROTATION_TOLERANCE, quaternion_pose, read_tum_poses
+from deltar.io.input_file import input_folder
+from deltar.io.pose_file import read_pose_file
+from deltar.io.tum import quaternion_pose, read_tum_poses
 
 #: Default largest |pose time - frame time| when poses are matched to frames, seconds.
 DEFAULT_POSE_TOLERANCE_S = 0.05
@@ -46,46 +47,6 @@ class Trajectory:
     poses: np.ndarray
     names: tuple[str, ...] | None
     source: str
-
-
-def check_pose(pose: np.ndarray, source: str) -> np.ndarray:
-    """Check one (4, 4) camera-to-world transform and return it as float64.
-
-    Raises:
-        ValueError: wrong shape, non-finite values, a last row other than (0, 0, 0, 1)
-            or a rotation block that is not a rotation (orthonormal, det +1), naming
-            ``source``.
-    """
-    matrix = np.asarray(pose, dtype=np.float64)
-    if matrix.shape != (4, 4):
-        raise ValueError(f"{source}: a pose must be a 4x4 matrix, got shape {matrix.shape}")
-    if not np.all(np.isfinite(matrix)):
-        raise ValueError(f"{source}: the pose has NaN or infinite values")
-    if not np.allclose(matrix[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
-        raise ValueError(f"{source}: the pose's last row must be 0 0 0 1, got {matrix[3]}")
-    rotation = matrix[:3, :3]
-    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
-    det = float(np.linalg.det(rotation))
-    if error > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise ValueError(f"{source}: the pose's 3x3 block is not a rotation "
-                         f"(|R^T R - I| = {error:.2g}, det = {det:.4f}); poses must be "
-                         "rigid camera-to-world transforms")
-    return matrix
-
-
-def read_pose_file(path: str | os.PathLike) -> np.ndarray:
-    """One 4x4 camera-to-world text file (4 rows of 4 numbers), checked.
-
-    Raises:
-        ValueError: not 16 numbers, or not a rigid transform (naming the file).
-    """
-    path = input_file(path, "pose file")
-    with reading(path, "pose file"):
-        try:
-            values = np.loadtxt(path, dtype=np.float64, ndmin=2)
-        except ValueError as err:
-            raise ValueError(f"{path}: not a 4x4 matrix of numbers: {err}") from err
-        return check_pose(values, str(path))
 
 
 _SEVEN_SCENES_POSE = re.compile(r"^(frame-\d+)\.pose\.txt$")
@@ -245,10 +206,12 @@ def read_bag_poses(path: str | os.PathLike, *, pose_topic: str | None = None,
     in ``header.frame_id``. Otherwise ``/tf`` (``tf2_msgs/msg/TFMessage``) is followed
     from ``camera_frame`` (the camera image's frame id) up its parents to
     ``world_frame`` (default: the root of that chain); static transforms from
-    ``/tf_static`` join every chain. Times are the header stamps.
+    ``/tf_static`` join every chain. A bag without ``/tf`` whose ``/camera/pose`` is a
+    PoseStamped topic (what ``deltar record --bag`` writes from a source with poses)
+    gives that topic's poses. Times are the header stamps.
 
     Returns:
-        The trajectory, or None when the bag has neither (then odometry is used).
+        The trajectory, or None when the bag has none of these (then odometry is used).
 
     Raises:
         ValueError: a named topic that is missing or of another type, a quaternion that
@@ -256,14 +219,18 @@ def read_bag_poses(path: str | os.PathLike, *, pose_topic: str | None = None,
     """
     from deltar.io.ros_messages import require_rosbags, stamp_to_ns
     from deltar.io.rosbag_reader import read_messages
+    from deltar.io.rosbag_writer import POSE_MSGTYPE, RECORD_TOPICS
 
     require_rosbags()
     from rosbags.rosbag2 import Reader
 
     with Reader(Path(path)) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
+    if pose_topic is None and topics.get("/tf") != "tf2_msgs/msg/TFMessage" and \
+            topics.get(RECORD_TOPICS["pose"]) == POSE_MSGTYPE:
+        pose_topic = RECORD_TOPICS["pose"]
     if pose_topic is not None:
-        if topics.get(pose_topic) != "geometry_msgs/msg/PoseStamped":
+        if topics.get(pose_topic) != POSE_MSGTYPE:
             raise ValueError(f"{path}: --pose-topic {pose_topic} is "
                              f"{topics.get(pose_topic, 'missing')}, expected "
                              "geometry_msgs/msg/PoseStamped")

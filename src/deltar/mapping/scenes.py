@@ -1,9 +1,10 @@
 """Recordings with known poses from RGB-D frames, with simulated L5 zones.
 
-:func:`write_posed_recording` writes what ``deltar record --simulate`` writes (colour,
-reference depth, simulated zone frames) plus the recording's ``pose/<ns>.txt`` camera
-poses, so ``deltar map`` can be run and scored on any RGB-D scene with ground-truth
-poses (benchmarks/bench_map.py does so on the shared TUM and 7-Scenes scenes).
+:func:`write_posed_recording` writes a recording (colour, reference depth, simulated
+zone frames and ``pose/<ns>.txt`` camera poses) with one zone frame per image, placed
+with the nominal geometry: the recordings on which benchmarks/bench_map.py runs and
+scores ``deltar map`` (the shared TUM and 7-Scenes scenes). ``deltar record --simulate``
+writes the same items from any RGB-D folder with pose files, at the sensor's own rate.
 """
 
 from __future__ import annotations
@@ -15,16 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from deltar.camera import CameraIntrinsics
-from deltar.io.atomic import write_text_atomic
-from deltar.mapping.builder import POSE_DIR
-from deltar.mapping.poses import check_pose, read_pose_file
-
-
-def write_pose_file(path: str | os.PathLike, pose: np.ndarray) -> Path:
-    """Write one (4, 4) camera-to-world pose as 4 text rows, atomically (never overwrites)."""
-    matrix = check_pose(pose, str(path))
-    text = "\n".join(" ".join(f"{v:.9f}" for v in row) for row in matrix) + "\n"
-    return write_text_atomic(path, text, overwrite=False)
+from deltar.io.pose_file import frame_pose_file, read_pose_file
 
 
 def scene_poses(folder: str | os.PathLike, names: list[str]) -> np.ndarray:
@@ -36,15 +28,12 @@ def scene_poses(folder: str | os.PathLike, names: list[str]) -> np.ndarray:
     Raises:
         FileNotFoundError: a frame without a pose file.
     """
-    root = Path(folder)
     poses = []
     for name in names:
-        for candidate in (root / "pose" / f"{name}.txt", root / f"{name}.pose.txt"):
-            if candidate.is_file():
-                poses.append(read_pose_file(candidate))
-                break
-        else:
-            raise FileNotFoundError(f"{root}: no pose file for frame {name}")
+        path = frame_pose_file(folder, name)
+        if path is None:
+            raise FileNotFoundError(f"{folder}: no pose file for frame {name}")
+        poses.append(read_pose_file(path))
     return np.stack(poses)
 
 
@@ -68,7 +57,7 @@ def write_posed_recording(out: str | os.PathLike,
     Returns:
         The recording folder.
     """
-    from deltar.io.recording import RecordingMeta, RecordingWriter, timestamp_to_ns
+    from deltar.io.recording import RecordingMeta, RecordingWriter
     from deltar.sensor.geometry import zone_rects
     from deltar.sensor.simulate_frame import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
@@ -77,7 +66,6 @@ def write_posed_recording(out: str | os.PathLike,
     writer = RecordingWriter(folder, RecordingMeta(intrinsics, sensor_model=sensor_model,
                                                    grid=grid))
     rects = zone_rects(intrinsics, grid)
-    (folder / POSE_DIR).mkdir(exist_ok=True)
     for index, (image, depth, pose) in enumerate(frames):
         time_s = index * frame_period_s
         writer.add_color(time_s, image)
@@ -87,6 +75,6 @@ def write_posed_recording(out: str | os.PathLike,
                                         valid=zones.valid, no_target=zones.no_target,
                                         timestamp_s=time_s + 0.001,
                                         sensor_model=sensor_model))
-        write_pose_file(folder / POSE_DIR / f"{timestamp_to_ns(time_s)}.txt", pose)
+        writer.add_pose(time_s, pose)
     writer.close()
     return folder
