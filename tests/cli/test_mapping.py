@@ -170,37 +170,35 @@ def test_usage_errors(wall_recording, tmp_path):
     assert result.exit_code == 2 and "--voxel" in result.output
 
 
-def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
-    pytest.importorskip("rosbags")
-    from scipy.spatial.transform import Rotation
-
+def _wall_bag(path, *, depth: bool):
+    """A bag as ``deltar record --bag`` writes it: the wall seen from four poses, with its
+    /camera/pose topic, and the reference depth when ``depth``."""
     from deltar.io.recording import RecordingMeta
-    from deltar.io.ros_messages import stamped_header, typestore
     from deltar.io.rosbag_writer import BagRecordingWriter
     from deltar.sensor.geometry import zone_rects
     from deltar.sensor.simulate import simulate_zone_frame
     from deltar.sensor.zone_frame import ZoneFrame
 
-    types = typestore().types
-    writer = BagRecordingWriter(tmp_path / "bag", RecordingMeta(SMALL))
+    writer = BagRecordingWriter(path, RecordingMeta(SMALL))
     rects = zone_rects(SMALL, 8)
     for i in range(4):
         pose, t = pose_at(0.05 * i), 1.0 + i / 30
-        image, depth = render_wall(pose)
+        image, wall_depth = render_wall(pose)
         writer.add_color(t, image)
-        zones = simulate_zone_frame(depth, rects)
+        if depth:
+            writer.add_depth(t, wall_depth)
+        zones = simulate_zone_frame(wall_depth, rects)
         writer.add_zone_frame(ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid,
                                         timestamp_s=t + 0.001, no_target=zones.no_target))
-        q = Rotation.from_matrix(pose[:3, :3]).as_quat()
-        msg = types["geometry_msgs/msg/PoseStamped"](
-            header=stamped_header(round(t * 1e9), "map"), pose=types["geometry_msgs/msg/Pose"](
-                position=types["geometry_msgs/msg/Point"](x=pose[0, 3], y=0.0, z=0.0),
-                orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2],
-                                                                  w=q[3])))
-        writer.writer._write("/camera/pose", "geometry_msgs/msg/PoseStamped", msg,
-                             round(t * 1e9))
+        writer.add_pose(t, pose)
     writer.close()
-    result = _run(tmp_path / "bag", "--out", tmp_path / "map", "--method", "bilinear",
+    return path
+
+
+def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
+    pytest.importorskip("rosbags")
+    bag = _wall_bag(tmp_path / "bag", depth=False)
+    result = _run(bag, "--out", tmp_path / "map", "--method", "bilinear",
                   "--pose-topic", "/camera/pose", *COARSE)
     assert result.exit_code == 0, result.output
     assert "/camera/pose" in result.stdout
@@ -208,11 +206,26 @@ def test_map_of_a_ros2_bag_with_a_pose_topic(tmp_path):
     np.testing.assert_allclose(trajectory[:, 1], 0.05 * np.arange(4), atol=1e-6)
     vertices = np.asarray(_read_mesh(tmp_path / "map" / "mesh.ply").vertices)
     assert np.median(vertices[:, 2]) == pytest.approx(WALL_Z_M, abs=0.1)
-    # A bag's depth topic is not read: --method recorded is refused before any pose.
-    refused = _run(tmp_path / "bag", "--out", tmp_path / "map2", "--method", "recorded",
-                   "--pose-topic", "/camera/pose", *COARSE)
-    _error(refused, "--method", "ROS 2 bag")
+    # Without a depth topic --method recorded is refused before any pose.
+    refused = _run(bag, "--out", tmp_path / "map2", "--method", "recorded", *COARSE)
+    _error(refused, "--method", "no recorded depth", "--depth-topic", "/camera/color/image_raw")
     assert "poses:" not in refused.output and not (tmp_path / "map2").exists()
+    wrong = _run(bag, "--out", tmp_path / "map2", "--method", "recorded", "--depth-topic",
+                 "/tof/zones", *COARSE)
+    _error(wrong, "/tof/zones", "expected sensor_msgs/msg/Image", "--depth-topic")
+
+
+def test_map_of_a_ros2_bags_recorded_depth_matches_the_recordings(tmp_path, wall_recording):
+    pytest.importorskip("rosbags")
+    bag = _wall_bag(tmp_path / "bag", depth=True)
+    result = _run(bag, "--out", tmp_path / "map", "--method", "recorded", *COARSE)
+    assert result.exit_code == 0, result.output
+    assert "/camera/pose" in result.stdout  # deltar record's pose topic, found by itself
+    vertices = np.asarray(_read_mesh(tmp_path / "map" / "mesh.ply").vertices)
+    assert len(vertices) > 100
+    assert np.median(vertices[:, 2]) == pytest.approx(WALL_Z_M, abs=0.02)
+    assert _run(wall_recording, "--out", tmp_path / "map", "--method", "recorded",
+                "--depth-topic", "/camera/depth/image").exit_code != 0
 
 
 def test_rerun_save_writes_the_growing_map(wall_recording, tmp_path):

@@ -78,3 +78,22 @@ def test_multi_target_message_lengths_are_checked(rng):
     with pytest.raises(ValueError, match=r"zones: ZoneFrame\.target_signal must be finite"):
         zone_frame_from_msg(message(target_signal=np.full(32, -1.0, np.float32)))
     assert ZONE_FRAME_MSGTYPE != MULTI_TARGET_ZONE_FRAME_MSGTYPE
+
+
+def test_depth_images_in_metres_or_millimetres():
+    from deltar.io.ros_messages import metric_image_from_msg
+
+    image = typestore().types["sensor_msgs/msg/Image"]
+    millimetres = np.array([[0, 1500, 65535]], dtype=">u2")  # big-endian, as sent
+    msg = image(header=stamped_header(T0, "depth"), height=1, width=3, encoding="16UC1",
+                is_bigendian=1, step=8, data=np.r_[millimetres.view(np.uint8).reshape(-1),
+                                                   np.zeros(2, np.uint8)])
+    np.testing.assert_allclose(metric_image_from_msg(msg), [[np.nan, 1.5, 65.535]], atol=1e-6)
+    metres = np.array([[np.nan, 2.25]], dtype="<f4")
+    msg = image(header=stamped_header(T0, "depth"), height=1, width=2, encoding="32FC1",
+                is_bigendian=0, step=8, data=metres.view(np.uint8).reshape(-1))
+    np.testing.assert_allclose(metric_image_from_msg(msg), metres)
+    msg = image(header=stamped_header(T0, "depth"), height=1, width=2, encoding="mono16",
+                is_bigendian=0, step=4, data=np.zeros(4, np.uint8))
+    with pytest.raises(ValueError, match="depth_topic: expected encoding 32FC1 or 16UC1"):
+        metric_image_from_msg(msg, source="depth_topic")

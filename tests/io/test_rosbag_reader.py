@@ -265,3 +265,63 @@ def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):
     result = runner.invoke(app, ["replay", "--bag", str(tmp_path / "bag"), "--preset",
                                  "deltar-lite", "--out-bag", str(tmp_path / "out")])
     assert result.exit_code == 1 and 'needs the "ros" extra' in result.output
+
+
+def _depth_bag(path: Path, depth_shape=(HEIGHT, WIDTH), missing: int = 1) -> list[np.ndarray]:
+    """Camera + ToF as :func:`write_input_bag` and a RealSense-style 16UC1 depth topic,
+    its message logged before the image for odd frames and absent for frame ``missing``."""
+    store = typestore()
+    truths = []
+    with Writer(path, version=8) as writer:
+        cam = writer.add_connection("/camera/color/image_raw", "sensor_msgs/msg/Image",
+                                    typestore=store)
+        info = writer.add_connection("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo",
+                                     typestore=store)
+        tof = writer.add_connection("/tof/zones", "deltar_msgs/msg/ZoneFrame", typestore=store)
+        depth = writer.add_connection("/camera/aligned_depth_to_color/image_raw",
+                                      "sensor_msgs/msg/Image", typestore=store)
+        for i in range(4):
+            stamp = T0 + i * 100_000_000
+            millimetres = np.full(depth_shape, 1000 + 250 * i, np.uint16)
+            millimetres[0, :5] = 0  # no return
+            truths.append(np.where(millimetres > 0, millimetres / 1000.0, 0.0))
+            depth_msg = store.types["sensor_msgs/msg/Image"](
+                header=_header(store, stamp + 2_000_000, "cam_optical"), height=depth_shape[0],
+                width=depth_shape[1], encoding="16UC1", is_bigendian=0, step=2 * depth_shape[1],
+                data=millimetres.view(np.uint8).reshape(-1))
+            depth_log = stamp + (-500 if i % 2 else 5000)
+            if i != missing:
+                writer.write(depth, depth_log, store.serialize_cdr(depth_msg,
+                                                                   "sensor_msgs/msg/Image"))
+            _, msgtype, msg = _image(store, stamp, seed=i)
+            writer.write(cam, stamp + 1000, store.serialize_cdr(msg, msgtype))
+            writer.write(info, stamp + 1000, store.serialize_cdr(_camera_info(store, stamp),
+                                                                 "sensor_msgs/msg/CameraInfo"))
+            _, _, zmsg = _zones(store, stamp + 4_000_000, seed=i)
+            writer.write(tof, stamp + 4_001_000, store.serialize_cdr(
+                zmsg, "deltar_msgs/msg/ZoneFrame"))
+    return truths
+
+
+def test_a_depth_topic_is_read_beside_the_images(tmp_path):
+    truths = _depth_bag(tmp_path / "bag")
+    assert BagInput(tmp_path / "bag").depth_topic is None  # not deltar's name: ask for it
+    bag = BagInput(tmp_path / "bag", depth_topic="/camera/aligned_depth_to_color/image_raw")
+    assert bag.image_topic == "/camera/color/image_raw"
+    pairs = bag.pairs()
+    indices = bag.depth_indices(pairs, tolerance_s=0.01)
+    assert indices == [0, None, 1, 2]  # frame 1 has no depth message
+    got = {p.image_index: (rgb, depth) for p, rgb, depth in bag.images_with_depth(pairs, indices)}
+    assert sorted(got) == [0, 1, 2, 3]
+    assert got[1][1] is None
+    for i in (0, 2, 3):
+        np.testing.assert_allclose(got[i][1], truths[i], atol=1e-6)
+        assert got[i][1].dtype == np.float32 and got[i][0].shape == (HEIGHT, WIDTH, 3)
+    assert bag.depth_indices(pairs, tolerance_s=0.001) == [None] * 4  # 2 ms apart
+    with pytest.raises(ValueError, match="expected sensor_msgs/msg/Image"):
+        BagInput(tmp_path / "bag", depth_topic="/tof/zones")
+    _depth_bag(tmp_path / "small", depth_shape=(24, 32))
+    small = BagInput(tmp_path / "small", depth_topic="/camera/aligned_depth_to_color/image_raw")
+    with pytest.raises(ValueError, match="registered to the camera"):
+        pairs = small.pairs()
+        list(small.images_with_depth(pairs, small.depth_indices(pairs)))

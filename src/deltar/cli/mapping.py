@@ -54,7 +54,8 @@ def map_command(
     model: ModelOptions = MODEL_OPTIONS,
     method: str | None = typer.Option(None, "--method", help="Depth from a classical "
                                       "baseline (e.g. colorization) instead of the model, "
-                                      "or 'recorded': the recording's own depth images."),
+                                      "or 'recorded': the recording's own depth images "
+                                      "(a bag's depth topic)."),
     blend: bool = typer.Option(False, "--blend", help="Keep the estimator's confidence "
                                "blend with the colorization fill (off in maps: the network "
                                "alone fused into better maps, docs/mapping.md)."),
@@ -63,7 +64,12 @@ def map_command(
                                            "world) for a recording without pose/."),
     pose_topic: str | None = typer.Option(None, "--pose-topic", help="Bags: a "
                                           "geometry_msgs/msg/PoseStamped topic of camera "
-                                          "poses (default: /tf when the bag has it)."),
+                                          "poses (default: /tf when the bag has it, else "
+                                          "/camera/pose)."),
+    depth_topic: str | None = typer.Option(None, "--depth-topic", help="Bags: the depth "
+                                           "Image topic (32FC1 m or 16UC1 mm, registered to "
+                                           "the camera) --method recorded maps (default: "
+                                           "/camera/depth/image when the bag has it)."),
     odometry: bool = typer.Option(False, "--odometry", help="Use RGB-D odometry even when "
                                   "poses exist (they then measure its trajectory error)."),
     voxel: float = typer.Option(0.02, "--voxel", help="Voxel size, metres."),
@@ -133,17 +139,23 @@ def map_command(
         from deltar.calibration.rig import RigCalibration
 
         calibration = RigCalibration.load(calib)
-    bag_options = topics.bag_input_options() if (recording / "metadata.yaml").is_file() else {}
+    is_bag = (recording / "metadata.yaml").is_file()
+    if depth_topic is not None and not is_bag:
+        raise typer.BadParameter("--depth-topic is for ROS 2 bags; a recording keeps its "
+                                 "depth in depth/", param_hint="--depth-topic")
+    bag_options = {**topics.bag_input_options(), "depth_topic": depth_topic} if is_bag else {}
     source = FrameSource(recording, calibration=calibration, tolerance_s=tolerance,
                          every=every, limit=limit, bag_options=bag_options)
     settings = _settings(voxel, truncation, max_depth or source.depth_limit_m(), max_memory)
     # A bad method name fails here, before the poses and the model.
     depth = DepthSource(method=method, max_relative_sigma=max_relative_sigma) \
         if method is not None else None
-    if method == RECORDED and source.kind == "bag":
-        raise typer.BadParameter(f"{recording} is a ROS 2 bag; --method recorded reads the "
-                                 "depth/ images of a recording folder, not a bag's depth "
-                                 "topic", param_hint="--method")
+    if method == RECORDED and not source.has_recorded_depth:
+        where = f"a depth topic near its images (name it with --depth-topic; topics: " \
+            f"{', '.join(sorted(source.bag.topics))})" if source.kind == "bag" else \
+            "depth/ images"
+        raise typer.BadParameter(f"{recording} has no recorded depth: --method recorded "
+                                 f"needs {where}", param_hint="--method")
     plan = plan_map(source, settings, trajectory=trajectory, pose_topic=pose_topic,
                     force_odometry=odometry, tolerance_s=pose_tolerance)
     if plan.skipped_no_pose:

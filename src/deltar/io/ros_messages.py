@@ -310,17 +310,31 @@ def zone_frame_from_vl53l5cx_ros2(msg: Any, *, orientation: Orientation | None =
 
 
 def metric_image_from_msg(msg: Any, source: str = "image") -> np.ndarray:
-    """(H, W) float32 metres from a ``32FC1`` ``sensor_msgs/msg/Image`` (NaN kept)."""
-    if str(msg.encoding) != "32FC1":
-        raise ValueError(f"{source}: expected encoding 32FC1, got {msg.encoding!r}")
+    """(H, W) float32 metres from a depth ``sensor_msgs/msg/Image`` (REP 118).
+
+    ``32FC1`` is metres (NaN kept); ``16UC1`` is millimetres (0 = invalid, returned as
+    NaN), as RealSense and Kinect drivers publish depth.
+
+    Raises:
+        ValueError: another encoding, or fewer bytes than the rows need (naming
+            ``source``).
+    """
+    encoding = str(msg.encoding)
+    if encoding not in ("32FC1", "16UC1"):
+        raise ValueError(f"{source}: expected encoding 32FC1 or 16UC1, got {encoding!r}")
+    size = 4 if encoding == "32FC1" else 2
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
-    if step < 4 * width or data.size < step * height:
+    if step < size * width or data.size < step * height:
         raise ValueError(f"{source}: image data has {data.size} bytes, expected "
                          f"{height} rows of step {step}")
-    rows = data[:step * height].reshape(height, step)[:, :4 * width]
-    return rows.copy().view(">f4" if msg.is_bigendian else "<f4").reshape(height, width) \
-        .astype(np.float32)
+    rows = data[:step * height].reshape(height, step)[:, :size * width].copy()
+    order = ">" if msg.is_bigendian else "<"
+    if encoding == "32FC1":
+        return rows.view(f"{order}f4").reshape(height, width).astype(np.float32)
+    millimetres = rows.view(f"{order}u2").reshape(height, width)
+    return np.where(millimetres > 0, millimetres / np.float32(1000.0),
+                    np.float32(np.nan)).astype(np.float32)
 
 
 def _optional_fields(msg: Any, names: tuple[str, ...], size: int, source: str

@@ -6,8 +6,9 @@ topic, either this package's ``deltar_msgs/msg/ZoneFrame`` (``msg/ZoneFrame.msg`
 ``deltar_msgs/msg/MultiTargetZoneFrame`` with several targets per zone) or the
 ``sensor_msgs/msg/Image`` (32FC1, 4x4 or 8x8, metres, NaN = invalid) that the
 ``vl53l5cx_ros2`` driver node (github.com/skhbk/vl53l5cx_ros2) publishes. Zone frames
-are paired with the image nearest in header stamp. The messages are decoded by
-:mod:`deltar.io.ros_messages`.
+are paired with the image nearest in header stamp; a depth topic (``32FC1`` metres or
+``16UC1`` millimetres, registered to the camera) can be read beside the images. The
+messages are decoded by :mod:`deltar.io.ros_messages`.
 
 All times are integer nanoseconds (``header.stamp``) unless named ``_s`` (seconds).
 """
@@ -32,6 +33,7 @@ from deltar.io.ros_messages import (
     deserialize,
     image_from_msg,
     intrinsics_from_camera_info,
+    metric_image_from_msg,
     require_rosbags,
     stamp_to_ns,
     zone_frame_from_msg,
@@ -41,6 +43,8 @@ from deltar.sensor.zone_frame import Orientation, ZoneFrame
 
 #: ToF topic formats :class:`BagInput` reads.
 TOF_FORMATS: tuple[str, ...] = ("deltar", "vl53l5cx_ros2")
+#: The depth topic :class:`BagInput` reads when none is named (``deltar record --bag``'s).
+DEFAULT_DEPTH_TOPIC = "/camera/depth/image"
 
 
 def _namespace(topic: str) -> str:
@@ -86,6 +90,9 @@ class BagInput:
         tof_format: ``"deltar"`` or ``"vl53l5cx_ros2"`` (see :data:`TOF_FORMATS`).
         tof_orientation: for ``vl53l5cx_ros2`` only, the zone grid's orientation.
         tof_sigma_m: for ``vl53l5cx_ros2`` only, the sigma given to its zones.
+        depth_topic: a depth ``Image`` topic registered to the camera
+            (:meth:`images_with_depth`); None: :data:`DEFAULT_DEPTH_TOPIC` when the bag
+            has it, else no depth.
 
     Raises:
         FileNotFoundError: no bag at ``path``.
@@ -96,7 +103,7 @@ class BagInput:
     def __init__(self, path: str | os.PathLike, *, image_topic: str | None = None,
                  info_topic: str | None = None, tof_topic: str | None = None,
                  tof_format: str = "deltar", tof_orientation: Orientation | None = None,
-                 tof_sigma_m: float = 0.0) -> None:
+                 tof_sigma_m: float = 0.0, depth_topic: str | None = None) -> None:
         require_rosbags()
         from rosbags.rosbag2 import Reader
 
@@ -125,6 +132,14 @@ class BagInput:
             raise ValueError(f"{self.path}: camera and ToF topic are both {self.tof_topic}")
         self.info_topic = self._pick(info_topic, (CAMERA_INFO_TYPE,), "CameraInfo",
                                      "--info-topic", required=False)
+        if depth_topic is None and self.topics.get(DEFAULT_DEPTH_TOPIC) == \
+                "sensor_msgs/msg/Image" and DEFAULT_DEPTH_TOPIC != self.image_topic:
+            depth_topic = DEFAULT_DEPTH_TOPIC
+        self.depth_topic = None if depth_topic is None else self._pick(
+            depth_topic, ("sensor_msgs/msg/Image",), "depth", "--depth-topic")
+        if self.depth_topic in (self.image_topic, self.tof_topic):
+            raise ValueError(f"{self.path}: the depth topic {self.depth_topic} is also the "
+                             "camera or ToF topic")
 
     def _pick(self, topic: str | None, types: tuple[str, ...], what: str, option: str,
               required: bool = True, exclude: str | None = None) -> str | None:
@@ -255,6 +270,89 @@ class BagInput:
                 rgb = image_from_msg(msg, connection.msgtype, source=self.image_topic)
                 for pair in by_index[index]:
                     yield pair, rgb
+
+    def depth_indices(self, pairs: list[BagPair], tolerance_s: float = 0.02
+                      ) -> list[int | None]:
+        """For each pair, the position of the depth message nearest its image in header
+        stamp among the depth topic's messages, or None when none lies within
+        ``tolerance_s`` (or the bag has no depth topic)."""
+        from rosbags.rosbag2 import Reader
+
+        if self.depth_topic is None:
+            return [None] * len(pairs)
+        with Reader(self.path) as reader:
+            wanted = [c for c in reader.connections if c.topic == self.depth_topic]
+            stamps = [stamp_to_ns(self._deserialize(c, raw).header.stamp) / 1e9
+                      for c, _, raw in reader.messages(connections=wanted)]
+        if not stamps:
+            return [None] * len(pairs)
+        order = np.argsort(stamps, kind="stable")
+        times = np.asarray(stamps, dtype=np.float64)[order]
+        nearest, gap = nearest_in_time(times, np.array([p.image_stamp_ns / 1e9 for p in pairs]))
+        return [int(order[i]) if g <= tolerance_s else None
+                for i, g in zip(nearest, gap, strict=True)]
+
+    def images_with_depth(self, pairs: list[BagPair], depth_indices: list[int | None]
+                          ) -> Iterator[tuple[BagPair, np.ndarray, np.ndarray | None]]:
+        """:meth:`images` with each pair's depth: (pair, (H, W, 3) uint8 RGB, (H, W)
+        float32 metres with 0 where invalid, or None), in one pass over the bag.
+
+        ``depth_indices`` comes from :meth:`depth_indices`. Images and depth maps are held
+        only until their partner arrives (both are logged at about the same time).
+
+        Raises:
+            ValueError: a depth map of another size than its image, or not a depth
+                encoding (naming the topic).
+        """
+        from rosbags.rosbag2 import Reader
+
+        wanted_images: dict[int, list[tuple[BagPair, int | None]]] = {}
+        depth_users: dict[int, int] = {}
+        for pair, depth_index in zip(pairs, depth_indices, strict=True):
+            wanted_images.setdefault(pair.image_index, []).append((pair, depth_index))
+            if depth_index is not None:
+                depth_users[depth_index] = depth_users.get(depth_index, 0) + 1
+        held_depth: dict[int, np.ndarray] = {}
+        waiting: list[tuple[BagPair, int, np.ndarray]] = []  # image decoded, depth not yet
+
+        def joined(pair: BagPair, depth_index: int, rgb: np.ndarray):
+            depth = held_depth[depth_index]
+            if depth.shape != rgb.shape[:2]:
+                raise ValueError(f"{self.path}: depth on {self.depth_topic} is {depth.shape}, "
+                                 f"the camera image {rgb.shape[:2]}: the depth must be "
+                                 "registered to the camera (e.g. aligned_depth_to_color)")
+            depth_users[depth_index] -= 1
+            if not depth_users[depth_index]:
+                del held_depth[depth_index]
+            return pair, rgb, depth
+
+        topics = (self.image_topic, self.depth_topic)
+        counts = {topic: 0 for topic in topics}
+        with Reader(self.path) as reader:
+            wanted = [c for c in reader.connections if c.topic in topics]
+            for connection, _, raw in reader.messages(connections=wanted):
+                index = counts[connection.topic]
+                counts[connection.topic] += 1
+                if connection.topic == self.image_topic:
+                    if index not in wanted_images:
+                        continue
+                    msg = self._deserialize(connection, raw)
+                    rgb = image_from_msg(msg, connection.msgtype, source=self.image_topic)
+                    for pair, depth_index in wanted_images.pop(index):
+                        if depth_index is None:
+                            yield pair, rgb, None
+                        elif depth_index in held_depth:
+                            yield joined(pair, depth_index, rgb)
+                        else:
+                            waiting.append((pair, depth_index, rgb))
+                elif index in depth_users:
+                    msg = self._deserialize(connection, raw)
+                    depth = metric_image_from_msg(msg, source=self.depth_topic)
+                    held_depth[index] = np.where(np.isfinite(depth), depth, np.float32(0.0))
+                    ready = [w for w in waiting if w[1] == index]
+                    waiting = [w for w in waiting if w[1] != index]
+                    for pair, depth_index, rgb in ready:
+                        yield joined(pair, depth_index, rgb)
 
 
 def read_messages(path: str | os.PathLike, topic: str) -> list[tuple[int, Any]]:

@@ -125,12 +125,23 @@ class FrameSource:
                                 p.zone_frame, pair_calibration(p, calibration),
                                 camera_frame_id=p.frame_id or None) for p in pairs]
         self._pairs = pairs
+        # The depth message nearest each image (the bag's depth topic, if it has one).
+        self._depth_indices = bag.depth_indices(pairs, tolerance_s)
+
+    @property
+    def has_recorded_depth(self) -> bool:
+        """Whether the frames come with recorded depth: a recording's ``depth/`` images or
+        a bag's depth topic near their images (``--method recorded``)."""
+        if self.kind == "bag":
+            return any(i is not None for i in self._depth_indices)
+        return bool(self.recording.depth_paths)
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def load(self, frames: list[MapFrame] | None = None) -> Iterator[MapFrame]:
-        """Yield ``frames`` (default: all, in order) with their image (and recorded depth).
+        """Yield ``frames`` (default: all; in order from a recording, in bag order from a
+        bag) with their image (and recorded depth).
 
         A frame's image is released again when the next one is yielded; from a
         recording the next frame's files are read while the caller works on the
@@ -142,11 +153,14 @@ class FrameSource:
                   if id(f) in wanted]
         if self.kind == "bag":
             by_pair = {id(p): f for p, f in chosen}
-            for pair, rgb in self.bag.images([p for p, _ in chosen]):
+            depth_of = {id(p): d for p, d in zip(self._pairs, self._depth_indices, strict=True)}
+            pairs = [p for p, _ in chosen]
+            for pair, rgb, depth in self.bag.images_with_depth(
+                    pairs, [depth_of[id(p)] for p in pairs]):
                 frame = by_pair[id(pair)]
-                frame.image = rgb
+                frame.image, frame.recorded_depth_m = rgb, depth
                 yield frame
-                frame.image = None
+                frame.image, frame.recorded_depth_m = None, None
             return
         for (_, frame), loaded in read_ahead(chosen, lambda chosen_pair:
                                              chosen_pair[0].load_images()):
