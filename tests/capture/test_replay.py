@@ -93,6 +93,24 @@ def test_corrupt_image_raises_naming_the_file(tmp_path):
         list(replay(tmp_path / "rec", _estimator()))
 
 
+def test_a_failing_frame_is_reported_and_skipped_when_asked(tmp_path):
+    record_wall(tmp_path / "rec", frames=6)
+    rec = Recording(tmp_path / "rec")
+    pairs = rec.pairs()
+    bad = pairs[1].color_path
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 20)
+    failed = []
+    written = replay_to_folder(tmp_path / "rec", _estimator(), tmp_path / "out",
+                               kinds=("npy",), on_failure=lambda p, e: failed.append((p, e)))
+    assert [p.color_path for p, _ in failed] == [bad]
+    assert isinstance(failed[0][1], ValueError) and bad.name in str(failed[0][1])
+    assert sorted(p.name for p in written) == sorted(
+        f"{p.color_path.stem}_depth_m.npy" for p in pairs if p.color_path != bad)
+    # Without on_failure the same frame ends the replay.
+    with pytest.raises(ValueError, match=bad.name):
+        list(replay(tmp_path / "rec", _estimator()))
+
+
 def test_calibration_for_another_resolution_is_refused(tmp_path):
     record_wall(tmp_path / "rec", frames=4)
     calib = RigCalibration(CameraIntrinsics(100, 100, 63.5, 47.5, 128, 96), SensorExtrinsics())

@@ -385,6 +385,22 @@ def test_progress_lines_when_not_a_terminal(recording, tmp_path, monkeypatch):
     assert "replaying: 2/2 frames" in result.stdout
 
 
+def test_replay_keep_going_reports_a_corrupt_frame_and_exits_1(recording, tmp_path):
+    from deltar.io.recording import Recording
+
+    rec = Recording(recording)
+    bad = rec.pairs()[0].color_path
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 20)
+    stopped = _run(["replay", recording, "--out", tmp_path / "o1", "--outputs", "npy", *LITE])
+    _one_error_line(stopped, bad.name, "unreadable image")
+    going = _run(["replay", recording, "--out", tmp_path / "o2", "--outputs", "npy",
+                  "--keep-going", *LITE])
+    assert going.exit_code == 1
+    assert f"warning: skipped {bad.name}" in going.stderr
+    _one_error_line(going, "1 of 2 frames failed", bad.name)
+    assert "wrote 1 files" in going.stdout and len(list((tmp_path / "o2").iterdir())) == 1
+
+
 def test_replay_skips_frames_without_zones_unless_allowed(tmp_path):
     from deltar.io.recording import RecordingMeta, RecordingWriter
 

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from deltar.calibration.rig import RigCalibration
+from deltar.inference.folder import FRAME_ERRORS
 from deltar.io.read_ahead import read_ahead
 from deltar.io.recording import Recording, RecordingPair
 from deltar.sensor.geometry import SensorExtrinsics
@@ -76,7 +77,9 @@ def check_gaps(recording: Recording, pairs: list[RecordingPair]) -> list[tuple[f
 def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, *,
            calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
            time_offset_s: float | None = None, every: int = 1, limit: int | None = None,
-           skip_no_zones: bool = False) -> Iterator[ReplayItem]:
+           skip_no_zones: bool = False,
+           on_failure: Callable[[RecordingPair, Exception], None] | None = None
+           ) -> Iterator[ReplayItem]:
     """Predict depth for each zone frame of a recording that has a colour image near it.
 
     Zone frames without a colour image within ``tolerance_s`` are skipped with a
@@ -94,6 +97,9 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         limit: stop after this many predictions.
         skip_no_zones: skip zone frames without any valid zone (with a warning) instead
             of predicting image-only estimates (see ``DepthPrediction.image_only``).
+        on_failure: when given, a frame whose images cannot be read or whose prediction
+            refuses its input (:data:`deltar.inference.folder.FRAME_ERRORS`) is passed to
+            it and skipped; without it the error ends the replay.
 
     Yields:
         :class:`ReplayItem` per predicted frame, in time order.
@@ -127,9 +133,15 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     # pair's images are read while the estimator works on this one.
     wanted = selected() if limit is None else itertools.islice(selected(), max(0, int(limit)))
     for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
-        image, reference = loaded.result()
-        yield ReplayItem(pair, image, estimator.predict(image, pair.zone_frame, calib),
-                         reference)
+        try:
+            image, reference = loaded.result()
+            prediction = estimator.predict(image, pair.zone_frame, calib)
+        except FRAME_ERRORS as err:
+            if on_failure is None:
+                raise
+            on_failure(pair, err)
+            continue
+        yield ReplayItem(pair, image, prediction, reference)
 
 
 def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
@@ -139,11 +151,15 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
                      time_offset_s: float | None = None, every: int = 1,
                      limit: int | None = None, overwrite: bool = False,
                      on_item: Callable[[ReplayItem], None] | None = None,
-                     skip_no_zones: bool = False) -> list[Path]:
+                     skip_no_zones: bool = False,
+                     on_failure: Callable[[RecordingPair, Exception], None] | None = None
+                     ) -> list[Path]:
     """Replay a recording and write outputs named by the colour image's time stamp.
 
     Arguments as :func:`replay`; frames without a valid zone are written as flagged
-    image-only estimates unless ``skip_no_zones``.
+    image-only estimates unless ``skip_no_zones``. With ``on_failure`` a frame that
+    fails (unreadable images, refused input, its outputs not written) is reported to it
+    and skipped.
 
     Returns:
         The written files.
@@ -161,10 +177,17 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
     written: list[Path] = []
     for item in replay(rec, estimator, calibration=calibration, tolerance_s=tolerance_s,
                        time_offset_s=time_offset_s, every=every, limit=limit,
-                       skip_no_zones=skip_no_zones):
-        paths = write_prediction(out, item.pair.color_path.stem, item.image, item.prediction,
-                                 kinds=kinds, overwrite=overwrite,
-                                 title=f"{item.pair.color_path.name} ({estimator.weights})")
+                       skip_no_zones=skip_no_zones, on_failure=on_failure):
+        try:
+            paths = write_prediction(out, item.pair.color_path.stem, item.image,
+                                     item.prediction, kinds=kinds, overwrite=overwrite,
+                                     title=f"{item.pair.color_path.name} "
+                                     f"({estimator.weights})")
+        except FRAME_ERRORS as err:
+            if on_failure is None:
+                raise
+            on_failure(item.pair, err)
+            continue
         written.extend(paths.values())
         if on_item is not None:
             on_item(item)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from deltar.cli.errors import fail
+from deltar.cli.errors import fail, format_error, warn
 from deltar.cli.frame_options import (
     AllowNoZonesOption,
     CalibOption,
@@ -142,6 +142,9 @@ def replay_command(
     every: int = typer.Option(1, min=1, help="Use every N-th frame."),
     limit: int | None = typer.Option(None, min=1, help="Stop after this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
+    keep_going: bool = typer.Option(False, "--keep-going", help="Report a frame that "
+                                    "fails (unreadable image, refused reading) and go on; "
+                                    "the summary counts the failures (exit code 1 if any)."),
     allow_no_zones: bool = AllowNoZonesOption,
     bag: Path | None = BagOption,
     out_bag: Path | None = OutBagOption,
@@ -189,17 +192,25 @@ def replay_command(
     _check_calibration_fits(calibration, calib, recording)
     estimator = model.load()
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
+    failed: list[tuple[str, Exception]] = []
+
+    def failure(pair, err: Exception) -> None:
+        failed.append((pair.color_path.name, err))
+        warn(f"skipped {pair.color_path.name}: {format_error(err)}")
+
+    on_failure = failure if keep_going else None
     if out is None:
         items = map(viewer, replay(recording, estimator, calibration=calibration,
                                    tolerance_s=tolerance, time_offset_s=time_offset,
                                    every=every, limit=limit,
-                                   skip_no_zones=not allow_no_zones))
+                                   skip_no_zones=not allow_no_zones, on_failure=on_failure))
         if show:
             _show_live(items)
         else:
             for _ in items:
                 pass
         viewer.close()
+        _fail_if_any(failed, total)
         return
     with ProgressReport("replaying", total=total) as progress:
 
@@ -210,10 +221,21 @@ def replay_command(
         written = replay_to_folder(recording, estimator, out, kinds=kinds,
                                    calibration=calibration, tolerance_s=tolerance,
                                    time_offset_s=time_offset, every=every, limit=limit,
-                                   overwrite=overwrite,
-                                   on_item=each, skip_no_zones=not allow_no_zones)
+                                   overwrite=overwrite, on_item=each,
+                                   skip_no_zones=not allow_no_zones,
+                                   on_failure=None if on_failure is None else
+                                   lambda pair, err: (on_failure(pair, err),
+                                                      progress.advance()))
     viewer.close()
     typer.echo(f"wrote {len(written)} files to {out}")
+    _fail_if_any(failed, total)
+
+
+def _fail_if_any(failed: list[tuple[str, Exception]], total: int) -> None:
+    """End a ``--keep-going`` replay with exit code 1 when frames failed."""
+    if failed:
+        name, err = failed[0]
+        fail(f"{len(failed)} of {total} frames failed (first: {name}: {format_error(err)})")
 
 
 def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float, float],
