@@ -8,7 +8,7 @@ import torch
 from PIL import Image
 
 from deltar.inference.estimator import DepthEstimator
-from deltar.inference.folder import plan_jobs, run_jobs
+from deltar.inference.folder import check_valid_zones, plan_jobs, run_jobs
 from deltar.io.zone_file import save_zone_frame
 from deltar.sensor.zone_frame import ZoneFrame
 from tests.inference.fakes import ZonePainterNet
@@ -75,3 +75,22 @@ def test_an_output_that_would_replace_an_input_is_refused(tmp_path, frames):
     with pytest.raises(ValueError, match=r"a_depth_color\.png would overwrite an input"):
         plan_jobs([frames[0], clash], frames[0][0].parent, ("color",), overwrite=True,
                   skip_existing=False)
+
+
+def test_a_frame_without_valid_zones_is_refused_saying_why(tmp_path):
+    empty = np.zeros((8, 8))
+    open_space = ZoneFrame(empty, empty, np.zeros((8, 8), bool),
+                           no_target=np.ones((8, 8), bool))
+    with pytest.raises(ValueError, match=r"z\.json: no valid zone \(all 64 report no target: "
+                                         r"nothing within the sensor's range\).*--allow"):
+        check_valid_zones(open_space, tmp_path / "z.json", allow="--allow-no-zones")
+    some = np.zeros((8, 8), bool)
+    some[0, :3] = True
+    failed = ZoneFrame(empty, empty, np.zeros((8, 8), bool), no_target=some)
+    with pytest.raises(ValueError, match=r"all 64 invalid: error codes.*; 3 report no target"):
+        check_valid_zones(failed, tmp_path / "z.json")
+    dark = ZoneFrame(empty, empty, np.zeros((8, 8), bool))
+    with pytest.raises(ValueError, match=r"all 64 invalid: error codes, out of range or "
+                                         r"flagged invalid\)"):
+        check_valid_zones(dark, tmp_path / "z.json")
+    check_valid_zones(open_space, tmp_path / "z.json", allow_no_zones=True)

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 if TYPE_CHECKING:
     from deltar.inference.estimator import DepthEstimator
     from deltar.sensor.zone_frame import Orientation, ZoneFrame
@@ -111,8 +113,13 @@ def check_valid_zones(frame: ZoneFrame, zone_path: Path, allow_no_zones: bool = 
             argument or option that does).
     """
     if frame.valid_count == 0 and not allow_no_zones:
-        raise ValueError(f"{zone_path}: no valid zone (all {frame.zone_count} invalid: error "
-                         "codes, out of range or flagged invalid), so the depth would be a "
+        no_target = 0 if frame.no_target is None else int(np.count_nonzero(frame.no_target))
+        # Open space is not a fault: say so, the scale is then only "beyond the range".
+        why = f"all {frame.zone_count} report no target: nothing within the sensor's range" \
+            if no_target == frame.zone_count else \
+            f"all {frame.zone_count} invalid: error codes, out of range or flagged invalid" \
+            + (f"; {no_target} report no target" if no_target else "")
+        raise ValueError(f"{zone_path}: no valid zone ({why}), so the depth would be a "
                          f"guess from the image alone; pass {allow} to write it as an "
                          "image-only estimate")
 
