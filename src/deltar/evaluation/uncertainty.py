@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deltar.evaluation.network_reuse import reuse_network_outputs
 from deltar.evaluation.zone_consistency_fit import fit_zone_consistency, frame_picks
 from deltar.inference.blend import ConfidenceBlend
 from deltar.inference.blend_fit import BlendPixels, fit_confidence_blend
@@ -431,6 +432,7 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     estimator = DepthEstimator(copy.deepcopy(model), blend=None, uncertainty=None,
                                no_target_min_neighbour_m=None, zone_outliers=None,
                                zone_consistency=0.0, weights=f"{preset} from {source}")
+    reuse_network_outputs(estimator)  # passes that give the network the same inputs
     # The outlier rule first: it changes the zones everything after it reads.
     if detector_sets:
         from deltar.sensor.zone_outlier_detector import fit_outlier_detector
