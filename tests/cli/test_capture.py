@@ -91,3 +91,25 @@ def test_record_simulate_carries_the_sources_poses_and_appends_after_its_end(tmp
     from_bag = read_bag_poses(bag)  # deltar's own pose topic, no --pose-topic needed
     np.testing.assert_allclose(from_bag.poses[:, 0, 3], [0.0, 0.05, 0.1, 0.15], atol=1e-9)
     np.testing.assert_allclose(from_bag.times_s, np.arange(4) / 30.0, atol=1e-9)
+
+
+def test_record_never_writes_into_its_own_source(tmp_path):
+    source = _posed_folder(tmp_path / "scene", frames=2)
+    before = sorted(p.relative_to(source) for p in source.rglob("*"))
+    for out in (source, source / "rec"):
+        result = runner.invoke(app, ["record", str(out), "--simulate", str(source)])
+        assert result.exit_code == 1 and "error: OUT" in result.output
+        assert str(source) in result.output
+    assert sorted(p.relative_to(source) for p in source.rglob("*")) == before
+
+
+def test_existing_outputs_name_only_the_commands_options(tmp_path):
+    out = tmp_path / "rec"
+    assert runner.invoke(app, ["record", str(out), "--simulate", "wall:1.5:2:48x64"]
+                         ).exit_code == 0
+    args = ["replay", str(out), "--out", str(tmp_path / "o"), "--outputs", "npy",
+            "--preset", "deltar-lite", "--threads", "1"]
+    assert runner.invoke(app, args).exit_code == 0
+    again = runner.invoke(app, args)
+    assert again.exit_code == 1 and "pass --overwrite to replace them" in again.output
+    assert "--skip-existing" not in again.output

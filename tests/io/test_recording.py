@@ -102,6 +102,26 @@ def test_poses_are_written_by_time_and_the_end_time_covers_every_item(tmp_path):
     assert Recording(tmp_path / "empty").end_time_s() is None
 
 
+def test_appending_after_an_interrupted_line_keeps_the_recording_readable(tmp_path):
+    folder = tmp_path / "rec"
+    _write(folder, [0.1, 0.2, 0.3], [0.1])
+    zones = folder / "zones.jsonl"
+    whole = zones.read_bytes()
+    cut = whole[:-40]  # the last append interrupted mid-line
+    zones.write_bytes(cut)
+    with pytest.warns(UserWarning, match="last line was cut off"):
+        writer = RecordingWriter(folder, RecordingMeta(CAMERA, grid=4))
+    writer.add_zone_frame(_zone_frame(0.4))
+    times = [f.timestamp_s for f in Recording(folder).zone_frames()]
+    assert times == [0.1, 0.2, 0.4]
+    (kept,) = folder.glob("zones.jsonl.partial-*")  # every byte of the cut line kept
+    assert cut[cut.rfind(b"\n") + 1:] == kept.read_bytes()
+    # A last line that is complete but for its newline is kept as a reading.
+    zones.write_bytes(zones.read_bytes()[:-1])
+    RecordingWriter(folder, RecordingMeta(CAMERA, grid=4)).add_zone_frame(_zone_frame(0.5))
+    assert [f.timestamp_s for f in Recording(folder).zone_frames()] == [0.1, 0.2, 0.4, 0.5]
+
+
 def test_writer_rejects_wrong_image_size(tmp_path):
     writer = _write(tmp_path / "rec", [], [])
     with pytest.raises(ValueError, match="image_rgb"):

@@ -81,6 +81,10 @@ def record_command(
     if duration is not None:
         finite(duration, "--duration", positive=True)
     output_folder(out, "OUT")
+    if simulate is not None and Path(simulate).exists():
+        from deltar.io.input_file import refuse_input_as_output
+
+        refuse_input_as_output(out, [Path(simulate)], "OUT", folder=True)
     try:
         intrinsics = None
         if simulate is not None:

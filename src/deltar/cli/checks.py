@@ -56,8 +56,10 @@ def output_file(path: Path, option: str, overwrite: bool) -> Path:
     return path
 
 
-def existing_outputs(paths: Iterable[Path], option: str = "--out") -> None:
-    """Refuse to start when outputs exist (resume with ``--skip-existing``).
+def existing_outputs(paths: Iterable[Path], option: str = "--out", *,
+                     resumable: bool = False) -> None:
+    """Refuse to start when outputs exist; the message names ``--overwrite`` and, for a
+    command that can resume (``resumable``), ``--skip-existing``.
 
     Raises:
         FileExistsError: naming how many exist and the first few.
@@ -65,9 +67,10 @@ def existing_outputs(paths: Iterable[Path], option: str = "--out") -> None:
     existing = [str(p) for p in paths if p.exists()]
     if existing:
         shown = ", ".join(existing[:3]) + (" ..." if len(existing) > 3 else "")
+        resume = " or --skip-existing to keep them and write the rest" if resumable else ""
         raise FileExistsError(f"{option}: refusing to overwrite {len(existing)} existing "
-                              f"output file(s) ({shown}); pass --overwrite to replace them "
-                              "or --skip-existing to keep them and write the rest")
+                              f"output file(s) ({shown}); pass --overwrite to replace "
+                              f"them{resume}")
 
 
 def torch_device(name: str, option: str = "--device") -> str:

@@ -90,7 +90,7 @@ def predict_command(
     output_folder(out, "--out")
     jobs, complete, existing = plan_jobs(pairs, out, kinds, overwrite=overwrite,
                                          skip_existing=skip_existing)
-    existing_outputs(existing)
+    existing_outputs(existing, resumable=True)
     calibration = load_calibration(calib)
     if first is not None:
         from deltar.camera import check_image

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from deltar.camera import CameraIntrinsics, check_image, strict_integer, strict_number
-from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.atomic import atomic_path, write_bytes_atomic, write_text_atomic
 from deltar.io.input_file import input_file, input_folder, reading
 from deltar.io.json_file import read_json
 from deltar.io.pose_file import POSE_DIR, write_pose_file
@@ -107,6 +108,7 @@ class RecordingWriter:
                 raise ValueError(f"{meta_path}: existing recording has different intrinsics, "
                                  "grid or fov; write to a new folder")
             self.meta = existing
+            _end_partial_line(self.folder / ZONES_FILE)
             self._last_zone_time = _last_zone_timestamp(self.folder / ZONES_FILE)
         else:
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -374,6 +376,38 @@ def nearest_in_time(sorted_times: np.ndarray, query: np.ndarray
     pick_left = np.abs(query - sorted_times[left]) <= np.abs(sorted_times[right] - query)
     idx = np.where(pick_left, left, right)
     return idx, np.abs(sorted_times[idx] - query)
+
+
+def _end_partial_line(path: Path) -> None:
+    """Before appending to ``zones.jsonl``: an interrupted append can leave a last line
+    without its newline, and a new line written after it would join it (the file would
+    then hold a corrupt line in its middle). A complete reading that only lacks the
+    newline gets it; an incomplete one is moved, byte for byte, to
+    ``zones.jsonl.partial-<ns>`` beside it (with a warning) and cut from the file."""
+    if not path.is_file():
+        return
+    data = path.read_bytes()
+    if not data or data.endswith(b"\n"):
+        return
+    start = data.rfind(b"\n") + 1
+    tail = data[start:]
+    try:
+        zone_frame_from_dict(json.loads(tail.decode("utf-8")), source=str(path))
+    except (ValueError, UnicodeDecodeError):  # JSONDecodeError is a ValueError
+        kept = path.with_name(f"{path.name}.partial-{time.time_ns()}")
+        write_bytes_atomic(kept, tail, overwrite=False)
+        warnings.warn(f"{path}: its last line was cut off (an interrupted recording); "
+                      f"moved its {len(tail)} bytes to {kept.name} before appending",
+                      stacklevel=3)
+        with open(path, "r+b") as handle:
+            handle.truncate(start)
+            handle.flush()
+            os.fsync(handle.fileno())
+        return
+    with open(path, "ab") as handle:
+        handle.write(b"\n")
+        handle.flush()
+        os.fsync(handle.fileno())
 
 
 def _last_zone_timestamp(path: Path) -> float | None:
