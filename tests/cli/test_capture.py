@@ -113,3 +113,13 @@ def test_existing_outputs_name_only_the_commands_options(tmp_path):
     again = runner.invoke(app, args)
     assert again.exit_code == 1 and "pass --overwrite to replace them" in again.output
     assert "--skip-existing" not in again.output
+
+
+def test_record_simulate_refuses_hardware_options(tmp_path):
+    for extra, named in ((["--calib", "calib.json"], "--calib is for hardware"),
+                         (["--camera", "3", "--sensor", "sparkfun"],
+                          "--camera and --sensor are for hardware")):
+        result = runner.invoke(app, ["record", str(tmp_path / "rec"), "--simulate",
+                                     "wall:1.5:2:48x64", *extra])
+        assert result.exit_code == 2 and named in result.output
+    assert not (tmp_path / "rec").exists()

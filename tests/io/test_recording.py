@@ -122,6 +122,20 @@ def test_appending_after_an_interrupted_line_keeps_the_recording_readable(tmp_pa
     assert [f.timestamp_s for f in Recording(folder).zone_frames()] == [0.1, 0.2, 0.4, 0.5]
 
 
+def test_a_depth_map_in_the_colour_folder_is_refused_by_name(tmp_path):
+    import cv2
+
+    _write(tmp_path / "rec", [1.0], [1.0], [1.0])
+    rec = Recording(tmp_path / "rec")
+    (pair,) = rec.pairs()
+    assert pair.load_color().shape == (24, 32, 3)
+    cv2.imwrite(str(pair.color_path), np.full((24, 32), 1234, np.uint16))
+    with pytest.raises(ValueError, match=r"1000000000.png: a uint16 image .*a depth map"):
+        pair.load_color()
+    cv2.imwrite(str(pair.color_path), np.full((24, 32), 7, np.uint8))  # 8-bit grey: fine
+    np.testing.assert_array_equal(pair.load_color(), np.full((24, 32, 3), 7, np.uint8))
+
+
 def test_writer_rejects_wrong_image_size(tmp_path):
     writer = _write(tmp_path / "rec", [], [])
     with pytest.raises(ValueError, match="image_rgb"):

@@ -135,7 +135,10 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
         try:
             image, reference = loaded.result()
-            prediction = estimator.predict(image, pair.zone_frame, calib)
+            try:
+                prediction = estimator.predict(image, pair.zone_frame, calib)
+            except ValueError as err:  # name the frame: the message may not
+                raise ValueError(f"{pair.color_path}: {err}") from err
         except FRAME_ERRORS as err:
             if on_failure is None:
                 raise

@@ -81,6 +81,19 @@ def record_command(
     if duration is not None:
         finite(duration, "--duration", positive=True)
     output_folder(out, "OUT")
+    if simulate is not None:
+        # The source is the camera and the simulated sensor: hardware options would be
+        # silently ignored.
+        given = [name for name, value, default in (("--camera", camera, 0),
+                                                   ("--sensor", sensor, "vl53l5cx-ctypes"),
+                                                   ("--calib", calib, None))
+                 if value != default]
+        if given:
+            raise typer.BadParameter(f"{' and '.join(given)} "
+                                     f"{'is' if len(given) == 1 else 'are'} for hardware "
+                                     "recording; with --simulate the RGB-D source is the "
+                                     "camera (with its intrinsics) and the sensor is "
+                                     "simulated", param_hint=given[0])
     if simulate is not None and Path(simulate).exists():
         from deltar.io.input_file import refuse_input_as_output
 

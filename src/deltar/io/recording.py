@@ -203,13 +203,25 @@ class RecordingPair:
     color_offset_s: float
 
     def load_color(self) -> np.ndarray:
-        """The colour image, (H, W, 3) uint8 RGB."""
+        """The colour image, (H, W, 3) uint8 RGB (8-bit grey expanded, alpha dropped).
+
+        Raises:
+            ValueError: unreadable, or not 8 bits per channel (a 16-bit or float image
+                is a depth map, not a colour image), naming the file.
+        """
         import cv2
 
-        image = cv2.imread(str(self.color_path), cv2.IMREAD_COLOR)
+        image = cv2.imread(str(self.color_path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise ValueError(f"{self.color_path}: unreadable image")
-        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        if image.dtype != np.uint8:
+            raise ValueError(f"{self.color_path}: a {image.dtype} image with "
+                             f"{1 if image.ndim == 2 else image.shape[2]} channel(s) (a depth "
+                             "map?), not an 8-bit colour image")
+        if image.ndim == 2:
+            return cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+        code = cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
+        return cv2.cvtColor(image, code)
 
     def load_depth(self) -> np.ndarray:
         """The depth map, (H, W) float32 metres, 0 = invalid."""
