@@ -98,6 +98,7 @@ def test_odometry_without_poses_writes_the_map_and_reports_its_error(wall_record
                   "--odometry", *COARSE)
     assert result.exit_code == 0, result.output
     assert "odometry: 5 frame pairs" in result.stdout and "ATE" in result.stdout
+    assert "m/s" not in result.stderr  # a plausible walk: no warning
     summary = json.loads((tmp_path / "map" / "map.json").read_text())
     assert summary["ate_m"] < 0.05  # exact depth, strong texture: it tracks
     assert (tmp_path / "map" / "mesh.ply").is_file()

@@ -210,6 +210,14 @@ def map_command(
         typer.echo(result.odometry.summary()
                    + ("" if result.ate_m is None else
                       f"; trajectory error (ATE) against the given poses {result.ate_m:.3f} m"))
+        from deltar.mapping.odometry import MAX_CAMERA_SPEED_M_S, median_speed
+
+        speed = median_speed(result.poses, result.times_s)
+        if speed > MAX_CAMERA_SPEED_M_S:
+            warn(f"the odometry moves the camera at a median {speed:.1f} m/s between "
+                 f"frames (more than {MAX_CAMERA_SPEED_M_S:g} m/s): the frames may not be "
+                 "one continuous sequence (e.g. generated rooms), so the map is unreliable; "
+                 "give poses (pose/ folder, --trajectory) if there are any")
     extent = "empty" if bounds is None else \
         " x ".join(f"{v:.2f}" for v in bounds[1] - bounds[0]) + " m"
     typer.echo(f"volume: {volume.block_count} blocks ({extent}), "

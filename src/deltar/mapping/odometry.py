@@ -67,6 +67,30 @@ def check_motion(images: Sequence[np.ndarray], source: str,
     return median
 
 
+#: Camera speed (m/s) above which chained odometry is reported as implausible: faster
+#: than a walking person or an indoor robot carries a camera.
+MAX_CAMERA_SPEED_M_S = 3.0
+
+
+def median_speed(poses: np.ndarray, times_s: np.ndarray) -> float:
+    """Median speed of the camera between consecutive frames, metres per second.
+
+    Args:
+        poses: (N, 4, 4) camera-to-world transforms, metres, N >= 2.
+        times_s: (N,) frame times, seconds, increasing.
+
+    Returns:
+        The median of |translation step| / time step (0 for fewer than two frames);
+        above :data:`MAX_CAMERA_SPEED_M_S` the frames are probably not one continuous
+        sequence (e.g. unrelated generated rooms), or their depth is wrong.
+    """
+    if len(poses) < 2:
+        return 0.0
+    steps = np.linalg.norm(np.diff(np.asarray(poses)[:, :3, 3], axis=0), axis=1)
+    durations = np.maximum(np.diff(np.asarray(times_s, dtype=np.float64)), 1e-6)
+    return float(np.median(steps / durations))
+
+
 @dataclass
 class OdometryReport:
     """How the odometry went.
