@@ -38,10 +38,11 @@ def test_cli_replay_bag_with_the_bundled_model(tmp_path):
         rgb, pair.zone_frame, pair_calibration(pair, None)).depth_m
     np.testing.assert_allclose(metric_image_from_msg(depth_msgs[0][1]), expected, atol=1e-5)
     again = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag", str(out)])
-    assert again.exit_code == 1 and "refusing to write into existing path" in again.output
+    assert again.exit_code == 2 and "Invalid value for --out-bag" in again.output
+    assert "exists; a bag is written whole into a new path" in again.output
     inside = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag",
                                  str(source / "out")])
-    assert inside.exit_code == 1 and "inside it" in inside.output
+    assert inside.exit_code == 1 and "is inside the input" in inside.output
 
 
 def test_record_writes_a_bag_that_replays(tmp_path):
@@ -71,7 +72,8 @@ def test_record_writes_a_bag_that_replays(tmp_path):
     assert replayed.exit_code == 0, replayed.output
     assert "wrote 3 frames" in replayed.output
     again = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate", "wall:1.5:2"])
-    assert again.exit_code == 1 and "refusing to write into existing path" in again.output
+    assert again.exit_code == 2 and "Invalid value for OUT" in again.output
+    assert "with --bag the recording is a new bag" in again.output
 
 
 def test_cli_record_simulate_and_predict_save_recordings(tmp_path):

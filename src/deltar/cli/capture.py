@@ -81,6 +81,9 @@ def record_command(
     if duration is not None:
         finite(duration, "--duration", positive=True)
     output_folder(out, "OUT")
+    if bag and out.exists():
+        raise typer.BadParameter(f"{out} exists; with --bag the recording is a new bag, "
+                                 "written whole: choose another path", param_hint="OUT")
     if simulate is not None:
         # The source is the camera and the simulated sensor: hardware options would be
         # silently ignored.

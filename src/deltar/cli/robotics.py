@@ -143,6 +143,13 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
                                  "/ --rerun-save (not --out / --show)")
     if out_bag is None and not rerun and rerun_save is None:
         raise typer.BadParameter("give --out-bag BAG, --rerun or --rerun-save FILE")
+    if out_bag is not None:
+        from deltar.io.input_file import refuse_input_as_output
+
+        refuse_input_as_output(out_bag, [bag], "--out-bag", folder=True)
+        if out_bag.exists():  # before the model: a bag is never written into
+            raise typer.BadParameter(f"{out_bag} exists; a bag is written whole into a new "
+                                     "path: choose another", param_hint="--out-bag")
     bag_input = BagInput(bag, **topics.bag_input_options())
     estimator = build_estimator()  # after the bag is opened: a bad bag fails first
     viewer = open_viewer(rerun, rerun_save)

@@ -232,7 +232,7 @@ class OnnxDepthModel:
         rule = network_input_size(*image_size, design_size=tuple(design))
         if tuple(rule) != tuple(net_size):
             self._stretch_warned.add(tuple(image_size))
-            remedy = ("the PyTorch backend (without --onnx) for that" if torch_available()
+            remedy = ("use the PyTorch backend (without --onnx) for that" if torch_available()
                       else 'pip install "deltar[torch]" for that')
             warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "
                           f"model's {net_size[0]}x{net_size[1]} input, the exported size "
