@@ -103,16 +103,26 @@ def test_record_never_writes_into_its_own_source(tmp_path):
     assert sorted(p.relative_to(source) for p in source.rglob("*")) == before
 
 
-def test_existing_outputs_name_only_the_commands_options(tmp_path):
+def test_replay_resumes_with_skip_existing(tmp_path):
     out = tmp_path / "rec"
-    assert runner.invoke(app, ["record", str(out), "--simulate", "wall:1.5:2:48x64"]
+    assert runner.invoke(app, ["record", str(out), "--simulate", "wall:1.5:6:48x64"]
                          ).exit_code == 0
-    args = ["replay", str(out), "--out", str(tmp_path / "o"), "--outputs", "npy",
+    args = ["replay", str(out), "--out", str(tmp_path / "o"), "--outputs", "npy,png16",
             "--preset", "deltar-lite", "--threads", "1"]
-    assert runner.invoke(app, args).exit_code == 0
+    assert runner.invoke(app, [*args, "--limit", "2"]).exit_code == 0
+    first = sorted((tmp_path / "o").iterdir())
+    stamps = {p: p.stat().st_mtime_ns for p in first}
+    first[0].unlink()  # one frame with only some of its outputs
     again = runner.invoke(app, args)
-    assert again.exit_code == 1 and "pass --overwrite to replace them" in again.output
-    assert "--skip-existing" not in again.output
+    assert again.exit_code == 1 and "pass --overwrite to replace them or --skip-existing" \
+        in again.output
+    resumed = runner.invoke(app, [*args, "--skip-existing"])
+    assert resumed.exit_code == 0, resumed.output
+    assert len(list((tmp_path / "o").iterdir())) == 6  # three frames, two outputs each
+    assert all(p.stat().st_mtime_ns == t for p, t in stamps.items() if p != first[0])
+    assert first[0].exists()
+    both = runner.invoke(app, [*args, "--skip-existing", "--overwrite"])
+    assert both.exit_code == 2 and "--skip-existing" in both.output
 
 
 def test_record_simulate_refuses_hardware_options(tmp_path):

@@ -78,7 +78,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
            calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
            time_offset_s: float | None = None, every: int = 1, limit: int | None = None,
            skip_no_zones: bool = False,
-           on_failure: Callable[[RecordingPair, Exception], None] | None = None
+           on_failure: Callable[[RecordingPair, Exception], None] | None = None,
+           skip_pair: Callable[[RecordingPair], bool] | None = None
            ) -> Iterator[ReplayItem]:
     """Predict depth for each zone frame of a recording that has a colour image near it.
 
@@ -100,6 +101,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
         on_failure: when given, a frame whose images cannot be read or whose prediction
             refuses its input (:data:`deltar.inference.folder.FRAME_ERRORS`) is passed to
             it and skipped; without it the error ends the replay.
+        skip_pair: pairs for which it returns True are not read nor predicted (e.g.
+            frames whose outputs exist); they still count towards ``limit``.
 
     Yields:
         :class:`ReplayItem` per predicted frame, in time order.
@@ -132,6 +135,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     # `limit` pairs at most (after the skipped ones), none read beyond them; the next
     # pair's images are read while the estimator works on this one.
     wanted = selected() if limit is None else itertools.islice(selected(), max(0, int(limit)))
+    if skip_pair is not None:
+        wanted = (pair for pair in wanted if not skip_pair(pair))
     for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
         try:
             image, reference = loaded.result()
@@ -155,14 +160,15 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
                      limit: int | None = None, overwrite: bool = False,
                      on_item: Callable[[ReplayItem], None] | None = None,
                      skip_no_zones: bool = False,
-                     on_failure: Callable[[RecordingPair, Exception], None] | None = None
-                     ) -> list[Path]:
+                     on_failure: Callable[[RecordingPair, Exception], None] | None = None,
+                     skip_existing: bool = False) -> list[Path]:
     """Replay a recording and write outputs named by the colour image's time stamp.
 
     Arguments as :func:`replay`; frames without a valid zone are written as flagged
     image-only estimates unless ``skip_no_zones``. With ``on_failure`` a frame that
     fails (unreadable images, refused input, its outputs not written) is reported to it
-    and skipped.
+    and skipped. With ``skip_existing`` (resuming) a frame whose outputs all exist is
+    left out and one with only some gets the missing ones.
 
     Returns:
         The written files.
@@ -170,20 +176,28 @@ def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,
     Raises:
         ValueError: ``out_dir`` lies inside the recording (inputs are never touched).
     """
-    from deltar.inference.outputs import write_prediction
+    from deltar.inference.outputs import OUTPUT_KINDS, write_prediction
 
     rec = Recording(recording)
     out = Path(out_dir).resolve()
     if out == rec.folder.resolve() or rec.folder.resolve() in out.parents:
         raise ValueError(f"output folder {out_dir} is inside the recording {rec.folder}; "
                          "choose a folder outside it")
+
+    def missing(pair: RecordingPair) -> tuple[str, ...]:
+        stem = pair.color_path.stem
+        return tuple(k for k in kinds if not (out / f"{stem}{OUTPUT_KINDS[k]}").exists()) \
+            if skip_existing else tuple(kinds)
+
     written: list[Path] = []
     for item in replay(rec, estimator, calibration=calibration, tolerance_s=tolerance_s,
                        time_offset_s=time_offset_s, every=every, limit=limit,
-                       skip_no_zones=skip_no_zones, on_failure=on_failure):
+                       skip_no_zones=skip_no_zones, on_failure=on_failure,
+                       skip_pair=(lambda pair: not missing(pair)) if skip_existing else None):
         try:
             paths = write_prediction(out, item.pair.color_path.stem, item.image,
-                                     item.prediction, kinds=kinds, overwrite=overwrite,
+                                     item.prediction, kinds=missing(item.pair),
+                                     overwrite=overwrite,
                                      title=f"{item.pair.color_path.name} "
                                      f"({estimator.weights})")
         except FRAME_ERRORS as err:

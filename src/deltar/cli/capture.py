@@ -162,6 +162,8 @@ def replay_command(
     every: int = typer.Option(1, min=1, help="Use every N-th frame."),
     limit: int | None = typer.Option(None, min=1, help="Stop after this many frames."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs."),
+    skip_existing: bool = typer.Option(False, "--skip-existing", help="Resume: keep the "
+                                       "outputs that exist, write only the missing ones."),
     keep_going: bool = typer.Option(False, "--keep-going", help="Report a frame that "
                                     "fails (unreadable image, refused reading) and go on; "
                                     "the summary counts the failures (exit code 1 if any)."),
@@ -201,6 +203,9 @@ def replay_command(
     if (out is not None and show) or (out is None and not show and not viewing):
         raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
     kinds = parse_outputs(outputs)
+    if skip_existing and (overwrite or out is None):
+        raise typer.BadParameter("--skip-existing resumes writing to --out: give it without "
+                                 "--overwrite", param_hint="--skip-existing")
     model.check()
     calibration = load_calibration(calib)
     if time_offset is None:
@@ -208,7 +213,7 @@ def replay_command(
     elif not math.isfinite(time_offset):
         raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
     total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
-                          overwrite, show)
+                          overwrite, show, skip_existing)
     _check_calibration_fits(calibration, calib, recording)
     estimator = model.load()
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
@@ -243,6 +248,7 @@ def replay_command(
                                    time_offset_s=time_offset, every=every, limit=limit,
                                    overwrite=overwrite, on_item=each,
                                    skip_no_zones=not allow_no_zones,
+                                   skip_existing=skip_existing,
                                    on_failure=None if on_failure is None else
                                    lambda pair, err: (on_failure(pair, err),
                                                       progress.advance()))
@@ -259,8 +265,10 @@ def _fail_if_any(failed: list[tuple[str, Exception]], total: int) -> None:
 
 
 def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float, float],
-                  every: int, limit: int | None, overwrite: bool, show: bool) -> int:
-    """Check a replay's recording and outputs before the model; return its frame count.
+                  every: int, limit: int | None, overwrite: bool, show: bool,
+                  skip_existing: bool = False) -> int:
+    """Check a replay's recording and outputs before the model; return how many frames
+    it will predict (with ``skip_existing``, those still missing an output).
 
     ``pairing`` is (tolerance, time offset) in seconds.
     """
@@ -286,9 +294,13 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
     if out is not None:
         refuse_input_as_output(out, [recording], "--out", folder=True)
         output_folder(out, "--out")
+        def outputs(pair):
+            return [out / f"{pair.color_path.stem}{OUTPUT_KINDS[k]}" for k in kinds]
+
+        if skip_existing:
+            return sum(1 for p in selected if not all(o.exists() for o in outputs(p)))
         if not overwrite:
-            existing_outputs(out / f"{p.color_path.stem}{OUTPUT_KINDS[k]}" for p in selected
-                             for k in kinds)
+            existing_outputs((o for p in selected for o in outputs(p)), resumable=True)
     return len(selected)
 
 
