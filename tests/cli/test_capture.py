@@ -133,3 +133,15 @@ def test_record_simulate_refuses_hardware_options(tmp_path):
                                      "wall:1.5:2:48x64", *extra])
         assert result.exit_code == 2 and named in result.output
     assert not (tmp_path / "rec").exists()
+
+
+def test_replay_of_a_bag_refuses_the_folder_options(tmp_path):
+    bag = tmp_path / "bag"
+    assert runner.invoke(app, ["record", str(bag), "--bag", "--simulate", "wall:1.5:2:48x64"]
+                         ).exit_code == 0
+    for option in ("--keep-going", "--skip-existing"):
+        result = runner.invoke(app, ["replay", "--bag", str(bag), "--out-bag",
+                                     str(tmp_path / "out"), option])
+        assert result.exit_code == 2 and f"{option} is for replays into an --out folder" \
+            in result.output
+    assert not (tmp_path / "out").exists()

@@ -227,6 +227,43 @@ def test_map_of_a_ros2_bags_recorded_depth_matches_the_recordings(tmp_path, wall
     assert np.median(vertices[:, 2]) == pytest.approx(WALL_Z_M, abs=0.02)
     assert _run(wall_recording, "--out", tmp_path / "map", "--method", "recorded",
                 "--depth-topic", "/camera/depth/image").exit_code != 0
+    only_recorded = _run(bag, "--out", tmp_path / "m3", "--method", "bilinear",
+                         "--depth-topic", "/camera/depth/image", *COARSE)
+    _error(only_recorded, "--depth-topic names the depth --method recorded maps")
+
+
+def test_a_bags_depth_is_read_only_for_method_recorded(tmp_path):
+    pytest.importorskip("rosbags")
+    from deltar.io.recording import RecordingMeta
+    from deltar.io.rosbag_writer import BagRecordingWriter
+    from deltar.sensor.geometry import zone_rects
+    from deltar.sensor.simulate import simulate_zone_frame
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    # A depth topic of another size than the camera (not registered to it), and depth
+    # only from the third frame on.
+    writer = BagRecordingWriter(tmp_path / "bag", RecordingMeta(SMALL))
+    for i in range(4):
+        pose, t = pose_at(0.05 * i), 1.0 + i / 30
+        image, depth = render_wall(pose)
+        writer.add_color(t, image)
+        if i >= 2:
+            writer.writer.add_metric_image("/camera/depth/image", round(t * 1e9), "cam",
+                                           depth[::2, ::2])
+        zones = simulate_zone_frame(depth, zone_rects(SMALL, 8))
+        writer.add_zone_frame(ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid,
+                                        timestamp_s=t + 0.001, no_target=zones.no_target))
+        writer.add_pose(t, pose)
+    writer.close()
+    # Other methods never read it.
+    result = _run(tmp_path / "bag", "--out", tmp_path / "map", "--method", "bilinear",
+                  *COARSE)
+    assert result.exit_code == 0, result.output
+    # --method recorded refuses the frames without depth before any pose.
+    refused = _run(tmp_path / "bag", "--out", tmp_path / "m2", "--method", "recorded",
+                   *COARSE)
+    _error(refused, "2 of 4 frames", "no recorded depth", "--tolerance")
+    assert "poses:" not in refused.output
 
 
 def test_rerun_save_writes_the_growing_map(wall_recording, tmp_path):

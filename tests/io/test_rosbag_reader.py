@@ -267,9 +267,11 @@ def test_missing_rosbags_names_the_extra(tmp_path, monkeypatch):
     assert result.exit_code == 1 and 'needs the "ros" extra' in result.output
 
 
-def _depth_bag(path: Path, depth_shape=(HEIGHT, WIDTH), missing: int = 1) -> list[np.ndarray]:
+def _depth_bag(path: Path, depth_shape=(HEIGHT, WIDTH), missing: int = 1,
+               late_ns: int = 5000) -> list[np.ndarray]:
     """Camera + ToF as :func:`write_input_bag` and a RealSense-style 16UC1 depth topic,
-    its message logged before the image for odd frames and absent for frame ``missing``."""
+    its message logged before the image for odd frames, ``late_ns`` after it for even
+    ones, and absent for frame ``missing``."""
     store = typestore()
     truths = []
     with Writer(path, version=8) as writer:
@@ -289,7 +291,7 @@ def _depth_bag(path: Path, depth_shape=(HEIGHT, WIDTH), missing: int = 1) -> lis
                 header=_header(store, stamp + 2_000_000, "cam_optical"), height=depth_shape[0],
                 width=depth_shape[1], encoding="16UC1", is_bigendian=0, step=2 * depth_shape[1],
                 data=millimetres.view(np.uint8).reshape(-1))
-            depth_log = stamp + (-500 if i % 2 else 5000)
+            depth_log = stamp + (-500 if i % 2 else late_ns)
             if i != missing:
                 writer.write(depth, depth_log, store.serialize_cdr(depth_msg,
                                                                    "sensor_msgs/msg/Image"))
@@ -325,3 +327,18 @@ def test_a_depth_topic_is_read_beside_the_images(tmp_path):
     with pytest.raises(ValueError, match="registered to the camera"):
         pairs = small.pairs()
         list(small.images_with_depth(pairs, small.depth_indices(pairs)))
+
+
+
+def test_depth_logged_after_the_next_image_keeps_the_images_order(tmp_path):
+    # Frame 0's depth is logged 150 ms late, after frame 1's image (which has none) and
+    # frame 2's: every frame still comes out in the order of the images.
+    _depth_bag(tmp_path / "bag", missing=1, late_ns=150_000_000)
+    bag = BagInput(tmp_path / "bag", depth_topic="/camera/aligned_depth_to_color/image_raw")
+    pairs = bag.pairs()
+    indices = bag.depth_indices(pairs)
+    plain = [p.image_index for p, _ in bag.images(pairs)]
+    joined = [(p.image_index, d is None) for p, _, d in bag.images_with_depth(pairs, indices)]
+    assert plain == [0, 1, 2, 3] and joined == [(0, False), (1, True), (2, False), (3, False)]
+    auto = BagInput(tmp_path / "bag", depth_topic="auto")
+    assert auto.depth_topic is None  # no topic of deltar record's name: none found

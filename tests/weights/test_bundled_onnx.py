@@ -80,7 +80,7 @@ def test_onnx_path_gives_the_pytorch_depth_on_a_real_frame(real_frame):
 
 @pytest.mark.parametrize(("torch_installed", "remedy"), [
     (False, r"pip install \"deltar\[torch\]\" for that"),
-    (True, r"the PyTorch backend \(without --onnx\) for that")])
+    (True, r"use the PyTorch backend \(without --onnx\) for that")])
 def test_an_aspect_not_exported_is_stretched_with_a_warning_naming_the_remedy(
         monkeypatch, torch_installed, remedy):
     import deltar.inference.onnx_runtime as onnx_runtime

@@ -188,6 +188,13 @@ def replay_command(
     if (recording is None) == (bag is None):
         raise typer.BadParameter("give a RECORDING folder or --bag BAG")
     if bag is not None:
+        given = [name for name, on in (("--keep-going", keep_going),
+                                       ("--skip-existing", skip_existing)) if on]
+        if given:
+            raise typer.BadParameter(f"{' and '.join(given)} "
+                                     f"{'is' if len(given) == 1 else 'are'} for replays into "
+                                     "an --out folder; with --bag the output is a new bag, "
+                                     "written whole", param_hint=given[0])
         model.check()
         try:
             typer.echo(replay_bag_command(

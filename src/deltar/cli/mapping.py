@@ -140,22 +140,33 @@ def map_command(
 
         calibration = RigCalibration.load(calib)
     is_bag = (recording / "metadata.yaml").is_file()
-    if depth_topic is not None and not is_bag:
-        raise typer.BadParameter("--depth-topic is for ROS 2 bags; a recording keeps its "
-                                 "depth in depth/", param_hint="--depth-topic")
-    bag_options = {**topics.bag_input_options(), "depth_topic": depth_topic} if is_bag else {}
+    if depth_topic is not None and (not is_bag or method != RECORDED):
+        raise typer.BadParameter("--depth-topic names the depth --method recorded maps from "
+                                 "a ROS 2 bag (a recording keeps its depth in depth/)",
+                                 param_hint="--depth-topic")
+    # Depth is read only to be mapped: any other method ignores the bag's depth topic.
+    bag_options = {**topics.bag_input_options(),
+                   "depth_topic": (depth_topic or "auto") if method == RECORDED else None} \
+        if is_bag else {}
     source = FrameSource(recording, calibration=calibration, tolerance_s=tolerance,
                          every=every, limit=limit, bag_options=bag_options)
     settings = _settings(voxel, truncation, max_depth or source.depth_limit_m(), max_memory)
     # A bad method name fails here, before the poses and the model.
     depth = DepthSource(method=method, max_relative_sigma=max_relative_sigma) \
         if method is not None else None
-    if method == RECORDED and not source.has_recorded_depth:
+    missing = source.frames_without_recorded_depth() if method == RECORDED else 0
+    if missing == len(source) and missing:
         where = f"a depth topic near its images (name it with --depth-topic; topics: " \
             f"{', '.join(sorted(source.bag.topics))})" if source.kind == "bag" else \
             "depth/ images"
         raise typer.BadParameter(f"{recording} has no recorded depth: --method recorded "
                                  f"needs {where}", param_hint="--method")
+    if missing:
+        raise typer.BadParameter(f"{missing} of {len(source)} frames of {recording} have no "
+                                 f"recorded depth within --tolerance {tolerance:g} s of their "
+                                 "image; --method recorded needs it for every frame (map "
+                                 "fewer with --every / --limit, or raise --tolerance)",
+                                 param_hint="--method")
     plan = plan_map(source, settings, trajectory=trajectory, pose_topic=pose_topic,
                     force_odometry=odometry, tolerance_s=pose_tolerance)
     if plan.skipped_no_pose:

@@ -43,8 +43,11 @@ from deltar.sensor.zone_frame import Orientation, ZoneFrame
 
 #: ToF topic formats :class:`BagInput` reads.
 TOF_FORMATS: tuple[str, ...] = ("deltar", "vl53l5cx_ros2")
-#: The depth topic :class:`BagInput` reads when none is named (``deltar record --bag``'s).
+#: The depth topic :class:`BagInput` reads when told to find one (``deltar record --bag``'s).
 DEFAULT_DEPTH_TOPIC = "/camera/depth/image"
+#: ``BagInput(depth_topic=AUTO_DEPTH_TOPIC)``: read :data:`DEFAULT_DEPTH_TOPIC` if present
+#: (``deltar map --method recorded`` passes it when no ``--depth-topic`` is given).
+AUTO_DEPTH_TOPIC = "auto"
 
 
 def _namespace(topic: str) -> str:
@@ -91,8 +94,8 @@ class BagInput:
         tof_orientation: for ``vl53l5cx_ros2`` only, the zone grid's orientation.
         tof_sigma_m: for ``vl53l5cx_ros2`` only, the sigma given to its zones.
         depth_topic: a depth ``Image`` topic registered to the camera
-            (:meth:`images_with_depth`); None: :data:`DEFAULT_DEPTH_TOPIC` when the bag
-            has it, else no depth.
+            (:meth:`images_with_depth`); :data:`AUTO_DEPTH_TOPIC`:
+            :data:`DEFAULT_DEPTH_TOPIC` when the bag has it; None: no depth.
 
     Raises:
         FileNotFoundError: no bag at ``path``.
@@ -132,9 +135,10 @@ class BagInput:
             raise ValueError(f"{self.path}: camera and ToF topic are both {self.tof_topic}")
         self.info_topic = self._pick(info_topic, (CAMERA_INFO_TYPE,), "CameraInfo",
                                      "--info-topic", required=False)
-        if depth_topic is None and self.topics.get(DEFAULT_DEPTH_TOPIC) == \
-                "sensor_msgs/msg/Image" and DEFAULT_DEPTH_TOPIC != self.image_topic:
-            depth_topic = DEFAULT_DEPTH_TOPIC
+        if depth_topic == AUTO_DEPTH_TOPIC:
+            found = self.topics.get(DEFAULT_DEPTH_TOPIC) == "sensor_msgs/msg/Image" and \
+                DEFAULT_DEPTH_TOPIC != self.image_topic
+            depth_topic = DEFAULT_DEPTH_TOPIC if found else None
         self.depth_topic = None if depth_topic is None else self._pick(
             depth_topic, ("sensor_msgs/msg/Image",), "depth", "--depth-topic")
         if self.depth_topic in (self.image_topic, self.tof_topic):
@@ -295,10 +299,12 @@ class BagInput:
     def images_with_depth(self, pairs: list[BagPair], depth_indices: list[int | None]
                           ) -> Iterator[tuple[BagPair, np.ndarray, np.ndarray | None]]:
         """:meth:`images` with each pair's depth: (pair, (H, W, 3) uint8 RGB, (H, W)
-        float32 metres with 0 where invalid, or None), in one pass over the bag.
+        float32 metres with 0 where invalid, or None), in one pass over the bag and in the
+        order :meth:`images` yields (the images' order in the bag).
 
-        ``depth_indices`` comes from :meth:`depth_indices`. Images and depth maps are held
-        only until their partner arrives (both are logged at about the same time).
+        ``depth_indices`` comes from :meth:`depth_indices`. A decoded image waits only
+        until its depth map arrives (both are logged at about the same time), and the
+        images after it wait behind it, so the order holds.
 
         Raises:
             ValueError: a depth map of another size than its image, or not a depth
@@ -313,20 +319,26 @@ class BagInput:
             if depth_index is not None:
                 depth_users[depth_index] = depth_users.get(depth_index, 0) + 1
         held_depth: dict[int, np.ndarray] = {}
-        waiting: list[tuple[BagPair, int, np.ndarray]] = []  # image decoded, depth not yet
+        queue: list[tuple[BagPair, int | None, np.ndarray]] = []  # in image order
 
-        def joined(pair: BagPair, depth_index: int, rgb: np.ndarray):
-            depth = held_depth[depth_index]
-            if depth.shape != rgb.shape[:2]:
-                raise ValueError(f"{self.path}: depth on {self.depth_topic} is {depth.shape}, "
-                                 f"the camera image {rgb.shape[:2]}: the depth must be "
-                                 "registered to the camera (e.g. aligned_depth_to_color)")
-            depth_users[depth_index] -= 1
-            if not depth_users[depth_index]:
-                del held_depth[depth_index]
-            return pair, rgb, depth
+        def ready() -> Iterator[tuple[BagPair, np.ndarray, np.ndarray | None]]:
+            while queue and (queue[0][1] is None or queue[0][1] in held_depth):
+                pair, depth_index, rgb = queue.pop(0)
+                if depth_index is None:
+                    yield pair, rgb, None
+                    continue
+                depth = held_depth[depth_index]
+                if depth.shape != rgb.shape[:2]:
+                    raise ValueError(f"{self.path}: depth on {self.depth_topic} is "
+                                     f"{depth.shape}, the camera image {rgb.shape[:2]}: the "
+                                     "depth must be registered to the camera (e.g. "
+                                     "aligned_depth_to_color)")
+                depth_users[depth_index] -= 1
+                if not depth_users[depth_index]:
+                    del held_depth[depth_index]
+                yield pair, rgb, depth
 
-        topics = (self.image_topic, self.depth_topic)
+        topics = tuple(t for t in (self.image_topic, self.depth_topic) if t is not None)
         counts = {topic: 0 for topic in topics}
         with Reader(self.path) as reader:
             wanted = [c for c in reader.connections if c.topic in topics]
@@ -338,21 +350,18 @@ class BagInput:
                         continue
                     msg = self._deserialize(connection, raw)
                     rgb = image_from_msg(msg, connection.msgtype, source=self.image_topic)
-                    for pair, depth_index in wanted_images.pop(index):
-                        if depth_index is None:
-                            yield pair, rgb, None
-                        elif depth_index in held_depth:
-                            yield joined(pair, depth_index, rgb)
-                        else:
-                            waiting.append((pair, depth_index, rgb))
+                    queue.extend((pair, depth_index, rgb)
+                                 for pair, depth_index in wanted_images.pop(index))
                 elif index in depth_users:
                     msg = self._deserialize(connection, raw)
                     depth = metric_image_from_msg(msg, source=self.depth_topic)
                     held_depth[index] = np.where(np.isfinite(depth), depth, np.float32(0.0))
-                    ready = [w for w in waiting if w[1] == index]
-                    waiting = [w for w in waiting if w[1] != index]
-                    for pair, depth_index, rgb in ready:
-                        yield joined(pair, depth_index, rgb)
+                else:
+                    continue
+                yield from ready()
+        if queue:  # cannot happen with depth_indices' numbering; never drop a frame silently
+            raise ValueError(f"{self.path}: {len(queue)} image(s) of {self.image_topic} "
+                             f"never got their depth message on {self.depth_topic}")
 
 
 def read_messages(path: str | os.PathLike, topic: str) -> list[tuple[int, Any]]:

@@ -128,13 +128,13 @@ class FrameSource:
         # The depth message nearest each image (the bag's depth topic, if it has one).
         self._depth_indices = bag.depth_indices(pairs, tolerance_s)
 
-    @property
-    def has_recorded_depth(self) -> bool:
-        """Whether the frames come with recorded depth: a recording's ``depth/`` images or
-        a bag's depth topic near their images (``--method recorded``)."""
+    def frames_without_recorded_depth(self) -> int:
+        """How many of the frames come without recorded depth (``--method recorded`` needs
+        it for every one): no ``depth/`` image of a recording within the pairing
+        tolerance, or no message of a bag's depth topic (none read without one)."""
         if self.kind == "bag":
-            return any(i is not None for i in self._depth_indices)
-        return bool(self.recording.depth_paths)
+            return sum(i is None for i in self._depth_indices)
+        return sum(pair.depth_path is None for pair in self._pairs)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -269,8 +269,8 @@ class DepthSource:
             raise ValueError(f"frame {frame.name}: image not loaded")
         if self.method == RECORDED:
             if frame.recorded_depth_m is None:
-                raise ValueError(f"frame {frame.name} has no recorded depth image "
-                                 "(--method recorded needs the recording's depth/ folder)")
+                raise ValueError(f"frame {frame.name} has no recorded depth (--method "
+                                 "recorded needs a depth image for every frame)")
             # Undistorted like the colour image (bilinear: edges blend a little).
             depth = frame.calibration.undistort_image(frame.recorded_depth_m)
             return np.asarray(depth, dtype=np.float32), None
