@@ -220,7 +220,7 @@ def replay_command(
     elif not math.isfinite(time_offset):
         raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
     total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
-                          overwrite, show, skip_existing)
+                          overwrite, show, skip_existing, skip_no_zones=not allow_no_zones)
     _check_calibration_fits(calibration, calib, recording)
     estimator = model.load()
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
@@ -273,9 +273,11 @@ def _fail_if_any(failed: list[tuple[str, Exception]], total: int) -> None:
 
 def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float, float],
                   every: int, limit: int | None, overwrite: bool, show: bool,
-                  skip_existing: bool = False) -> int:
+                  skip_existing: bool = False, skip_no_zones: bool = True) -> int:
     """Check a replay's recording and outputs before the model; return how many frames
-    it will predict (with ``skip_existing``, those still missing an output).
+    it will predict (with ``skip_existing``, those still missing an output), chosen as
+    :func:`~deltar.capture.replay.replay` chooses them (every ``every``-th pair, those
+    without a valid zone left out when ``skip_no_zones``, at most ``limit``).
 
     ``pairing`` is (tolerance, time offset) in seconds.
     """
@@ -297,7 +299,8 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
         raise ValueError(f"{recording}: nothing to replay: " + (
             f"none of its {frames} zone frame(s) has a colour image within --tolerance "
             f"{pairing[0]:g} s" if frames else f"{rec.zones_path.name} holds no zone frame"))
-    selected = pairs[::every][:limit]
+    selected = [p for p in pairs[::every]
+                if not (skip_no_zones and p.zone_frame.valid_count == 0)][:limit]
     if out is not None:
         refuse_input_as_output(out, [recording], "--out", folder=True)
         output_folder(out, "--out")
