@@ -234,6 +234,9 @@ def test_evaluate_save_vis_pointing_at_a_file(tmp_path, zju_set):
     blocker.write_text("x")
     result = _run(["evaluate", "--data", zju_set, "--method", "nearest", "--save-vis", blocker])
     _one_error_line(result, f"--save-vis {blocker} is a file, not a folder")
+    inside = _run(["evaluate", "--data", zju_set, "--method", "nearest", "--save-vis",
+                   zju_set.parent / "vis"])
+    _one_error_line(inside, "--save-vis", "is inside the input")
 
 
 CAMERA = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)

@@ -69,6 +69,25 @@ def test_calibrate_with_a_board_then_check_it(board_recording, tmp_path):
     assert (tmp_path / "check.png").stat().st_size > 5000
     median = float(re.search(r"median \|r\| ([\d.]+) cm", check.output).group(1))
     assert median > 2.5
+    # The plot never replaces an input, whatever --overwrite says, and is a PNG.
+    image = sorted((board_recording / "color").iterdir())[0]
+    before = image.read_bytes()
+    for plot, message in ((image, "is inside the input"),
+                          (tmp_path / "bumped.json", "is not a .png file")):
+        refused = _run("check-calibration", board_recording, "--calib",
+                       tmp_path / "bumped.json", "--plot", plot, "--overwrite")
+        assert refused.exit_code != 0 and message in refused.output
+    assert image.read_bytes() == before
+    # Zone frames that pair with no image are named as such, not blamed on the board.
+    unpaired = _run("calibrate", board_recording, "--target", TARGET, "--out",
+                    tmp_path / "late.json", "--time-offset", "1000")
+    assert unpaired.exit_code == 1
+    assert "has a colour image within 0.02 s" in unpaired.output
+    assert "check the time offset" in unpaired.output and "board spec" not in unpaired.output
+    few = _run("calibrate", board_recording, "--target", TARGET, "--out",
+               tmp_path / "late.json", "--time-offset", "5")
+    assert few.exit_code == 1 and "only 5 of the 10 zone frames have a colour image" \
+        in few.output
 
 
 @pytest.mark.parametrize(("args", "message"), [

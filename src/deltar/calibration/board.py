@@ -263,9 +263,16 @@ class BoardDetector:
         # Found in none: the spec may not be what is printed; found in some: it is.
         hint = self.diagnose([s for s in sample if s is not None]) if found == 0 else ""
         where = "paired with a zone frame" if paired else "of the recording"
-        advice = (f"the board spec {self.spec.text()} does not match what is detected: {hint}"
-                  if hint else "keep the whole board in view, sharp and evenly lit, 0.4-1.5 m "
-                  "from the camera, and check --target")
+        zone_frames = len(recording.zone_frames()) if paired else 0
+        if found and found == searched and zone_frames > searched:
+            # The board is in every image looked at: too few images were paired.
+            advice = (f"only {searched} of the {zone_frames} zone frames have a colour image "
+                      "within --tolerance after --time-offset: check both, or record more "
+                      "views")
+        else:
+            advice = (f"the board spec {self.spec.text()} does not match what is detected: "
+                      f"{hint}" if hint else "keep the whole board in view, sharp and evenly "
+                      "lit, 0.4-1.5 m from the camera, and check --target")
         raise ValueError(f"too few views with the board: found in {found} of the {searched} "
                          f"images {where} (need at least {needed}): {advice}")
 

@@ -270,6 +270,10 @@ def calibrate_recording_with_board(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired frames are counted below
         pairs = recording.pairs(tolerance_s, time_offset_s=offset)
+    if not pairs:  # not the board's fault: say what did not pair
+        from deltar.io.recording import no_pairs_message
+
+        raise ValueError(no_pairs_message(recording, tolerance_s, offset))
     unpaired = len(frames) - len(pairs)
 
     views: list[_View] = []

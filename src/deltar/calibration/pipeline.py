@@ -215,6 +215,10 @@ def calibrate_recording(
         items = [(f, None) for f in recording.zone_frames()]
     else:
         items = [(p.zone_frame, p) for p in recording.pairs(tolerance_s, time_offset_s)]
+        if not items:  # not the planes' fault: say what did not pair
+            from deltar.io.recording import no_pairs_message
+
+            raise ValueError(no_pairs_message(recording, tolerance_s, time_offset_s))
         unpaired = len(recording.zone_frames()) - len(items)
         if items and all(pair.depth_path is None for _, pair in items):
             raise ValueError(f"{recording.folder}: no depth image within {tolerance_s} s of "

@@ -71,6 +71,12 @@ def check_calibration_command(
     spec = board_spec_option(target) if target else None
     offset = time_offset_option(time_offset, allow_auto=False) if time_offset else None
     if plot is not None:
+        from deltar.io.input_file import refuse_input_as_output
+
+        if plot.suffix.lower() != ".png":
+            raise typer.BadParameter(f"{plot} is not a .png file: the plot is a PNG picture",
+                                     param_hint="--plot")
+        refuse_input_as_output(plot, [recording, calib], "--plot")
         output_file(plot, "--plot", overwrite)
     calibration = RigCalibration.load(calib)
     rec = Recording(recording)

@@ -128,7 +128,8 @@ def evaluate(
         refuse_input_as_output(json_out, inputs, "--json")
         output_file(json_out, "--json", overwrite)
     if save_vis is not None:
-        refuse_input_as_output(save_vis, inputs, "--save-vis", folder=True)
+        # A folder of panels may not lie inside the set's folder either.
+        refuse_input_as_output(save_vis, [*inputs, dataset.root], "--save-vis", folder=True)
         output_folder(save_vis, "--save-vis")
         used = [save_vis / safe_filename(name) for name in names
                 if (save_vis / safe_filename(name)).is_dir()

@@ -355,6 +355,23 @@ class Recording:
         return out
 
 
+def no_pairs_message(recording: Recording, tolerance_s: float, time_offset_s: float) -> str:
+    """Why a recording gave no (zone frame, colour image) pair: its zone frames, or the
+    stamp ranges that did not meet within ``tolerance_s`` after ``time_offset_s`` (both
+    seconds). For a refusal that must not blame anything else."""
+    frames = recording.zone_frames()
+    if not frames:
+        return f"{recording.folder}: {ZONES_FILE} holds no zone frame"
+    if not recording.color_paths:
+        return f"{recording.folder}: no colour image in {COLOR_DIR}/"
+    zone_t = [f.timestamp_s + time_offset_s for f in frames]
+    return (f"{recording.folder}: none of its {len(frames)} zone frames has a colour image "
+            f"within {tolerance_s:g} s (zone stamps plus the time offset {time_offset_s:g} s: "
+            f"{min(zone_t):.3f}..{max(zone_t):.3f} s; images "
+            f"{recording.color_times_s[0]:.3f}..{recording.color_times_s[-1]:.3f} s): check "
+            "the time offset and the tolerance")
+
+
 def _image_index(folder: Path) -> tuple[np.ndarray, list[Path]]:
     """Sorted capture times (s) and paths of ``<ns>.png`` files in ``folder``."""
     if not folder.is_dir():
