@@ -88,6 +88,24 @@ def test_writer_refuses_to_overwrite(tmp_path, rng):
         write_zju_l5(tmp_path, [_sample(rng, "b")])
 
 
+def test_a_failing_frame_leaves_no_partial_set(tmp_path, rng):
+    def frames():  # the third frame's source cannot be read
+        yield _sample(rng, "scene/0001")
+        yield _sample(rng, "scene/0002")
+        raise ValueError("cannot decode depth image scene/0003.png")
+
+    existing = tmp_path / "keep.txt"  # what was in the folder before stays
+    existing.write_text("x")
+    with pytest.raises(ValueError, match="0003"):
+        write_zju_l5(tmp_path, frames())
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep.txt"]
+    with pytest.raises(ValueError, match="share the name"):
+        write_zju_l5(tmp_path / "new", [_sample(rng, "a/b"), _sample(rng, "a/b")])
+    assert not (tmp_path / "new").exists()  # the folders it made are gone too
+    write_zju_l5(tmp_path, [_sample(rng, "scene/0001")])  # a re-run starts over
+    assert (tmp_path / "data.json").is_file()
+
+
 def test_writer_rejects_duplicate_and_unsafe_names(tmp_path, rng):
     with pytest.raises(ValueError, match="share the name"):
         write_zju_l5(tmp_path / "dup", [_sample(rng, "a"), _sample(rng, "a")])

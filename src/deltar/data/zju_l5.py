@@ -24,6 +24,7 @@ strongest first, target 0 the primary reading.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -315,7 +316,9 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
     """Write samples as a ZJU-L5-layout set that :class:`ZJUL5Dataset` (and the release) read.
 
     Each sample goes to ``out_dir / (sample.name + ".h5")``; ``data.json`` is written last,
-    so a set without ``data.json`` is incomplete. Every file is written atomically.
+    so a set without ``data.json`` is incomplete. Every file is written atomically, and a
+    failure (a frame that cannot be read or written) removes the files and folders this
+    call made before it re-raises: a set is whole or absent, and a re-run can start over.
 
     Args:
         out_dir: output folder; created if needed. It must not already hold a
@@ -335,6 +338,22 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
     if index_path.exists():
         raise FileExistsError(f"refusing to overwrite existing ZJU-L5 set: {index_path}")
     filenames: list[str] = []
+    made: list[Path] = []  # files and folders this call created, in order
+    try:
+        _write_frames(out, samples, filenames, made)
+        text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
+        return write_text_atomic(index_path, text + "\n", overwrite=False)
+    except BaseException:
+        for path in reversed(made):
+            with contextlib.suppress(OSError):
+                path.unlink() if path.is_file() else path.rmdir()
+        raise
+
+
+def _write_frames(out: Path, samples: Iterable[ZJUL5Sample], filenames: list[str],
+                  made: list[Path]) -> None:
+    """:func:`write_zju_l5`'s frame files, each name appended to ``filenames`` and each
+    file or folder it creates to ``made``."""
     seen: set[str] = set()
     for sample in samples:
         sample.validate()
@@ -364,7 +383,8 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
             if sample.intrinsics is not None:
                 for key in ("fx", "fy", "cx", "cy"):
                     f.attrs[key] = float(getattr(sample.intrinsics, key))
+        made.extend(reversed([d for d in (target.parent, *target.parent.parents)
+                              if not d.exists()]))
         write_bytes_atomic(target, buffer.getvalue(), overwrite=False)
+        made.append(target)
         filenames.append(rel)
-    text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
-    return write_text_atomic(index_path, text + "\n", overwrite=False)
