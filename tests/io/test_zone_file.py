@@ -303,3 +303,15 @@ def test_driver_signal_per_spad_becomes_the_target_signal(tmp_path):
     # One target per zone: no target arrays, the signal is not read.
     single = zone_frame_from_driver_result(Results(1))
     assert single.target_mean_m is None and single.target_signal is None
+
+
+def test_a_driver_orientation_is_refused_for_a_schema_file(tmp_path):
+    from deltar.io.zone_file import load_zone_frame, save_zone_frame
+    from deltar.sensor.zone_frame import Orientation, ZoneFrame
+
+    path = tmp_path / "z.json"
+    save_zone_frame(path, ZoneFrame(np.full(64, 1.5), np.full(64, 0.02), np.ones(64, bool)))
+    assert load_zone_frame(path, orientation=Orientation()).valid_count == 64  # identity
+    with pytest.raises(ValueError, match=r"z\.json: a zone file in deltar's schema is "
+                                         r"already in image orientation"):
+        load_zone_frame(path, orientation=Orientation(flip_ud=True))

@@ -134,6 +134,11 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
                 target_order=data.get("target_order", "strongest"))
         except (TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid driver output: {err}") from err
+    if orientation is not None and orientation != Orientation():
+        # Silently ignoring it would leave the user believing the grid was turned.
+        raise ValueError(f"{source}: a zone file in deltar's schema is already in image "
+                         "orientation; a driver orientation applies to raw driver dumps "
+                         f"({', '.join(_DRIVER_FIELDS)}) only")
     if data.get("schema", SCHEMA_NAME) != SCHEMA_NAME:
         raise ValueError(f"{source}: schema is {data.get('schema')!r}, expected {SCHEMA_NAME!r}")
     version = data.get("schema_version")
