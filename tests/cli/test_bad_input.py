@@ -229,6 +229,13 @@ def test_simulate_and_demo_refuse_tiny_sizes_and_files(tmp_path):
     _one_error_line(result, f"OUT {blocker} is a file, not a folder")
 
 
+def test_evaluate_model_variants_without_a_model(zju_set):
+    for option in ("--flip", "--network"):
+        result = _run(["evaluate", "--data", zju_set, "--method", "bilinear", option])
+        assert result.exit_code == 2
+        _one_error_line(result, f"Invalid value for {option}", "--checkpoint default")
+
+
 def test_evaluate_save_vis_pointing_at_a_file(tmp_path, zju_set):
     blocker = tmp_path / "vis.txt"
     blocker.write_text("x")

@@ -103,6 +103,12 @@ def evaluate(
     models = [f"model:{c}" for c in checkpoint]
     if official is not None:
         models.append(f"official:{official}")
+    for on, option, what in ((flip, "--flip", "--checkpoint or --official"),
+                             (network, "--network", "--checkpoint")):
+        if on and not (models if option == "--flip" else checkpoint):
+            raise typer.BadParameter(f"{option} adds a variant of each {what} model; give "
+                                     "one (for the bundled model: --checkpoint default)",
+                                     param_hint=option)
     specs += models + ([f"{m}+flip" for m in models] if flip else []) + \
         ([f"model:{c}+network" for c in checkpoint] if network else [])
     if not specs:
