@@ -217,6 +217,20 @@ def test_replay_show_without_display(recording, monkeypatch):
     assert MODEL_BUILT not in result.output
 
 
+def test_simulate_names_the_option_at_fault(tmp_path):
+    source = tmp_path / "src"
+    (source / "color").mkdir(parents=True)
+    (source / "depth").mkdir()
+    Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(source / "color" / "0.png")
+    Image.fromarray(np.full((48, 64), 1500, np.uint16)).save(source / "depth" / "0.png")
+    (source / "camera-intrinsics.txt").write_text("60 0 31.5\n0 60 23.5\n0 0 1\n")
+    for args, option in ((["--intrinsics", "nan,60,31.5,23.5"], "--intrinsics"),
+                         (["--depth-scale", "0"], "--depth-scale")):
+        result = _run(["simulate", source, tmp_path / "out", *args])
+        assert result.exit_code == 2
+        _one_error_line(result, f"Invalid value for {option}")
+
+
 def test_simulate_and_demo_refuse_tiny_sizes_and_files(tmp_path):
     result = _run(["simulate", "procedural:1:0:1x1", tmp_path / "s"])
     _one_error_line(result, "SRC", "at least 8x8 pixels, got 1x1")

@@ -131,6 +131,8 @@ def simulate_command(
     refuse_input_as_output(out, [None if src.startswith("procedural:") else Path(src)],
                            "OUT", folder=True)
     output_folder(out, "OUT")
+    if depth_scale is not None:
+        finite(depth_scale, "--depth-scale", positive=True)
     try:
         with warnings.catch_warnings():
             if intrinsics is not None:  # replaced below: no "assuming defaults" warning
@@ -138,8 +140,11 @@ def simulate_command(
             source = open_source(src, depth_scale=depth_scale, split=split)
         if intrinsics is not None:
             height, width = source[0].depth_m.shape
-            source = open_source(src, depth_scale=depth_scale, split=split,
-                                 intrinsics=_parse_intrinsics(intrinsics, height, width))
+            try:
+                given = _parse_intrinsics(intrinsics, height, width)
+            except ValueError as err:
+                raise typer.BadParameter(str(err), param_hint="--intrinsics") from err
+            source = open_source(src, depth_scale=depth_scale, split=split, intrinsics=given)
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="SRC") from err
     indices = list(range(len(source)))[start:stop:step][:limit]
