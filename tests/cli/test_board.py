@@ -42,6 +42,12 @@ def test_calibrate_with_a_board_then_check_it(board_recording, tmp_path):
                   "--plot", tmp_path / "plots")
     assert result.exit_code == 0, result.output
     assert "board found in 10 of 10 paired images" in result.output
+    assert "printed at" not in result.output  # the spec's size: no scale warning
+    # The same board given 6 % larger than printed (a page shrunk to fit): warned.
+    with pytest.warns(UserWarning, match="the board looks printed at 0.9"):
+        small = _run("calibrate", board_recording, "--target",
+                     "charuco:5x4:0.0638:0.0479:DICT_4X4_50", "--out", tmp_path / "small.json")
+    assert small.exit_code == 0, small.output
     assert "frames used: 10" in result.output and "cm before" in result.output
     calib = RigCalibration.load(out)
     # The report prints the expected error the file stores.

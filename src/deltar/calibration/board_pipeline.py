@@ -43,6 +43,7 @@ from deltar.calibration.board_camera import (
     board_plane_sensitivity,
     calibrate_camera,
 )
+from deltar.calibration.board_scale import warn_board_scale
 from deltar.calibration.board_uncertainty import ExtrinsicUncertainty, extrinsic_uncertainty
 from deltar.calibration.extrinsic import (
     PlaneObservation,
@@ -361,6 +362,10 @@ def calibrate_recording_with_board(
         residuals["intrinsics_rms_px"] = intrinsics_rms
     uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov,
                                   camera_fit)
+    used_views = [v for v in good if v.name in used]
+    warn_board_scale(np.array([v.pose.normal_cam for v in used_views]),
+                     np.array([v.pose.offset_cam_m for v in used_views]),
+                     np.array([v.plane.offset_m for v in used_views]), spec)
     residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
     residuals["translation_sd_m"] = uncertainty.translation_rms_m
     residuals["zone_noise_m"] = uncertainty.zone_noise_m
