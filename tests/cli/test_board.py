@@ -145,3 +145,16 @@ def test_calibration_board_refuses_a_board_larger_than_the_paper(tmp_path):
                   tmp_path / "b.pdf")
     assert result.exit_code == 1 and "does not fit on a4 paper" in result.output
     assert "use squares of at most" in result.output
+
+
+def test_check_calibration_needs_three_scored_frames(tmp_path):
+    folder = tmp_path / "two"
+    poses = board_view_poses(2, distance_m=(0.5, 0.9), tilt_deg=35, min_tilt_deg=15, seed=6)
+    write_board_recording(folder, TRUE, CAMERA, parse_board_spec(TARGET), poses,
+                          mean_noise_m=0.01, with_depth=True, seed=6)
+    RigCalibration(CAMERA, TRUE).save(tmp_path / "true.json")
+    check = _run("check-calibration", folder, "--calib", tmp_path / "true.json", "--target",
+                 TARGET)
+    assert check.exit_code == 1
+    assert "the board is found in only 2 of 2 paired frames" in check.output
+    assert "at least 3" in check.output

@@ -138,6 +138,10 @@ def predicted_from_points(points_cam_m: np.ndarray, calibration: RigCalibration,
     return out
 
 
+#: Fewest frames scored for a verdict on a calibration.
+MIN_CHECK_FRAMES = 3
+
+
 def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec | None = None,
                       tolerance_s: float = 0.02, time_offset_s: float | None = None,
                       depth_stride: int = 2) -> CalibrationCheck:
@@ -152,8 +156,9 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
         depth_stride: every n-th depth pixel per row and column.
 
     Raises:
-        ValueError: the calibration is for another resolution or grid, or no frame has a
-            reference (the message says which one was missing).
+        ValueError: the calibration is for another resolution or grid, or fewer than
+            :data:`MIN_CHECK_FRAMES` frames have a reference (the message says which one
+            was missing).
     """
     meta = recording.meta
     intr = calibration.intrinsics
@@ -190,6 +195,11 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
         what = "the board is found in no paired image" if spec is not None else \
             "no zone frame has a depth image (pass --target for a board recording)"
         raise ValueError(f"{recording.folder}: nothing to score against: {what}")
+    if len(rows) < MIN_CHECK_FRAMES:  # one view is no verdict on a rig
+        what = "the board is found" if spec is not None else "zone frames have a depth image"
+        raise ValueError(f"{recording.folder}: {what} in only {len(rows)} of {len(pairs)} "
+                         f"paired frames; a verdict needs at least {MIN_CHECK_FRAMES} (check "
+                         "--target, or record more)")
     residuals = np.stack(rows)
     if not np.isfinite(residuals).any():
         raise ValueError(f"{recording.folder}: no valid zone has a reference")
