@@ -281,6 +281,11 @@ class ModelConfig:
     sync_batchnorm: bool = False
 
     def validate(self, where: str) -> None:
+        from deltar.models.presets import list_presets
+
+        if self.preset not in list_presets():  # before a run, not at its first step
+            raise ValueError(f"{where}.preset must be one of {list_presets()}, got "
+                             f"{self.preset!r}")
         if self.init_checkpoint and self.official_weights:
             raise ValueError(f"{where}: give init_checkpoint or official_weights, not both")
 
