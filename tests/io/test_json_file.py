@@ -24,6 +24,10 @@ def test_split_filenames_and_their_errors(tmp_path):
     assert read_split_filenames(index, "test", "index") == ["a/1.h5", "a/2.h5"]
     with pytest.raises(ValueError, match=r"no split 'train' \(splits: \['test'\]\)"):
         read_split_filenames(index, "train", "index")
+    other = tmp_path / "other.json"  # some other JSON: said to be no index at all
+    other.write_text(json.dumps({"a": 1}))
+    with pytest.raises(ValueError, match=r"other\.json is no index: no list of"):
+        read_split_filenames(other, "test", "index")
     index.write_text(json.dumps({"test": [{"name": "x"}]}))
     with pytest.raises(ValueError, match="must be a list of"):
         read_split_filenames(index, "test", "index")

@@ -42,12 +42,19 @@ def read_split_filenames(path: str | os.PathLike, split: str, what: str) -> list
             entries without a ``"filename"`` string.
     """
     index = read_json(path, what)
-    if not isinstance(index, dict) or split not in index:
-        keys = sorted(index) if isinstance(index, dict) else []
-        raise ValueError(f"{what} {path} has no split {split!r} (splits: {keys})")
+
+    def is_list(value) -> bool:
+        return isinstance(value, list) and all(
+            isinstance(e, dict) and isinstance(e.get("filename"), str) for e in value)
+
+    if not isinstance(index, dict) or (split not in index and
+                                       not any(is_list(v) for v in index.values())):
+        raise ValueError(f"{path} is no {what}: no list of {{\"filename\": ...}} entries "
+                         "under a split name (e.g. {\"test\": [{\"filename\": ...}]})")
+    if split not in index:
+        raise ValueError(f"{what} {path} has no split {split!r} (splits: {sorted(index)})")
     entries = index[split]
-    if not isinstance(entries, list) or not all(
-            isinstance(e, dict) and isinstance(e.get("filename"), str) for e in entries):
+    if not is_list(entries):
         raise ValueError(f"{what} {path}: split {split!r} must be a list of "
                          '{"filename": "..."} entries')
     return [e["filename"] for e in entries]
