@@ -144,10 +144,13 @@ def map_command(
         raise typer.BadParameter("--depth-topic names the depth --method recorded maps from "
                                  "a ROS 2 bag (a recording keeps its depth in depth/)",
                                  param_hint="--depth-topic")
-    # Depth is read only to be mapped: any other method ignores the bag's depth topic.
-    bag_options = {**topics.bag_input_options(),
-                   "depth_topic": (depth_topic or "auto") if method == RECORDED else None} \
-        if is_bag else {}
+    bag_options = {}
+    if is_bag:
+        from deltar.io.rosbag_reader import AUTO_DEPTH_TOPIC
+
+        # Depth is read only to be mapped: any other method ignores the bag's depth topic.
+        bag_options = {**topics.bag_input_options(), "depth_topic":
+                       (depth_topic or AUTO_DEPTH_TOPIC) if method == RECORDED else None}
     source = FrameSource(recording, calibration=calibration, tolerance_s=tolerance,
                          every=every, limit=limit, bag_options=bag_options)
     settings = _settings(voxel, truncation, max_depth or source.depth_limit_m(), max_memory)

@@ -39,12 +39,13 @@ from deltar.io.ros_messages import (
     zone_frame_from_msg,
     zone_frame_from_vl53l5cx_ros2,
 )
+from deltar.io.rosbag_writer import RECORD_TOPICS
 from deltar.sensor.zone_frame import Orientation, ZoneFrame
 
 #: ToF topic formats :class:`BagInput` reads.
 TOF_FORMATS: tuple[str, ...] = ("deltar", "vl53l5cx_ros2")
 #: The depth topic :class:`BagInput` reads when told to find one (``deltar record --bag``'s).
-DEFAULT_DEPTH_TOPIC = "/camera/depth/image"
+DEFAULT_DEPTH_TOPIC = RECORD_TOPICS["depth"]
 #: ``BagInput(depth_topic=AUTO_DEPTH_TOPIC)``: read :data:`DEFAULT_DEPTH_TOPIC` if present
 #: (``deltar map --method recorded`` passes it when no ``--depth-topic`` is given).
 AUTO_DEPTH_TOPIC = "auto"
@@ -260,20 +261,8 @@ class BagInput:
 
         A pair's image is decoded once even if several pairs share it.
         """
-        from rosbags.rosbag2 import Reader
-
-        by_index: dict[int, list[BagPair]] = {}
-        for pair in pairs:
-            by_index.setdefault(pair.image_index, []).append(pair)
-        with Reader(self.path) as reader:
-            wanted = [c for c in reader.connections if c.topic == self.image_topic]
-            for index, (connection, _, raw) in enumerate(reader.messages(connections=wanted)):
-                if index not in by_index:
-                    continue
-                msg = self._deserialize(connection, raw)
-                rgb = image_from_msg(msg, connection.msgtype, source=self.image_topic)
-                for pair in by_index[index]:
-                    yield pair, rgb
+        for pair, rgb, _ in self.images_with_depth(pairs, [None] * len(pairs)):
+            yield pair, rgb
 
     def depth_indices(self, pairs: list[BagPair], tolerance_s: float = 0.02
                       ) -> list[int | None]:
@@ -338,7 +327,8 @@ class BagInput:
                     del held_depth[depth_index]
                 yield pair, rgb, depth
 
-        topics = tuple(t for t in (self.image_topic, self.depth_topic) if t is not None)
+        # The depth topic is read only when some pair wants its depth.
+        topics = (self.image_topic, self.depth_topic) if depth_users else (self.image_topic,)
         counts = {topic: 0 for topic in topics}
         with Reader(self.path) as reader:
             wanted = [c for c in reader.connections if c.topic in topics]
