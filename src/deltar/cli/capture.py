@@ -7,6 +7,7 @@ from pathlib import Path
 
 import typer
 
+from deltar.cli.checks import refuse_unused_options
 from deltar.cli.errors import fail, format_error, warn
 from deltar.cli.frame_options import (
     AllowNoZonesOption,
@@ -85,18 +86,10 @@ def record_command(
         raise typer.BadParameter(f"{out} exists; with --bag the recording is a new bag, "
                                  "written whole: choose another path", param_hint="OUT")
     if simulate is not None:
-        # The source is the camera and the simulated sensor: hardware options would be
-        # silently ignored.
-        given = [name for name, value, default in (("--camera", camera, 0),
-                                                   ("--sensor", sensor, "vl53l5cx-ctypes"),
-                                                   ("--calib", calib, None))
-                 if value != default]
-        if given:
-            raise typer.BadParameter(f"{' and '.join(given)} "
-                                     f"{'is' if len(given) == 1 else 'are'} for hardware "
-                                     "recording; with --simulate the RGB-D source is the "
-                                     "camera (with its intrinsics) and the sensor is "
-                                     "simulated", param_hint=given[0])
+        refuse_unused_options({"--camera": camera != 0, "--sensor": sensor != "vl53l5cx-ctypes",
+                               "--calib": calib is not None}, "for hardware recording",
+                              "with --simulate the RGB-D source is the camera (with its "
+                              "intrinsics) and the sensor is simulated")
     if simulate is not None and Path(simulate).exists():
         from deltar.io.input_file import refuse_input_as_output
 
@@ -188,13 +181,9 @@ def replay_command(
     if (recording is None) == (bag is None):
         raise typer.BadParameter("give a RECORDING folder or --bag BAG")
     if bag is not None:
-        given = [name for name, on in (("--keep-going", keep_going),
-                                       ("--skip-existing", skip_existing)) if on]
-        if given:
-            raise typer.BadParameter(f"{' and '.join(given)} "
-                                     f"{'is' if len(given) == 1 else 'are'} for replays into "
-                                     "an --out folder; with --bag the output is a new bag, "
-                                     "written whole", param_hint=given[0])
+        refuse_unused_options({"--keep-going": keep_going, "--skip-existing": skip_existing},
+                              "for replays into an --out folder",
+                              "with --bag the output is a new bag, written whole")
         model.check()
         try:
             typer.echo(replay_bag_command(

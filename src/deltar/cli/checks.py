@@ -56,6 +56,24 @@ def output_file(path: Path, option: str, overwrite: bool) -> Path:
     return path
 
 
+def refuse_unused_options(given: dict[str, bool], what_for: str, why: str) -> None:
+    """Refuse options that the command would otherwise silently ignore.
+
+    Args:
+        given: option name -> whether the user gave it.
+        what_for: what those options are for (``"for hardware recording"``).
+        why: why they do not apply here.
+
+    Raises:
+        typer.BadParameter: naming the given ones, e.g. ``--camera and --sensor are for
+            hardware recording; <why>``.
+    """
+    names = [name for name, on in given.items() if on]
+    if names:
+        raise typer.BadParameter(f"{' and '.join(names)} {'is' if len(names) == 1 else 'are'} "
+                                 f"{what_for}; {why}", param_hint=names[0])
+
+
 def existing_outputs(paths: Iterable[Path], option: str = "--out", *,
                      resumable: bool = False) -> None:
     """Refuse to start when outputs exist; the message names ``--overwrite`` and, for a
