@@ -185,9 +185,9 @@ def test_estimator_blends_plane_select_networks_by_default(rng, lite_model):
 
 
 def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatch):
-    """The fill's image part needs no zone: predict starts it before it screens the zones.
-    The rest needs the zones: predict starts it from prepare's ``on_zones`` hook, so it
-    runs while the images are resized, with the zone inputs prepare returns."""
+    """The fill needs the zones as screened and placed: predict starts it from prepare's
+    ``on_zones`` hook, so it runs while the images are resized, with the zone inputs
+    prepare returns."""
     import deltar.inference.estimator as estimator_module
 
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
@@ -200,14 +200,13 @@ def test_predict_starts_the_fill_before_it_normalises_the_images(rng, monkeypatc
         monkeypatch.setattr(estimator_module, name,
                             lambda *a, **k: order.append(name) or function(*a, **k))
 
-    for name in ("start_fill_guide", "start_frame_fills", "normalise_images"):
+    for name in ("start_frame_fills", "normalise_images"):
         spy(name, getattr(estimator_module, name))
     screen = estimator.screen_zones
     monkeypatch.setattr(estimator, "screen_zones",
                         lambda *a: order.append("screen_zones") or screen(*a))
     result = estimator.predict(image, frame)
-    assert order == ["start_fill_guide", "screen_zones", "start_frame_fills",
-                     "normalise_images"]
+    assert order == ["screen_zones", "start_frame_fills", "normalise_images"]
     np.testing.assert_array_equal(result.depth_m, estimator.predict(image, frame).depth_m)
     seen = {}
     inputs = estimator.prepare([image], [frame], on_zones=lambda zones: seen.update(zones))

@@ -22,7 +22,6 @@ from deltar.inference.colorization import colorization_fill
 from deltar.inference.fill_schedule import (
     fill_beside_network,
     start_blend_fill,
-    start_fill_guide,
 )
 from tests.inference.grid_problems import edge_problem
 
@@ -123,22 +122,6 @@ def test_the_fill_on_the_worker_thread_or_at_once_is_the_fill(rng, beside):
     failed = start_blend_fill(image, means, valid, rects, far, None, beside=beside)
     with pytest.raises(ValueError, match="far_depth_m"):
         failed.result()
-
-
-@pytest.mark.parametrize("beside", [True, False])
-def test_the_fill_from_an_image_part_made_first_is_the_fill(rng, beside):
-    """The fill's image part (start_fill_guide, before the zones are known) and the rest
-    (start_blend_fill with its future) give the fill computed in one go, bit for bit."""
-    for size in ((48, 64), (480, 640)):  # the second is halved first
-        image, means, valid, rects, far = _zones(rng, *size)
-        guide = start_fill_guide(image, beside=beside)
-        filled = start_blend_fill(image, means, valid, rects, far, 5.0, out_size=(24, 32),
-                                  beside=beside, guide=guide)
-        np.testing.assert_array_equal(
-            filled.result(), blend_fill(image, means, valid, rects, far, 5.0, (24, 32)))
-        other = start_fill_guide(image[:, :32], beside=beside)
-        with pytest.raises(ValueError, match="guide was made for"):
-            start_blend_fill(image, means, valid, rects, beside=beside, guide=other).result()
 
 
 def test_colorize_zones_takes_the_guide_made_earlier(rng):

@@ -30,15 +30,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from deltar.inference.regions import RegionPair, check_coefficients
 from deltar.sensor.zone_frame import no_target_as_readings
-
-if TYPE_CHECKING:  # scipy and cv2 load on use
-    from deltar.inference.colorization import ColorizationGuide
 
 
 @dataclass(frozen=True)
@@ -214,8 +210,8 @@ BLEND_FILL_SEED_SIDE = 3
 
 def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
-               far_depth_m: float | None = None, out_size: tuple[int, int] | None = None,
-               guide: ColorizationGuide | None = None) -> np.ndarray | None:
+               far_depth_m: float | None = None, out_size: tuple[int, int] | None = None
+               ) -> np.ndarray | None:
     """The fill that :func:`blend_depth` blends with: the zones' colorization (metres).
 
     It needs only the image and the zones, so a stream can compute it while the network
@@ -223,18 +219,19 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
     :func:`blend_depth`'s; ``out_size`` (h, w) pixels of the returned map covering the
     whole image (the image's size by default; the estimator asks for its network's
     output grid and blends there). Solved on :data:`BLEND_FILL_CELLS` cells to
-    :data:`BLEND_FILL_TOLERANCE`. ``guide``: :func:`blend_fill_guide` of this image, made
-    earlier (a stream makes it before the zones are placed); made here when None.
+    :data:`BLEND_FILL_TOLERANCE`, guided by the image halved (:func:`halved_guide`).
 
     Returns:
         (H, W) (or ``out_size``) float32 fill, metres, or None when no valid zone (on
         the image) is there to fill from.
 
     Raises:
-        ValueError: as :func:`blend_depth` for the zone and image arguments; a ``guide``
-            of an image of another size.
+        ValueError: as :func:`blend_depth` for the zone and image arguments.
     """
-    from deltar.inference.colorization import colorize_zones  # scipy and cv2: on use
+    from deltar.inference.colorization import (  # scipy and cv2: on use
+        colorization_guide,
+        colorize_zones,
+    )
 
     means = np.asarray(zone_mean_m, dtype=np.float64).reshape(-1)
     if np.shape(zone_valid) != means.shape:
@@ -255,12 +252,8 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
 
     image_rgb = check_image(image_rgb, "image_rgb")
     size = image_rgb.shape[:2]
-    if guide is None:
-        guide = _checked_image_guide(image_rgb)
-    elif guide.source_size != size or guide.solve_cells != BLEND_FILL_CELLS:
-        raise ValueError(f"guide was made for a {guide.source_size[0]}x{guide.source_size[1]} "
-                         f"image and {guide.solve_cells} cells, image_rgb is "
-                         f"{size[0]}x{size[1]} (blend_fill_guide makes it)")
+    guide = colorization_guide(halved_guide(image_rgb, BLEND_FILL_CELLS), BLEND_FILL_CELLS,
+                               source_size=size)
     if guide.image_size != size:  # made from the halved image
         from deltar.inference.preprocess import scale_rects
 
@@ -269,30 +262,6 @@ def blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.nd
     return colorize_zones(guide, means, valid, zone_rects, solve_cells=BLEND_FILL_CELLS,
                           seed_side=BLEND_FILL_SEED_SIDE, tolerance=BLEND_FILL_TOLERANCE,
                           out_size=out_size)
-
-
-def blend_fill_guide(image_rgb: np.ndarray) -> ColorizationGuide:
-    """The image's part of :func:`blend_fill` (no zone needed): the
-    :class:`~deltar.inference.colorization.ColorizationGuide` of its halved guide
-    (:func:`halved_guide`) on :data:`BLEND_FILL_CELLS` cells.
-
-    Args:
-        image_rgb: (H, W, 3) uint8 RGB image.
-
-    Raises:
-        ValueError: a bad image.
-    """
-    from deltar.camera import check_image
-
-    return _checked_image_guide(check_image(image_rgb, "image_rgb"))
-
-
-def _checked_image_guide(image_rgb: np.ndarray) -> ColorizationGuide:
-    """:func:`blend_fill_guide` of an image already checked."""
-    from deltar.inference.colorization import colorization_guide
-
-    return colorization_guide(halved_guide(image_rgb, BLEND_FILL_CELLS), BLEND_FILL_CELLS,
-                              source_size=image_rgb.shape[:2])
 
 
 def halved_guide(image_rgb: np.ndarray, solve_cells: int) -> np.ndarray:

@@ -187,7 +187,7 @@ class ColorizationGuide:
         weights: (8, h, w) float64 affinity weights of the grid
             (:func:`colorization_matrix`'s, in ``NEIGHBOUR_OFFSETS`` order).
         source_size: (H, W) pixels of the image the caller started from, before any
-            halving (:func:`deltar.inference.blend.blend_fill_guide`); ``image_size``
+            halving (:func:`deltar.inference.blend.blend_fill` halves it); ``image_size``
             by default.
     """
 
@@ -252,10 +252,9 @@ def colorize_zones(image_rgb: np.ndarray | ColorizationGuide, zone_mean_m: np.nd
     Args:
         image_rgb: (H, W, 3) uint8 RGB image (the guide), or its
             :class:`ColorizationGuide` made earlier for the same ``solve_cells`` (then
-            (H, W) is its ``image_size``: for a guide of a halved image,
-            :func:`~deltar.inference.blend.blend_fill_guide`'s, the halved one, and
-            ``zone_rects`` are in its pixels; :func:`~deltar.inference.blend.blend_fill`
-            scales them).
+            (H, W) is its ``image_size``: for a guide of a halved image, as
+            :func:`~deltar.inference.blend.blend_fill` makes, the halved one, and
+            ``zone_rects`` are in its pixels; ``blend_fill`` scales them).
         zone_mean_m: (Z,) zone readings, metres.
         zone_valid: (Z,) bool, at least one True.
         zone_rects: (Z, 4) (y0, x0, y1, x1) zone rectangles in image pixels.

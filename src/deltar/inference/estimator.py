@@ -30,7 +30,6 @@ from deltar.inference import checks
 from deltar.inference.blend import ConfidenceBlend, resolve_blend
 from deltar.inference.fill_schedule import (
     fill_beside_network,
-    start_fill_guide,
     start_frame_fills,
 )
 from deltar.inference.output_stage import apply_output_stage
@@ -410,9 +409,6 @@ class DepthEstimator:
             # The zones are placed with the pinhole intrinsics: predict on the
             # undistorted image (same intrinsics), so depth is for that image.
             images = [calibration.undistort_image(np.asarray(im)) for im in images]
-        # The fill's image part needs no zone: it runs while they are screened and placed.
-        beside = fill_beside_network(self.model is not None)
-        guides = [start_fill_guide(im, beside) for im in images] if self.blend else None
         # Outlying zones are set aside first: the network and the fill read the same zones.
         screened = [self.screen_zones(f) for f in frames]
         frames, rejected = [f for f, _ in screened], [r for _, r in screened]
@@ -421,12 +417,14 @@ class DepthEstimator:
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
         # The blend's fill needs only the image and the zones: started once they are placed,
         # it runs while the images are resized and the network runs (all release the GIL).
+        # One task, image part and all: a separate task for the image part started before
+        # the zones were screened cost 0.4-0.5 ms a frame more (benchmarks/RESULTS.md).
         fills: list[Future] = []
 
         def start_fills(zones: dict[str, Any]) -> None:
             grid = tuple(side // 2 for side in zones["network_size"])
             fills.extend(self._start_fills(images, frames, zones["image_rects"],
-                                           zones["zone_no_target"], grid, guides))
+                                           zones["zone_no_target"], grid))
 
         inputs = self.prepare(images, frames, calibration, zone_rects,
                               on_zones=None if self.blend is None else start_fills)
@@ -488,9 +486,8 @@ class DepthEstimator:
 
     def _start_fills(self, images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                      rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
-                     out_size: tuple[int, int] | None = None,
-                     guides: Sequence[Future] | None = None) -> list[Future]:
+                     out_size: tuple[int, int] | None = None) -> list[Future]:
         """:func:`~deltar.inference.fill_schedule.start_frame_fills` with the estimator's
         no-target depth and schedule (arguments as there)."""
         return start_frame_fills(images, frames, rects, no_target, self.no_target_depth_m,
-                                 fill_beside_network(self.model is not None), out_size, guides)
+                                 fill_beside_network(self.model is not None), out_size)

@@ -1,13 +1,12 @@
 """When and where the confidence blend's fill runs: beside the network or before it.
 
 The fill (:func:`deltar.inference.blend.blend_fill`) needs only the image and the zones,
-so the estimator starts its image part (:func:`start_fill_guide`) before it screens the
-zones and the rest (:func:`start_blend_fill`, :func:`start_frame_fills`) once they are
-placed, before the network runs. Both run on one worker thread shared by all estimators,
-beside the network, or at once on the calling thread; :func:`fill_beside_network` says
-which suits the network's backend and the cores there are. Its tasks run in the order
-they were started, so estimators predicting on several threads at once queue their
-frames' fills there.
+so the estimator starts it (:func:`start_blend_fill`, :func:`start_frame_fills`) once the
+zones are placed, before the images are resized and the network runs. It runs on one
+worker thread shared by all estimators, beside the network, or at once on the calling
+thread; :func:`fill_beside_network` says which suits the network's backend and the cores
+there are. Its tasks run in the order they were started, so estimators predicting on
+several threads at once queue their frames' fills there.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.inference.blend import blend_fill, blend_fill_guide
+from deltar.inference.blend import blend_fill
 from deltar.io.resources import cpu_count
 
 if TYPE_CHECKING:
@@ -45,21 +44,18 @@ if hasattr(os, "register_at_fork"):  # POSIX
 def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid: np.ndarray,
                      zone_rects: np.ndarray, zone_far: np.ndarray | None = None,
                      far_depth_m: float | None = None,
-                     out_size: tuple[int, int] | None = None, beside: bool = True,
-                     guide: Future | None = None) -> Future:
+                     out_size: tuple[int, int] | None = None, beside: bool = True) -> Future:
     """:func:`blend_fill` on a worker thread; its ``Future`` gives the fill (or raises).
 
     The fill spends most of its time in LAPACK (or numba's compiled solver) and OpenCV,
     which release the GIL, so it runs beside the network (onnxruntime and PyTorch release
     the GIL too). One worker thread, shared by all estimators, started on first use.
     ``beside=False`` computes the fill now, on the calling thread, and returns it as a
-    finished ``Future`` (:func:`fill_beside_network` says which). ``guide``: the
-    ``Future`` of :func:`start_fill_guide` for this image, started earlier with the same
-    ``beside``, so the fill waits for nothing (the worker runs its tasks in order).
+    finished ``Future`` (:func:`fill_beside_network` says which).
     """
     def fill() -> np.ndarray | None:
         return blend_fill(image_rgb, zone_mean_m, zone_valid, zone_rects, zone_far,
-                          far_depth_m, out_size, None if guide is None else guide.result())
+                          far_depth_m, out_size)
 
     return _run(fill, beside)
 
@@ -67,8 +63,7 @@ def start_blend_fill(image_rgb: np.ndarray, zone_mean_m: np.ndarray, zone_valid:
 def start_frame_fills(images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
                       rects: Sequence[np.ndarray], no_target: Sequence[np.ndarray],
                       far_depth_m: float | None, beside: bool,
-                      out_size: tuple[int, int] | None = None,
-                      guides: Sequence[Future] | None = None) -> list[Future]:
+                      out_size: tuple[int, int] | None = None) -> list[Future]:
     """:func:`start_blend_fill` for each frame of a batch (metres, at ``out_size`` or the
     image's size).
 
@@ -78,23 +73,12 @@ def start_frame_fills(images: Sequence[np.ndarray], frames: Sequence[ZoneFrame],
         no_target: B (Z,) bool no-target flags (those the network reads), read at
             ``far_depth_m`` metres; ignored when that is None.
         beside: as :func:`start_blend_fill`'s.
-        guides: B :func:`start_fill_guide` futures started earlier, or None.
     """
     return [start_blend_fill(image, mean, valid, frame_rects,
                              zone_far=None if far_depth_m is None else flags,
-                             far_depth_m=far_depth_m, out_size=out_size, beside=beside,
-                             guide=guide)
-            for image, (mean, _, valid), frame_rects, flags, guide in zip(
-                images, (frame.flat() for frame in frames), rects, no_target,
-                guides or [None] * len(images), strict=True)]
-
-
-def start_fill_guide(image_rgb: np.ndarray, beside: bool = True) -> Future:
-    """:func:`~deltar.inference.blend.blend_fill_guide` (the fill's image part, no zones
-    needed) on the worker thread, or at once with ``beside=False``; its ``Future`` goes to
-    :func:`start_blend_fill`. Started before the zones are screened and placed, it runs
-    while the calling thread does that."""
-    return _run(lambda: blend_fill_guide(image_rgb), beside)
+                             far_depth_m=far_depth_m, out_size=out_size, beside=beside)
+            for image, (mean, _, valid), frame_rects, flags in zip(
+                images, (frame.flat() for frame in frames), rects, no_target, strict=True)]
 
 
 def _run(task: Callable[[], Any], beside: bool) -> Future:
