@@ -69,6 +69,34 @@ def test_a_failing_frame_stops_the_run_or_is_reported(tmp_path, frames):
     assert summary.failed[0][0] == "b.png" and isinstance(summary.failed[0][1], ValueError)
 
 
+def test_outputs_show_the_undistorted_image_the_depth_belongs_to(tmp_path, frames):
+    """With lens distortion the depth is for the undistorted image: the pictures and the
+    point cloud's colours take that image, not the raw one."""
+    from deltar.calibration.extrinsic import nominal_extrinsics
+    from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
+    from deltar.data.rgbd_files import read_color
+    from deltar.inference.outputs import depth_to_points
+    from deltar.io.ply import read_ply
+
+    calib = RigCalibration(CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48),
+                           nominal_extrinsics(),
+                           distortion=(-0.3, 0.1, 0.0, 0.0, 0.0))
+    out = tmp_path / "out"
+    out.mkdir()
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter", blend=None)
+    jobs, _, _ = plan_jobs(frames[:1], out, ("ply",), overwrite=False, skip_existing=False)
+    shown = []
+    run_jobs(jobs, estimator, out, calibration=calib,
+             on_prediction=lambda job, rgb, pred: shown.append((rgb, pred)))
+    shown, prediction = shown[0]
+    raw = read_color(frames[0][0])
+    np.testing.assert_array_equal(shown, calib.undistort_image(raw))
+    assert np.abs(shown.astype(int) - raw).mean() > 5
+    _, expected = depth_to_points(prediction.depth_m, prediction.intrinsics, shown)
+    np.testing.assert_array_equal(read_ply(out / "a_cloud.ply").colors, expected)
+
+
 def test_an_output_that_would_replace_an_input_is_refused(tmp_path, frames):
     # a.png's colour output is a_depth_color.png, the image of another pair.
     clash = _write_frame(frames[0][0].parent, "a_depth_color", np.random.default_rng(1))

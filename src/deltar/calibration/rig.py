@@ -198,15 +198,19 @@ class RigCalibration:
         """Whether the camera has a non-zero lens distortion."""
         return any(v != 0.0 for v in self.distortion)
 
-    def undistort_image(self, image: np.ndarray) -> np.ndarray:
+    def undistort_image(self, image: np.ndarray, nearest: bool = False) -> np.ndarray:
         """The image as the pinhole camera ``intrinsics`` would see it (same K).
 
         Args:
             image: (H, W[, C]) image at the calibrated resolution.
+            nearest: take each pixel from the nearest source pixel instead of
+                interpolating: for depth maps (metres or millimetres, 0 invalid), where
+                interpolating across an edge or an invalid pixel makes depths no surface
+                has.
 
         Returns:
             The undistorted image, same shape and dtype (the input when there is no
-            distortion). Pixels that have no source are black.
+            distortion). Pixels that have no source are 0 (black).
         """
         if not self.has_distortion:
             return image
@@ -215,7 +219,13 @@ class RigCalibration:
         image = np.asarray(image)
         self.check_image_size(image.shape[:2], "image")
         matrix = self.intrinsics.matrix
-        return cv2.undistort(image, matrix, np.asarray(self.distortion), None, matrix)
+        if not nearest:
+            return cv2.undistort(image, matrix, np.asarray(self.distortion), None, matrix)
+        map_x, map_y = cv2.initUndistortRectifyMap(
+            matrix, np.asarray(self.distortion), None, matrix,
+            (image.shape[1], image.shape[0]), cv2.CV_32FC1)
+        return cv2.remap(image, map_x, map_y, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict:

@@ -39,7 +39,8 @@ class BagReplayItem:
 
     Attributes:
         pair: the ToF frame and its camera image's stamps.
-        image: (H, W, 3) uint8 RGB.
+        image: (H, W, 3) uint8 RGB, undistorted when the calibration has lens
+            distortion: the image the predicted depth belongs to.
         prediction: the estimator's result.
         calibration: the calibration the zones were placed with.
     """
@@ -95,7 +96,9 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
         if image.shape[:2] != size:
             raise ValueError(f"{bag.image_topic}: images are {image.shape[0]}x{image.shape[1]},"
                              f" the camera intrinsics are for {size[0]}x{size[1]}")
-        yield BagReplayItem(pair, image, estimator.predict(image, pair.zone_frame, calib), calib)
+        prediction = estimator.predict(image, pair.zone_frame, calib)
+        # The depth is for the undistorted image (predict undistorts its input).
+        yield BagReplayItem(pair, calib.undistort_image(image), prediction, calib)
 
 
 def replay_bag_to_bag(bag: BagInput, estimator: DepthEstimator, out_bag: str | os.PathLike, *,

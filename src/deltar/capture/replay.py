@@ -37,9 +37,11 @@ class ReplayItem:
 
     Attributes:
         pair: the recording's zone frame with its colour (and depth) image.
-        image: (H, W, 3) uint8 RGB.
+        image: (H, W, 3) uint8 RGB, undistorted when the calibration has lens
+            distortion: the image the predicted depth belongs to.
         prediction: the estimator's result.
-        reference_depth_m: (H, W) recorded depth in metres (0 invalid) or None.
+        reference_depth_m: (H, W) recorded depth in metres (0 invalid) or None,
+            undistorted (nearest pixel) as the image.
     """
 
     pair: RecordingPair
@@ -149,7 +151,11 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
                 raise
             on_failure(pair, err)
             continue
-        yield ReplayItem(pair, image, prediction, reference)
+        # The depth is for the undistorted image (predict undistorts its input): hand
+        # out the image and the recorded depth that belong to it.
+        yield ReplayItem(pair, calib.undistort_image(image), prediction,
+                         None if reference is None else calib.undistort_image(reference,
+                                                                              nearest=True))
 
 
 def replay_to_folder(recording: str | os.PathLike, estimator: DepthEstimator,

@@ -177,6 +177,8 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
                 prediction = estimator.predict(rgb, frame, calibration)
             except ValueError as err:
                 raise ValueError(f"{job.image.name} with {job.zones.name}: {err}") from err
+            if calibration is not None:  # the depth is for the undistorted image
+                rgb = calibration.undistort_image(rgb)
             write_prediction(out, job.image.stem, rgb, prediction, kinds=job.kinds,
                              overwrite=overwrite,
                              title=f"{job.image.name} ({estimator.weights})")
