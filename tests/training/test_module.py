@@ -125,15 +125,47 @@ def test_tiny_end_to_end_run(tmp_path, tiny_config):
     assert raw.keys() == averaged.keys()
     assert any(not torch.equal(raw[k], averaged[k]) for k in raw if "weight" in k)
 
+    # Resuming the finished run (a requeued job) trains nothing and keeps model.pt; one
+    # without model.pt gets it from the checkpoint, with the averaged weights.
+    saved_model = (run / "model.pt").read_bytes()
+    with pytest.warns(UserWarning, match=r"has finished \(4 steps\); nothing left to train"):
+        train(config, run, resume=True)
+    assert (run / "model.pt").read_bytes() == saved_model
+    (run / "model.pt").unlink()
+    with pytest.warns(UserWarning, match="has finished"):
+        train(config, run, resume=True)
+    for a, b in zip(model.state_dict().values(),
+                    load_trained_model(str(run / "model.pt")).state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b)
+    # A longer schedule on resume is refused by name, not deep in the optimiser.
+    longer = tiny_config("trainer.max_epochs=2", "ema.enabled=true", "ema.decay=0.5")
+    (run / "config.yaml").write_text(longer.to_yaml(), encoding="utf-8")
+    with pytest.raises(ValueError, match=r"schedule spans 4 steps, the configuration now "
+                                         r"gives 8.*model\.init_checkpoint"):
+        train(longer, run, resume=True)
+    # A damaged last checkpoint names the others to resume from.
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"damaged")
+    with pytest.raises(ValueError, match=r"last\.ckpt: not a readable training checkpoint.*"
+                                         r"step=2\.ckpt, step=4\.ckpt"):
+        train(longer, run, resume=True)
+
 
 def test_new_run_refuses_an_existing_run_folder(tmp_path, tiny_config):
     run = tmp_path / "run"
     run.mkdir()
     (run / "config.yaml").write_text("name: other\n", encoding="utf-8")
-    with pytest.raises(FileExistsError, match="already holds a run"):
+    with pytest.raises(FileExistsError, match="already holds a run that stopped before its "
+                                              "first checkpoint; remove the folder"):
         train(tiny_config(), run)
-    with pytest.raises(FileNotFoundError, match="nothing to resume"):
+    with pytest.raises(FileNotFoundError, match="nothing to resume.*stopped before its first"):
         train(tiny_config(), run, resume=True)
+    # Checkpoints without a config (a folder of something else) are refused too.
+    other = tmp_path / "other"
+    (other / "checkpoints").mkdir(parents=True)
+    (other / "checkpoints" / "last.ckpt").write_text("my notes", encoding="utf-8")
+    with pytest.raises(FileExistsError, match="already holds checkpoints of a run"):
+        train(tiny_config(), other)
+    assert (other / "checkpoints" / "last.ckpt").read_text(encoding="utf-8") == "my notes"
 
 
 def test_atomic_checkpoint_io_keeps_the_old_file_when_saving_fails(tmp_path):

@@ -21,6 +21,7 @@ import json
 import math
 import os
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -225,7 +226,9 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     checkpoint = run_dir / "checkpoints" / LAST_CHECKPOINT
     if resume:
         if not checkpoint.is_file():
-            raise FileNotFoundError(f"nothing to resume: {checkpoint} does not exist")
+            stopped = " (the run stopped before its first checkpoint: remove the folder " \
+                "and start the run again)" if config_path.is_file() else ""
+            raise FileNotFoundError(f"nothing to resume: {checkpoint} does not exist{stopped}")
         if load_run_config(run_dir).to_dict() != config.to_dict():
             raise ValueError(f"config differs from the one saved in {config_path}; resume "
                              "with the run's own config.yaml")
@@ -237,10 +240,31 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)
+    if resume and resumed_run_finished(checkpoint, system.schedule_steps):
+        # Nothing left to train (e.g. a finished job requeued): keep the run's model.pt
+        # (a resumed fit would hold the raw weights, not the averaged ones it saved).
+        model_path = run_dir / "model.pt"
+        if trainer.is_global_zero and not model_path.exists():
+            from deltar.training.package import package_checkpoint
+
+            package_checkpoint(checkpoint, model_path, float16=False)
+        warnings.warn(f"run {run_dir} has finished ({system.schedule_steps} steps); nothing "
+                      f"left to train, {model_path} kept. To train further, start a new run "
+                      f"from it (model.init_checkpoint: {model_path})", stacklevel=2)
+        return run_dir
     if trainer.is_global_zero and not resume:
-        if config_path.exists():
-            raise FileExistsError(f"run folder {run_dir} already holds a run; resume it or "
-                                  "choose a new folder")
+        held = [p for p in (config_path, run_dir / "model.pt", run_dir / "checkpoints")
+                if p.exists()]
+        if held:
+            if not config_path.exists():
+                what = f"{' and '.join(p.name for p in held)} of a run"
+            elif checkpoint.is_file():
+                what = "a run; resume it"
+            else:
+                what = ("a run that stopped before its first checkpoint; remove the folder to "
+                        "start it again")
+            raise FileExistsError(f"run folder {run_dir} already holds {what}, or choose a "
+                                  "new folder")
         write_text_atomic(config_path, config.to_yaml(), overwrite=False)
     # Processes that Lightning launches itself (strategy "ddp" without torchrun) inherit
     # the environment and so use the same folder.
@@ -257,6 +281,34 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         with atomic_path(run_dir / "model.pt") as tmp:
             torch.save(export_model(system.model, config.model.preset), tmp)
     return run_dir
+
+
+def resumed_run_finished(checkpoint: Path, schedule_steps: int) -> bool:
+    """Whether the run saved in ``checkpoint`` has trained all of its ``schedule_steps``.
+
+    Raises:
+        ValueError: the checkpoint does not read (the message names the run's other
+            checkpoints to resume from), or its schedule spans another number of steps
+            than the configuration now gives (a resumed run cannot change it).
+    """
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        step = int(state["global_step"])
+        planned = [int(s["total_steps"]) for s in state.get("lr_schedulers", [])
+                   if "total_steps" in s]
+    except Exception as err:  # torch raises several types for damaged files
+        others = sorted(p.name for p in checkpoint.parent.glob("*.ckpt") if p != checkpoint)
+        hint = (f"; the run also saved {', '.join(others)}: copy the latest of them over "
+                f"{checkpoint.name} to resume from there") if others else ""
+        raise ValueError(f"{checkpoint}: not a readable training checkpoint "
+                         f"({type(err).__name__}: {err}){hint}") from err
+    if planned and planned[0] != schedule_steps:
+        raise ValueError(f"{checkpoint}: the run's learning-rate schedule spans {planned[0]} "
+                         f"steps, the configuration now gives {schedule_steps} "
+                         "(trainer.max_steps, max_epochs, the data or the batch size "
+                         "changed); a resumed run keeps its schedule: to train further, "
+                         "start a new run from its model.pt (model.init_checkpoint)")
+    return step >= schedule_steps
 
 
 def count_training_steps(config: TrainConfig, num_train_items: int, world_size: int) -> int:
