@@ -57,7 +57,29 @@ def test_predict_folder_mode_pairs_by_stem(tmp_path, rng):
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["f1_depth_m.npy",
                                                                     "f2_depth_m.npy"]
-    assert "lonely" in result.output
+    assert "1 file without a partner is left out: ['lonely']" in " ".join(result.output.split())
+    # WebP images pair like the others; hidden files (temporaries) are no frames.
+    Image.fromarray(np.zeros((64, 96, 3), np.uint8)).save(tmp_path / "in" / "lonely.webp")
+    (tmp_path / "in" / ".f1_panel.png.x.tmp.png").write_bytes(b"partial")
+    result = runner.invoke(app, ["predict", "--images", str(tmp_path / "in"), "--zones-dir",
+                                 str(tmp_path / "in"), "--out", str(tmp_path / "out"),
+                                 "--outputs", "npy", "--skip-existing", *LITE])
+    assert result.exit_code == 1 and "same stem 'lonely'" in " ".join(result.output.split())
+    (tmp_path / "in" / "lonely.png").unlink()
+    result = runner.invoke(app, ["predict", "--images", str(tmp_path / "in"), "--zones-dir",
+                                 str(tmp_path / "in"), "--out", str(tmp_path / "out"),
+                                 "--outputs", "npy", "--skip-existing", *LITE])
+    assert result.exit_code == 0 and "without a partner" in result.output
+    assert ".f1_panel" not in result.output
+    # The outputs may not go into an input folder, where they would replace its files.
+    before = sorted(p.name for p in (tmp_path / "in").iterdir())
+    for out in (tmp_path / "in", tmp_path / "in" / "sub"):
+        result = runner.invoke(app, ["predict", "--images", str(tmp_path / "in"),
+                                     "--zones-dir", str(tmp_path / "in"), "--out", str(out),
+                                     "--overwrite", *LITE])
+        assert result.exit_code == 1 and ("is inside the input" in result.output or
+                                          "is the input" in result.output), result.output
+    assert sorted(p.name for p in (tmp_path / "in").iterdir()) == before
 
 
 @pytest.mark.parametrize("problem, message", [

@@ -157,7 +157,7 @@ def test_new_run_refuses_an_existing_run_folder(tmp_path, tiny_config):
     with pytest.raises(FileExistsError, match="already holds a run that stopped before its "
                                               "first checkpoint; remove the folder"):
         train(tiny_config(), run)
-    with pytest.raises(FileNotFoundError, match="nothing to resume.*stopped before its first"):
+    with pytest.raises(FileNotFoundError, match=r"nothing to resume.*stopped before its first"):
         train(tiny_config(), run, resume=True)
     # Checkpoints without a config (a folder of something else) are refused too.
     other = tmp_path / "other"

@@ -17,6 +17,7 @@ from deltar.cli.robotics import (
     RerunSaveOption,
 )
 from deltar.io.file_pairs import pair_by_stem
+from deltar.io.input_file import refuse_input_as_output
 
 _DEFAULT_OUTPUTS = "png16,npy,color,ply,panel"
 #: The option that lets frames without a valid zone through, named in the refusal.
@@ -87,6 +88,9 @@ def predict_command(
         if not pairs:
             raise ValueError(f"no image in {images} has a zone file with the same stem in "
                              f"{zones_dir}")
+        # Outputs in an input folder would replace its other files and become frames of
+        # the next run.
+        refuse_input_as_output(out, [images, zones_dir], "--out", folder=True)
     output_folder(out, "--out")
     jobs, complete, existing = plan_jobs(pairs, out, kinds, overwrite=overwrite,
                                          skip_existing=skip_existing)
@@ -102,7 +106,8 @@ def predict_command(
         if calibration is not None:
             calibration.check_image_size(first[0].shape[:2], str(image), f"--calib {calib}")
     if unpaired:
-        warn(f"{len(unpaired)} files without a partner are left out: "
+        warn(f"{len(unpaired)} file{'s' if len(unpaired) > 1 else ''} without a partner "
+             f"{'are' if len(unpaired) > 1 else 'is'} left out: "
              f"{unpaired[:5]}{' ...' if len(unpaired) > 5 else ''}")
     if complete:
         typer.echo(f"{complete} frame(s) already have every output (--skip-existing)")

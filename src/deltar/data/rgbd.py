@@ -31,6 +31,7 @@ from deltar.data.rgbd_files import (
     read_intrinsics_matrix,
 )
 from deltar.data.sequence import checked_index
+from deltar.io.file_pairs import IMAGE_SUFFIXES
 from deltar.io.input_file import input_folder
 from deltar.io.pose_file import frame_pose_file, read_pose_file
 
@@ -38,7 +39,6 @@ from deltar.io.pose_file import frame_pose_file, read_pose_file
 SIDECAR_NAME = "deltar_rgbd.json"
 #: Layouts :func:`open_rgbd` recognises.
 LAYOUTS: tuple[str, ...] = ("7scenes", "tum", "folder")
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
 _DEPTH_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
 
 
@@ -325,7 +325,7 @@ class FolderReader(RGBDReader):
         color_root, depth_root = root / color_dir, root / depth_dir
         for sub in (color_root, depth_root):
             input_folder(sub, "image folder")
-        colors = _stem_map(color_root, _IMAGE_SUFFIXES)
+        colors = _stem_map(color_root, IMAGE_SUFFIXES)
         depths = _stem_map(depth_root, _DEPTH_SUFFIXES)
         pairs = [(stem, colors[stem], depths[stem], None) for stem in colors if stem in depths]
         super().__init__(pairs, depth_scale, root)
@@ -439,7 +439,7 @@ def _first_color_size(root: Path, layout: str) -> tuple[int, int]:
     if layout == "7scenes":
         files = sorted(p for p in root.iterdir() if _SEVEN_SCENES_COLOR.match(p.name))
     elif layout == "folder":
-        files = sorted(_stem_map(root / "color", _IMAGE_SUFFIXES).values())
+        files = sorted(_stem_map(root / "color", IMAGE_SUFFIXES).values())
     else:
         files = [root / row[1] for row in _tum_rows(root)[:1]]
     if not files:

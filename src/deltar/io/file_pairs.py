@@ -8,7 +8,7 @@ from pathlib import Path
 from deltar.io.input_file import input_folder
 
 #: Image files taken from an images folder (suffix, any case).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".webp")
 #: Zone-frame files taken from a zones folder (:mod:`deltar.io.zone_file`).
 ZONE_SUFFIXES = (".json", ".npz")
 
@@ -41,10 +41,12 @@ def pair_by_stem(images_dir: str | os.PathLike, zones_dir: str | os.PathLike
 
 
 def _by_stem(folder: Path, suffixes: tuple[str, ...], what: str) -> dict[str, Path]:
-    """The files of ``folder`` with one of ``suffixes`` by stem; refuses shared stems."""
+    """The files of ``folder`` with one of ``suffixes`` by stem; refuses shared stems.
+    Hidden files (a leading dot: editors' and atomic writes' temporaries) are no frames."""
     found: dict[str, Path] = {}
     for path in sorted(folder.iterdir()):
-        if path.suffix.lower() not in suffixes or not path.is_file():
+        if path.suffix.lower() not in suffixes or path.name.startswith(".") or \
+                not path.is_file():
             continue
         if path.stem in found:
             raise ValueError(f"{found[path.stem]} and {path} are {what} with the same stem "
