@@ -79,8 +79,15 @@ def test_adapter_timeout_and_missing_methods():
     assert DriverAdapter(driver, clock=clock, poll_interval_s=0.0).read(timeout_s=0.005) is None
     with pytest.raises(ValueError, match="get_ranging_data"):
         DriverAdapter(driver, get_data="get_ranging_data")
-    with pytest.raises(ValueError, match="configured for 4x4"):
-        DriverAdapter(FakeDriver(polls=1), grid=4, poll_interval_s=0.0).read()
+    # In 4x4 mode ST's buffer (sized for 8x8) holds the 16 zones in its first entries.
+    frame = DriverAdapter(FakeDriver(polls=1), grid=4, poll_interval_s=0.0).read()
+    assert frame.grid == 4 and frame.valid.all()
+    np.testing.assert_allclose(frame.mean_m.reshape(-1), np.arange(1000, 1016) / 1000, rtol=1e-6)
+    with pytest.raises(ValueError, match="expected 64"):
+        driver = FakeDriver(polls=1)
+        driver.distance_mm, driver.range_sigma_mm, driver.target_status = (
+            driver.distance_mm[:16], driver.range_sigma_mm[:16], driver.target_status[:16])
+        DriverAdapter(driver, grid=8, poll_interval_s=0.0).read()
 
 
 @pytest.mark.parametrize("opener, package", [

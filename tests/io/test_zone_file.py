@@ -88,6 +88,34 @@ def test_driver_dump_json_is_converted(tmp_path):
     assert flipped.mean_m[3, 2] == pytest.approx(1.02)
 
 
+def test_a_4x4_dump_of_the_8x8_sized_driver_buffer_reads_its_first_16_zones(tmp_path):
+    """ST's results buffer holds 64 entries per target whatever the resolution; in 4x4
+    mode the first 16 are filled (the rest stale): the dump's grid says which."""
+    distance = [1000 + 10 * i for i in range(16)] + [0] * 48
+    dump = {"distance_mm": distance, "range_sigma_mm": [7] * 64, "target_status": [5] * 64,
+            "grid": 4}
+    path = tmp_path / "raw4.json"
+    path.write_text(json.dumps(dump))
+    frame = load_zone_frame(path)
+    assert frame.grid == 4 and frame.valid.all() and frame.targets_per_zone == 1
+    np.testing.assert_allclose(frame.mean_m.reshape(-1), np.arange(1000, 1160, 10) / 1000)
+    # The same with the driver's 64 target counts beside the grid.
+    with_counts = dict(dump, nb_target_detected=[1] * 16 + [0] * 48)
+    path.write_text(json.dumps(with_counts))
+    np.testing.assert_array_equal(load_zone_frame(path).mean_m, frame.mean_m)
+    # A compact dump of 16 zones x 4 targets says so.
+    compact = {"distance_mm": [1500] * 64, "range_sigma_mm": [7] * 64,
+               "target_status": [5] * 64, "grid": 4, "targets_per_zone": 4}
+    path.write_text(json.dumps(compact))
+    assert load_zone_frame(path).target_mean_m.shape == (4, 4, 4)
+    for bad, message in (({"grid": 5}, "grid must be 4 or 8"),
+                         ({"range_sigma_mm": None}, "range_sigma_mm missing")):
+        broken = {k: v for k, v in dict(dump, **bad).items() if v is not None}
+        path.write_text(json.dumps(broken))
+        with pytest.raises(ValueError, match=message):
+            load_zone_frame(path)
+
+
 def test_driver_results_object_is_converted():
     class Results:  # what sparkfun / vl53l5cx-ctypes hand back: attributes, flat lists
         distance_mm = [500] * 64

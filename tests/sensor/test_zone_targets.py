@@ -198,3 +198,13 @@ def test_physical_error_names_targets_out_of_range():
         "sigma larger than it (zone 6 target 1: 4.5 m, sigma 0.02 m); mark such targets "
         "invalid")
     assert ZoneFrame(**_frame_fields()).physical_error() is None
+
+
+def test_from_driver_refuses_metres_written_as_millimetres():
+    """The sensor ranges from 20 mm: a frame whose every valid reading is below 10 "mm"
+    holds metres, which would give depth a thousand times too near."""
+    with pytest.raises(ValueError, match=r"distance_mm must be millimetres.*up to 3\.5.*metres"):
+        ZoneFrame.from_driver(np.linspace(0.5, 3.5, 64), np.full(64, 0.01), np.full(64, 5))
+    # Readings in millimetres, near ones included, are read as they are.
+    near = ZoneFrame.from_driver(np.full(64, 25.0), np.full(64, 2.0), np.full(64, 5))
+    assert near.valid.all() and near.mean_m[0, 0] == pytest.approx(0.025)

@@ -79,8 +79,9 @@ class DriverAdapter(SensorAdapter):
             entries of an 8x8-sized buffer in 4x4 mode) and the frames carry the target
             arrays, with each target's ``signal_per_spad`` (kcps per SPAD) as
             ``target_signal`` when the results have it (it weighs a zone's targets
-            against each other); None infers the grid from the result's length, one
-            target per zone (several when the length is a multiple of 64 zones).
+            against each other); None infers it from the result's length and ``grid``
+            (:meth:`ZoneFrame.from_driver`: in 4x4 mode ST's buffer, sized for 8x8, holds
+            ``64 * T`` entries, of which the first ``16 * T`` are read).
         target_order: ``"strongest"`` or ``"closest"``, as the driver was configured.
     """
 
@@ -133,15 +134,11 @@ class DriverAdapter(SensorAdapter):
         # Timestamp when the frame was seen ready, before the (slow) I2C transfer.
         timestamp = self.clock()
         result = get_data()
-        frame = zone_frame_from_driver_result(
+        return zone_frame_from_driver_result(
             result, orientation=self.orientation, timestamp_s=timestamp,
             sensor_model=self.sensor_model,
-            grid=None if self.targets_per_zone is None else self.grid,
-            targets_per_zone=self.targets_per_zone, target_order=self.target_order)
-        if frame.grid != self.grid:
-            raise ValueError(f"driver returned a {frame.grid}x{frame.grid} frame, adapter is "
-                             f"configured for {self.grid}x{self.grid}")
-        return frame
+            grid=self.grid, targets_per_zone=self.targets_per_zone,
+            target_order=self.target_order)
 
 
 def _import(module: str, package: str) -> Any:

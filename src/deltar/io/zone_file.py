@@ -115,8 +115,17 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     sensor_model = data.get("sensor_model", "VL53L5CX")
     if not isinstance(sensor_model, str):
         raise ValueError(f"{source}: sensor_model must be a string, got {sensor_model!r}")
+    present = [k for k in _DRIVER_FIELDS if k in data]
+    if present and len(present) < len(_DRIVER_FIELDS) and "schema_version" not in data:
+        missing = [k for k in _DRIVER_FIELDS if k not in data]
+        raise ValueError(f"{source}: a raw driver dump needs {', '.join(_DRIVER_FIELDS)}; "
+                         f"{', '.join(missing)} missing")
     if all(k in data for k in _DRIVER_FIELDS):
         fields = [number_array(data[k], f"{source}: {k}") for k in _DRIVER_FIELDS]
+        grid = data.get("grid")
+        if grid is not None and (isinstance(grid, bool) or grid not in (4, 8)):
+            raise ValueError(f"{source}: grid must be 4 or 8 (the driver's resolution), got "
+                             f"{grid!r}")
         detected, signal = data.get("nb_target_detected"), data.get("signal_per_spad")
         if detected is not None:
             detected = number_array(detected, f"{source}: nb_target_detected")
@@ -129,7 +138,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
             return ZoneFrame.from_driver(
                 *fields, orientation=orientation, valid_status=valid_status,
                 timestamp_s=_optional_float(data.get("timestamp_s"), source, "timestamp_s"),
-                sensor_model=sensor_model, nb_target_detected=detected,
+                sensor_model=sensor_model, nb_target_detected=detected, grid=grid,
                 targets_per_zone=per_zone, signal_per_spad=signal,
                 target_order=data.get("target_order", "strongest"))
         except (TypeError, ValueError) as err:

@@ -131,6 +131,13 @@ def check_target_fields(frame: Any, n: int) -> None:
                              f"they differ at zones {np.argwhere(differs).tolist()[:5]}")
 
 
+#: Driver readings whose valid distances all lie below this (metres; the sensor ranges
+#: from 0.02 m) are taken for metres written as millimetres ...
+MILLIMETRE_FLOOR_M = 0.01
+#: ... when at least this many targets are valid.
+MIN_UNIT_CHECK_TARGETS = 4
+
+
 def driver_readings(
     distance_mm: Sequence[float],
     range_sigma_mm: Sequence[float],
@@ -171,8 +178,10 @@ def driver_readings(
             number of targets each zone detected; target ``t`` of a zone is valid only
             when ``t`` is below its count (the driver leaves stale values beyond it).
         targets_per_zone: T, 1..4; inferred from the lengths when None (``len /
-            zones``). A buffer sized for 8x8 (``64 * T``) read in 4x4 mode uses its
-            first ``16 * T`` entries, as ST's driver fills it.
+            zones``), except that a 4x4 reading of ``64 * T`` entries is ST's results
+            buffer, sized for 8x8 whatever the resolution, as the Python drivers return
+            it: its first ``16 * T`` entries are read (64 entries: one target per zone;
+            a compact dump of 16 zones x 4 targets needs ``targets_per_zone=4``).
         target_order: ``"strongest"`` (the driver's default) or ``"closest"``, as
             the driver was configured (``vl53l5cx_set_target_order``).
         signal_per_spad: optional flat list like ``distance_mm``, each target's return
@@ -185,7 +194,8 @@ def driver_readings(
 
     Raises:
         ValueError: lengths that do not fit ``grid`` and ``targets_per_zone``, codes
-            that are not integers in 0..255, an unknown ``target_order``, naming the
+            that are not integers in 0..255, an unknown ``target_order``, distances that
+            are metres (every valid one below :data:`MILLIMETRE_FLOOR_M`), naming the
             argument.
     """
     arrays = {}
@@ -234,6 +244,12 @@ def driver_readings(
         if size != used and not (n == 4 and size == 64 * per_zone):
             raise ValueError(f"distance_mm has {size} entries; expected {used} for a "
                              f"{n}x{n} grid with {per_zone} target(s) per zone")
+    elif n == 4 and size % 64 == 0 and (detected is None or detected.size == 64):
+        # ST's results buffer, sized for 8x8 whatever the resolution (64 * T entries,
+        # and 64 counts in nb_target_detected), of which 4x4 mode fills the first 16 * T:
+        # what the Python drivers return. A compact dump of 16 zones x 4 targets (also
+        # 64 entries) says so with targets_per_zone.
+        per_zone = size // 64
     else:
         if size < zones or size % zones:
             raise ValueError(f"distance_mm has {size} entries; expected {zones} for a "
@@ -260,6 +276,11 @@ def driver_readings(
     mean = arrays["distance_mm"] / 1000.0
     sigma = arrays["range_sigma_mm"] / 1000.0
     valid &= np.isfinite(mean) & np.isfinite(sigma) & (mean > 0) & (sigma >= 0)
+    if valid.sum() >= MIN_UNIT_CHECK_TARGETS and mean[valid].max() < MILLIMETRE_FLOOR_M:
+        # The sensor ranges from 20 mm: readings that all lie below 10 "mm" are metres.
+        raise ValueError(f"distance_mm must be millimetres, but every valid reading is "
+                         f"below {MILLIMETRE_FLOOR_M * 1000:g} mm (up to "
+                         f"{mean[valid].max() * 1000:.4g}); were metres written?")
     # Readings beyond the sensor's range are not measurements: invalid, visibly.
     limit = sensor_max_range_m(sensor_model)
     for far, what, values in ((valid & (mean > limit), "read more than", mean),
