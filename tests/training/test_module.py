@@ -150,6 +150,25 @@ def test_tiny_end_to_end_run(tmp_path, tiny_config):
         train(longer, run, resume=True)
 
 
+def test_a_frozen_encoder_keeps_its_statistics_through_a_lightning_run(tmp_path, tiny_config):
+    """Lightning sets the submodules' modes itself (fit start, after validation): the
+    frozen encoder's batch norms must still not follow the training batches."""
+    import lightning as L
+
+    class Snapshot(L.Callback):
+        def on_fit_start(self, trainer, system):
+            self.start = {k: v.clone() for k, v in system.model.image_encoder.state_dict().items()}
+
+        def on_train_end(self, trainer, system):
+            self.end = system.model.image_encoder.state_dict()
+
+    snapshot = Snapshot()
+    train(tiny_config("trainer.max_epochs=2", "optim.freeze_encoder=true"), tmp_path / "run",
+          extra_callbacks=[snapshot])
+    stats = [k for k in snapshot.start if "running_" in k or "num_batches" in k]
+    assert stats and all(torch.equal(snapshot.start[k], snapshot.end[k]) for k in snapshot.start)
+
+
 def test_new_run_refuses_an_existing_run_folder(tmp_path, tiny_config):
     run = tmp_path / "run"
     run.mkdir()

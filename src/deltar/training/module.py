@@ -157,6 +157,13 @@ class DeltarSystem(L.LightningModule):
             self.model.image_encoder.eval()
         return self
 
+    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
+        # Lightning sets each submodule's mode itself (at the start of fit and after
+        # each validation), bypassing train(): a frozen encoder is put back in eval mode
+        # before every step, or its batch norms would follow the training batches.
+        if self.optim.freeze_encoder:
+            self.model.image_encoder.eval()
+
     def parameter_groups(self) -> list[dict[str, Any]]:
         """AdamW groups: the image encoder at ``lr * encoder_lr_factor`` (none when frozen),
         the rest at lr."""
