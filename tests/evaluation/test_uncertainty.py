@@ -93,6 +93,21 @@ def test_cli_fits_and_refuses_bad_arguments(tmp_path, tiny_samples) -> None:
     result = runner.invoke(app, ["fit-uncertainty", str(source), "--data",
                                  str(tmp_path / "missing.json"), "--out", str(out)])
     assert result.exit_code == 2 and "--data" in result.output
+    # The set has no 'train' split; the message says which it has.
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
+                                 "--split", "train", "--out", str(out)])
+    assert result.exit_code == 2 and "no split 'train'" in result.output
+    trained_on = write_zju_l5(tmp_path / "train-set", tiny_samples, split="train")
+    result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(trained_on),
+                                 "--split", "train", "--frames-per-set", "1", "--out",
+                                 str(out)])
+    assert result.exit_code == 1 and "need at least 1000" in result.output  # it read them
+    # A Lightning checkpoint is named as such.
+    lightning = tmp_path / "last.ckpt"
+    lightning.write_bytes(source.read_bytes())
+    result = runner.invoke(app, ["fit-uncertainty", str(lightning), "--data", str(data),
+                                 "--out", str(out)])
+    assert result.exit_code == 2 and "Lightning training checkpoint" in result.output
     out.write_bytes(b"keep")
     result = runner.invoke(app, ["fit-uncertainty", str(source), "--data", str(data),
                                  "--out", str(out)])

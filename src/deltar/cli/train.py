@@ -113,6 +113,8 @@ def fit_uncertainty_command(
                                        "'DROP,PROB,MEAN,STD' as deltar simulate's "
                                        "--drop-fraction, --bias-prob, --bias-mean, "
                                        "--bias-std (metres)."),
+    split: str = typer.Option("test", "--split", help="Split (key) of each --data and "
+                              "--detector-data set to read (deltar simulate --split)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
     """Fit a model's output stage on frames with ground truth: outliers, blend, sigma, flags.
@@ -145,14 +147,19 @@ def fit_uncertainty_command(
     if detector_noise != _DEFAULT_DETECTOR_NOISE and not detector_data:
         raise typer.BadParameter("describes the noise of the detector --detector-data trains; "
                                  "give --detector-data too", param_hint="--detector-noise")
+    if Path(checkpoint).suffix.lower() == ".ckpt":
+        raise typer.BadParameter(f"{checkpoint} is a Lightning training checkpoint; give the "
+                                 "run's model.pt (or package the checkpoint: "
+                                 "deltar.training.package.package_checkpoint)",
+                                 param_hint="CHECKPOINT")
     refuse_input_as_output(out, [Path(checkpoint), *data, *detector_data], "--out")
     output_file(out, "--out", overwrite)
     try:
-        sets = [open_zone_set(path) for path in data]
+        sets = [open_zone_set(path, split) for path in data]
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--data") from err
     try:
-        detector_sets = [open_zone_set(path) for path in detector_data]
+        detector_sets = [open_zone_set(path, split) for path in detector_data]
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--detector-data") from err
     frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
@@ -184,8 +191,9 @@ def fit_uncertainty_command(
     if fit.blend is not None:
         for name in ("inside", "outside"):
             region = getattr(fit.blend, name)
-            typer.echo(f"blend {name} the zone grid: w = sigmoid({region.bias:.3f} + "
-                       f"{region.spread_slope:.3f} log(spread/depth))")
+            sign = "-" if region.spread_slope < 0 else "+"
+            typer.echo(f"blend {name} the zone grid: w = sigmoid({region.bias:.3f} {sign} "
+                       f"{abs(region.spread_slope):.3f} log(spread/depth))")
         rel = fit.relative_error
         typer.echo(f"mean relative error on these pixels: network {rel['network']:.4f}, "
                    f"fill {rel['fill']:.4f}, blend {rel['blend']:.4f}")
