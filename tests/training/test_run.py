@@ -92,12 +92,28 @@ def test_fine_tuning_says_when_it_reads_the_zones_otherwise(tmp_path, tiny_confi
     start = create_model("deltar-lite", **TINY_MODEL, histogram_hypotheses=True)
     weights = tmp_path / "start.pt"
     torch.save(export_model(start, "deltar-lite"), weights)
-    with pytest.warns(UserWarning, match="histogram_hypotheses=true; this run uses false"):
+    with pytest.warns(UserWarning, match="input settings: histogram_hypotheses true -> false"):
         build_system(tiny_config(f"model.init_checkpoint={weights}"))
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         build_system(tiny_config(f"model.init_checkpoint={weights}",
                                  "model.overrides.histogram_hypotheses=true"))
+    # Another hypothesis sampling, and a fitted output stage the new run does not keep.
+    start.set_output_contract(zone_consistency=0.5)
+    torch.save(export_model(start, "deltar-lite"), weights)
+    with pytest.warns(UserWarning) as caught:
+        build_system(tiny_config(f"model.init_checkpoint={weights}",
+                                 "model.overrides.histogram_hypotheses=true",
+                                 "model.overrides.hypothesis_sampling=uniform"))
+    said = " ".join(str(w.message) for w in caught)
+    assert "hypothesis_sampling icdf -> uniform" in said
+    assert "fitted output stage (zone_consistency)" in said and "fit-uncertainty" in said
+
+
+def test_init_checkpoint_takes_a_bundled_name_and_names_another_preset(tiny_config):
+    with pytest.raises(ValueError, match="holds a deltar-select network; the configuration "
+                                         r"builds a deltar-lite \(model.preset\)"):
+        build_system(tiny_config("model.init_checkpoint=default"))
 
 
 def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_config):

@@ -27,6 +27,7 @@ from deltar.models.checkpoint import (
     checkpoint_payload,
     model_from_config,
 )
+from deltar.models.config import OUTPUT_STAGE_OPTIONS
 from deltar.training.config import OptimConfig
 
 #: Keys of a batch the network consumes.
@@ -284,25 +285,56 @@ def _load_weights_file(path: str, map_location: str = "cpu",
     return model, recipe
 
 
-def initial_weights(model: DeltarNet, path: str) -> None:
-    """Load a previous run's weights (``.ckpt`` or ``model.pt``) into ``model`` (fine-tuning).
+def initial_weights(model: DeltarNet, path: str, preset: str | None = None) -> None:
+    """Load a previous run's weights (``.ckpt`` or ``model.pt``, or a bundled model's
+    name such as ``"default"``) into ``model`` (fine-tuning).
 
     Only the weights are taken: the configured model's input contract stays, and a
-    ``UserWarning`` says so where it reads the zones otherwise than the weights were
-    trained to (``histogram_hypotheses``).
+    ``UserWarning`` names each input setting it changes from the weights' (e.g.
+    ``design_size``, ``histogram_hypotheses``) and says when the weights carry a fitted
+    output stage (blend, sigma, ...), which a new run does not keep: it is fitted again
+    on the new model (``deltar fit-uncertainty``).
+
+    Args:
+        model: the configured network.
+        path: the weights file or bundled name.
+        preset: the configured preset, named when the weights are of another one.
 
     Raises:
-        ValueError: the architectures differ (the message lists mismatching keys).
+        ValueError: the architectures differ (the message lists mismatching keys, or
+            names both presets when they differ).
     """
-    source, _ = _load_weights_file(path)
+    from deltar.weights import resolve_checkpoint
+
+    source, recipe = _load_weights_file(str(resolve_checkpoint(path)))
+    if preset is not None and recipe["preset"] != preset:
+        raise ValueError(f"{path} holds a {recipe['preset']} network; the configuration "
+                         f"builds a {preset} (model.preset)")
     try:
         model.load_state_dict(source.state_dict())
     except RuntimeError as err:
-        raise ValueError(f"weights in {path} do not fit the configured model: {err}") from err
+        lines = str(err).splitlines()
+        raise ValueError(f"weights in {path} do not fit the configured model: "
+                         f"{' '.join(lines[:3])[:600]}") from err
     was, now = source.network_config.inputs, model.network_config.inputs
-    if was.histogram_hypotheses != now.histogram_hypotheses:
-        warnings.warn(f"{path} was trained with histogram_hypotheses="
-                      f"{str(was.histogram_hypotheses).lower()}; this run uses "
-                      f"{str(now.histogram_hypotheses).lower()} (set "
-                      "model.overrides.histogram_hypotheses to keep it)", UserWarning,
-                      stacklevel=2)
+    changed = [f"{name} {_setting(getattr(was, name))} -> {_setting(getattr(now, name))}"
+               for name in was.__dataclass_fields__ if getattr(was, name) != getattr(now, name)]
+    if changed:
+        warnings.warn(f"{path}: this run changes the weights' input settings: "
+                      f"{'; '.join(changed)} (set model.overrides to keep them)",
+                      UserWarning, stacklevel=2)
+    fitted = [name for name in OUTPUT_STAGE_OPTIONS
+              if getattr(source.network_config.output, name) is not None
+              and getattr(source.network_config.output, name)
+              != getattr(model.network_config.output, name)]
+    if fitted:
+        warnings.warn(f"{path} carries a fitted output stage ({', '.join(fitted)}); the new "
+                      "run's model.pt has none: fit it on the new model (deltar "
+                      "fit-uncertainty)", UserWarning, stacklevel=2)
+
+
+def _setting(value: Any) -> str:
+    """A setting as a config file writes it (lower-case booleans, lists for tuples)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(list(value)) if isinstance(value, tuple) else str(value)

@@ -151,7 +151,7 @@ def build_system(config: TrainConfig) -> DeltarSystem:
 
         load_official_weights(system.model, config.model.official_weights)
     elif config.model.init_checkpoint:
-        initial_weights(system.model, config.model.init_checkpoint)
+        initial_weights(system.model, config.model.init_checkpoint, config.model.preset)
     return system
 
 
