@@ -35,8 +35,17 @@ def test_cli_reports_missing_data_without_a_traceback(tmp_path):
     result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"),
                   "-o", "data.sources.0.kind=rgbd", "-o", f"data.sources.0.path={missing}")
     assert result.exit_code == 1
-    assert str(missing) in result.output
+    assert str(missing) in result.output and "data.sources.0.path" in result.output
     assert not (tmp_path / "run" / "config.yaml").exists()
+    # A relative path says where it was looked for.
+    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"),
+                  "-o", "data.sources.0.kind=rgbd", "-o", "data.sources.0.path=no/such")
+    assert result.exit_code == 1 and "read from the working folder" in result.output
+    # A frame size the network cannot take is refused with the config, not mid-run.
+    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"),
+                  "-o", "data.sources.0.resize=[120,150]")
+    assert result.exit_code == 2 and "data.sources.0.resize must be multiples of 32" in \
+        " ".join(result.output.split())
 
 
 def test_fit_uncertainty_names_each_outlier_choice_in_words():

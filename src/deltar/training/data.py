@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -210,7 +211,13 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
     train_parts: list[Dataset] = []
     val_parts: list[Dataset] = []
     for number, source in enumerate(config.sources):
-        reader = open_source_reader(source)
+        try:
+            reader = open_source_reader(source)
+        except FileNotFoundError as err:
+            # A config copied elsewhere: relative paths are read from the working folder.
+            where = "" if source.path is None or Path(source.path).is_absolute() else \
+                f" (a relative path, read from the working folder {Path.cwd()})"
+            raise FileNotFoundError(f"data.sources.{number}.path: {err}{where}") from err
         if source.every > 1:
             reader = SubsetReader(reader, range(0, len(reader), source.every))
         if len(reader) == 0:
