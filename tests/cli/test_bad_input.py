@@ -826,6 +826,13 @@ def test_wall_test_refuses_a_recording_given_twice_and_text_is_no_checkpoint(rec
     assert _one_error_line(result) == (
         f"error: Invalid value for RECORDINGS: {recording} is given more than once; each "
         "recording is one wall distance (see 'deltar wall-test --help')")
+    # Existing results are refused before the model runs, not after the frames.
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "wall_test.png").write_bytes(b"earlier")
+    result = _run(["wall-test", recording, "--out", tmp_path / "o", *LITE])
+    assert result.exit_code == 1 and "--overwrite" in result.output
+    assert MODEL_BUILT not in result.output
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["wall_test.png"]
     text = tmp_path / "data.json"
     text.write_text('{"test": []}\n')
     result = _run(["export", "--checkpoint", text, "--out", tmp_path / "m.onnx"])

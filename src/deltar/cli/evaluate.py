@@ -199,9 +199,9 @@ def wall_test_command(
     from rich.markup import escape
     from rich.table import Table
 
-    from deltar.cli.checks import output_folder
+    from deltar.cli.checks import existing_outputs, output_folder
     from deltar.cli.progress import table_console
-    from deltar.evaluation.wall_test import wall_test, write_results
+    from deltar.evaluation.wall_test import result_paths, wall_test, write_results
     from deltar.io.input_file import refuse_input_as_output
     from deltar.io.recording import Recording
 
@@ -216,6 +216,8 @@ def wall_test_command(
         Recording(folder)  # a missing or corrupt recording fails before the model
     refuse_input_as_output(out, [*recordings, calib], "--out", folder=True)
     output_folder(out, "--out")
+    if not overwrite:  # before the model and the frames, not after them
+        existing_outputs(result_paths(out).values())
     calibration = load_calibration(calib)  # a bad --calib fails before the model
     try:
         estimator = model.load()

@@ -114,6 +114,14 @@ def wall_test(recordings: Sequence[str | os.PathLike], estimator: DepthEstimator
     return sorted(results, key=lambda r: r.distance_m)
 
 
+def result_paths(out_dir: str | os.PathLike) -> dict[str, Path]:
+    """The files :func:`write_results` writes in ``out_dir``: kind ("json", "csv",
+    "plot") -> path."""
+    out = Path(out_dir)
+    return {"json": out / "wall_test.json", "csv": out / "wall_test.csv",
+            "plot": out / "wall_test.png"}
+
+
 def write_results(out_dir: str | os.PathLike, results: Sequence[WallResult], *,
                   title: str = "", overwrite: bool = False) -> dict[str, Path]:
     """Write ``wall_test.json``, ``wall_test.csv`` and the plot ``wall_test.png``.
@@ -126,12 +134,14 @@ def write_results(out_dir: str | os.PathLike, results: Sequence[WallResult], *,
     """
     from deltar.io.render import has_matplotlib
 
-    out = Path(out_dir)
     rows = [asdict(r) for r in results]
-    paths = {"json": out / "wall_test.json", "csv": out / "wall_test.csv",
-             "plot": out / "wall_test.png"}
+    paths = result_paths(out_dir)
     if not has_matplotlib():
         del paths["plot"]
+    existing = [str(p) for p in paths.values() if p.exists()]
+    if existing and not overwrite:  # none written unless all can be: no mixed result set
+        raise FileExistsError(f"refusing to overwrite {', '.join(existing)}; pass "
+                              "--overwrite to replace them")
     write_text_atomic(paths["json"], json.dumps({"title": title, "results": rows}, indent=2)
                       + "\n", overwrite=overwrite)
     buffer = io.StringIO()
