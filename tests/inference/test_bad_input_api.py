@@ -87,6 +87,13 @@ def test_wrong_zone_frame_and_calibration_types(estimator, image):
         estimator.predict(image, _frame(), calibration={"fx": 1.0})
     with pytest.raises(ValueError, match="list of ZoneFrame"):
         estimator.predict([image, image], _frame())
+    # A path says which reader makes the object from it.
+    with pytest.raises(ValueError, match=r"got a str path 'z\.json'; read the file first, "
+                                         r"e\.g\. with deltar\.io\.zone_file\.load_zone_frame"):
+        estimator.predict(image, "z.json")
+    with pytest.raises(ValueError, match=r"'c\.json'; read the file first, e\.g\. with "
+                                         r"RigCalibration\.load"):
+        estimator.predict(image, _frame(), calibration="c.json")
 
 
 def test_driver_values_must_be_numbers_and_out_of_range_zones_are_invalid():

@@ -41,6 +41,7 @@ def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
 
 
 _IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"
+_ZONE_READER = "deltar.io.zone_file.load_zone_frame"
 
 
 def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | None:
@@ -62,12 +63,13 @@ def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | No
     return None if input_size is None else check_input_size(input_size, "input_size")
 
 
-def describe_argument(value: Any) -> str:
-    """A short description of a wrongly typed argument, with a hint where one helps."""
+def describe_argument(value: Any,
+                      reader: str = "deltar.data.rgbd_files.read_color") -> str:
+    """A short description of a wrongly typed argument, with a hint where one helps
+    (``reader``: what reads a path given for it)."""
     kind = type(value).__name__
     if isinstance(value, (str, os.PathLike)):
-        return (f"a {kind} path {str(value)!r}; read the file first, e.g. with "
-                "deltar.data.rgbd_files.read_color")
+        return f"a {kind} path {str(value)!r}; read the file first, e.g. with {reader}"
     if type(value).__module__.startswith("torch"):
         return (f"a torch {kind} of shape {tuple(getattr(value, 'shape', ()))}; convert "
                 "it with tensor.cpu().numpy() (uint8 RGB, channels last)")
@@ -102,11 +104,11 @@ def batch_arguments(image: Any, zone_frame: Any
         if not isinstance(zone_frame, ZoneFrame):
             raise ValueError("zone_frame must be a ZoneFrame (e.g. from "
                              "deltar.io.zone_file.load_zone_frame), got "
-                             f"{describe_argument(zone_frame)}")
+                             f"{describe_argument(zone_frame, _ZONE_READER)}")
         return True, images, [zone_frame]
     if not isinstance(zone_frame, (list, tuple)):
         raise ValueError(f"for a batch of {len(images)} images, zone_frame must be a list of "
-                         f"ZoneFrame, got {describe_argument(zone_frame)}")
+                         f"ZoneFrame, got {describe_argument(zone_frame, _ZONE_READER)}")
     return False, images, list(zone_frame)
 
 
@@ -117,4 +119,5 @@ def check_calibration(calibration: Any) -> None:
 
     if calibration is not None and not isinstance(calibration, RigCalibration):
         raise ValueError("calibration must be a RigCalibration (e.g. RigCalibration.load("
-                         f"path)) or None, got {describe_argument(calibration)}")
+                         f"path)) or None, got "
+                         f"{describe_argument(calibration, 'RigCalibration.load')}")
