@@ -231,7 +231,8 @@ def test_outlier_rule_is_chosen_by_what_rejecting_does_to_the_error(outliers_rea
     assert errors[OUTLIER_CANDIDATES[1]] == errors[None] == errors[OUTLIER_CANDIDATES[3]]
     rejecting = OutlierRule(0.05, min_zones=3)
     assert (errors[rejecting] < errors[None]) != outliers_real
-    assert chosen == (None if outliers_real else rejecting)
+    # Chosen on 4 x 4 frames, the rule applies to them (the candidates are for 8 x 8).
+    assert chosen == (None if outliers_real else OutlierRule(0.05, min_zones=3, grid=4))
     assert estimator.zone_outliers is None  # restored
 
 
@@ -240,7 +241,7 @@ def test_cli_reports_and_stores_the_outlier_rule(tmp_path) -> None:
     assert "zone outliers: set aside beyond 0.05 log distance" in output
     assert "kept " in output and "0.05 / 3 " in output
     stored = load_checkpoint(out)[2]["output"]["zone_outlier_rule"]
-    assert stored == {"tolerance": 0.05, "min_zones": 3, "min_neighbours": 4}
+    assert stored == {"tolerance": 0.05, "min_zones": 3, "min_neighbours": 4, "grid": 4}
     assert DepthEstimator(load_checkpoint(out)[0]).zone_outliers.min_zones == 3
 
 

@@ -133,5 +133,21 @@ def test_rule_values_and_stored_form_are_checked() -> None:
         OutlierRule(0.05, min_neighbours=9)
     with pytest.raises(ValueError, match="got keys"):
         OutlierRule.from_dict({"tolerance": 0.05, "zones": 3})
+    with pytest.raises(ValueError, match="grid must be 4 or 8"):
+        OutlierRule(0.05, grid=6)
+    four = OutlierRule(0.05, grid=4)
+    assert OutlierRule.from_dict(four.to_dict()) == four and "grid" not in rule.to_dict()
+
+
+def test_a_rule_applies_to_frames_of_its_grid_only() -> None:
+    """A rule chosen on 8 x 8 frames keeps every zone of a 4 x 4 frame, whose zones are
+    four times as large (real structure makes one stand out far more often)."""
+    mean = np.full((4, 4), 2.0, np.float32)
+    mean[1, 1] = 3.0
+    frame = ZoneFrame(mean_m=mean, sigma_m=np.full((4, 4), 0.02, np.float32),
+                      valid=np.ones((4, 4), bool))
+    for_eight = OutlierRule(0.05, min_zones=1, min_neighbours=3)
+    assert not for_eight.find(frame).any()
+    assert OutlierRule(0.05, min_zones=1, min_neighbours=3, grid=4).find(frame).any()
     with pytest.raises(ValueError, match="zone_outliers must be"):
         resolve_outlier_rule("yes", {})

@@ -28,7 +28,7 @@ from __future__ import annotations
 import copy
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -192,8 +192,6 @@ def fit_no_target_inference(estimator, sets: Sequence[Sequence], *,
         (the chosen threshold in metres or None, mean relative error per candidate; empty
         when no frame was affected, then the choice is None).
     """
-    from dataclasses import replace
-
     from deltar.sensor.no_target import infer_no_target
 
     def variants(frame):
@@ -238,10 +236,8 @@ def _choose_candidate(estimator, sets, variants, candidates, frames_per_set, min
                 on_frame()
     means = {c: float(np.nanmean(v)) for c, v in errors.items() if v and
              not np.all(np.isnan(v))}
-    if not means:
-        return None, {}
-    best = min(means.values())
-    return next(c for c in candidates if means.get(c) == best), means
+    best = min(means.values(), default=None)
+    return (next(c for c in candidates if means.get(c) == best) if means else None), means
 
 
 #: Outlier rules :func:`fit_outlier_rule` tries (None: keep every zone), most cautious
@@ -288,17 +284,23 @@ def fit_outlier_rule(estimator, sets: Sequence[Sequence], *,
     """
     from deltar.sensor.zone_outliers import reject_outlier_zones
 
+    grids: set[int] = set()  # a rule chosen here applies to frames of these grids
+
     def variants(frame):
+        grids.add(frame.grid)
         no_target = estimator.no_target_of(frame)
         for c in candidates:
-            screened, mask = reject_outlier_zones(frame, c, no_target)
-            yield c, screened, mask
+            rule = replace(c, grid=frame.grid) if isinstance(c, OutlierRule) else c
+            yield c, *reject_outlier_zones(frame, rule, no_target)
 
     kept = estimator.zone_outliers
     try:
         estimator.zone_outliers = None
-        return _choose_candidate(estimator, sets, variants, candidates, frames_per_set,
-                                 min_depth, max_depth, on_frame)
+        chosen, errors = _choose_candidate(estimator, sets, variants, candidates,
+                                           frames_per_set, min_depth, max_depth, on_frame)
+        if isinstance(chosen, OutlierRule) and len(grids) == 1:
+            chosen = replace(chosen, grid=grids.pop())
+        return chosen, errors
     finally:
         estimator.zone_outliers = kept
 
