@@ -37,9 +37,11 @@ def test_predict_single_image_writes_all_outputs_and_never_overwrites(tmp_path, 
     assert "random" in result.output
     names = sorted(p.name for p in out.iterdir())
     assert names == ["a_cloud.ply", "a_depth_color.png", "a_depth_m.npy", "a_depth_mm.png",
-                     "a_panel.png"]
+                     "a_panel.png", "a_sigma_m.npy"]
     depth = np.load(out / "a_depth_m.npy")
     assert depth.shape == (64, 96)
+    sigma = np.load(out / "a_sigma_m.npy")
+    assert sigma.shape == (64, 96) and sigma.dtype == np.float32 and (sigma > 0).all()
     with Image.open(out / "a_depth_mm.png") as img:
         mm = np.asarray(img).astype(np.int64)
     np.testing.assert_array_equal(mm, np.round(depth.astype(np.float64) * 1000).astype(np.int64))

@@ -19,7 +19,7 @@ from deltar.cli.robotics import (
 from deltar.io.file_pairs import pair_by_stem
 from deltar.io.input_file import refuse_input_as_output
 
-_DEFAULT_OUTPUTS = "png16,npy,color,ply,panel"
+_DEFAULT_OUTPUTS = "png16,npy,sigma,color,ply,panel"
 #: The option that lets frames without a valid zone through, named in the refusal.
 _ALLOW = "--allow-no-zones"
 
@@ -42,7 +42,8 @@ def predict_command(
         "are placed by a nominal geometry (the ZJU-L5 rig's camera scaled to the image)."),
     model: ModelOptions = MODEL_OPTIONS,
     outputs: str = typer.Option(_DEFAULT_OUTPUTS, help="Comma list of png16 (uint16 mm), "
-                                "npy (float32 m), color, ply (point cloud), panel."),
+                                "npy (float32 m), sigma (the uncertainty, float32 m), color, "
+                                "ply (point cloud), panel."),
     overwrite: bool = typer.Option(False, help="Replace existing outputs (never inputs)."),
     skip_existing: bool = typer.Option(False, "--skip-existing", help="Resume: keep the "
                                        "outputs that exist, write only the missing ones."),

@@ -23,8 +23,8 @@ if TYPE_CHECKING:
 #: Largest depth a 16-bit millimetre PNG can hold, metres.
 PNG16_MAX_M = 65.535
 #: Output kinds written by :func:`write_prediction`, with their file suffixes.
-OUTPUT_KINDS = {"png16": "_depth_mm.png", "npy": "_depth_m.npy", "color": "_depth_color.png",
-                "ply": "_cloud.ply", "panel": "_panel.png"}
+OUTPUT_KINDS = {"png16": "_depth_mm.png", "npy": "_depth_m.npy", "sigma": "_sigma_m.npy",
+                "color": "_depth_color.png", "ply": "_cloud.ply", "panel": "_panel.png"}
 
 
 def _check_depth(depth_m: np.ndarray, name: str = "depth_m") -> np.ndarray:
@@ -288,7 +288,8 @@ def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
         stem: file-name stem, e.g. the input image's stem.
         image: (H, W, 3) uint8 RGB input (colours of the point cloud, panel).
         prediction: the estimator's result.
-        kinds: any of :data:`OUTPUT_KINDS` (``png16``, ``npy``, ``color``, ``ply``, ``panel``).
+        kinds: any of :data:`OUTPUT_KINDS` (``png16``, ``npy``, ``sigma``: the per-pixel
+            uncertainty as float32 metres, ``color``, ``ply``, ``panel``).
         title: panel title.
         overwrite: replace existing outputs (default: ``FileExistsError``).
         ply_stride: point-cloud subsampling stride in pixels.
@@ -317,6 +318,8 @@ def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
         write_depth_png16(paths["png16"], depth, overwrite=overwrite, note=note)
     if "npy" in paths:
         write_depth_npy(paths["npy"], depth, overwrite=overwrite)
+    if "sigma" in paths:
+        write_depth_npy(paths["sigma"], prediction.uncertainty_m, overwrite=overwrite)
     if "color" in paths:
         write_color_png(paths["color"], depth, overwrite=overwrite, note=note)
     if "ply" in paths:
