@@ -109,6 +109,13 @@ def test_cli_record_simulate_and_predict_save_recordings(tmp_path):
     rows = read_rrd(rrd2)
     saved = np.load(tmp_path / "pred" / "image_depth_m.npy")
     np.testing.assert_allclose(_buffer(rows["/world/camera/image/depth"][0], "DepthImage"), saved)
+    # An existing viewer recording is refused by option name and kept.
+    before = rrd2.read_bytes()
+    again = runner.invoke(app, ["predict", "--image", str(sample / "image.png"), "--zones",
+                                str(sample / "zones.json"), "--out", str(tmp_path / "pred2"),
+                                "--outputs", "npy", "--rerun-save", str(rrd2)])
+    assert again.exit_code == 2 and "--rerun-save" in again.output
+    assert rrd2.read_bytes() == before
 
 
 def test_cli_replay_bag_can_view_without_writing_a_bag(tmp_path):

@@ -113,6 +113,10 @@ def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
     """A :class:`~deltar.capture.viewer.RerunLogger` when asked for, else None."""
     if not rerun and rerun_save is None:
         return None
+    if rerun_save is not None and rerun_save.exists():
+        # The viewer streams into the file as frames come: it never replaces one.
+        raise typer.BadParameter(f"{rerun_save} exists; give a new file (an existing "
+                                 "recording is never replaced)", param_hint="--rerun-save")
     from deltar.capture.viewer import RerunLogger
 
     return RerunLogger(rerun_save)
