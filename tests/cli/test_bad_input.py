@@ -561,9 +561,14 @@ def test_export_never_replaces_its_checkpoint_and_wall_test_stays_outside(tmp_pa
     checkpoint = tmp_path / "model.pt"
     checkpoint.write_bytes(b"weights")
     result = _run(["export", "--checkpoint", checkpoint, "--out", checkpoint, "--overwrite"])
-    assert result.exit_code == 1
-    _one_error_line(result, f"--out {checkpoint} is the input {checkpoint}")
+    assert result.exit_code == 2 and "must end in .onnx" in result.output
     assert checkpoint.read_bytes() == b"weights"
+    exported = tmp_path / "model.onnx"
+    exported.write_bytes(b"weights")
+    result = _run(["export", "--checkpoint", exported, "--out", exported, "--overwrite"])
+    assert result.exit_code == 1
+    _one_error_line(result, f"--out {exported} is the input {exported}")
+    assert exported.read_bytes() == b"weights"
     result = _run(["wall-test", recording, "--out", recording / "wall", *LITE])
     assert result.exit_code == 1
     assert _one_error_line(result) == (f"error: --out {recording / 'wall'} is inside the input "
