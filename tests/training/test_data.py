@@ -201,3 +201,13 @@ def test_thdr3k_sources_refuse_resize():
     config = DataConfig(sources=[SourceConfig(kind="thdr3k", path="x.json", resize=[32, 32])])
     with pytest.raises(ValueError, match="resize is not supported for thdr3k"):
         config.validate("data")
+
+
+def test_a_batch_of_frames_of_several_sizes_is_refused_with_the_fix():
+    from deltar.training.data import collate_frames
+
+    same = collate_frames([{"image": torch.zeros(3, 32, 64)}, {"image": torch.ones(3, 32, 64)}])
+    assert same["image"].shape == (2, 3, 32, 64)
+    with pytest.raises(ValueError, match=r"several sizes \(\[\(32, 64\), \(64, 96\)\].*"
+                                         r"data\.sources\.N\.resize"):
+        collate_frames([{"image": torch.zeros(3, 32, 64)}, {"image": torch.zeros(3, 64, 96)}])

@@ -300,6 +300,26 @@ class ShardedSampler(Sampler[int]):
         return len(range(self.rank, self.num_items, self.world_size))
 
 
+def collate_frames(items: list[dict[str, Any]]) -> dict[str, Any]:
+    """PyTorch's default collation of item dicts, refusing frames of several sizes in
+    one batch with what to set (it would fail deep in the loader, at the first step).
+
+    Raises:
+        ValueError: items whose tensors differ in shape, naming the shapes and the fix.
+    """
+    from torch.utils.data import default_collate
+
+    try:
+        return default_collate(items)
+    except RuntimeError as err:
+        if "equal size" not in str(err):
+            raise
+        sizes = sorted({tuple(item["image"].shape[-2:]) for item in items if "image" in item})
+        raise ValueError(f"one batch holds frames of several sizes ({sizes}, height x width): "
+                         "give every source the same data.sources.N.resize, or crop them "
+                         "alike (data.image_augmentation.crop)") from err
+
+
 class ResumableDataLoader(DataLoader):
     """A DataLoader that can resume in the middle of an epoch.
 
@@ -391,7 +411,8 @@ class DeltarDataModule(L.LightningDataModule):
                              f"{len(sampler)} training frames per process")
         return ResumableDataLoader(self.train_set, sampler, batch_size=self.config.batch_size,
                                    num_workers=self.config.num_workers, drop_last=True,
-                                   pin_memory=torch.cuda.is_available())
+                                   pin_memory=torch.cuda.is_available(),
+                                   collate_fn=collate_frames)
 
     def val_dataloader(self) -> DataLoader:
         """In order, sharded over processes without repeats."""
@@ -399,4 +420,4 @@ class DeltarDataModule(L.LightningDataModule):
         rank, world = self._rank_world()
         sampler = ShardedSampler(len(self.val_set), False, self.seed, rank, world, pad=False)
         return DataLoader(self.val_set, batch_size=self.config.val_batch_size, sampler=sampler,
-                          num_workers=self.config.num_workers)
+                          num_workers=self.config.num_workers, collate_fn=collate_frames)
