@@ -165,8 +165,8 @@ def benchmark_preset(
         dict with preset, size ("HxW"), batch, threads, latency_ms_median,
         latency_ms_min, cpu_ms_per_run (process CPU time per forward summed over
         threads: less sensitive to other processes than latency), peak_mem_mb
-        (peak resident memory during the timed runs above the resident memory
-        before them; None if unavailable), params_m (millions), gflop (counted
+        (peak resident memory during the runs, warm-up included, above the resident
+        memory before the first; None if unavailable), params_m (millions), gflop (counted
         FLOP of one forward of the whole batch, 1e9), gflop_s (gflop over the
         fastest forward), matmul_gflop_s (the reference product's best rate; None if
         skipped), matmul_fraction (gflop_s / matmul_gflop_s: best against best),
@@ -204,10 +204,12 @@ def _timed_runs(preset, height, width, batch, threads, repeats, warmup, optimize
     if optimize:
         prepare_for_inference(model, fold_encoder=fold_encoder, channels_last=channels_last)
     with torch.inference_mode():
-        for _ in range(warmup):
-            model(*inputs)
+        # Memory from before the first forward: after warm-up the allocator keeps the
+        # activations' memory, and the timed runs alone would add nothing.
         rss_before = _current_rss_mb()
         peak_resettable = _reset_peak_rss()
+        for _ in range(warmup):
+            model(*inputs)
         times = []
         cpu_start = time.process_time()
         for _ in range(repeats):
