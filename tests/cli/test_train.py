@@ -28,6 +28,11 @@ def test_cli_resume_takes_no_other_config(tmp_path):
     result = _cli("--resume", str(tmp_path), "--config", str(TINY_CONFIG))
     assert result.exit_code == 2
     assert "--resume" in result.output
+    afile = tmp_path / "afile"
+    afile.write_text("notes", encoding="utf-8")
+    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(afile))
+    assert result.exit_code == 2 and "--run-dir" in result.output and "is a file" in \
+        result.output and afile.read_text(encoding="utf-8") == "notes"
 
 
 def test_cli_reports_missing_data_without_a_traceback(tmp_path):

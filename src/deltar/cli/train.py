@@ -42,6 +42,9 @@ def train_command(
         run_dir = resume
     if config is None:
         raise typer.BadParameter("give --config FILE (or --resume RUN_DIR)")
+    if run_dir is not None and run_dir.exists() and not run_dir.is_dir():
+        raise typer.BadParameter(f"{run_dir} is a file; a run folder is a folder",
+                                 param_hint="--resume" if resume is not None else "--run-dir")
     try:
         cfg = load_config(config, override or ())
     except (OSError, ValueError) as err:
