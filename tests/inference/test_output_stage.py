@@ -56,3 +56,25 @@ def test_image_only_sigma_is_at_least_the_depth(rng):
         _, sigma, _ = apply_output_stage(depth, spread, None, rects, BLEND, calibration,
                                          image_only=True)
         assert np.all(sigma >= depth)
+
+
+def test_zones_that_reported_no_target_get_sigma_to_the_range_limit(rng):
+    """Such a zone says only "beyond the range": its cells' sigma reaches from the depth
+    placed there to the range limit; cells put nearer, and other zones, keep theirs."""
+    depth, spread, _, _ = _maps(rng)
+    rects = np.array([[0.0, 0.0, 6.0, 8.0], [0.0, 8.0, 6.0, 16.0], [6.0, 0.0, 12.0, 16.0]],
+                     np.float32)
+    depth[:6, :8] = 6.0
+    depth[0, 0] = 3.0  # the network put one cell nearer than the range
+    plain = apply_output_stage(depth, spread, None, rects, None, CALIBRATION, False)[1]
+    _, sigma, _ = apply_output_stage(depth, spread, None, rects, None, CALIBRATION, False,
+                                     no_target=(np.array([True, False, False]), 4.0))
+    expected = plain.copy()
+    expected[:6, :8] = np.maximum(plain[:6, :8], 2.0)
+    expected[0, 0] = plain[0, 0]
+    np.testing.assert_allclose(sigma, expected, rtol=1e-6)
+    assert (sigma[:6, :8][depth[:6, :8] > 4] >= 2.0).all()
+    assert (sigma[:6, 8:] == plain[:6, 8:]).all()
+    none = apply_output_stage(depth, spread, None, rects, None, CALIBRATION, False,
+                              no_target=(np.zeros(3, bool), 4.0))[1]
+    np.testing.assert_array_equal(none, plain)
