@@ -43,7 +43,7 @@ def test_check_official_passes_and_fails(runner, one_case_fixture, tmp_path):
 def test_check_official_missing_file(runner, tmp_path):
     result = runner.invoke(app, ["check-official", str(tmp_path / "none.pt")])
     assert result.exit_code == 2
-    assert f"fixture not found: {tmp_path / 'none.pt'}" in result.stderr
+    assert f"Invalid value for FIXTURE: fixture not found: {tmp_path / 'none.pt'}" in result.stderr
 
 
 def test_bench_writes_json(runner, tmp_path):
@@ -72,7 +72,8 @@ def test_bench_writes_json(runner, tmp_path):
 def test_bench_rejects_bad_size(runner):
     result = runner.invoke(app, ["bench", "--size", "100x100"])
     assert result.exit_code == 2
-    assert "--size needs positive multiples of 32, got '100x100'" in result.stderr
+    assert ("Invalid value for --size: needs positive multiples of 32, got '100x100'"
+            in result.stderr)
 
 
 def test_bench_channels_last_and_encoder_folding_are_reported(runner, tmp_path):

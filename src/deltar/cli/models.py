@@ -12,9 +12,11 @@ def _parse_size(text: str) -> tuple[int, int]:
     try:
         height, width = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise typer.BadParameter(f"--size must look like 480x640, got {text!r}") from None
+        raise typer.BadParameter(f"must look like 480x640, got {text!r}",
+                                 param_hint="--size") from None
     if height <= 0 or width <= 0 or height % 32 or width % 32:
-        raise typer.BadParameter(f"--size needs positive multiples of 32, got {text!r}")
+        raise typer.BadParameter(f"needs positive multiples of 32, got {text!r}",
+                                 param_hint="--size")
     return height, width
 
 
@@ -52,7 +54,7 @@ def check_official_command(
     try:
         results = check_official_fixture(fixture, threads=threads)
     except (OSError, ValueError) as error:
-        raise typer.BadParameter(str(error)) from None
+        raise typer.BadParameter(str(error), param_hint="FIXTURE") from None
     table = Table(title=escape(f"deltar-official vs release outputs ({fixture.name})"))
     table.add_column("case")
     table.add_column(f"max |depth error| m (tol {DEPTH_TOLERANCE_M:g})", justify="right")
