@@ -200,6 +200,7 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib import patheffects
     from matplotlib.patches import Rectangle
 
     frame = prediction.zone_frame
@@ -215,8 +216,11 @@ def write_panel(path: str | os.PathLike, image: np.ndarray, prediction: DepthPre
             axes[0, 1].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False,
                                            linewidth=0.8, **zone_outline_style(ok, far)))
             if ok and frame.grid <= 8:
-                axes[0, 1].text((x0 + x1) / 2, (y0 + y1) / 2, f"{value:.2f}", color="white",
-                                fontsize=5, ha="center", va="center")
+                label = axes[0, 1].text((x0 + x1) / 2, (y0 + y1) / 2, f"{value:.2f}",
+                                        color="white", fontsize=5, ha="center", va="center")
+                # A dark outline keeps the label readable on bright surfaces.
+                label.set_path_effects([patheffects.withStroke(linewidth=1.5,
+                                                                foreground="black")])
         axes[0, 1].set_xlim(-0.5, image.shape[1] - 0.5)
         axes[0, 1].set_ylim(image.shape[0] - 0.5, -0.5)
         axes[0, 1].set_title(zones_title)

@@ -127,8 +127,11 @@ def draw_zones(image: np.ndarray, rects: np.ndarray, valid: np.ndarray,
             text = f"{means_m[i]:.2f}"
             (width, height), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.3, 1)
             centre = ((top_left[0] + bottom_right[0]) // 2, (top_left[1] + bottom_right[1]) // 2)
-            cv2.putText(out, text, (centre[0] - width // 2, centre[1] + height // 2),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.3, (255, 255, 255), 1, cv2.LINE_AA)
+            origin = (centre[0] - width // 2, centre[1] + height // 2)
+            # White on a dark outline: readable on bright and dark surfaces alike.
+            for colour, thickness in (((0, 0, 0), 2), ((255, 255, 255), 1)):
+                cv2.putText(out, text, origin, cv2.FONT_HERSHEY_SIMPLEX, 0.3, colour,
+                            thickness, cv2.LINE_AA)
     return out
 
 
