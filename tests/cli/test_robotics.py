@@ -115,7 +115,12 @@ def test_cli_record_simulate_and_predict_save_recordings(tmp_path):
                                 str(sample / "zones.json"), "--out", str(tmp_path / "pred2"),
                                 "--outputs", "npy", "--rerun-save", str(rrd2)])
     assert again.exit_code == 2 and "--rerun-save" in again.output
-    assert rrd2.read_bytes() == before
+    assert "random, untrained" not in again.output and rrd2.read_bytes() == before
+    # record refuses it before opening the camera and the sensor.
+    again = runner.invoke(app, ["record", str(tmp_path / "rec2"), "--simulate",
+                                "wall:1.2:4:48x64", "--rerun-save", str(rrd2)])
+    assert again.exit_code == 2 and "--rerun-save" in again.output
+    assert not (tmp_path / "rec2").exists() and rrd2.read_bytes() == before
 
 
 def test_cli_replay_bag_can_view_without_writing_a_bag(tmp_path):

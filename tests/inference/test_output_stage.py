@@ -78,3 +78,7 @@ def test_zones_that_reported_no_target_get_sigma_to_the_range_limit(rng):
     none = apply_output_stage(depth, spread, None, rects, None, CALIBRATION, False,
                               no_target=(np.zeros(3, bool), 4.0))[1]
     np.testing.assert_array_equal(none, plain)
+    # Without a calibration the raw spread is returned as it is (the fits read it).
+    raw = apply_output_stage(depth, spread, None, rects, None, None, False,
+                             no_target=(np.array([True, False, False]), 4.0))[1]
+    np.testing.assert_array_equal(raw, spread)

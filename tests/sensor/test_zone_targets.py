@@ -208,3 +208,10 @@ def test_from_driver_refuses_metres_written_as_millimetres():
     # Readings in millimetres, near ones included, are read as they are.
     near = ZoneFrame.from_driver(np.full(64, 25.0), np.full(64, 2.0), np.full(64, 5))
     assert near.valid.all() and near.mean_m[0, 0] == pytest.approx(0.025)
+
+
+def test_a_4x4_reading_of_no_entries_or_too_many_targets_is_refused_by_name():
+    with pytest.raises(ValueError, match="distance_mm has 0 entries"):
+        ZoneFrame.from_driver([], [], [], grid=4)
+    with pytest.raises(ValueError, match="at most 4 targets per zone"):
+        ZoneFrame.from_driver(np.full(320, 1500.0), np.full(320, 5.0), np.full(320, 5), grid=4)

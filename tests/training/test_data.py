@@ -211,3 +211,7 @@ def test_a_batch_of_frames_of_several_sizes_is_refused_with_the_fix():
     with pytest.raises(ValueError, match=r"several sizes \(\[\(32, 64\), \(64, 96\)\].*"
                                          r"data\.sources\.N\.resize"):
         collate_frames([{"image": torch.zeros(3, 32, 64)}, {"image": torch.zeros(3, 64, 96)}])
+    # Same frames, other zone grids: named as such, not as a size to resize.
+    with pytest.raises(ValueError, match=r"items whose zone_valid differ in shape.*zone grids"):
+        collate_frames([{"image": torch.zeros(3, 32, 64), "zone_valid": torch.ones(36)},
+                        {"image": torch.zeros(3, 32, 64), "zone_valid": torch.ones(64)}])

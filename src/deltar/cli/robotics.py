@@ -109,14 +109,19 @@ def bag_topic_options(command):
     return _BAG_TOPICS_GROUP(command)
 
 
+def check_rerun_save(rerun_save: Path | None) -> None:
+    """Refuse an existing ``--rerun-save`` file (commands call it before their work: the
+    viewer streams into the file as frames come, so it never replaces one)."""
+    if rerun_save is not None and rerun_save.exists():
+        raise typer.BadParameter(f"{rerun_save} exists; give a new file (an existing "
+                                 "recording is never replaced)", param_hint="--rerun-save")
+
+
 def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
     """A :class:`~deltar.capture.viewer.RerunLogger` when asked for, else None."""
     if not rerun and rerun_save is None:
         return None
-    if rerun_save is not None and rerun_save.exists():
-        # The viewer streams into the file as frames come: it never replaces one.
-        raise typer.BadParameter(f"{rerun_save} exists; give a new file (an existing "
-                                 "recording is never replaced)", param_hint="--rerun-save")
+    check_rerun_save(rerun_save)
     from deltar.capture.viewer import RerunLogger
 
     return RerunLogger(rerun_save)

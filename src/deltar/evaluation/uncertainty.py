@@ -284,7 +284,7 @@ def fit_outlier_rule(estimator, sets: Sequence[Sequence], *,
     """
     from deltar.sensor.zone_outliers import reject_outlier_zones
 
-    grids: set[int] = set()  # a rule chosen here applies to frames of these grids
+    grids: set[int] = set()  # frames of one grid: the chosen rule is for that grid
 
     def variants(frame):
         grids.add(frame.grid)

@@ -45,8 +45,9 @@ def apply_output_stage(depth_m: np.ndarray, spread_m: np.ndarray, fill_m: np.nda
             (:func:`~deltar.inference.zone_consistency.zone_consistent_depth`); the
             corrected depth is then the network's depth everything after reads.
         no_target: ((Z,) bool zones that reported no target, the sensor's range in
-            metres): the sigma of their cells is at least the depth's distance beyond
-            the range (:func:`no_target_sigma_floor`); None leaves it.
+            metres): the calibrated sigma of their cells is at least the depth's distance
+            beyond the range (:func:`no_target_sigma_floor`); None leaves it, and so does
+            a missing ``uncertainty`` (the raw spread is what the output-stage fits read).
 
     Returns:
         (depth, sigma, network depth) (h, w) float32 metres; the network's depth is None
@@ -69,8 +70,8 @@ def apply_output_stage(depth_m: np.ndarray, spread_m: np.ndarray, fill_m: np.nda
         sigma = uncertainty.sigma(spread_m, depth, moved, grid_box(zone_rects, depth.shape))
         if image_only:
             sigma = np.maximum(sigma, depth)
-    if no_target is not None:
-        sigma = no_target_sigma_floor(sigma, depth, zone_rects, *no_target)
+        if no_target is not None:  # the raw spread stays raw: the fits read it
+            sigma = no_target_sigma_floor(sigma, depth, zone_rects, *no_target)
     return depth, sigma, network_depth
 
 

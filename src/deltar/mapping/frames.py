@@ -271,8 +271,9 @@ class DepthSource:
             if frame.recorded_depth_m is None:
                 raise ValueError(f"frame {frame.name} has no recorded depth (--method "
                                  "recorded needs a depth image for every frame)")
-            # Undistorted like the colour image (bilinear: edges blend a little).
-            depth = frame.calibration.undistort_image(frame.recorded_depth_m)
+            # Undistorted like the colour image, by nearest pixels: interpolating would
+            # make depths no surface has at edges and beside invalid pixels.
+            depth = frame.calibration.undistort_image(frame.recorded_depth_m, nearest=True)
             return np.asarray(depth, dtype=np.float32), None
         height, width = frame.image.shape[:2]
         if self.method is not None:

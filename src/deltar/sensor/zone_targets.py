@@ -244,7 +244,8 @@ def driver_readings(
         if size != used and not (n == 4 and size == 64 * per_zone):
             raise ValueError(f"distance_mm has {size} entries; expected {used} for a "
                              f"{n}x{n} grid with {per_zone} target(s) per zone")
-    elif n == 4 and size % 64 == 0 and (detected is None or detected.size == 64):
+    elif n == 4 and 0 < size <= 64 * MAX_TARGETS_PER_ZONE and size % 64 == 0 and (
+            detected is None or detected.size == 64):
         # ST's results buffer, sized for 8x8 whatever the resolution (64 * T entries,
         # and 64 counts in nb_target_detected), of which 4x4 mode fills the first 16 * T:
         # what the Python drivers return. A compact dump of 16 zones x 4 targets (also

@@ -90,13 +90,13 @@ class SourceConfig:
             raise ValueError(f"{where}.path is required for {self.kind!r} sources")
         if self.resize is not None and (len(self.resize) != 2 or min(self.resize) < 1):
             raise ValueError(f"{where}.resize must be [height, width] > 0, got {self.resize}")
+        if self.resize is not None and self.kind in ZONE_SET_SOURCE_KINDS:
+            raise ValueError(f"{where}.resize is not supported for {self.kind} sources (their "
+                             "zone rectangles are given in pixels of the stored images)")
         if self.resize is not None and any(side % 32 for side in self.resize):
             # The encoder's stride: found here, not at the first training step.
             raise ValueError(f"{where}.resize must be multiples of 32 (the network's "
                              f"stride), got {self.resize}")
-        if self.resize is not None and self.kind in ZONE_SET_SOURCE_KINDS:
-            raise ValueError(f"{where}.resize is not supported for {self.kind} sources (their "
-                             "zone rectangles are given in pixels of the stored images)")
         if self.role == "train_val" and not 0.0 < self.holdout_fraction < 1.0:
             raise ValueError(f"{where}.holdout_fraction must be in (0, 1) for role "
                              f"'train_val', got {self.holdout_fraction}")

@@ -315,9 +315,15 @@ def collate_frames(items: list[dict[str, Any]]) -> dict[str, Any]:
         if "equal size" not in str(err):
             raise
         sizes = sorted({tuple(item["image"].shape[-2:]) for item in items if "image" in item})
-        raise ValueError(f"one batch holds frames of several sizes ({sizes}, height x width): "
-                         "give every source the same data.sources.N.resize, or crop them "
-                         "alike (data.image_augmentation.crop)") from err
+        if len(sizes) > 1:
+            raise ValueError(f"one batch holds frames of several sizes ({sizes}, height x "
+                             "width): give every source the same data.sources.N.resize, or "
+                             "crop them alike (data.image_augmentation.crop)") from err
+        differ = sorted(key for key in items[0] if torch.is_tensor(items[0][key]) and len(
+            {tuple(item[key].shape) for item in items if torch.is_tensor(item.get(key))}) > 1)
+        raise ValueError(f"one batch holds items whose {', '.join(differ)} differ in shape "
+                         "(e.g. sources with different zone grids: a zone set's own and the "
+                         "simulated data.training_grid)") from err
 
 
 class ResumableDataLoader(DataLoader):
