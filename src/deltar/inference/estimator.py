@@ -50,7 +50,6 @@ from deltar.sensor.targets import stacked_target_inputs
 from deltar.sensor.zone_frame import ZoneFrame
 from deltar.sensor.zone_outlier_detector import OutlierDetector
 from deltar.sensor.zone_outliers import OutlierRule, reject_outlier_zones, resolve_outlier_rule
-from deltar.sensor.zone_values import sensor_max_range_m
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -438,8 +437,7 @@ class DepthEstimator:
             # returned (deltar.inference.output_stage).
             grid_rects = scale_rects(inputs["image_rects"][i], size, depths.shape[2:])
             fill = fills[i].result() if fills else None
-            far = (inputs["zone_no_target"][i], self.max_range_m
-                   or sensor_max_range_m(frame.sensor_model))
+            far = (inputs["zone_no_target"][i], frame.range_limit_m(self.max_range_m))
             maps = [m for m in apply_output_stage(depths[i, 0], spreads[i, 0], fill, grid_rects,
                                                   self.blend, self.uncertainty,
                                                   frame.valid_count == 0, frame.flat(),

@@ -273,6 +273,12 @@ class ZoneFrame:
             return np.zeros(self.zone_count, dtype=bool)
         return self.no_target.reshape(-1)
 
+    def range_limit_m(self, max_range_m: float | None = None) -> float:
+        """The largest distance the frame's sensor can read, metres: ``max_range_m`` when
+        given, else the sensor model's (:data:`SENSOR_MAX_RANGE_M`; infinite for unknown
+        models)."""
+        return sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+
     def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
         """Valid zones whose distance is physically impossible for the sensor.
 
@@ -284,7 +290,7 @@ class ZoneFrame:
             (n, n) bool, True where a zone is flagged valid but reads ``d <= 0`` or
             ``d > max_range_m``.
         """
-        limit = sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        limit = self.range_limit_m(max_range_m)
         return self.valid & ((self.mean_m <= 0) | (self.mean_m > limit))
 
     def range_error(self, max_range_m: float | None = None) -> str | None:
@@ -296,7 +302,7 @@ class ZoneFrame:
         bad = np.flatnonzero(self.out_of_range(max_range_m).reshape(-1))
         if bad.size == 0:
             return None
-        limit = sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        limit = self.range_limit_m(max_range_m)
         readings = ", ".join(f"{self.mean_m.reshape(-1)[i]:.6g}" for i in bad[:5])
         more = f" and {bad.size - 5} more" if bad.size > 5 else ""
         return (f"{bad.size} valid zone(s) read distances outside the {self.sensor_model} "
@@ -324,7 +330,7 @@ class ZoneFrame:
         problem = self.range_error(max_range_m)
         if problem is not None:
             return problem
-        limit = sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        limit = self.range_limit_m(max_range_m)
         _, sigma, valid = self.flat()
         wide = np.flatnonzero(valid & (sigma > limit))
         if wide.size:
