@@ -145,7 +145,7 @@ def test_tiny_end_to_end_run(tmp_path, tiny_config):
         train(longer, run, resume=True)
     # A damaged last checkpoint names the others to resume from.
     (run / "checkpoints" / "last.ckpt").write_bytes(b"damaged")
-    with pytest.raises(ValueError, match=r"last\.ckpt: not a readable training checkpoint.*"
+    with pytest.raises(ValueError, match=r"last\.ckpt: cannot read training checkpoint: .*"
                                          r"step=2\.ckpt, step=4\.ckpt"):
         train(longer, run, resume=True)
 

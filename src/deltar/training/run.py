@@ -32,6 +32,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.input_file import input_file
+from deltar.io.torch_file import read_torch_file
 from deltar.training.config import TrainConfig
 from deltar.training.config_loading import config_from_dict
 from deltar.training.data import DeltarDataModule
@@ -292,16 +293,18 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int) -> bool:
             than the configuration now gives (a resumed run cannot change it).
     """
     try:
-        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        state = read_torch_file(checkpoint, "training checkpoint", weights_only=False)
         step = int(state["global_step"])
         planned = [int(s["total_steps"]) for s in state.get("lr_schedulers", [])
                    if "total_steps" in s]
-    except Exception as err:  # torch raises several types for damaged files
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
         others = sorted(p.name for p in checkpoint.parent.glob("*.ckpt") if p != checkpoint)
         hint = (f"; the run also saved {', '.join(others)}: copy the latest of them over "
                 f"{checkpoint.name} to resume from there") if others else ""
-        raise ValueError(f"{checkpoint}: not a readable training checkpoint "
-                         f"({type(err).__name__}: {err}){hint}") from err
+        reason = str(err) if isinstance(err, ValueError) else (
+            f"{checkpoint}: cannot read training checkpoint: no training state "
+            f"({type(err).__name__}: {err})")
+        raise ValueError(f"{reason}{hint}") from err
     if planned and planned[0] != schedule_steps:
         raise ValueError(f"{checkpoint}: the run's learning-rate schedule spans {planned[0]} "
                          f"steps, the configuration now gives {schedule_steps} "
