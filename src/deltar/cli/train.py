@@ -150,11 +150,12 @@ def fit_uncertainty_command(
     if detector_noise != _DEFAULT_DETECTOR_NOISE and not detector_data:
         raise typer.BadParameter("describes the noise of the detector --detector-data trains; "
                                  "give --detector-data too", param_hint="--detector-noise")
-    if Path(checkpoint).suffix.lower() == ".ckpt":
-        raise typer.BadParameter(f"{checkpoint} is a Lightning training checkpoint; give the "
-                                 "run's model.pt (or package the checkpoint: "
-                                 "deltar.training.package.package_checkpoint)",
-                                 param_hint="CHECKPOINT")
+    from deltar.inference.loading import resolve_source
+
+    try:
+        resolve_source(checkpoint, "checkpoint")  # refuses a Lightning .ckpt, as elsewhere
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="CHECKPOINT") from err
     refuse_input_as_output(out, [Path(checkpoint), *data, *detector_data], "--out")
     output_file(out, "--out", overwrite)
     try:
