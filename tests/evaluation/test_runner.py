@@ -101,6 +101,15 @@ def test_bad_predictions_name_the_method(tiny_samples) -> None:
         evaluate_methods(tiny_samples, {})
 
 
+def test_a_method_refusing_a_frame_is_named_with_the_frame(tiny_samples) -> None:
+    def refuses(sample):
+        raise ValueError("frames[0] has 4x4 zones")
+
+    name = tiny_samples[0].name
+    with pytest.raises(ValueError, match=f"method 'picky', frame '{name}': frames.0. has 4x4"):
+        evaluate_methods(tiny_samples, {"picky": refuses})
+
+
 def test_baseline_predictor_ignores_valid_zones_without_distance() -> None:
     sample = make_sample("zero", 0)
     sample.zone_mean_sigma[3, 0] = 0.0  # flagged valid, but no distance reported

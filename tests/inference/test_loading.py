@@ -64,6 +64,18 @@ def test_the_bundled_models_onnx_export_by_name_where_pytorch_is_installed(rng):
                   ).max() <= 1e-4
 
 
+def test_the_onnx_export_refuses_another_grid_naming_the_frame_and_remedy(rng):
+    lean = load_estimator("default", kind="onnx", threads=1)
+    image = random_image(rng, 240, 320)
+    with pytest.raises(ValueError, match=r"frames\[0\] has 4x4 zones, but the ONNX model "
+                       r".*takes 8x8 zone frames; the PyTorch backend .* runs any grid"):
+        lean.predict(image, random_frame(rng, grid=4, invalid=1))
+    # The PyTorch path of the same weights takes the 4x4 frame.
+    depth = load_estimator("default", threads=1).predict(
+        image, random_frame(rng, grid=4, invalid=1)).depth_m
+    assert depth.shape == (240, 320) and np.isfinite(depth).all()
+
+
 def test_a_file_named_like_the_bundled_model_wins_as_onnx(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "default").write_bytes(b"not an ONNX file")

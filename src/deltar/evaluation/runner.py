@@ -256,8 +256,9 @@ def evaluate_methods(
 
     Raises:
         ValueError: a frame's zones cannot be a real reading (:func:`check_sample_zones`),
-            a method returns a map of the wrong shape or with NaN / inf (the message
-            names the method and frame), or no frame has valid ground truth.
+            a method refuses a frame or returns a map of the wrong shape or with NaN /
+            inf (the message names the method and frame), or no frame has valid ground
+            truth.
     """
     if not predictors:
         raise ValueError("predictors is empty")
@@ -275,7 +276,10 @@ def evaluate_methods(
         sigmas: dict[str, np.ndarray] = {}
         for name, predictor in predictors.items():
             start = time.perf_counter()
-            output = predictor(sample)
+            try:
+                output = predictor(sample)
+            except ValueError as err:
+                raise ValueError(f"method {name!r}, frame {sample.name!r}: {err}") from err
             seconds[name] += time.perf_counter() - start
             if hasattr(output, "uncertainty_m"):
                 sigmas[name] = np.asarray(output.uncertainty_m)

@@ -300,6 +300,7 @@ class DepthEstimator:
         checks.check_calibration(calibration)
         net_size = self.network_size_for(size)
         if self.onnx_model is not None:
+            self.onnx_model.check_grid(frames[0].grid, "frames[0]")
             self.onnx_model.warn_if_stretched(size, net_size)
         if zone_rects is not None:
             rects = np.asarray(zone_rects, dtype=np.float32)

@@ -200,6 +200,17 @@ class OnnxDepthModel:
             self._loaded[size] = other
         return self._loaded[size]
 
+    def check_grid(self, grid: int, name: str = "zone frames") -> None:
+        """Raise ``ValueError`` naming ``name`` when zone frames of ``grid`` x ``grid``
+        zones are not the exported network's grid (its inputs have a fixed zone count)."""
+        if int(grid) != self.grid:
+            remedy = ("the PyTorch backend (without --onnx) runs any grid" if torch_available()
+                      else 'the PyTorch backend runs any grid: pip install "deltar[torch]"')
+            raise ValueError(f"{name} has {grid}x{grid} zones, but the ONNX model {self.path} "
+                             f"takes {self.grid}x{self.grid} zone frames; {remedy}, or export "
+                             f"it for {grid}x{grid} zones (deltar export --layout-from a "
+                             "calibration or recording of that grid)")
+
     def check_layout(self, zone_rects: np.ndarray) -> None:
         """Raise ``ValueError`` if a (B, Z, 4) layout does not fit the exported one.
 
