@@ -81,6 +81,20 @@ def test_writer_appends_but_never_overwrites(tmp_path):
         RecordingWriter(tmp_path / "rec", RecordingMeta(other, grid=4))
 
 
+def test_writer_refuses_a_folder_of_other_files_and_takes_an_empty_one(tmp_path):
+    data_set = tmp_path / "rgbd"
+    (data_set / "color").mkdir(parents=True)
+    (data_set / "color" / "000000.png").write_bytes(b"a real frame")
+    with pytest.raises(FileExistsError, match="rgbd is not empty and holds no recording"):
+        RecordingWriter(data_set, RecordingMeta(CAMERA, grid=4))
+    assert sorted(p.name for p in data_set.rglob("*")) == ["000000.png", "color"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / ".hidden").write_text("")  # e.g. a file manager's; not a frame
+    RecordingWriter(empty, RecordingMeta(CAMERA, grid=4))
+    assert (empty / "meta.json").is_file()
+
+
 def test_poses_are_written_by_time_and_the_end_time_covers_every_item(tmp_path):
     from deltar.io.pose_file import read_pose_file
 

@@ -96,6 +96,10 @@ class RecordingWriter:
         folder: the recording folder (created if missing).
         meta: metadata written to ``meta.json``; when the folder already holds a
             recording, it must match (then new frames are appended).
+
+    Raises:
+        FileExistsError: ``folder`` holds files but no recording (no ``meta.json``).
+        ValueError: the folder's recording is of another rig (intrinsics, grid, fov).
     """
 
     def __init__(self, folder: str | os.PathLike, meta: RecordingMeta) -> None:
@@ -111,6 +115,13 @@ class RecordingWriter:
             _end_partial_line(self.folder / ZONES_FILE)
             self._last_zone_time = _last_zone_timestamp(self.folder / ZONES_FILE)
         else:
+            # Appending is for recordings only: frames added to another folder (an RGB-D
+            # set, a bag, outputs) would mix with its files.
+            if self.folder.is_dir() and any(not entry.name.startswith(".")
+                                            for entry in self.folder.iterdir()):
+                raise FileExistsError(f"{self.folder} is not empty and holds no recording "
+                                      f"(no {META_FILE}): record into a new or empty folder, "
+                                      "or into a recording to append to")
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
             self.meta = RecordingMeta(meta.intrinsics, meta.sensor_model, meta.grid,
                                       (float(meta.fov_deg[0]), float(meta.fov_deg[1])),
