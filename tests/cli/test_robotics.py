@@ -156,3 +156,23 @@ def test_cli_replay_folder_views_and_writes(tmp_path):
     assert len(read_rrd(tmp_path / "v.rrd")["/world/camera/image/depth"]) == 3
     nothing = runner.invoke(app, ["replay", str(rec), "--preset", "deltar-lite"])
     assert nothing.exit_code != 0 and "give --out DIR" in nothing.output
+
+
+@pytest.mark.parametrize("command", ["predict", "record", "replay", "map"])
+def test_rerun_without_a_display_is_refused_before_the_work(tmp_path, monkeypatch, command):
+    import deltar.cli.checks as checks
+
+    # A headless Linux machine, whatever the one running the tests has.
+    monkeypatch.setattr(checks.sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    missing = tmp_path / "missing"
+    args = {"predict": ["predict", "--image", str(tmp_path / "image.png"), "--zones",
+                        str(tmp_path / "zones.json"), "--out", str(tmp_path / "out")],
+            "record": ["record", str(tmp_path / "rec"), "--simulate", "wall:1.2:2:48x64"],
+            "replay": ["replay", str(missing)],
+            "map": ["map", str(missing), "--out", str(tmp_path / "map")]}[command]
+    result = runner.invoke(app, [*args, "--rerun"])
+    assert result.exit_code == 2, result.output
+    assert "the viewer needs a display" in result.output and "--rerun-save" in result.output
+    assert not (tmp_path / "rec").exists() and not (tmp_path / "out").exists()

@@ -73,10 +73,10 @@ def record_command(
     from deltar.capture.record import record
     from deltar.cli.checks import finite, output_folder
     from deltar.cli.progress import ProgressReport
-    from deltar.cli.robotics import CaptureLogger, check_rerun_save, open_viewer
+    from deltar.cli.robotics import CaptureLogger, check_viewer, open_viewer
     from deltar.data.sources import open_source
 
-    check_rerun_save(rerun_save)  # before the camera and the sensor are opened
+    check_viewer(rerun, rerun_save)  # before the camera and the sensor are opened
     if grid not in (4, 8):
         raise typer.BadParameter(f"must be 4 or 8, got {grid}", param_hint="--grid")
     finite(sensor_hz, "--sensor-hz", positive=True)
@@ -179,14 +179,14 @@ def replay_command(
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import (
         ReplayViewer,
-        check_rerun_save,
+        check_viewer,
         open_viewer,
         replay_bag_command,
     )
 
     if (recording is None) == (bag is None):
         raise typer.BadParameter("give a RECORDING folder or --bag BAG")
-    check_rerun_save(rerun_save)  # before the model
+    check_viewer(rerun, rerun_save)  # before the model
     if bag is not None:
         refuse_unused_options({"--keep-going": keep_going, "--skip-existing": skip_existing},
                               "for replays into an --out folder",

@@ -122,14 +122,19 @@ def torch_device(name: str, option: str = "--device") -> str:
     return name
 
 
+def has_display() -> bool:
+    """Whether a window can be shown: on Linux, DISPLAY or WAYLAND_DISPLAY is set."""
+    return not sys.platform.startswith("linux") or bool(
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def display(option: str = "--show") -> None:
     """Check that an OpenCV window can open (a display and a GUI build of OpenCV).
 
     Raises:
         ValueError: naming ``option`` and what is missing.
     """
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
-                                                 or os.environ.get("WAYLAND_DISPLAY")):
+    if not has_display():
         raise ValueError(f"{option} needs a display (DISPLAY is not set); write the frames "
                          "with --out DIR instead")
     import cv2

@@ -109,6 +109,7 @@ def map_command(
     from deltar.cli.checks import finite
     from deltar.cli.errors import warn
     from deltar.cli.progress import ProgressReport
+    from deltar.cli.robotics import check_viewer
     from deltar.mapping.builder import build_map, plan_map
     from deltar.mapping.frames import RECORDED, DepthSource, FrameSource
     from deltar.mapping.poses import write_tum_trajectory
@@ -134,6 +135,7 @@ def map_command(
     model.check()
     require_open3d()
     _check_out(out, recording, overwrite)
+    check_viewer(rerun, rerun_save)
     calibration = None
     if calib is not None:
         from deltar.calibration.rig import RigCalibration

@@ -72,9 +72,9 @@ def predict_command(
     if overwrite and skip_existing:
         raise typer.BadParameter("give --overwrite or --skip-existing, not both")
     kinds = parse_outputs(outputs)
-    from deltar.cli.robotics import check_rerun_save, parse_orientation
+    from deltar.cli.robotics import check_viewer, parse_orientation
 
-    check_rerun_save(rerun_save)  # before the model
+    check_viewer(rerun, rerun_save)  # before the model
 
     orientation = parse_orientation(driver_orientation, "--driver-orientation")
     model.check()

@@ -109,19 +109,26 @@ def bag_topic_options(command):
     return _BAG_TOPICS_GROUP(command)
 
 
-def check_rerun_save(rerun_save: Path | None) -> None:
-    """Refuse an existing ``--rerun-save`` file (commands call it before their work: the
-    viewer streams into the file as frames come, so it never replaces one)."""
+def check_viewer(rerun: bool, rerun_save: Path | None) -> None:
+    """Refuse an existing ``--rerun-save`` file (the viewer streams into the file as
+    frames come, so it never replaces one) and ``--rerun`` without a display (the viewer
+    it spawns could not open); commands call it before their work."""
+    from deltar.cli.checks import has_display
+
     if rerun_save is not None and rerun_save.exists():
         raise typer.BadParameter(f"{rerun_save} exists; give a new file (an existing "
                                  "recording is never replaced)", param_hint="--rerun-save")
+    if rerun and rerun_save is None and not has_display():
+        raise typer.BadParameter("the viewer needs a display (DISPLAY is not set); write a "
+                                 "recording with --rerun-save FILE.rrd and open it where "
+                                 "there is one (rerun FILE.rrd)", param_hint="--rerun")
 
 
 def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
     """A :class:`~deltar.capture.viewer.RerunLogger` when asked for, else None."""
     if not rerun and rerun_save is None:
         return None
-    check_rerun_save(rerun_save)
+    check_viewer(rerun, rerun_save)
     from deltar.capture.viewer import RerunLogger
 
     return RerunLogger(rerun_save)
