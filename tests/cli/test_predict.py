@@ -129,6 +129,26 @@ def test_predict_refuses_calibration_for_another_resolution(tmp_path, rng):
     assert "calibrated resolution" in " ".join(result.output.split())
 
 
+def test_predict_folder_refuses_an_image_of_another_size_before_any_frame(tmp_path, rng):
+    from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    for stem in ("a", "b"):
+        _inputs(tmp_path / "in", stem, rng)  # 64 x 96
+    Image.fromarray(np.zeros((32, 48, 3), np.uint8)).save(tmp_path / "in" / "b.png")
+    calib = RigCalibration(CameraIntrinsics(60, 60, 47.5, 31.5, 96, 64),
+                           SensorExtrinsics()).save(tmp_path / "calib.json")
+    result = runner.invoke(app, ["predict", "--images", str(tmp_path / "in"), "--zones-dir",
+                                 str(tmp_path / "in"), "--calib", str(calib), "--out",
+                                 str(tmp_path / "out"), "--outputs", "npy", *LITE])
+    assert result.exit_code == 1
+    text = " ".join(result.output.split())
+    assert f"b.png is 32x48 pixels but --calib {calib} is for the calibrated resolution 64x96" \
+        in text
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
 def test_record_replay_wall_test_export_end_to_end(tmp_path):
     for distance in ("1.01", "2.05"):
         result = runner.invoke(app, ["record", str(tmp_path / f"wall{distance}"), "--simulate",

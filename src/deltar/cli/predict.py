@@ -108,6 +108,8 @@ def predict_command(
                              f"--calib {calib} is for {calibration.grid}x{calibration.grid}")
         if calibration is not None:
             calibration.check_image_size(first[0].shape[:2], str(image), f"--calib {calib}")
+    elif calibration is not None:
+        _check_image_sizes(jobs, calibration, f"--calib {calib}")
     if unpaired:
         warn(f"{len(unpaired)} file{'s' if len(unpaired) > 1 else ''} without a partner "
              f"{'are' if len(unpaired) > 1 else 'is'} left out: "
@@ -152,3 +154,17 @@ def predict_command(
         name, err = summary.failed[0]
         fail(f"{len(summary.failed)} of {len(jobs)} frames failed (first: {name}: "
              f"{format_error(err)}); re-run with --skip-existing after fixing them")
+
+
+def _check_image_sizes(jobs, calibration, name: str) -> None:
+    """Refuse, before the model, a folder's images of another size than the calibrated
+    resolution (read from their headers). An unreadable image is left to its frame (it
+    fails there, or is skipped with ``--keep-going``)."""
+    from deltar.data.rgbd_files import color_image_size
+
+    for job in jobs:
+        try:
+            size = color_image_size(job.image)
+        except (OSError, ValueError):
+            continue
+        calibration.check_image_size(size, str(job.image), name)
