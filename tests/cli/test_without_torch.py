@@ -162,3 +162,20 @@ def test_torch_only_commands_name_the_extra(tmp_path, demo_without_torch):
     assert "--cnh" in line and line.endswith('pip install "deltar[torch]"')
     assert not (tmp_path / "sim1").exists() and not (tmp_path / "sim2").exists()
     assert EXTRA_OF_MODULE["torch"] == "torch"
+
+
+def test_devices_and_zone_grids_without_torch_say_what_is_wrong(tmp_path, demo_without_torch):
+    sample = demo_without_torch / "demo" / "sample"
+    inputs = ["--image", str(sample / "image.png"), "--zones", str(sample / "zones.json")]
+    typo = run_without_torch(tmp_path, "predict", *inputs, "--out", "a", "--device", "bogus")
+    assert typo.returncode == 2 and "unknown device 'bogus'" in typo.stderr
+    assert "pip install" not in typo.stderr
+    gpu = run_without_torch(tmp_path, "predict", *inputs, "--out", "b", "--device", "cuda")
+    assert gpu.returncode == 2 and 'pip install "deltar[torch]"' in " ".join(gpu.stderr.split())
+    # The bundled ONNX export takes 8x8 zones: a 4x4 recording is refused by name.
+    record = run_without_torch(tmp_path, "record", "r4", "--simulate", "wall:1.2:2:48x64",
+                               "--grid", "4")
+    assert record.returncode == 0, record.stderr
+    line = _one_error_line(run_without_torch(tmp_path, "replay", "r4", "--out", "c"))
+    assert "has 4x4 zones, but the ONNX model" in line and 'pip install "deltar[torch]"' in line
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

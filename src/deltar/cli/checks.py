@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from collections.abc import Iterable
 from pathlib import Path
@@ -95,8 +96,19 @@ def torch_device(name: str, option: str = "--device") -> str:
     """Check that torch can run on device ``name`` here (e.g. ``cpu``, ``cuda:0``).
 
     Raises:
-        typer.BadParameter: unknown device, or no such GPU on this machine.
+        typer.BadParameter: unknown device, PyTorch not installed (naming the extra), or
+            no such GPU on this machine.
     """
+    from deltar.extras import torch_available
+
+    # Told apart before torch is imported: a typo is a typo in the base install too.
+    if not re.fullmatch(r"cpu|mps|cuda(:\d+)?", name):
+        raise typer.BadParameter(f"unknown device {name!r}; use cpu, cuda, cuda:N or mps",
+                                 param_hint=option)
+    if not torch_available():
+        raise typer.BadParameter(f"{name!r} runs the PyTorch backend, which the 'torch' extra "
+                                 'installs: pip install "deltar[torch]" (without it the '
+                                 "bundled model runs on the CPU)", param_hint=option)
     import torch
 
     try:
