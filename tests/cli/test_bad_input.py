@@ -561,8 +561,12 @@ def test_export_never_replaces_its_checkpoint_and_wall_test_stays_outside(tmp_pa
     checkpoint = tmp_path / "model.pt"
     checkpoint.write_bytes(b"weights")
     result = _run(["export", "--checkpoint", checkpoint, "--out", checkpoint, "--overwrite"])
-    assert result.exit_code == 2 and "must end in .onnx" in result.output
+    assert result.exit_code == 1  # the input is named first, whatever the suffix
+    _one_error_line(result, f"--out {checkpoint} is the input {checkpoint}")
     assert checkpoint.read_bytes() == b"weights"
+    result = _run(["export", "--checkpoint", checkpoint, "--out", tmp_path / "other.pt"])
+    assert result.exit_code == 2 and "must end in .onnx" in result.output
+    assert not (tmp_path / "other.pt").exists()
     exported = tmp_path / "model.onnx"
     exported.write_bytes(b"weights")
     result = _run(["export", "--checkpoint", exported, "--out", exported, "--overwrite"])

@@ -75,10 +75,10 @@ def export_command(
     if len(sizes) > 1 and (int8 or layout_from is not None):
         raise typer.BadParameter("several sizes go without --int8 and --layout-from",
                                  param_hint="--size")
+    refuse_input_as_output(out, [checkpoint, official, layout_from, calibration], "--out")
     if out.suffix.lower() != ".onnx":  # a .pt name would be read back as a checkpoint
         raise typer.BadParameter(f"{out} must end in .onnx (the file is an ONNX model)",
                                  param_hint="--out")
-    refuse_input_as_output(out, [checkpoint, official, layout_from, calibration], "--out")
     output_file(out, "--out", overwrite)
     if len(sizes) > 1:  # the sizes share the weights file beside OUT: checked before the model
         output_file(out.with_name(out.name + ".data"), "--out", overwrite)
