@@ -17,34 +17,30 @@ import numpy as np
 
 from deltar.io.atomic import write_text_atomic
 from deltar.io.input_file import input_file, reading
-from deltar.io.tum import ROTATION_TOLERANCE
+from deltar.sensor.geometry import nearest_rotation
 
 #: The pose folder of a recording (and of the shared TUM keyframes).
 POSE_DIR = "pose"
 
 
 def check_pose(pose: np.ndarray, source: str) -> np.ndarray:
-    """Check one (4, 4) camera-to-world transform and return it as float64.
+    """Check one (4, 4) camera-to-world transform and return it as a float64 copy (a
+    rotation block off by rounding made exact).
 
     Raises:
         ValueError: wrong shape, non-finite values, a last row other than (0, 0, 0, 1)
             or a rotation block that is not a rotation (orthonormal, det +1), naming
             ``source``.
     """
-    matrix = np.asarray(pose, dtype=np.float64)
+    matrix = np.array(pose, dtype=np.float64)
     if matrix.shape != (4, 4):
         raise ValueError(f"{source}: a pose must be a 4x4 matrix, got shape {matrix.shape}")
     if not np.all(np.isfinite(matrix)):
         raise ValueError(f"{source}: the pose has NaN or infinite values")
     if not np.allclose(matrix[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
         raise ValueError(f"{source}: the pose's last row must be 0 0 0 1, got {matrix[3]}")
-    rotation = matrix[:3, :3]
-    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
-    det = float(np.linalg.det(rotation))
-    if error > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise ValueError(f"{source}: the pose's 3x3 block is not a rotation "
-                         f"(|R^T R - I| = {error:.2g}, det = {det:.4f}); poses must be "
-                         "rigid camera-to-world transforms")
+    # Poses must be rigid camera-to-world transforms; rounding is made exact.
+    matrix[:3, :3] = nearest_rotation(matrix[:3, :3], f"{source}: the pose's 3x3 block")
     return matrix
 
 

@@ -14,10 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from deltar.io.input_file import input_file, reading
-
-#: Largest |norm - 1| of a quaternion, and |R^T R - I| / |det R - 1| of a rotation block,
-#: accepted as a rotation.
-ROTATION_TOLERANCE = 1e-3
+from deltar.sensor.geometry import ROTATION_TOLERANCE
 
 
 def quaternion_pose(translation: np.ndarray, quaternion_xyzw: np.ndarray,

@@ -42,8 +42,7 @@ class SensorExtrinsics:
         if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
             raise ValueError(f"SensorExtrinsics.rotation must be a finite 3x3 matrix, "
                              f"got shape {rot.shape}")
-        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
-            raise ValueError("SensorExtrinsics.rotation is not a proper rotation matrix")
+        rot = nearest_rotation(rot, "SensorExtrinsics.rotation")
         if trans.shape != (3,) or not np.all(np.isfinite(trans)):
             raise ValueError(f"SensorExtrinsics.translation_m must be 3 finite values, "
                              f"got {trans}")
@@ -54,6 +53,30 @@ class SensorExtrinsics:
         """The camera-to-sensor transform, as a ``SensorExtrinsics`` object."""
         rot_t = self.rotation.T
         return SensorExtrinsics(rot_t, -rot_t @ self.translation_m)
+
+
+#: Largest |R^T R - I| (element-wise) and |det R - 1| of a matrix accepted as a rotation
+#: (rotations written with four decimals are 5e-5 off); it is then made exact.
+ROTATION_TOLERANCE = 1e-3
+
+
+def nearest_rotation(matrix: np.ndarray, name: str = "rotation") -> np.ndarray:
+    """A 3x3 matrix checked to be a rotation within :data:`ROTATION_TOLERANCE`, returned
+    as the nearest exact rotation (by SVD) when it is off by rounding.
+
+    Raises:
+        ValueError: naming ``name``, with how far the matrix is from a rotation.
+    """
+    rot = np.asarray(matrix, dtype=np.float64)
+    error = float(np.abs(rot.T @ rot - np.eye(3)).max())
+    det = float(np.linalg.det(rot))
+    if error > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+        raise ValueError(f"{name} is not a rotation (|R^T R - I| = {error:.2g}, det = "
+                         f"{det:.4f}; at most {ROTATION_TOLERANCE:g} off is accepted)")
+    if error > 1e-9:
+        left, _, right = np.linalg.svd(rot)
+        rot = left @ right
+    return rot
 
 
 def zone_angles_deg(grid: int, fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> np.ndarray:
