@@ -104,6 +104,9 @@ def test_bad_geometry_raises():
         SensorExtrinsics(rotation=np.ones((3, 3)))
     with pytest.raises(ValueError, match="translation_m"):
         SensorExtrinsics(translation_m=np.array([0.0, np.nan, 0.0]))
+    behind = SensorExtrinsics(translation_m=np.array([0.0, 0.0, -5.0]))
+    with pytest.raises(ValueError, match="behind"):
+        zone_rects(K, extrinsics=behind, depth_m=1.0)
 
 
 def test_a_rotation_written_with_four_decimals_is_made_exact_and_a_scaled_one_refused():
@@ -117,9 +120,6 @@ def test_a_rotation_written_with_four_decimals_is_made_exact_and_a_scaled_one_re
         SensorExtrinsics(rotation=np.eye(3) * 1.1)
     with pytest.raises(ValueError, match=r"det = -1\.0000"):
         SensorExtrinsics(rotation=np.diag([1.0, 1.0, -1.0]))  # a reflection
-    behind = SensorExtrinsics(translation_m=np.array([0.0, 0.0, -5.0]))
-    with pytest.raises(ValueError, match="behind"):
-        zone_rects(K, extrinsics=behind, depth_m=1.0)
 
 
 def test_extrinsics_inverse_round_trip():
