@@ -172,6 +172,10 @@ def test_devices_and_zone_grids_without_torch_say_what_is_wrong(tmp_path, demo_w
     assert "pip install" not in typo.stderr
     gpu = run_without_torch(tmp_path, "predict", *inputs, "--out", "b", "--device", "cuda")
     assert gpu.returncode == 2 and 'pip install "deltar[torch]"' in " ".join(gpu.stderr.split())
+    size = run_without_torch(tmp_path, "predict", *inputs, "--out", "d", "--size", "320x320")
+    text = " ".join(size.stderr.split())
+    assert size.returncode == 2 and "Invalid value for --size: (320, 320) is not one" in text
+    assert 'pip install "deltar[torch]"' in text
     # The bundled ONNX export takes 8x8 zones: a 4x4 recording is refused by name.
     record = run_without_torch(tmp_path, "record", "r4", "--simulate", "wall:1.2:2:48x64",
                                "--grid", "4")

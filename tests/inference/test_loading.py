@@ -76,6 +76,14 @@ def test_the_onnx_export_refuses_another_grid_naming_the_frame_and_remedy(rng):
     assert depth.shape == (240, 320) and np.isfinite(depth).all()
 
 
+def test_a_size_the_onnx_export_lacks_is_refused_listing_its_sizes():
+    with pytest.raises(ValueError, match=r"input_size \(320, 320\) is not one the ONNX model "
+                       r".*deltar_select_default.onnx was exported at: \(256, 320\), .*"
+                       r"the PyTorch backend \(without --onnx\) runs any size"):
+        load_estimator("default", kind="onnx", input_size=(320, 320))
+    assert load_estimator("default", kind="onnx", input_size=(288, 288)).input_size == (288, 288)
+
+
 def test_a_file_named_like_the_bundled_model_wins_as_onnx(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "default").write_bytes(b"not an ONNX file")

@@ -149,15 +149,21 @@ class ModelOptions:
         with warnings.catch_warnings():
             if kind == "preset":  # said once, below, in the CLI's words
                 warnings.simplefilter("ignore", UserWarning)
-            estimator = load_estimator(source, kind=kind, device=self.device,
-                                       precision=self.precision,
-                                       input_size=parse_size(self.size),
-                                       threads=self.threads, flip_average=self.flip,
-                                       **({"blend": None} if self.network_only else {}),
-                                       **({"no_target_min_neighbour_m": None}
-                                          if self.no_inferred_flags else {}),
-                                       **({"zone_outliers": None}
-                                          if self.keep_outlier_zones else {}))
+            try:
+                estimator = load_estimator(source, kind=kind, device=self.device,
+                                           precision=self.precision,
+                                           input_size=parse_size(self.size),
+                                           threads=self.threads, flip_average=self.flip,
+                                           **({"blend": None} if self.network_only else {}),
+                                           **({"no_target_min_neighbour_m": None}
+                                              if self.no_inferred_flags else {}),
+                                           **({"zone_outliers": None}
+                                              if self.keep_outlier_zones else {}))
+            except ValueError as err:  # a size an ONNX file lacks: said as the option
+                if self.size is None or not str(err).startswith("input_size "):
+                    raise
+                raise typer.BadParameter(str(err).removeprefix("input_size "),
+                                         param_hint="--size") from None
         if kind == "preset":
             warn(f"preset {self.preset!r} has random, untrained weights: its depth is "
                  "meaningless")

@@ -56,8 +56,15 @@ def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | No
     if onnx_model is not None:
         sizes = onnx_model.input_sizes
         if input_size is not None and tuple(input_size) not in sizes:
+            from deltar.extras import torch_available
+
+            remedy = ("the PyTorch backend (without --onnx) runs any size" if torch_available()
+                      else 'the PyTorch backend runs any size: pip install "deltar[torch]"')
             raise ValueError(f"input_size {tuple(input_size)} is not one the ONNX model "
-                             f"was exported at: {', '.join(map(str, sizes))}")
+                             f"{onnx_model.path} was exported at: "
+                             f"{', '.join(map(str, sizes))}; without a fixed size each "
+                             f"image runs at the exported size nearest its aspect, or "
+                             f"{remedy}")
         if len(sizes) == 1:
             input_size = sizes[0]
     return None if input_size is None else check_input_size(input_size, "input_size")
