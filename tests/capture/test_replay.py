@@ -118,6 +118,19 @@ def test_calibration_for_another_resolution_is_refused(tmp_path):
         list(replay(tmp_path / "rec", _estimator(), calibration=calib))
 
 
+def test_images_of_another_size_than_the_recordings_meta_name_it(tmp_path):
+    from PIL import Image
+
+    record_wall(tmp_path / "rec", frames=4)
+    rec = Recording(tmp_path / "rec")
+    small = rec.color_paths[0]
+    Image.open(small).resize((16, 12)).save(small)
+    size = f"{rec.meta.intrinsics.height}x{rec.meta.intrinsics.width}"
+    with pytest.raises(ValueError, match=f"{small.name} is 12x16 pixels but .*meta.json "
+                       rf"\(its camera intrinsics\) is for the calibrated resolution {size}"):
+        list(replay(tmp_path / "rec", _estimator()))
+
+
 def test_corrupt_zone_line_names_file_and_line(tmp_path):
     record_wall(tmp_path / "rec", frames=8)
     zones = tmp_path / "rec" / "zones.jsonl"

@@ -20,7 +20,7 @@ import numpy as np
 from deltar.calibration.rig import RigCalibration
 from deltar.inference.folder import FRAME_ERRORS
 from deltar.io.read_ahead import read_ahead
-from deltar.io.recording import Recording, RecordingPair
+from deltar.io.recording import META_FILE, Recording, RecordingPair
 from deltar.sensor.geometry import SensorExtrinsics
 
 if TYPE_CHECKING:
@@ -142,6 +142,9 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
         try:
             image, reference = loaded.result()
+            if calibration is None:  # the rig is the recording's own: name its meta.json
+                calib.check_image_size(image.shape[:2], str(pair.color_path),
+                                       f"{rec.folder / META_FILE} (its camera intrinsics)")
             try:
                 prediction = estimator.predict(image, pair.zone_frame, calib)
             except ValueError as err:  # name the frame: the message may not
