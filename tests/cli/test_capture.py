@@ -145,3 +145,13 @@ def test_replay_of_a_bag_refuses_the_folder_options(tmp_path):
         assert result.exit_code == 2 and f"{option} is for replays into an --out folder" \
             in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_replay_with_both_out_and_show_says_not_both(tmp_path):
+    result = runner.invoke(app, ["replay", str(tmp_path / "rec"), "--out", str(tmp_path / "o"),
+                                 "--show"])
+    assert result.exit_code == 2
+    assert "give --out DIR or --show, not both" in result.output
+    neither = runner.invoke(app, ["replay", str(tmp_path / "rec")])
+    assert neither.exit_code == 2 and "give --out DIR, or --show" in neither.output
+    assert not (tmp_path / "o").exists()

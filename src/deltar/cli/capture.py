@@ -203,7 +203,10 @@ def replay_command(
             fail(err)
         return
     viewing = rerun or rerun_save is not None
-    if (out is not None and show) or (out is None and not show and not viewing):
+    if out is not None and show:
+        raise typer.BadParameter("give --out DIR or --show, not both (--rerun / --rerun-save "
+                                 "go with either)", param_hint="--show")
+    if out is None and not show and not viewing:
         raise typer.BadParameter("give --out DIR, or --show (and/or --rerun, --rerun-save)")
     kinds = parse_outputs(outputs)
     if skip_existing and (overwrite or out is None):
