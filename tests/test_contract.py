@@ -43,3 +43,10 @@ def test_normalisation_is_the_release_formula(parity_fixture):
     assert torch.equal(torch.from_numpy(normalise_image(image.numpy()))[None], expected)
     as_float = image.numpy().astype(np.float32) / np.float32(255.0)
     assert torch.equal(torch.from_numpy(normalise_image(as_float))[None], expected)
+
+
+def test_the_preset_names_are_the_models_presets():
+    from deltar.contract import PRESET_NAMES
+    from deltar.models import list_presets
+
+    assert list(PRESET_NAMES) == list_presets()

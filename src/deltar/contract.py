@@ -26,6 +26,9 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 #: How per-zone depth hypotheses are drawn from a zone's (mean, sigma): "icdf" (the
 #: release: evenly spaced quantiles of the Gaussian) or "uniform" (random draws).
 HYPOTHESIS_SAMPLINGS = ("icdf", "uniform")
+#: The model presets (``deltar.models.list_presets()``, which imports PyTorch), named
+#: here so that a typo is told from a missing extra without it.
+PRESET_NAMES = ("deltar-lite", "deltar-official", "deltar-paper", "deltar-select")
 #: The sections of a stored network config (:class:`deltar.models.config.NetworkConfig`).
 NETWORK_CONFIG_SECTIONS = ("input", "encoder", "decoder", "head", "output")
 #: What :func:`network_contract` returns: the input section's keys, the head's name and

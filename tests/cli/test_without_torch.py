@@ -172,6 +172,10 @@ def test_devices_and_zone_grids_without_torch_say_what_is_wrong(tmp_path, demo_w
     assert "pip install" not in typo.stderr
     gpu = run_without_torch(tmp_path, "predict", *inputs, "--out", "b", "--device", "cuda")
     assert gpu.returncode == 2 and 'pip install "deltar[torch]"' in " ".join(gpu.stderr.split())
+    preset = _one_error_line(run_without_torch(tmp_path, "predict", *inputs, "--out", "e",
+                                               "--preset", "delta-lite"))
+    assert "unknown model preset 'delta-lite'; known presets: deltar-lite" in preset
+    assert "pip install" not in preset
     size = run_without_torch(tmp_path, "predict", *inputs, "--out", "d", "--size", "320x320")
     text = " ".join(size.stderr.split())
     assert size.returncode == 2 and "Invalid value for --size: (320, 320) is not one" in text

@@ -36,6 +36,7 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from deltar.contract import PRESET_NAMES
 from deltar.extras import require_torch, torch_available
 from deltar.inference.checks import check_backend_options
 from deltar.inference.estimator import DepthEstimator
@@ -89,6 +90,9 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
     if Path(text).suffix.lower() == ".ckpt" and kind in (None, "checkpoint"):
         raise ValueError(f"{text} is a Lightning training checkpoint; use the run's model.pt "
                          "or package it (deltar.training.package.package_checkpoint)")
+    if kind == "preset" and text not in PRESET_NAMES:
+        raise ValueError(f"unknown model preset {text!r}; known presets: "
+                         f"{', '.join(PRESET_NAMES)}")
     if kind is not None:
         return kind, text
     if text in BUNDLED_MODELS:
@@ -96,17 +100,11 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
     path = Path(text)
     if path.exists():  # a folder or a device is refused by the file's reader, by name
         return ("onnx" if path.suffix.lower() == ".onnx" else "checkpoint"), text
-    if not torch_available():
-        raise FileNotFoundError(f"model {text!r} is not a bundled model "
-                                f"({', '.join(BUNDLED_MODELS)}) or an existing file (presets "
-                                'need the \'torch\' extra: pip install "deltar[torch]")')
-    from deltar.models import list_presets  # imports torch: only when needed
-
-    if text in list_presets():
+    if text in PRESET_NAMES:
         return "preset", text
     raise FileNotFoundError(f"model {text!r} is not a bundled model "
                             f"({', '.join(BUNDLED_MODELS)}), an existing file or a preset "
-                            f"({', '.join(list_presets())})")
+                            f"({', '.join(PRESET_NAMES)})")
 
 
 def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None = None,
