@@ -54,6 +54,13 @@ def test_impossible_distances_raise(estimator, image, mean, shown):
     assert shown in str(info.value) and str(info.value).startswith("frames[0]:")
 
 
+def test_nan_written_into_a_frame_of_a_batch_names_that_frame(estimator, image):
+    good, bad = _frame(), _frame()
+    bad.mean_m[3, 3] = np.nan  # after construction, as a reused buffer would
+    with pytest.raises(ValueError, match=r"^frames\[1\]: 1 valid zone\(s\) have a NaN"):
+        estimator.predict([image, image], [good, bad])
+
+
 def test_range_follows_the_sensor_model_and_max_range_m(estimator, image, lite_model):
     far = _frame(np.r_[6.0, np.full(63, 1.5)], sensor_model="OTHER-TOF")
     assert estimator.predict(image, far).zones_used == 64  # unknown model: no upper limit

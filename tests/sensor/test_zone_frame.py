@@ -211,6 +211,13 @@ def test_physical_errors_name_the_zones():
         "photons measured no distance; mark such zones invalid")
     far = ZoneFrame(**_base(mean_m=np.array([9.0] + [1.5] * 63)))
     assert far.physical_error() == far.range_error()
+    # Values written in after construction (a reused buffer) bypass validate().
+    broken = ZoneFrame(**_base())
+    broken.mean_m.flat[27] = np.nan
+    broken.sigma_m.flat[3] = np.inf
+    assert broken.physical_error() == (
+        "2 valid zone(s) have a NaN or infinite mean or sigma (zones [3, 27]); mark such "
+        "zones invalid")
 
 
 def test_driver_status_codes_are_refused_not_truncated_and_wide_sigmas_invalid():

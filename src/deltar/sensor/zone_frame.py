@@ -327,11 +327,16 @@ class ZoneFrame:
             The first problem, naming the zones (flat row-major indices, at most five)
             and their values, or None.
         """
+        mean, sigma, valid = self.flat()
+        # Arrays written into after construction skip validate(): NaN compares False.
+        broken = np.flatnonzero(valid & ~(np.isfinite(mean) & np.isfinite(sigma)))
+        if broken.size:
+            return (f"{broken.size} valid zone(s) have a NaN or infinite mean or sigma "
+                    f"(zones {broken[:5].tolist()}); mark such zones invalid")
         problem = self.range_error(max_range_m)
         if problem is not None:
             return problem
         limit = self.range_limit_m(max_range_m)
-        _, sigma, valid = self.flat()
         wide = np.flatnonzero(valid & (sigma > limit))
         if wide.size:
             values = ", ".join(f"{sigma[i]:.6g}" for i in wide[:5])
