@@ -140,14 +140,14 @@ def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
 
 @pytest.mark.parametrize("intrinsics, extrinsics, message", [
     (CameraIntrinsics(500.0, 480.0, 900.0, 239.5, 640, 480), None,
-     "the principal point (900, 239.5) px lies outside the 640x480 image"),
+     "the principal point (900, 239.5) px lies outside the 480x640 image"),
     (CAMERA, SensorExtrinsics(np.eye(3), np.array([20.0, -10.0, 0.0])),
      "the sensor is 22.3607 m from the camera (translation_m [20.0, -10.0, 0.0]); a rig's "
      "sensor sits within 1 m of it (millimetres written as metres?)"),
     (CAMERA, SensorExtrinsics(nominal_extrinsics(0.0, (0, 0, 0)).rotation @ np.array(
         [[1.0, 0, 0], [0, np.cos(1.2), -np.sin(1.2)], [0, np.sin(1.2), np.cos(1.2)]]),
         np.zeros(3)),
-     "all 64 zones fall outside the 640x480 image at 2 m; check the extrinsics"),
+     "all 64 zones fall outside the 480x640 image at 2 m; check the extrinsics"),
 ], ids=["principal-point", "translation-in-mm", "zones-outside"])
 def test_impossible_rigs_are_refused(intrinsics, extrinsics, message):
     with pytest.raises(ValueError) as caught:

@@ -165,12 +165,12 @@ def test_zone_rectangles_outside_the_image_are_refused_or_counted(estimator, ima
     frame = _frame()
     outside = np.tile(np.array([[100.0, 100.0, 110.0, 110.0]], np.float32), (64, 1))
     with pytest.raises(ValueError, match=r"^frames\[0\]: all 64 valid zones fall outside the "
-                       r"64x48 image; check the calibration"):
+                       r"48x64 image; check the calibration"):
         estimator.predict(image, frame, zone_rects=outside)
     some = outside.copy()
     some[:16] = [0.0, 0.0, 6.0, 8.0]
     with pytest.warns(UserWarning, match=r"frames\[0\]: 48 of 64 valid zones fall outside "
-                      "the 64x48 image; the depth uses the 16 inside"):
+                      "the 48x64 image; the depth uses the 16 inside"):
         estimator.predict(image, frame, zone_rects=some)
 
 

@@ -114,7 +114,7 @@ class RigCalibration:
         intr = self.intrinsics
         if not (-0.5 <= intr.cx <= intr.width - 0.5 and -0.5 <= intr.cy <= intr.height - 0.5):
             raise ValueError(f"the principal point ({intr.cx:g}, {intr.cy:g}) px lies outside "
-                             f"the {intr.width}x{intr.height} image")
+                             f"the {intr.height}x{intr.width} image")
         distance = float(np.linalg.norm(self.extrinsics.translation_m))
         if distance >= MAX_TRANSLATION_M:
             raise ValueError(f"the sensor is {distance:.6g} m from the camera (translation_m "
@@ -123,8 +123,8 @@ class RigCalibration:
                              "metres?)")
         inside = self.zones_inside()
         if not inside.any():
-            raise ValueError(f"all {inside.size} zones fall outside the {intr.width}x"
-                             f"{intr.height} image at {FALLBACK_ZONE_DEPTH_M:g} m; check the "
+            raise ValueError(f"all {inside.size} zones fall outside the {intr.height}x"
+                             f"{intr.width} image at {FALLBACK_ZONE_DEPTH_M:g} m; check the "
                              "extrinsics (rotation, translation), intrinsics and fov_deg")
 
     def zones_inside(self, depth_m: float = FALLBACK_ZONE_DEPTH_M) -> np.ndarray:

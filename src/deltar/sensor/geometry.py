@@ -194,11 +194,11 @@ def check_zones_in_image(rects: np.ndarray, valid: np.ndarray, image_size: tuple
     total = int(valid.sum())
     if total and not inside.any():
         raise ValueError(f"{source}: all {total} valid zones fall outside the "
-                         f"{image_size[1]}x{image_size[0]} image; check the calibration "
+                         f"{image_size[0]}x{image_size[1]} image; check the calibration "
                          "(extrinsics, intrinsics, fov_deg) or the zone rectangles")
     if int(inside.sum()) < total:
         warnings.warn(f"{source}: {total - int(inside.sum())} of {total} valid zones fall "
-                      f"outside the {image_size[1]}x{image_size[0]} image; the depth uses "
+                      f"outside the {image_size[0]}x{image_size[1]} image; the depth uses "
                       f"the {int(inside.sum())} inside", UserWarning, stacklevel=3)
 
 
