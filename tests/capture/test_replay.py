@@ -126,9 +126,15 @@ def test_images_of_another_size_than_the_recordings_meta_name_it(tmp_path):
     small = rec.color_paths[0]
     Image.open(small).resize((16, 12)).save(small)
     size = f"{rec.meta.intrinsics.height}x{rec.meta.intrinsics.width}"
-    with pytest.raises(ValueError, match=f"{small.name} is 12x16 pixels but .*meta.json "
-                       rf"\(its camera intrinsics\) is for the calibrated resolution {size}"):
+    with pytest.raises(ValueError, match=f"{small.name} is 12x16 pixels but .*meta.json is "
+                       f"for the calibrated resolution {size}; the recording's images and "
+                       "its meta.json disagree"):
         list(replay(tmp_path / "rec", _estimator()))
+    # The map's frames are read with the same check.
+    from deltar.mapping.frames import FrameSource
+
+    with pytest.raises(ValueError, match=f"{small.name} is 12x16 pixels but .*meta.json"):
+        list(FrameSource(tmp_path / "rec").load())
 
 
 def test_corrupt_zone_line_names_file_and_line(tmp_path):

@@ -155,3 +155,20 @@ def test_replay_with_both_out_and_show_says_not_both(tmp_path):
     neither = runner.invoke(app, ["replay", str(tmp_path / "rec")])
     assert neither.exit_code == 2 and "give --out DIR, or --show" in neither.output
     assert not (tmp_path / "o").exists()
+
+
+def test_record_refuses_a_folder_of_other_files_and_a_viewer_file_inside_before_work(tmp_path):
+    data_set = tmp_path / "rgbd"
+    data_set.mkdir()
+    (data_set / "000000.png").write_bytes(b"a frame of someone's data set")
+    result = runner.invoke(app, ["record", str(data_set), "--simulate", "wall:1.2:2:48x64",
+                                 "--rerun-save", str(tmp_path / "view.rrd")])
+    assert result.exit_code == 1
+    assert "rgbd is not empty and holds no recording (no meta.json)" in result.output
+    assert sorted(p.name for p in data_set.iterdir()) == ["000000.png"]
+    assert not (tmp_path / "view.rrd").exists()
+    inside = runner.invoke(app, ["record", str(tmp_path / "rec"), "--simulate",
+                                 "wall:1.2:2:48x64", "--rerun-save",
+                                 str(tmp_path / "rec" / "view.rrd")])
+    assert inside.exit_code == 2 and "is inside the recording" in inside.output
+    assert not (tmp_path / "rec").exists()

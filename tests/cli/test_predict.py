@@ -147,6 +147,12 @@ def test_predict_folder_refuses_an_image_of_another_size_before_any_frame(tmp_pa
     assert f"b.png is 32x48 pixels but --calib {calib} is for the calibrated resolution 64x96" \
         in text
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    # With --keep-going that frame fails alone and the others are written.
+    kept = runner.invoke(app, ["predict", "--images", str(tmp_path / "in"), "--zones-dir",
+                               str(tmp_path / "in"), "--calib", str(calib), "--out",
+                               str(tmp_path / "out"), "--outputs", "npy", "--keep-going", *LITE])
+    assert kept.exit_code == 1 and "1 of 2 frames failed" in " ".join(kept.output.split())
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a_depth_m.npy"]
 
 
 def test_record_replay_wall_test_export_end_to_end(tmp_path):

@@ -139,7 +139,8 @@ class RigCalibration:
 
     # ------------------------------------------------------------------ zones in the image
     def check_image_size(self, image_size: tuple[int, int], what: str = "image_size",
-                         calibration: str = "the calibration") -> None:
+                         calibration: str = "the calibration",
+                         remedy: str = "resize the images or recalibrate") -> None:
         """Refuse images of another size than the calibrated resolution: the intrinsics,
         and so the zone placement, hold for that size only. The one such check of the
         package (zone placement, undistortion, predict, replay, maps, calibration checks).
@@ -148,17 +149,17 @@ class RigCalibration:
             image_size: (height, width) of the images in pixels.
             what: how the message names the images (an argument, a file, a recording).
             calibration: how it names the calibration (e.g. ``--calib calib.json``).
+            remedy: what the message suggests.
 
         Raises:
             ValueError: ``"<what> is HxW pixels but <calibration> is for the calibrated
-                resolution HxW; resize the images or recalibrate"``.
+                resolution HxW; <remedy>"``.
         """
         height, width = (int(s) for s in image_size)
         intr = self.intrinsics
         if (height, width) != (intr.height, intr.width):
             raise ValueError(f"{what} is {height}x{width} pixels but {calibration} is for the "
-                             f"calibrated resolution {intr.height}x{intr.width}; resize the "
-                             "images or recalibrate")
+                             f"calibrated resolution {intr.height}x{intr.width}; {remedy}")
 
     def zone_rects_for(self, frame_or_depths: ZoneFrame | np.ndarray | float,
                        image_size: tuple[int, int]) -> np.ndarray:

@@ -95,6 +95,13 @@ def record_command(
         from deltar.io.input_file import refuse_input_as_output
 
         refuse_input_as_output(out, [Path(simulate)], "OUT", folder=True)
+    if not bag:  # before the camera, the sensor and the viewer are opened
+        from deltar.io.recording import check_recording_folder
+
+        check_recording_folder(out)
+        if rerun_save is not None and out.resolve() in rerun_save.resolve().parents:
+            raise typer.BadParameter(f"{rerun_save} is inside the recording {out}; write it "
+                                     "elsewhere", param_hint="--rerun-save")
     try:
         intrinsics = None
         if simulate is not None:

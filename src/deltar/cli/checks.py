@@ -102,7 +102,7 @@ def torch_device(name: str, option: str = "--device") -> str:
     from deltar.extras import torch_available
 
     # Told apart before torch is imported: a typo is a typo in the base install too.
-    if not re.fullmatch(r"cpu|mps|cuda(:\d+)?", name):
+    if not re.fullmatch(r"(cpu|mps|cuda)(:\d+)?", name):
         raise typer.BadParameter(f"unknown device {name!r}; use cpu, cuda, cuda:N or mps",
                                  param_hint=option)
     if not torch_available():

@@ -108,7 +108,7 @@ def predict_command(
                              f"--calib {calib} is for {calibration.grid}x{calibration.grid}")
         if calibration is not None:
             calibration.check_image_size(first[0].shape[:2], str(image), f"--calib {calib}")
-    elif calibration is not None:
+    elif calibration is not None and not keep_going:  # with it, such frames fail alone
         _check_image_sizes(jobs, calibration, f"--calib {calib}")
     if unpaired:
         warn(f"{len(unpaired)} file{'s' if len(unpaired) > 1 else ''} without a partner "

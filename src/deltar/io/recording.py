@@ -89,6 +89,25 @@ def timestamp_to_ns(timestamp_s: float) -> int:
     return round(float(timestamp_s) * 1e9)
 
 
+def check_recording_folder(folder: str | os.PathLike) -> Path:
+    """A folder a recording can be written to: new, empty (hidden files aside) or a
+    recording (it holds ``meta.json``; frames are appended).
+
+    Appending is for recordings only: frames added to another folder (an RGB-D set, a
+    bag, outputs) would mix with its files.
+
+    Raises:
+        FileExistsError: ``folder`` holds files but no recording.
+    """
+    folder = Path(folder)
+    if folder.is_dir() and not (folder / META_FILE).is_file() and any(
+            not entry.name.startswith(".") for entry in folder.iterdir()):
+        raise FileExistsError(f"{folder} is not empty and holds no recording (no "
+                              f"{META_FILE}): record into a new or empty folder, or into a "
+                              "recording to append to")
+    return folder
+
+
 class RecordingWriter:
     """Append-only writer of a recording folder; never overwrites an existing file.
 
@@ -115,13 +134,7 @@ class RecordingWriter:
             _end_partial_line(self.folder / ZONES_FILE)
             self._last_zone_time = _last_zone_timestamp(self.folder / ZONES_FILE)
         else:
-            # Appending is for recordings only: frames added to another folder (an RGB-D
-            # set, a bag, outputs) would mix with its files.
-            if self.folder.is_dir() and any(not entry.name.startswith(".")
-                                            for entry in self.folder.iterdir()):
-                raise FileExistsError(f"{self.folder} is not empty and holds no recording "
-                                      f"(no {META_FILE}): record into a new or empty folder, "
-                                      "or into a recording to append to")
+            check_recording_folder(self.folder)
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
             self.meta = RecordingMeta(meta.intrinsics, meta.sensor_model, meta.grid,
                                       (float(meta.fov_deg[0]), float(meta.fov_deg[1])),

@@ -103,6 +103,7 @@ class FrameSource:
 
         rec = Recording(self.path)
         self.recording = rec
+        self._calibration = calibration
         calib = calibration or recording_calibration(rec)
         calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
                                f"the recording {self.path}", "--calib")
@@ -162,9 +163,12 @@ class FrameSource:
                 yield frame
                 frame.image, frame.recorded_depth_m = None, None
             return
-        for (_, frame), loaded in read_ahead(chosen, lambda chosen_pair:
-                                             chosen_pair[0].load_images()):
+        from deltar.capture.replay import check_recording_image
+
+        for (pair, frame), loaded in read_ahead(chosen, lambda chosen_pair:
+                                                chosen_pair[0].load_images()):
             frame.image, frame.recorded_depth_m = loaded.result()
+            check_recording_image(self.recording, pair, frame.image, self._calibration)
             yield frame
             frame.image, frame.recorded_depth_m = None, None
 
