@@ -161,9 +161,12 @@ def test_cli_replay_folder_views_and_writes(tmp_path):
 @pytest.mark.parametrize("command", ["predict", "record", "replay", "map"])
 def test_rerun_without_a_display_is_refused_before_the_work(tmp_path, monkeypatch, command):
     import deltar.cli.checks as checks
+    import deltar.cli.robotics as robotics
 
-    # A headless Linux machine, whatever the one running the tests has.
+    # A headless Linux machine with no viewer running, whatever the one running the
+    # tests has.
     monkeypatch.setattr(checks.sys, "platform", "linux")
+    monkeypatch.setattr(robotics, "RERUN_VIEWER_ADDRESS", ("127.0.0.1", 1))
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     missing = tmp_path / "missing"
@@ -176,3 +179,21 @@ def test_rerun_without_a_display_is_refused_before_the_work(tmp_path, monkeypatc
     assert result.exit_code == 2, result.output
     assert "the viewer needs a display" in result.output and "--rerun-save" in result.output
     assert not (tmp_path / "rec").exists() and not (tmp_path / "out").exists()
+
+
+def test_rerun_without_a_display_connects_to_a_viewer_already_listening(monkeypatch):
+    import socket
+
+    import deltar.cli.checks as checks
+    import deltar.cli.robotics as robotics
+
+    monkeypatch.setattr(checks.sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with socket.socket() as viewer:  # e.g. `rerun --web-viewer` on a headless machine
+        viewer.bind(("127.0.0.1", 0))
+        viewer.listen()
+        monkeypatch.setattr(robotics, "RERUN_VIEWER_ADDRESS", viewer.getsockname())
+        robotics.check_viewer(True, None)  # no refusal
+    with pytest.raises(Exception, match="the viewer needs a display"):
+        robotics.check_viewer(True, None)  # the viewer gone

@@ -27,6 +27,20 @@ def test_a_pose_round_trips_and_is_never_overwritten(tmp_path):
     np.testing.assert_allclose(read_pose_file(path), _pose(1), atol=1e-9)
 
 
+def test_a_pose_written_with_four_decimals_reads_as_an_exact_rotation(tmp_path):
+    pose = _pose(4)
+    rounded = np.round(pose, 4)
+    (tmp_path / "rounded.txt").write_text(
+        "\n".join(" ".join(f"{v:.4f}" for v in row) for row in rounded) + "\n")
+    read = read_pose_file(tmp_path / "rounded.txt")
+    np.testing.assert_allclose(read[:3, :3].T @ read[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(read, pose, atol=2e-4)  # the nearest rotation: the pose's
+    assert np.array_equal(read[:3, 3], rounded[:3, 3])  # the translation as written
+    kept = rounded.copy()
+    check_pose(kept, "caller's array")
+    assert np.array_equal(kept, rounded)  # the caller's array is not changed
+
+
 def test_transforms_that_are_not_rigid_are_refused_by_name(tmp_path):
     scaled = _pose(3)
     scaled[:3, :3] *= 2.0

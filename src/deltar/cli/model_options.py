@@ -136,6 +136,7 @@ class ModelOptions:
     def load(self) -> DepthEstimator:
         """Check, then build the estimator; a preset's random weights get a warning line."""
         from deltar.cli.errors import warn
+        from deltar.inference.checks import InputSizeError
         from deltar.inference.loading import load_estimator
 
         self.check()
@@ -159,9 +160,7 @@ class ModelOptions:
                                               if self.no_inferred_flags else {}),
                                            **({"zone_outliers": None}
                                               if self.keep_outlier_zones else {}))
-            except ValueError as err:  # a size an ONNX file lacks: said as the option
-                if self.size is None or not str(err).startswith("input_size "):
-                    raise
+            except InputSizeError as err:  # a size an ONNX file lacks: said as the option
                 raise typer.BadParameter(str(err).removeprefix("input_size "),
                                          param_hint="--size") from None
         if kind == "preset":

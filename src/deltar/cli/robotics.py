@@ -118,10 +118,26 @@ def check_viewer(rerun: bool, rerun_save: Path | None) -> None:
     if rerun_save is not None and rerun_save.exists():
         raise typer.BadParameter(f"{rerun_save} exists; give a new file (an existing "
                                  "recording is never replaced)", param_hint="--rerun-save")
-    if rerun and rerun_save is None and not has_display():
+    if rerun and rerun_save is None and not has_display() and not _viewer_listening():
         raise typer.BadParameter("the viewer needs a display (DISPLAY is not set); write a "
                                  "recording with --rerun-save FILE.rrd and open it where "
                                  "there is one (rerun FILE.rrd)", param_hint="--rerun")
+
+
+#: Where a running rerun viewer listens (rerun's default gRPC port on this machine).
+RERUN_VIEWER_ADDRESS = ("127.0.0.1", 9876)
+
+
+def _viewer_listening() -> bool:
+    """Whether a rerun viewer (e.g. ``rerun --web-viewer`` on a headless machine) already
+    listens on :data:`RERUN_VIEWER_ADDRESS`: ``--rerun`` then connects to it."""
+    import socket
+
+    try:
+        with socket.create_connection(RERUN_VIEWER_ADDRESS, timeout=0.2):
+            return True
+    except OSError:
+        return False
 
 
 def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:

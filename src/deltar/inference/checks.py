@@ -44,12 +44,18 @@ _IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them
 _ZONE_READER = "deltar.io.zone_file.load_zone_frame"
 
 
+class InputSizeError(ValueError):
+    """A fixed network input size an ONNX model was not exported at (the command line
+    says it as its ``--size`` option)."""
+
+
 def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | None:
     """The estimator's fixed network input size (h, w) pixels, checked: as given, or an
     ONNX model's one exported size; None lets the size rule choose.
 
     Raises:
-        ValueError: a bad size, or one the ONNX model was not exported at.
+        ValueError: a bad size; :class:`InputSizeError` for one the ONNX model was not
+            exported at.
     """
     from deltar.inference.preprocess import check_input_size
 
@@ -60,7 +66,7 @@ def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | No
 
             remedy = ("the PyTorch backend (without --onnx) runs any size" if torch_available()
                       else 'the PyTorch backend runs any size: pip install "deltar[torch]"')
-            raise ValueError(f"input_size {tuple(input_size)} is not one the ONNX model "
+            raise InputSizeError(f"input_size {tuple(input_size)} is not one the ONNX model "
                              f"{onnx_model.path} was exported at: "
                              f"{', '.join(map(str, sizes))}; without a fixed size each "
                              f"image runs at the exported size nearest its aspect, or "

@@ -73,7 +73,8 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
 
     Raises:
         ValueError: an unknown ``kind``, or ``kind`` given without a source (other than
-            ``"bundled"``), or a Lightning ``.ckpt`` (package it first).
+            ``"bundled"``), a Lightning ``.ckpt`` (package it first), or ``kind="preset"``
+            with a name that is none (:data:`deltar.contract.PRESET_NAMES`).
         FileNotFoundError: no bundled model in this installation for ``source=None``, or
             a source that is neither a bundled model, an existing file nor a preset.
     """

@@ -60,7 +60,7 @@ class SensorExtrinsics:
 ROTATION_TOLERANCE = 1e-3
 
 
-def nearest_rotation(matrix: np.ndarray, name: str = "rotation") -> np.ndarray:
+def nearest_rotation(matrix: np.ndarray, name: str = "matrix") -> np.ndarray:
     """A 3x3 matrix checked to be a rotation within :data:`ROTATION_TOLERANCE`, returned
     as the nearest exact rotation (by SVD) when it is off by rounding.
 
