@@ -184,3 +184,14 @@ def test_physically_impossible_frames_are_refused(estimator, image, changes, mes
               "valid": np.ones(64, bool), **changes}
     with pytest.raises(ValueError, match=message):
         estimator.predict(image, ZoneFrame(**fields))
+
+
+def test_a_result_keeps_its_own_copy_of_the_readings_and_rectangles(estimator, image):
+    frame = _frame()
+    rects = estimator.zone_rects_for(frame, image.shape[:2]).astype(np.float32)
+    result = estimator.predict(image, frame, zone_rects=rects)
+    frame.mean_m[...] *= 0.5  # the caller's buffers, reused for the next reading
+    rects += 10.0
+    assert np.all(result.zone_frame.mean_m == np.float32(1.5))
+    assert not np.shares_memory(result.zone_rects, rects)
+    assert np.allclose(result.zone_rects, rects - 10.0)

@@ -93,6 +93,14 @@ def test_an_aspect_not_exported_is_stretched_with_a_warning_naming_the_remedy(
     with pytest.warns(UserWarning, match=r"stretched .* 224x384 .*192x416; " + remedy):
         result = lean.predict(frame.image, zones)
     assert result.network_size == (224, 384) and result.depth_m.shape == (240, 480)
+    # The caller's filters decide: a frame predicted under "ignore" does not use it up.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lean.predict(frame.image, zones)
+    with pytest.warns(UserWarning, match=r"stretched .* 224x384"):
+        lean.predict(frame.image, zones)
 
 
 @pytest.fixture(scope="module")

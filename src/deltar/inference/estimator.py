@@ -18,6 +18,7 @@ config (checkpoints: :mod:`deltar.models.checkpoint`) or the ONNX file's metadat
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -414,7 +415,7 @@ class DepthEstimator:
         screened = [self.screen_zones(f) for f in frames]
         frames, rejected = [f for f, _ in screened], [r for _, r in screened]
         if zone_rects is not None:
-            zone_rects = np.asarray(zone_rects, dtype=np.float32)
+            zone_rects = np.array(zone_rects, dtype=np.float32)  # results keep a copy
             zone_rects = zone_rects[None] if single and zone_rects.ndim == 2 else zone_rects
         # The blend's fill needs only the image and the zones: started once they are placed,
         # it runs while the images are resized and the network runs (all release the GIL).
@@ -446,7 +447,8 @@ class DepthEstimator:
             maps = resize_to_image(np.stack(maps)[None], size)[0]
             results.append(DepthPrediction(depth_m=maps[0], uncertainty_m=maps[1],
                                            zone_rects=inputs["image_rects"][i],
-                                           zone_frame=frame, intrinsics=intrinsics,
+                                           zone_frame=copy.deepcopy(frame),
+                                           intrinsics=intrinsics,
                                            zones_used=frame.valid_count,
                                            network_size=tuple(net_size),
                                            network_depth_m=maps[2] if len(maps) > 2 else None,

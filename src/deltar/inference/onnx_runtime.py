@@ -134,7 +134,6 @@ class OnnxDepthModel:
         except Exception as err:  # onnxruntime raises its own exception types
             raise ValueError(f"{path}: cannot load ONNX model: {err}") from err
         self.path = path
-        self._stretch_warned: set[tuple[int, int]] = set()
         names = [i.name for i in self.session.get_inputs()]
         if names not in (list(INPUT_NAMES), [*INPUT_NAMES, NO_TARGET_INPUT],
                          [*INPUT_NAMES, NO_TARGET_INPUT, TARGETS_INPUT]):
@@ -232,17 +231,17 @@ class OnnxDepthModel:
 
     def warn_if_stretched(self, image_size: tuple[int, int], net_size: tuple[int, int]
                           ) -> None:
-        """Warn (once per image size) when the exported sizes stretch an image of
-        ``image_size`` (H, W pixels) to ``net_size`` where the weights' size rule would run
-        it at another size, as PyTorch does."""
+        """Warn when the exported sizes stretch an image of ``image_size`` (H, W pixels)
+        to ``net_size`` where the weights' size rule would run it at another size, as
+        PyTorch does. Each call warns: the caller's warning filters decide what is shown
+        (Python's default shows each size's warning once)."""
         from deltar.inference.preprocess import network_input_size
 
         design = self.contract.get("design_size")
-        if design is None or tuple(image_size) in self._stretch_warned:
+        if design is None:
             return
         rule = network_input_size(*image_size, design_size=tuple(design))
         if tuple(rule) != tuple(net_size):
-            self._stretch_warned.add(tuple(image_size))
             remedy = ("use the PyTorch backend (without --onnx) for that" if torch_available()
                       else 'pip install "deltar[torch]" for that')
             warnings.warn(f"{image_size[0]}x{image_size[1]} images are stretched to the ONNX "

@@ -23,7 +23,8 @@ class DepthPrediction:
             network's own depth distribution (the network's also when ``depth_m`` is
             blended).
         zone_rects: (Z, 4) float32 (y0, x0, y1, x1) zone rectangles in input-image pixels.
-        zone_frame: the zone frame the prediction used (after outlier rejection).
+        zone_frame: the zone frame the prediction used (after outlier rejection), a copy:
+            the caller may reuse its frame's arrays.
         intrinsics: camera intrinsics of the input image (calibrated or nominal).
         zones_used: number of valid zones the network saw (None when unknown).
         network_size: (h, w) network input size in pixels the image was resized to
