@@ -195,3 +195,18 @@ def test_official_weights_load(tmp_path, parity_fixture, rng):
     torch.save({"img_encoder.conv0.0.weight": torch.zeros(1)}, broken)
     with pytest.raises(ValueError, match=r"broken\.pt"):
         load_estimator(broken, kind="official")
+
+
+def test_one_estimator_shared_by_threads_gives_each_call_its_own_result(rng):
+    from concurrent.futures import ThreadPoolExecutor
+
+    estimator = load_estimator("default", kind="onnx", threads=1)
+    inputs = [(random_image(rng, *size), random_frame(rng))
+              for size in [(240, 320), (120, 160), (240, 320), (180, 320), (120, 160), (240, 240)]]
+    alone = [estimator.predict(image, frame) for image, frame in inputs]
+    with ThreadPoolExecutor(max_workers=3) as pool:
+        together = list(pool.map(lambda pair: estimator.predict(*pair), inputs * 2))
+    for index, result in enumerate(together):
+        reference = alone[index % len(inputs)]
+        assert np.abs(result.depth_m - reference.depth_m).max() <= 1e-5
+        assert np.abs(result.uncertainty_m - reference.uncertainty_m).max() <= 1e-5
