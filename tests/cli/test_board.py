@@ -48,6 +48,13 @@ def test_calibrate_with_a_board_then_check_it(board_recording, tmp_path):
         small = _run("calibrate", board_recording, "--target",
                      "charuco:5x4:0.0638:0.0479:DICT_4X4_50", "--out", tmp_path / "small.json")
     assert small.exit_code == 0, small.output
+    # ... and the translation error it implies is said beside the expected error.
+    off = RigCalibration.load(tmp_path / "small.json").residuals["board_scale_translation_m"]
+    assert 0.02 < off < 0.08
+    assert f"plus about {1000 * off:.0f} mm of translation from the board's printed size" \
+        in small.output
+    assert "plus about" not in result.output
+    assert RigCalibration.load(out).residuals["board_scale_translation_m"] == 0.0
     assert "frames used: 10" in result.output and "cm before" in result.output
     calib = RigCalibration.load(out)
     # The report prints the expected error the file stores.

@@ -363,9 +363,10 @@ def calibrate_recording_with_board(
     uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov,
                                   camera_fit)
     used_views = [v for v in good if v.name in used]
-    warn_board_scale(np.array([v.pose.normal_cam for v in used_views]),
-                     np.array([v.pose.offset_cam_m for v in used_views]),
-                     np.array([v.plane.offset_m for v in used_views]), spec)
+    residuals["board_scale_translation_m"] = warn_board_scale(
+        np.array([v.pose.normal_cam for v in used_views]),
+        np.array([v.pose.offset_cam_m for v in used_views]),
+        np.array([v.plane.offset_m for v in used_views]), spec)
     residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
     residuals["translation_sd_m"] = uncertainty.translation_rms_m
     residuals["zone_noise_m"] = uncertainty.zone_noise_m

@@ -47,19 +47,27 @@ def board_scale(normals_cam: np.ndarray, offsets_cam_m: np.ndarray,
 
 
 def warn_board_scale(normals_cam: np.ndarray, offsets_cam_m: np.ndarray,
-                     offsets_zone_m: np.ndarray, spec: BoardSpec) -> float | None:
+                     offsets_zone_m: np.ndarray, spec: BoardSpec) -> float:
     """Warn when :func:`board_scale` (arguments as there) is off by more than
-    :data:`BOARD_SCALE_TOLERANCE` and two standard errors; return the scale, or None
-    with fewer than :data:`MIN_SCALE_VIEWS` views."""
+    :data:`BOARD_SCALE_TOLERANCE` and two standard errors.
+
+    Returns:
+        The translation error in metres that such a scale implies (``|1 - k|`` times the
+        views' median distance), not part of the expected error from the zones' noise;
+        0 when the scale is within the tolerance or there are fewer than
+        :data:`MIN_SCALE_VIEWS` views to judge it from.
+    """
     if len(offsets_cam_m) < MIN_SCALE_VIEWS:
-        return None
+        return 0.0
     scale, error = board_scale(normals_cam, offsets_cam_m, offsets_zone_m)
+    off_m = 0.0
     if abs(scale - 1.0) > max(BOARD_SCALE_TOLERANCE, 2.0 * error):
-        off_cm = 100 * abs(1 - scale) * float(np.median(offsets_cam_m))
+        off_m = abs(1 - scale) * float(np.median(offsets_cam_m))
+        off_cm = 100 * off_m
         warnings.warn(
             f"the board looks printed at {scale:.3f} times the size of {spec.text()} "
             f"(+-{error:.3f}; a square of about {1000 * spec.square_m * scale:.1f} mm rather "
             f"than {1000 * spec.square_m:g} mm): measure a printed square and give it as "
             f"SQUARE_M (and MARKER_M) in --target, or the translation is off by about "
             f"{off_cm:.1f} cm", stacklevel=3)
-    return scale
+    return off_m

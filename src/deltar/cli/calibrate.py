@@ -212,7 +212,12 @@ def _report(result, nominal, out: Path, overwrite: bool, tolerance_s: float,
         typer.echo(f"expected error from the zones' noise ({100 * expected.zone_noise_m:.1f} cm, "
                    f"1 sd): rotation {expected.rotation_rms_deg:.2f} deg, translation "
                    f"{1000 * expected.translation_rms_m:.1f} mm")
-    typer.echo(f"wrote {out}")
+    scale_m = calib.residuals.get("board_scale_translation_m", 0.0)
+    if scale_m > 0:
+        typer.echo(f"plus about {1000 * scale_m:.0f} mm of translation from the board's "
+                   "printed size (the warning above): not counted in the expected error")
+    typer.echo(f"wrote {out}; check it on another recording with deltar check-calibration, "
+               "then give it to predict / replay / map with --calib")
 
 
 def _plots(plot: Path | None, rec, result, nominal, tolerance_s: float,
