@@ -172,3 +172,21 @@ def test_record_refuses_a_folder_of_other_files_and_a_viewer_file_inside_before_
                                  str(tmp_path / "rec" / "view.rrd")])
     assert inside.exit_code == 2 and "is inside the recording" in inside.output
     assert not (tmp_path / "rec").exists()
+
+
+def test_replay_without_calib_warns_unless_the_recording_is_simulated(tmp_path):
+    import json
+
+    recorded = runner.invoke(app, ["record", str(tmp_path / "rec"), "--simulate",
+                                   "wall:1.2:2:48x64"])
+    assert recorded.exit_code == 0, recorded.output
+    lite = ["--preset", "deltar-lite", "--threads", "1", "--outputs", "npy"]
+    simulated = runner.invoke(app, ["replay", str(tmp_path / "rec"), "--out",
+                                    str(tmp_path / "a"), *lite])
+    assert simulated.exit_code == 0 and "no --calib" not in simulated.output
+    meta = tmp_path / "rec" / "meta.json"
+    meta.write_text(json.dumps({**json.loads(meta.read_text()), "sensor_model": "VL53L5CX"}))
+    real = runner.invoke(app, ["replay", str(tmp_path / "rec"), "--out", str(tmp_path / "b"),
+                               *lite])
+    assert real.exit_code == 0, real.output
+    assert "warning: no --calib: the zones are placed with" in real.output

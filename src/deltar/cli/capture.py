@@ -321,12 +321,20 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
 
 
 def _check_calibration_fits(calibration, calib: Path | None, recording: Path) -> None:
-    """``--calib`` against the recording's image size and zone grid, before the model."""
-    if calibration is None:
-        return
+    """``--calib`` against the recording's image size and zone grid, before the model;
+    without it, a warning unless the recording is simulated (its sensor sits on the
+    camera's axis, as the placement without a calibration assumes)."""
     from deltar.io.recording import Recording
 
     meta = Recording(recording).meta
+    if calibration is None:
+        if meta.sensor_model != "simulated":
+            from deltar.cli.errors import warn
+
+            warn(f"no --calib: the zones are placed with {recording}'s camera (meta.json) and "
+                 "the sensor on its optical axis; give your rig's calibration with --calib "
+                 "(docs/calibration.md)")
+        return
     calibration.check_image_size((meta.intrinsics.height, meta.intrinsics.width),
                                  f"the recording {recording}", f"--calib {calib}")
     if calibration.grid != meta.grid:
