@@ -109,6 +109,11 @@ def test_too_few_views_with_the_board(tmp_path):
     with pytest.raises(ValueError, match=r"found in 3 of the 8 images paired with a zone frame "
                                          r"\(need at least 6\): keep the whole board in view"):
         calibrate_recording_with_board(Recording(tmp_path / "rec"), SPEC, NOMINAL)
+    # Found in every view, but too few views: record more.
+    write_board_recording(tmp_path / "few", TRUE, SMALL, SPEC, _poses(4), seed=1)
+    with pytest.raises(ValueError, match=r"found in 4 of the 4 images paired with a zone frame "
+                                         r"\(need at least 6\): record more views"):
+        calibrate_recording_with_board(Recording(tmp_path / "few"), SPEC, NOMINAL)
 
 
 def test_zones_that_miss_the_boards_surface_are_refused(tmp_path):

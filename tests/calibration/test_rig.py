@@ -162,7 +162,7 @@ def test_a_rig_with_zones_partly_outside_loads_with_a_warning(tmp_path):
     inside = int(RigCalibration(CAMERA, tilted).zones_inside().sum())
     assert 0 < inside < 64
     with pytest.warns(UserWarning, match=rf"c\.json: only {inside} of 64 zones fall inside "
-                      r"the 640x480 image \(at 2 m\); the others carry no information"):
+                      r"the 480x640 image \(at 2 m\); the others carry no information"):
         RigCalibration.load(path)
 
 

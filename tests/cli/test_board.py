@@ -165,3 +165,16 @@ def test_check_calibration_needs_three_scored_frames(tmp_path):
     assert check.exit_code == 1
     assert "the board is found in only 2 of 2 paired frames" in check.output
     assert "at least 3" in check.output
+
+
+def test_check_calibration_names_the_files_it_cannot_match(board_recording, tmp_path):
+    four = RigCalibration(CAMERA, TRUE, grid=4).save(tmp_path / "four.json")
+    result = _run("check-calibration", board_recording, "--calib", four, "--target", TARGET)
+    assert result.exit_code == 1
+    assert (f"--calib {four} is for a 4x4 grid, the recording {board_recording} has 8x8"
+            in " ".join(result.output.split()))
+    late = RigCalibration(CAMERA, TRUE, time_offset_s=30.0).save(tmp_path / "late.json")
+    result = _run("check-calibration", board_recording, "--calib", late, "--target", TARGET)
+    assert result.exit_code == 1
+    assert "no zone frame pairs with an image at the time offset of +30 s" in " ".join(
+        result.output.split())

@@ -79,6 +79,7 @@ def test_record_simulate_carries_the_sources_poses_and_appends_after_its_end(tmp
         result = runner.invoke(app, ["record", str(out), "--simulate", str(source)])
         assert result.exit_code == 0, result.output
         assert "4 camera poses" in result.output
+        assert ("appended to the recording" in result.output) == (run == 2)
         assert len(Recording(out).color_paths) == 4 * run
     found = read_pose_folder(out / "pose")
     order = np.argsort([int(name) for name in found.names])

@@ -269,6 +269,8 @@ class BoardDetector:
             advice = (f"only {searched} of the {zone_frames} zone frames have a colour image "
                       "within --tolerance after --time-offset: check both, or record more "
                       "views")
+        elif found and found == searched:  # found in every view there is: too few views
+            advice = "record more views (15-25, docs/calibration.md)"
         else:
             advice = (f"the board spec {self.spec.text()} does not match what is detected: "
                       f"{hint}" if hint else "keep the whole board in view, sharp and evenly "

@@ -484,4 +484,6 @@ def _refuse_missing(views: list[_View], good: list[_View]) -> None:
             f"the surface the board is fixed on (first: {reasons[0]}), leaving "
             f"{len(good)} usable views (need {MIN_BOARD_VIEWS}): fix the board flat on a "
             "wall, door or table that fills the sensor's whole view around it, and keep "
-            "other objects out of that view")
+            "other objects out of that view; if it is, the recording's camera intrinsics "
+            "may be off (try --calibrate-intrinsics) or its clocks apart (try --time-offset "
+            "auto)")

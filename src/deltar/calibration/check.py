@@ -144,7 +144,8 @@ MIN_CHECK_FRAMES = 3
 
 def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec | None = None,
                       tolerance_s: float = 0.02, time_offset_s: float | None = None,
-                      depth_stride: int = 2) -> CalibrationCheck:
+                      depth_stride: int = 2,
+                      calibration_name: str = "the calibration") -> CalibrationCheck:
     """Score ``calibration`` on a recording (board plane with ``spec``, else depth images).
 
     Args:
@@ -154,6 +155,7 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
         tolerance_s: pairing tolerance, seconds.
         time_offset_s: camera minus sensor clock, seconds (default: the calibration's).
         depth_stride: every n-th depth pixel per row and column.
+        calibration_name: how messages name the calibration (e.g. ``--calib c.json``).
 
     Raises:
         ValueError: the calibration is for another resolution or grid, or fewer than
@@ -163,10 +165,10 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
     meta = recording.meta
     intr = calibration.intrinsics
     calibration.check_image_size((meta.intrinsics.height, meta.intrinsics.width),
-                                 f"the recording {recording.folder}")
+                                 f"the recording {recording.folder}", calibration_name)
     if calibration.grid != meta.grid:
-        raise ValueError(f"the calibration is for a {calibration.grid}x{calibration.grid} "
-                         f"grid, the recording has {meta.grid}x{meta.grid}")
+        raise ValueError(f"{calibration_name} is for a {calibration.grid}x{calibration.grid} "
+                         f"grid, the recording {recording.folder} has {meta.grid}x{meta.grid}")
     offset = calibration.time_offset_s if time_offset_s is None else float(time_offset_s)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -194,6 +196,9 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
     if not rows:
         what = "the board is found in no paired image" if spec is not None else \
             "no zone frame has a depth image (pass --target for a board recording)"
+        if not pairs and offset:  # a time offset that pairs nothing is the likelier cause
+            what = (f"no zone frame pairs with an image at the time offset of {offset:+g} s "
+                    f"({calibration_name}'s or --time-offset's)")
         raise ValueError(f"{recording.folder}: nothing to score against: {what}")
     if len(rows) < MIN_CHECK_FRAMES:  # one view is no verdict on a rig
         what = "the board is found" if spec is not None else "zone frames have a depth image"

@@ -304,8 +304,8 @@ class RigCalibration:
         inside = calibration.zones_inside()
         if not inside.all():
             warnings.warn(f"{path}: only {int(inside.sum())} of {inside.size} zones fall "
-                          f"inside the {calibration.intrinsics.width}x"
-                          f"{calibration.intrinsics.height} image (at "
+                          f"inside the {calibration.intrinsics.height}x"
+                          f"{calibration.intrinsics.width} image (at "
                           f"{FALLBACK_ZONE_DEPTH_M:g} m); the others carry no information",
                           UserWarning, stacklevel=2)
         return calibration

@@ -81,7 +81,7 @@ def check_calibration_command(
     calibration = RigCalibration.load(calib)
     rec = Recording(recording)
     check = check_calibration(rec, calibration, spec=spec, tolerance_s=tolerance_s,
-                              time_offset_s=offset)
+                              time_offset_s=offset, calibration_name=f"--calib {calib}")
     typer.echo(f"frames scored: {len(check.frame_names)} against the {check.reference}"
                + (f" ({check.skipped} without one)" if check.skipped else ""))
     typer.echo(f"zone residuals: median |r| {100 * check.median_abs_m:.2f} cm, bias "
@@ -99,5 +99,6 @@ def check_calibration_command(
     else:
         typer.echo("the calibration does NOT fit this recording (median |r| > "
                    f"{100 * FIT_MEDIAN_ABS_M:g} cm or |bias| > {100 * FIT_BIAS_M:g} cm): the rig "
-                   "has moved or the calibration is for another rig; recalibrate")
+                   "has moved or the calibration is for another rig; recalibrate (or, for a "
+                   "moving camera, check the clocks' offset: --time-offset)")
         raise typer.Exit(CALIBRATION_DOES_NOT_FIT)

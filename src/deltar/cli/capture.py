@@ -95,6 +95,7 @@ def record_command(
         from deltar.io.input_file import refuse_input_as_output
 
         refuse_input_as_output(out, [Path(simulate)], "OUT", folder=True)
+    appending = not bag and (out / "meta.json").is_file()
     if not bag:  # before the camera, the sensor and the viewer are opened
         from deltar.io.recording import check_recording_folder
 
@@ -142,7 +143,7 @@ def record_command(
     poses = f", {summary.poses} camera poses" if summary.poses else ""
     typer.echo(f"recorded {summary.images} images, {summary.zone_frames} zone frames, "
                f"{summary.depth_maps} depth maps{poses} over {summary.duration_s:.2f} s "
-               f"into {out}")
+               f"{'appended to the recording' if appending else 'into'} {out}")
 
 
 @model_options
