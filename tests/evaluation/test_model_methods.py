@@ -93,3 +93,28 @@ def test_kept_suffix_turns_the_outlier_rule_off(tmp_path) -> None:
     assert checkpoint_predictor(str(path)).estimator.zone_outliers is not None
     kept = checkpoint_predictor(f"{path}+network+kept").estimator
     assert kept.zone_outliers is None and kept.blend is None
+
+
+def test_official_weights_are_scored_with_the_releases_final_resize(tmp_path, parity_fixture):
+    from deltar.data.zju_l5 import ZJUL5Sample
+    from deltar.evaluation.model_methods import EstimatorPredictor, official_predictor
+    from deltar.evaluation.runner import resize_like_release
+    from deltar.models.benchmark import DEPTH_TOLERANCE_M
+
+    weights = tmp_path / "nyu.pt"
+    torch.save({k: v.float() for k, v in parity_fixture["state_dict"].items()}, weights)
+    predictor = official_predictor(str(weights))
+    case = parity_fixture["cases"][0]
+    image = case["image_rgb_uint8"].numpy()
+    # The release's evaluation: its half-resolution depth, resized with align_corners=True.
+    expected = resize_like_release(case["expected_depth_half_res"].numpy(), *image.shape[:2])
+    sample = ZJUL5Sample(rgb=image, depth_m=expected, name=case["name"],
+                         zone_mean_sigma=case["zone_mean_sigma_m"].numpy(),
+                         zone_rects=case["zone_rects_yxyx"].numpy(),
+                         zone_valid=case["zone_valid"].numpy())
+    depth = predictor(sample).depth_m
+    assert depth.shape == expected.shape
+    assert np.abs(depth - expected).max() < 2 * DEPTH_TOLERANCE_M
+    # predict's own resize (align_corners=False) is further from it.
+    opencv = EstimatorPredictor(predictor.estimator)(sample).depth_m
+    assert np.abs(opencv - expected).max() > 10 * np.abs(depth - expected).max()

@@ -29,7 +29,8 @@ def test_nyu_official_matches_the_release_recipe():
     sig = c.data.signal_augmentation
     assert (sig.drop_fraction, sig.noise_prob, sig.noise_mean_m, sig.noise_std_m) == (
         0.34, 0.3, 0.17, 0.20)
-    assert c.data.sampling == "uniform"
+    # Trained on uniform hypotheses, tested (the checkpoint's contract) on inverse-CDF ones.
+    assert c.data.sampling == "uniform" and c.model.overrides["hypothesis_sampling"] == "icdf"
     o = c.optim
     assert (o.lr, o.weight_decay, o.div_factor, o.final_div_factor) == (3e-4, 0.1, 25, 100)
     assert o.encoder_lr_factor == 0.1
