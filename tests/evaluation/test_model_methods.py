@@ -98,23 +98,26 @@ def test_kept_suffix_turns_the_outlier_rule_off(tmp_path) -> None:
 def test_official_weights_are_scored_with_the_releases_final_resize(tmp_path, parity_fixture):
     from deltar.data.zju_l5 import ZJUL5Sample
     from deltar.evaluation.model_methods import EstimatorPredictor, official_predictor
-    from deltar.evaluation.runner import resize_like_release
-    from deltar.models.benchmark import DEPTH_TOLERANCE_M
+    from deltar.inference.loading import load_estimator
 
     weights = tmp_path / "nyu.pt"
     torch.save({k: v.float() for k, v in parity_fixture["state_dict"].items()}, weights)
     predictor = official_predictor(str(weights))
-    case = parity_fixture["cases"][0]
-    image = case["image_rgb_uint8"].numpy()
-    # The release's evaluation: its half-resolution depth, resized with align_corners=True.
-    expected = resize_like_release(case["expected_depth_half_res"].numpy(), *image.shape[:2])
-    sample = ZJUL5Sample(rgb=image, depth_m=expected, name=case["name"],
-                         zone_mean_sigma=case["zone_mean_sigma_m"].numpy(),
-                         zone_rects=case["zone_rects_yxyx"].numpy(),
-                         zone_valid=case["zone_valid"].numpy())
-    depth = predictor(sample).depth_m
-    assert depth.shape == expected.shape
-    assert np.abs(depth - expected).max() < 2 * DEPTH_TOLERANCE_M
-    # predict's own resize (align_corners=False) is further from it.
-    opencv = EstimatorPredictor(predictor.estimator)(sample).depth_m
-    assert np.abs(opencv - expected).max() > 10 * np.abs(depth - expected).max()
+    opencv = EstimatorPredictor(load_estimator(weights, kind="official",
+                                               output_align_corners=False))
+    for case in parity_fixture["cases"]:
+        image = case["image_rgb_uint8"].numpy()
+        # The release's evaluation: its half-resolution depth, torch's align_corners=True.
+        expected = torch.nn.functional.interpolate(
+            case["expected_depth_half_res"][None, None].float(), size=image.shape[:2],
+            mode="bilinear", align_corners=True)[0, 0].numpy()
+        sample = ZJUL5Sample(rgb=image, depth_m=expected, name=case["name"],
+                             zone_mean_sigma=case["zone_mean_sigma_m"].numpy(),
+                             zone_rects=case["zone_rects_yxyx"].numpy(),
+                             zone_valid=case["zone_valid"].numpy())
+        result = predictor(sample)
+        assert result.depth_m.shape == expected.shape and not result.image_only
+        error = np.abs(result.depth_m - expected).max()
+        assert error < 1e-4, f"{case['name']}: {error} m"
+        # OpenCV's resize (align_corners=False) is centimetres away at depth edges.
+        assert np.abs(opencv(sample).depth_m - expected).max() > 100 * error

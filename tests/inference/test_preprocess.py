@@ -195,3 +195,19 @@ def test_normalise_images_halves_large_images_first(rng):
     assert halved_while(image[:479], (10, 10)).shape == (479, 640, 3)
     assert halved_while(image, (241, 10)).shape == (480, 640, 3)
     assert halved_while(image, (60, 80)).shape == (60, 80, 3)
+
+
+@pytest.mark.parametrize("sizes", [((240, 320), (480, 640)), ((7, 9), (30, 41)),
+                                   ((1, 5), (3, 9)), ((4, 4), (1, 1))])
+def test_resize_with_aligned_corners_samples_as_torch_does(sizes, rng):
+    import torch
+
+    (h, w), (height, width) = sizes
+    maps = rng.uniform(0.5, 5.0, (1, 2, h, w)).astype(np.float32)
+    ours = resize_to_image(maps, (height, width), align_corners=True)
+    theirs = torch.nn.functional.interpolate(torch.from_numpy(maps), size=(height, width),
+                                             mode="bilinear", align_corners=True).numpy()
+    assert np.abs(ours - theirs).max() < 1e-5
+    # Corner pixels land on corner pixels.
+    assert ours[0, 0, 0, 0] == maps[0, 0, 0, 0] and ours[0, 0, -1, -1] == pytest.approx(
+        maps[0, 0, -1, -1] if height > 1 and width > 1 else maps[0, 0, 0, 0], abs=1e-6)

@@ -14,15 +14,12 @@ rectangles, at the network input size the one size rule gives for the sample's i
 (:func:`deltar.inference.preprocess.network_input_size`: aspect kept, the design
 size's pixel budget, multiples of 32; an ONNX file at its exported size), exactly as
 ``deltar predict`` runs it, and its output is resized to the ground truth's resolution
-(``official:`` with the release's own final resize, :class:`ReleasePredictor`).
+(``official:`` with the release's own final resize, ``align_corners=True``).
 """
 
 from __future__ import annotations
 
-from types import SimpleNamespace
 from typing import TYPE_CHECKING
-
-import numpy as np
 
 from deltar.evaluation.runner import register_method_family
 
@@ -95,35 +92,15 @@ def checkpoint_predictor(name_or_path: str) -> EstimatorPredictor:
     return EstimatorPredictor(load_estimator(name_or_path, kind="checkpoint", **options))
 
 
-class ReleasePredictor(EstimatorPredictor):
-    """The released weights scored as the release's evaluation scores them: the network's
-    half-resolution depth (and spread) resized to the ground truth's resolution
-    bilinearly with ``align_corners=True`` (:func:`~deltar.evaluation.runner.resize_like_release`),
-    where ``predict`` resizes as OpenCV does (``align_corners=False``; up to several cm
-    apart at depth edges). The released network has no output stage to apply (no blend,
-    no calibrated sigma, no zone consistency)."""
-
-    def __call__(self, sample: ZJUL5Sample) -> SimpleNamespace:
-        """``depth_m`` and ``uncertainty_m``, (H, W) metres, for one sample."""
-        from deltar.evaluation.runner import resize_like_release
-
-        frame, _ = self.estimator.screen_zones(sample.zone_frame())
-        inputs = self.estimator.prepare([sample.rgb], [frame],
-                                        zone_rects=np.asarray(sample.zone_rects)[None])
-        depth, spread = self.estimator.run_network(inputs)
-        height, width = sample.rgb.shape[:2]
-        return SimpleNamespace(depth_m=resize_like_release(depth[0, 0], height, width),
-                               uncertainty_m=resize_like_release(spread[0, 0], height, width))
-
-
-def official_predictor(path: str) -> ReleasePredictor:
+def official_predictor(path: str) -> EstimatorPredictor:
     """``official:PATH[+flip][+network]``: the released weights (e.g. ``nyu.pt``), design
-    480x640 (not plane-select, so never blended: ``+network`` changes nothing), scored
-    with the release's final resize (:class:`ReleasePredictor`)."""
+    480x640 (not plane-select, so never blended: ``+network`` changes nothing), their
+    outputs resized as the release's evaluation resizes them
+    (``DepthEstimator(output_align_corners=True)``, as ``load_estimator`` builds them)."""
     from deltar.inference.loading import load_estimator
 
     path, options = _split_suffixes(path)
-    return ReleasePredictor(load_estimator(path, kind="official", **options))
+    return EstimatorPredictor(load_estimator(path, kind="official", **options))
 
 
 def onnx_predictor(path: str) -> EstimatorPredictor:

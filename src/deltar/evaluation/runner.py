@@ -90,17 +90,14 @@ def resize_like_release(depth_m: np.ndarray, height: int, width: int) -> np.ndar
     Returns:
         (height, width) float32 depth in metres.
     """
-    import torch
-    import torch.nn.functional as F
+    from deltar.inference.preprocess import resize_to_image
 
     depth = np.asarray(depth_m, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth_m must be an (h, w) array, got shape {depth.shape}")
     if height < 1 or width < 1:
         raise ValueError(f"output size must be positive, got {height}x{width}")
-    tensor = torch.from_numpy(np.ascontiguousarray(depth))[None, None]
-    resized = F.interpolate(tensor, size=(height, width), mode="bilinear", align_corners=True)
-    return resized[0, 0].numpy()
+    return resize_to_image(depth[None, None], (height, width), align_corners=True)[0, 0]
 
 
 _METHODS: dict[str, Callable[[], Predictor]] = {}

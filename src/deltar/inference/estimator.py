@@ -100,12 +100,10 @@ class DepthEstimator:
             ``histogram_hypotheses``, False for weights that do not say).
         weights: free text saying where the weights come from (shown by the CLI).
         fold_batch_norms: apply every inference optimisation in place
-            (:func:`~deltar.models.optimize.prepare_for_inference`): fold all batch
-            norms into their convolutions, put the encoder, decoder and head in
-            channels-last layout and run TensorFlow-"same" convolutions without a
-            padding copy (faster; outputs change only by float rounding: the release's
-            parity fixture still holds, tested). Pass False to keep a model you will go on
-            training.
+            (:func:`~deltar.models.optimize.prepare_for_inference`: batch norms folded,
+            channels-last, "same" convolutions without a padding copy; outputs change
+            only by float rounding, the release's parity holds, tested). Pass False to
+            keep a model you will go on training.
         flip_average: test-time augmentation: also run the mirrored image with the
             mirrored zones and average the two depths (twice the time; PyTorch only).
         max_range_m: largest distance a valid zone may read, metres; by default each
@@ -135,6 +133,9 @@ class DepthEstimator:
             ``OutlierRule`` or ``OutlierDetector``, or None.
         zone_consistency: in [0, 1], how far the depth moves to reproduce the zones'
             readings (:mod:`deltar.inference.zone_consistency`); None: as the weights say.
+        output_align_corners: resize the outputs to the image as the released DELTAR
+            code does (``align_corners=True``; ``load_estimator`` sets it for the
+            released weights), not as OpenCV does (:func:`resize_to_image`).
     """
 
     def __init__(self, model: DeltarNet | None = None, *,
@@ -149,7 +150,8 @@ class DepthEstimator:
                  uncertainty: UncertaintyCalibration | str | None = "auto",
                  no_target_min_neighbour_m: float | str | None = "auto",
                  zone_outliers: OutlierRule | OutlierDetector | str | None = "auto",
-                 zone_consistency: float | None = None) -> None:
+                 zone_consistency: float | None = None,
+                 output_align_corners: bool = False) -> None:
         if (model is None) == (onnx_model is None):
             raise ValueError("give exactly one of model (PyTorch) or onnx_model (onnxruntime)")
         checks.check_backend_options(precision, flip_average, onnx_model is not None)
@@ -169,7 +171,7 @@ class DepthEstimator:
         self.intrinsics = intrinsics
         self.fov_deg = tuple(fov_deg)
         self.weights = weights
-        self.flip_average = flip_average
+        self.flip_average, self.output_align_corners = flip_average, bool(output_align_corners)
         if max_range_m is not None and not (math.isfinite(max_range_m) and max_range_m > 0):
             raise ValueError(f"max_range_m must be a positive number of metres, got "
                              f"{max_range_m!r}")
@@ -444,7 +446,7 @@ class DepthEstimator:
                                                   self.blend, self.uncertainty,
                                                   frame.valid_count == 0, frame.flat(),
                                                   self.zone_consistency, far) if m is not None]
-            maps = resize_to_image(np.stack(maps)[None], size)[0]
+            maps = resize_to_image(np.stack(maps)[None], size, self.output_align_corners)[0]
             results.append(DepthPrediction(depth_m=maps[0], uncertainty_m=maps[1],
                                            zone_rects=inputs["image_rects"][i],
                                            zone_frame=copy.deepcopy(frame),

@@ -194,7 +194,8 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
 
         model, preset, _ = load_checkpoint(checkpoint)
         return DepthEstimator(model, weights=f"{preset} from {text}", **kwargs)
-    if kind == "official":
+    if kind == "official":  # its outputs resized as the release resizes them
+        kwargs.setdefault("output_align_corners", True)
         return DepthEstimator(_official_model(Path(text)), weights=f"deltar-official from {text}",
                               **kwargs)
     from deltar.models import create_model
