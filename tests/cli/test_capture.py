@@ -191,3 +191,18 @@ def test_replay_without_calib_warns_unless_the_recording_is_simulated(tmp_path):
                                *lite])
     assert real.exit_code == 0, real.output
     assert "warning: no --calib: the zones are placed with" in real.output
+    # The calibration rigs' recordings simulate a sensor beside the camera: they warn too.
+    from deltar.calibration.board import parse_board_spec
+    from deltar.calibration.synthetic import SYNTHETIC_RIG_SENSOR
+    from deltar.calibration.synthetic_board import board_view_poses, write_board_recording
+    from deltar.camera import CameraIntrinsics
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    write_board_recording(tmp_path / "board", SensorExtrinsics(translation_m=[0.05, 0, 0]),
+                          CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48),
+                          parse_board_spec("charuco:5x4:0.06:0.045:DICT_4X4_50"),
+                          board_view_poses(2, distance_m=(0.6, 0.6), seed=1))
+    assert Recording(tmp_path / "board").meta.sensor_model == SYNTHETIC_RIG_SENSOR
+    rig = runner.invoke(app, ["replay", str(tmp_path / "board"), "--out", str(tmp_path / "c"),
+                              *lite])
+    assert "warning: no --calib" in rig.output

@@ -15,6 +15,11 @@ from deltar.camera import CameraIntrinsics, pixel_rays
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_angles_deg
 from deltar.sensor.zone_frame import ZoneFrame
 
+#: The sensor model of the synthetic rigs' readings and recordings: a simulated sensor
+#: beside the camera at the rig's extrinsic, not on its axis as ``deltar record
+#: --simulate``'s ("simulated"), so replaying them needs their calibration.
+SYNTHETIC_RIG_SENSOR = "simulated-rig"
+
 
 def sensor_virtual_camera(grid: int = 8, fov_deg: tuple[float, float] = DEFAULT_FOV_DEG,
                           pixels_per_zone: int = 16) -> tuple[CameraIntrinsics, np.ndarray]:
@@ -235,7 +240,7 @@ def simulated_zone_frame(planes: np.ndarray, sensor_to_world: np.ndarray,
     valid = valid & (rng.random(valid.size) >= invalid_fraction)
     noisy = np.clip(mean + rng.normal(0.0, mean_noise_m, mean.size), 1e-3, None)
     return ZoneFrame(np.where(valid, noisy, 0.0), np.where(valid, sigma, 0.0), valid,
-                     timestamp_s=timestamp_s, sensor_model="simulated",
+                     timestamp_s=timestamp_s, sensor_model=SYNTHETIC_RIG_SENSOR,
                      no_target=clean.flat_no_target() & ~valid)
 
 
@@ -250,7 +255,7 @@ def write_synthetic_recording(folder, frames: list[SyntheticRigFrame], camera: C
     from deltar.io.recording import RecordingMeta, RecordingWriter
 
     grid = frames[0].zone_frame.grid if frames else 8
-    writer = RecordingWriter(folder, RecordingMeta(camera, "simulated", grid, fov_deg))
+    writer = RecordingWriter(folder, RecordingMeta(camera, SYNTHETIC_RIG_SENSOR, grid, fov_deg))
     for item in frames:
         t = float(item.zone_frame.timestamp_s)
         writer.add_zone_frame(item.zone_frame)

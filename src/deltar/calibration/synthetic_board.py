@@ -17,6 +17,7 @@ import numpy as np
 
 from deltar.calibration.board import BoardSpec
 from deltar.calibration.synthetic import (
+    SYNTHETIC_RIG_SENSOR,
     look_at,
     sensor_pose,
     sensor_virtual_camera,
@@ -215,8 +216,8 @@ def write_board_recording(folder: str | os.PathLike, extrinsics: SensorExtrinsic
     image_t = key_t if image_times_s is None else np.asarray(image_times_s, dtype=np.float64)
     zone_t = key_t if zone_times_s is None else np.asarray(zone_times_s, dtype=np.float64)
     sensor_cam, rects = sensor_virtual_camera(grid, fov_deg)
-    writer = RecordingWriter(folder, RecordingMeta(recorded_intrinsics or camera, "simulated",
-                                                   grid, fov_deg))
+    writer = RecordingWriter(folder, RecordingMeta(recorded_intrinsics or camera,
+                                                   SYNTHETIC_RIG_SENSOR, grid, fov_deg))
     zone_poses = interpolate_poses(key_t, keys, zone_t)
     frames = []
     for t, pose in zip(zone_t, zone_poses, strict=True):
