@@ -140,7 +140,7 @@ def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
 
 @pytest.mark.parametrize("intrinsics, extrinsics, message", [
     (CameraIntrinsics(500.0, 480.0, 900.0, 239.5, 640, 480), None,
-     "the principal point (900, 239.5) px lies outside the 480x640 image"),
+     "the principal point (cx, cy) = (900, 239.5) px lies outside the 480x640 image"),
     (CAMERA, SensorExtrinsics(np.eye(3), np.array([20.0, -10.0, 0.0])),
      "the sensor is 22.3607 m from the camera (translation_m [20.0, -10.0, 0.0]); a rig's "
      "sensor sits within 1 m of it (millimetres written as metres?)"),

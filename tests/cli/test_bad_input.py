@@ -697,8 +697,8 @@ def test_calibration_that_cannot_be_right_is_refused_before_the_model(inputs, tm
     data["intrinsics"]["cx"] = 31.5
     data["extrinsics"]["translation_m"] = [30.0, 0.0, 0.0]
     (tmp_path / "mm.json").write_text(json.dumps(data))
-    for name, message in (("pp.json", "the principal point (640, 23.5) px lies outside the "
-                           "48x64 image"),
+    for name, message in (("pp.json", "the principal point (cx, cy) = (640, 23.5) px lies "
+                           "outside the 48x64 image"),
                           ("mm.json", "the sensor is 30 m from the camera (translation_m "
                            "[30.0, 0.0, 0.0]); a rig's sensor sits within 1 m of it "
                            "(millimetres written as metres?)")):

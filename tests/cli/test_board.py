@@ -176,5 +176,5 @@ def test_check_calibration_names_the_files_it_cannot_match(board_recording, tmp_
     late = RigCalibration(CAMERA, TRUE, time_offset_s=30.0).save(tmp_path / "late.json")
     result = _run("check-calibration", board_recording, "--calib", late, "--target", TARGET)
     assert result.exit_code == 1
-    assert "no zone frame pairs with an image at the time offset of +30 s" in " ".join(
-        result.output.split())
+    assert (f"no zone frame pairs with an image within 0.02 s at --calib {late}'s time offset "
+            "of +30 s") in " ".join(result.output.split())

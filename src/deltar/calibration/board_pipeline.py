@@ -360,13 +360,13 @@ def calibrate_recording_with_board(
                                                       for v in good]))
     if intrinsics_rms is not None:
         residuals["intrinsics_rms_px"] = intrinsics_rms
-    uncertainty = _expected_error([v for v in good if v.name in used], calibration, fov,
-                                  camera_fit)
     used_views = [v for v in good if v.name in used]
-    residuals["board_scale_translation_m"] = warn_board_scale(
-        np.array([v.pose.normal_cam for v in used_views]),
-        np.array([v.pose.offset_cam_m for v in used_views]),
-        np.array([v.plane.offset_m for v in used_views]), spec)
+    uncertainty = _expected_error(used_views, calibration, fov, camera_fit)
+    scale_error = warn_board_scale(np.array([v.pose.normal_cam for v in used_views]),
+                                   np.array([v.pose.offset_cam_m for v in used_views]),
+                                   np.array([v.plane.offset_m for v in used_views]), spec)
+    if scale_error is not None:  # left out when too few views judged it
+        residuals["board_scale_translation_m"] = scale_error
     residuals["rotation_sd_deg"] = uncertainty.rotation_rms_deg
     residuals["translation_sd_m"] = uncertainty.translation_rms_m
     residuals["zone_noise_m"] = uncertainty.zone_noise_m

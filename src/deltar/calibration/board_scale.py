@@ -47,18 +47,18 @@ def board_scale(normals_cam: np.ndarray, offsets_cam_m: np.ndarray,
 
 
 def warn_board_scale(normals_cam: np.ndarray, offsets_cam_m: np.ndarray,
-                     offsets_zone_m: np.ndarray, spec: BoardSpec) -> float:
+                     offsets_zone_m: np.ndarray, spec: BoardSpec) -> float | None:
     """Warn when :func:`board_scale` (arguments as there) is off by more than
     :data:`BOARD_SCALE_TOLERANCE` and two standard errors.
 
     Returns:
         The translation error in metres that such a scale implies (``|1 - k|`` times the
         views' median distance), not part of the expected error from the zones' noise;
-        0 when the scale is within the tolerance or there are fewer than
-        :data:`MIN_SCALE_VIEWS` views to judge it from.
+        0 when the scale is within the tolerance, None when fewer than
+        :data:`MIN_SCALE_VIEWS` views are left to judge it from.
     """
     if len(offsets_cam_m) < MIN_SCALE_VIEWS:
-        return 0.0
+        return None
     scale, error = board_scale(normals_cam, offsets_cam_m, offsets_zone_m)
     off_m = 0.0
     if abs(scale - 1.0) > max(BOARD_SCALE_TOLERANCE, 2.0 * error):

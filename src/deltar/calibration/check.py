@@ -196,9 +196,11 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
     if not rows:
         what = "the board is found in no paired image" if spec is not None else \
             "no zone frame has a depth image (pass --target for a board recording)"
-        if not pairs and offset:  # a time offset that pairs nothing is the likelier cause
-            what = (f"no zone frame pairs with an image at the time offset of {offset:+g} s "
-                    f"({calibration_name}'s or --time-offset's)")
+        if not pairs:  # nothing paired: the board or depth was never looked for
+            source = (f"{calibration_name}'s" if time_offset_s is None
+                      else "the time offset given")
+            what = (f"no zone frame pairs with an image within {tolerance_s:g} s at "
+                    f"{source} time offset of {offset:+g} s")
         raise ValueError(f"{recording.folder}: nothing to score against: {what}")
     if len(rows) < MIN_CHECK_FRAMES:  # one view is no verdict on a rig
         what = "the board is found" if spec is not None else "zone frames have a depth image"

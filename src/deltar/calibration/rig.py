@@ -113,8 +113,8 @@ class RigCalibration:
         sensor a metre or more from the camera, or every zone outside the image."""
         intr = self.intrinsics
         if not (-0.5 <= intr.cx <= intr.width - 0.5 and -0.5 <= intr.cy <= intr.height - 0.5):
-            raise ValueError(f"the principal point ({intr.cx:g}, {intr.cy:g}) px lies outside "
-                             f"the {intr.height}x{intr.width} image")
+            raise ValueError(f"the principal point (cx, cy) = ({intr.cx:g}, {intr.cy:g}) px "
+                             f"lies outside the {intr.height}x{intr.width} image")
         distance = float(np.linalg.norm(self.extrinsics.translation_m))
         if distance >= MAX_TRANSLATION_M:
             raise ValueError(f"the sensor is {distance:.6g} m from the camera (translation_m "

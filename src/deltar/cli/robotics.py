@@ -121,7 +121,8 @@ def check_viewer(rerun: bool, rerun_save: Path | None) -> None:
     if rerun and rerun_save is None and not has_display() and not _viewer_listening():
         raise typer.BadParameter("the viewer needs a display (DISPLAY is not set); write a "
                                  "recording with --rerun-save FILE.rrd and open it where "
-                                 "there is one (rerun FILE.rrd)", param_hint="--rerun")
+                                 "there is one (rerun FILE.rrd), or start a viewer here "
+                                 "first (rerun --web-viewer)", param_hint="--rerun")
 
 
 #: Where a running rerun viewer listens (rerun's default gRPC port on this machine).

@@ -5,6 +5,7 @@ checkpoint, official weights, ONNX file, preset). Torch is imported only inside
 functions, so importing this package stays light.
 """
 
+from deltar.inference.checks import InputSizeError
 from deltar.inference.loading import MODEL_SOURCE_KINDS, load_estimator, resolve_source
 
-__all__ = ["MODEL_SOURCE_KINDS", "load_estimator", "resolve_source"]
+__all__ = ["MODEL_SOURCE_KINDS", "InputSizeError", "load_estimator", "resolve_source"]
