@@ -28,6 +28,7 @@ def test_check_official_passes_and_fails(runner, one_case_fixture, tmp_path):
     result = runner.invoke(app, ["check-official", str(good)])
     assert result.exit_code == 0, result.output
     assert "pass" in result.output
+    assert "what this checks: the network on the release's own inputs" in result.output
 
     shifted = dict(one_case_fixture)
     case = dict(shifted["cases"][0])

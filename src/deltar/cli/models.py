@@ -65,6 +65,10 @@ def check_official_command(
                       f"{result.edges_max_error_m:.3g}",
                       "[green]pass[/green]" if result.passed else "[red]FAIL[/red]")
     table_console().print(table)
+    typer.echo("what this checks: the network on the release's own inputs (its image, "
+               "zone rectangles and sampled hypotheses) against the release's outputs at "
+               "half resolution (the package's hypothesis sampling and its final resize "
+               "for official weights are tested against the same file in its test suite)")
     if not all(result.passed for result in results):
         raise typer.Exit(code=1)
 
