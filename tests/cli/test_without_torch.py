@@ -185,5 +185,6 @@ def test_devices_and_zone_grids_without_torch_say_what_is_wrong(tmp_path, demo_w
                                "--grid", "4")
     assert record.returncode == 0, record.stderr
     line = _one_error_line(run_without_torch(tmp_path, "replay", "r4", "--out", "c"))
-    assert "has 4x4 zones, but the ONNX model" in line and 'pip install "deltar[torch]"' in line
+    assert "the recording r4 has 4x4 zones, but the ONNX model" in line
+    assert 'pip install "deltar[torch]"' in line
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -230,6 +230,11 @@ def replay_command(
                           overwrite, show, skip_existing, skip_no_zones=not allow_no_zones)
     _check_calibration_fits(calibration, calib, recording)
     estimator = model.load()
+    if estimator.onnx_model is not None:  # its zone grid is fixed: checked before any frame
+        from deltar.io.recording import Recording
+
+        estimator.onnx_model.check_grid(Recording(recording).meta.grid,
+                                        f"the recording {recording}")
     viewer = ReplayViewer(open_viewer(rerun, rerun_save), recording, calibration)
     failed: list[tuple[str, Exception]] = []
 
