@@ -57,20 +57,20 @@ def recording_calibration(recording: Recording) -> RigCalibration:
                           grid=meta.grid, fov_deg=meta.fov_deg, sensor_model=meta.sensor_model)
 
 
-def check_recording_image(recording: Recording, pair: RecordingPair, image: np.ndarray,
-                          calibration: RigCalibration | None) -> None:
+def check_recording_image(pair: RecordingPair, image: np.ndarray, calibration: RigCalibration,
+                          own: Recording | None = None) -> None:
     """Refuse a pair's (H, W, 3) image of another size than the rig it is read with: the
-    user's ``calibration`` (named ``--calib``) or, without one, the recording's own
-    camera (naming its ``meta.json``).
+    user's ``calibration`` (named ``--calib``) or, with ``own``, the recording's own
+    camera (:func:`recording_calibration`, naming its ``meta.json``).
 
     Raises:
         ValueError: naming the image file and what it disagrees with.
     """
-    if calibration is not None:
+    if own is None:
         calibration.check_image_size(image.shape[:2], str(pair.color_path), "--calib")
         return
-    recording_calibration(recording).check_image_size(
-        image.shape[:2], str(pair.color_path), str(recording.folder / META_FILE),
+    calibration.check_image_size(
+        image.shape[:2], str(pair.color_path), str(own.folder / META_FILE),
         f"the recording's images and its {META_FILE} disagree (give --calib for these images)")
 
 
@@ -159,7 +159,7 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
         try:
             image, reference = loaded.result()
-            check_recording_image(rec, pair, image, calibration)
+            check_recording_image(pair, image, calib, rec if calibration is None else None)
             try:
                 prediction = estimator.predict(image, pair.zone_frame, calib)
             except ValueError as err:  # name the frame: the message may not

@@ -103,7 +103,8 @@ class FrameSource:
 
         rec = Recording(self.path)
         self.recording = rec
-        self._calibration = calibration
+        # Without --calib, the recording's own camera: its meta.json is named in refusals.
+        self._own_camera = rec if calibration is None else None
         calib = calibration or recording_calibration(rec)
         calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
                                f"the recording {self.path}", "--calib")
@@ -168,7 +169,7 @@ class FrameSource:
         for (pair, frame), loaded in read_ahead(chosen, lambda chosen_pair:
                                                 chosen_pair[0].load_images()):
             frame.image, frame.recorded_depth_m = loaded.result()
-            check_recording_image(self.recording, pair, frame.image, self._calibration)
+            check_recording_image(pair, frame.image, frame.calibration, self._own_camera)
             yield frame
             frame.image, frame.recorded_depth_m = None, None
 
