@@ -50,6 +50,15 @@ def torch_available() -> bool:
     return module_available("torch")
 
 
+def pytorch_remedy(runs: str) -> str:
+    """The way to what an ONNX model cannot do, for messages: ``runs`` says what the
+    PyTorch backend does instead (e.g. ``"runs any grid"``); names the ``torch`` extra
+    when PyTorch is not installed."""
+    if torch_available():
+        return f"the PyTorch backend (without --onnx) {runs}"
+    return f'the PyTorch backend {runs}: pip install "deltar[torch]"'
+
+
 def missing_extra_message(module: str, what: str = "this command",
                           extra: str | None = None) -> str | None:
     """One line naming the extra that installs ``module``, or None for another module.

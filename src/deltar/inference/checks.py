@@ -62,15 +62,13 @@ def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | No
     if onnx_model is not None:
         sizes = onnx_model.input_sizes
         if input_size is not None and tuple(input_size) not in sizes:
-            from deltar.extras import torch_available
+            from deltar.extras import pytorch_remedy
 
-            remedy = ("the PyTorch backend (without --onnx) runs any size" if torch_available()
-                      else 'the PyTorch backend runs any size: pip install "deltar[torch]"')
             raise InputSizeError(f"input_size {tuple(input_size)} is not one the ONNX model "
-                             f"{onnx_model.path} was exported at: "
-                             f"{', '.join(map(str, sizes))}; without a fixed size each "
-                             f"image runs at the exported size nearest its aspect, or "
-                             f"{remedy}")
+                                 f"{onnx_model.path} was exported at: "
+                                 f"{', '.join(map(str, sizes))}; without a fixed size each "
+                                 f"image runs at the exported size nearest its aspect, or "
+                                 f"{pytorch_remedy('runs any size')}")
         if len(sizes) == 1:
             input_size = sizes[0]
     return None if input_size is None else check_input_size(input_size, "input_size")

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from deltar.contract import network_contract
-from deltar.extras import torch_available
+from deltar.extras import pytorch_remedy, torch_available
 from deltar.io.input_file import input_file
 from deltar.sensor.targets import fixed_target_slots
 
@@ -203,10 +203,9 @@ class OnnxDepthModel:
         """Raise ``ValueError`` naming ``name`` when zone frames of ``grid`` x ``grid``
         zones are not the exported network's grid (its inputs have a fixed zone count)."""
         if int(grid) != self.grid:
-            remedy = ("the PyTorch backend (without --onnx) runs any grid" if torch_available()
-                      else 'the PyTorch backend runs any grid: pip install "deltar[torch]"')
             raise ValueError(f"{name} has {grid}x{grid} zones, but the ONNX model {self.path} "
-                             f"takes {self.grid}x{self.grid} zone frames; {remedy}, or export "
+                             f"takes {self.grid}x{self.grid} zone frames; "
+                             f"{pytorch_remedy('runs any grid')}, or export "
                              f"it for {grid}x{grid} zones (deltar export --layout-from a "
                              "calibration or recording of that grid)")
 
