@@ -95,9 +95,10 @@ def record_command(
         from deltar.io.input_file import refuse_input_as_output
 
         refuse_input_as_output(out, [Path(simulate)], "OUT", folder=True)
-    appending = not bag and (out / "meta.json").is_file()
+    from deltar.io.recording import META_FILE, check_recording_folder
+
+    appending = not bag and (out / META_FILE).is_file()
     if not bag:  # before the camera, the sensor and the viewer are opened
-        from deltar.io.recording import check_recording_folder
 
         check_recording_folder(out)
         if rerun_save is not None and out.resolve() in rerun_save.resolve().parents:
