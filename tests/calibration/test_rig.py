@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -136,6 +137,23 @@ def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
     moved = calib.undistort_image(depth, nearest=True)
     assert set(np.unique(moved)) <= {0.0, 1.0, 3.0} and (moved == 1.0).any()
     assert not set(np.unique(calib.undistort_image(depth))) <= {0.0, 1.0, 3.0}
+
+
+def test_undistorting_keeps_its_maps_and_matches_opencv():
+    """The maps made on first use give OpenCV's ``undistort`` for every later image."""
+    import cv2
+
+    calib = _calib(distortion=(-0.25, 0.08, 0.001, -0.002, 0.01))
+    rng = np.random.default_rng(0)
+    for image in (rng.integers(0, 256, (480, 640, 3), dtype=np.uint8),
+                  rng.uniform(0, 5, (480, 640)).astype(np.float32)):
+        expected = cv2.undistort(image, CAMERA.matrix, np.array(calib.distortion), None,
+                                 CAMERA.matrix)
+        for _ in range(2):  # first use makes the maps, the second reads them
+            np.testing.assert_allclose(calib.undistort_image(image), expected, atol=1e-5)
+    pinhole = calib.undistorted()
+    assert pinhole == replace(calib, distortion=()) and not pinhole.has_distortion
+    assert pinhole.undistorted() is pinhole
 
 
 @pytest.mark.parametrize("intrinsics, extrinsics, message", [

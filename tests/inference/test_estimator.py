@@ -123,6 +123,14 @@ def test_a_calibration_with_distortion_predicts_on_the_undistorted_image(rng):
     estimator.predict(image, random_frame(rng), calib)
     np.testing.assert_array_equal(seen[0], calib.undistort_image(image))
     assert np.abs(seen[0].astype(int) - image).mean() > 10  # the lens model did move pixels
+    # An image undistorted already is predicted with the undistorted camera's calibration
+    # (same intrinsics, no distortion): the same depth, without undistorting it again.
+    pinhole = calib.undistorted()
+    assert pinhole.intrinsics == intr and not pinhole.has_distortion
+    frame = random_frame(rng)
+    once = estimator.predict(calib.undistort_image(image), frame, pinhole)
+    np.testing.assert_allclose(once.depth_m, estimator.predict(image, frame, calib).depth_m,
+                               rtol=1e-6)
 
 
 @pytest.mark.parametrize("bad, match", [

@@ -21,7 +21,7 @@ import json
 import math
 import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -202,6 +202,10 @@ class RigCalibration:
     def undistort_image(self, image: np.ndarray, nearest: bool = False) -> np.ndarray:
         """The image as the pinhole camera ``intrinsics`` would see it (same K).
 
+        The pixel maps are computed on first use and kept with the calibration, so a
+        stream pays one remap a frame (OpenCV's ``undistort`` rebuilds them every call,
+        about as costly again; the result is the same to the bit).
+
         Args:
             image: (H, W[, C]) image at the calibrated resolution.
             nearest: take each pixel from the nearest source pixel instead of
@@ -219,14 +223,31 @@ class RigCalibration:
 
         image = np.asarray(image)
         self.check_image_size(image.shape[:2], "image")
-        matrix = self.intrinsics.matrix
-        if not nearest:
-            return cv2.undistort(image, matrix, np.asarray(self.distortion), None, matrix)
-        map_x, map_y = cv2.initUndistortRectifyMap(
-            matrix, np.asarray(self.distortion), None, matrix,
-            (image.shape[1], image.shape[0]), cv2.CV_32FC1)
-        return cv2.remap(image, map_x, map_y, cv2.INTER_NEAREST,
+        return cv2.remap(image, *self._undistortion_maps(nearest),
+                         cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def _undistortion_maps(self, nearest: bool) -> tuple[np.ndarray, np.ndarray]:
+        """OpenCV's undistortion maps at the calibrated resolution: fixed-point ones for
+        interpolation (as ``cv2.undistort`` uses), float ones for the nearest pixel."""
+        import cv2
+
+        cache = self.__dict__.setdefault("_undistortion_cache", {})  # not a field
+        if nearest not in cache:
+            matrix, size = self.intrinsics.matrix, (self.intrinsics.width,
+                                                    self.intrinsics.height)
+            cache[nearest] = cv2.initUndistortRectifyMap(
+                matrix, np.asarray(self.distortion), None, matrix, size,
+                cv2.CV_32FC1 if nearest else cv2.CV_16SC2)
+        return cache[nearest]
+
+    def undistorted(self) -> RigCalibration:
+        """The calibration of this camera's undistorted images (:meth:`undistort_image`):
+        the same intrinsics, zones and time offset without distortion, for images that
+        were undistorted already (predicting with it does not undistort them again)."""
+        if not self.has_distortion:
+            return self
+        return replace(self, distortion=())
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict:

@@ -96,9 +96,11 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
         if image.shape[:2] != size:
             raise ValueError(f"{bag.image_topic}: images are {image.shape[0]}x{image.shape[1]},"
                              f" the camera intrinsics are for {size[0]}x{size[1]}")
-        prediction = estimator.predict(image, pair.zone_frame, calib)
-        # The depth is for the undistorted image (predict undistorts its input).
-        yield BagReplayItem(pair, calib.undistort_image(image), prediction, calib)
+        # The depth is for the undistorted image: undistorted once, here, and predicted
+        # with the calibration of undistorted images (predict would undistort again).
+        image = calib.undistort_image(image)
+        prediction = estimator.predict(image, pair.zone_frame, calib.undistorted())
+        yield BagReplayItem(pair, image, prediction, calib)
 
 
 def replay_bag_to_bag(bag: BagInput, estimator: DepthEstimator, out_bag: str | os.PathLike, *,

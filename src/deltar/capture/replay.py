@@ -156,12 +156,16 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     wanted = selected() if limit is None else itertools.islice(selected(), max(0, int(limit)))
     if skip_pair is not None:
         wanted = (pair for pair in wanted if not skip_pair(pair))
+    # The depth is for the undistorted image: each image is undistorted once, here, and
+    # predicted with the calibration of undistorted images (predict would undistort again).
+    pinhole = calib.undistorted()
     for pair, loaded in read_ahead(wanted, RecordingPair.load_images):
         try:
             image, reference = loaded.result()
             check_recording_image(pair, image, calib, rec if calibration is None else None)
+            image = calib.undistort_image(image)
             try:
-                prediction = estimator.predict(image, pair.zone_frame, calib)
+                prediction = estimator.predict(image, pair.zone_frame, pinhole)
             except ValueError as err:  # name the frame: the message may not
                 raise ValueError(f"{pair.color_path}: {err}") from err
         except FRAME_ERRORS as err:
@@ -169,9 +173,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
                 raise
             on_failure(pair, err)
             continue
-        # The depth is for the undistorted image (predict undistorts its input): hand
-        # out the image and the recorded depth that belong to it.
-        yield ReplayItem(pair, calib.undistort_image(image), prediction,
+        # Hand out the image and the recorded depth that belong to the depth.
+        yield ReplayItem(pair, image, prediction,
                          None if reference is None else calib.undistort_image(reference,
                                                                               nearest=True))
 

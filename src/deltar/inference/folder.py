@@ -168,17 +168,21 @@ def run_jobs(jobs: Sequence[FrameJob], estimator: DepthEstimator, out: Path, *,
         return read_color(job.image), load_zone_frame(job.zones, orientation=orientation)
 
     summary = JobSummary()
+    # The depth is for the undistorted image: predicted with the calibration of
+    # undistorted images, on images undistorted once (predict would undistort again).
+    distorted = getattr(calibration, "has_distortion", False)
+    pinhole = calibration.undistorted() if distorted else calibration
     # The next job's files are read while the estimator works on this one.
     for (_, job), loaded in read_ahead(enumerate(jobs), load):
         try:
             rgb, frame = loaded.result()
             check_valid_zones(frame, job.zones, allow_no_zones, allow_option)
             try:
-                prediction = estimator.predict(rgb, frame, calibration)
+                if pinhole is not calibration:  # undistorted once, here
+                    rgb = calibration.undistort_image(rgb)
+                prediction = estimator.predict(rgb, frame, pinhole)
             except ValueError as err:
                 raise ValueError(f"{job.image.name} with {job.zones.name}: {err}") from err
-            if calibration is not None:  # the depth is for the undistorted image
-                rgb = calibration.undistort_image(rgb)
             write_prediction(out, job.image.stem, rgb, prediction, kinds=job.kinds,
                              overwrite=overwrite,
                              title=f"{job.image.name} ({estimator.weights})")
