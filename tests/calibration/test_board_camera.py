@@ -81,3 +81,20 @@ def test_camera_covariance_is_opencvs_and_near_views_shrink_it():
     # six of twenty views close enough for it to fill most of the image pin it down.
     near = calibrate_camera(_projected_views(_far_and_near(14, 6)), VGA_GUESS)
     assert near.sd[2] < 0.6 * found.sd[2] and near.sd[3] < 0.6 * found.sd[3]
+
+
+def test_a_distortion_that_turns_back_inside_the_image_is_refused():
+    """k1 alone at -0.4 turns the radial map back at a normalised radius of 0.61, inside
+    a 640-pixel-wide image at fx = 500 (corner radius 0.80): undistorting would fold the
+    image's outer part. A real lens's (and one bending as far out with k2 > 0) passes."""
+    from deltar.calibration.board_camera import check_distortion_covers_image
+
+    check_distortion_covers_image(VGA, LENS)
+    check_distortion_covers_image(VGA, (-0.4, 0.2, 0.0, 0.0, 0.0))
+    check_distortion_covers_image(VGA, ())
+    with pytest.raises(ValueError, match=r"turns back at 7\d % of the way .* Add views with "
+                                         r"the board near the image's edges"):
+        check_distortion_covers_image(VGA, (-0.4, 0.0, 0.0, 0.0, 0.0))
+    # A strong k1 with k3 bending it back is refused too (k3's own term counts).
+    with pytest.raises(ValueError, match="turns back"):
+        check_distortion_covers_image(VGA, (0.0, 0.0, 0.0, 0.0, -1.0))
