@@ -69,3 +69,18 @@ def test_fit_uncertainty_names_each_outlier_choice_in_words():
     assert "frames with >= 3 such zones" in _rule_text(OutlierRule(0.05, min_zones=3))
     assert _rule_text(detector, short=True) == "detector > 0.85"
     assert "learned detector gives > 0.85" in _rule_text(detector)
+
+
+def test_cli_ends_a_run_stopped_by_a_signal_with_its_status(tmp_path, monkeypatch):
+    """A requeue script reads the status: a run stopped by SIGTERM exits 143 (128 + 15)
+    with the error line naming the resume, not 0 as a finished run."""
+    import deltar.training.run as run_module
+
+    def stopped(config, run_dir, resume=False):
+        raise run_module.TrainingInterrupted(tmp_path / "run", "SIGTERM", 3)
+
+    monkeypatch.setattr(run_module, "train", stopped)
+    result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(tmp_path / "run"))
+    assert result.exit_code == 143
+    assert "stopped by SIGTERM at step 3" in result.output
+    assert "it stopped before its first checkpoint" in result.output

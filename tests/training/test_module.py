@@ -13,7 +13,8 @@ import yaml
 from deltar.training.config import OptimConfig
 from deltar.training.config_loading import config_from_dict
 from deltar.training.module import DeltarSystem, load_trained_model
-from deltar.training.run import AtomicCheckpointIO, read_history, train
+from deltar.training.run import train
+from deltar.training.run_folder import AtomicCheckpointIO, read_history
 
 TINY_MODEL = {"decoder_channels": [32, 32, 16, 16, 8], "head_channels": 16, "n_bins": 16,
               "head": "bins",

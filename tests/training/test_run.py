@@ -21,7 +21,8 @@ import torch
 from deltar.data.zju_l5 import ZJUL5Sample, write_zju_l5
 from deltar.models import create_model
 from deltar.training.module import export_model
-from deltar.training.run import build_data_module, build_system, read_history, train
+from deltar.training.run import build_data_module, build_system, train
+from deltar.training.run_folder import read_history
 
 HERE = Path(__file__).resolve().parent
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny_test.yaml"
@@ -129,12 +130,13 @@ def test_init_checkpoint_of_another_architecture_is_rejected(tmp_path, tiny_conf
 
 
 # 8 training frames, batch 2: 4 steps per epoch, 2 epochs (8 steps).
-@pytest.mark.parametrize(("every", "kill_at", "checkpoint_step"), [
-    (3, 4, 3),  # killed in step 5; newest checkpoint: step 3, in the middle of epoch 0
-    (2, 5, 4),  # killed in step 6; newest checkpoint: step 4, the end of epoch 0
+@pytest.mark.parametrize(("every", "kill_at", "checkpoint_step", "move"), [
+    (3, 4, 3, False),  # killed in step 5; newest checkpoint: step 3, in the middle of epoch 0
+    (2, 5, 4, True),  # killed in step 6; newest checkpoint: step 4, the end of epoch 0; the
+    # folder then moved (e.g. from scratch space to a shared disk) before the resume
 ])
 def test_killed_run_resumes_on_the_same_loss_curve(tmp_path, tiny_config, every, kill_at,
-                                                   checkpoint_step):
+                                                   checkpoint_step, move):
     overrides = (f"trainer.checkpoint_every_n_steps={every}",)
     config = tiny_config(*overrides)
     reference = train(config, tmp_path / "uninterrupted")
@@ -151,7 +153,23 @@ def test_killed_run_resumes_on_the_same_loss_curve(tmp_path, tiny_config, every,
     before = read_history(killed / "history" / "rank0.jsonl")
     assert sorted(before) == list(range(1, kill_at + 1))
 
+    logged = (killed / "logs" / "csv" / "metrics.csv").read_text(encoding="utf-8")
+    if move:
+        (tmp_path / "moved").mkdir()
+        killed = killed.rename(tmp_path / "moved" / "killed")
+
     train(config, killed, resume=True)
+
+    # The folder's files carry on: last.ckpt is the newest (no last-v1.ckpt beside a
+    # stale one), old step checkpoints are pruned, the CSV log keeps its earlier rows.
+    names = sorted(p.name for p in (killed / "checkpoints").iterdir())
+    kept = {2: ["step=6.ckpt", "step=8.ckpt"], 3: ["step=3.ckpt", "step=6.ckpt"]}[every]
+    assert names == ["last.ckpt", *kept]  # keep_checkpoints: 2
+    assert torch.load(killed / "checkpoints" / "last.ckpt", weights_only=False)[
+        "global_step"] == int(kept[-1][5:-5])
+    rows = (killed / "logs" / "csv" / "metrics.csv").read_text(encoding="utf-8")
+    assert rows.startswith(logged.rstrip("\n")) or not logged.strip()
+    assert len(rows.splitlines()) > len(logged.splitlines())
 
     expected = read_history(reference / "history" / "rank0.jsonl")
     resumed = read_history(killed / "history" / "rank0.jsonl")  # later lines win
@@ -202,3 +220,51 @@ def test_two_processes_share_the_data_and_end_with_identical_weights(tmp_path):
 
     assert epoch_loss(5) < 0.9 * epoch_loss(0)
     assert (run / "model.pt").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
+
+
+def _signal_at_step(step: int, signum: int):
+    """A Lightning callback sending this process ``signum`` when step ``step`` starts."""
+    import lightning as L
+
+    class SignalAtStep(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+            if trainer.global_step == step:
+                os.kill(os.getpid(), signum)
+
+    return SignalAtStep()
+
+
+def test_a_run_stopped_by_sigterm_says_so_and_resumes(tmp_path, tiny_config):
+    """A scheduler's SIGTERM ends the run as a failure naming how to go on (Lightning
+    alone ends it as a success), and the run then resumes to the end."""
+    from deltar.training.run import TrainingInterrupted
+
+    config = tiny_config("trainer.checkpoint_every_n_steps=2")
+    run = tmp_path / "run"
+    with pytest.raises(TrainingInterrupted, match=r"stopped by SIGTERM at step \d.*no model\.pt "
+                                                  r"written.*deltar train --resume") as stop:
+        train(config, run, extra_callbacks=[_signal_at_step(3, signal.SIGTERM)])
+    assert stop.value.exit_code == 128 + signal.SIGTERM
+    assert not (run / "model.pt").exists()
+    train(config, run, resume=True)
+    assert sorted(read_history(run / "history" / "rank0.jsonl")) == list(range(1, 9))
+    assert (run / "model.pt").is_file()
+
+
+def test_a_resume_refuses_a_config_edited_in_what_the_run_learns(tmp_path, tiny_config):
+    """The checkpoint keeps the settings the run started with: an edit that changes what
+    it learns is refused by name (it would be silently ignored and misdescribe the run);
+    one of where or how it runs is not."""
+    config = tiny_config("trainer.checkpoint_every_n_steps=2", "trainer.max_epochs=1")
+    run = train(config, tmp_path / "run")
+    edited = tiny_config("trainer.checkpoint_every_n_steps=2", "trainer.max_epochs=1",
+                         "optim.lr=0.5", "data.signal_augmentation.enabled=false")
+    (run / "config.yaml").write_text(edited.to_yaml(), encoding="utf-8")  # by hand
+    with pytest.raises(ValueError, match=r"config\.yaml was edited after the run started "
+                                         r"\(data\.signal_augmentation\.enabled, optim\.lr\)"):
+        train(edited, run, resume=True)
+    shown = tiny_config("trainer.checkpoint_every_n_steps=2", "trainer.max_epochs=1",
+                        "trainer.progress_bar=true", "data.num_workers=0")
+    (run / "config.yaml").write_text(shown.to_yaml(), encoding="utf-8")
+    with pytest.warns(UserWarning, match="has finished"):
+        train(shown, run, resume=True)

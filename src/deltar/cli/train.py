@@ -53,10 +53,15 @@ def train_command(
         typer.echo(cfg.to_yaml())
         return
     _check_machine(cfg.trainer)
-    from deltar.training.run import train
+    from deltar.training.run import TrainingInterrupted, train
 
     # Missing data / weights or an occupied run folder reach the user as one error line.
-    folder = train(cfg, run_dir, resume=resume is not None)
+    try:
+        folder = train(cfg, run_dir, resume=resume is not None)
+    except TrainingInterrupted as stop:  # a scheduler's requeue script reads the status
+        from deltar.cli.errors import fail
+
+        fail(stop, stop.exit_code)
     typer.echo(f"run folder: {folder}")
 
 

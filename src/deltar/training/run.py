@@ -5,38 +5,44 @@ A run folder holds::
     config.yaml            the full configuration (every hyper-parameter)
     checkpoints/last.ckpt  newest checkpoint (every N steps and at epoch ends)
     checkpoints/step=*.ckpt  the newest few step checkpoints
-    logs/                  TensorBoard events and metrics.csv
+    logs/                  TensorBoard events and metrics.csv (a resume appends to both)
     history/rank<r>.jsonl  per-step loss and the dataset indices each process trained on
     history/rank<r>_final.json  final step and a digest of the weights of each process
     model.pt               the trained network (EMA weights when enabled)
 
 Every file is written atomically, so a run killed at any moment leaves only complete
-files, and ``train(..., resume=True)`` continues from ``checkpoints/last.ckpt``.
+files, and ``train(..., resume=True)`` continues from ``checkpoints/last.ckpt``, also in a
+folder moved or copied since (:mod:`deltar.training.run_folder`). A run stopped by SIGTERM
+or Ctrl+C raises :class:`TrainingInterrupted` (Lightning would end it as a success).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import time
 import warnings
 from pathlib import Path
-from typing import Any
 
 import lightning as L
 import torch
-from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint
-from lightning.pytorch.plugins.io import TorchCheckpointIO
+from lightning.pytorch.callbacks import Callback, EMAWeightAveraging
 
 from deltar.io.atomic import atomic_path, write_text_atomic
-from deltar.io.input_file import input_file
 from deltar.io.torch_file import read_torch_file
 from deltar.training.config import TrainConfig
 from deltar.training.config_loading import config_from_dict
 from deltar.training.data import DeltarDataModule
 from deltar.training.module import DeltarSystem, export_model, initial_weights
+from deltar.training.run_folder import (
+    CHECKPOINT_CONFIG_KEY,
+    AtomicCheckpointIO,
+    RunCheckpoints,
+    RunConfigRecord,
+    TrainingHistory,
+    appending_csv_logger,
+    config_changes,
+)
 
 CONFIG_NAME = "config.yaml"
 LAST_CHECKPOINT = "last.ckpt"
@@ -44,81 +50,26 @@ LAST_CHECKPOINT = "last.ckpt"
 RUN_DIR_ENV = "DELTAR_RUN_DIR"
 
 
-class AtomicCheckpointIO(TorchCheckpointIO):
-    """Checkpoint files written through :func:`deltar.io.atomic.atomic_path`.
+class TrainingInterrupted(RuntimeError):
+    """A run stopped by a signal (SIGTERM from a scheduler, Ctrl+C) before it finished.
 
-    The checkpoint is serialised into a temporary file in the same folder and renamed
-    over the target only when complete, so a process killed while saving never leaves
-    a truncated ``last.ckpt``. Loading allows the non-tensor objects our checkpoints
-    hold (RNG states), so only load checkpoints you wrote yourself.
+    Attributes:
+        signal_name: ``"SIGTERM"`` or ``"SIGINT"``.
+        exit_code: the conventional status for it (128 + the signal's number).
     """
 
-    def save_checkpoint(self, checkpoint: dict[str, Any], path: str | os.PathLike,
-                        storage_options: Any | None = None) -> None:
-        """Serialise ``checkpoint`` to ``path`` atomically."""
-        if storage_options is not None:
-            raise TypeError("AtomicCheckpointIO takes no storage_options")
-        with atomic_path(path) as tmp:
-            torch.save(checkpoint, tmp)
+    def __init__(self, run_dir: Path, signal_name: str, step: int) -> None:
+        import signal
 
-    def load_checkpoint(self, path: str | os.PathLike, map_location: Any = None,
-                        weights_only: bool | None = None) -> dict[str, Any]:
-        """Load a checkpoint written by this project (full pickle, trusted source)."""
-        input_file(path, "checkpoint")
-        return torch.load(path, map_location=map_location or "cpu", weights_only=False)
-
-
-class TrainingHistory(Callback):
-    """Append each step's loss and sample indices to ``history/rank<r>.jsonl``.
-
-    One file per process, one JSON line per optimiser step:
-    ``{"step", "epoch", "loss", "indices", "time"}`` (time: Unix seconds at the step's
-    end). A resumed run appends to the same file, so steps re-done after the last
-    checkpoint appear twice (the later line wins). At the end of training each process
-    writes ``history/rank<r>_final.json`` with the global step and a SHA-256 digest of
-    its parameters (equal on all ranks under DDP).
-    """
-
-    def __init__(self, folder: str | Path) -> None:
-        self.folder = Path(folder)
-
-    def _path(self, trainer: L.Trainer, suffix: str) -> Path:
-        return self.folder / f"rank{trainer.global_rank}{suffix}"
-
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
-                           outputs: Any, batch: dict[str, torch.Tensor], batch_idx: int
-                           ) -> None:
-        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
-        record = {"step": trainer.global_step, "epoch": trainer.current_epoch,
-                  "loss": float(loss), "indices": batch["index"].tolist(),
-                  "time": round(time.time(), 3)}
-        self.folder.mkdir(parents=True, exist_ok=True)
-        with self._path(trainer, ".jsonl").open("a", encoding="utf-8") as f:
-            f.write(json.dumps(record) + "\n")
-
-    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        digest = parameter_digest(pl_module)
-        write_text_atomic(self._path(trainer, "_final.json"), json.dumps(
-            {"step": trainer.global_step, "parameters_sha256": digest}) + "\n")
-
-
-def parameter_digest(module: torch.nn.Module) -> str:
-    """SHA-256 over the bytes of every parameter (names and values), in order."""
-    sha = hashlib.sha256()
-    for name, param in module.named_parameters():
-        sha.update(name.encode())
-        sha.update(param.detach().cpu().contiguous().numpy().tobytes())
-    return sha.hexdigest()
-
-
-def read_history(path: str | Path) -> dict[int, dict[str, Any]]:
-    """Read a ``history/rank<r>.jsonl`` file: step -> record (the last record per step)."""
-    records: dict[int, dict[str, Any]] = {}
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        if line.strip():
-            record = json.loads(line)
-            records[int(record["step"])] = record
-    return records
+        self.signal_name = signal_name
+        self.exit_code = 128 + int(getattr(signal, signal_name))
+        last = run_dir / "checkpoints" / LAST_CHECKPOINT
+        where = (f"its newest checkpoint is {last}: continue with `deltar train --resume "
+                 f"{run_dir}`") if last.is_file() else ("it stopped before its first "
+                                                         "checkpoint: remove the folder "
+                                                         "and start it again")
+        super().__init__(f"run {run_dir} stopped by {signal_name} at step {step}, before it "
+                         f"finished (no model.pt written); {where}")
 
 
 def new_run_dir(config: TrainConfig) -> Path:
@@ -170,14 +121,15 @@ def build_trainer(config: TrainConfig, run_dir: Path,
     monitor, progress bar, EMA).
     """
     from lightning.pytorch.callbacks import LearningRateMonitor, RichProgressBar
-    from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+    from lightning.pytorch.loggers import TensorBoardLogger
 
     tcfg = config.trainer
-    checkpoints = ModelCheckpoint(
+    checkpoints = RunCheckpoints(
         dirpath=run_dir / "checkpoints", filename="step={step}", auto_insert_metric_name=False,
         every_n_train_steps=tcfg.checkpoint_every_n_steps, save_top_k=tcfg.keep_checkpoints,
         monitor="step", mode="max", save_last=True)
-    callbacks: list[Callback] = [checkpoints, TrainingHistory(run_dir / "history"),
+    callbacks: list[Callback] = [checkpoints, RunConfigRecord(config),
+                                 TrainingHistory(run_dir / "history"),
                                  LearningRateMonitor(logging_interval="step"),
                                  *extra_callbacks]
     if tcfg.progress_bar:
@@ -186,7 +138,7 @@ def build_trainer(config: TrainConfig, run_dir: Path,
         callbacks.append(EMAWeightAveraging(decay=config.ema.decay,
                                             update_starting_at_step=config.ema.start_step))
     loggers = [TensorBoardLogger(run_dir / "logs", name="", version="tensorboard"),
-               CSVLogger(run_dir / "logs", name="", version="csv")]
+               appending_csv_logger(run_dir / "logs", "csv")]
     return L.Trainer(
         accelerator=tcfg.accelerator, devices=tcfg.devices, num_nodes=tcfg.num_nodes,
         strategy=tcfg.strategy, precision=tcfg.precision,
@@ -241,7 +193,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)
-    if resume and resumed_run_finished(checkpoint, system.schedule_steps):
+    if resume and resumed_run_finished(checkpoint, system.schedule_steps, config):
         # Nothing left to train (e.g. a finished job requeued): keep the run's model.pt
         # (a resumed fit would hold the raw weights, not the averaged ones it saved).
         model_path = run_dir / "model.pt"
@@ -273,6 +225,15 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     os.environ[RUN_DIR_ENV] = str(run_dir)
     try:
         trainer.fit(system, datamodule=data, ckpt_path=str(checkpoint) if resume else None)
+    except SystemExit as stop:
+        # Lightning ends a run stopped by SIGTERM with SystemExit(None), which reads as
+        # success, and one stopped by Ctrl+C with SystemExit(1): say which, and how to go on.
+        from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+        name = "SIGTERM" if isinstance(stop, SIGTERMException) else "SIGINT"
+        if trainer.state.status.value != "interrupted":
+            raise
+        raise TrainingInterrupted(run_dir, name, trainer.global_step) from stop
     finally:
         if previous is None:
             os.environ.pop(RUN_DIR_ENV, None)
@@ -284,17 +245,21 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     return run_dir
 
 
-def resumed_run_finished(checkpoint: Path, schedule_steps: int) -> bool:
+def resumed_run_finished(checkpoint: Path, schedule_steps: int,
+                         config: TrainConfig | None = None) -> bool:
     """Whether the run saved in ``checkpoint`` has trained all of its ``schedule_steps``.
 
     Raises:
         ValueError: the checkpoint does not read (the message names the run's other
-            checkpoints to resume from), or its schedule spans another number of steps
-            than the configuration now gives (a resumed run cannot change it).
+            checkpoints to resume from), its schedule spans another number of steps
+            than the configuration now gives, or ``config`` differs from the one it was
+            saved with in settings that change what the run learns (a resumed run keeps
+            them; :func:`config_changes`).
     """
     try:
         state = read_torch_file(checkpoint, "training checkpoint", weights_only=False)
         step = int(state["global_step"])
+        saved_config = state.get(CHECKPOINT_CONFIG_KEY)
         planned = [int(s["total_steps"]) for s in state.get("lr_schedulers", [])
                    if "total_steps" in s]
     except (ValueError, KeyError, TypeError, AttributeError) as err:
@@ -310,7 +275,17 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int) -> bool:
                          f"steps, the configuration now gives {schedule_steps} "
                          "(trainer.max_steps, max_epochs, the data or the batch size "
                          "changed); a resumed run keeps its schedule: to train further, "
-                         "start a new run from its model.pt (model.init_checkpoint)")
+                         "start a new run from its weights (model.init_checkpoint: "
+                         f"{checkpoint})")
+    changed = [] if config is None or saved_config is None else config_changes(
+        saved_config, config.to_dict())
+    if changed:
+        shown = ", ".join(changed[:6]) + (f" and {len(changed) - 6} more" if len(changed) > 6
+                                          else "")
+        raise ValueError(f"{checkpoint.parent.parent / CONFIG_NAME} was edited after the run "
+                         f"started ({shown}); a resumed run keeps the settings it was "
+                         "started with: undo the edit, or start a new run (with "
+                         "model.init_checkpoint for its weights so far)")
     return step >= schedule_steps
 
 
