@@ -134,6 +134,21 @@ def test_shared_rgbd_source_holds_out_the_end_of_the_sequence(shared_data):
     np.testing.assert_allclose(item["depth"][0].numpy(), resized, atol=1e-6)
 
 
+@pytest.mark.parametrize(("depth_scale", "median"), [(1e6, "0.00"), (1.0, "1857 m")])
+def test_a_source_read_in_the_wrong_depth_units_is_refused(shared_data, depth_scale, median):
+    """Millimetre PNGs read as if they held metres (or the other way) would train to the
+    end without a word; the first frame's median depth tells, naming the setting."""
+    config = DataConfig(
+        sources=[SourceConfig(kind="rgbd", path=str(shared_data / "icl_livingroom1"),
+                              resize=[64, 96], intrinsics=[525.0, 525.0, 319.5, 239.5],
+                              depth_scale=depth_scale)],
+        zone_layout="calibrated", grid=8, num_hypotheses=4, num_workers=0)
+    with pytest.raises(ValueError, match=rf"data\.sources\.0 \(.*icl_livingroom1\): the first "
+                                         rf"frame's depth reads a median of {median}.*set "
+                                         r"depth_scale"):
+        build_datasets(config, seed=0)
+
+
 def test_nyu_release_layout_source_with_border_crop(tmp_path, rng):
     import json
 

@@ -133,6 +133,33 @@ def open_source_reader(source: SourceConfig) -> Sequence:
     return reader
 
 
+#: The median depth (metres) a scene to train on must read: outside it the depth's units
+#: are wrong (a depth image in metres read as millimetres reads 0-10 mm).
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.05, 100.0)
+
+
+def check_depth_units(depth_m: np.ndarray, where: str) -> None:
+    """Refuse a frame whose valid depth (> 0, metres) has a median outside
+    :data:`PLAUSIBLE_MEDIAN_DEPTH_M`, or that has none: its units are wrong, and training
+    on it would finish without a word (the zones simulated from it read nothing).
+
+    Args:
+        depth_m: (H, W) depth in metres as the source reads it.
+        where: the source, for the message.
+    """
+    valid = np.asarray(depth_m)[np.asarray(depth_m) > 0]
+    low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+    if valid.size == 0:
+        raise ValueError(f"{where}: the first frame has no depth (every pixel 0); check the "
+                         "depth files and depth_scale")
+    median = float(np.median(valid))
+    if not low <= median <= high:
+        raise ValueError(f"{where}: the first frame's depth reads a median of {median:.4g} m, "
+                         f"outside {low:g}-{high:g} m for a scene to train on: its units are "
+                         "likely wrong; set depth_scale to the depth files' units per metre "
+                         "(1000 for millimetres, 5000 for TUM's, 1 for files in metres)")
+
+
 def _native_size(source: SourceConfig) -> tuple[int, int]:
     """(height, width) of a source's stored frames, read from its first frame."""
     from deltar.data.nyu import NYUH5Reader, NYULabeledReader
@@ -222,6 +249,8 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
             reader = SubsetReader(reader, range(0, len(reader), source.every))
         if len(reader) == 0:
             raise ValueError(f"data source {number} ({source.kind} {source.path}) has no frames")
+        if source.kind not in ZONE_SET_SOURCE_KINDS and source.kind != "procedural":
+            check_depth_units(reader[0].depth_m, f"data.sources.{number} ({source.path})")
         if source.role == "train_val":
             train_idx, val_idx = holdout_split(len(reader), source.holdout_fraction,
                                                source.holdout_position)
