@@ -149,6 +149,26 @@ def test_a_source_read_in_the_wrong_depth_units_is_refused(shared_data, depth_sc
         build_datasets(config, seed=0)
 
 
+def test_frames_the_network_cannot_take_are_refused_before_training(shared_data):
+    """Sides not divisible by 32 fail at the first batch (for a held-out block, only at
+    the first validation, an epoch in); found when the data is set up, naming the fix."""
+    source = SourceConfig(kind="rgbd", path=str(shared_data / "icl_livingroom1"),
+                          resize=[60, 90], intrinsics=[525.0, 525.0, 319.5, 239.5])
+    config = DataConfig(sources=[source], zone_layout="calibrated", grid=8,
+                        num_hypotheses=4, num_workers=0)
+    with pytest.raises(ValueError, match=r"data\.sources\.0 \(.*\): frames are 60x90, the "
+                                         r"network takes sides divisible by 32: set "
+                                         r"data\.sources\.0\.resize \(e\.g\. \[64, 96\]\)"):
+        build_datasets(config, seed=0)
+    # A training-only source cropped by the augmentation is not held out: it may.
+    source.role = "train"
+    config.image_augmentation.crop = [32, 64]
+    config.sources.append(SourceConfig(kind="procedural", frames=2, resize=[64, 96],
+                                       role="val"))
+    train, _ = build_datasets(config, seed=0)
+    assert train[0]["image"].shape == (3, 32, 64)
+
+
 def test_nyu_release_layout_source_with_border_crop(tmp_path, rng):
     import json
 

@@ -249,8 +249,19 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
             reader = SubsetReader(reader, range(0, len(reader), source.every))
         if len(reader) == 0:
             raise ValueError(f"data source {number} ({source.kind} {source.path}) has no frames")
-        if source.kind not in ZONE_SET_SOURCE_KINDS and source.kind != "procedural":
-            check_depth_units(reader[0].depth_m, f"data.sources.{number} ({source.path})")
+        if source.kind not in ZONE_SET_SOURCE_KINDS:
+            first = reader[0].depth_m
+            if source.kind != "procedural":
+                check_depth_units(first, f"data.sources.{number} ({source.path})")
+            cropped = source.role == "train" and config.image_augmentation.enabled and \
+                config.image_augmentation.crop is not None
+            if not cropped and (first.shape[0] % 32 or first.shape[1] % 32):
+                # Found here, not at the first batch of an epoch's validation.
+                near = [max(32, 32 * round(side / 32)) for side in first.shape[:2]]
+                raise ValueError(f"data.sources.{number} ({source.path}): frames are "
+                                 f"{first.shape[0]}x{first.shape[1]}, the network takes "
+                                 "sides divisible by 32: set data.sources."
+                                 f"{number}.resize (e.g. {near})")
         if source.role == "train_val":
             train_idx, val_idx = holdout_split(len(reader), source.holdout_fraction,
                                                source.holdout_position)

@@ -197,12 +197,14 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         # Nothing left to train (e.g. a finished job requeued): keep the run's model.pt
         # (a resumed fit would hold the raw weights, not the averaged ones it saved).
         model_path = run_dir / "model.pt"
+        done = "kept"
         if trainer.is_global_zero and not model_path.exists():
             from deltar.training.package import package_checkpoint
 
             package_checkpoint(checkpoint, model_path, float16=False)
+            done = "written from its last checkpoint"
         warnings.warn(f"run {run_dir} has finished ({system.schedule_steps} steps); nothing "
-                      f"left to train, {model_path} kept. To train further, start a new run "
+                      f"left to train, {model_path} {done}. To train further, start a new run "
                       f"from it (model.init_checkpoint: {model_path})", stacklevel=2)
         return run_dir
     if trainer.is_global_zero and not resume:
