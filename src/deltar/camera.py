@@ -216,3 +216,39 @@ def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
         (N, 3) float64 points (x, y, z) in metres, row-major pixel order.
     """
     return backproject_pixels(depth_m, intrinsics, mask=mask, stride=stride)[0]
+
+
+def distortion_fold_error(intrinsics: CameraIntrinsics,
+                          distortion: tuple[float, ...]) -> str | None:
+    """Why a lens distortion cannot undistort the whole image, or None when it can.
+
+    OpenCV's radial model maps a pinhole radius ``r`` (normalised coordinates) to
+    ``r (1 + k1 r^2 + k2 r^4 + k3 r^6)``. Where that map turns back before the image
+    corners, the outer pixels have no pinhole position, and undistorting folds them back
+    into the image.
+
+    Args:
+        intrinsics: fx, fy, cx, cy (pixels) and the image size.
+        distortion: OpenCV's (k1, k2, p1, p2[, k3, ...]); the radial terms are checked.
+
+    Returns:
+        ``"lens distortion (k1 .., k2 ..) turns back at N % of the way ..."``, or None.
+    """
+    k1, k2 = [*distortion, 0.0, 0.0][:2]
+    k3 = distortion[4] if len(distortion) > 4 else 0.0
+    # d/dr of r (1 + k1 u + k2 u^2 + k3 u^3), u = r^2: 1 + 3 k1 u + 5 k2 u^2 + 7 k3 u^3.
+    roots = np.roots([7 * k3, 5 * k2, 3 * k1, 1.0])
+    turns = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
+    if not turns:
+        return None
+    u = min(turns)
+    furthest = math.sqrt(u) * (1 + k1 * u + k2 * u * u + k3 * u ** 3)
+    xs = (np.array([-0.5, intrinsics.width - 0.5]) - intrinsics.cx) / intrinsics.fx
+    ys = (np.array([-0.5, intrinsics.height - 0.5]) - intrinsics.cy) / intrinsics.fy
+    corner = float(np.hypot(np.abs(xs).max(), np.abs(ys).max()))
+    if furthest >= corner:
+        return None
+    terms = f"k1 {k1:.4g}, k2 {k2:.4g}" + (f", k3 {k3:.4g}" if k3 else "")
+    return (f"lens distortion ({terms}) turns back at {100 * furthest / corner:.0f} % of the "
+            "way from the principal point to the image corners, so the outer part of the "
+            "image cannot be undistorted")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -196,3 +197,16 @@ def test_api_values_are_refused_not_coerced(kwargs, message):
     assert message in str(caught.value)
     with pytest.raises(ValueError, match=r"SensorExtrinsics\.translation_m must hold numbers"):
         SensorExtrinsics(np.eye(3), ["0.1", "0", "0"])
+
+
+def test_a_file_whose_lens_distortion_folds_the_image_loads_with_a_warning(tmp_path):
+    """A calibration made elsewhere (e.g. k1 alone fitted to central views) whose radial
+    map turns back before the image corners: undistorting folds the outer pixels."""
+    path = _calib(distortion=(-0.6, 0.0, 0.0, 0.0, 0.0)).save(tmp_path / "c.json")
+    with pytest.warns(UserWarning, match=r"c\.json: its lens distortion \(k1 -0\.6, k2 0\) "
+                                         r"turns back at \d+ % of the way"):
+        RigCalibration.load(path)
+    good = _calib(distortion=(-0.2, 0.05, 0.0, 0.0, 0.0)).save(tmp_path / "good.json")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        RigCalibration.load(good)

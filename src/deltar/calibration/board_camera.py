@@ -9,13 +9,12 @@ expected error (:mod:`deltar.calibration.board_uncertainty`).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from deltar.calibration.board import BoardDetection, estimate_board_pose
-from deltar.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, distortion_fold_error
 
 #: The camera parameters :func:`calibrate_camera` estimates, in the order of its covariance.
 CAMERA_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
@@ -105,41 +104,18 @@ def calibrate_camera(detections: list[BoardDetection], intrinsics: CameraIntrins
 
 def check_distortion_covers_image(intrinsics: CameraIntrinsics,
                                   distortion: tuple[float, ...]) -> None:
-    """Refuse a radial distortion that turns back inside the image.
-
-    OpenCV's radial model maps a pinhole radius ``r`` to ``r (1 + k1 r^2 + k2 r^4)``
-    (normalised coordinates). Fitted to views whose board never reaches the image's outer
-    part, k1 and k2 can make that map turn back before the image corners: the outer
-    pixels then have no pinhole position, and undistorting folds them into the image.
-
-    Args:
-        intrinsics: fx, fy, cx, cy (pixels) and the image size.
-        distortion: OpenCV's (k1, k2, p1, p2[, k3]); the radial terms are checked.
+    """Refuse a fitted radial distortion that turns back inside the image
+    (:func:`~deltar.camera.distortion_fold_error`): fitted to views whose board never
+    reaches the image's outer part, k1 and k2 can do that.
 
     Raises:
-        ValueError: the map turns back at a radius inside the image, naming where.
+        ValueError: naming where it turns back, and the remedy.
     """
-    k1, k2 = [*distortion, 0.0, 0.0][:2]
-    k3 = distortion[4] if len(distortion) > 4 else 0.0
-    # d/dr of r (1 + k1 u + k2 u^2 + k3 u^3), u = r^2: 1 + 3 k1 u + 5 k2 u^2 + 7 k3 u^3.
-    roots = np.roots([7 * k3, 5 * k2, 3 * k1, 1.0]) if k3 else np.roots([5 * k2, 3 * k1, 1.0])
-    turns = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
-    if not turns:
-        return
-    u = min(turns)
-    furthest = math.sqrt(u) * (1 + k1 * u + k2 * u * u + k3 * u ** 3)
-    xs = (np.array([-0.5, intrinsics.width - 0.5]) - intrinsics.cx) / intrinsics.fx
-    ys = (np.array([-0.5, intrinsics.height - 0.5]) - intrinsics.cy) / intrinsics.fy
-    corner = float(np.hypot(np.abs(xs).max(), np.abs(ys).max()))
-    if furthest < corner:
-        raise ValueError(
-            f"the fitted lens distortion (k1 {k1:.4g}, k2 {k2:.4g}"
-            f"{f', k3 {k3:.4g}' if k3 else ''}) turns back at "
-            f"{100 * furthest / corner:.0f} % of the way from the principal point to the image "
-            "corners, so the outer part of the image cannot be undistorted: the board "
-            "views do not reach far enough out. Add views with the board near the image's "
-            "edges and corners, or keep the camera's intrinsics (without "
-            "--calibrate-intrinsics)")
+    problem = distortion_fold_error(intrinsics, distortion)
+    if problem is not None:
+        raise ValueError(f"the fitted {problem}: the board views do not reach far enough "
+                         "out. Add views with the board near the image's edges and corners, "
+                         "or keep the camera's intrinsics (without --calibrate-intrinsics)")
 
 
 def _camera_covariance(objects, images, matrix, dist, rvecs, tvecs) -> np.ndarray:

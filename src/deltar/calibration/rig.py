@@ -27,7 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics, strict_integer, strict_number
+from deltar.camera import (
+    CameraIntrinsics,
+    distortion_fold_error,
+    strict_integer,
+    strict_number,
+)
 from deltar.io.atomic import write_text_atomic
 from deltar.io.input_file import reading
 from deltar.io.json_file import read_json
@@ -314,7 +319,9 @@ class RigCalibration:
         """Read and validate a calibration JSON file.
 
         Besides :meth:`from_dict`'s checks, a calibration that leaves some zones outside
-        the image (at 2 m) loads with a ``UserWarning`` saying how many remain.
+        the image (at 2 m) loads with a ``UserWarning`` saying how many remain, and one
+        whose lens distortion turns back inside the image
+        (:func:`~deltar.camera.distortion_fold_error`) with one saying so.
 
         Raises:
             FileNotFoundError / IsADirectoryError: the path is missing or a folder.
@@ -328,6 +335,11 @@ class RigCalibration:
                           f"inside the {calibration.intrinsics.height}x"
                           f"{calibration.intrinsics.width} image (at "
                           f"{FALLBACK_ZONE_DEPTH_M:g} m); the others carry no information",
+                          UserWarning, stacklevel=2)
+        folds = distortion_fold_error(calibration.intrinsics, calibration.distortion)
+        if folds is not None:
+            warnings.warn(f"{path}: its {folds}: the depth there is for folded pixels; "
+                          "calibrate the camera with views reaching the image's edges",
                           UserWarning, stacklevel=2)
         return calibration
 
