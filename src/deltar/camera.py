@@ -222,10 +222,12 @@ def distortion_fold_error(intrinsics: CameraIntrinsics,
                           distortion: tuple[float, ...]) -> str | None:
     """Why a lens distortion cannot undistort the whole image, or None when it can.
 
-    OpenCV's radial model maps a pinhole radius ``r`` (normalised coordinates) to
-    ``r (1 + k1 r^2 + k2 r^4 + k3 r^6)``. Where that map turns back before the image
-    corners, the outer pixels have no pinhole position, and undistorting folds them back
-    into the image.
+    OpenCV's radial model maps a pinhole radius ``r`` (normalised coordinates) to a lens
+    radius ``r (1 + k1 r^2 + k2 r^4 + k3 r^6)``. The model holds for the image only if that
+    map rises all the way to the image corners in both: if it turns back at a pinhole
+    radius inside them, the undistorted image folds (pincushion-like fits); if the
+    largest lens radius it reaches lies inside them, the image's outer pixels have no
+    pinhole position and undistorting leaves them out (barrel-like fits).
 
     Args:
         intrinsics: fx, fy, cx, cy (pixels) and the image size.
@@ -242,13 +244,14 @@ def distortion_fold_error(intrinsics: CameraIntrinsics,
     if not turns:
         return None
     u = min(turns)
-    furthest = math.sqrt(u) * (1 + k1 * u + k2 * u * u + k3 * u ** 3)
+    # The turning point's pinhole radius and the lens radius it reaches.
+    reach = min(math.sqrt(u), math.sqrt(u) * (1 + k1 * u + k2 * u * u + k3 * u ** 3))
     xs = (np.array([-0.5, intrinsics.width - 0.5]) - intrinsics.cx) / intrinsics.fx
     ys = (np.array([-0.5, intrinsics.height - 0.5]) - intrinsics.cy) / intrinsics.fy
     corner = float(np.hypot(np.abs(xs).max(), np.abs(ys).max()))
-    if furthest >= corner:
+    if reach >= corner:
         return None
     terms = f"k1 {k1:.4g}, k2 {k2:.4g}" + (f", k3 {k3:.4g}" if k3 else "")
-    return (f"lens distortion ({terms}) turns back at {100 * furthest / corner:.0f} % of the "
-            "way from the principal point to the image corners, so the outer part of the "
-            "image cannot be undistorted")
+    return (f"lens distortion ({terms}) turns back at {100 * reach / corner:.0f} % of the "
+            "way from the principal point to the image corners, so it cannot map the "
+            "whole image: undistorting folds or leaves out the outer part")

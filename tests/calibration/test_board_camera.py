@@ -84,9 +84,9 @@ def test_camera_covariance_is_opencvs_and_near_views_shrink_it():
 
 
 def test_a_distortion_that_turns_back_inside_the_image_is_refused():
-    """k1 alone at -0.4 turns the radial map back at a normalised radius of 0.61, inside
-    a 640-pixel-wide image at fx = 500 (corner radius 0.80): undistorting would fold the
-    image's outer part. A real lens's (and one bending as far out with k2 > 0) passes."""
+    """k1 alone at -0.4 makes the radial map reach a lens radius of 0.61 at most, inside a
+    640-pixel-wide image at fx = 500 (corner radius 0.80): the image's outer pixels have no
+    pinhole position. A real lens's (and one bending as far out with k2 > 0) passes."""
     from deltar.calibration.board_camera import check_distortion_covers_image
 
     check_distortion_covers_image(VGA, LENS)
@@ -95,6 +95,10 @@ def test_a_distortion_that_turns_back_inside_the_image_is_refused():
     with pytest.raises(ValueError, match=r"turns back at 7\d % of the way .* Add views with "
                                          r"the board near the image's edges"):
         check_distortion_covers_image(VGA, (-0.4, 0.0, 0.0, 0.0, 0.0))
-    # A strong k1 with k3 bending it back is refused too (k3's own term counts).
+    # A strong k1 with k3 bending it back is refused too (k3's own term counts), and a
+    # pincushion-like fit whose undistorted image folds before the corners (k1 > 0,
+    # k2 < 0: the map turns back at a pinhole radius of 0.78, the corner's is 0.80).
     with pytest.raises(ValueError, match="turns back"):
         check_distortion_covers_image(VGA, (0.0, 0.0, 0.0, 0.0, -1.0))
+    with pytest.raises(ValueError, match=r"turns back at 98 % .* folds or leaves out"):
+        check_distortion_covers_image(VGA, (1.3, -1.8, 0.0, 0.0, 0.0))

@@ -152,6 +152,13 @@ def test_undistorting_keeps_its_maps_and_matches_opencv():
                                  CAMERA.matrix)
         for _ in range(2):  # first use makes the maps, the second reads them
             np.testing.assert_allclose(calib.undistort_image(image), expected, atol=1e-5)
+    # Pickles and copies carry the fields, not the megabytes of maps (remade on use).
+    import copy
+    import pickle
+
+    assert len(pickle.dumps(calib)) < 4096
+    np.testing.assert_array_equal(copy.deepcopy(calib).undistort_image(image),
+                                  calib.undistort_image(image))
     pinhole = calib.undistorted()
     assert pinhole == replace(calib, distortion=()) and not pinhole.has_distortion
     assert pinhole.undistorted() is pinhole

@@ -134,18 +134,42 @@ def test_shared_rgbd_source_holds_out_the_end_of_the_sequence(shared_data):
     np.testing.assert_allclose(item["depth"][0].numpy(), resized, atol=1e-6)
 
 
-@pytest.mark.parametrize(("depth_scale", "median"), [(1e6, "0.00"), (1.0, "1857 m")])
+@pytest.mark.parametrize(("depth_scale", "median"), [(1e6, r"0\.00\d+ m"),
+                                                     (1.0, r"\d{3,4}(\.\d+)? m")])
 def test_a_source_read_in_the_wrong_depth_units_is_refused(shared_data, depth_scale, median):
     """Millimetre PNGs read as if they held metres (or the other way) would train to the
-    end without a word; the first frame's median depth tells, naming the setting."""
+    end without a word; the median depth of a few frames tells, naming the setting."""
     config = DataConfig(
         sources=[SourceConfig(kind="rgbd", path=str(shared_data / "icl_livingroom1"),
                               resize=[64, 96], intrinsics=[525.0, 525.0, 319.5, 239.5],
                               depth_scale=depth_scale)],
         zone_layout="calibrated", grid=8, num_hypotheses=4, num_workers=0)
-    with pytest.raises(ValueError, match=rf"data\.sources\.0 \(.*icl_livingroom1\): the first "
-                                         rf"frame's depth reads a median of {median}.*set "
+    with pytest.raises(ValueError, match=rf"data\.sources\.0 \(.*icl_livingroom1\): its depth "
+                                         rf"reads a median of {median}, outside .*set "
                                          r"depth_scale"):
+        build_datasets(config, seed=0)
+
+
+def test_a_blank_first_depth_frame_does_not_refuse_its_source(tmp_path):
+    """Recordings often start with a blank depth frame (the camera warming up): the
+    units are read from frames spread through the source."""
+    import cv2
+
+    for folder in ("color", "depth"):
+        (tmp_path / folder).mkdir()
+    for i in range(6):
+        cv2.imwrite(str(tmp_path / "color" / f"{i:06d}.png"), np.full((64, 96, 3), 90, np.uint8))
+        depth = np.zeros((64, 96), np.uint16) if i == 0 else np.full((64, 96), 1500, np.uint16)
+        cv2.imwrite(str(tmp_path / "depth" / f"{i:06d}.png"), depth)
+    (tmp_path / "camera-intrinsics.txt").write_text("80 0 47.5\n0 80 31.5\n0 0 1\n")
+    config = DataConfig(sources=[SourceConfig(kind="rgbd", path=str(tmp_path))],
+                        zone_layout="calibrated", grid=8, num_hypotheses=4, num_workers=0)
+    train, val = build_datasets(config, seed=0)
+    assert len(train) + len(val) == 6
+    for i in range(1, 6):  # all blank: refused, naming the source
+        cv2.imwrite(str(tmp_path / "depth" / f"{i:06d}.png"), np.zeros((64, 96), np.uint16))
+    with pytest.raises(ValueError, match=r"data\.sources\.0 \(.*\): the 5 frames read to "
+                                         r"check it have no depth"):
         build_datasets(config, seed=0)
 
 

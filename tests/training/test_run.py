@@ -251,6 +251,19 @@ def test_a_run_stopped_by_sigterm_says_so_and_resumes(tmp_path, tiny_config):
     assert (run / "model.pt").is_file()
 
 
+def test_a_callback_that_exits_is_not_taken_for_a_signal(tmp_path, tiny_config):
+    import lightning as L
+
+    class Exit(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+            if trainer.global_step == 2:
+                sys.exit(0)
+
+    with pytest.raises(SystemExit) as stop:
+        train(tiny_config(), tmp_path / "run", extra_callbacks=[Exit()])
+    assert type(stop.value) is SystemExit and stop.value.code == 0
+
+
 def test_a_resume_refuses_a_config_edited_in_what_the_run_learns(tmp_path, tiny_config):
     """The checkpoint keeps the settings the run started with: an edit that changes what
     it learns is refused by name (it would be silently ignored and misdescribe the run);
@@ -268,3 +281,33 @@ def test_a_resume_refuses_a_config_edited_in_what_the_run_learns(tmp_path, tiny_
     (run / "config.yaml").write_text(shown.to_yaml(), encoding="utf-8")
     with pytest.warns(UserWarning, match="has finished"):
         train(shown, run, resume=True)
+
+
+def test_a_resume_reads_no_starting_weights(tmp_path, tiny_config):
+    """A run started from other weights resumes after those have moved or gone: every
+    weight comes from its checkpoint."""
+    from deltar.training.run import TrainingInterrupted
+
+    start = train(tiny_config("trainer.max_epochs=1"), tmp_path / "start") / "model.pt"
+    config = tiny_config("trainer.checkpoint_every_n_steps=2", f"model.init_checkpoint={start}")
+    run = tmp_path / "run"
+    with pytest.raises(TrainingInterrupted):
+        train(config, run, extra_callbacks=[_signal_at_step(3, signal.SIGTERM)])
+    start.unlink()
+    train(config, run, resume=True)
+    assert (run / "model.pt").is_file()
+
+
+def test_config_changes_name_what_a_resume_may_not_change():
+    from deltar.training.run_folder import config_changes
+
+    saved = {"optim": {"betas": [0.9, 0.999], "lr": 1e-3},
+             "trainer": {"devices": 1, "num_threads": 1},
+             "data": {"sources": [{"path": "/scratch/a", "frames": 10}]}}
+    same = {"optim": {"betas": (0.9, 0.999), "lr": 1e-3},  # a config built in code
+            "trainer": {"devices": 1, "num_threads": 2},
+            "data": {"sources": [{"path": "/shared/a", "frames": 10}]}}
+    assert config_changes(saved, same) == []
+    other = {**same, "trainer": {"devices": 2, "num_threads": 1},
+             "data": {"sources": [{"path": "/shared/a", "frames": 12}]}}
+    assert config_changes(saved, other) == ["data.sources.0.frames", "trainer.devices"]

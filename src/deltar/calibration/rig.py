@@ -246,6 +246,13 @@ class RigCalibration:
                 cv2.CV_32FC1 if nearest else cv2.CV_16SC2)
         return cache[nearest]
 
+    def __getstate__(self) -> dict:
+        """The fields for pickling and copies, without the undistortion maps (megabytes,
+        remade on use)."""
+        state = dict(self.__dict__)
+        state.pop("_undistortion_cache", None)
+        return state
+
     def undistorted(self) -> RigCalibration:
         """The calibration of this camera's undistorted images (:meth:`undistort_image`):
         the same intrinsics, zones and time offset without distortion, for images that

@@ -138,26 +138,29 @@ def open_source_reader(source: SourceConfig) -> Sequence:
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.05, 100.0)
 
 
-def check_depth_units(depth_m: np.ndarray, where: str) -> None:
-    """Refuse a frame whose valid depth (> 0, metres) has a median outside
-    :data:`PLAUSIBLE_MEDIAN_DEPTH_M`, or that has none: its units are wrong, and training
-    on it would finish without a word (the zones simulated from it read nothing).
+def check_depth_units(depths_m: Sequence[np.ndarray], where: str) -> None:
+    """Refuse frames whose valid depth (> 0, metres) has a median outside
+    :data:`PLAUSIBLE_MEDIAN_DEPTH_M`, or that have none: their units are wrong, and
+    training on them would finish without a word (the zones simulated from them read
+    nothing).
 
     Args:
-        depth_m: (H, W) depth in metres as the source reads it.
+        depths_m: a few (H, W) depth maps of a source (e.g. spread through it), metres
+            as it reads them.
         where: the source, for the message.
     """
-    valid = np.asarray(depth_m)[np.asarray(depth_m) > 0]
+    valid = np.concatenate([np.asarray(d)[np.asarray(d) > 0].reshape(-1)[::16]
+                            for d in depths_m])
     low, high = PLAUSIBLE_MEDIAN_DEPTH_M
     if valid.size == 0:
-        raise ValueError(f"{where}: the first frame has no depth (every pixel 0); check the "
-                         "depth files and depth_scale")
+        raise ValueError(f"{where}: the {len(depths_m)} frames read to check it have no depth "
+                         "(every pixel 0); check the depth files and depth_scale")
     median = float(np.median(valid))
     if not low <= median <= high:
-        raise ValueError(f"{where}: the first frame's depth reads a median of {median:.4g} m, "
-                         f"outside {low:g}-{high:g} m for a scene to train on: its units are "
-                         "likely wrong; set depth_scale to the depth files' units per metre "
-                         "(1000 for millimetres, 5000 for TUM's, 1 for files in metres)")
+        raise ValueError(f"{where}: its depth reads a median of {median:.4g} m, outside "
+                         f"{low:g}-{high:g} m for a scene to train on: its units are likely "
+                         "wrong; set depth_scale to the depth files' units per metre (1000 "
+                         "for millimetres, 5000 for TUM's, 1 for files in metres)")
 
 
 def _native_size(source: SourceConfig) -> tuple[int, int]:
@@ -252,7 +255,11 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
         if source.kind not in ZONE_SET_SOURCE_KINDS:
             first = reader[0].depth_m
             if source.kind != "procedural":
-                check_depth_units(first, f"data.sources.{number} ({source.path})")
+                # A few frames spread through the source (its first may be blank).
+                picks = np.unique(np.linspace(0, len(reader) - 1, min(5, len(reader)))
+                                  .round().astype(int))
+                check_depth_units([first, *(reader[int(i)].depth_m for i in picks[1:])],
+                                  f"data.sources.{number} ({source.path})")
             cropped = source.role == "train" and config.image_augmentation.enabled and \
                 config.image_augmentation.crop is not None
             if not cropped and (first.shape[0] % 32 or first.shape[1] % 32):

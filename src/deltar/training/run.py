@@ -92,12 +92,18 @@ def load_run_config(run_dir: str | Path) -> TrainConfig:
     return config_from_dict(yaml.safe_load(path.read_text(encoding="utf-8")))
 
 
-def build_system(config: TrainConfig) -> DeltarSystem:
-    """The Lightning module with the configured network and initial weights."""
+def build_system(config: TrainConfig, starting_weights: bool = True) -> DeltarSystem:
+    """The Lightning module with the configured network and, with ``starting_weights``,
+    its starting weights (``model.encoder_weights``, ``official_weights`` or
+    ``init_checkpoint``; a resumed run takes every weight from its checkpoint, so the
+    files it started from may since have moved or gone)."""
     fresh = not (config.model.official_weights or config.model.init_checkpoint)
     system = DeltarSystem(config.model.preset, config.model.overrides, config.optim,
-                          encoder_weights=config.model.encoder_weights if fresh else None,
+                          encoder_weights=config.model.encoder_weights
+                          if fresh and starting_weights else None,
                           allow_download=config.model.allow_download)
+    if not starting_weights:
+        return system
     if config.model.official_weights:
         from deltar.models import load_official_weights
 
@@ -188,7 +194,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     if config.trainer.num_threads is not None:
         torch.set_num_threads(config.trainer.num_threads)
     L.seed_everything(config.seed, workers=True, verbose=False)
-    system = build_system(config)
+    system = build_system(config, starting_weights=not resume)
     data = build_data_module(config, system)
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
@@ -232,8 +238,11 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         # success, and one stopped by Ctrl+C with SystemExit(1): say which, and how to go on.
         from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-        name = "SIGTERM" if isinstance(stop, SIGTERMException) else "SIGINT"
-        if trainer.state.status.value != "interrupted":
+        if isinstance(stop, SIGTERMException):
+            name = "SIGTERM"
+        elif isinstance(stop.__context__, KeyboardInterrupt):  # exit(1) in its handler
+            name = "SIGINT"
+        else:  # anything else that exits (e.g. a callback's sys.exit) stays as it was
             raise
         raise TrainingInterrupted(run_dir, name, trainer.global_step) from stop
     finally:

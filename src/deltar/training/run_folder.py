@@ -110,11 +110,13 @@ CHECKPOINT_CONFIG_KEY = "deltar_train_config"
 #: are and how the run is shown, checkpointed or spread over devices; not what it learns.
 RESUMABLE_CHANGES = ("name", "output_dir", "data.num_workers", "data.val_batch_size",
                      "data.sources.*.path", "data.sources.*.data_root",
+                     "model.init_checkpoint", "model.official_weights",
+                     "model.encoder_weights",  # a resume reads every weight from its ckpt
                      "trainer.progress_bar", "trainer.num_threads", "trainer.log_every_n_steps",
                      "trainer.checkpoint_every_n_steps", "trainer.keep_checkpoints",
-                     "trainer.accelerator", "trainer.devices", "trainer.num_nodes",
-                     "trainer.strategy", "trainer.val_every_n_epochs",
+                     "trainer.accelerator", "trainer.strategy", "trainer.val_every_n_epochs",
                      "trainer.val_check_interval", "trainer.limit_val_batches")
+# Not trainer.devices or num_nodes: the batch each step takes is batch_size x processes.
 
 
 class RunConfigRecord(Callback):
@@ -143,6 +145,8 @@ def config_changes(saved: dict[str, Any], config: dict[str, Any]) -> list[str]:
             return {prefix: value}
         return {k: v for key, item in items for k, v in flat(item, f"{prefix}{key}.").items()}
 
+    # Compared as the YAML file holds them (a config built in code may hold tuples).
+    saved, config = json.loads(json.dumps(saved)), json.loads(json.dumps(config))
     before, after = flat(saved, ""), flat(config, "")
     return sorted(key.rstrip(".") for key in before.keys() | after.keys()
                   if before.get(key) != after.get(key) and not any(
