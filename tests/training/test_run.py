@@ -294,8 +294,11 @@ def test_a_resume_reads_no_starting_weights(tmp_path, tiny_config):
     with pytest.raises(TrainingInterrupted):
         train(config, run, extra_callbacks=[_signal_at_step(3, signal.SIGTERM)])
     start.unlink()
+    # A kill while saving leaves a partial checkpoint behind; the resume removes it.
+    partial = run / "checkpoints" / ".last.ckpt.x1y2z3.tmp.ckpt"
+    partial.write_bytes(b"\0" * 1024)
     train(config, run, resume=True)
-    assert (run / "model.pt").is_file()
+    assert (run / "model.pt").is_file() and not partial.exists()
 
 
 def test_config_changes_name_what_a_resume_may_not_change():

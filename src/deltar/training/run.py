@@ -213,6 +213,11 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
                       f"left to train, {model_path} {done}. To train further, start a new run "
                       f"from it (model.init_checkpoint: {model_path})", stacklevel=2)
         return run_dir
+    if trainer.is_global_zero and resume:
+        # A process killed while saving leaves its partial checkpoint (atomic_path's hidden
+        # temporary, as large as a checkpoint); repeated pre-emption would pile them up.
+        for partial in (run_dir / "checkpoints").glob(".*.tmp.ckpt"):
+            partial.unlink(missing_ok=True)
     if trainer.is_global_zero and not resume:
         held = [p for p in (config_path, run_dir / "model.pt", run_dir / "checkpoints")
                 if p.exists()]
@@ -274,7 +279,8 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int,
         planned = [int(s["total_steps"]) for s in state.get("lr_schedulers", [])
                    if "total_steps" in s]
     except (ValueError, KeyError, TypeError, AttributeError) as err:
-        others = sorted(p.name for p in checkpoint.parent.glob("*.ckpt") if p != checkpoint)
+        others = sorted(p.name for p in checkpoint.parent.glob("*.ckpt")
+                        if p != checkpoint and not p.name.startswith("."))  # not partial
         hint = (f"; the run also saved {', '.join(others)}: copy the latest of them over "
                 f"{checkpoint.name} to resume from there") if others else ""
         reason = str(err) if isinstance(err, ValueError) else (
