@@ -230,3 +230,23 @@ def test_a_bag_or_an_empty_folder_is_no_recording_and_a_bag_is_named_so(tmp_path
     (tmp_path / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     with pytest.raises(FileNotFoundError, match="a ROS 2 bag, not a recording folder"):
         Recording(tmp_path / "bag")
+
+
+def test_an_interrupted_writes_temporaries_are_no_frames(tmp_path):
+    """A SIGTERM or SIGKILL during an atomic write leaves its hidden temporary beside the
+    frames: the recording still reads, appends and gives its poses."""
+    from deltar.mapping.poses import read_pose_folder
+
+    writer = _write(tmp_path / "rec", [0.0, 0.1], [0.0, 0.1], [0.0, 0.1])
+    writer.add_pose(0.0, np.eye(4))
+    rec = tmp_path / "rec"
+    for folder, name in (("color", ".200000000.png.i6bdqh8g.tmp.png"),
+                         ("depth", ".200000000.png.x1y2z3.tmp.png"),
+                         ("pose", ".200000000.txt.abcdef.tmp.txt")):
+        (rec / folder / name).write_bytes(b"partial")
+    pairs = Recording(rec).pairs(tolerance_s=0.02)
+    assert len(pairs) == 2 and pairs[1].load_images()[1] is not None
+    assert read_pose_folder(rec / "pose").names == ("0",)
+    RecordingWriter(rec, RecordingMeta(CAMERA, grid=4)).add_color(
+        0.3, np.zeros((24, 32, 3), np.uint8))
+    assert len(Recording(rec).color_times_s) == 3

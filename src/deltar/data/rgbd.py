@@ -296,8 +296,8 @@ class TUMReader(RGBDReader):
 
 # ---------------------------------------------------------------------- plain folders
 def _stem_map(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
-    return {p.stem: p for p in sorted(folder.iterdir())
-            if p.is_file() and p.suffix.lower() in suffixes}
+    return {p.stem: p for p in sorted(folder.iterdir())  # hidden: temporaries, no frames
+            if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith(".")}
 
 
 class FolderReader(RGBDReader):

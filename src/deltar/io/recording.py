@@ -397,11 +397,14 @@ def no_pairs_message(recording: Recording, tolerance_s: float, time_offset_s: fl
 
 
 def _image_index(folder: Path) -> tuple[np.ndarray, list[Path]]:
-    """Sorted capture times (s) and paths of ``<ns>.png`` files in ``folder``."""
+    """Sorted capture times (s) and paths of ``<ns>.png`` files in ``folder``; hidden
+    files (an interrupted atomic write's temporary) are no frames."""
     if not folder.is_dir():
         return np.zeros(0), []
     entries = []
     for path in folder.glob("*.png"):
+        if path.name.startswith("."):
+            continue
         try:
             entries.append((int(path.stem), path))
         except ValueError:

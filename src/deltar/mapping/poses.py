@@ -66,7 +66,7 @@ def read_pose_folder(folder: str | os.PathLike) -> Trajectory:
     """
     root = Path(folder)
     input_folder(root, "pose folder")
-    files = sorted(p for p in root.iterdir() if p.is_file())
+    files = sorted(p for p in root.iterdir() if p.is_file() and not p.name.startswith("."))
     # A 7-Scenes folder holds other .txt files too (camera-intrinsics.txt).
     entries = [(m.group(1), p) for p in files if (m := _SEVEN_SCENES_POSE.match(p.name))]
     if not entries:
