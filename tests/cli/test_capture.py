@@ -80,6 +80,9 @@ def test_record_simulate_carries_the_sources_poses_and_appends_after_its_end(tmp
         assert result.exit_code == 0, result.output
         assert "4 camera poses" in result.output
         assert ("appended to the recording" in result.output) == (run == 2)
+        # Appending replays the source from its start: said before it happens.
+        assert ("plays " in result.output and "from its first frame again" in " ".join(
+            result.output.split())) == (run == 2)
         assert len(Recording(out).color_paths) == 4 * run
     found = read_pose_folder(out / "pose")
     order = np.argsort([int(name) for name in found.names])

@@ -40,3 +40,8 @@ def test_demo_writes_scenes_panels_and_metrics(tmp_path):
                                env={"COLUMNS": "300"})
     assert again.exit_code == 2
     assert "already holds a demo" in again.output
+    (out / "metrics.json").unlink()  # as a demo stopped before its evaluation leaves it
+    again = CliRunner().invoke(app, ["demo", str(out), "--frames", "1", "--size", "96x128"],
+                               env={"COLUMNS": "300"})
+    assert again.exit_code == 2 and "holds an unfinished demo (no metrics.json: it was " \
+        "interrupted); remove it or choose another folder" in " ".join(again.output.split())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 
 from deltar.cli.errors import format_error
 
@@ -19,3 +20,41 @@ def test_os_errors_read_as_path_and_reason():
         'pip install "deltar[torch]"')
     assert format_error(ModuleNotFoundError("No module named 'foo'", name="foo")) == (
         "No module named 'foo': install the optional dependency (see the README's extras)")
+
+
+def _interrupted_record(tmp_path, signum):
+    """``deltar record`` of a long simulated stream, stopped by ``signum`` once it has
+    written some frames: (status, stderr, the recording folder)."""
+    import shutil
+    import subprocess
+    import time
+
+    out = tmp_path / "rec"
+    process = subprocess.Popen(
+        [shutil.which("deltar"), "record", str(out), "--simulate", "wall:1.5:1000000:48x64",
+         "--frames", "1000000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (
+            (out / "color").is_dir() and len(list((out / "color").iterdir())) >= 20):
+        time.sleep(0.1)
+    process.send_signal(signum)
+    _, err = process.communicate(timeout=60)
+    return process.returncode, err, out
+
+
+def test_a_stopped_command_says_so_and_leaves_complete_files(tmp_path):
+    """SIGTERM (a service manager's stop) ends a command as Ctrl+C does: one error line,
+    status 128 + 15, and no hidden temporary left where a file was being written; the
+    recording then reads and appends."""
+    import signal
+
+    from deltar.io.recording import Recording
+
+    status, err, out = _interrupted_record(tmp_path, signal.SIGTERM)
+    assert status == 143, err[-2000:]
+    assert err.strip().splitlines()[-1] == (
+        "error: interrupted by SIGTERM; every file written before it is complete (each is "
+        "written whole, then renamed)")
+    assert not [p for p in out.rglob(".*")], "a temporary was left behind"
+    assert len(Recording(out).pairs(tolerance_s=0.05)) > 0

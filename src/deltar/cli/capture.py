@@ -116,6 +116,13 @@ def record_command(
                 raise ValueError(f"--simulate {simulate}: depths up to {deepest:g} m do not fit "
                                  "a recording's depth images (16-bit millimetres, at most "
                                  f"{MAX_RECORDED_DEPTH_M} m)")
+            if appending:  # e.g. a stopped recording run again
+                from deltar.cli.errors import warn
+
+                warn(f"{out} already holds a recording: --simulate plays {simulate} from its "
+                     "first frame again, so the appended frames repeat the source from its "
+                     "start (the camera jumps back); record into a new folder to keep them "
+                     "apart")
             rig = SimulatedRig(source, grid=grid, sensor_hz=sensor_hz,
                                max_targets=targets or 1, poses=_source_poses(source),
                                start_time_s=_append_start_s(out, bag))

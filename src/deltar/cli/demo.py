@@ -60,7 +60,11 @@ def demo(
     output_folder(out, "OUT")
     scenes = out / "scenes"
     if (scenes / "data.json").exists():
-        raise typer.BadParameter(f"{out} already holds a demo; choose another folder",
+        if (out / "metrics.json").exists():
+            raise typer.BadParameter(f"{out} already holds a demo; choose another folder",
+                                     param_hint="OUT")
+        raise typer.BadParameter(f"{out} holds an unfinished demo (no metrics.json: it was "
+                                 "interrupted); remove it or choose another folder",
                                  param_hint="OUT")
     simulate_set(ProceduralReader(frames, seed, height, width), scenes, scene="procedural")
     write_predict_sample(scenes / "data.json", out / "sample")

@@ -12,12 +12,19 @@ Messages are printed literally, never interpreted as rich markup (a file called
 propagate; a missing optional module names the extra that installs it
 (:func:`deltar.extras.missing_extra_message`). Set ``DELTAR_TRACEBACK=1`` to see the
 Python traceback instead.
+
+Ctrl+C and SIGTERM (a scheduler's or a service manager's stop) both stop a command the
+way Ctrl+C does, so that files being written are finished or removed (every output is
+written whole, then renamed) and all-or-nothing outputs are cleaned up; the command ends
+with one ``error: interrupted by ...`` line and status 130 or 143 (128 + the signal).
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 import warnings
 from typing import Any, NoReturn
 
@@ -30,6 +37,43 @@ try:  # recent typer vendors click
 except ImportError:  # pragma: no cover - older typer on top of click
     from click import echo
     from click.exceptions import ClickException, UsageError
+
+#: The stop signal a running command received ("SIGINT" / "SIGTERM"), None before one.
+_INTERRUPT: dict[str, str | None] = {"signal": None}
+#: Whether a command printed its own ``error:`` line (:func:`fail`).
+_REPORTED: dict[str, bool] = {"error": False}
+
+
+def _on_stop_signal(signum: int, frame: Any) -> None:
+    """Stop as Ctrl+C does (``KeyboardInterrupt``), remembering which signal it was."""
+    _INTERRUPT["signal"] = signal.Signals(signum).name
+    raise KeyboardInterrupt
+
+
+def received_signal() -> str | None:
+    """The stop signal the running command received ("SIGINT" / "SIGTERM"), or None."""
+    return _INTERRUPT["signal"]
+
+
+def check_interrupt() -> None:
+    """Raise ``KeyboardInterrupt`` again when a stop signal arrived but its exception was
+    lost (raised inside a callback Python ignores exceptions in, e.g. a weakref's): long
+    loops call this once per item (:class:`~deltar.cli.progress.ProgressReport` does)."""
+    if _INTERRUPT["signal"] is not None:
+        raise KeyboardInterrupt
+
+
+def _interrupt_status(status: Any) -> Any:
+    """After a command stopped by Ctrl+C or SIGTERM (Typer ends both with status 130):
+    say so in one line, unless the command already did, and give 128 + the signal."""
+    name = _INTERRUPT["signal"]
+    if status != 130 or name is None:
+        return status
+    if not _REPORTED["error"]:
+        error_line(f"interrupted by {'Ctrl+C' if name == 'SIGINT' else name}; every file "
+                   "written before it is complete (each is written whole, then renamed)")
+    return 128 + int(getattr(signal, name))
+
 
 #: Exceptions that mean "the input (or the environment) is wrong", not "deltar is broken".
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, ImportError)
@@ -66,6 +110,7 @@ def warn(message: str) -> None:
 
 def fail(err: BaseException | str, code: int = 1) -> NoReturn:
     """Print ``err`` as the ``error:`` line and exit with ``code`` (1: bad input)."""
+    _REPORTED["error"] = True
     error_line(err if isinstance(err, str) else format_error(err))
     raise typer.Exit(code)
 
@@ -90,9 +135,16 @@ class DeltarGroup(TyperGroup):
                                 standalone_mode=False, **extra)
         formatter = warnings.formatwarning
         warnings.formatwarning = _format_warning
+        handlers = {}
+        if threading.current_thread() is threading.main_thread():
+            for stop in (signal.SIGINT, signal.SIGTERM):
+                if signal.getsignal(stop) in (signal.SIG_DFL, signal.default_int_handler):
+                    handlers[stop] = signal.signal(stop, _on_stop_signal)
+        _INTERRUPT["signal"], _REPORTED["error"] = None, False
         try:
-            status = super().main(args=args, prog_name=prog_name,
-                                  complete_var=complete_var, standalone_mode=False, **extra)
+            status = _interrupt_status(super().main(
+                args=args, prog_name=prog_name, complete_var=complete_var,
+                standalone_mode=False, **extra))
         except UsageError as err:
             if type(err).__name__ == "NoArgsIsHelpError":  # bare ``deltar``: the help
                 err.show()
@@ -112,6 +164,8 @@ class DeltarGroup(TyperGroup):
             sys.exit(1)
         finally:
             warnings.formatwarning = formatter
+            for stop, handler in handlers.items():
+                signal.signal(stop, handler)
         sys.exit(status if isinstance(status, int) else 0)
 
 

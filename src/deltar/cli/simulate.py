@@ -158,12 +158,19 @@ def simulate_command(
     if drop_fraction > 0 or bias_prob > 0:
         degrade = SignalAugmentation(drop_fraction, bias_prob, bias_mean, bias_std)
     scene = Path(src).stem if not src.startswith("procedural:") else "procedural"
-    with ProgressReport("simulating", total=len(indices)) as progress:
-        index, valid_counts = simulate_set(source, out, indices, grid=grid, layout=layout,
-                                           degrade=degrade, seed=seed, cnh_config=cnh_config,
-                                           scene=scene, split=split,
-                                           no_target_flags=no_target_flags,
-                                           max_targets=targets, on_frame=progress.advance)
+    try:
+        with ProgressReport("simulating", total=len(indices)) as progress:
+            index, valid_counts = simulate_set(
+                source, out, indices, grid=grid, layout=layout, degrade=degrade, seed=seed,
+                cnh_config=cnh_config, scene=scene, split=split,
+                no_target_flags=no_target_flags, max_targets=targets,
+                on_frame=progress.advance)
+    except KeyboardInterrupt:  # Ctrl+C or SIGTERM (deltar.cli.errors)
+        from deltar.cli.errors import fail, received_signal
+
+        fail(f"interrupted by {'Ctrl+C' if received_signal() in (None, 'SIGINT') else 'SIGTERM'}"
+             f" after {progress.done} of {len(indices)} frames; a set is written whole, so "
+             f"the frames written to {out} were removed: run the command again", 130)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")
     empty = int(np.count_nonzero(np.asarray(valid_counts) == 0))

@@ -59,8 +59,12 @@ def train_command(
     try:
         folder = train(cfg, run_dir, resume=resume is not None)
     except TrainingInterrupted as stop:  # a scheduler's requeue script reads the status
-        from deltar.cli.errors import fail
+        from deltar.cli.errors import fail, received_signal
 
+        # The CLI's SIGTERM handler stops Lightning as Ctrl+C does: name the real signal.
+        name = received_signal() or stop.signal_name
+        if name != stop.signal_name:
+            stop = TrainingInterrupted(stop.run_dir, name, stop.step)
         fail(stop, stop.exit_code)
     typer.echo(f"run folder: {folder}")
 

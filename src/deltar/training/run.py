@@ -61,7 +61,7 @@ class TrainingInterrupted(RuntimeError):
     def __init__(self, run_dir: Path, signal_name: str, step: int) -> None:
         import signal
 
-        self.signal_name = signal_name
+        self.run_dir, self.signal_name, self.step = run_dir, signal_name, step
         self.exit_code = 128 + int(getattr(signal, signal_name))
         last = run_dir / "checkpoints" / LAST_CHECKPOINT
         where = (f"its newest checkpoint is {last}: continue with `deltar train --resume "
