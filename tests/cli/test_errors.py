@@ -58,3 +58,39 @@ def test_a_stopped_command_says_so_and_leaves_complete_files(tmp_path):
         "written whole, then renamed)")
     assert not [p for p in out.rglob(".*")], "a temporary was left behind"
     assert len(Recording(out).pairs(tolerance_s=0.05)) > 0
+
+
+def test_a_stop_is_forgotten_when_its_command_ends_and_quiets_what_follows_it(tmp_path,
+                                                                            capsys):
+    """The signal a command received does not stop the next command run in the same
+    process; while a command stops, exceptions Python can only print (e.g. a DataLoader
+    worker killed by the same SIGTERM) are not printed, and otherwise they are."""
+    import sys
+
+    from typer.testing import CliRunner
+
+    from deltar.cli import errors
+    from deltar.cli.main import app
+
+    errors._INTERRUPT["signal"] = "SIGTERM"  # as a stopped command would leave it
+    result = CliRunner().invoke(app, ["simulate", "procedural:2", str(tmp_path / "set")])
+    assert result.exit_code == 0, result.output
+    assert errors.received_signal() is None
+    errors.check_interrupt()  # nothing pending: no exception
+
+    class Dying:
+        def __del__(self):
+            raise RuntimeError("DataLoader worker (pid 1) is killed by signal: Terminated")
+
+    previous, sys.unraisablehook = sys.unraisablehook, errors._quiet_after_stop
+    try:
+        errors._INTERRUPT["signal"] = "SIGTERM"
+        Dying()  # collected at once: its exception can only be printed
+        quiet = capsys.readouterr().err
+        errors._INTERRUPT["signal"] = None
+        Dying()
+        loud = capsys.readouterr().err
+    finally:
+        sys.unraisablehook, errors._INTERRUPT["signal"] = previous, None
+    assert "DataLoader worker" not in quiet and "DataLoader worker" in loud
+    assert sys.unraisablehook is not errors._quiet_after_stop  # restored after the command

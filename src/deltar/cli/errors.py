@@ -39,15 +39,34 @@ except ImportError:  # pragma: no cover - older typer on top of click
     from click.exceptions import ClickException, UsageError
 
 #: The stop signal a running command received ("SIGINT" / "SIGTERM"), None before one.
-_INTERRUPT: dict[str, str | None] = {"signal": None}
+_INTERRUPT: dict[str, Any] = {"signal": None, "at": 0.0}
 #: Whether a command printed its own ``error:`` line (:func:`fail`).
 _REPORTED: dict[str, bool] = {"error": False}
 
 
+#: Seconds after a stop signal during which a further one is ignored: it would raise a
+#: second exception inside the first one's clean-up (two tools sending SIGTERM); later,
+#: it is a user asking again because the first was lost, and stops once more.
+REPEATED_STOP_S = 2.0
+
+
 def _on_stop_signal(signum: int, frame: Any) -> None:
     """Stop as Ctrl+C does (``KeyboardInterrupt``), remembering which signal it was."""
-    _INTERRUPT["signal"] = signal.Signals(signum).name
+    import time
+
+    now = time.monotonic()
+    if _INTERRUPT["signal"] is not None and now - _INTERRUPT["at"] < REPEATED_STOP_S:
+        return
+    _INTERRUPT["signal"], _INTERRUPT["at"] = signal.Signals(signum).name, now
     raise KeyboardInterrupt
+
+
+def _quiet_after_stop(unraisable: Any) -> None:
+    """``sys.unraisablehook`` while a command runs: once it was told to stop, exceptions
+    Python can only print (a DataLoader worker killed by the same SIGTERM, the stop
+    itself raised inside a weakref callback) are consequences of the stop, not news."""
+    if _INTERRUPT["signal"] is None:
+        sys.__unraisablehook__(unraisable)
 
 
 def received_signal() -> str | None:
@@ -141,10 +160,15 @@ class DeltarGroup(TyperGroup):
                 if signal.getsignal(stop) in (signal.SIG_DFL, signal.default_int_handler):
                     handlers[stop] = signal.signal(stop, _on_stop_signal)
         _INTERRUPT["signal"], _REPORTED["error"] = None, False
+        unraisable_hook, sys.unraisablehook = sys.unraisablehook, _quiet_after_stop
         try:
-            status = _interrupt_status(super().main(
-                args=args, prog_name=prog_name, complete_var=complete_var,
-                standalone_mode=False, **extra))
+            try:
+                status = super().main(args=args, prog_name=prog_name,
+                                      complete_var=complete_var, standalone_mode=False,
+                                      **extra)
+            except KeyboardInterrupt:  # raised outside the command (e.g. in Typer's exit)
+                status = 130
+            status = _interrupt_status(status)
         except UsageError as err:
             if type(err).__name__ == "NoArgsIsHelpError":  # bare ``deltar``: the help
                 err.show()
@@ -166,6 +190,8 @@ class DeltarGroup(TyperGroup):
             warnings.formatwarning = formatter
             for stop, handler in handlers.items():
                 signal.signal(stop, handler)
+            sys.unraisablehook = unraisable_hook
+            _INTERRUPT["signal"] = None  # the next command in this process starts afresh
         sys.exit(status if isinstance(status, int) else 0)
 
 

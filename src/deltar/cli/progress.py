@@ -111,15 +111,15 @@ class ProgressReport:
             self._bar.update(self._task, total=total)
 
     def advance(self, steps: int = 1) -> None:
-        """Count ``steps`` more steps done (and stop here if a stop signal's exception
-        was lost: :func:`~deltar.cli.errors.check_interrupt`)."""
-        from deltar.cli.errors import check_interrupt
-
-        check_interrupt()
+        """Count ``steps`` more steps done."""
         self.update(self.done + steps)
 
     def update(self, done: int) -> None:
-        """Set the number of steps done."""
+        """Set the number of steps done (and stop here if a stop signal's exception was
+        lost: :func:`~deltar.cli.errors.check_interrupt`)."""
+        from deltar.cli.errors import check_interrupt
+
+        check_interrupt()
         self.done = done
         if self._bar is not None:
             self._bar.update(self._task, completed=done)
