@@ -64,6 +64,10 @@ def test_map_of_the_recorded_depth_with_the_recordings_poses(wall_recording, tmp
     np.testing.assert_allclose(trajectory[:, 1], 0.05 * np.arange(6), atol=1e-6)
     again = _run(wall_recording, "--out", out, "--method", "recorded", *COARSE)
     _error(again, "exist")
+    (out / "map.json").unlink()  # a map stopped while its outputs were being written
+    again = _run(wall_recording, "--out", out, "--method", "recorded", *COARSE)
+    _error(again, "holds an unfinished map (mesh.ply, points.ply, trajectory.txt, no "
+           "map.json: it was stopped while being written); pass --overwrite")
 
 
 def test_map_with_the_bundled_model_and_a_baseline(wall_recording, tmp_path):

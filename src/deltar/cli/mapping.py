@@ -38,8 +38,14 @@ def _check_out(out: Path, recording: Path, overwrite: bool) -> None:
     refuse_input_as_output(out, [recording], "--out", folder=True)
     output_folder(out, "--out")
     if not overwrite:
-        existing_outputs(out / name for name in ("mesh.ply", "points.ply", "trajectory.txt",
-                                                 "map.json"))
+        outputs = [out / name for name in ("mesh.ply", "points.ply", "trajectory.txt")]
+        if not (out / "map.json").exists() and any(p.exists() for p in outputs):
+            # map.json is written last: without it the map was stopped while being written.
+            held = ", ".join(p.name for p in outputs if p.exists())
+            raise FileExistsError(f"--out: {out} holds an unfinished map ({held}, no map.json: "
+                                  "it was stopped while being written); pass --overwrite to "
+                                  "make it again")
+        existing_outputs([*outputs, out / "map.json"])
 
 
 @model_options
