@@ -161,7 +161,7 @@ def test_undistorting_keeps_its_maps_and_matches_opencv():
                                   calib.undistort_image(image))
     pinhole = calib.undistorted()
     assert pinhole == replace(calib, distortion=()) and not pinhole.has_distortion
-    assert pinhole.undistorted() is pinhole
+    assert pinhole.undistorted() is pinhole and calib.undistorted() is pinhole  # made once
 
 
 @pytest.mark.parametrize("intrinsics, extrinsics, message", [

@@ -232,12 +232,17 @@ class RigCalibration:
                          cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
+    def _derived(self) -> dict:
+        """What undistorting derives from the fields, kept with the calibration (not a
+        field: frozen, left out of pickles and copies by :meth:`__getstate__`)."""
+        return self.__dict__.setdefault("_undistortion_cache", {})
+
     def _undistortion_maps(self, nearest: bool) -> tuple[np.ndarray, np.ndarray]:
         """OpenCV's undistortion maps at the calibrated resolution: fixed-point ones for
         interpolation (as ``cv2.undistort`` uses), float ones for the nearest pixel."""
         import cv2
 
-        cache = self.__dict__.setdefault("_undistortion_cache", {})  # not a field
+        cache = self._derived()
         if nearest not in cache:
             matrix, size = self.intrinsics.matrix, (self.intrinsics.width,
                                                     self.intrinsics.height)
@@ -256,10 +261,14 @@ class RigCalibration:
     def undistorted(self) -> RigCalibration:
         """The calibration of this camera's undistorted images (:meth:`undistort_image`):
         the same intrinsics, zones and time offset without distortion, for images that
-        were undistorted already (predicting with it does not undistort them again)."""
+        were undistorted already (predicting with it does not undistort them again).
+        Made once per calibration, so a stream may ask for it every frame."""
         if not self.has_distortion:
             return self
-        return replace(self, distortion=())
+        cache = self._derived()
+        if "pinhole" not in cache:
+            cache["pinhole"] = replace(self, distortion=())
+        return cache["pinhole"]
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict:

@@ -99,7 +99,6 @@ def record_command(
 
     appending = not bag and (out / META_FILE).is_file()
     if not bag:  # before the camera, the sensor and the viewer are opened
-
         check_recording_folder(out)
         if rerun_save is not None and out.resolve() in rerun_save.resolve().parents:
             raise typer.BadParameter(f"{rerun_save} is inside the recording {out}; write it "

@@ -25,6 +25,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import warnings
 from typing import Any, NoReturn
 
@@ -52,8 +53,6 @@ REPEATED_STOP_S = 2.0
 
 def _on_stop_signal(signum: int, frame: Any) -> None:
     """Stop as Ctrl+C does (``KeyboardInterrupt``), remembering which signal it was."""
-    import time
-
     now = time.monotonic()
     if _INTERRUPT["signal"] is not None and now - _INTERRUPT["at"] < REPEATED_STOP_S:
         return
@@ -74,6 +73,13 @@ def received_signal() -> str | None:
     return _INTERRUPT["signal"]
 
 
+def stop_name() -> str:
+    """How messages name the stop the running command received: ``"Ctrl+C"`` (also for
+    a ``KeyboardInterrupt`` without a signal) or ``"SIGTERM"``."""
+    name = _INTERRUPT["signal"]
+    return "Ctrl+C" if name in (None, "SIGINT") else name
+
+
 def check_interrupt() -> None:
     """Raise ``KeyboardInterrupt`` again when a stop signal arrived but its exception was
     lost (raised inside a callback Python ignores exceptions in, e.g. a weakref's): long
@@ -89,8 +95,8 @@ def _interrupt_status(status: Any) -> Any:
     if status != 130 or name is None:
         return status
     if not _REPORTED["error"]:
-        error_line(f"interrupted by {'Ctrl+C' if name == 'SIGINT' else name}; every file "
-                   "written before it is complete (each is written whole, then renamed)")
+        error_line(f"interrupted by {stop_name()}; every file written before it is "
+                   "complete (each is written whole, then renamed)")
     return 128 + int(getattr(signal, name))
 
 

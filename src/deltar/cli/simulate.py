@@ -166,11 +166,11 @@ def simulate_command(
                 no_target_flags=no_target_flags, max_targets=targets,
                 on_frame=progress.advance)
     except KeyboardInterrupt:  # Ctrl+C or SIGTERM (deltar.cli.errors)
-        from deltar.cli.errors import fail, received_signal
+        from deltar.cli.errors import fail, stop_name
 
-        fail(f"interrupted by {'Ctrl+C' if received_signal() in (None, 'SIGINT') else 'SIGTERM'}"
-             f" after {progress.done} of {len(indices)} frames; a set is written whole, so "
-             f"the frames written to {out} were removed: run the command again", 130)
+        fail(f"interrupted by {stop_name()} after {progress.done} of {len(indices)} frames; "
+             f"a set is written whole, so the frames written to {out} were removed: run the "
+             "command again", 130)
     typer.echo(f"wrote {len(indices)} frames to {index}; valid zones per frame: mean "
                f"{np.mean(valid_counts):.1f} of {grid * grid}")
     empty = int(np.count_nonzero(np.asarray(valid_counts) == 0))

@@ -55,6 +55,13 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
             tmp.unlink()
 
 
+def leftover_temporaries(folder: str | os.PathLike, suffix: str = "") -> list[Path]:
+    """The temporaries :func:`atomic_path` left in ``folder`` for outputs ending in
+    ``suffix``: only a process killed while writing (SIGKILL) leaves one, a hidden
+    ``.<name>.<random>.tmp<suffix>`` file as large as the output."""
+    return sorted(Path(folder).glob(f".*.tmp{suffix}"))
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes, *, overwrite: bool = True) -> Path:
     """Write ``data`` to ``path`` atomically and return the path."""
     with atomic_path(path, overwrite=overwrite) as tmp:

@@ -28,7 +28,7 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import Callback, EMAWeightAveraging
 
-from deltar.io.atomic import atomic_path, write_text_atomic
+from deltar.io.atomic import atomic_path, leftover_temporaries, write_text_atomic
 from deltar.io.torch_file import read_torch_file
 from deltar.training.config import TrainConfig
 from deltar.training.config_loading import config_from_dict
@@ -216,7 +216,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     if trainer.is_global_zero and resume:
         # A process killed while saving leaves its partial checkpoint (atomic_path's hidden
         # temporary, as large as a checkpoint); repeated pre-emption would pile them up.
-        for partial in (run_dir / "checkpoints").glob(".*.tmp.ckpt"):
+        for partial in leftover_temporaries(run_dir / "checkpoints", ".ckpt"):
             partial.unlink(missing_ok=True)
     if trainer.is_global_zero and not resume:
         held = [p for p in (config_path, run_dir / "model.pt", run_dir / "checkpoints")
@@ -279,8 +279,9 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int,
         planned = [int(s["total_steps"]) for s in state.get("lr_schedulers", [])
                    if "total_steps" in s]
     except (ValueError, KeyError, TypeError, AttributeError) as err:
+        partial = leftover_temporaries(checkpoint.parent, ".ckpt")
         others = sorted(p.name for p in checkpoint.parent.glob("*.ckpt")
-                        if p != checkpoint and not p.name.startswith("."))  # not partial
+                        if p != checkpoint and p not in partial)
         hint = (f"; the run also saved {', '.join(others)}: copy the latest of them over "
                 f"{checkpoint.name} to resume from there") if others else ""
         reason = str(err) if isinstance(err, ValueError) else (
