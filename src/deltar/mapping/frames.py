@@ -148,7 +148,10 @@ class FrameSource:
         A frame's image is released again when the next one is yielded; from a
         recording the next frame's files are read while the caller works on the
         current one (:func:`~deltar.io.read_ahead.read_ahead`), so at most two frames'
-        images are held.
+        images are held. With lens distortion the image and the recorded depth are
+        undistorted once, here, and the frame carries the undistorted camera's
+        calibration while it is yielded (:meth:`RigCalibration.undistorted`), so the
+        depth, its prediction and the integration do not undistort them again.
         """
         wanted = {id(f) for f in (self.frames if frames is None else frames)}
         chosen = [(p, f) for p, f in zip(self._pairs, self.frames, strict=True)
@@ -161,8 +164,7 @@ class FrameSource:
                     pairs, [depth_of[id(p)] for p in pairs]):
                 frame = by_pair[id(pair)]
                 frame.image, frame.recorded_depth_m = rgb, depth
-                yield frame
-                frame.image, frame.recorded_depth_m = None, None
+                yield from _undistorted_once(frame)
             return
         from deltar.capture.replay import check_recording_image
 
@@ -170,8 +172,7 @@ class FrameSource:
                                                 chosen_pair[0].load_images()):
             frame.image, frame.recorded_depth_m = loaded.result()
             check_recording_image(pair, frame.image, frame.calibration, self._own_camera)
-            yield frame
-            frame.image, frame.recorded_depth_m = None, None
+            yield from _undistorted_once(frame)
 
     def depth_limit_m(self) -> float:
         """The sensor's range in metres (the L5's 4 m for unknown or simulated models)."""
@@ -302,3 +303,20 @@ class DepthSource:
 
             weight[~zone_grid_mask(prediction.zone_rects, weight.shape)] = 0.0
         return prediction.depth_m, weight
+
+
+def _undistorted_once(frame: MapFrame) -> Iterator[MapFrame]:
+    """Yield a loaded ``frame`` with its image and recorded depth undistorted (the latter
+    by nearest pixels: interpolating makes depths no surface has) and the undistorted
+    camera's calibration; then release its images and give its calibration back."""
+    calibration = frame.calibration
+    if calibration.has_distortion:
+        frame.image = calibration.undistort_image(frame.image)
+        if frame.recorded_depth_m is not None:
+            frame.recorded_depth_m = calibration.undistort_image(frame.recorded_depth_m,
+                                                                 nearest=True)
+        frame.calibration = calibration.undistorted()
+    try:
+        yield frame
+    finally:
+        frame.image, frame.recorded_depth_m, frame.calibration = None, None, calibration
