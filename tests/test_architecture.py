@@ -202,6 +202,7 @@ TESTS = ROOT / "tests"
 #: Test files that test no single module, and what they test instead.
 CROSS_CUTTING_TESTS: dict[str, str] = {
     "test_architecture.py": "the tree itself: layering, cycles, file sizes, this mirror",
+    "test_docs_examples.py": "the Python examples of README.md and docs/ (they run)",
     "cli/test_bad_input.py": "every command's refusal of bad input (one error line, early)",
     "inference/test_bad_input_api.py": "the Python API's refusal of bad input",
     "weights/test_bundled_model.py": "the model file the package ships (deltar.weights)",
