@@ -117,14 +117,25 @@ class DriverAdapter(SensorAdapter):
         self.target_order = target_order
 
     def start(self) -> None:
+        """Start ranging (the driver's start method with ``start_args``; nothing when
+        the adapter was given ``start=None``)."""
         if self._names[2] is not None:
             getattr(self.driver, self._names[2])(*self._start_args)
 
     def stop(self) -> None:
+        """Stop ranging (the driver's stop method; nothing when given ``stop=None``)."""
         if self._names[3] is not None:
             getattr(self.driver, self._names[3])()
 
     def read(self, timeout_s: float = 1.0) -> ZoneFrame | None:
+        """The next frame: polls the driver's data-ready method every
+        ``poll_interval_s`` for up to ``timeout_s`` seconds, then reads the results.
+
+        Returns:
+            A :class:`ZoneFrame` (``grid`` x ``grid`` zones, metres, reoriented to the
+            image, stamped in seconds of ``clock`` when the data was seen ready), or
+            None when no frame was ready in time.
+        """
         data_ready, get_data = (getattr(self.driver, n) for n in self._names[:2])
         deadline = self.clock() + timeout_s
         while not data_ready():
@@ -260,6 +271,7 @@ class OpenCVCamera:
         return self.clock(), cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
 
     def release(self) -> None:
+        """Close the device or file (``cv2.VideoCapture.release``)."""
         self.capture.release()
 
 

@@ -170,6 +170,7 @@ class ZoneFrame:
 
     @property
     def zone_count(self) -> int:
+        """Zones in the frame: 16 or 64 (``grid`` squared)."""
         return self.grid * self.grid
 
     def validate(self) -> None:
