@@ -61,10 +61,12 @@ class BaselineInputs:
 
     @property
     def height(self) -> int:
+        """Image rows, pixels."""
         return int(self.image.shape[0])
 
     @property
     def width(self) -> int:
+        """Image columns, pixels."""
         return int(self.image.shape[1])
 
     @property

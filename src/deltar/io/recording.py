@@ -290,6 +290,7 @@ class Recording:
 
     @property
     def zones_path(self) -> Path:
+        """The recording's zone-frame file (``zones.jsonl``, docs/formats.md)."""
         return self.folder / ZONES_FILE
 
     def end_time_s(self) -> float | None:

@@ -115,6 +115,8 @@ def flags(values, name: str) -> np.ndarray:
 
 
 def grid_from_count(count: int, name: str) -> int:
+    """Zones per side (4 or 8) of ``count`` zones; ``ValueError`` naming ``name``
+    for any other count."""
     n = math.isqrt(count)
     if n * n != count or n not in SUPPORTED_GRIDS:
         raise ValueError(f"{name} has {count} zones; expected 16 (4x4) or 64 (8x8)")

@@ -37,6 +37,9 @@ class BinsPredict(DepthHead):
     max_depth: float
 
     def predict(self, features: torch.Tensor, zones: ZoneInputs) -> HeadOutput:
+        """The :class:`HeadOutput` (metres) from the bins' widths over
+        ``[min_depth, max_depth]`` and each pixel's weights over the bins (``zones``
+        unused)."""
         widths, logits = self(features)
         return HeadOutput(*bins_to_depth(widths, logits, self.min_depth, self.max_depth))
 

@@ -88,6 +88,8 @@ def footprint_pool(features: torch.Tensor, log_wy: torch.Tensor, log_wx: torch.T
 
 
 def softmax_over_zones(logits: torch.Tensor) -> torch.Tensor:
+    """Softmax over the last axis (zones) of (..., Z) logits, with weights below e^-80
+    of the largest raised to it."""
     # Weights below e^-80 of a pixel's largest are raised to it (a change of ~1e-35):
     # exponentials that small are subnormal floats, which CPUs compute many times
     # slower.
