@@ -59,6 +59,12 @@ SELF_CONTAINED = [
                          ids=[f"{page}:{snippet[:20]}" for page, snippet in SELF_CONTAINED])
 def test_self_contained_blocks_run(page: str, snippet: str, tmp_path: Path,
                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    from deltar.evaluation import runner
+
+    # The evaluation page registers methods: into copies, so other tests see the
+    # registry as it was.
+    monkeypatch.setattr(runner, "_METHODS", dict(runner._METHODS))
+    monkeypatch.setattr(runner, "_FAMILIES", dict(runner._FAMILIES))
     monkeypatch.chdir(tmp_path)
     exec(compile(block_containing(page, snippet), page, "exec"), {"__name__": "docs_example"})
 
