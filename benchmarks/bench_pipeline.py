@@ -14,6 +14,9 @@ them alike), and per backend and size the network's counted GFLOP
 rate as a fraction of a float32 matrix product's measured in the same process with the
 same threads before and after the runs (:func:`deltar.models.benchmark.matmul_gflop_s`,
 the better of the two): ``NN% of matmul`` = GFLOP / median bare network time / that rate.
+``around ms`` is the time end to end spends beyond the bare network (median e2e minus
+median bare), with and without the blend: a fixed cost a frame, so the e2e / bare ratio
+falls when the network runs faster.
 Two parts of end to end are also timed alone, in the same alternation: the PNG decode and
 (for networks with the blend) the blend's colorization fill (``blend_fill``, milliseconds;
 in ``predict`` it runs on a worker thread beside the network, or before a PyTorch network
@@ -134,6 +137,7 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
             "blend": blend is not None, "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full,
             "png_fps": 1.0 / from_png, "no_blend_fps": 1.0 / plain,
             "overhead": full / bare - 1.0, "e2e_ratio": bare / full,
+            "around_ms": 1e3 * (full - bare), "around_no_blend_ms": 1e3 * (plain - bare),
             "png_ratio": bare / from_png, "gflop": gflop, "matmul_gflop_s": matmul,
             "matmul_fraction": gflop / bare / matmul, "decode_ms": 1e3 * decode,
             "fill_ms": 1e3 * fill if blend is not None else float("nan")}
@@ -167,6 +171,7 @@ def main() -> None:
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
              f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9} {'e2e/bare':>9} " \
+             f"{'around ms':>9} {'(no blend)':>10} " \
              f"{'from PNG fps':>13} {'/bare':>6} " \
              f"{'GFLOP':>6} {'network rate':>30} {'decode ms':>9} {'fill ms':>7}"
     print(header)
@@ -175,7 +180,8 @@ def main() -> None:
         print(f"{r['preset']:<16} {r['size']:>8} {r['backend']:>8} {r['bare_fps']:>9.2f} "
               f"{r['e2e_fps']:>8.2f} {'yes' if r['blend'] else 'no':>6} "
               f"{r['no_blend_fps']:>13.2f} {100 * r['overhead']:>8.1f}% "
-              f"{r['e2e_ratio']:>8.2f}x {r['png_fps']:>13.2f} {r['png_ratio']:>5.2f}x "
+              f"{r['e2e_ratio']:>8.2f}x {r['around_ms']:>9.2f} {r['around_no_blend_ms']:>10.2f} "
+              f"{r['png_fps']:>13.2f} {r['png_ratio']:>5.2f}x "
               f"{r['gflop']:>6.2f} "
               f"{r['gflop'] / (1.0 / r['bare_fps']):>6.1f} GFLOP/s, "
               f"{100 * r['matmul_fraction']:>3.0f}% of matmul "
