@@ -1,4 +1,5 @@
-"""The CLI's shared option checks: devices, displays, numbers and sizes."""
+"""The CLI's shared option checks: devices and displays (the others are tested through
+the commands that use them)."""
 
 from __future__ import annotations
 
