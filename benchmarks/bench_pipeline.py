@@ -16,7 +16,9 @@ same threads before and after the runs (:func:`deltar.models.benchmark.matmul_gf
 the better of the two): ``NN% of matmul`` = GFLOP / median bare network time / that rate.
 ``around ms`` is the time end to end spends beyond the bare network (median e2e minus
 median bare), with and without the blend: a fixed cost a frame, so the e2e / bare ratio
-falls when the network runs faster.
+falls when the network runs faster. ``stream fps`` is ``DepthEstimator.predict_stream``
+over the same frame repeated (:data:`STREAM_FRAMES` a call), whose work around the
+network overlaps the neighbouring frames' networks.
 Two parts of end to end are also timed alone, in the same alternation: the PNG decode and
 (for networks with the blend) the blend's colorization fill (``blend_fill``, milliseconds;
 in ``predict`` it runs on a worker thread beside the network, or before a PyTorch network
@@ -49,6 +51,9 @@ from deltar.models.benchmark import count_gflop, matmul_gflop_s
 from deltar.models.checkpoint import load_checkpoint
 from deltar.sensor.zone_frame import ZoneFrame
 from deltar.weights import bundled_model_names, resolve_checkpoint
+
+#: Frames per timed call of ``predict_stream``.
+STREAM_FRAMES = 10
 
 
 def _interleaved_medians(functions, repeats: int, warmup: int = 1) -> list[float]:
@@ -127,17 +132,25 @@ def bench(preset: str, size: tuple[int, int], backend: str, threads: int, repeat
         if blend is not None:
             estimator.blend_fill_for(image, frame, rects, out_size=grid)
 
+    stream_pairs = [(image, frame)] * STREAM_FRAMES
+
+    def stream():
+        for _ in estimator.predict_stream(stream_pairs):
+            pass
+
     matmul = matmul_gflop_s()
-    bare, full, from_png, plain, decode, fill = _interleaved_medians(
+    bare, full, from_png, plain, decode, fill, streamed = _interleaved_medians(
         [lambda: estimator.run_network(inputs), lambda: estimator.predict(image, frame),
          lambda: estimator.predict(_decode(png), frame), network_only, lambda: _decode(png),
-         fill_only], repeats)
+         fill_only, stream], repeats)
+    streamed /= STREAM_FRAMES
     matmul = max(matmul, matmul_gflop_s())
     return {"preset": preset, "size": f"{height}x{width}", "backend": backend,
             "blend": blend is not None, "bare_fps": 1.0 / bare, "e2e_fps": 1.0 / full,
             "png_fps": 1.0 / from_png, "no_blend_fps": 1.0 / plain,
             "overhead": full / bare - 1.0, "e2e_ratio": bare / full,
             "around_ms": 1e3 * (full - bare), "around_no_blend_ms": 1e3 * (plain - bare),
+            "stream_fps": 1.0 / streamed, "stream_ratio": bare / streamed,
             "png_ratio": bare / from_png, "gflop": gflop, "matmul_gflop_s": matmul,
             "matmul_fraction": gflop / bare / matmul, "decode_ms": 1e3 * decode,
             "fill_ms": 1e3 * fill if blend is not None else float("nan")}
@@ -171,7 +184,7 @@ def main() -> None:
     print(f"\nload average after: {os.getloadavg()}")
     header = f"{'preset':<16} {'size':>8} {'backend':>8} {'bare fps':>9} {'e2e fps':>8} " \
              f"{'blend':>6} {'e2e no blend':>13} {'overhead':>9} {'e2e/bare':>9} " \
-             f"{'around ms':>9} {'(no blend)':>10} " \
+             f"{'around ms':>9} {'(no blend)':>10} {'stream fps':>10} {'/bare':>6} " \
              f"{'from PNG fps':>13} {'/bare':>6} " \
              f"{'GFLOP':>6} {'network rate':>30} {'decode ms':>9} {'fill ms':>7}"
     print(header)
@@ -181,6 +194,7 @@ def main() -> None:
               f"{r['e2e_fps']:>8.2f} {'yes' if r['blend'] else 'no':>6} "
               f"{r['no_blend_fps']:>13.2f} {100 * r['overhead']:>8.1f}% "
               f"{r['e2e_ratio']:>8.2f}x {r['around_ms']:>9.2f} {r['around_no_blend_ms']:>10.2f} "
+              f"{r['stream_fps']:>10.2f} {r['stream_ratio']:>5.2f}x "
               f"{r['png_fps']:>13.2f} {r['png_ratio']:>5.2f}x "
               f"{r['gflop']:>6.2f} "
               f"{r['gflop'] / (1.0 / r['bare_fps']):>6.1f} GFLOP/s, "

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from deltar.camera import check_image
 from deltar.sensor.zone_frame import ZoneFrame
 
 #: Torch precisions the PyTorch backend runs in.
@@ -132,3 +133,39 @@ def check_calibration(calibration: Any) -> None:
         raise ValueError("calibration must be a RigCalibration (e.g. RigCalibration.load("
                          f"path)) or None, got "
                          f"{describe_argument(calibration, 'RigCalibration.load')}")
+
+
+def check_batch_inputs(images: Any, frames: Any, max_range_m: float | None) -> list[np.ndarray]:
+    """Check a batch's images and zone frames (``DepthEstimator.prepare``'s arguments).
+
+    Args:
+        images: B (H, W, 3) uint8 RGB images, all of one size.
+        frames: B zone frames of one grid, each a physically possible reading within
+            ``max_range_m`` metres (:meth:`ZoneFrame.physical_error`; None: each frame's
+            sensor range).
+
+    Returns:
+        The B images as checked arrays (:func:`deltar.camera.check_image`).
+
+    Raises:
+        ValueError: naming the image or frame (``images[i]`` / ``frames[i]``) and why.
+    """
+    if len(images) != len(frames) or not images:
+        raise ValueError(f"need one zone frame per image, got {len(images)} images and "
+                         f"{len(frames)} frames")
+    checked = [check_image(img, f"images[{i}]") for i, img in enumerate(images)]
+    size = checked[0].shape[:2]
+    for i, img in enumerate(checked):
+        if img.shape[:2] != size:
+            raise ValueError(f"images[{i}] is {img.shape[0]}x{img.shape[1]}, images[0] is "
+                             f"{size[0]}x{size[1]}; a batch needs one image size")
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, ZoneFrame):
+            raise ValueError(f"frames[{i}] must be a ZoneFrame, got {type(frame).__name__}")
+        if frame.grid != frames[0].grid:
+            raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
+                             f"{frames[0].grid}x{frames[0].grid}")
+        problem = frame.physical_error(max_range_m)
+        if problem is not None:
+            raise ValueError(f"frames[{i}]: {problem}")
+    return checked

@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
+from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics
 from deltar.contract import HYPOTHESIS_SAMPLINGS, IMAGENET_MEAN, IMAGENET_STD, as_switch
 from deltar.inference import checks
 from deltar.inference.blend import ConfidenceBlend, resolve_blend
@@ -54,8 +54,6 @@ from deltar.sensor.zone_outliers import OutlierRule, reject_outlier_zones, resol
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
-
-    import torch
 
     from deltar.calibration.rig import RigCalibration
     from deltar.inference.onnx_runtime import OnnxDepthModel
@@ -282,24 +280,8 @@ class DepthEstimator:
             input-image pixels, ``image_size`` (H, W) and ``network_size`` (h, w) in
             pixels (:meth:`network_size_for`).
         """
-        if len(images) != len(frames) or not images:
-            raise ValueError(f"need one zone frame per image, got {len(images)} images and "
-                             f"{len(frames)} frames")
-        checked = [check_image(img, f"images[{i}]") for i, img in enumerate(images)]
+        checked = checks.check_batch_inputs(images, frames, self.max_range_m)
         size = checked[0].shape[:2]
-        for i, img in enumerate(checked):
-            if img.shape[:2] != size:
-                raise ValueError(f"images[{i}] is {img.shape[0]}x{img.shape[1]}, images[0] is "
-                                 f"{size[0]}x{size[1]}; a batch needs one image size")
-        for i, frame in enumerate(frames):
-            if not isinstance(frame, ZoneFrame):
-                raise ValueError(f"frames[{i}] must be a ZoneFrame, got {type(frame).__name__}")
-            if frame.grid != frames[0].grid:
-                raise ValueError(f"frames[{i}] has a {frame.grid}x{frame.grid} grid, frames[0] "
-                                 f"{frames[0].grid}x{frames[0].grid}")
-            problem = frame.physical_error(self.max_range_m)
-            if problem is not None:
-                raise ValueError(f"frames[{i}]: {problem}")
         checks.check_calibration(calibration)
         net_size = self.network_size_for(size)
         if self.onnx_model is not None:
@@ -348,36 +330,12 @@ class DepthEstimator:
                                       inputs["zone_rects"], inputs["zone_valid"], no_target,
                                       targets)
             return out["depth"], out["uncertainty"]
-        import torch
+        from deltar.inference.torch_backend import run_torch_network
 
-        tensors = [None if array is None else torch.from_numpy(np.asarray(array)).to(self.device)
-                   for array in (inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
-                                 inputs["zone_valid"], no_target, targets)]
-        if self.flip_average:
-            from deltar.inference.flip import flip_averaged
-
-            depth, uncertainty = flip_averaged(self._run_model, *tensors)
-        else:
-            depth, uncertainty = self._run_model(*tensors)
-        return depth.cpu().numpy(), uncertainty.cpu().numpy()
-
-    def _run_model(self, image: torch.Tensor, hypotheses: torch.Tensor,
-                   zone_rects: torch.Tensor, zone_valid: torch.Tensor,
-                   zone_no_target: torch.Tensor | None = None,
-                   zone_targets: torch.Tensor | None = None
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-        import torch
-
-        # Only networks whose head reads the flags (the targets) take them (other
-        # models, e.g. a user's own module, keep the four-input call).
-        flags = {"zone_no_target": zone_no_target} if (
-            zone_no_target is not None and getattr(self.model, "uses_no_target", False)) else {}
-        if zone_targets is not None and getattr(self.model, "uses_targets", False):
-            flags["zone_targets"] = zone_targets.to(self.dtype)
-        with torch.inference_mode():
-            out = self.model(image.to(self.dtype), hypotheses.to(self.dtype), zone_rects,
-                             zone_valid, **flags)
-        return out["depth"].float(), out["uncertainty"].float()
+        return run_torch_network(self.model, self.device, self.dtype,
+                                 (inputs["image"], inputs["hypotheses"], inputs["zone_rects"],
+                                  inputs["zone_valid"], no_target, targets),
+                                 self.flip_average)
 
     def predict(self, image: np.ndarray | Sequence[np.ndarray],
                 zone_frame: ZoneFrame | Sequence[ZoneFrame],
@@ -407,6 +365,39 @@ class DepthEstimator:
             ValueError: bad image, zone frame (e.g. valid zones outside the sensor's
                 range) or a calibration for another resolution.
         """
+        started = self._begin_predict(image, zone_frame, calibration, zone_rects)
+        return self._finish_predict(started, *self.run_network(started["inputs"]))
+
+    def predict_stream(self, pairs: Iterable[tuple[np.ndarray, ZoneFrame]],
+                       calibration: RigCalibration | None = None
+                       ) -> Iterator[DepthPrediction]:
+        """:meth:`predict` for a stream of (image, zone frame) pairs: one result per
+        pair, in order, each as ``predict(image, zone_frame, calibration)`` gives it.
+
+        A frame's preparation runs on a worker thread while the previous frame's network
+        runs on this one, and its output stage on another while the next one's does
+        (:func:`~deltar.inference.stream.pipelined`), except where a PyTorch network's
+        threads take every CPU core: there nothing is left to overlap, and the frames
+        are predicted one after the other (docs/inference.md, "Streams"). ``pairs`` is
+        read one ahead; a bad frame raises :meth:`predict`'s ``ValueError`` at its turn,
+        after the results before it. Yields :class:`DepthPrediction` (metres, at each
+        image's resolution).
+        """
+        from deltar.inference.stream import pipelined, stream_pair
+
+        if self.model is not None and self.device.type == "cpu" and \
+                not fill_beside_network(torch_backend=True):
+            return (self.predict(*stream_pair(pair), calibration) for pair in pairs)
+        return pipelined(pairs, lambda pair: self._begin_predict(*stream_pair(pair),
+                                                                 calibration),
+                         lambda started: self.run_network(started["inputs"]),
+                         lambda started, outputs: self._finish_predict(started, *outputs))
+
+    def _begin_predict(self, image: Any, zone_frame: Any,
+                       calibration: RigCalibration | None = None,
+                       zone_rects: np.ndarray | None = None) -> dict[str, Any]:
+        """:meth:`predict` up to the network: the checked, screened and prepared batch
+        (its inputs, the blend's fills started) as a dict :meth:`_finish_predict` reads."""
         single, images, frames = checks.batch_arguments(image, zone_frame)
         checks.check_calibration(calibration)  # before it undistorts the images
         if getattr(calibration, "has_distortion", False):  # other types refused in prepare
@@ -432,11 +423,18 @@ class DepthEstimator:
 
         inputs = self.prepare(images, frames, calibration, zone_rects,
                               on_zones=None if self.blend is None else start_fills)
+        return {"single": single, "frames": frames, "rejected": rejected, "inputs": inputs,
+                "fills": fills, "calibration": calibration}
+
+    def _finish_predict(self, started: dict[str, Any], depths: np.ndarray,
+                        spreads: np.ndarray) -> DepthPrediction | list[DepthPrediction]:
+        """:meth:`predict` from the network's (B, 1, h, w) depth and spread (metres) on:
+        the output stage and the results."""
+        inputs, fills, rejected = started["inputs"], started["fills"], started["rejected"]
         size, net_size = inputs["image_size"], inputs["network_size"]
-        depths, spreads = self.run_network(inputs)
-        intrinsics = self.image_intrinsics(size, calibration)
+        intrinsics = self.image_intrinsics(size, started["calibration"])
         results = []
-        for i, frame in enumerate(frames):
+        for i, frame in enumerate(started["frames"]):
             # Blend and sigma on the network's output grid, then one resize of what is
             # returned (deltar.inference.output_stage).
             grid_rects = scale_rects(inputs["image_rects"][i], size, depths.shape[2:])
@@ -458,7 +456,7 @@ class DepthEstimator:
                                            is not None,
                                            zone_no_target=inputs["zone_no_target"][i],
                                            zone_rejected=rejected[i]))
-        return results[0] if single else results
+        return results[0] if started["single"] else results
 
     def blend_fill_for(self, image: np.ndarray, frame: ZoneFrame, rects: np.ndarray,
                        out_size: tuple[int, int] | None = None) -> np.ndarray | None:

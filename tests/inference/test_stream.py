@@ -1,0 +1,110 @@
+"""A frame stream pipelined around the network: the scheduler and predict_stream."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from deltar.inference.loading import load_estimator
+from deltar.inference.stream import pipelined
+from tests.inference.fakes import random_frame, random_image
+
+
+def test_results_come_in_order_with_each_step_on_its_thread() -> None:
+    caller = threading.get_ident()
+    seen: dict[str, set[int]] = {"begin": set(), "run": set(), "finish": set()}
+
+    def begin(item: int) -> int:
+        seen["begin"].add(threading.get_ident())
+        time.sleep(0.002 * (item % 3))  # uneven steps must not reorder the results
+        return item * 10
+
+    def run(started: int) -> int:
+        seen["run"].add(threading.get_ident())
+        return started + 1
+
+    def finish(started: int, outputs: int) -> tuple[int, int]:
+        seen["finish"].add(threading.get_ident())
+        time.sleep(0.002 * ((started // 10) % 2))
+        return started, outputs
+
+    assert list(pipelined(range(12), begin, run, finish)) == [(10 * i, 10 * i + 1)
+                                                               for i in range(12)]
+    assert seen["run"] == {caller}
+    assert caller not in seen["begin"] and caller not in seen["finish"]
+    assert list(pipelined([], begin, run, finish)) == []
+
+
+@pytest.mark.parametrize("failing", ["begin", "run", "finish"])
+def test_a_failing_item_raises_at_its_turn_after_the_results_before_it(failing: str) -> None:
+    def step(name: str):
+        def call(*args):
+            if name == failing and args[0] in (3, 30):
+                raise ValueError(f"{name} refused item 3")
+            return args[0] * 10 if name == "begin" else args[0]
+        return call
+
+    results = []
+    stream = pipelined(range(6), step("begin"), step("run"),
+                       lambda started, outputs: step("finish")(started, outputs))
+    with pytest.raises(ValueError, match=f"{failing} refused item 3"):
+        for result in stream:
+            results.append(result)
+    assert results == [0, 10, 20]
+
+
+def test_closing_early_neither_hangs_nor_begins_everything() -> None:
+    begun = []
+
+    def endless():
+        count = 0
+        while True:
+            yield count
+            count += 1
+
+    def begin(item: int) -> int:
+        begun.append(item)
+        return item
+
+    stream = pipelined(endless(), begin, lambda started: started,
+                       lambda started, outputs: outputs)
+    first = [next(stream) for _ in range(3)]
+    stream.close()
+    assert first == [0, 1, 2]
+    assert len(begun) <= 6  # at most two ahead of what was handed out
+
+
+@pytest.mark.parametrize("source", ["default", "onnx"])
+def test_predict_stream_gives_what_predict_gives(source: str, rng) -> None:
+    # PyTorch on every core predicts the frames in turn; onnxruntime pipelines them.
+    estimator = load_estimator("default", kind="onnx" if source == "onnx" else None)
+    pairs = [(random_image(rng, 48, 64), random_frame(rng)) for _ in range(4)]
+    streamed = list(estimator.predict_stream(iter(pairs)))
+    assert len(streamed) == len(pairs)
+    for (image, frame), result in zip(pairs, streamed, strict=True):
+        alone = estimator.predict(image, frame)
+        np.testing.assert_array_equal(result.depth_m, alone.depth_m)
+        np.testing.assert_array_equal(result.uncertainty_m, alone.uncertainty_m)
+        assert result.zones_used == alone.zones_used
+
+
+def test_predict_stream_refuses_a_bad_frame_at_its_turn(rng) -> None:
+    estimator = load_estimator("default", kind="onnx")
+    pairs = [(random_image(rng, 48, 64), random_frame(rng)) for _ in range(3)]
+    pairs[1] = (pairs[1][0][:, :, 0], pairs[1][1])  # a grey image: not (H, W, 3)
+    stream = estimator.predict_stream(pairs)
+    assert next(stream).depth_m.shape == (48, 64)
+    with pytest.raises(ValueError, match="image"):
+        next(stream)
+
+
+@pytest.mark.parametrize("source", ["default", "onnx"])
+def test_predict_stream_refuses_what_is_not_a_pair(source: str, rng) -> None:
+    estimator = load_estimator("default", kind="onnx" if source == "onnx" else None)
+    image, frame = random_image(rng, 48, 64), random_frame(rng)
+    with pytest.raises(ValueError, match=r"takes \(image, zone frame\) pairs, got tuple "
+                                         r"of length 3"):
+        list(estimator.predict_stream([(image, frame, None)]))
