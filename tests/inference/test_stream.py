@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from deltar.inference.loading import load_estimator
-from deltar.inference.stream import pipelined
+from deltar.inference.stream import run_pipelined
 from tests.inference.fakes import random_frame, random_image
 
 
@@ -31,11 +31,11 @@ def test_results_come_in_order_with_each_step_on_its_thread() -> None:
         time.sleep(0.002 * ((started // 10) % 2))
         return started, outputs
 
-    assert list(pipelined(range(12), begin, run, finish)) == [(10 * i, 10 * i + 1)
+    assert list(run_pipelined(range(12), begin, run, finish)) == [(10 * i, 10 * i + 1)
                                                                for i in range(12)]
     assert seen["run"] == {caller}
     assert caller not in seen["begin"] and caller not in seen["finish"]
-    assert list(pipelined([], begin, run, finish)) == []
+    assert list(run_pipelined([], begin, run, finish)) == []
 
 
 @pytest.mark.parametrize("failing", ["begin", "run", "finish"])
@@ -48,7 +48,7 @@ def test_a_failing_item_raises_at_its_turn_after_the_results_before_it(failing: 
         return call
 
     results = []
-    stream = pipelined(range(6), step("begin"), step("run"),
+    stream = run_pipelined(range(6), step("begin"), step("run"),
                        lambda started, outputs: step("finish")(started, outputs))
     with pytest.raises(ValueError, match=f"{failing} refused item 3"):
         for result in stream:
@@ -69,7 +69,7 @@ def test_closing_early_neither_hangs_nor_begins_everything() -> None:
         begun.append(item)
         return item
 
-    stream = pipelined(endless(), begin, lambda started: started,
+    stream = run_pipelined(endless(), begin, lambda started: started,
                        lambda started, outputs: outputs)
     first = [next(stream) for _ in range(3)]
     stream.close()
@@ -78,11 +78,14 @@ def test_closing_early_neither_hangs_nor_begins_everything() -> None:
 
 
 @pytest.mark.parametrize("source", ["default", "onnx"])
-def test_predict_stream_gives_what_predict_gives(source: str, rng) -> None:
-    # PyTorch on every core predicts the frames in turn; onnxruntime pipelines them.
+@pytest.mark.parametrize("pipelined", [None, True, False])
+def test_predict_stream_gives_what_predict_gives(source: str, pipelined: bool | None,
+                                                 rng) -> None:
+    # By default PyTorch on every core predicts the frames in turn and onnxruntime
+    # pipelines them; True / False force either.
     estimator = load_estimator("default", kind="onnx" if source == "onnx" else None)
     pairs = [(random_image(rng, 48, 64), random_frame(rng)) for _ in range(4)]
-    streamed = list(estimator.predict_stream(iter(pairs)))
+    streamed = list(estimator.predict_stream(iter(pairs), pipelined=pipelined))
     assert len(streamed) == len(pairs)
     for (image, frame), result in zip(pairs, streamed, strict=True):
         alone = estimator.predict(image, frame)

@@ -369,29 +369,32 @@ class DepthEstimator:
         return self._finish_predict(started, *self.run_network(started["inputs"]))
 
     def predict_stream(self, pairs: Iterable[tuple[np.ndarray, ZoneFrame]],
-                       calibration: RigCalibration | None = None
-                       ) -> Iterator[DepthPrediction]:
+                       calibration: RigCalibration | None = None,
+                       pipelined: bool | None = None) -> Iterator[DepthPrediction]:
         """:meth:`predict` for a stream of (image, zone frame) pairs: one result per
         pair, in order, each as ``predict(image, zone_frame, calibration)`` gives it.
 
         A frame's preparation runs on a worker thread while the previous frame's network
         runs on this one, and its output stage on another while the next one's does
-        (:func:`~deltar.inference.stream.pipelined`), except where a PyTorch network's
-        threads take every CPU core: there nothing is left to overlap, and the frames
-        are predicted one after the other (docs/inference.md, "Streams"). ``pairs`` is
+        (:func:`~deltar.inference.stream.run_pipelined`). ``pipelined`` None (default) does
+        so except where a PyTorch network's threads take every CPU core, and predicts
+        the frames one after the other there; True / False always / never pipelines
+        (docs/inference.md, "Streams"). ``pairs`` is
         read one ahead; a bad frame raises :meth:`predict`'s ``ValueError`` at its turn,
         after the results before it. Yields :class:`DepthPrediction` (metres, at each
         image's resolution).
         """
-        from deltar.inference.stream import pipelined, stream_pair
+        from deltar.inference.stream import run_pipelined, stream_pair
 
-        if self.model is not None and self.device.type == "cpu" and \
-                not fill_beside_network(torch_backend=True):
+        if pipelined is None:
+            pipelined = self.model is None or self.device.type != "cpu" or \
+                fill_beside_network(torch_backend=True)
+        if not pipelined:
             return (self.predict(*stream_pair(pair), calibration) for pair in pairs)
-        return pipelined(pairs, lambda pair: self._begin_predict(*stream_pair(pair),
-                                                                 calibration),
-                         lambda started: self.run_network(started["inputs"]),
-                         lambda started, outputs: self._finish_predict(started, *outputs))
+        return run_pipelined(pairs, lambda pair: self._begin_predict(*stream_pair(pair),
+                                                                     calibration),
+                             lambda started: self.run_network(started["inputs"]),
+                             lambda started, outputs: self._finish_predict(started, *outputs))
 
     def _begin_predict(self, image: Any, zone_frame: Any,
                        calibration: RigCalibration | None = None,

@@ -1,4 +1,4 @@
-"""A frame stream pipelined around the network: :func:`pipelined`.
+"""A frame stream pipelined around the network: :func:`run_pipelined`.
 
 :meth:`~deltar.inference.estimator.DepthEstimator.predict_stream` splits each frame's
 prediction in three: the work before the network (checks, zone screening, the
@@ -23,7 +23,7 @@ Outputs = TypeVar("Outputs")
 Result = TypeVar("Result")
 
 
-def pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
+def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
               run: Callable[[Started], Outputs],
               finish: Callable[[Started, Outputs], Result]) -> Iterator[Result]:
     """``finish(started, run(started))`` with ``started = begin(item)`` for each item, in
