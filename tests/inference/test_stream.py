@@ -56,6 +56,36 @@ def test_a_failing_item_raises_at_its_turn_after_the_results_before_it(failing: 
     assert results == [0, 10, 20]
 
 
+def test_a_failing_source_keeps_every_result_before_it() -> None:
+    def source():
+        yield from range(4)
+        raise OSError("the camera went away")
+
+    results = []
+    with pytest.raises(OSError, match="camera went away"):
+        for result in run_pipelined(source(), lambda item: item, lambda started: started,
+                                    lambda started, outputs: outputs):
+            results.append(result)
+    assert results == [0, 1, 2, 3]
+
+
+def test_a_result_is_handed_out_before_the_next_frame_exists() -> None:
+    # A live source: frame k + 1 exists only once the consumer has result k (a stream
+    # that waited for later frames before handing out results would never finish).
+    handed_out = [threading.Event() for _ in range(6)]
+
+    def camera():
+        for k in range(6):
+            if k and not handed_out[k - 1].wait(timeout=20):
+                raise TimeoutError(f"frame {k} waited for result {k - 1}")
+            yield k
+
+    for result in run_pipelined(camera(), lambda item: item, lambda started: started,
+                                lambda started, outputs: outputs):
+        handed_out[result].set()
+    assert all(event.is_set() for event in handed_out)
+
+
 def test_closing_early_neither_hangs_nor_begins_everything() -> None:
     begun = []
 
@@ -111,3 +141,12 @@ def test_predict_stream_refuses_what_is_not_a_pair(source: str, rng) -> None:
     with pytest.raises(ValueError, match=r"takes \(image, zone frame\) pairs, got tuple "
                                          r"of length 3"):
         list(estimator.predict_stream([(image, frame, None)]))
+
+
+def test_predict_stream_refuses_a_batch_in_a_pair_and_a_bad_schedule(rng) -> None:
+    estimator = load_estimator("default", kind="onnx")
+    image, frame = random_image(rng, 48, 64), random_frame(rng)
+    with pytest.raises(ValueError, match=r"one \(H, W, 3\) image per pair, got list"):
+        list(estimator.predict_stream([([image, image], [frame, frame])]))
+    with pytest.raises(ValueError, match="pipelined must be None, True or False, got 'no'"):
+        list(estimator.predict_stream([(image, frame)], pipelined="no"))

@@ -374,22 +374,19 @@ class DepthEstimator:
         """:meth:`predict` for a stream of (image, zone frame) pairs: one result per
         pair, in order, each as ``predict(image, zone_frame, calibration)`` gives it.
 
-        A frame's preparation runs on a worker thread while the previous frame's network
-        runs on this one, and its output stage on another while the next one's does
-        (:func:`~deltar.inference.stream.run_pipelined`). ``pipelined`` None (default) does
-        so except where a PyTorch network's threads take every CPU core, and predicts
-        the frames one after the other there; True / False always / never pipelines
-        (docs/inference.md, "Streams"). ``pairs`` is
-        read one ahead; a bad frame raises :meth:`predict`'s ``ValueError`` at its turn,
-        after the results before it. Yields :class:`DepthPrediction` (metres, at each
-        image's resolution).
+        A pair is drawn and prepared on a worker thread while the previous frame's
+        network runs on this one, and finished on another while the next one's does
+        (:func:`~deltar.inference.stream.run_pipelined`). ``pipelined`` None (default)
+        does so except where a PyTorch network's threads take every CPU core, where the
+        frames run in turn; True / False always / never pipelines (docs/inference.md,
+        "Streams"). A pair is kept until its result is handed out (a source must not
+        refill it in place); a bad frame raises :meth:`predict`'s ``ValueError`` at its
+        turn, after the results before it. Yields :class:`DepthPrediction` (metres).
         """
-        from deltar.inference.stream import run_pipelined, stream_pair
+        from deltar.inference.stream import pipeline_chosen, run_pipelined, stream_pair
 
-        if pipelined is None:
-            pipelined = self.model is None or self.device.type != "cpu" or \
-                fill_beside_network(torch_backend=True)
-        if not pipelined:
+        if not pipeline_chosen(pipelined, self.model is not None and self.device.type ==
+                               "cpu" and not fill_beside_network(torch_backend=True)):
             return (self.predict(*stream_pair(pair), calibration) for pair in pairs)
         return run_pipelined(pairs, lambda pair: self._begin_predict(*stream_pair(pair),
                                                                      calibration),

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from typing import Any, TypeVar
 
 Item = TypeVar("Item")
@@ -24,17 +24,20 @@ Result = TypeVar("Result")
 
 
 def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
-              run: Callable[[Started], Outputs],
-              finish: Callable[[Started, Outputs], Result]) -> Iterator[Result]:
+                  run: Callable[[Started], Outputs],
+                  finish: Callable[[Started, Outputs], Result]) -> Iterator[Result]:
     """``finish(started, run(started))`` with ``started = begin(item)`` for each item, in
     order, overlapping the three steps of neighbouring items.
 
-    ``begin`` of the next item runs on a worker thread while ``run`` of this one runs
-    on the calling thread; ``finish`` of this one on a second worker while ``run`` of
-    the next one does. At most two items are begun ahead of the one handed out.
+    The items are drawn and begun on a worker thread, one at a time, the next one while
+    ``run`` of this one runs on the calling thread; ``finish`` runs on a second worker.
+    A result is handed out as soon as it is finished, while the next item is still being
+    drawn: with a live source (a camera that blocks until its next frame) each result
+    comes out without waiting for later frames.
 
     Args:
-        items: anything iterable, drawn on the calling thread one ahead.
+        items: anything iterable; drawn on the worker thread, at most one ahead of the
+            item being run.
         begin: the work before ``run`` (must not need the calling thread).
         run: the work that stays on the calling thread (e.g. a network call).
         finish: the work after it.
@@ -43,28 +46,40 @@ def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
         Each item's result, in the items' order.
 
     Raises:
-        Whatever a step raises, at that item's turn (the results before it have been
-        yielded). Closing the iterator early (``break``) cancels what has not started and
-        does not wait for what has.
+        Whatever a step or the items raise, at that item's turn: the results of the
+        items before it are yielded first. Closing the iterator (``close()``, or dropping
+        it) cancels what has not started and does not wait for what has.
     """
     iterator = iter(items)
     preparing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deltar-stream-begin")
     finishing = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deltar-stream-finish")
+
+    def draw_and_begin() -> Any:
+        for item in iterator:
+            return begin(item)
+        return _END
+
     finished: deque[Future] = deque()
     try:
-        upcoming = _begin_next(iterator, preparing, begin)
-        while upcoming is not None:
+        upcoming = preparing.submit(draw_and_begin)
+        while True:
+            # Hand out what is finished while the next item is drawn and begun.
+            while finished:
+                wait([upcoming, finished[0]], return_when=FIRST_COMPLETED)
+                if not finished[0].done():
+                    break
+                yield finished.popleft().result()
             try:
                 started = upcoming.result()
-                upcoming = _begin_next(iterator, preparing, begin)
+                if started is _END:
+                    break
+                upcoming = preparing.submit(draw_and_begin)
                 outputs = run(started)
             except Exception:
                 while finished:  # the results before the failing item come first
                     yield finished.popleft().result()
                 raise
             finished.append(finishing.submit(finish, started, outputs))
-            while len(finished) > 1:
-                yield finished.popleft().result()
         while finished:
             yield finished.popleft().result()
     finally:
@@ -72,12 +87,21 @@ def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
         finishing.shutdown(wait=False, cancel_futures=True)
 
 
-def _begin_next(iterator: Iterator[Item], pool: ThreadPoolExecutor,
-                begin: Callable[[Item], Started]) -> Future | None:
-    """``begin`` of the iterator's next item on ``pool``, or None at its end."""
-    for item in iterator:
-        return pool.submit(begin, item)
-    return None
+#: What the draw returns after the last item.
+_END = object()
+
+
+def pipeline_chosen(pipelined: bool | None, torch_on_every_core: bool) -> bool:
+    """Whether ``predict_stream`` pipelines: ``pipelined`` when it is True or False; by
+    default (None) except for a PyTorch network on the CPU whose threads take every
+    core (there the steps around it compete with its threads: benchmarks/RESULTS.md).
+
+    Raises:
+        ValueError: ``pipelined`` is not None, True or False.
+    """
+    if pipelined is not None and not isinstance(pipelined, bool):
+        raise ValueError(f"pipelined must be None, True or False, got {pipelined!r}")
+    return not torch_on_every_core if pipelined is None else pipelined
 
 
 def stream_pair(pair: Any) -> tuple[Any, Any]:
@@ -87,4 +111,7 @@ def stream_pair(pair: Any) -> tuple[Any, Any]:
         raise ValueError(f"predict_stream takes (image, zone frame) pairs, got "
                          f"{type(pair).__name__}"
                          f"{f' of length {len(pair)}' if isinstance(pair, tuple | list) else ''}")
+    if isinstance(pair[0], tuple | list) or getattr(pair[0], "ndim", 3) != 3:
+        raise ValueError("predict_stream takes one (H, W, 3) image per pair, got "
+                         f"{type(pair[0]).__name__} of shape {getattr(pair[0], 'shape', None)}")
     return pair[0], pair[1]
