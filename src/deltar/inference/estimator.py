@@ -385,8 +385,9 @@ class DepthEstimator:
         """
         from deltar.inference.stream import pipeline_chosen, run_pipelined, stream_pair
 
-        if not pipeline_chosen(pipelined, self.model is not None and self.device.type ==
-                               "cpu" and not fill_beside_network(torch_backend=True)):
+        # The schedule that runs the fill before the network tells where nothing is idle.
+        in_turn = not fill_beside_network(self.model is not None) and self.device.type == "cpu"
+        if not pipeline_chosen(pipelined, in_turn):
             return (self.predict(*stream_pair(pair), calibration) for pair in pairs)
         return run_pipelined(pairs, lambda pair: self._begin_predict(*stream_pair(pair),
                                                                      calibration),

@@ -5,9 +5,9 @@ prediction in three: the work before the network (checks, zone screening, the
 network's input, the blend's fill), the network, and the work after it (the output
 stage and the results). The network runs on the calling thread, one frame at a time;
 the frame after it is prepared on one worker thread meanwhile, and the frame before it
-finished on another. Where the network's threads leave cores idle (PyTorch on a CPU, or
-any network on a GPU), the work around it then costs little of the frame rate; with
-onnxruntime on two cores it measured level with a plain loop (benchmarks/RESULTS.md).
+finished on another. Where the network's threads leave cores idle, the work around it
+then costs little of the frame rate; where they take every core it competes with them
+(what each schedule measured: benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
