@@ -47,3 +47,18 @@ def test_a_full_disk_is_reported_naming_the_output_and_leaves_nothing(tmp_path):
         raise OSError(errno.ENOSPC, "No space left on device")
     assert (caught.value.errno, caught.value.filename) == (errno.ENOSPC, str(target))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_write_whose_clean_up_was_skipped_leaves_no_temporary_at_exit(tmp_path):
+    """A stop can land inside the clean-up itself; the exit hook removes what it left."""
+    from deltar.io.atomic import leftover_temporaries, remove_unfinished_temporaries
+
+    unfinished = atomic_path(tmp_path / "out.png")
+    tmp = unfinished.__enter__()  # never exited: as if a stop skipped the clean-up
+    tmp.write_bytes(b"half")
+    assert leftover_temporaries(tmp_path, ".png") == [tmp]
+    remove_unfinished_temporaries()
+    assert list(tmp_path.iterdir()) == []
+    finished = write_text_atomic(tmp_path / "kept.txt", "whole")
+    remove_unfinished_temporaries()  # finished outputs are not its business
+    assert [p.name for p in tmp_path.iterdir()] == [finished.name]

@@ -2,15 +2,31 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import errno
 import os
-import tempfile
+import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
 #: Write errors that mean "the disk cannot take it": reported naming the output.
 _DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
+
+#: Temporaries being written now. A stop (KeyboardInterrupt from Ctrl+C or the CLI's
+#: SIGTERM handler) can land between any two bytecodes, also inside the ``finally`` that
+#: removes a temporary; the exit hook below removes whatever such a stop left.
+_UNFINISHED: set[Path] = set()
+
+
+@atexit.register
+def remove_unfinished_temporaries() -> None:
+    """Remove the temporaries of writes that never finished (an exception skipped their
+    own clean-up); run at interpreter exit, callable earlier."""
+    for tmp in list(_UNFINISHED):
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        _UNFINISHED.discard(tmp)
 
 
 @contextlib.contextmanager
@@ -30,18 +46,14 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     if not overwrite and final.exists():
         raise FileExistsError(f"refusing to overwrite existing file: {final}")
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp" + final.suffix,
-                                    dir=final.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    # Named here and registered before it exists, so no stop can leave it unregistered;
+    # created exclusively with the permissions of a normal file (0666 less the umask).
+    tmp = final.parent / f".{final.name}.{secrets.token_hex(6)}.tmp{final.suffix}"
+    _UNFINISHED.add(tmp)
     try:
         try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
             yield tmp
-            # mkstemp creates 0600 files; give the output the permissions of a normal file.
-            umask = os.umask(0)
-            os.umask(umask)
-            if tmp.exists():
-                os.chmod(tmp, 0o666 & ~umask)
             if not overwrite and final.exists():
                 raise FileExistsError(f"refusing to overwrite existing file: {final}")
             os.replace(tmp, final)
@@ -51,8 +63,8 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
             # A full, read-only or over-quota disk: say which output, not a temporary name.
             raise OSError(err.errno, os.strerror(err.errno), str(final)) from err
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        tmp.unlink(missing_ok=True)
+        _UNFINISHED.discard(tmp)
 
 
 def leftover_temporaries(folder: str | os.PathLike, suffix: str = "") -> list[Path]:
