@@ -174,3 +174,39 @@ def test_bags_of_other_layouts_read_with_their_definition(tmp_path, rng, layout,
         writer.add_zone_frame("/tof/zones", 6_000_000_000, "tof", new)
     (_, current), = read_messages(tmp_path / "new", "/tof/zones")
     _assert_same_targets(zone_frame_from_msg(current), new)
+
+
+def test_a_stopped_replay_keeps_the_frames_written_and_an_error_keeps_none(tmp_path,
+                                                                         monkeypatch):
+    """Ctrl+C (or the CLI's SIGTERM) during ``replay --out-bag`` keeps a readable bag of the
+    frames before it, whole; another error leaves no bag; a stop before any frame, none."""
+    source = tmp_path / "in_bag"
+    write_input_bag(source, frames=4)
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+
+    def stop_after(count, error):
+        seen = []
+
+        def on_item(item):
+            seen.append(item)
+            if len(seen) == count:
+                raise error
+        return on_item
+
+    out = tmp_path / "stopped"
+    with pytest.warns(UserWarning, match="keeps the 2 frames"), pytest.raises(KeyboardInterrupt):
+        replay_bag_to_bag(BagInput(source), estimator, out, points=True,
+                          on_item=stop_after(2, KeyboardInterrupt()))
+    for name in ("depth", "uncertainty", "camera_info", "points"):
+        assert len(read_topic(out, f"/deltar/{name}")) == 2, name
+    with pytest.raises(RuntimeError):
+        replay_bag_to_bag(BagInput(source), estimator, tmp_path / "failed",
+                          on_item=stop_after(2, RuntimeError("disk gone")))
+
+    def stopped_in_the_network(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(estimator, "predict", stopped_in_the_network)
+    with pytest.raises(KeyboardInterrupt):
+        replay_bag_to_bag(BagInput(source), estimator, tmp_path / "at-once")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in_bag", "stopped"]

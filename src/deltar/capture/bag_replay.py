@@ -17,6 +17,7 @@ the sensor's nominal field of view and an identity extrinsic.
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,6 +124,10 @@ def replay_bag_to_bag(bag: BagInput, estimator: DepthEstimator, out_bag: str | o
     Returns:
         (the output bag path, frames written).
 
+    A ``KeyboardInterrupt`` (Ctrl+C, or SIGTERM in the CLI) keeps the bag with the frames
+    written before it (none written: no bag), warns how many, and propagates; any other
+    error leaves no bag.
+
     Raises:
         ValueError: ``out_bag`` is the input bag or inside it.
         FileExistsError: ``out_bag`` exists.
@@ -137,20 +142,35 @@ def replay_bag_to_bag(bag: BagInput, estimator: DepthEstimator, out_bag: str | o
                          "choose a path outside it")
     topic = {key: f"{prefix.rstrip('/')}/{name}" for key, name in OUTPUT_TOPICS.items()}
     frames = 0
-    with BagWriter(out_bag, storage=storage) as writer:
+    writer = BagWriter(out_bag, storage=storage)
+    try:
         for item in replay_bag(bag, estimator, **replay_kwargs):
             pair, pred = item.pair, item.prediction
             stamp, frame_id, log = pair.image_stamp_ns, pair.frame_id, pair.image_log_ns
             depth = pred.depth_m
             valid = np.isfinite(depth) & (depth > 0)
+            uncertainty = np.where(valid, pred.uncertainty_m, np.nan)
+            # Everything computed before the first message: a stop lands between frames
+            # all but always (in the few writes below it leaves the frame partial).
+            cloud = depth_to_points(depth, pred.intrinsics, item.image, point_stride) \
+                if points else None
             writer.add_metric_image(topic["depth"], stamp, frame_id, depth, log)
-            writer.add_metric_image(topic["uncertainty"], stamp, frame_id,
-                                    np.where(valid, pred.uncertainty_m, np.nan), log)
+            writer.add_metric_image(topic["uncertainty"], stamp, frame_id, uncertainty, log)
             writer.add_camera_info(topic["camera_info"], stamp, frame_id, pred.intrinsics, log)
-            if points:
-                xyz, rgb = depth_to_points(depth, pred.intrinsics, item.image, point_stride)
-                writer.add_point_cloud(topic["points"], stamp, frame_id, xyz, rgb, log)
+            if cloud is not None:
+                writer.add_point_cloud(topic["points"], stamp, frame_id, *cloud, log)
             frames += 1
             if on_item is not None:
                 on_item(item)
+    except KeyboardInterrupt:
+        # A stop (Ctrl+C, SIGTERM) keeps the frames replayed so far, as a stopped
+        # `record --bag` does: a long replay is not lost to the key that ends it.
+        if writer.close(keep=frames > 0) is not None:
+            warnings.warn(f"stopped: the bag {out_bag} keeps the {frames} frames replayed "
+                          "before the stop", stacklevel=2)
+        raise
+    except BaseException:
+        writer.close(keep=False)  # an error: no bag that looks finished
+        raise
+    writer.close()
     return Path(out_bag), frames
