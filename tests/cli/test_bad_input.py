@@ -554,6 +554,14 @@ def test_evaluate_json_never_replaces_a_frame_or_the_index(tmp_path, zju_set):
             f"error: --json {target} is the input {target}; an output never replaces an input "
             "(whatever --overwrite says): choose another path")
     assert frame.read_bytes() == content
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_bytes(b"weights")
+    for option in ("--checkpoint", "--official"):
+        result = _run(["evaluate", "--data", zju_set, option, checkpoint, "--json",
+                       checkpoint, "--overwrite"])
+        assert result.exit_code == 1
+        _one_error_line(result, f"--json {checkpoint} is the input {checkpoint}")
+    assert checkpoint.read_bytes() == b"weights"
 
 
 def test_export_never_replaces_its_checkpoint_and_wall_test_stays_outside(tmp_path,
@@ -578,6 +586,14 @@ def test_export_never_replaces_its_checkpoint_and_wall_test_stays_outside(tmp_pa
     assert _one_error_line(result) == (f"error: --out {recording / 'wall'} is inside the input "
                                        f"{recording}; choose a path outside it")
     assert MODEL_BUILT not in result.output and not (recording / "wall").exists()
+    kept = tmp_path / "wall" / "wall_test.json"  # a checkpoint under an output's name
+    kept.parent.mkdir()
+    kept.write_bytes(b"weights")
+    result = _run(["wall-test", recording, "--out", kept.parent, "--checkpoint", kept,
+                   "--overwrite"])
+    assert result.exit_code == 1
+    _one_error_line(result, f"--out {kept} is the input {kept}")
+    assert kept.read_bytes() == b"weights"
 
 
 def test_replay_of_an_empty_recording_is_an_error(recording, tmp_path):

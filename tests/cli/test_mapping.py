@@ -96,6 +96,31 @@ def test_a_tum_trajectory_gives_the_poses(wall_recording, tmp_path):
     np.testing.assert_allclose(trajectory[:, 1], 1.5 * trajectory[:, 0], atol=1e-6)
 
 
+def test_no_output_replaces_an_input_file_in_the_output_folder(wall_recording, tmp_path):
+    """A --trajectory, --calib or checkpoint kept in --out under an output's name is
+    refused before any work, whatever --overwrite says."""
+    shutil.rmtree(wall_recording / "pose")
+    out = tmp_path / "map"
+    out.mkdir()
+    times = 0.05 * np.arange(-1, 8)
+    trajectory = write_tum_trajectory(out / "trajectory.txt", times,
+                                      np.stack([pose_at(1.5 * t) for t in times]))
+    content = trajectory.read_bytes()
+    _error(_run(wall_recording, "--out", out, "--method", "recorded", "--trajectory",
+                trajectory, "--overwrite"),
+           f"--out {trajectory} is the input {trajectory}", "whatever --overwrite says")
+    calibration = out / "map.json"
+    calibration.write_text("{}")
+    _error(_run(wall_recording, "--out", out, "--calib", calibration, "--overwrite"),
+           f"--out {calibration} is the input {calibration}")
+    checkpoint = out / "mesh.ply"
+    checkpoint.write_bytes(b"weights")
+    _error(_run(wall_recording, "--out", out, "--checkpoint", checkpoint, "--overwrite"),
+           f"--out {checkpoint} is the input {checkpoint}")
+    assert trajectory.read_bytes() == content and calibration.read_text() == "{}"
+    assert checkpoint.read_bytes() == b"weights"
+
+
 def test_odometry_without_poses_writes_the_map_and_reports_its_error(wall_recording,
                                                                      tmp_path):
     result = _run(wall_recording, "--out", tmp_path / "map", "--method", "recorded",

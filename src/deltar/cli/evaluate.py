@@ -129,7 +129,8 @@ def evaluate(
     if len(dataset) == 0:
         raise typer.BadParameter(f"split {split!r} of {data} lists no frames",
                                  param_hint="--data")
-    inputs = _set_files(dataset, data)
+    # The set's files and the model files: no output replaces either.
+    inputs = [*_set_files(dataset, data), *map(Path, checkpoint), official]
     if json_out is not None:
         refuse_input_as_output(json_out, inputs, "--json")
         output_file(json_out, "--json", overwrite)
@@ -215,6 +216,8 @@ def wall_test_command(
     for folder in recordings:
         Recording(folder)  # a missing or corrupt recording fails before the model
     refuse_input_as_output(out, [*recordings, calib], "--out", folder=True)
+    for path in result_paths(out).values():
+        refuse_input_as_output(path, [calib, *model.input_files()], "--out")
     output_folder(out, "--out")
     if not overwrite:  # before the model and the frames, not after them
         existing_outputs(result_paths(out).values())

@@ -31,14 +31,22 @@ def _settings(voxel: float, truncation: float, max_depth: float, max_memory: flo
         raise typer.BadParameter(str(err), param_hint=hint) from err
 
 
-def _check_out(out: Path, recording: Path, overwrite: bool) -> None:
+#: The files ``deltar map`` writes into its ``--out`` folder (map.json last).
+MAP_OUTPUTS = ("mesh.ply", "points.ply", "trajectory.txt", "map.json")
+
+
+def _check_out(out: Path, recording: Path, inputs: list[Path | None], overwrite: bool) -> None:
+    """Refuse an ``--out`` inside the recording, or one whose outputs would replace an input
+    file (``inputs``: --calib, --trajectory, the model's files), whatever --overwrite."""
     from deltar.cli.checks import existing_outputs, output_folder
     from deltar.io.input_file import refuse_input_as_output
 
     refuse_input_as_output(out, [recording], "--out", folder=True)
+    for name in MAP_OUTPUTS:
+        refuse_input_as_output(out / name, inputs, "--out")
     output_folder(out, "--out")
     if not overwrite:
-        outputs = [out / name for name in ("mesh.ply", "points.ply", "trajectory.txt")]
+        outputs = [out / name for name in MAP_OUTPUTS[:-1]]
         if not (out / "map.json").exists() and any(p.exists() for p in outputs):
             # map.json is written last: without it the map was stopped while being written.
             held = ", ".join(p.name for p in outputs if p.exists())
@@ -140,7 +148,7 @@ def map_command(
     model = dataclasses.replace(model, network_only=not blend)
     model.check()
     require_open3d()
-    _check_out(out, recording, overwrite)
+    _check_out(out, recording, [calib, trajectory, *model.input_files()], overwrite)
     check_viewer(rerun, rerun_save)
     calibration = None
     if calib is not None:

@@ -100,6 +100,14 @@ class ModelOptions:
                 return value, kind
         return None, None
 
+    def input_files(self) -> list[Path]:
+        """The model files given (``--checkpoint``, ``--official``, ``--onnx`` and an ONNX
+        file's external weights): inputs no output may replace."""
+        files = [path for path in (self.checkpoint, self.official, self.onnx) if path]
+        if self.onnx is not None:
+            files.append(Path(f"{self.onnx}.data"))
+        return files
+
     def check(self) -> None:
         """Usage checks that need no model (run before any work).
 
