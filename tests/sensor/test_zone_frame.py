@@ -149,6 +149,9 @@ def test_histogram_fields_validated():
         ZoneFrame(**kwargs, hist_edges_m=edges, hist_counts=np.zeros((4, 4, 99)))
     with pytest.raises(ValueError, match="hist_edges_m"):
         ZoneFrame(**kwargs, hist_edges_m=edges[::-1], hist_counts=np.zeros((4, 4, 100)))
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="hist_edges_m must be 1-D, finite"):
+            ZoneFrame(**kwargs, hist_edges_m=[0.0, bad, 2.0], hist_counts=np.ones((4, 4, 2)))
     with pytest.raises(ValueError, match="hist_counts"):
         ZoneFrame(**kwargs, hist_edges_m=edges, hist_counts=-np.ones((4, 4, 100)))
     with pytest.raises(ValueError, match="timestamp_s"):
@@ -249,3 +252,19 @@ def test_driver_lists_of_different_lengths_are_refused():
     with pytest.raises(ValueError, match=r"must have the same length \(one entry per zone and "
                        r"target\), got \[16, 64, 64\]$"):
         ZoneFrame.from_driver([1500] * 16, [20] * 64, [5] * 64)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"distance_mm": None}, "distance_mm is required"),
+    ({"valid_status": [300]}, "valid_status must hold integer codes in 0..255, got 300"),
+    ({"valid_status": None}, "valid_status must be a list of numbers, got NoneType"),
+    ({"valid_status": "5"}, "valid_status must be a list of numbers, got str"),
+    ({"orientation": "rot90"}, "orientation must be an Orientation"),
+], ids=["no-distances", "status-300", "status-none", "status-string", "orientation-string"])
+def test_driver_arguments_that_are_not_what_the_driver_gives_are_named(changes, message):
+    arguments = {"distance_mm": [1500] * 64, "range_sigma_mm": [20] * 64,
+                 "target_status": [5] * 64, **changes}
+    with pytest.raises(ValueError) as caught:
+        ZoneFrame.from_driver(arguments.pop("distance_mm"), arguments.pop("range_sigma_mm"),
+                              arguments.pop("target_status"), **arguments)
+    assert message in str(caught.value)

@@ -223,8 +223,11 @@ class ZoneFrame:
             self.hist_counts = np.asarray(self.hist_counts, dtype=np.float32)
             self.hist_edges_m = np.asarray(self.hist_edges_m, dtype=np.float32)
             bins = self.hist_edges_m.size - 1
-            if self.hist_edges_m.ndim != 1 or bins < 1 or np.any(np.diff(self.hist_edges_m) <= 0):
-                raise ValueError("ZoneFrame.hist_edges_m must be 1-D and strictly increasing")
+            if self.hist_edges_m.ndim != 1 or bins < 1 or \
+                    not np.all(np.isfinite(self.hist_edges_m)) or \
+                    not np.all(np.diff(self.hist_edges_m) > 0):  # NaN compares False
+                raise ValueError("ZoneFrame.hist_edges_m must be 1-D, finite and strictly "
+                                 "increasing (metres)")
             if self.hist_counts.shape != (n, n, bins):
                 raise ValueError(f"ZoneFrame.hist_counts must have shape ({n}, {n}, {bins}), "
                                  f"got {self.hist_counts.shape}")

@@ -193,16 +193,24 @@ def driver_readings(
         ``target_order``.
 
     Raises:
-        ValueError: lengths that do not fit ``grid`` and ``targets_per_zone``, codes
-            that are not integers in 0..255, an unknown ``target_order``, distances that
-            are metres (every valid one below :data:`MILLIMETRE_FLOOR_M`), naming the
-            argument.
+        ValueError: a required list missing, lengths that do not fit ``grid`` and
+            ``targets_per_zone``, codes (also ``valid_status``) that are not integers in
+            0..255, an ``orientation`` that is not one, an unknown ``target_order``,
+            distances that are metres (every valid one below :data:`MILLIMETRE_FLOOR_M`),
+            naming the argument.
     """
     arrays = {}
     for name, values in (("distance_mm", distance_mm), ("range_sigma_mm", range_sigma_mm),
                          ("target_status", target_status), ("signal_per_spad", signal_per_spad)):
+        if values is None and name != "signal_per_spad":
+            raise ValueError(f"{name} is required: the driver's list of one entry per zone "
+                             "and target")
         if values is not None:
             arrays[name] = number_array(values, name)
+    valid_codes = status_codes(number_array(valid_status, "valid_status"), "valid_status")
+    if orientation is not None and not callable(getattr(orientation, "apply", None)):
+        raise ValueError(f"orientation must be an Orientation (e.g. Orientation(flip_ud="
+                         f"True)) or None, got {orientation!r}")
     sizes = [arr.size for arr in arrays.values()]
     if len(set(sizes)) > 1:
         *first, last = arrays
@@ -270,7 +278,7 @@ def driver_readings(
         # Zone-major: target t of zone z at z * per_zone + t.
         arrays[name] = arr[: zones * per_zone].reshape(zones, per_zone)
     status = status_codes(arrays["target_status"], "target_status")
-    valid = np.isin(status, np.asarray(valid_status, dtype=np.uint8))
+    valid = np.isin(status, valid_codes)
     valid &= status != NO_TARGET_STATUS
     if detected is not None:
         valid &= np.arange(per_zone)[None, :] < detected[:, None]
