@@ -318,3 +318,25 @@ def test_a_calibration_with_lens_distortion_runs_on_undistorted_frames(wall_reco
     vertices = np.asarray(_read_mesh(tmp_path / "map" / "mesh.ply").vertices)
     # A smoke test: undistorting a pinhole render bends the wall a little, not far.
     assert np.median(vertices[:, 2]) == pytest.approx(WALL_Z_M, abs=0.1)
+
+
+def test_a_calibration_of_another_grid_and_depth_of_another_size_are_refused_first(
+        wall_recording, tmp_path):
+    """Both named, before the poses line and the model: --calib for a 4x4 grid on an 8x8
+    recording; a recorded depth image of another size than its colour image."""
+    import cv2
+
+    from deltar.calibration.rig import RigCalibration
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    RigCalibration(intrinsics=SMALL, extrinsics=SensorExtrinsics(), grid=4).save(
+        tmp_path / "calib4.json")
+    _error(_run(wall_recording, "--out", tmp_path / "m", "--calib", tmp_path / "calib4.json"),
+           "--calib is for a 4x4 zone grid", f"the recording {wall_recording} has 8x8")
+    depth_file = sorted((wall_recording / "depth").iterdir())[0]
+    depth = cv2.imread(str(depth_file), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(depth_file), cv2.resize(depth, None, fx=0.5, fy=0.5,
+                                            interpolation=cv2.INTER_NEAREST))
+    line = _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded"),
+                  str(depth_file), "must be registered to the colour camera")
+    assert "poses:" not in line

@@ -180,6 +180,8 @@ def map_command(
             "depth/ images"
         raise typer.BadParameter(f"{recording} has no recorded depth: --method recorded "
                                  f"needs {where}", param_hint="--method")
+    if method == RECORDED:
+        source.check_recorded_depth_size()
     if missing:
         raise typer.BadParameter(f"{missing} of {len(source)} frames of {recording} have no "
                                  f"recorded depth within --tolerance {tolerance:g} s of their "

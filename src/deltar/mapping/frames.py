@@ -108,6 +108,7 @@ class FrameSource:
         calib = calibration or recording_calibration(rec)
         calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
                                f"the recording {self.path}", "--calib")
+        _check_grid(calibration, rec.meta.grid, f"the recording {self.path}")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped pairs are counted by the caller
             pairs = rec.pairs(tolerance_s=tolerance_s)
@@ -123,6 +124,8 @@ class FrameSource:
         bag = BagInput(self.path, **options)
         self.bag = bag
         pairs = bag.pairs(tolerance_s=tolerance_s)
+        for pair in pairs[:1]:  # one zone topic: one grid
+            _check_grid(calibration, pair.zone_frame.grid, f"the bag {self.path}")
         self.frames = [MapFrame(str(p.image_stamp_ns), p.image_stamp_ns / 1e9, None,
                                 p.zone_frame, pair_calibration(p, calibration),
                                 camera_frame_id=p.frame_id or None) for p in pairs]
@@ -137,6 +140,26 @@ class FrameSource:
         if self.kind == "bag":
             return sum(i is None for i in self._depth_indices)
         return sum(pair.depth_path is None for pair in self._pairs)
+
+    def check_recorded_depth_size(self) -> None:
+        """Refuse a recording whose recorded depth (what ``--method recorded`` maps) is not
+        the size of its colour images, naming the first depth file: read from the first
+        frame with depth, a cheap check before the long part (a bag's reader refuses such
+        depth itself, naming the topic).
+
+        Raises:
+            ValueError: the depth is not registered to the colour image pixel for pixel.
+        """
+        if self.kind == "bag":
+            return
+        for frame, pair in zip(self.frames, self._pairs, strict=True):
+            if pair.depth_path is not None:
+                frame.image, frame.recorded_depth_m = pair.load_images()
+                try:
+                    check_depth_size(frame, pair.depth_path)
+                finally:
+                    frame.image, frame.recorded_depth_m = None, None
+                return
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -277,6 +300,7 @@ class DepthSource:
             if frame.recorded_depth_m is None:
                 raise ValueError(f"frame {frame.name} has no recorded depth (--method "
                                  "recorded needs a depth image for every frame)")
+            check_depth_size(frame, f"frame {frame.name}")
             # Undistorted like the colour image, by nearest pixels: interpolating would
             # make depths no surface has at edges and beside invalid pixels.
             depth = frame.calibration.undistort_image(frame.recorded_depth_m, nearest=True)
@@ -305,6 +329,23 @@ class DepthSource:
         return prediction.depth_m, weight
 
 
+def _check_grid(calibration: RigCalibration | None, grid: int, what: str) -> None:
+    """``ValueError`` naming --calib when the rig calibration is for another zone grid."""
+    if calibration is not None and calibration.grid != grid:
+        raise ValueError(f"--calib is for a {calibration.grid}x{calibration.grid} zone grid, "
+                         f"{what} has {grid}x{grid}")
+
+
+def check_depth_size(frame: MapFrame, source: Any) -> None:
+    """``ValueError`` naming the recorded depth (file or topic) when it is not the size
+    of its colour image: it must be registered to the camera, pixel for pixel."""
+    depth, image = frame.recorded_depth_m, frame.image
+    if depth is not None and depth.shape[:2] != image.shape[:2]:
+        raise ValueError(f"{source}: the recorded depth is {depth.shape[1]}x{depth.shape[0]} "
+                         f"pixels, its colour image {image.shape[1]}x{image.shape[0]}; depth "
+                         "must be registered to the colour camera, pixel for pixel")
+
+
 def _undistorted_once(frame: MapFrame) -> Iterator[MapFrame]:
     """Yield a loaded ``frame`` with its image and recorded depth undistorted (the latter
     by nearest pixels: interpolating makes depths no surface has) and the undistorted
@@ -312,7 +353,8 @@ def _undistorted_once(frame: MapFrame) -> Iterator[MapFrame]:
     calibration = frame.calibration
     if calibration.has_distortion:
         frame.image = calibration.undistort_image(frame.image)
-        if frame.recorded_depth_m is not None:
+        if frame.recorded_depth_m is not None and \
+                frame.recorded_depth_m.shape[:2] == frame.image.shape[:2]:  # else refused later
             frame.recorded_depth_m = calibration.undistort_image(frame.recorded_depth_m,
                                                                  nearest=True)
         frame.calibration = calibration.undistorted()
