@@ -129,6 +129,13 @@ def test_calibration_from_a_slam_map(tmp_path, rng):
     assert np.linalg.norm(solved.translation_m - truth.translation_m) < 0.01
     assert result.distance_after_m < result.distance_before_m
     assert not result.skipped
+    # A trajectory that covers no frame: the error says why every frame was skipped.
+    late = read_tum_trajectory(tmp_path / "traj.txt")
+    late = Trajectory(late.times_s + 1e6, late.poses)
+    with pytest.raises(ValueError, match=r"usable plane frames.* frames were skipped; the "
+                       r"first: frame t=0\.000s: no camera pose near this time\)$"):
+        calibrate_recording(Recording(tmp_path / "rec"), nominal_extrinsics(-90.0),
+                            trajectory=late, slam_points_world=read_ply_points(cloud_path))
 
 
 def test_slam_needs_both_files(tmp_path):

@@ -244,9 +244,18 @@ def calibrate_recording(
     if skipped:
         warnings.warn(f"{len(skipped)} of {len(items)} frames had no usable plane; first: "
                       f"{skipped[0][1]}", stacklevel=2)
-    result = calibrate_observations(observations, nominal, meta.intrinsics, grid=meta.grid,
-                                    fov_deg=fov, sensor_model=meta.sensor_model,
-                                    skipped=skipped)
+    try:
+        result = calibrate_observations(observations, nominal, meta.intrinsics,
+                                        grid=meta.grid, fov_deg=fov,
+                                        sensor_model=meta.sensor_model, skipped=skipped)
+    except ValueError as err:
+        if not skipped:
+            raise
+        # Too few planes: why the others were skipped is what the user needs to know.
+        name, reason = skipped[0]
+        first = reason if str(name) in reason else f"{name}: {reason}"
+        raise ValueError(f"{err} ({len(skipped)} of {len(items)} frames were skipped; the "
+                         f"first: {first})") from err
     result.unpaired = unpaired
     if time_offset_s:
         result.calibration = replace(result.calibration, time_offset_s=float(time_offset_s))
