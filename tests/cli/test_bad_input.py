@@ -873,3 +873,21 @@ def test_a_bag_that_is_not_one_fails_before_the_model(tmp_path):
     assert result.exit_code == 1
     _one_error_line(result, f"{tmp_path / 'notes.txt'}: not a readable ROS 2 bag")
     assert MODEL_BUILT not in result.output and not (tmp_path / "b").exists()
+
+
+def test_export_warns_when_the_layouts_camera_has_another_aspect(tmp_path):
+    from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    calib = tmp_path / "calib.json"
+    RigCalibration(intrinsics=CameraIntrinsics(500.0, 500.0, 319.5, 239.5, 640, 480),
+                   extrinsics=SensorExtrinsics(), grid=8).save(calib)
+    result = _run(["export", "--preset", "deltar-lite", "--out", tmp_path / "m.onnx",
+                   "--size", "96x160", "--layout-from", calib])
+    assert result.exit_code == 0, result.output
+    warning = [line for line in result.stderr.splitlines() if "--layout-from" in line]
+    assert warning == [f"warning: --layout-from {calib} is for 480x640 images, whose aspect "
+                       "differs from --size 96x160: the zone layout is stretched with the "
+                       "images; export at the camera's aspect (e.g. --size 96x128) unless "
+                       "stretching is meant"]

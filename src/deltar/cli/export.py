@@ -28,6 +28,14 @@ def _layout_rects(source: Path, height: int, width: int):
     except (ValueError, FileNotFoundError) as err:
         raise ValueError(f"--layout-from: {err}") from err
     intr = calibration.intrinsics
+    if abs(intr.width / intr.height - width / height) > 0.01 * width / height:
+        from deltar.cli.errors import warn
+
+        warn(f"--layout-from {source} is for {intr.height}x{intr.width} images, whose aspect "
+             f"differs from --size {height}x{width}: the zone layout is stretched with the "
+             "images; export at the camera's aspect (e.g. --size "
+             f"{height}x{round(height * intr.width / intr.height / 32) * 32}) unless "
+             "stretching is meant")
     # Zones placed at 2 m; with parallax, other distances may need their own export.
     rects = calibration.zone_rects_for(2.0, (intr.height, intr.width))
     return scale_rects(rects, (intr.height, intr.width), (height, width))
