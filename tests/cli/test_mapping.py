@@ -340,3 +340,26 @@ def test_a_calibration_of_another_grid_and_depth_of_another_size_are_refused_fir
     line = _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded"),
                   str(depth_file), "must be registered to the colour camera")
     assert "poses:" not in line
+
+
+def test_poses_far_beyond_the_volume_are_refused_and_millimetres_warned(wall_recording,
+                                                                      tmp_path):
+    """Block indices would wrap for positions 1e12 m away (a garbage map); a trajectory in
+    millimetres moves the camera at 1500 m/s, which is warned of."""
+    shutil.rmtree(wall_recording / "pose")
+    times = 0.05 * np.arange(-1, 8)
+    poses = np.stack([pose_at(1.5 * t) for t in times])
+    poses[::2, 0, 3] = 1e12
+    far = write_tum_trajectory(tmp_path / "far.txt", times, poses)
+    _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded",
+                "--trajectory", far, *COARSE),
+           f"{far} (TUM trajectory): camera positions lie up to 6.67e+11 m from the world "
+           "origin", "are the poses in metres?")  # 2/3 of 1e12 m, interpolated
+    poses = np.stack([pose_at(1.5 * t) for t in times])
+    poses[:, :3, 3] *= 1000
+    millimetres = write_tum_trajectory(tmp_path / "mm.txt", times, poses)
+    with pytest.warns(UserWarning, match=r"the camera moves 1\.5e\+03 m/s between frames "
+                      r"\(median\); are the poses' translations in metres"):
+        result = _run(wall_recording, "--out", tmp_path / "mm", "--method", "recorded",
+                      "--trajectory", millimetres, *COARSE)
+    assert result.exit_code == 0, result.output

@@ -48,6 +48,9 @@ from deltar.mapping.tsdf import (
 
 #: Frames sampled evenly for the odometry motion check.
 _MOTION_SAMPLES = 24
+#: A camera faster than this (median over the frames, metres a second) is warned of:
+#: poses in millimetres, or a time base that is off, look like this.
+IMPLAUSIBLE_SPEED_M_S = 20.0
 
 
 @dataclass
@@ -167,6 +170,8 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
             poses, description = all_poses[covered], where
     if poses is None:
         check_motion(_sample_images(source, frames), str(source.path))
+    else:
+        _check_positions(poses[:, :3, 3], [f.time_s for f in frames], settings, description)
     intrinsics = frames[0].calibration.intrinsics
     per_frame = _frame_blocks_bound(settings, intrinsics)
     positions = None if poses is None else poses[:, :3, 3]
@@ -187,6 +192,30 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
             "--max-memory, use a coarser --voxel or a smaller --max-depth")
     capacity = min(INITIAL_BLOCKS, estimated, settings.max_blocks)
     return MapPlan(frames, poses, description, reference, capacity, estimated, skipped)
+
+
+def _check_positions(positions: np.ndarray, times_s: list[float], settings: MapSettings,
+                     where: str) -> None:
+    """Refuse camera positions (N, 3) metres beyond what the volume's block indices
+    address (they would wrap, and the map be garbage); warn of a camera implausibly fast
+    for a map (median speed between frames in ``times_s`` seconds)."""
+    import warnings
+
+    reach = 2.0**30 * settings.block_size_m  # int32 block indices, with a margin of 2
+    farthest = float(np.abs(positions).max()) + settings.max_depth_m
+    if farthest > reach:
+        raise ValueError(f"{where}: camera positions lie up to {farthest:.3g} m from the world "
+                         f"origin; the volume addresses {reach:.3g} m at voxel "
+                         f"{settings.voxel_size_m * 100:g} cm: are the poses in metres?")
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    gaps = np.diff(np.asarray(times_s, dtype=np.float64))
+    moving = gaps > 0
+    if moving.any():
+        speed = float(np.median(steps[moving] / gaps[moving]))
+        if speed > IMPLAUSIBLE_SPEED_M_S:
+            warnings.warn(f"{where}: the camera moves {speed:.3g} m/s between frames "
+                          "(median); are the poses' translations in metres and their "
+                          "times in seconds?", stacklevel=3)
 
 
 def _frame_blocks_bound(settings: MapSettings, intrinsics) -> int:
