@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -104,6 +105,35 @@ def test_a_failing_frame_leaves_no_partial_set(tmp_path, rng):
     assert not (tmp_path / "new").exists()  # the folders it made are gone too
     write_zju_l5(tmp_path, [_sample(rng, "scene/0001")])  # a re-run starts over
     assert (tmp_path / "data.json").is_file()
+
+
+@pytest.mark.parametrize("stopped_after", ["scene/0002.h5", "data.json"])
+def test_a_stop_right_after_a_files_rename_leaves_no_partial_set(tmp_path, rng, monkeypatch,
+                                                                 stopped_after):
+    """Ctrl+C landing just after a frame file or data.json is renamed into place (before
+    the writer could note it) still removes every file the call made; a frame file that
+    was there before is never removed."""
+    import deltar.data.zju_l5 as zju_l5
+
+    def stopped(write):
+        def after_the_rename(path, *args, **kwargs):
+            written = write(path, *args, **kwargs)
+            if Path(path).as_posix().endswith(stopped_after):
+                raise KeyboardInterrupt
+            return written
+        return after_the_rename
+
+    monkeypatch.setattr(zju_l5, "write_bytes_atomic", stopped(zju_l5.write_bytes_atomic))
+    monkeypatch.setattr(zju_l5, "write_text_atomic", stopped(zju_l5.write_text_atomic))
+    with pytest.raises(KeyboardInterrupt):
+        write_zju_l5(tmp_path / "set", [_sample(rng, "scene/0001"), _sample(rng, "scene/0002")])
+    assert not (tmp_path / "set").exists()
+    theirs = tmp_path / "other" / "scene" / "0001.h5"
+    theirs.parent.mkdir(parents=True)
+    theirs.write_bytes(b"not this call's")
+    with pytest.raises(FileExistsError, match=r"0001\.h5"):
+        write_zju_l5(tmp_path / "other", [_sample(rng, "scene/0001")])
+    assert theirs.read_bytes() == b"not this call's"
 
 
 def test_writer_rejects_duplicate_and_unsafe_names(tmp_path, rng):

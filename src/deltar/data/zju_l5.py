@@ -342,6 +342,10 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
     try:
         _write_frames(out, samples, filenames, made)
         text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
+        if index_path.exists():  # appeared meanwhile: not this call's to remove
+            raise FileExistsError(f"refusing to overwrite existing ZJU-L5 set: {index_path}")
+        # Listed before it is written: a stop right after its rename removes it too.
+        made.append(index_path)
         return write_text_atomic(index_path, text + "\n", overwrite=False)
     except BaseException:
         for path in reversed(made):
@@ -385,6 +389,9 @@ def _write_frames(out: Path, samples: Iterable[ZJUL5Sample], filenames: list[str
                     f.attrs[key] = float(getattr(sample.intrinsics, key))
         made.extend(reversed([d for d in (target.parent, *target.parent.parents)
                               if not d.exists()]))
-        write_bytes_atomic(target, buffer.getvalue(), overwrite=False)
+        if target.exists():  # never listed for removal: it is not this call's
+            raise FileExistsError(f"refusing to overwrite existing file: {target}")
+        # Listed before it is written: a stop right after its rename removes it too.
         made.append(target)
+        write_bytes_atomic(target, buffer.getvalue(), overwrite=False)
         filenames.append(rel)
