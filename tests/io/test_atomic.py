@@ -62,3 +62,20 @@ def test_a_write_whose_clean_up_was_skipped_leaves_no_temporary_at_exit(tmp_path
     finished = write_text_atomic(tmp_path / "kept.txt", "whole")
     remove_unfinished_temporaries()  # finished outputs are not its business
     assert [p.name for p in tmp_path.iterdir()] == [finished.name]
+
+
+def test_a_staging_folder_is_removed_whatever_ends_it(tmp_path):
+    """Left by success, by an exception, or (its clean-up skipped) at exit."""
+    from deltar.io.atomic import remove_unfinished_temporaries, staging_folder
+
+    with staging_folder(tmp_path / "out_bag") as staging:
+        (staging / "out_bag").mkdir()
+        (staging / "out_bag" / "data.db3").write_bytes(b"rows")
+        (staging / "out_bag").rename(tmp_path / "out_bag")
+    with pytest.raises(KeyboardInterrupt), staging_folder(tmp_path / "other") as staging:
+        (staging / "half.db3").write_bytes(b"half")
+        raise KeyboardInterrupt
+    unfinished = staging_folder(tmp_path / "third")
+    (unfinished.__enter__() / "half.db3").write_bytes(b"half")  # never exited
+    remove_unfinished_temporaries()
+    assert [p.name for p in tmp_path.iterdir()] == ["out_bag"]

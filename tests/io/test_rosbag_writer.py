@@ -210,3 +210,31 @@ def test_a_stopped_replay_keeps_the_frames_written_and_an_error_keeps_none(tmp_p
     with pytest.raises(KeyboardInterrupt):
         replay_bag_to_bag(BagInput(source), estimator, tmp_path / "at-once")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_bag", "stopped"]
+
+
+def test_a_bag_stopped_while_opening_or_before_its_first_message_leaves_nothing(
+        tmp_path, monkeypatch):
+    """A stop between the staging folder's creation and the writer's opening leaves no
+    hidden folder; a recording bag closed without a message is not kept (an empty bag
+    only blocks the next recording to that path)."""
+    from rosbags.rosbag2 import Writer
+
+    from deltar.camera import CameraIntrinsics
+    from deltar.io.recording import RecordingMeta
+    from deltar.io.rosbag_writer import BagRecordingWriter
+
+    def stopped(self):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Writer, "open", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            BagWriter(tmp_path / "bag")
+    assert list(tmp_path.iterdir()) == []
+    meta = RecordingMeta(CameraIntrinsics(50.0, 50.0, 15.5, 11.5, 32, 24), grid=4)
+    BagRecordingWriter(tmp_path / "rec_bag", meta).close()
+    assert list(tmp_path.iterdir()) == []
+    writer = BagRecordingWriter(tmp_path / "rec_bag", meta)
+    writer.add_color(0.0, np.zeros((24, 32, 3), np.uint8))
+    writer.close()
+    assert [p.name for p in tmp_path.iterdir()] == ["rec_bag"]

@@ -7,6 +7,7 @@ import contextlib
 import errno
 import os
 import secrets
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,12 +22,42 @@ _UNFINISHED: set[Path] = set()
 
 @atexit.register
 def remove_unfinished_temporaries() -> None:
-    """Remove the temporaries of writes that never finished (an exception skipped their
-    own clean-up); run at interpreter exit, callable earlier."""
+    """Remove the temporaries (files, or staging folders with what they hold) of writes
+    that never finished (an exception skipped their own clean-up); run at interpreter
+    exit, callable earlier."""
     for tmp in list(_UNFINISHED):
         with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp)
+            else:
+                tmp.unlink(missing_ok=True)
         _UNFINISHED.discard(tmp)
+
+
+def hidden_sibling(path: str | os.PathLike, suffix: str) -> Path:
+    """A new, unused hidden name beside ``path``: ``.<name>.<random><suffix>``."""
+    final = Path(path)
+    return final.parent / f".{final.name}.{secrets.token_hex(6)}{suffix}"
+
+
+@contextlib.contextmanager
+def staging_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Create a hidden staging folder beside ``path`` for a writer that builds a folder
+    (a bag) and renames it into place; registered before it exists, so a stop at any
+    moment leaves none behind (:func:`remove_unfinished_temporaries`).
+
+    Yields:
+        The new, empty folder. The caller renames its result out of it; when the block
+        ends, by success or exception, the folder and whatever is still in it are removed.
+    """
+    staging = hidden_sibling(path, ".partial")
+    _UNFINISHED.add(staging)
+    try:
+        staging.mkdir(parents=True)
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        _UNFINISHED.discard(staging)
 
 
 @contextlib.contextmanager
@@ -48,7 +79,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     final.parent.mkdir(parents=True, exist_ok=True)
     # Named here and registered before it exists, so no stop can leave it unregistered;
     # created exclusively with the permissions of a normal file (0666 less the umask).
-    tmp = final.parent / f".{final.name}.{secrets.token_hex(6)}.tmp{final.suffix}"
+    tmp = hidden_sibling(final, f".tmp{final.suffix}")
     _UNFINISHED.add(tmp)
     try:
         try:

@@ -13,15 +13,15 @@ All times are integer nanoseconds (``header.stamp``) unless named ``_s`` (second
 
 from __future__ import annotations
 
+import contextlib
 import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from deltar.camera import CameraIntrinsics, check_image
+from deltar.io.atomic import staging_folder
 from deltar.io.ros_messages import (
     CAMERA_INFO_TYPE,
     MULTI_TARGET_ZONE_FRAME_MSGTYPE,
@@ -71,13 +71,18 @@ class BagWriter:
         self.path = Path(path)
         if self.path.exists():
             raise FileExistsError(f"refusing to write into existing path: {self.path}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._staging = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial",
-                                              dir=self.path.parent))
-        plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
-        self._writer = Writer(self._staging / self.path.name, version=8,
-                              storage_plugin=plugin)
-        self._writer.open()
+        # The staging folder is registered before it exists: a stop at any moment, even
+        # here before the writer opens, leaves no hidden folder (deltar.io.atomic).
+        self._staged = contextlib.ExitStack()
+        try:
+            self._staging = self._staged.enter_context(staging_folder(self.path))
+            plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+            self._writer = Writer(self._staging / self.path.name, version=8,
+                                  storage_plugin=plugin)
+            self._writer.open()
+        except BaseException:
+            self._staged.close()
+            raise
         self._connections: dict[str, Any] = {}
         self.messages = 0
         self._closed = False
@@ -97,8 +102,8 @@ class BagWriter:
         if self._closed:
             return self.path if keep else None
         self._closed = True
-        self._writer.close()
-        try:
+        with self._staged:  # the staging folder goes, whatever happens
+            self._writer.close()
             if keep:
                 if self.path.exists():
                     raise FileExistsError(f"refusing to replace {self.path}, which appeared "
@@ -106,8 +111,6 @@ class BagWriter:
                 os.rename(self._staging / self.path.name, self.path)
                 return self.path
             return None
-        finally:
-            shutil.rmtree(self._staging, ignore_errors=True)
 
     def _write(self, topic: str, msgtype: str, msg: Any, log_ns: int) -> None:
         store = typestore()
@@ -339,5 +342,7 @@ class BagRecordingWriter:
                              RECORD_FRAME_IDS["world"], pose)
 
     def close(self) -> None:
-        """Finish the bag and move it to its path."""
-        self.writer.close()
+        """Finish the bag and move it to its path; a bag without a message (stopped before
+        the first capture was written) is not kept: it would only block a new recording
+        to the same path."""
+        self.writer.close(keep=self.writer.messages > 0)
