@@ -81,3 +81,20 @@ def test_check_image_returns_a_contiguous_image():
     checked = check_image(image, size=(4, 5))
     assert checked.flags.c_contiguous and checked.shape == (4, 5, 3)
     assert check_image(checked) is checked
+
+
+def test_undistorted_coverage_is_what_undistortion_leaves_with_a_source():
+    import cv2
+
+    from deltar.camera import undistorted_coverage
+
+    camera = CameraIntrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)
+    assert undistorted_coverage(camera, ()) == 1.0
+    assert undistorted_coverage(camera, (-0.3, 0.1, 0.0, 0.0, 0.0)) == 1.0  # barrel
+    for distortion in ((0.2, 0.0, 0.0, 0.0), (0.0, 0.0, 0.05, -0.03), (1e6,) * 5):
+        matrix = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+        map_x, map_y = cv2.initUndistortRectifyMap(matrix, np.array(distortion), None, matrix,
+                                                   (640, 480), cv2.CV_32FC1)
+        inside = (map_x >= -0.5) & (map_x <= 639.5) & (map_y >= -0.5) & (map_y <= 479.5)
+        assert undistorted_coverage(camera, distortion) == pytest.approx(inside.mean(),
+                                                                          abs=0.02)

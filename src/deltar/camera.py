@@ -255,3 +255,34 @@ def distortion_fold_error(intrinsics: CameraIntrinsics,
     return (f"lens distortion ({terms}) turns back at {100 * reach / corner:.0f} % of the "
             "way from the principal point to the image corners, so it cannot map the "
             "whole image: undistorting folds or leaves out the outer part")
+
+
+def undistorted_coverage(intrinsics: CameraIntrinsics, distortion: tuple[float, ...],
+                         samples: int = 48) -> float:
+    """The fraction of the undistorted image (same intrinsics) whose pixels have a source
+    pixel in the camera's image; the rest is black after undistortion. 1.0 without
+    distortion; a real lens keeps nearly all of it.
+
+    Args:
+        intrinsics: fx, fy, cx, cy (pixels) and the image size.
+        distortion: OpenCV coefficients (k1, k2, p1, p2[, k3, ...]).
+        samples: grid points a side where it is evaluated.
+    """
+    if not any(distortion):
+        return 1.0
+    import cv2
+
+    width, height = intrinsics.width, intrinsics.height
+    cells = (np.arange(samples) + 0.5) / samples  # each grid point stands for its cell
+    u, v = np.meshgrid(cells * width - 0.5, cells * height - 0.5)
+    rays = np.stack([(u.ravel() - intrinsics.cx) / intrinsics.fx,
+                     (v.ravel() - intrinsics.cy) / intrinsics.fy, np.ones(u.size)], axis=1)
+    matrix = np.array([[intrinsics.fx, 0, intrinsics.cx], [0, intrinsics.fy, intrinsics.cy],
+                       [0, 0, 1]], dtype=np.float64)
+    with np.errstate(all="ignore"):
+        source, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), matrix,
+                                      np.asarray(distortion, dtype=np.float64))
+    x, y = source.reshape(-1, 2).T
+    inside = np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x <= width - 0.5) & \
+        (y >= -0.5) & (y <= height - 0.5)
+    return float(inside.mean())

@@ -133,6 +133,11 @@ def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
     assert old.undistort_image(image) is image
     with pytest.raises(ValueError, match="distortion must be 0, 4, 5"):
         _calib(distortion=(0.1, 0.2, 0.3))
+    # Coefficients no lens has: the undistorted image would be black.
+    with pytest.raises(ValueError, match=r"leaves 100 % of the undistorted image without a "
+                       r"source pixel"):
+        _calib(distortion=(1e6,) * 5)
+    _calib(distortion=(0.2, 0.0, 0.0, 0.0, 0.0))  # a strong real pincushion keeps 84 %
     # A depth map keeps only depths it holds: nearest pixels, no blend across an edge.
     depth = np.where(np.arange(640)[None, :] < 320, 1.0, 3.0).astype(np.float32).repeat(480, 0)
     moved = calib.undistort_image(depth, nearest=True)

@@ -32,6 +32,7 @@ from deltar.camera import (
     distortion_fold_error,
     strict_integer,
     strict_number,
+    undistorted_coverage,
 )
 from deltar.io.atomic import write_text_atomic
 from deltar.io.input_file import reading
@@ -46,6 +47,9 @@ FALLBACK_ZONE_DEPTH_M = 2.0
 #: Largest sensor-to-camera distance of one rig, metres (sensors sit centimetres from
 #: the lens; a metre or more is a unit mistake, e.g. millimetres written as metres).
 MAX_TRANSLATION_M = 1.0
+#: The least fraction of the undistorted image a lens distortion may leave with a source
+#: pixel (real lenses keep nearly all of it; far less means wrong coefficients).
+MIN_UNDISTORTED_COVERAGE = 0.5
 
 
 @dataclass(frozen=True)
@@ -126,6 +130,12 @@ class RigCalibration:
                              f"{self.extrinsics.translation_m.tolist()}); a rig's sensor sits "
                              f"within {MAX_TRANSLATION_M:g} m of it (millimetres written as "
                              "metres?)")
+        coverage = undistorted_coverage(intr, self.distortion)
+        if coverage < MIN_UNDISTORTED_COVERAGE:
+            raise ValueError(f"the lens distortion {list(self.distortion)} leaves "
+                             f"{100 * (1 - coverage):.0f} % of the undistorted image without a "
+                             "source pixel (black): no lens of this camera does that; check "
+                             "the coefficients (OpenCV's order k1, k2, p1, p2, k3)")
         inside = self.zones_inside()
         if not inside.any():
             raise ValueError(f"all {inside.size} zones fall outside the {intr.height}x"
