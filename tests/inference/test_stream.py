@@ -124,13 +124,15 @@ def test_predict_stream_gives_what_predict_gives(source: str, pipelined: bool | 
         assert result.zones_used == alone.zones_used
 
 
-def test_predict_stream_refuses_a_bad_frame_at_its_turn(rng) -> None:
+@pytest.mark.parametrize("pipelined", [True, False])
+def test_predict_stream_refuses_a_bad_frame_at_its_turn_naming_its_place(rng, pipelined
+                                                                        ) -> None:
     estimator = load_estimator("default", kind="onnx")
     pairs = [(random_image(rng, 48, 64), random_frame(rng)) for _ in range(3)]
-    pairs[1] = (pairs[1][0][:, :, 0], pairs[1][1])  # a grey image: not (H, W, 3)
-    stream = estimator.predict_stream(pairs)
+    pairs[1] = (pairs[1][0].astype(np.float32), pairs[1][1])  # not uint8
+    stream = estimator.predict_stream(pairs, pipelined=pipelined)
     assert next(stream).depth_m.shape == (48, 64)
-    with pytest.raises(ValueError, match="image"):
+    with pytest.raises(ValueError, match=r"^pair 1 of the stream: images\[0\] "):
         next(stream)
 
 

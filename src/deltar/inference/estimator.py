@@ -383,14 +383,16 @@ class DepthEstimator:
         refill it in place); a bad frame raises :meth:`predict`'s ``ValueError`` at its
         turn, after the results before it. Yields :class:`DepthPrediction` (metres).
         """
-        from deltar.inference.stream import pipeline_chosen, run_pipelined, stream_pair
+        from deltar.inference.stream import numbered_step, pipeline_chosen, run_pipelined
 
         # The schedule that runs the fill before the network tells where nothing is idle.
         in_turn = not fill_beside_network(self.model is not None) and self.device.type == "cpu"
         if not pipeline_chosen(pipelined, in_turn):
-            return (self.predict(*stream_pair(pair), calibration) for pair in pairs)
-        return run_pipelined(pairs, lambda pair: self._begin_predict(*stream_pair(pair),
-                                                                     calibration),
+            step = numbered_step(lambda image, frame: self.predict(image, frame, calibration))
+            return (step(item) for item in enumerate(pairs))
+        begin = numbered_step(lambda image, frame: self._begin_predict(image, frame,
+                                                                       calibration))
+        return run_pipelined(enumerate(pairs), begin,
                              lambda started: self.run_network(started["inputs"]),
                              lambda started, outputs: self._finish_predict(started, *outputs))
 

@@ -12,6 +12,7 @@ then costs little of the frame rate; where they take every core it competes with
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -115,3 +116,18 @@ def stream_pair(pair: Any) -> tuple[Any, Any]:
         raise ValueError("predict_stream takes one (H, W, 3) image per pair, got "
                          f"{type(pair[0]).__name__} of shape {getattr(pair[0], 'shape', None)}")
     return pair[0], pair[1]
+
+
+def numbered_step(step: Callable[[Any, Any], Result]) -> Callable[[tuple[int, Any]], Result]:
+    """``step(image, frame)`` for an ``(index, pair)`` item of ``enumerate(pairs)``: a
+    ``ValueError`` (of the same type) then names the pair's place in the stream, which
+    the message of a one-frame check (``images[0] ...``) cannot."""
+    def run(item: tuple[int, Any]) -> Result:
+        index, pair = item
+        try:
+            return step(*stream_pair(pair))
+        except ValueError as err:
+            numbered = copy.copy(err)
+            numbered.args = (f"pair {index} of the stream: {err}",)
+            raise numbered from err
+    return run
