@@ -59,6 +59,13 @@ def test_bad_ply_files(tmp_path):
         read_ply_points(tmp_path / "short.ply")
     with pytest.raises(FileNotFoundError):
         read_ply_points(tmp_path / "none.ply")
+    for bad in ("nan", "inf"):
+        body = "".join(f"{x} {y} {z} 200\n" for x, y, z in POINTS).replace(
+            f"{POINTS[1][0]} ", f"{bad} ", 1) + "3 0 1 2\n"
+        (tmp_path / "damaged.ply").write_text(_header("ascii") + body)
+        with pytest.raises(ValueError, match=r"damaged\.ply: 1 of 3 vertices are NaN or "
+                           r"infinite \(the first at index 1\)"):
+            read_ply_points(tmp_path / "damaged.ply")
 
 
 def test_tum_trajectory_quaternion_order_and_interpolation(tmp_path):

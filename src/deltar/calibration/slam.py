@@ -22,9 +22,16 @@ def read_ply_points(path: str | os.PathLike) -> np.ndarray:
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: not a readable PLY; the message names the file.
+        ValueError: not a readable PLY, or vertices that are NaN or infinite (a map's
+            points are positions; such a file is damaged); the message names the file.
     """
-    return read_ply(path).points
+    points = read_ply(path).points
+    bad = ~np.all(np.isfinite(points), axis=1)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of {len(points)} vertices are NaN or "
+                         f"infinite (the first at index {int(np.argmax(bad))}); a map's "
+                         "points must be finite positions in metres")
+    return points
 
 
 def write_ply_points(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True,
