@@ -163,9 +163,14 @@ def test_corrupt_h5_and_missing_key_and_bad_shapes(tmp_path, rng):
                         np.zeros((64, 4)), np.ones(64, bool))
     _write_release_file(tmp_path / "size.h5", rgb, np.ones((8, 9)), np.ones((64, 2)),
                         np.zeros((64, 4)), np.ones(64, bool))
-    entries = [{"filename": n} for n in ("bad.h5", "nokey.h5", "shape.h5", "size.h5")]
+    _write_release_file(tmp_path / "mm.h5", rgb, np.full((8, 8), 1500, np.uint16),
+                        np.ones((64, 2)), np.zeros((64, 4)), np.ones(64, bool))
+    entries = [{"filename": n} for n in ("bad.h5", "nokey.h5", "shape.h5", "size.h5", "mm.h5")]
     (tmp_path / "data.json").write_text(json.dumps({"test": entries}))
     ds = ZJUL5Dataset(tmp_path)
+    with pytest.raises(ValueError, match=r"mm\.h5: depth must be float metres, got uint16 "
+                       r"\(millimetres\?"):
+        ds[4]
     with pytest.raises(ValueError, match=r"bad\.h5"):
         ds[0]
     with pytest.raises(ValueError, match=r"nokey\.h5.*missing.*hist_data"):

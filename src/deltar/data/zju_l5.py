@@ -235,6 +235,12 @@ def _decode_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics |
             attrs = {k: f.attrs[k] for k in ("fx", "fy", "cx", "cy") if k in f.attrs}
     except OSError as err:  # h5py raises OSError for truncated / non-HDF5 files
         raise ValueError(f"cannot read ZJU-L5 file {path}: {err}") from err
+    if np.asarray(arrays["depth"]).dtype.kind != "f":
+        # Integer depth is a depth camera's raw units (millimetres): read as metres it
+        # would be 1000 times too far and every pixel beyond the scored range.
+        raise ValueError(f"ZJU-L5 file {path}: depth must be float metres, got "
+                         f"{np.asarray(arrays['depth']).dtype} (millimetres? store depth / 1000 "
+                         "as float32)")
     depth = np.asarray(arrays["depth"], dtype=np.float32)
     if depth.ndim == 3 and depth.shape[-1] == 1:
         depth = depth[..., 0]
