@@ -1,5 +1,5 @@
 """``python -m deltar ...`` runs the ``deltar`` command."""
 
-from deltar.cli.main import main
+from deltar.cli.entry import main
 
 main()

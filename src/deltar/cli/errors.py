@@ -163,7 +163,9 @@ class DeltarGroup(TyperGroup):
         handlers = {}
         if threading.current_thread() is threading.main_thread():
             for stop in (signal.SIGINT, signal.SIGTERM):
-                if signal.getsignal(stop) in (signal.SIG_DFL, signal.default_int_handler):
+                current = signal.getsignal(stop)
+                if current in (signal.SIG_DFL, signal.default_int_handler) or \
+                        getattr(current, "deltar_replaceable", False):  # cli.entry's
                     handlers[stop] = signal.signal(stop, _on_stop_signal)
         _INTERRUPT["signal"], _REPORTED["error"] = None, False
         unraisable_hook, sys.unraisablehook = sys.unraisablehook, _quiet_after_stop
