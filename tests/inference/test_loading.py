@@ -130,6 +130,7 @@ def test_preset_warns_and_threads_are_set():
     ({"precision": "float8"}, "precision must be one of float32, float16, bfloat16"),
     ({"input_size": (60, 64)}, r"input_size must be positive multiples of 32, got \(60, 64\)"),
     ({"threads": 0}, "threads must be between 1 and"),
+    ({"device": "gpu"}, "device: unknown device 'gpu'; use cpu, cuda, cuda:N or mps"),
 ])
 def test_bad_arguments_name_the_argument(kwargs, message):
     with warnings.catch_warnings():
@@ -210,3 +211,12 @@ def test_one_estimator_shared_by_threads_gives_each_call_its_own_result(rng):
         reference = alone[index % len(inputs)]
         assert np.abs(result.depth_m - reference.depth_m).max() <= 1e-5
         assert np.abs(result.uncertainty_m - reference.uncertainty_m).max() <= 1e-5
+
+
+def test_a_gpu_the_machine_lacks_is_named_before_any_weights_load(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"^device 'cuda:0': no CUDA GPU is available on "
+                       r"this machine \(use device='cpu'\)$"):
+        load_estimator("default", device="cuda:0")

@@ -77,8 +77,11 @@ def test_writer_appends_but_never_overwrites(tmp_path):
         again.add_zone_frame(_zone_frame(0.2))
     assert len(Recording(tmp_path / "rec").zone_frames()) == 2
     other = CameraIntrinsics(60.0, 60.0, 15.5, 11.5, 32, 24)
-    with pytest.raises(ValueError, match="different intrinsics"):
+    with pytest.raises(ValueError, match=r"has another intrinsics \(another rig\)"):
         RecordingWriter(tmp_path / "rec", RecordingMeta(other, grid=4))
+    with pytest.raises(ValueError, match=r"has another sensor_model, grid \(another rig\)"):
+        RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, sensor_model="VL53L8CX",
+                                                        grid=8))
 
 
 def test_writer_refuses_a_folder_of_other_files_and_takes_an_empty_one(tmp_path):

@@ -93,13 +93,15 @@ def existing_outputs(paths: Iterable[Path], option: str = "--out", *,
 
 
 def torch_device(name: str, option: str = "--device") -> str:
-    """Check that torch can run on device ``name`` here (e.g. ``cpu``, ``cuda:0``).
+    """Check that torch can run on device ``name`` here (e.g. ``cpu``, ``cuda:0``):
+    :func:`deltar.inference.checks.check_device` as a usage error naming ``option``.
 
     Raises:
         typer.BadParameter: unknown device, PyTorch not installed (naming the extra), or
             no such GPU on this machine.
     """
     from deltar.extras import torch_available
+    from deltar.inference.checks import check_device
 
     # Told apart before torch is imported: a typo is a typo in the base install too.
     if not re.fullmatch(r"(cpu|mps|cuda)(:\d+)?", name):
@@ -109,29 +111,11 @@ def torch_device(name: str, option: str = "--device") -> str:
         raise typer.BadParameter(f"{name!r} runs the PyTorch backend, which the 'torch' extra "
                                  'installs: pip install "deltar[torch]" (without it the '
                                  "bundled model runs on the CPU)", param_hint=option)
-    import torch
-
     try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        raise typer.BadParameter(f"unknown device {name!r}; use cpu, cuda, cuda:N or mps",
-                                 param_hint=option) from None
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise typer.BadParameter(f"{name!r}: no CUDA GPU is available on this machine "
-                                     "(use --device cpu)", param_hint=option)
-        if device.index is not None and device.index >= torch.cuda.device_count():
-            raise typer.BadParameter(f"{name!r}: this machine has "
-                                     f"{torch.cuda.device_count()} CUDA GPU(s)",
-                                     param_hint=option)
-    elif device.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise typer.BadParameter(f"{name!r}: Apple MPS is not available here",
-                                     param_hint=option)
-    elif device.type != "cpu":
-        raise typer.BadParameter(f"unsupported device {name!r}; use cpu, cuda, cuda:N or "
-                                 "mps", param_hint=option)
-    return name
+        return check_device(name, option)
+    except ValueError as err:
+        raise typer.BadParameter(str(err).removeprefix(f"{option} ").removeprefix(
+            f"{option}: "), param_hint=option) from None
 
 
 def has_display() -> bool:

@@ -9,6 +9,7 @@ hint of what to pass (a path names the reader, a torch tensor the conversion).
 from __future__ import annotations
 
 import os
+import re
 from typing import Any
 
 import numpy as np
@@ -39,6 +40,34 @@ def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
         # An ONNX file is exported for one zone layout; the mirrored one differs.
         raise ValueError(f"{flip_name} needs a PyTorch model (an ONNX file is fixed to one "
                          "zone layout)")
+
+
+def check_device(name: Any, option: str = "device") -> str:
+    """Check that PyTorch can run on device ``name`` here (``cpu``, ``cuda``, ``cuda:N``,
+    ``mps``), naming ``option`` in the message; PyTorch must be installed for any but
+    ``cpu`` (the caller says which extra).
+
+    Raises:
+        ValueError: an unknown device, or a GPU this machine does not have.
+    """
+    if not isinstance(name, str) or not re.fullmatch(r"(cpu|mps|cuda)(:\d+)?", name):
+        raise ValueError(f"{option}: unknown device {name!r}; use cpu, cuda, cuda:N or mps")
+    if name == "cpu":
+        return name
+    import torch
+
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            cpu = f"{option} cpu" if option.startswith("-") else f"{option}='cpu'"
+            raise ValueError(f"{option} {name!r}: no CUDA GPU is available on this machine "
+                             f"(use {cpu})")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"{option} {name!r}: this machine has "
+                             f"{torch.cuda.device_count()} CUDA GPU(s)")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{option} {name!r}: Apple MPS is not available here")
+    return name
 
 
 _IMAGE_EXPECTED = "image must be an (H, W, 3) uint8 RGB array (or a list of them)"

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 
 from deltar.contract import PRESET_NAMES
 from deltar.extras import require_torch, torch_available
-from deltar.inference.checks import check_backend_options
+from deltar.inference.checks import check_backend_options, check_device
 from deltar.inference.estimator import DepthEstimator
 from deltar.inference.preprocess import check_input_size
 from deltar.io.input_file import input_file
@@ -154,6 +154,8 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
                                     f"model {text!r}")
         text = str(path)
     check_backend_options(precision, flip_average, kind == "onnx")
+    if device != "cpu" and torch_available():
+        check_device(device)  # torch's own errors name no argument
     checkpoint = None
     if kind != "onnx":
         # A file that is not there is said before PyTorch is asked for: installing the

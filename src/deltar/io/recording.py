@@ -118,7 +118,8 @@ class RecordingWriter:
 
     Raises:
         FileExistsError: ``folder`` holds files but no recording (no ``meta.json``).
-        ValueError: the folder's recording is of another rig (intrinsics, grid, fov).
+        ValueError: the folder's recording is of another rig (intrinsics, sensor model,
+            grid, fov), naming what differs.
     """
 
     def __init__(self, folder: str | os.PathLike, meta: RecordingMeta) -> None:
@@ -126,10 +127,14 @@ class RecordingWriter:
         meta_path = self.folder / META_FILE
         if meta_path.exists():
             existing = Recording(self.folder).meta
-            if (existing.intrinsics, existing.grid, tuple(existing.fov_deg)) != \
-                    (meta.intrinsics, meta.grid, tuple(meta.fov_deg)):
-                raise ValueError(f"{meta_path}: existing recording has different intrinsics, "
-                                 "grid or fov; write to a new folder")
+            differ = [name for name, old, new in (
+                ("intrinsics", existing.intrinsics, meta.intrinsics),
+                ("sensor_model", existing.sensor_model, meta.sensor_model),
+                ("grid", existing.grid, meta.grid),
+                ("fov_deg", tuple(existing.fov_deg), tuple(meta.fov_deg))) if old != new]
+            if differ:
+                raise ValueError(f"{meta_path}: the existing recording has another "
+                                 f"{', '.join(differ)} (another rig); write to a new folder")
             self.meta = existing
             _end_partial_line(self.folder / ZONES_FILE)
             self._last_zone_time = _last_zone_timestamp(self.folder / ZONES_FILE)
