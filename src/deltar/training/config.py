@@ -15,6 +15,7 @@ from typing import Any
 import yaml
 
 from deltar.contract import HYPOTHESIS_SAMPLINGS
+from deltar.training.config_checks import check_finite, check_trainer_limits
 
 #: The kinds of data source a training configuration can read (``data.sources[].kind``).
 DATA_SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5", "thdr3k")
@@ -339,8 +340,10 @@ class OptimConfig:
             raise ValueError(f"{where}.weight_decay must be >= 0")
         if not 0.0 < self.pct_start < 1.0:
             raise ValueError(f"{where}.pct_start must be in (0, 1)")
-        if len(self.betas) != 2:
-            raise ValueError(f"{where}.betas must be two numbers")
+        if len(self.betas) != 2 or not all(0.0 <= beta < 1.0 for beta in self.betas):
+            raise ValueError(f"{where}.betas must be two numbers in [0, 1), got {self.betas}")
+        for name in ("base_momentum", "max_momentum"):
+            _fraction(f"{where}.{name}", getattr(self, name))
         if self.grad_clip_norm is not None and not self.grad_clip_norm > 0:
             raise ValueError(f"{where}.grad_clip_norm must be > 0 or null")
         _fraction(f"{where}.loss_lambda", self.loss_lambda)
@@ -424,6 +427,7 @@ class TrainerConfig:
             raise ValueError(f"{where}.devices must be an integer or 'auto'")
         if self.num_threads is not None and self.num_threads < 1:
             raise ValueError(f"{where}.num_threads must be >= 1 or null")
+        check_trainer_limits(self, where)
 
 
 @dataclass
@@ -450,6 +454,10 @@ class TrainConfig:
         """Check every section; raise ``ValueError`` naming the offending key."""
         if not self.name or "/" in self.name:
             raise ValueError(f"name must be a non-empty string without '/', got {self.name!r}")
+        if not 0 <= self.seed < 2**32:  # numpy's seeds
+            raise ValueError(f"seed must be in 0..{2**32 - 1}, got {self.seed}")
+        for section in ("model", "data", "optim", "ema", "trainer"):
+            check_finite(getattr(self, section), section)
         self.model.validate("model")
         self.data.validate("data")
         self.optim.validate("optim")

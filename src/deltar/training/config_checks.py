@@ -1,0 +1,60 @@
+"""Checks of training-configuration values that Lightning, PyTorch or numpy would only
+refuse after the run had started (a traceback after an epoch, and a run folder left
+behind): every number finite, and the trainer's limits in the ranges Lightning takes.
+Each names the dotted key; :meth:`deltar.training.config.TrainConfig.validate` runs them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+#: Lightning's precision names (``Trainer(precision=...)``).
+PRECISIONS: tuple[str, ...] = ("64-true", "64", "32-true", "32", "16-mixed", "16",
+                               "bf16-mixed", "bf16", "16-true", "bf16-true",
+                               "transformer-engine", "transformer-engine-float16")
+#: Lightning's accelerator names (``Trainer(accelerator=...)``).
+ACCELERATORS: tuple[str, ...] = ("auto", "cpu", "gpu", "cuda", "mps", "tpu", "hpu")
+
+
+def check_finite(section: Any, where: str) -> None:
+    """Refuse NaN or infinite numbers anywhere in a config section (dataclasses, lists
+    and dicts walked), naming the dotted key: ``optim.lr=inf`` would train an epoch into
+    NaN weights before anything said so."""
+    if dataclasses.is_dataclass(section):
+        for item in dataclasses.fields(section):
+            check_finite(getattr(section, item.name), f"{where}.{item.name}")
+    elif isinstance(section, dict):
+        for key, value in section.items():
+            check_finite(value, f"{where}.{key}")
+    elif isinstance(section, list | tuple):
+        for index, value in enumerate(section):
+            check_finite(value, f"{where}[{index}]")
+    elif isinstance(section, float) and not math.isfinite(section):
+        raise ValueError(f"{where} must be a finite number, got {section}")
+
+
+def check_trainer_limits(trainer: Any, where: str) -> None:
+    """The trainer section's values Lightning would refuse at run time: checkpoints to
+    keep, validation intervals, batch limits, precision and accelerator names."""
+    if trainer.keep_checkpoints < -1:
+        raise ValueError(f"{where}.keep_checkpoints must be >= 0, or -1 for all, got "
+                         f"{trainer.keep_checkpoints}")
+    if trainer.val_every_n_epochs < 1:
+        raise ValueError(f"{where}.val_every_n_epochs must be >= 1, got "
+                         f"{trainer.val_every_n_epochs}")
+    if trainer.val_check_interval is not None and trainer.val_check_interval < 1:
+        raise ValueError(f"{where}.val_check_interval must be >= 1 step or null, got "
+                         f"{trainer.val_check_interval}")
+    for name in ("limit_train_batches", "limit_val_batches"):
+        limit = getattr(trainer, name)
+        whole = isinstance(limit, int) and not isinstance(limit, bool)
+        if limit is not None and not ((whole and limit >= 1) or
+                                      (isinstance(limit, float) and 0.0 < limit <= 1.0)):
+            raise ValueError(f"{where}.{name} must be a number of batches >= 1, a fraction "
+                             f"in (0, 1] or null, got {limit}")
+    for name, value, names in (("precision", trainer.precision, PRECISIONS),
+                               ("accelerator", trainer.accelerator, ACCELERATORS)):
+        if str(value) not in names:
+            raise ValueError(f"{where}.{name} must be one of {names}, got {value!r}")
