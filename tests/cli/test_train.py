@@ -53,6 +53,22 @@ def test_cli_reports_missing_data_without_a_traceback(tmp_path):
         " ".join(result.output.split())
 
 
+def test_a_run_folder_inside_a_data_source_is_refused_before_any_work(tmp_path):
+    import numpy as np
+
+    from deltar.data.zju_l5 import write_zju_l5
+    from tests.data.test_zju_l5 import _sample
+
+    write_zju_l5(tmp_path / "set", [_sample(np.random.default_rng(0), "a")])
+    for run_dir in (tmp_path / "set", tmp_path / "set" / "run"):
+        result = _cli("--config", str(TINY_CONFIG), "--run-dir", str(run_dir),
+                      "-o", "data.sources.0.kind=zju_l5", "-o", "data.sources.0.resize=null",
+                      "-o", f"data.sources.0.path={tmp_path / 'set' / 'data.json'}")
+        assert result.exit_code == 1, result.output
+        assert f"run_dir {run_dir} is " in " ".join(result.output.split())
+    assert sorted(p.name for p in (tmp_path / "set").iterdir()) == ["a.h5", "data.json"]
+
+
 def test_fit_uncertainty_names_each_outlier_choice_in_words():
     """The fit's report tells "every zone kept", a rule and a detector apart."""
     import numpy as np

@@ -159,6 +159,24 @@ def build_trainer(config: TrainConfig, run_dir: Path,
         num_sanity_val_steps=0, default_root_dir=run_dir)
 
 
+def _refuse_run_dir_in_inputs(config: TrainConfig, run_dir: Path, option: str) -> None:
+    """A run folder is an output: not a data source's folder nor inside one (a set's
+    folder for a ``data.json`` or file list), nor a starting-weights file."""
+    from deltar.io.input_file import refuse_input_as_output
+    from deltar.training.config import ZONE_SET_SOURCE_KINDS
+
+    inputs: list[Path | None] = []
+    for source in config.data.sources:
+        if source.path:
+            path = Path(source.path)
+            inputs.append(path.parent if source.kind in ZONE_SET_SOURCE_KINDS and
+                          path.is_file() else path)
+    model = config.model
+    inputs += [Path(p) for p in (model.init_checkpoint, model.official_weights,
+                                 model.encoder_weights) if p]
+    refuse_input_as_output(run_dir, inputs, option, folder=True)
+
+
 def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool = False,
           extra_callbacks: list[Callback] | tuple[Callback, ...] = ()) -> Path:
     """Train (or resume) a run.
@@ -180,7 +198,9 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
         FileNotFoundError: resuming without a checkpoint.
         ValueError: resuming with a configuration that differs from the saved one.
     """
-    run_dir = Path(run_dir) if run_dir is not None else _default_run_dir(config)
+    given = run_dir is not None
+    run_dir = Path(run_dir) if given else _default_run_dir(config)
+    _refuse_run_dir_in_inputs(config, run_dir, "run_dir" if given else "output_dir")
     config_path = run_dir / CONFIG_NAME
     checkpoint = run_dir / "checkpoints" / LAST_CHECKPOINT
     if resume:
