@@ -69,6 +69,30 @@ def test_a_run_folder_inside_a_data_source_is_refused_before_any_work(tmp_path):
     assert sorted(p.name for p in (tmp_path / "set").iterdir()) == ["a.h5", "data.json"]
 
 
+def test_a_bad_validation_frame_fails_before_any_training(tmp_path):
+    """A validation frame that cannot be read is found before the first step (and before
+    config.yaml makes the folder a run's): not after an epoch of training."""
+    import yaml
+
+    for name in ("train", "val"):
+        done = CliRunner().invoke(app, ["simulate", "procedural:4:0:64x96",
+                                        str(tmp_path / name)])
+        assert done.exit_code == 0, done.output
+    missing = next((tmp_path / "val").rglob("*.h5"))
+    missing.unlink()
+    config = yaml.safe_load(TINY_CONFIG.read_text())
+    config["data"].update(training_grid=8, sources=[
+        {"kind": "zju_l5", "path": str(tmp_path / name / "data.json"), "split": "test",
+         "role": name} for name in ("train", "val")])
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+    result = _cli("--config", str(tmp_path / "config.yaml"), "--run-dir",
+                  str(tmp_path / "run"))
+    assert result.exit_code == 1, result.output
+    assert str(missing) in " ".join(result.output.split())
+    assert not (tmp_path / "run" / "config.yaml").exists()
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
 def test_fit_uncertainty_names_each_outlier_choice_in_words():
     """The fit's report tells "every zone kept", a rule and a detector apart."""
     import numpy as np

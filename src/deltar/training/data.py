@@ -467,10 +467,19 @@ class DeltarDataModule(L.LightningDataModule):
                                    pin_memory=torch.cuda.is_available(),
                                    collate_fn=collate_frames)
 
-    def val_dataloader(self) -> DataLoader:
-        """In order, sharded over processes without repeats."""
+    def val_dataloader(self, rank_world: tuple[int, int] | None = None) -> DataLoader:
+        """In order, sharded over processes without repeats (this process's shard, or
+        that of ``rank_world`` = (rank, world size))."""
         self.setup()
-        rank, world = self._rank_world()
+        rank, world = rank_world or self._rank_world()
         sampler = ShardedSampler(len(self.val_set), False, self.seed, rank, world, pad=False)
         return DataLoader(self.val_set, batch_size=self.config.val_batch_size, sampler=sampler,
                           num_workers=self.config.num_workers, collate_fn=collate_frames)
+
+    def check_val_frames(self, rank: int, world: int) -> None:
+        """Read and batch this process's validation frames once before training, as the
+        validation will: a missing or corrupt frame, or frames that cannot share a
+        batch, then fail at once and not after the first epoch's training."""
+        if self.val_set is not None and len(self.val_set):
+            for _ in self.val_dataloader((rank, world)):
+                pass

@@ -251,6 +251,9 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
                         "start it again")
             raise FileExistsError(f"run folder {run_dir} already holds {what}, or choose a "
                                   "new folder")
+    # Before any training, and before config.yaml makes the folder a run's.
+    data.check_val_frames(trainer.global_rank, trainer.world_size)
+    if trainer.is_global_zero and not resume:
         write_text_atomic(config_path, config.to_yaml(), overwrite=False)
     # Processes that Lightning launches itself (strategy "ddp" without torchrun) inherit
     # the environment and so use the same folder.
