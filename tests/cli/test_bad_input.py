@@ -233,7 +233,15 @@ def test_simulate_names_the_option_at_fault(tmp_path):
 
 def test_simulate_and_demo_refuse_tiny_sizes_and_files(tmp_path):
     result = _run(["simulate", "procedural:1:0:1x1", tmp_path / "s"])
-    _one_error_line(result, "SRC", "at least 8x8 pixels, got 1x1")
+    _one_error_line(result, "SRC", "8 to 4096 pixels a side, got 1x1")
+    result = _run(["simulate", "procedural:2:0:100000x100000", tmp_path / "s"])
+    _one_error_line(result, "SRC", "8 to 4096 pixels a side, got 100000x100000")
+    result = _run(["simulate", "procedural:1000000000", tmp_path / "s", "--limit", "1",
+                   "--cnh-bins", "100000000"])
+    assert result.exit_code == 2 and "--cnh-bins" in result.output  # at once, bounded
+    result = _run(["simulate", "procedural:1000000000:0:32x32", tmp_path / "s", "--limit",
+                   "1"])  # the billion frames are not listed to take one
+    assert result.exit_code == 0, result.output
     result = _run(["demo", tmp_path / "d", "--frames", "1", "--size", "1x1"])
     assert result.exit_code == 2
     _one_error_line(result, "Invalid value for --size:", "at least 8 pixels")

@@ -85,9 +85,9 @@ def bench_command(
     fold_encoder: bool = typer.Option(True, "--fold-encoder/--no-fold-encoder",
                                       help="Also fold the image encoder's batch norms."),
     channels_last: bool = typer.Option(True, help="Channels-last decoder and head."),
-    matmul_size: int = typer.Option(2048, min=0, help="Side of the float32 matrix product "
-                                    "timed in the same process as the reference rate "
-                                    "(0 skips it)."),
+    matmul_size: int = typer.Option(2048, min=0, max=8192,
+                                    help="Side of the float32 matrix product timed in the "
+                                    "same process as the reference rate (0 skips it)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the result as JSON."),
     overwrite: bool = typer.Option(False, help="Replace an existing --json file."),
 ) -> None:

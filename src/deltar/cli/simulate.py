@@ -75,8 +75,8 @@ def simulate_command(
     cnh: bool = typer.Option(False, "--cnh", help="Also write per-zone compact normalised "
                              "histograms like ST's VL53L7CH/L8CH (default: 18 bins over "
                              "0-4.73 m, ST's example configuration)."),
-    cnh_bins: int | None = typer.Option(None, "--cnh-bins", min=1, help="CNH bins per zone "
-                                        "(implies --cnh)."),
+    cnh_bins: int | None = typer.Option(None, "--cnh-bins", min=1, max=1024,
+                                        help="CNH bins per zone (implies --cnh)."),
     cnh_range: str | None = typer.Option(None, "--cnh-range", help="CNH range 'NEAR:FAR' "
                                          "in metres (implies --cnh)."),
     no_target_flags: bool = typer.Option(True, "--no-target-flags/--without-no-target-flags",
@@ -147,7 +147,8 @@ def simulate_command(
             source = open_source(src, depth_scale=depth_scale, split=split, intrinsics=given)
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="SRC") from err
-    indices = list(range(len(source)))[start:stop:step][:limit]
+    # A range is sliced without listing every frame of a long source first.
+    indices = list(range(len(source))[start:stop:step][:limit])
     if not indices:
         raise typer.BadParameter(f"no frames selected from {len(source)} (check --start, "
                                  "--stop, --step)")

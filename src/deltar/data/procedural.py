@@ -349,8 +349,8 @@ class ProceduralReader(Sequence):
                  width: int = 640) -> None:
         if int(num_frames) < 1:
             raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-        if int(height) < 8 or int(width) < 8:
-            raise ValueError(f"procedural scenes need at least 8x8 pixels, got "
+        if not (8 <= int(height) <= 4096 and 8 <= int(width) <= 4096):
+            raise ValueError(f"procedural scenes are 8 to 4096 pixels a side, got "
                              f"{height}x{width}")
         self.num_frames, self.seed = int(num_frames), int(seed)
         self.height, self.width = int(height), int(width)
