@@ -628,6 +628,14 @@ def test_thread_counts_beyond_the_machine_are_refused_before_work(inputs, tmp_pa
     _one_error_line(result, f"--threads {shown}, got {limit + 1}")
 
 
+def test_bench_refuses_a_json_folder_and_a_huge_matmul_before_running(tmp_path):
+    result = _run(["bench", "--preset", "deltar-lite", "--json", tmp_path, "--overwrite"])
+    assert result.exit_code == 1
+    assert _one_error_line(result) == f"error: --json {tmp_path} is a folder, not a file"
+    result = _run(["bench", "--preset", "deltar-lite", "--matmul-size", "60000"])
+    assert result.exit_code == 2 and "--matmul-size" in result.output
+
+
 def test_bench_batch_beyond_the_memory_is_refused(monkeypatch):
     from deltar.io import resources
 

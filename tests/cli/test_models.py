@@ -66,8 +66,8 @@ def test_bench_writes_json(runner, tmp_path):
     assert low <= data["matmul_fraction"] <= high
     # Never overwrite without being asked.
     again = runner.invoke(app, args)
-    assert again.exit_code == 2
-    assert f"{out} exists; pass --overwrite to replace it" in again.stderr
+    assert again.exit_code == 1  # as every command's existing output
+    assert f"--json {out} exists; pass --overwrite to replace it" in again.stderr
 
 
 def test_bench_rejects_bad_size(runner):

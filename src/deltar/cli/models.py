@@ -94,6 +94,7 @@ def bench_command(
     """Forward latency, peak memory, counted GFLOP and the fraction of the float32 matmul rate."""
     from rich.table import Table
 
+    from deltar.cli.checks import output_file
     from deltar.cli.progress import table_console
     from deltar.io.atomic import write_text_atomic
     from deltar.io.resources import check_memory, check_threads
@@ -103,8 +104,8 @@ def bench_command(
     height, width = _parse_size(size)
     if preset not in list_presets():
         raise typer.BadParameter(f"unknown preset {preset!r}; known: {list_presets()}")
-    if json_out is not None and json_out.exists() and not overwrite:
-        raise typer.BadParameter(f"{json_out} exists; pass --overwrite to replace it")
+    if json_out is not None:  # a folder, or a file without --overwrite: before the runs
+        output_file(json_out, "--json", overwrite)
     _resource_option(check_threads, threads, "--threads")
     _resource_option(check_memory, BENCH_BYTES_PER_PIXEL * batch * height * width,
                      f"--batch {batch} at {height}x{width}", "lower --batch or --size")
