@@ -124,3 +124,20 @@ def test_cli_ends_a_run_stopped_by_a_signal_with_its_status(tmp_path, monkeypatc
     assert result.exit_code == 143
     assert "stopped by SIGTERM at step 3" in result.output
     assert "it stopped before its first checkpoint" in result.output
+
+
+def test_fit_uncertainty_names_a_set_whose_split_is_empty(tmp_path):
+    """Given alone it would fail naming nothing; beside a good set it was left out."""
+    import json
+
+    done = CliRunner().invoke(app, ["simulate", "procedural:2:0:64x96", str(tmp_path / "good")])
+    assert done.exit_code == 0, done.output
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "data.json").write_text(json.dumps({"test": []}))
+    result = CliRunner().invoke(app, [
+        "fit-uncertainty", "default", "--data", str(tmp_path / "good"), "--data",
+        str(tmp_path / "empty"), "--out", str(tmp_path / "fitted.pt")])
+    assert result.exit_code == 2, result.output
+    assert f"split 'test' of {tmp_path / 'empty'} lists no frames" in \
+        " ".join(result.output.split())
+    assert not (tmp_path / "fitted.pt").exists()

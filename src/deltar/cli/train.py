@@ -175,6 +175,12 @@ def fit_uncertainty_command(
         detector_sets = [open_zone_set(path, split) for path in detector_data]
     except (OSError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="--detector-data") from err
+    for option, paths, opened in (("--data", data, sets),
+                                  ("--detector-data", detector_data, detector_sets)):
+        empty = next((path for path, s in zip(paths, opened, strict=True) if not len(s)), None)
+        if empty is not None:  # it would be left out without a word
+            raise typer.BadParameter(f"split {split!r} of {empty} lists no frames",
+                                     param_hint=option)
     frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
                  for s in sets)
     with ProgressReport("fitting the output stage") as progress:
