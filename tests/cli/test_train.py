@@ -141,3 +141,13 @@ def test_fit_uncertainty_names_a_set_whose_split_is_empty(tmp_path):
     assert f"split 'test' of {tmp_path / 'empty'} lists no frames" in \
         " ".join(result.output.split())
     assert not (tmp_path / "fitted.pt").exists()
+
+
+def test_several_nodes_without_a_launcher_are_refused_instead_of_waiting(monkeypatch):
+    for name in ("WORLD_SIZE", "MASTER_ADDR", "SLURM_NTASKS", "TORCHELASTIC_RUN_ID"):
+        monkeypatch.delenv(name, raising=False)
+    result = _cli("--config", str(TINY_CONFIG), "-o", "trainer.num_nodes=2",
+                  "-o", "trainer.strategy=ddp")
+    assert result.exit_code == 2
+    assert "trainer.num_nodes is 2: start each node with a launcher" in \
+        " ".join(result.output.split())

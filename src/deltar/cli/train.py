@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import typer
@@ -85,6 +86,12 @@ def _check_machine(trainer) -> None:
             check_threads(trainer.num_threads, "trainer.num_threads")
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
+    launched = ("WORLD_SIZE", "MASTER_ADDR", "SLURM_NTASKS", "TORCHELASTIC_RUN_ID")
+    if trainer.num_nodes > 1 and not any(name in os.environ for name in launched):
+        # Started by hand, each process would wait for the other nodes forever.
+        raise typer.BadParameter(f"trainer.num_nodes is {trainer.num_nodes}: start each node "
+                                 "with a launcher (torchrun --nnodes, or srun under SLURM; "
+                                 "docs/training.md), which sets WORLD_SIZE / MASTER_ADDR")
     if not isinstance(trainer.devices, int):
         return
     gpu = trainer.accelerator in ("gpu", "cuda") or (trainer.accelerator == "auto"
