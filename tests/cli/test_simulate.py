@@ -88,7 +88,8 @@ def test_refuses_non_empty_output_and_bad_options(tmp_path):
     assert result.exit_code != 0
 
 
-@pytest.mark.parametrize("spec", ["procedural:x", "procedural:2:1:48by64"])
+@pytest.mark.parametrize("spec", ["procedural:x", "procedural:2:1:48by64", "procedural:2:-5",
+                                  "procedural:2:0:64x96:7"])
 def test_bad_procedural_spec(tmp_path, spec):
     result = runner.invoke(app, ["simulate", spec, str(tmp_path / "o")])
     assert result.exit_code == 2  # a usage error with a message, not a traceback

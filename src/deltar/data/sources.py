@@ -18,8 +18,12 @@ PROCEDURAL_PREFIX = "procedural:"
 def _procedural(spec: str) -> ProceduralReader:
     parts = spec[len(PROCEDURAL_PREFIX):].split(":")
     try:
+        if len(parts) > 3:
+            raise ValueError("too many fields")
         frames = int(parts[0])
         seed = int(parts[1]) if len(parts) > 1 else 0
+        if seed < 0:
+            raise ValueError("a seed is >= 0")
         height, width = (int(v) for v in parts[2].split("x")) if len(parts) > 2 else (480, 640)
     except (ValueError, IndexError) as err:
         raise ValueError(f"procedural source must look like 'procedural:100', "
