@@ -119,6 +119,19 @@ def test_size_mismatch_names_the_file(tmp_path, rng):
         FolderReader(tmp_path, 1000.0, intr)[0]
 
 
+def test_images_without_a_partner_are_left_out_with_a_warning(tmp_path, rng):
+    intr = CameraIntrinsics(10.0, 10.0, 3.5, 2.5, 8, 6)
+    for stem in ("a", "b", "c"):
+        _write_rgb(tmp_path / "color" / f"{stem}.png",
+                   rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    for stem in ("a", "c"):
+        _write_png16(tmp_path / "depth" / f"{stem}.png", np.full((6, 8), 300))
+    with pytest.warns(UserWarning, match=r"1 image\(s\) without a partner .* left out "
+                      r"\(e\.g\. 'b'\); 2 pairs are read"):
+        reader = FolderReader(tmp_path, 1000.0, intr)
+    assert len(reader) == 2
+
+
 def test_unknown_layout_and_missing_intrinsics_file(tmp_path, rng):
     with pytest.raises(ValueError, match="cannot tell the layout"):
         open_rgbd(tmp_path)

@@ -328,6 +328,11 @@ class FolderReader(RGBDReader):
         colors = _stem_map(color_root, IMAGE_SUFFIXES)
         depths = _stem_map(depth_root, _DEPTH_SUFFIXES)
         pairs = [(stem, colors[stem], depths[stem], None) for stem in colors if stem in depths]
+        unpaired = sorted(set(colors) ^ set(depths))
+        if pairs and unpaired:  # none paired: the base class says so
+            warnings.warn(f"{root}: {len(unpaired)} image(s) without a partner of the same "
+                          f"name in {color_dir}/ and {depth_dir}/ are left out (e.g. "
+                          f"{unpaired[0]!r}); {len(pairs)} pairs are read", stacklevel=2)
         super().__init__(pairs, depth_scale, root)
         height, width = self.image_size
         self.intrinsics = _check_intrinsics(intrinsics, height, width, str(root))
