@@ -191,6 +191,11 @@ def test_frames_the_network_cannot_take_are_refused_before_training(shared_data)
                                        role="val"))
     train, _ = build_datasets(config, seed=0)
     assert train[0]["image"].shape == (3, 32, 64)
+    # A crop larger than the frames is named with the config key, not at the first batch.
+    config.image_augmentation.crop = [64, 128]
+    with pytest.raises(ValueError, match=r"^data\.image_augmentation\.crop \[64, 128\] is "
+                       r"larger than the 60x90 frames of data\.sources\.0 "):
+        build_datasets(config, seed=0)
 
 
 def test_nyu_release_layout_source_with_border_crop(tmp_path, rng):

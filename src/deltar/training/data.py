@@ -260,8 +260,14 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
                                   .round().astype(int))
                 check_depth_units([first, *(reader[int(i)].depth_m for i in picks[1:])],
                                   f"data.sources.{number} ({source.path})")
-            cropped = source.role == "train" and config.image_augmentation.enabled and \
-                config.image_augmentation.crop is not None
+            crop = config.image_augmentation.crop if config.image_augmentation.enabled else None
+            if crop is not None and source.role != "val" and (
+                    crop[0] > first.shape[0] or crop[1] > first.shape[1]):
+                raise ValueError(f"data.image_augmentation.crop {list(crop)} is larger than "
+                                 f"the {first.shape[0]}x{first.shape[1]} frames of "
+                                 f"data.sources.{number} ({source.path})")
+            # Only a source whose every frame trains is cropped to the network's sides.
+            cropped = source.role == "train" and crop is not None
             if not cropped and (first.shape[0] % 32 or first.shape[1] % 32):
                 # Found here, not at the first batch of an epoch's validation.
                 near = [max(32, 32 * round(side / 32)) for side in first.shape[:2]]
