@@ -144,7 +144,8 @@ def test_fit_uncertainty_names_a_set_whose_split_is_empty(tmp_path):
 
 
 def test_several_nodes_without_a_launcher_are_refused_instead_of_waiting(monkeypatch):
-    for name in ("WORLD_SIZE", "MASTER_ADDR", "SLURM_NTASKS", "TORCHELASTIC_RUN_ID"):
+    for name in ("WORLD_SIZE", "MASTER_ADDR", "SLURM_NTASKS", "TORCHELASTIC_RUN_ID",
+                 "LSB_JOBID", "OMPI_COMM_WORLD_SIZE", "PMI_SIZE"):
         monkeypatch.delenv(name, raising=False)
     result = _cli("--config", str(TINY_CONFIG), "-o", "trainer.num_nodes=2",
                   "-o", "trainer.strategy=ddp")

@@ -220,3 +220,4 @@ def test_a_gpu_the_machine_lacks_is_named_before_any_weights_load(monkeypatch):
     with pytest.raises(ValueError, match=r"^device 'cuda:0': no CUDA GPU is available on "
                        r"this machine \(use device='cpu'\)$"):
         load_estimator("default", device="cuda:0")
+    assert load_estimator("default", device=torch.device("cpu")).device.type == "cpu"

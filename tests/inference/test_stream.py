@@ -152,3 +152,19 @@ def test_predict_stream_refuses_a_batch_in_a_pair_and_a_bad_schedule(rng) -> Non
         list(estimator.predict_stream([([image, image], [frame, frame])]))
     with pytest.raises(ValueError, match="pipelined must be None, True or False, got 'no'"):
         list(estimator.predict_stream([(image, frame)], pipelined="no"))
+
+
+def test_a_numbered_error_keeps_its_type_whatever_its_constructor():
+    from deltar.inference.stream import numbered_step
+
+    class NamedError(ValueError):
+        def __init__(self, path, message):
+            super().__init__(f"{path}: {message}")
+            self.path = path
+
+    def step(image, frame):
+        raise NamedError("a.png", "unreadable")
+
+    with pytest.raises(NamedError, match=r"^pair 3 of the stream: a\.png: unreadable$") as caught:
+        numbered_step(step)((3, (np.zeros((4, 4, 3), np.uint8), None)))
+    assert caught.value.path == "a.png"

@@ -268,3 +268,9 @@ def test_driver_arguments_that_are_not_what_the_driver_gives_are_named(changes, 
         ZoneFrame.from_driver(arguments.pop("distance_mm"), arguments.pop("range_sigma_mm"),
                               arguments.pop("target_status"), **arguments)
     assert message in str(caught.value)
+
+
+def test_valid_status_takes_one_code_or_any_iterable_of_codes():
+    for codes in (5, range(5, 10), {5, 9}, (5,), np.array([5, 9])):
+        frame = ZoneFrame.from_driver([1500] * 64, [20] * 64, [5] * 64, valid_status=codes)
+        assert frame.valid_count == 64, codes

@@ -39,3 +39,7 @@ def test_the_values_lightning_takes_pass():
         "trainer.limit_val_batches=3", "trainer.precision=bf16-mixed",
         "trainer.accelerator=gpu", "trainer.val_check_interval=50", "seed=4294967295"])
     assert config.trainer.limit_train_batches == 0.5
+    for off in ("0", "0.0"):  # validation switched off, as Lightning allows
+        load_config(TINY, [f"trainer.limit_val_batches={off}"])
+    with pytest.raises(ValueError, match="limit_train_batches must be"):
+        load_config(TINY, ["trainer.limit_train_batches=0"])

@@ -279,3 +279,29 @@ def test_a_batch_of_frames_of_several_sizes_is_refused_with_the_fix():
     with pytest.raises(ValueError, match=r"items whose zone_valid differ in shape.*zone grids"):
         collate_frames([{"image": torch.zeros(3, 32, 64), "zone_valid": torch.ones(36)},
                         {"image": torch.zeros(3, 32, 64), "zone_valid": torch.ones(64)}])
+
+
+def test_the_validation_frames_are_read_before_training_as_far_as_they_are_validated(
+        tmp_path):
+    """A missing validation frame fails the check; with validation off (limit 0) or
+    limited to the batches before it, it is not read."""
+    from typer.testing import CliRunner
+
+    from deltar.cli.main import app
+    from deltar.training.data import DeltarDataModule
+
+    done = CliRunner().invoke(app, ["simulate", "procedural:4:0:64x96", str(tmp_path / "val")])
+    assert done.exit_code == 0, done.output
+    sorted((tmp_path / "val").rglob("*.h5"))[-1].unlink()  # the last frame, 4th batch
+    config = DataConfig(sources=[
+        SourceConfig(kind="procedural", frames=2, resize=[64, 96], role="train"),
+        SourceConfig(kind="zju_l5", path=str(tmp_path / "val" / "data.json"), split="test",
+                     role="val")], training_grid=8, num_hypotheses=4, num_workers=0,
+        val_batch_size=1)
+    data = DeltarDataModule(config)
+    data.setup()
+    with pytest.raises(FileNotFoundError, match=r"procedural-3\.h5"):
+        data.check_val_frames(0, 1)
+    data.check_val_frames(0, 1, 0)
+    data.check_val_frames(0, 1, 3)
+    data.check_val_frames(0, 1, 0.5)

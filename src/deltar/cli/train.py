@@ -86,7 +86,8 @@ def _check_machine(trainer) -> None:
             check_threads(trainer.num_threads, "trainer.num_threads")
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
-    launched = ("WORLD_SIZE", "MASTER_ADDR", "SLURM_NTASKS", "TORCHELASTIC_RUN_ID")
+    launched = ("WORLD_SIZE", "MASTER_ADDR", "SLURM_NTASKS", "TORCHELASTIC_RUN_ID",
+                "LSB_JOBID", "OMPI_COMM_WORLD_SIZE", "PMI_SIZE")  # Lightning's launchers
     if trainer.num_nodes > 1 and not any(name in os.environ for name in launched):
         # Started by hand, each process would wait for the other nodes forever.
         raise typer.BadParameter(f"trainer.num_nodes is {trainer.num_nodes}: start each node "

@@ -50,6 +50,8 @@ def check_device(name: Any, option: str = "device") -> str:
     Raises:
         ValueError: an unknown device, or a GPU this machine does not have.
     """
+    if type(name).__name__ == "device":  # a torch.device: its text form
+        name = str(name)
     if not isinstance(name, str) or not re.fullmatch(r"(cpu|mps|cuda)(:\d+)?", name):
         raise ValueError(f"{option}: unknown device {name!r}; use cpu, cuda, cuda:N or mps")
     if name == "cpu":

@@ -154,7 +154,7 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
                                     f"model {text!r}")
         text = str(path)
     check_backend_options(precision, flip_average, kind == "onnx")
-    if device != "cpu" and torch_available():
+    if str(device) != "cpu" and torch_available():
         check_device(device)  # torch's own errors name no argument
     checkpoint = None
     if kind != "onnx":

@@ -12,7 +12,6 @@ then costs little of the frame rate; where they take every core it competes with
 
 from __future__ import annotations
 
-import copy
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -127,7 +126,9 @@ def numbered_step(step: Callable[[Any, Any], Result]) -> Callable[[tuple[int, An
         try:
             return step(*stream_pair(pair))
         except ValueError as err:
-            numbered = copy.copy(err)
+            # Of the same type, made without its __init__ (whose arguments may differ).
+            numbered = type(err).__new__(type(err))
+            numbered.__dict__.update(err.__dict__)
             numbered.args = (f"pair {index} of the stream: {err}",)
             raise numbered from err
     return run

@@ -24,7 +24,7 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics
 from deltar.sensor.zone_frame import Orientation, ZoneFrame
-from deltar.sensor.zone_values import DEFAULT_VALID_STATUS, number_array, status_codes
+from deltar.sensor.zone_values import DEFAULT_VALID_STATUS, valid_status_codes
 
 #: The ToF message type shipped with the package.
 ZONE_FRAME_MSGTYPE = "deltar_msgs/msg/ZoneFrame"
@@ -377,8 +377,7 @@ def _readings_validity(distance: np.ndarray, sigma_m: np.ndarray | None,
     if valid is not None:
         valid = valid.astype(bool) & ok
     elif codes is not None:
-        valid = ok & np.isin(codes, status_codes(number_array(valid_status, "valid_status"),
-                                                 "valid_status"))
+        valid = ok & np.isin(codes, valid_status_codes(valid_status))
     else:
         valid = ok
     sigma = np.zeros(distance.shape) if sigma_m is None else sigma_m.astype(np.float64)

@@ -28,8 +28,7 @@ from deltar.sensor.zone_frame import Orientation, ZoneFrame
 from deltar.sensor.zone_values import (
     DEFAULT_VALID_STATUS,
     NO_TARGET_STATUS,
-    number_array,
-    status_codes,
+    valid_status_codes,
 )
 
 #: Distance spanned by one bin of the device histogram, metres. Not given in ST's
@@ -201,8 +200,7 @@ def zone_frame_from_cnh(distance_mm: Sequence[float], bin_values: np.ndarray | S
         if np.any((codes < 0) | (codes > 255)):
             raise ValueError("target_status must hold integer codes in 0..255")
         status = codes.astype(np.uint8)
-        valid &= np.isin(status, status_codes(number_array(valid_status, "valid_status"),
-                                              "valid_status"))
+        valid &= np.isin(status, valid_status_codes(valid_status))
         from_status = status == NO_TARGET_STATUS
         no_target = from_status if no_target is None else no_target | from_status
     edges = cfg.edges_m()

@@ -23,6 +23,7 @@ from deltar.sensor.zone_values import (
     numbers,
     sensor_max_range_m,
     status_codes,
+    valid_status_codes,
 )
 
 
@@ -207,7 +208,7 @@ def driver_readings(
                              "and target")
         if values is not None:
             arrays[name] = number_array(values, name)
-    valid_codes = status_codes(number_array(valid_status, "valid_status"), "valid_status")
+    valid_codes = valid_status_codes(valid_status)
     if orientation is not None and not callable(getattr(orientation, "apply", None)):
         raise ValueError(f"orientation must be an Orientation (e.g. Orientation(flip_ud="
                          f"True)) or None, got {orientation!r}")

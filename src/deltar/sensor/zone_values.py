@@ -5,6 +5,7 @@ frame (:mod:`deltar.sensor.zone_frame`) and its readers use."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -71,6 +72,17 @@ def number_array(values, name: str) -> np.ndarray:
     except ValueError:
         raise ValueError(f"{name} must be a flat list of numbers or rows of equal length, "
                          "got nested lists of different lengths") from None
+
+
+def valid_status_codes(values: Any, name: str = "valid_status") -> np.ndarray:
+    """The status codes that count as valid: one integer or any iterable of them (a
+    list, tuple, set, range or array), as uint8, refusing what is not a code 0..255."""
+    if isinstance(values, int | np.integer) and not isinstance(values, bool):
+        values = [values]
+    elif not isinstance(values, str | bytes | np.ndarray | list | tuple) and hasattr(
+            values, "__iter__"):
+        values = list(values)
+    return status_codes(number_array(values, name), name)
 
 
 def status_codes(values, name: str) -> np.ndarray:

@@ -47,14 +47,25 @@ def check_trainer_limits(trainer: Any, where: str) -> None:
     if trainer.val_check_interval is not None and trainer.val_check_interval < 1:
         raise ValueError(f"{where}.val_check_interval must be >= 1 step or null, got "
                          f"{trainer.val_check_interval}")
-    for name in ("limit_train_batches", "limit_val_batches"):
+    for name, off in (("limit_train_batches", False), ("limit_val_batches", True)):
         limit = getattr(trainer, name)
-        whole = isinstance(limit, int) and not isinstance(limit, bool)
-        if limit is not None and not ((whole and limit >= 1) or
-                                      (isinstance(limit, float) and 0.0 < limit <= 1.0)):
+        if not _batch_limit_ok(limit, off):
             raise ValueError(f"{where}.{name} must be a number of batches >= 1, a fraction "
-                             f"in (0, 1] or null, got {limit}")
+                             f"in (0, 1]{', 0 (no validation)' if off else ''} or null, got "
+                             f"{limit}")
     for name, value, names in (("precision", trainer.precision, PRECISIONS),
                                ("accelerator", trainer.accelerator, ACCELERATORS)):
         if str(value) not in names:
             raise ValueError(f"{where}.{name} must be one of {names}, got {value!r}")
+
+
+def _batch_limit_ok(limit: Any, zero_allowed: bool) -> bool:
+    """A Lightning batch limit: None (all), whole batches >= 1, a fraction in (0, 1], and
+    where ``zero_allowed`` 0 (validation switched off)."""
+    if limit is None:
+        return True
+    if isinstance(limit, bool) or not isinstance(limit, int | float):
+        return False
+    if limit == 0:
+        return zero_allowed
+    return limit >= 1 if isinstance(limit, int) else 0.0 < limit <= 1.0

@@ -12,6 +12,7 @@ so Lightning can store that in a checkpoint and a resumed run skips exactly thos
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from collections.abc import Iterator, Sequence
@@ -482,10 +483,17 @@ class DeltarDataModule(L.LightningDataModule):
         return DataLoader(self.val_set, batch_size=self.config.val_batch_size, sampler=sampler,
                           num_workers=self.config.num_workers, collate_fn=collate_frames)
 
-    def check_val_frames(self, rank: int, world: int) -> None:
+    def check_val_frames(self, rank: int, world: int,
+                         limit: int | float | None = None) -> None:
         """Read and batch this process's validation frames once before training, as the
-        validation will: a missing or corrupt frame, or frames that cannot share a
-        batch, then fail at once and not after the first epoch's training."""
-        if self.val_set is not None and len(self.val_set):
-            for _ in self.val_dataloader((rank, world)):
-                pass
+        validation will (``limit``: ``trainer.limit_val_batches``, 0 for none): a missing
+        or corrupt frame, or frames that cannot share a batch, then fail at once and not
+        after the first epoch's training."""
+        if self.val_set is None or not len(self.val_set) or limit == 0:
+            return
+        loader = self.val_dataloader((rank, world))
+        batches = len(loader) if limit is None else (
+            min(int(limit), len(loader)) if isinstance(limit, int)
+            else max(1, int(limit * len(loader))))
+        for _ in itertools.islice(loader, batches):
+            pass

@@ -200,7 +200,8 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     """
     given = run_dir is not None
     run_dir = Path(run_dir) if given else _default_run_dir(config)
-    _refuse_run_dir_in_inputs(config, run_dir, "run_dir" if given else "output_dir")
+    if not resume:  # a run kept where it was made resumes there
+        _refuse_run_dir_in_inputs(config, run_dir, "run_dir" if given else "output_dir")
     config_path = run_dir / CONFIG_NAME
     checkpoint = run_dir / "checkpoints" / LAST_CHECKPOINT
     if resume:
@@ -252,7 +253,8 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
             raise FileExistsError(f"run folder {run_dir} already holds {what}, or choose a "
                                   "new folder")
     # Before any training, and before config.yaml makes the folder a run's.
-    data.check_val_frames(trainer.global_rank, trainer.world_size)
+    data.check_val_frames(trainer.global_rank, trainer.world_size,
+                          config.trainer.limit_val_batches)
     if trainer.is_global_zero and not resume:
         write_text_atomic(config_path, config.to_yaml(), overwrite=False)
     # Processes that Lightning launches itself (strategy "ddp" without torchrun) inherit
