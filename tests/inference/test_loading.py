@@ -221,3 +221,11 @@ def test_a_gpu_the_machine_lacks_is_named_before_any_weights_load(monkeypatch):
                        r"this machine \(use device='cpu'\)$"):
         load_estimator("default", device="cuda:0")
     assert load_estimator("default", device=torch.device("cpu")).device.type == "cpu"
+
+
+def test_an_onnx_session_takes_no_more_threads_than_the_machine_can_use():
+    from deltar.inference.onnx_runtime import OnnxDepthModel
+    from deltar.weights import bundled_onnx
+
+    with pytest.raises(ValueError, match=r"^num_threads must be between 1 and \d+ "):
+        OnnxDepthModel(bundled_onnx("default"), num_threads=10**6)

@@ -128,3 +128,17 @@ def test_the_panel_draws_the_flags_the_prediction_used(rng):
     _, _, far, _, title = _panel_zones_and_range(prediction)
     np.testing.assert_array_equal(far, used)
     assert "no target" in title
+
+
+def test_write_prediction_checks_everything_before_its_first_file(tmp_path, rng):
+    pred = _prediction(rng)
+    image = rng.integers(0, 256, (32, 48, 3), dtype=np.uint8)
+    for bad, message in ((image[:16], r"image must be .* 32x48|image .*32"),
+                         (image[..., 0], "image must be an .H, W, 3. uint8 RGB image")):
+        with pytest.raises(ValueError, match=message):
+            write_prediction(tmp_path / "out", "frame", bad, pred)
+    with pytest.raises(ValueError, match="prediction must be a DepthPrediction, got dict"):
+        write_prediction(tmp_path / "out", "frame", image, {"depth_m": 1})
+    with pytest.raises(ValueError, match="stem must be a file name without folders"):
+        write_prediction(tmp_path / "out", "../frame", image, pred)
+    assert not (tmp_path / "out").exists() and list(tmp_path.iterdir()) == []

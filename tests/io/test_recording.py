@@ -253,3 +253,16 @@ def test_an_interrupted_writes_temporaries_are_no_frames(tmp_path):
     RecordingWriter(rec, RecordingMeta(CAMERA, grid=4)).add_color(
         0.3, np.zeros((24, 32, 3), np.uint8))
     assert len(Recording(rec).color_times_s) == 3
+
+
+def test_a_frame_the_reader_would_refuse_is_not_written(tmp_path):
+    """Millimetres written as metres would make the whole recording unreadable."""
+    writer = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    writer.add_zone_frame(_zone_frame(1.0))
+    with pytest.raises(ValueError, match=r"refusing to write a zone frame its reader would "
+                       r"refuse: 16 valid zone\(s\) read distances outside"):
+        writer.add_zone_frame(_zone_frame(2.0, value=2000.0))
+    with pytest.raises(ValueError, match="frame must be a ZoneFrame, got dict"):
+        writer.add_zone_frame({"mean_m": [1.0] * 16})
+    writer.add_zone_frame(_zone_frame(3.0))
+    assert [f.timestamp_s for f in Recording(tmp_path / "rec").zone_frames()] == [1.0, 3.0]

@@ -124,7 +124,9 @@ class OnnxDepthModel:
         self._options = (num_threads, allow_spinning)
         options = ort.SessionOptions()
         if num_threads:
-            options.intra_op_num_threads = int(num_threads)
+            from deltar.io.resources import check_threads
+
+            options.intra_op_num_threads = check_threads(num_threads, "num_threads")
             options.inter_op_num_threads = 1
         if not allow_spinning:
             options.add_session_config_entry("session.intra_op.allow_spinning", "0")

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics, backproject_pixels
+from deltar.camera import CameraIntrinsics, backproject_pixels, check_image
 from deltar.io import ply
 from deltar.io.atomic import atomic_path, write_bytes_atomic
 
@@ -308,6 +308,12 @@ def write_prediction(out_dir: str | os.PathLike, stem: str, image: np.ndarray,
     unknown = set(kinds) - set(OUTPUT_KINDS)
     if unknown:
         raise ValueError(f"unknown output kinds {sorted(unknown)}; known: {list(OUTPUT_KINDS)}")
+    # Everything checked before the first file: a failure never leaves some outputs.
+    if not hasattr(prediction, "depth_m") or not hasattr(prediction, "uncertainty_m"):
+        raise ValueError(f"prediction must be a DepthPrediction, got {type(prediction).__name__}")
+    check_image(image, "image", prediction.depth_m.shape)
+    if Path(stem).name != stem or stem in ("", ".", ".."):
+        raise ValueError(f"stem must be a file name without folders, got {stem!r}")
     note = IMAGE_ONLY_NOTE if getattr(prediction, "image_only", False) else None
     if note:
         title = f"{title} - {note.upper()}" if title else note.upper()

@@ -29,7 +29,7 @@ from deltar.io.atomic import atomic_path, write_bytes_atomic, write_text_atomic
 from deltar.io.input_file import input_file, input_folder, reading
 from deltar.io.json_file import read_json
 from deltar.io.pose_file import POSE_DIR, write_pose_file
-from deltar.io.zone_file import zone_frame_from_dict, zone_frame_to_dict
+from deltar.io.zone_file import check_writable, zone_frame_from_dict, zone_frame_to_dict
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -153,7 +153,14 @@ class RecordingWriter:
         """Nothing to finish: every item is complete on disk once its call returns."""
 
     def add_zone_frame(self, frame: ZoneFrame) -> None:
-        """Append one zone frame (must have a timestamp later than the previous one)."""
+        """Append one zone frame (must have a timestamp later than the previous one).
+
+        Raises:
+            ValueError: no timestamp, another grid, a time not after the previous frame's,
+                or a frame the reader would refuse (which would make the whole recording
+                unreadable: :func:`deltar.io.zone_file.check_writable`).
+        """
+        check_writable(frame)
         if frame.timestamp_s is None:
             raise ValueError("frame.timestamp_s is required in a recording")
         if frame.grid != self.meta.grid:

@@ -30,6 +30,7 @@ from deltar.io.ros_messages import (
     stamped_header,
     typestore,
 )
+from deltar.io.zone_file import check_writable
 from deltar.sensor.zone_frame import ZoneFrame
 from deltar.sensor.zone_values import NO_TARGET_STATUS
 
@@ -226,8 +227,10 @@ class BagWriter:
         else), so that the flags survive the message.
 
         Raises:
-            ValueError: a frame with targets for a topic that carries ``ZoneFrame``.
+            ValueError: a frame with targets for a topic that carries ``ZoneFrame``, or
+                one a reader would refuse (:func:`deltar.io.zone_file.check_writable`).
         """
+        check_writable(frame)
         mean, sigma, valid = frame.flat()
         empty = np.zeros(0, dtype=np.float32)
         status = frame.status

@@ -56,8 +56,31 @@ _TARGET_KEYS = ("target_mean_m", "target_sigma_m", "target_valid", "target_statu
                 "target_signal")
 
 
+def check_writable(frame: Any) -> ZoneFrame:
+    """Refuse to write what no reader would read back: not a ``ZoneFrame``, fields
+    reassigned inconsistently since it was made, or a reading no sensor can give (e.g.
+    millimetres as metres; :meth:`ZoneFrame.physical_error`). A recording holding such a
+    frame could not be read at all.
+
+    Raises:
+        ValueError: naming what is wrong.
+    """
+    if not isinstance(frame, ZoneFrame):
+        raise ValueError(f"frame must be a ZoneFrame, got {type(frame).__name__}")
+    frame.validate()
+    problem = frame.physical_error()
+    if problem is not None:
+        raise ValueError(f"refusing to write a zone frame its reader would refuse: {problem}")
+    return frame
+
+
 def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
-    """The JSON-ready dict of ``frame`` (flat row-major lists; metres; see module doc)."""
+    """The JSON-ready dict of ``frame`` (flat row-major lists; metres; see module doc).
+
+    Raises:
+        ValueError: a frame no reader would read back (:func:`check_writable`).
+    """
+    check_writable(frame)
     mean, sigma, valid = frame.flat()
     data: dict[str, Any] = {
         "schema": SCHEMA_NAME,
