@@ -118,3 +118,16 @@ def test_settings_refuse_bad_numbers():
         MapSettings(truncation_voxels=0.5)
     with pytest.raises(ValueError, match="max_memory_bytes"):
         MapSettings(max_memory_bytes=10)
+
+
+def test_integrate_takes_a_float32_pose_and_names_bad_frames():
+    rgb, depth = render_wall(pose_at(0.0))
+    volume = TSDFMap(COARSE)
+    assert volume.integrate(depth, rgb, None, SMALL, pose_at(0.0).astype(np.float32)) > 0
+    for pose, message in ((np.eye(3), "a pose must be a 4x4 matrix"),
+                          (np.full((4, 4), np.nan), "NaN or infinite"),
+                          (np.diag([2.0, 2.0, 2.0, 1.0]), "not a rotation")):
+        with pytest.raises(ValueError, match=f"camera_to_world: .*{message}"):
+            volume.integrate(depth, rgb, None, SMALL, pose)
+    with pytest.raises(ValueError, match=r"color_rgb must be an \(H, W, 3\) uint8 RGB image"):
+        volume.integrate(depth, None, None, SMALL, pose_at(0.0))

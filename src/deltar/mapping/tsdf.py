@@ -243,10 +243,16 @@ class TSDFMap:
         """
         import torch
 
+        from deltar.camera import check_image
+        from deltar.io.pose_file import check_pose
+
         depth = np.asarray(depth_m, dtype=np.float32)
+        if depth.ndim != 2:
+            raise ValueError(f"depth_m must be (H, W) metres, got shape {depth.shape}")
         height, width = depth.shape
-        if color_rgb.shape != (height, width, 3):
-            raise ValueError(f"color_rgb must be {(height, width, 3)}, got {color_rgb.shape}")
+        color_rgb = check_image(color_rgb, "color_rgb", (height, width))
+        # A rigid float64 transform whatever the caller's dtype (Open3D takes only that).
+        camera_to_world = check_pose(camera_to_world, "camera_to_world")
         if (intrinsics.height, intrinsics.width) != (height, width):
             raise ValueError(f"intrinsics are for {intrinsics.height}x{intrinsics.width}, "
                              f"the depth is {height}x{width}")
