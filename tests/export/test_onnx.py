@@ -429,3 +429,17 @@ def test_an_onnx_file_from_before_the_key_reads_mean_and_sigma(lite_export, tmp_
     estimator = load_estimator(tmp_path / "old.onnx", kind="onnx", threads=1)
     assert "histogram_hypotheses" not in estimator.onnx_model.contract
     assert estimator.histogram_hypotheses is False
+
+
+def test_export_leaves_the_callers_model_as_it_was_and_names_bad_arguments(tmp_path):
+    model = create_model("deltar-lite").train().to(torch.bfloat16)
+    export_onnx(model, tmp_path / "m.onnx", 48, 64)
+    assert model.training and next(model.parameters()).dtype == torch.bfloat16
+    for kwargs, message in (({"model": None}, "model must be a DeltarNet"),
+                            ({"height": float("nan")}, "height and width must be positive"),
+                            ({"zone_rects": np.zeros((3, 3))}, r"zone_rects must be \(Z, 4\)")):
+        arguments = {"model": model, "height": 48, "zone_rects": None, **kwargs}
+        with pytest.raises(ValueError, match=message):
+            export_onnx(arguments["model"], tmp_path / "n.onnx", arguments["height"], 64,
+                        zone_rects=arguments["zone_rects"])
+    assert not (tmp_path / "n.onnx").exists()

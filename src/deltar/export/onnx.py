@@ -19,6 +19,7 @@ records); nothing is patched here.
 from __future__ import annotations
 
 import contextlib
+import copy
 import functools
 import json
 import os
@@ -167,12 +168,25 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
 
     from deltar.io.atomic import atomic_path
 
-    if height < 1 or width < 1:
-        raise ValueError(f"height and width must be positive, got {height}x{width}")
+    if not isinstance(model, torch.nn.Module) or not hasattr(model, "config"):
+        raise ValueError(f"model must be a DeltarNet (e.g. load_checkpoint(path)[0]), got "
+                         f"{type(model).__name__}")
+    if not all(isinstance(v, int | np.integer) and not isinstance(v, bool) and v >= 1
+               for v in (height, width)):
+        raise ValueError(f"height and width must be positive whole pixels, got "
+                         f"{height!r}x{width!r}")
+    if zone_rects is not None:
+        zone_rects = np.asarray(zone_rects, dtype=np.float32)
+        if zone_rects.ndim != 2 or zone_rects.shape[1] != 4 or \
+                round(zone_rects.shape[0] ** 0.5) ** 2 != zone_rects.shape[0] or \
+                not np.all(np.isfinite(zone_rects)):
+            raise ValueError(f"zone_rects must be (Z, 4) finite (y0, x0, y1, x1) pixels of "
+                             f"an n x n grid, got shape {zone_rects.shape}")
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"refusing to overwrite existing file: {path}")
-    model = model.eval().float().cpu()
+    # A copy: the caller's model keeps its mode, dtype and device.
+    model = copy.deepcopy(model).eval().float().cpu()
     inputs = example_inputs(model, height, width, zone_rects)
     grid = round(inputs[2].shape[1] ** 0.5)
     # Only the zone-patch fusion bakes the layout's shape into the graph; a network
