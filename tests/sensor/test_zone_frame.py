@@ -274,3 +274,14 @@ def test_valid_status_takes_one_code_or_any_iterable_of_codes():
     for codes in (5, range(5, 10), {5, 9}, (5,), np.array([5, 9])):
         frame = ZoneFrame.from_driver([1500] * 64, [20] * 64, [5] * 64, valid_status=codes)
         assert frame.valid_count == 64, codes
+
+
+def test_an_unknown_sensor_model_is_still_held_to_a_range_no_sensor_reaches():
+    """A typo in sensor_model must not let millimetres through as metres."""
+    def frame(model, metres):
+        return ZoneFrame(np.full((8, 8), metres), np.full((8, 8), 0.02),
+                         np.ones((8, 8), bool), sensor_model=model)
+
+    assert "outside the VL53L5 range 0 < d <= 20 m" in frame("VL53L5", 2000.0).physical_error()
+    assert frame("simulated", 6.0).physical_error() is None  # beyond 4 m, within 20
+    assert frame("VL53L5CX", 6.0).physical_error() is not None

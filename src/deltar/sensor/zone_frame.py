@@ -56,6 +56,11 @@ def no_target_as_readings(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
 
 
 
+#: The range the physical checks hold a frame of an unknown sensor model to, metres: no
+#: multi-zone ToF sensor reads this far (its list: SENSOR_MAX_RANGE_M).
+UNKNOWN_MODEL_MAX_RANGE_M = 20.0
+
+
 @dataclass(frozen=True)
 class Orientation:
     """How the driver's zone grid maps onto the image grid.
@@ -283,18 +288,26 @@ class ZoneFrame:
         models)."""
         return sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
 
+    def _checked_limit_m(self, max_range_m: float | None) -> float:
+        """:meth:`range_limit_m` for the physical checks: an unknown model (a typo, or a
+        sensor not listed) is still held to :data:`UNKNOWN_MODEL_MAX_RANGE_M`, which no
+        multi-zone ToF sensor reaches (millimetres written as metres exceed it)."""
+        limit = self.range_limit_m(max_range_m)
+        return limit if math.isfinite(limit) else UNKNOWN_MODEL_MAX_RANGE_M
+
     def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
         """Valid zones whose distance is physically impossible for the sensor.
 
         Args:
             max_range_m: largest possible distance in metres; by default the sensor
-                model's (:data:`SENSOR_MAX_RANGE_M`, no limit for unknown models).
+                model's (:data:`SENSOR_MAX_RANGE_M`; :data:`UNKNOWN_MODEL_MAX_RANGE_M` for
+                unknown models).
 
         Returns:
             (n, n) bool, True where a zone is flagged valid but reads ``d <= 0`` or
             ``d > max_range_m``.
         """
-        limit = self.range_limit_m(max_range_m)
+        limit = self._checked_limit_m(max_range_m)
         return self.valid & ((self.mean_m <= 0) | (self.mean_m > limit))
 
     def range_error(self, max_range_m: float | None = None) -> str | None:
@@ -306,7 +319,7 @@ class ZoneFrame:
         bad = np.flatnonzero(self.out_of_range(max_range_m).reshape(-1))
         if bad.size == 0:
             return None
-        limit = self.range_limit_m(max_range_m)
+        limit = self._checked_limit_m(max_range_m)
         readings = ", ".join(f"{self.mean_m.reshape(-1)[i]:.6g}" for i in bad[:5])
         more = f" and {bad.size - 5} more" if bad.size > 5 else ""
         return (f"{bad.size} valid zone(s) read distances outside the {self.sensor_model} "
@@ -325,7 +338,8 @@ class ZoneFrame:
 
         Args:
             max_range_m: the largest possible distance in metres; by default the sensor
-                model's (:data:`SENSOR_MAX_RANGE_M`, no limit for unknown models).
+                model's (:data:`SENSOR_MAX_RANGE_M`; :data:`UNKNOWN_MODEL_MAX_RANGE_M` for
+                unknown models).
 
         Returns:
             The first problem, naming the zones (flat row-major indices, at most five)
@@ -340,7 +354,7 @@ class ZoneFrame:
         problem = self.range_error(max_range_m)
         if problem is not None:
             return problem
-        limit = self.range_limit_m(max_range_m)
+        limit = self._checked_limit_m(max_range_m)
         wide = np.flatnonzero(valid & (sigma > limit))
         if wide.size:
             values = ", ".join(f"{sigma[i]:.6g}" for i in wide[:5])

@@ -25,7 +25,8 @@ NEIGHBOURS_3x3: tuple[tuple[int, int], ...] = tuple(
     (dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
 #: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
-#: A valid zone must read ``0 < d <= range``; unknown models have no upper limit.
+#: A valid zone must read ``0 < d <= range``; the physical checks hold unknown models
+#: to ``deltar.sensor.zone_frame.UNKNOWN_MODEL_MAX_RANGE_M``.
 SENSOR_MAX_RANGE_M: dict[str, float] = {"VL53L5CX": 4.0, "VL53L8CX": 4.0}
 
 
