@@ -381,3 +381,16 @@ def test_the_depth_moves_to_reproduce_the_zones_readings_as_the_weights_say(rng)
     assert after < 0.85 * before
     with pytest.raises(ValueError, match="zone_consistency"):
         DepthEstimator(model, weights="test", zone_consistency=-0.1)
+
+
+def test_a_zone_frame_changed_after_it_was_made_is_checked_again(rng):
+    """Its fields may be reassigned (the dataclass is not frozen): predict names it."""
+    estimator = load_estimator("default", kind="onnx")
+    frame = ZoneFrame(np.full((8, 8), 2.0), np.full((8, 8), 0.02), np.ones((8, 8), bool))
+    frame.mean_m = frame.mean_m.ravel()
+    image = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    with pytest.raises(ValueError, match=r"^zone_frame: ZoneFrame\.mean_m must have shape"):
+        estimator.predict(image, frame)
+    with pytest.raises(ValueError, match=r"^zone_frame\[1\]: ZoneFrame\.mean_m"):
+        estimator.predict([image, image], [ZoneFrame(np.full((8, 8), 2.0), np.full((8, 8), 0.02),
+                                                     np.ones((8, 8), bool)), frame])

@@ -148,11 +148,24 @@ def batch_arguments(image: Any, zone_frame: Any
             raise ValueError("zone_frame must be a ZoneFrame (e.g. from "
                              "deltar.io.zone_file.load_zone_frame), got "
                              f"{describe_argument(zone_frame, _ZONE_READER)}")
+        _revalidated(zone_frame, "zone_frame")
         return True, images, [zone_frame]
     if not isinstance(zone_frame, (list, tuple)):
         raise ValueError(f"for a batch of {len(images)} images, zone_frame must be a list of "
                          f"ZoneFrame, got {describe_argument(zone_frame, _ZONE_READER)}")
+    for index, frame in enumerate(zone_frame):
+        if isinstance(frame, ZoneFrame):
+            _revalidated(frame, f"zone_frame[{index}]")
     return False, images, list(zone_frame)
+
+
+def _revalidated(frame: ZoneFrame, name: str) -> None:
+    """A frame's fields checked again (they may have been reassigned since it was made),
+    naming ``name``."""
+    try:
+        frame.validate()
+    except (ValueError, TypeError, AttributeError) as err:
+        raise ValueError(f"{name}: {err}") from err
 
 
 def check_calibration(calibration: Any) -> None:
