@@ -57,13 +57,14 @@ def test_impossible_distances_raise(estimator, image, mean, shown):
 def test_nan_written_into_a_frame_of_a_batch_names_that_frame(estimator, image):
     good, bad = _frame(), _frame()
     bad.mean_m[3, 3] = np.nan  # after construction, as a reused buffer would
-    with pytest.raises(ValueError, match=r"^frames\[1\]: 1 valid zone\(s\) have a NaN"):
+    with pytest.raises(ValueError, match=r"^zone_frame\[1\]: ZoneFrame\.mean_m has NaN or "
+                       r"infinite values in valid zones \[\[3, 3\]\]"):
         estimator.predict([image, image], [good, bad])
 
 
 def test_range_follows_the_sensor_model_and_max_range_m(estimator, image, lite_model):
     far = _frame(np.r_[6.0, np.full(63, 1.5)], sensor_model="OTHER-TOF")
-    assert estimator.predict(image, far).zones_used == 64  # unknown model: no upper limit
+    assert estimator.predict(image, far).zones_used == 64  # unknown model: up to 20 m
     strict = DepthEstimator(lite_model, max_range_m=2.0, fold_batch_norms=False)
     with pytest.raises(ValueError, match="range 0 < d <= 2 m"):
         strict.predict(image, _frame(np.r_[3.0, np.full(63, 1.5)]))
