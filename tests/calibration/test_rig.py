@@ -143,6 +143,10 @@ def test_distortion_and_time_offset_round_trip_and_undistort(tmp_path):
     moved = calib.undistort_image(depth, nearest=True)
     assert set(np.unique(moved)) <= {0.0, 1.0, 3.0} and (moved == 1.0).any()
     assert not set(np.unique(calib.undistort_image(depth))) <= {0.0, 1.0, 3.0}
+    # What remap cannot take is named (was OpenCV's assertion).
+    for bad in (depth.astype(np.int64), depth > 1, depth[None], None):
+        with pytest.raises(ValueError, match=r"^image must be \(H, W\) or \(H, W, C\) of"):
+            calib.undistort_image(bad)
 
 
 def test_undistorting_keeps_its_maps_and_matches_opencv():

@@ -237,6 +237,12 @@ class RigCalibration:
         import cv2
 
         image = np.asarray(image)
+        # What OpenCV's remap takes: 8/16-bit integers or 32/64-bit floats, 1-4 channels.
+        if image.ndim not in (2, 3) or (image.ndim == 3 and not 1 <= image.shape[2] <= 4) \
+                or image.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
+            raise ValueError(f"image must be (H, W) or (H, W, C) of uint8, uint16, int16, "
+                             f"float32 or float64, got shape {image.shape} and dtype "
+                             f"{image.dtype}")
         self.check_image_size(image.shape[:2], "image")
         return cv2.remap(image, *self._undistortion_maps(nearest),
                          cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
