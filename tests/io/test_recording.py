@@ -266,3 +266,11 @@ def test_a_frame_the_reader_would_refuse_is_not_written(tmp_path):
         writer.add_zone_frame({"mean_m": [1.0] * 16})
     writer.add_zone_frame(_zone_frame(3.0))
     assert [f.timestamp_s for f in Recording(tmp_path / "rec").zone_frames()] == [1.0, 3.0]
+
+
+def test_metadata_the_reader_would_refuse_is_not_made():
+    for changes, message in (({"grid": 5}, "grid must be 4 or 8, got 5"),
+                             ({"fov_deg": (float("nan"), 45.0)}, "fov_deg must be two angles")):
+        with pytest.raises(ValueError, match=message):
+            RecordingMeta(CAMERA, **changes)
+    assert RecordingMeta(CAMERA, fov_deg=(np.float32(45.0), 45)).grid == 8

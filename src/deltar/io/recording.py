@@ -15,6 +15,7 @@ All timestamps are seconds on one clock shared by the sensor and the cameras.
 from __future__ import annotations
 
 import json
+import numbers
 import os
 import time
 import warnings
@@ -58,6 +59,15 @@ class RecordingMeta:
     fov_deg: tuple[float, float] = DEFAULT_FOV_DEG
     created: str = ""
 
+    def __post_init__(self) -> None:
+        # What from_dict refuses is never written: the recording would not read back.
+        if self.grid not in (4, 8) or isinstance(self.grid, bool):
+            raise ValueError(f"RecordingMeta.grid must be 4 or 8, got {self.grid!r}")
+        fov = tuple(self.fov_deg)
+        if len(fov) != 2 or not all(isinstance(f, numbers.Real) and 0 < f < 180 for f in fov):
+            raise ValueError(f"RecordingMeta.fov_deg must be two angles in (0, 180) degrees, "
+                             f"got {self.fov_deg!r}")
+
     def to_dict(self) -> dict:
         return {"schema_version": RECORDING_SCHEMA_VERSION,
                 "intrinsics": self.intrinsics.to_dict(), "sensor_model": self.sensor_model,
@@ -80,8 +90,11 @@ class RecordingMeta:
             raise ValueError(f"{source}: invalid recording metadata: {err}") from err
         if grid not in (4, 8) or len(fov_values) != 2:
             raise ValueError(f"{source}: grid must be 4 or 8 and fov_deg two angles")
-        return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid,
-                   (fov_values[0], fov_values[1]), str(data.get("created", "")))
+        try:
+            return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid,
+                       (fov_values[0], fov_values[1]), str(data.get("created", "")))
+        except ValueError as err:
+            raise ValueError(f"{source}: invalid recording metadata: {err}") from err
 
 
 def timestamp_to_ns(timestamp_s: float) -> int:
