@@ -59,12 +59,11 @@ class RecordingMeta:
     fov_deg: tuple[float, float] = DEFAULT_FOV_DEG
     created: str = ""
 
-    def __post_init__(self) -> None:
-        # What from_dict refuses is never written: the recording would not read back.
+    def __post_init__(self) -> None:  # what the reader refuses is never written
         if self.grid not in (4, 8) or isinstance(self.grid, bool):
             raise ValueError(f"RecordingMeta.grid must be 4 or 8, got {self.grid!r}")
-        fov = tuple(self.fov_deg)
-        if len(fov) != 2 or not all(isinstance(f, numbers.Real) and 0 < f < 180 for f in fov):
+        if len(self.fov_deg) != 2 or not all(isinstance(f, numbers.Real) and 0 < f < 180
+                                             for f in self.fov_deg):
             raise ValueError(f"RecordingMeta.fov_deg must be two angles in (0, 180) degrees, "
                              f"got {self.fov_deg!r}")
 
@@ -86,14 +85,9 @@ class RecordingMeta:
             fov_values = [strict_number(f, "fov_deg") for f in data.get("fov_deg",
                                                                         DEFAULT_FOV_DEG)]
             grid = strict_integer(data.get("grid", 8), "grid")
+            return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid,  # checks them
+                       tuple(fov_values), str(data.get("created", "")))
         except (KeyError, TypeError, ValueError) as err:
-            raise ValueError(f"{source}: invalid recording metadata: {err}") from err
-        if grid not in (4, 8) or len(fov_values) != 2:
-            raise ValueError(f"{source}: grid must be 4 or 8 and fov_deg two angles")
-        try:
-            return cls(intr, str(data.get("sensor_model", "VL53L5CX")), grid,
-                       (fov_values[0], fov_values[1]), str(data.get("created", "")))
-        except ValueError as err:
             raise ValueError(f"{source}: invalid recording metadata: {err}") from err
 
 
