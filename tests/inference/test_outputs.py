@@ -52,6 +52,8 @@ def test_colorize_range_and_invalid():
     np.testing.assert_array_equal(rgb[0, 0], (np.array(turbo(0.0)[:3]) * 255 + 0.5).astype(int))
     np.testing.assert_array_equal(rgb[0, 2], (np.array(turbo(1.0)[:3]) * 255 + 0.5).astype(int))
     np.testing.assert_array_equal(rgb[0, 3], [0, 0, 0])
+    with pytest.raises(ValueError, match="unknown colour map 'bogus'"):
+        colorize(np.ones((2, 2)), cmap="bogus")  # was matplotlib's KeyError
 
 
 def test_point_cloud_back_projection_by_hand():

@@ -62,6 +62,9 @@ def colormap(scaled: np.ndarray, name: str = "turbo") -> np.ndarray:
     if has_matplotlib():
         import matplotlib
 
+        if name not in matplotlib.colormaps:
+            raise ValueError(f"unknown colour map {name!r}; e.g. turbo, viridis, magma "
+                             "(matplotlib's names)")
         return matplotlib.colormaps[name](values)[..., :3]
     # matplotlib's lookup of its 256-entry tables: int(x * 256), the top value in the last.
     index = np.minimum((values * 256).astype(np.int64), 255)
