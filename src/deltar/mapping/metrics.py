@@ -32,7 +32,8 @@ def map_scores(points_m: np.ndarray, reference_m: np.ndarray,
         (fractions 0..1); ``points`` and ``reference_points`` (counts).
 
     Raises:
-        ValueError: a point set that is empty or not (N, 3).
+        ValueError: a point set that is empty or not (N, 3); thresholds that are not
+            positive, or two in one whole centimetre (their scores would share a key).
     """
     from scipy.spatial import cKDTree
 
@@ -41,6 +42,12 @@ def map_scores(points_m: np.ndarray, reference_m: np.ndarray,
     for name, array in (("points_m", points), ("reference_m", reference)):
         if array.ndim != 2 or array.shape[1] != 3 or len(array) == 0:
             raise ValueError(f"{name} must be a non-empty (N, 3) array, got {array.shape}")
+    finite = all(np.isfinite(t) and t > 0 for t in thresholds_m)
+    keys = [round(float(t) * 100) for t in thresholds_m] if finite else []
+    if not finite or len(set(keys)) != len(keys):
+        # Scores are keyed by whole centimetres: two thresholds in one would overwrite.
+        raise ValueError(f"thresholds_m must be positive metres of distinct whole "
+                         f"centimetres, got {list(thresholds_m)}")
     to_reference, _ = cKDTree(reference).query(points, workers=1)
     to_points, _ = cKDTree(points).query(reference, workers=1)
     scores = {"accuracy_m": float(to_reference.mean()),
