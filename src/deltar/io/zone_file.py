@@ -76,11 +76,7 @@ def check_writable(frame: Any) -> ZoneFrame:
 
 def zone_frame_to_dict(frame: ZoneFrame) -> dict[str, Any]:
     """The JSON-ready dict of ``frame`` (flat row-major lists; metres; see module doc).
-
-    Raises:
-        ValueError: a frame no reader would read back (:func:`check_writable`).
-    """
-    check_writable(frame)
+    The writers check the frame first (:func:`check_writable`)."""
     mean, sigma, valid = frame.flat()
     data: dict[str, Any] = {
         "schema": SCHEMA_NAME,
@@ -306,10 +302,13 @@ def save_zone_frame(path: str | os.PathLike, frame: ZoneFrame, *,
 
     Returns:
         The written path.
+
+    Raises:
+        ValueError: a frame its reader would refuse (:func:`check_writable`).
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    data = zone_frame_to_dict(frame)
+    data = zone_frame_to_dict(check_writable(frame))
     if suffix == ".json":
         return write_text_atomic(path, json.dumps(data, allow_nan=False) + "\n",
                                  overwrite=overwrite)
