@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import sys
 from collections.abc import Iterable
 from pathlib import Path
@@ -101,10 +100,10 @@ def torch_device(name: str, option: str = "--device") -> str:
             no such GPU on this machine.
     """
     from deltar.extras import torch_available
-    from deltar.inference.checks import check_device
+    from deltar.inference.checks import DEVICE_NAME, check_device
 
     # Told apart before torch is imported: a typo is a typo in the base install too.
-    if not re.fullmatch(r"(cpu|mps|cuda)(:\d+)?", name):
+    if not DEVICE_NAME.fullmatch(name):
         raise typer.BadParameter(f"unknown device {name!r}; use cpu, cuda, cuda:N or mps",
                                  param_hint=option)
     if not torch_available():

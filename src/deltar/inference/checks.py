@@ -42,6 +42,10 @@ def check_backend_options(precision: str, flip_average: bool, onnx: bool, *,
                          "zone layout)")
 
 
+#: The device names the PyTorch backend takes (``cpu``, ``cuda``, ``cuda:N``, ``mps``).
+DEVICE_NAME = re.compile(r"(cpu|mps|cuda)(:\d+)?")
+
+
 def check_device(name: Any, option: str = "device") -> str:
     """Check that PyTorch can run on device ``name`` here (``cpu``, ``cuda``, ``cuda:N``,
     ``mps``), naming ``option`` in the message; PyTorch must be installed for any but
@@ -52,7 +56,7 @@ def check_device(name: Any, option: str = "device") -> str:
     """
     if type(name).__name__ == "device":  # a torch.device: its text form
         name = str(name)
-    if not isinstance(name, str) or not re.fullmatch(r"(cpu|mps|cuda)(:\d+)?", name):
+    if not isinstance(name, str) or not DEVICE_NAME.fullmatch(name):
         raise ValueError(f"{option}: unknown device {name!r}; use cpu, cuda, cuda:N or mps")
     if name == "cpu":
         return name
