@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from deltar.inference.loading import load_estimator
-from deltar.inference.stream import run_pipelined
+from deltar.inference.stream import MAX_FINISHING, run_pipelined
 from tests.inference.fakes import random_frame, random_image
 
 
@@ -105,6 +105,39 @@ def test_closing_early_neither_hangs_nor_begins_everything() -> None:
     stream.close()
     assert first == [0, 1, 2]
     assert len(begun) <= 6  # at most two ahead of what was handed out
+
+
+def test_a_slow_finish_holds_the_network_back() -> None:
+    # A finish slower than begin and run must not let them run ahead of it without
+    # bound (each item run holds its inputs and outputs until it is handed out).
+    release = threading.Event()
+    ran = []
+
+    def endless():
+        count = 0
+        while True:
+            yield count
+            count += 1
+
+    def run(started: int) -> int:
+        ran.append(started)
+        return started
+
+    def finish(started: int, outputs: int) -> int:
+        if started == 0:
+            release.wait(10)
+        return outputs
+
+    timer = threading.Timer(0.3, release.set)
+    timer.start()
+    try:
+        stream = run_pipelined(endless(), lambda item: item, run, finish)
+        assert next(stream) == 0
+        stream.close()
+    finally:
+        timer.cancel()
+        release.set()
+    assert len(ran) <= MAX_FINISHING
 
 
 @pytest.mark.parametrize("source", ["default", "onnx"])

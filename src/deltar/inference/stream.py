@@ -22,6 +22,10 @@ Started = TypeVar("Started")
 Outputs = TypeVar("Outputs")
 Result = TypeVar("Result")
 
+#: Items run and not yet handed out, at most: the one being finished beside the next
+#: one's ``run`` and that one.
+MAX_FINISHING = 2
+
 
 def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
                   run: Callable[[Started], Outputs],
@@ -33,7 +37,9 @@ def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
     ``run`` of this one runs on the calling thread; ``finish`` runs on a second worker.
     A result is handed out as soon as it is finished, while the next item is still being
     drawn: with a live source (a camera that blocks until its next frame) each result
-    comes out without waiting for later frames.
+    comes out without waiting for later frames. At most :data:`MAX_FINISHING` items are
+    being finished at once: when ``finish`` is the slowest step, ``run`` waits for it,
+    so the items in flight (and their memory) stay bounded.
 
     Args:
         items: anything iterable; drawn on the worker thread, at most one ahead of the
@@ -63,9 +69,14 @@ def run_pipelined(items: Iterable[Item], begin: Callable[[Item], Started],
     try:
         upcoming = preparing.submit(draw_and_begin)
         while True:
-            # Hand out what is finished while the next item is drawn and begun.
+            # Hand out what is finished while the next item is drawn and begun; with
+            # MAX_FINISHING results in flight, wait for the oldest: a finish slower than
+            # begin and run would otherwise let them run ahead without bound.
             while finished:
-                wait([upcoming, finished[0]], return_when=FIRST_COMPLETED)
+                if len(finished) >= MAX_FINISHING:
+                    wait([finished[0]])
+                else:
+                    wait([upcoming, finished[0]], return_when=FIRST_COMPLETED)
                 if not finished[0].done():
                     break
                 yield finished.popleft().result()
