@@ -101,6 +101,19 @@ def test_a_wrong_square_size_is_refused(small_recording):
         calibrate_recording_with_board(small_recording, half, NOMINAL)
 
 
+def test_a_depth_image_among_the_colour_images_is_named(tmp_path):
+    import cv2
+
+    folder = tmp_path / "rec"
+    write_board_recording(folder, TRUE, SMALL, SPEC, _poses(12), mean_noise_m=0.01, seed=0)
+    recording = Recording(folder)
+    depth_like = recording.color_paths[3]
+    cv2.imwrite(str(depth_like), np.full((SMALL.height, SMALL.width), 1500, np.uint16))
+    with pytest.raises(ValueError, match=rf"{re.escape(str(depth_like))}: a uint16 image "
+                                         r"\(a depth map\?\), not an 8-bit colour image"):
+        calibrate_recording_with_board(Recording(folder), SPEC, NOMINAL)
+
+
 def test_too_few_views_with_the_board(tmp_path):
     poses = _poses(8)
     for pose in poses[3:]:  # the camera looks 1.5 m to the side of the board

@@ -235,9 +235,14 @@ def calibrate_recording_with_board(
         if path not in cache:
             import cv2
 
-            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            # Any depth kept, so a 16-bit image (a depth map in color/) is refused, not
+            # scaled to 8 bits and searched in vain for the board.
+            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
             if image is None:
                 raise ValueError(f"{path}: unreadable image")
+            if image.dtype != np.uint8:
+                raise ValueError(f"{path}: a {image.dtype} image (a depth map?), not an "
+                                 "8-bit colour image")
             if image.shape != (camera.height, camera.width):
                 raise ValueError(f"{path} is {image.shape[0]}x{image.shape[1]}, the "
                                  f"intrinsics are for {camera.height}x{camera.width}")
