@@ -88,6 +88,17 @@ def test_refuses_non_empty_output_and_bad_options(tmp_path):
     assert result.exit_code != 0
 
 
+@pytest.mark.parametrize("option", [["--stop", "-3"], ["--start", "-1"], ["--step", "0"],
+                                    ["--limit", "0"]])
+def test_a_negative_frame_range_is_refused_not_read_as_a_slice(tmp_path, option):
+    # "--stop -3" would otherwise select all but the last three frames.
+    result = runner.invoke(app, ["simulate", "procedural:4:0:32x32", str(tmp_path / "o"),
+                                 *option])
+    assert result.exit_code == 2, result.output
+    assert "--start and --stop must be >= 0, --step and --limit >= 1" in result.output
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("spec", ["procedural:x", "procedural:2:1:48by64", "procedural:2:-5",
                                   "procedural:2:0:64x96:7"])
 def test_bad_procedural_spec(tmp_path, spec):

@@ -114,8 +114,9 @@ def simulate_command(
 
     if layout not in SET_LAYOUTS:
         raise typer.BadParameter(f"--layout must be one of {SET_LAYOUTS}, got {layout!r}")
-    if step < 1 or start < 0 or (limit is not None and limit < 1):
-        raise typer.BadParameter("--start must be >= 0, --step and --limit >= 1")
+    if step < 1 or start < 0 or (limit is not None and limit < 1) or \
+            (stop is not None and stop < 0):
+        raise typer.BadParameter("--start and --stop must be >= 0, --step and --limit >= 1")
     finite(bias_mean, "--bias-mean")
     finite(bias_std, "--bias-std")
     cnh_config = _cnh_config(cnh, cnh_bins, cnh_range)
