@@ -43,3 +43,29 @@ def test_the_values_lightning_takes_pass():
         load_config(TINY, [f"trainer.limit_val_batches={off}"])
     with pytest.raises(ValueError, match="limit_train_batches must be"):
         load_config(TINY, ["trainer.limit_train_batches=0"])
+
+
+@pytest.mark.parametrize(("overrides", "message"), [
+    # 50 zones of 12 px (600 px) on 64 x 96 procedural frames.
+    (["data.training_grid=50"], r"data\.training_grid x data\.training_zone_px \(50 x 12 = 600 "
+     r"px\) is wider than the 64x96 images the network reads from data\.sources\.0 "),
+    # Only the validation frames read the training layout: checked on them.
+    (["data.zone_layout=calibrated", "data.val_zone_layout=training", "data.training_grid=8"],
+     r"\(8 x 12 = 96 px\) is wider than the 64x96 images"),
+    (["data.image_augmentation.crop=[96, 96]"],
+     r"data\.image_augmentation\.crop \[96, 96\] is larger than the 64x96 frames"),
+])
+def test_a_layout_or_crop_larger_than_the_frames_is_refused_before_training(overrides,
+                                                                           message):
+    from deltar.training.data import build_datasets
+
+    config = load_config(TINY, overrides)
+    with pytest.raises(ValueError, match=message):
+        build_datasets(config.data, seed=0)
+
+
+def test_the_tiny_layout_fits_its_frames():
+    from deltar.training.data import build_datasets
+
+    train, val = build_datasets(load_config(TINY, ["data.training_grid=5"]).data, seed=0)
+    assert train[0]["zone_rects"].shape[0] == 25 and len(val) > 0

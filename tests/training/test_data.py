@@ -296,8 +296,8 @@ def test_the_validation_frames_are_read_before_training_as_far_as_they_are_valid
     config = DataConfig(sources=[
         SourceConfig(kind="procedural", frames=2, resize=[64, 96], role="train"),
         SourceConfig(kind="zju_l5", path=str(tmp_path / "val" / "data.json"), split="test",
-                     role="val")], training_grid=8, num_hypotheses=4, num_workers=0,
-        val_batch_size=1)
+                     role="val")], training_grid=8, training_zone_px=8, num_hypotheses=4,
+        num_workers=0, val_batch_size=1)
     data = DeltarDataModule(config)
     data.setup()
     with pytest.raises(FileNotFoundError, match=r"procedural-3\.h5"):

@@ -69,3 +69,36 @@ def _batch_limit_ok(limit: Any, zero_allowed: bool) -> bool:
     if limit == 0:
         return zero_allowed
     return limit >= 1 if isinstance(limit, int) else 0.0 < limit <= 1.0
+
+
+
+def check_frames_fit(data: Any, frame_size: tuple[int, int], number: int, source: Any) -> None:
+    """A data source's frames against the data section, before any training: a random
+    crop larger than the frames it crops, or a ``training`` zone layout (``training_grid``
+    x ``training_zone_px`` pixels, centred) wider than the images the network reads from
+    them (the crop, or whole frames), whose outer zones would lie off the image.
+
+    Args:
+        data: the ``data`` section (:class:`~deltar.training.config.DataConfig`).
+        frame_size: (height, width) pixels of the source's frames.
+        number: the source's index in ``data.sources``; ``source`` its section.
+    """
+    where = f"data.sources.{number} ({source.path})"
+    crop = data.image_augmentation.crop if data.image_augmentation.enabled else None
+    if crop is not None and source.role != "val" and (
+            crop[0] > frame_size[0] or crop[1] > frame_size[1]):
+        raise ValueError(f"data.image_augmentation.crop {list(crop)} is larger than the "
+                         f"{frame_size[0]}x{frame_size[1]} frames of {where}")
+    read = []  # (the images the network reads, their zone layout) for each use
+    if source.role != "val":
+        read.append((frame_size if crop is None else tuple(crop), data.zone_layout))
+    if source.role != "train":
+        read.append((frame_size, data.val_zone_layout or data.zone_layout))
+    side = data.training_grid * data.training_zone_px
+    for (height, width), layout in read:
+        if layout == "training" and side > min(height, width):
+            raise ValueError(f"data.training_grid x data.training_zone_px ("
+                             f"{data.training_grid} x {data.training_zone_px} = {side} px) "
+                             f"is wider than the {height}x{width} images the network reads "
+                             f"from {where}: the outer zones would lie off the image; "
+                             "lower either")

@@ -32,6 +32,7 @@ from deltar.data.zone_sets import open_zone_set
 from deltar.models.config import InputConfig
 from deltar.sensor.augment import SignalAugmentation
 from deltar.training.config import ZONE_SET_SOURCE_KINDS, DataConfig, SourceConfig
+from deltar.training.config_checks import check_frames_fit
 from deltar.training.datasets import IndexedConcat, SimulatedL5Dataset, ZJUL5TrainingDataset
 
 
@@ -261,12 +262,8 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
                                   .round().astype(int))
                 check_depth_units([first, *(reader[int(i)].depth_m for i in picks[1:])],
                                   f"data.sources.{number} ({source.path})")
+            check_frames_fit(config, first.shape[:2], number, source)
             crop = config.image_augmentation.crop if config.image_augmentation.enabled else None
-            if crop is not None and source.role != "val" and (
-                    crop[0] > first.shape[0] or crop[1] > first.shape[1]):
-                raise ValueError(f"data.image_augmentation.crop {list(crop)} is larger than "
-                                 f"the {first.shape[0]}x{first.shape[1]} frames of "
-                                 f"data.sources.{number} ({source.path})")
             # Only a source whose every frame trains is cropped to the network's sides.
             cropped = source.role == "train" and crop is not None
             if not cropped and (first.shape[0] % 32 or first.shape[1] % 32):
