@@ -124,7 +124,6 @@ def test_a_stop_right_after_a_files_rename_leaves_no_partial_set(tmp_path, rng, 
         return after_the_rename
 
     monkeypatch.setattr(zju_l5, "write_bytes_atomic", stopped(zju_l5.write_bytes_atomic))
-    monkeypatch.setattr(zju_l5, "write_text_atomic", stopped(zju_l5.write_text_atomic))
     with pytest.raises(KeyboardInterrupt):
         write_zju_l5(tmp_path / "set", [_sample(rng, "scene/0001"), _sample(rng, "scene/0002")])
     assert not (tmp_path / "set").exists()
@@ -134,6 +133,27 @@ def test_a_stop_right_after_a_files_rename_leaves_no_partial_set(tmp_path, rng, 
     with pytest.raises(FileExistsError, match=r"0001\.h5"):
         write_zju_l5(tmp_path / "other", [_sample(rng, "scene/0001")])
     assert theirs.read_bytes() == b"not this call's"
+
+
+@pytest.mark.parametrize("raced", ["scene/0002.h5", "data.json"])
+def test_a_file_another_writer_makes_first_is_left_to_it(tmp_path, rng, monkeypatch, raced):
+    """Two writers of one set: a file the other one renames into place between this
+    call's check and its own rename is refused and left as the other wrote it, while
+    this call's own files are removed."""
+    import deltar.data.zju_l5 as zju_l5
+
+    write = zju_l5.write_bytes_atomic
+
+    def other_writer_first(path, *args, **kwargs):
+        if Path(path).as_posix().endswith(raced):
+            Path(path).write_bytes(b"the other writer's")
+        return write(path, *args, **kwargs)
+
+    monkeypatch.setattr(zju_l5, "write_bytes_atomic", other_writer_first)
+    with pytest.raises(FileExistsError, match=raced.replace(".", r"\.")):
+        write_zju_l5(tmp_path, [_sample(rng, "scene/0001"), _sample(rng, "scene/0002")])
+    assert (tmp_path / raced).read_bytes() == b"the other writer's"
+    assert not (tmp_path / "scene" / "0001.h5").exists()
 
 
 def test_writer_rejects_duplicate_and_unsafe_names(tmp_path, rng):

@@ -37,7 +37,7 @@ import numpy as np
 
 from deltar.camera import ZJU_L5_INTRINSICS, CameraIntrinsics, check_image
 from deltar.data.sequence import checked_index
-from deltar.io.atomic import write_bytes_atomic, write_text_atomic
+from deltar.io.atomic import write_bytes_atomic
 from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_split_filenames
 
@@ -350,9 +350,8 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
         text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
         if index_path.exists():  # appeared meanwhile: not this call's to remove
             raise FileExistsError(f"refusing to overwrite existing ZJU-L5 set: {index_path}")
-        # Listed before it is written: a stop right after its rename removes it too.
-        made.append(index_path)
-        return write_text_atomic(index_path, text + "\n", overwrite=False)
+        _write_new(index_path, (text + "\n").encode("utf-8"), made)
+        return index_path
     except BaseException:
         for path in reversed(made):
             with contextlib.suppress(OSError):
@@ -397,7 +396,17 @@ def _write_frames(out: Path, samples: Iterable[ZJUL5Sample], filenames: list[str
                               if not d.exists()]))
         if target.exists():  # never listed for removal: it is not this call's
             raise FileExistsError(f"refusing to overwrite existing file: {target}")
-        # Listed before it is written: a stop right after its rename removes it too.
-        made.append(target)
-        write_bytes_atomic(target, buffer.getvalue(), overwrite=False)
+        _write_new(target, buffer.getvalue(), made)
         filenames.append(rel)
+
+
+def _write_new(path: Path, data: bytes, made: list[Path]) -> None:
+    """Write a file that must not exist yet, atomically. It is listed in ``made`` before
+    it is written, so a stop right after its rename removes it too, and unlisted when
+    another writer made it first (``FileExistsError``): that file is not this call's."""
+    made.append(path)
+    try:
+        write_bytes_atomic(path, data, overwrite=False)
+    except FileExistsError:
+        made.remove(path)
+        raise
