@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 
@@ -89,17 +90,11 @@ def test_a_result_is_handed_out_before_the_next_frame_exists() -> None:
 def test_closing_early_neither_hangs_nor_begins_everything() -> None:
     begun = []
 
-    def endless():
-        count = 0
-        while True:
-            yield count
-            count += 1
-
     def begin(item: int) -> int:
         begun.append(item)
         return item
 
-    stream = run_pipelined(endless(), begin, lambda started: started,
+    stream = run_pipelined(itertools.count(), begin, lambda started: started,
                        lambda started, outputs: outputs)
     first = [next(stream) for _ in range(3)]
     stream.close()
@@ -113,12 +108,6 @@ def test_a_slow_finish_holds_the_network_back() -> None:
     release = threading.Event()
     ran = []
 
-    def endless():
-        count = 0
-        while True:
-            yield count
-            count += 1
-
     def run(started: int) -> int:
         ran.append(started)
         return started
@@ -131,7 +120,7 @@ def test_a_slow_finish_holds_the_network_back() -> None:
     timer = threading.Timer(0.3, release.set)
     timer.start()
     try:
-        stream = run_pipelined(endless(), lambda item: item, run, finish)
+        stream = run_pipelined(itertools.count(), lambda item: item, run, finish)
         assert next(stream) == 0
         stream.close()
     finally:
