@@ -47,7 +47,8 @@ FlipOption = Annotated[bool, typer.Option(
 NetworkOnlyOption = Annotated[bool, typer.Option(
     "--network-only", help="The network's depth alone, without the confidence blend with "
     "the colorization fill of the zones that plane-select models (the bundled default) use "
-    "by default: a little faster, higher RMSE on new rooms (docs/inference.md).")]
+    "by default: a little faster; on new rooms higher RMSE beyond the sensor's range, "
+    "slightly lower errors within it (docs/inference.md).")]
 
 KeepUnflaggedOption = Annotated[bool, typer.Option(
     "--no-inferred-flags", help="For zone frames without no-target flags (e.g. ZJU-L5 "
