@@ -137,9 +137,9 @@ def test_a_stop_right_after_a_files_rename_leaves_no_partial_set(tmp_path, rng, 
 
 @pytest.mark.parametrize("raced", ["scene/0002.h5", "data.json"])
 def test_a_file_another_writer_makes_first_is_left_to_it(tmp_path, rng, monkeypatch, raced):
-    """Two writers of one set: a file the other one renames into place between this
-    call's check and its own rename is refused and left as the other wrote it, while
-    this call's own files are removed."""
+    """Two writers of one set: a file the other one made first is refused and left as
+    the other wrote it, while this call's own files are removed (the last moment's race
+    is deltar.io.atomic's, tested there)."""
     import deltar.data.zju_l5 as zju_l5
 
     write = zju_l5.write_bytes_atomic

@@ -35,6 +35,34 @@ def test_refuses_to_overwrite_when_asked(tmp_path):
     assert target.read_text() == "keep"
 
 
+@pytest.mark.parametrize("hard_links", [True, False])
+def test_a_file_made_by_another_process_while_writing_is_never_replaced(tmp_path, monkeypatch,
+                                                                         hard_links):
+    import errno
+
+    import deltar.io.atomic as atomic
+
+    target = tmp_path / "out.txt"
+    # The other writer finishes in the last moment: after this write checked, before it
+    # moves its file into place (with hard links the move itself refuses).
+    link = os.link
+
+    def other_writer_first(source, destination):
+        target.write_text("theirs")
+        if not hard_links:
+            raise OSError(errno.EPERM, "hard links not supported")
+        return link(source, destination)
+
+    monkeypatch.setattr(atomic.os, "link", other_writer_first)
+    with pytest.raises(FileExistsError, match=r"out\.txt"):
+        write_text_atomic(target, "mine", overwrite=False)
+    assert target.read_text() == "theirs"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+    # Without the refusal asked for, the file is replaced as before.
+    write_text_atomic(target, "mine")
+    assert target.read_text() == "mine"
+
+
 def test_a_full_disk_is_reported_naming_the_output_and_leaves_nothing(tmp_path):
     import errno
 

@@ -85,9 +85,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
         try:
             os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
             yield tmp
-            if not overwrite and final.exists():
-                raise FileExistsError(f"refusing to overwrite existing file: {final}")
-            os.replace(tmp, final)
+            _move_into_place(tmp, final, overwrite)
         except OSError as err:
             if err.errno not in _DISK_ERRORS:
                 raise
@@ -96,6 +94,31 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     finally:
         tmp.unlink(missing_ok=True)
         _UNFINISHED.discard(tmp)
+
+
+def _move_into_place(tmp: Path, final: Path, overwrite: bool) -> None:
+    """``os.replace(tmp, final)``; without ``overwrite`` a hard link instead, which fails
+    atomically where ``final`` exists: a check and then a rename would replace a file
+    another process made in between. (The temporary's name is removed by the caller.)
+    Where the file system has no hard links, the check and the rename."""
+    if overwrite:
+        os.replace(tmp, final)
+        return
+    try:
+        os.link(tmp, final)
+    except FileExistsError:
+        raise FileExistsError(f"refusing to overwrite existing file: {final}") from None
+    except OSError as err:
+        if err.errno not in _NO_HARD_LINKS:
+            raise
+        if final.exists():
+            raise FileExistsError(f"refusing to overwrite existing file: {final}") from None
+        os.replace(tmp, final)
+
+
+#: ``os.link`` errors of a file system without hard links (FAT, some network mounts).
+_NO_HARD_LINKS = (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS, errno.EMLINK,
+                  errno.EXDEV)
 
 
 def leftover_temporaries(folder: str | os.PathLike, suffix: str = "") -> list[Path]:
