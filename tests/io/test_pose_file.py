@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -71,3 +73,12 @@ def test_a_frames_pose_file_in_both_folder_layouts(tmp_path):
     assert frame_pose_file(tmp_path, "000007") == tmp_path / "pose" / "000007.txt"
     assert frame_pose_file(tmp_path, "frame-000002") == tmp_path / "frame-000002.pose.txt"
     assert frame_pose_file(tmp_path, "000008") is None
+
+
+def test_an_empty_pose_file_is_one_error_without_numpys_warning(tmp_path):
+    path = tmp_path / "0.txt"
+    path.write_text("")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "input contained no data" would raise
+        with pytest.raises(ValueError, match=r"0\.txt: a pose must be a 4x4 matrix"):
+            read_pose_file(path)

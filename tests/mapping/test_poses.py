@@ -161,3 +161,20 @@ def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_drift():
     drifted = reference.copy()
     drifted[:, 1, 3] += np.linspace(0, 0.1, 6) ** 2 * 10  # a bend alignment cannot undo
     assert absolute_trajectory_error(drifted, reference) > 0.01
+
+
+def test_a_frame_at_a_poses_own_time_gets_it_across_a_gap(tmp_path):
+    """5.0 is a pose's time after a gap: it has that pose (it was left out)."""
+    times = np.array([0.0, 0.1, 0.2, 5.0, 5.1])
+    path = write_tum_trajectory(tmp_path / "t.txt", times, np.stack([pose_at(t) for t in times]))
+    poses, covered = interpolate_poses(read_tum_trajectory(path), np.array([0.2, 2.5, 5.0]))
+    assert covered.tolist() == [True, False, True]
+    assert poses[2, 0, 3] == pytest.approx(5.0)
+
+
+def test_the_pose_folders_names_are_given_in_numeric_order(tmp_path):
+    (tmp_path / "p").mkdir()
+    for name in ("5", "10", "9"):
+        _write(tmp_path / "p" / f"{name}.txt", pose_at(0.0))
+    with pytest.raises(ValueError, match=r"poses 5\.\.10, frames 2\.\.11\)"):
+        match_poses(read_pose_folder(tmp_path / "p"), np.zeros(2), ["11", "2"])

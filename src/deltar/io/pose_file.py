@@ -11,6 +11,7 @@ recording) and ``deltar map`` (which reads them).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,10 @@ def read_pose_file(path: str | os.PathLike) -> np.ndarray:
     path = input_file(path, "pose file")
     with reading(path, "pose file"):
         try:
-            values = np.loadtxt(path, dtype=np.float64, ndmin=2)
+            with warnings.catch_warnings():
+                # An empty file: the shape check below says so, naming the file.
+                warnings.filterwarnings("ignore", message=".*input contained no data")
+                values = np.loadtxt(path, dtype=np.float64, ndmin=2)
         except ValueError as err:
             raise ValueError(f"{path}: not a 4x4 matrix of numbers: {err}") from err
         return check_pose(values, str(path))

@@ -139,8 +139,12 @@ def interpolate_poses(trajectory: Trajectory, times_s: np.ndarray,
     left = right - 1
     gap = times[right] - times[left]
     max_gap = max(tolerance_s, 2.0 * float(np.median(np.diff(times))))
+    # A frame at a pose's own time has that pose, whatever gap lies on either side of it
+    # (within a microsecond: frame names and trajectory files round times differently).
+    at_pose = np.isclose(clipped, times[left], rtol=0, atol=1e-6) | \
+        np.isclose(clipped, times[right], rtol=0, atol=1e-6)
     covered = (query >= times[0] - tolerance_s) & (query <= times[-1] + tolerance_s) & \
-        (gap <= max_gap)
+        ((gap <= max_gap) | at_pose)
     if covered.any():
         slerp = Slerp(times, Rotation.from_matrix(trajectory.poses[:, :3, :3]))
         fraction = ((clipped - times[left]) / gap)[:, None]
@@ -177,8 +181,8 @@ def match_poses(trajectory: Trajectory, frame_times_s: np.ndarray,
             if len(frame_names) else np.zeros((0, 4, 4))
         if not covered.any():
             raise ValueError(f"{trajectory.source}: no pose file is named like a frame "
-                             f"(poses {trajectory.names[0]}..{trajectory.names[-1]}, frames "
-                             f"{frame_names[0]}..{frame_names[-1]}); name them "
+                             f"(poses {_name_range(trajectory.names)}, frames "
+                             f"{_name_range(frame_names)}); name them "
                              "<frame name>.txt")
         return poses, covered
     poses, covered = interpolate_poses(trajectory, frame_times_s, tolerance_s)
@@ -189,6 +193,12 @@ def match_poses(trajectory: Trajectory, frame_times_s: np.ndarray,
                          f"{float(np.min(frame_times_s)):.3f}..{float(np.max(frame_times_s)):.3f}"
                          " s); check that both use the same clock")
     return poses, covered
+
+
+def _name_range(names: Sequence[str]) -> str:
+    """``first..last`` of frame names, numbers in numeric order (``9`` before ``10``)."""
+    ordered = sorted(names, key=lambda n: (0, int(n), n) if n.isdigit() else (1, 0, n))
+    return f"{ordered[0]}..{ordered[-1]}"
 
 
 def _transform_matrix(translation, rotation) -> np.ndarray:
