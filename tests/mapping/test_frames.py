@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deltar.mapping.frames import DepthSource, confidence_weight
+from deltar.mapping.frames import DepthSource, FrameSource, confidence_weight
 from deltar.mapping.tsdf import MapSettings, TSDFMap
 from tests.mapping.conftest import SMALL, WALL_Z_M, pose_at, render_wall
 
@@ -111,3 +111,66 @@ def test_the_models_pixels_beyond_the_zone_grid_are_left_out_unless_asked():
     assert expected[~inside].min() > 0 and not weight[~inside].any()
     _, weight = DepthSource(Estimator(), truncation_m=0.08, beyond_grid=True)(frame)
     np.testing.assert_array_equal(weight, expected)
+
+
+def _timed_recording(folder, image_times, zone_times):
+    """The wall seen from one pose, with images and zone frames at the given times."""
+    from deltar.io.recording import RecordingMeta, RecordingWriter
+    from deltar.sensor.geometry import zone_rects
+    from deltar.sensor.simulate_frame import simulate_zone_frame
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    image, depth = render_wall(pose_at(0.0))
+    zones = simulate_zone_frame(depth, zone_rects(SMALL, 8))
+    writer = RecordingWriter(folder, RecordingMeta(SMALL))
+    for t in image_times:
+        writer.add_color(t, image)
+    for t in zone_times:
+        writer.add_zone_frame(ZoneFrame(zones.mean_m, zones.sigma_m, zones.valid,
+                                        timestamp_s=t, no_target=zones.no_target))
+    writer.close()
+    return folder
+
+
+def test_zone_frames_are_paired_with_the_calibrations_time_offset(tmp_path):
+    from deltar.calibration.rig import RigCalibration
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    # The camera's clock runs 0.5 s ahead of the sensor's.
+    rec = _timed_recording(tmp_path / "rec", [1.0, 1.1, 1.2], [0.5, 0.6, 0.7])
+    calib = RigCalibration(intrinsics=SMALL, extrinsics=SensorExtrinsics(), grid=8,
+                           time_offset_s=0.5)
+    source = FrameSource(rec, calibration=calib)
+    assert [f.time_s for f in source.frames] == pytest.approx([1.0, 1.1, 1.2])
+
+
+def test_one_zone_frame_per_image_and_unpaired_zone_frames_are_warned_of(tmp_path):
+    # A sensor faster than the camera: 0.001 and 0.012 both find image 0.0 nearest; 0.5
+    # has no image near it.
+    rec = _timed_recording(tmp_path / "rec", [0.0, 0.1], [0.001, 0.012, 0.1, 0.5])
+    with pytest.warns(UserWarning) as caught:
+        source = FrameSource(rec)
+    messages = " | ".join(str(w.message) for w in caught)
+    assert "skipped 1 of 4 zone frames with no colour image" in messages
+    assert "1 of 3 zone frames share a colour image" in messages
+    assert [f.name for f in source.frames] == ["0", "100000000"]
+    assert [f.zone_frame.timestamp_s for f in source.frames] == pytest.approx([0.001, 0.1])
+
+
+def test_a_baseline_frame_without_a_valid_zone_fuses_nothing_and_is_counted(wall_recording):
+    import dataclasses
+
+    from deltar.mapping.builder import build_map, plan_map
+
+    source = FrameSource(wall_recording)
+    for frame in source.frames[:2]:
+        zones = frame.zone_frame
+        frame.zone_frame = dataclasses.replace(zones, valid=np.zeros_like(zones.valid),
+                                               mean_m=np.zeros_like(zones.mean_m),
+                                               sigma_m=np.zeros_like(zones.sigma_m))
+    depth = DepthSource(method="nearest")
+    for frame in source.load(source.frames[:1]):
+        assert not depth(frame)[0].any()  # not the baseline's 2 m fallback
+    plan = plan_map(source, COARSE)
+    result = build_map(source, depth, plan, COARSE)
+    assert result.empty_frames == 2 and len(result.poses) == 6

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -109,9 +109,11 @@ class FrameSource:
         calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
                                f"the recording {self.path}", "--calib")
         _check_grid(calibration, rec.meta.grid, f"the recording {self.path}")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # skipped pairs are counted by the caller
-            pairs = rec.pairs(tolerance_s=tolerance_s)
+        # The recording warns of zone frames without an image near them itself.
+        offset = calib.time_offset_s
+        pairs = _one_per_image(rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset),
+                               lambda p: p.color_path, lambda p: abs(p.color_offset_s - offset),
+                               self.path)
         self.frames = [MapFrame(p.color_path.stem, int(p.color_path.stem) * 1e-9, None,
                                 p.zone_frame, calib) for p in pairs]
         self._pairs = pairs
@@ -123,7 +125,8 @@ class FrameSource:
 
         bag = BagInput(self.path, **options)
         self.bag = bag
-        pairs = bag.pairs(tolerance_s=tolerance_s)
+        pairs = _one_per_image(bag.pairs(tolerance_s=tolerance_s), lambda p: p.image_index,
+                               lambda p: abs(p.offset_s), self.path)
         for pair in pairs[:1]:  # one zone topic: one grid
             _check_grid(calibration, pair.zone_frame.grid, f"the bag {self.path}")
         self.frames = [MapFrame(str(p.image_stamp_ns), p.image_stamp_ns / 1e9, None,
@@ -310,11 +313,14 @@ class DepthSource:
             from deltar.evaluation.baselines import run_baseline
 
             mean, _, valid = frame.zone_frame.flat()
+            valid = valid & (mean > 0)
+            if not valid.any():
+                # A baseline's fallback would be a made-up surface: fuse nothing (the
+                # map counts the frame as empty).
+                return np.zeros((height, width), np.float32), None
             rects = frame.calibration.zone_rects_for(frame.zone_frame, (height, width))
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # no valid zone: counted by the caller
-                depth = run_baseline(self.method, frame.calibration.undistort_image(frame.image),
-                                     mean, valid & (mean > 0), rects)
+            depth = run_baseline(self.method, frame.calibration.undistort_image(frame.image),
+                                 mean, valid, rects)
             return depth, None
         # A frame without a valid zone is image-only (prediction.image_only); the estimator
         # says so by value, not by a warning.
@@ -327,6 +333,26 @@ class DepthSource:
 
             weight[~zone_grid_mask(prediction.zone_rects, weight.shape)] = 0.0
         return prediction.depth_m, weight
+
+
+def _one_per_image(pairs: list, image_of: Callable[[Any], Any],
+                   distance_of: Callable[[Any], float], path: Path) -> list:
+    """Keep one pair per image, the zone frame nearest it in time (the first of a tie).
+
+    A sensor faster than the camera pairs several zone frames with one image: fusing
+    that image twice weighs it double and repeats its time in the trajectory.
+    """
+    best: dict[Any, Any] = {}
+    for pair in pairs:
+        key = image_of(pair)
+        if key not in best or distance_of(pair) < distance_of(best[key]):
+            best[key] = pair
+    kept = {id(pair) for pair in best.values()}
+    if len(kept) < len(pairs):
+        warnings.warn(f"{path}: {len(pairs) - len(kept)} of {len(pairs)} zone frames share "
+                      "a colour image with a zone frame nearer to it in time and are left "
+                      "out (one zone frame per image)", stacklevel=3)
+    return [pair for pair in pairs if id(pair) in kept]
 
 
 def _check_grid(calibration: RigCalibration | None, grid: int, what: str) -> None:
