@@ -131,3 +131,15 @@ def test_integrate_takes_a_float32_pose_and_names_bad_frames():
             volume.integrate(depth, rgb, None, SMALL, pose)
     with pytest.raises(ValueError, match=r"color_rgb must be an \(H, W, 3\) uint8 RGB image"):
         volume.integrate(depth, None, None, SMALL, pose_at(0.0))
+
+
+def test_a_large_memory_budget_is_capped_below_open3ds_crash():
+    """Open3D segfaults extracting a surface from about 2^18 blocks: the volume never
+    holds that many, whatever --max-memory (nothing is allocated here)."""
+    from deltar.mapping.tsdf import MAX_BLOCKS
+
+    assert MAX_BLOCKS < 250_000
+    huge = MapSettings(max_memory_bytes=64 * 2**30)
+    assert huge.max_blocks == MAX_BLOCKS and huge.memory_clipped
+    default = MapSettings()
+    assert default.max_blocks == 2 * 2**30 // block_bytes() and not default.memory_clipped

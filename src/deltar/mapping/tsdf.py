@@ -47,6 +47,12 @@ BLOCK_OVERHEAD_BYTES = 64
 MIN_OBSERVATIONS = 1
 #: Blocks a map reserves at first (48 MiB at 8^3 voxels); it doubles as needed.
 INITIAL_BLOCKS = 4096
+#: Most blocks a map may hold, whatever its memory budget: Open3D 0.20 crashes (a
+#: segfault, not an error) extracting the surface of a grid of about 2^18 = 262,144
+#: blocks, with dense surfaces from about 250,000. 3 x 2^16 keeps a 20 % margin below
+#: that (a surface through every one of them extracted: 49.7 million triangles) and
+#: stays above the default budget's 173,857 blocks (2 GiB).
+MAX_BLOCKS = 3 * 2**16
 _OPEN3D_HINT = 'mapping needs Open3D: pip install "deltar[map]"'
 
 
@@ -123,7 +129,17 @@ class MapSettings:
 
     @property
     def max_blocks(self) -> int:
-        """Blocks that fit into ``max_memory_bytes``."""
+        """Blocks that fit into ``max_memory_bytes``, at most :data:`MAX_BLOCKS`."""
+        return min(self._budget_blocks, MAX_BLOCKS)
+
+    @property
+    def memory_clipped(self) -> bool:
+        """Whether ``max_memory_bytes`` holds more blocks than :data:`MAX_BLOCKS` (the
+        volume is capped there)."""
+        return self._budget_blocks > MAX_BLOCKS
+
+    @property
+    def _budget_blocks(self) -> int:
         return int(self.max_memory_bytes // block_bytes(self.block_resolution))
 
 
@@ -275,7 +291,8 @@ class TSDFMap:
             self.full_frames += 1
             if not self._warned_full:
                 self._warned_full = True
-                budget_mib = self.settings.max_memory_bytes / 2**20
+                budget_mib = self.max_blocks * block_bytes(self.settings.block_resolution) \
+                    / 2**20
                 warnings.warn(f"the map reached its memory budget ({self.max_blocks} blocks, "
                               f"{budget_mib:.0f} MiB): from frame {self.frames} on, frames "
                               "update only the existing blocks (raise --max-memory or "
