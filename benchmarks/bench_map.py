@@ -76,8 +76,10 @@ def run_map(recording: Path, out: Path, args: list[str]) -> dict:
         summary = json.loads((out / "map.json").read_text())
         if "peak_rss_mib" in summary:
             return summary
+    # --threads sets the model's threads: deltar map refuses it with a --method.
+    threads = [] if "--method" in args else ["--threads", "2"]
     command = [sys.executable, "-m", "deltar", "map", str(recording), "--out", str(out),
-               "--overwrite", "--threads", "2", *SETTINGS, *args]
+               "--overwrite", *threads, *SETTINGS, *args]
     print("$", " ".join(command[2:]), flush=True)
     start = time.perf_counter()
     child = subprocess.Popen(command, cwd=PROJECT)

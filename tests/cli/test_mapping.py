@@ -363,3 +363,65 @@ def test_poses_far_beyond_the_volume_are_refused_and_millimetres_warned(wall_rec
         result = _run(wall_recording, "--out", tmp_path / "mm", "--method", "recorded",
                       "--trajectory", millimetres, *COARSE)
     assert result.exit_code == 0, result.output
+
+
+def test_a_memory_budget_above_open3ds_limit_is_clipped_with_a_warning(wall_recording,
+                                                                       tmp_path):
+    from deltar.mapping.tsdf import MAX_BLOCKS
+
+    result = _run(wall_recording, "--out", tmp_path / "m", "--method", "recorded",
+                  "--max-memory", "8192", *COARSE)
+    assert result.exit_code == 0, result.output
+    assert f"--max-memory 8192 MiB is clipped to {MAX_BLOCKS} blocks" in result.stderr
+    assert f"at most {MAX_BLOCKS} blocks" in result.stdout
+
+
+def test_a_voxel_or_truncation_as_deep_as_the_depth_limit_is_refused_first(wall_recording,
+                                                                         tmp_path):
+    for options in (["--voxel", "2"], ["--max-depth", "0.05"]):
+        line = _error(_run(wall_recording, "--out", tmp_path / "m", "--method", "recorded",
+                           *options), "--truncation x --voxel", "--max-depth",
+                      "at most a quarter")
+        assert "poses:" not in line
+        assert not (tmp_path / "m").exists()
+
+
+def test_options_that_would_be_ignored_are_refused(wall_recording, tmp_path):
+    """Model options have no effect on a --method's depth, bag options none on a
+    recording folder: each is refused by name rather than dropped."""
+    for options in (["--flip"], ["--size", "64x96"], ["--network-only"], ["--blend"],
+                    ["--max-relative-sigma", "0.2"], ["--threads", "1"]):
+        result = _run(wall_recording, "--out", tmp_path / "m", "--method", "bilinear",
+                      *options)
+        assert result.exit_code == 2, (options, result.output)
+        assert f"{options[0]} is a model option" in result.output
+    for options in (["--image-topic", "/camera/image"], ["--tof-sigma", "0.01"],
+                    ["--pose-topic", "/camera/pose"]):
+        result = _run(wall_recording, "--out", tmp_path / "m", "--method", "bilinear",
+                      *options)
+        assert result.exit_code == 2, (options, result.output)
+        assert f"{options[0]} is for ROS 2 bags" in result.output
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_bags_pose_topic_and_a_trajectory_are_not_both_taken(tmp_path):
+    pytest.importorskip("rosbags")
+    bag = _wall_bag(tmp_path / "bag", depth=False)
+    trajectory = write_tum_trajectory(tmp_path / "t.txt", 1.0 + np.arange(4) / 30,
+                                      np.stack([pose_at(0.05 * i) for i in range(4)]))
+    _error(_run(bag, "--out", tmp_path / "m", "--method", "bilinear", "--pose-topic",
+                "/camera/pose", "--trajectory", trajectory, *COARSE),
+           "--trajectory", "--pose-topic /camera/pose", "give only one")
+
+
+def test_rerun_save_is_checked_like_the_outputs_before_the_run(wall_recording, tmp_path):
+    out = tmp_path / "map"
+    _error(_run(wall_recording, "--out", out, "--method", "recorded", "--rerun-save",
+                out / "mesh.ply", *COARSE), "--rerun-save", "is one of the map's outputs")
+    _error(_run(wall_recording, "--out", out, "--method", "recorded", "--rerun-save",
+                wall_recording / "view.rrd", *COARSE), "--rerun-save", "is inside the input")
+    (tmp_path / "old.rrd").write_bytes(b"x")
+    result = _run(wall_recording, "--out", out, "--method", "recorded", "--rerun-save",
+                  tmp_path / "old.rrd", *COARSE)
+    assert result.exit_code == 2 and "exists" in result.output
+    assert not out.exists() and not (wall_recording / "view.rrd").exists()

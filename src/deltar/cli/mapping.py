@@ -56,6 +56,44 @@ def _check_out(out: Path, recording: Path, inputs: list[Path | None], overwrite:
         existing_outputs([*outputs, out / "map.json"])
 
 
+def _check_rerun_save(rerun_save: Path | None, out: Path, recording: Path,
+                      inputs: list[Path | None]) -> None:
+    """Refuse a ``--rerun-save`` file inside the input, on an input file or on one of the
+    map's outputs: the viewer streams into it from the first frame, so a clash would only
+    show after the run (an existing file is refused by ``check_viewer``)."""
+    from deltar.io.input_file import refuse_input_as_output
+
+    if rerun_save is None:
+        return
+    refuse_input_as_output(rerun_save, [recording, *inputs], "--rerun-save", folder=True)
+    outputs = {(out / name).resolve() for name in MAP_OUTPUTS}
+    if rerun_save.resolve() in outputs:
+        raise ValueError(f"--rerun-save {rerun_save} is one of the map's outputs in --out "
+                         f"{out} ({', '.join(MAP_OUTPUTS)}); choose another file")
+
+
+def _refuse_ignored_options(model: ModelOptions, method: str | None, blend: bool,
+                            max_relative_sigma: float | None, is_bag: bool,
+                            topics: BagTopics, pose_topic: str | None) -> None:
+    """Refuse options that would be accepted and then have no effect: model options with
+    --method (a baseline or the recorded depth runs no model), bag options on a recording
+    folder (it has no topics)."""
+    if method is not None:
+        given = model.given_options() + ["--blend"] * blend + \
+            ["--max-relative-sigma"] * (max_relative_sigma is not None)
+        if given:
+            raise typer.BadParameter(f"{given[0]} is a model option: give a model option or "
+                                     "--method, not both", param_hint=given[0])
+    if not is_bag:
+        defaults = BagTopics()
+        given = [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(topics)
+                 if getattr(topics, f.name) != getattr(defaults, f.name)]
+        given += ["--pose-topic"] * (pose_topic is not None)
+        if given:
+            raise typer.BadParameter(f"{given[0]} is for ROS 2 bags; a recording folder has "
+                                     "no topics", param_hint=given[0])
+
+
 @model_options
 @bag_topic_options
 def map_command(
@@ -91,10 +129,11 @@ def map_command(
     max_depth: float | None = typer.Option(None, "--max-depth", help="Depth limit, metres "
                                            "(default: the ToF sensor's range, 4 m for the "
                                            "L5)."),
-    max_relative_sigma: float = typer.Option(0.15, "--max-relative-sigma", help="Model "
-                                             "pixels whose uncertainty / depth exceeds this "
-                                             "are skipped; below, a pixel weighs "
-                                             "1 / (1 + (sigma / truncation)^2)."),
+    max_relative_sigma: float | None = typer.Option(None, "--max-relative-sigma", help="Model "
+                                                    "pixels whose uncertainty / depth exceeds "
+                                                    "this (default 0.15) are skipped; below, a "
+                                                    "pixel weighs 1 / (1 + (sigma / "
+                                                    "truncation)^2)."),
     beyond_grid: bool = typer.Option(False, "--beyond-grid", help="Also fuse model pixels "
                                      "beyond the 8x8 zone grid (extrapolated from the "
                                      "image; still gated by --max-relative-sigma)."),
@@ -125,19 +164,22 @@ def map_command(
     from deltar.cli.progress import ProgressReport
     from deltar.cli.robotics import check_viewer
     from deltar.mapping.builder import build_map, plan_map
-    from deltar.mapping.frames import RECORDED, DepthSource, FrameSource
+    from deltar.mapping.frames import DEFAULT_MAX_RELATIVE_SIGMA, RECORDED, DepthSource, FrameSource
     from deltar.mapping.poses import write_tum_trajectory
     from deltar.mapping.tsdf import require_open3d
 
     for value, option in ((voxel, "--voxel"), (truncation, "--truncation"),
-                          (max_relative_sigma, "--max-relative-sigma"),
                           (max_memory, "--max-memory")):
         finite(value, option, positive=True)
-    if max_depth is not None:
-        finite(max_depth, "--max-depth", positive=True)
-    if method is not None and model.source()[0] is not None:
-        raise typer.BadParameter("give a model option or --method, not both",
-                                 param_hint="--method")
+    for value, option in ((max_depth, "--max-depth"),
+                          (max_relative_sigma, "--max-relative-sigma")):
+        if value is not None:
+            finite(value, option, positive=True)
+    is_bag = (recording / "metadata.yaml").is_file()
+    _refuse_ignored_options(model, method, blend, max_relative_sigma, is_bag, topics,
+                            pose_topic)
+    if max_relative_sigma is None:
+        max_relative_sigma = DEFAULT_MAX_RELATIVE_SIGMA
     if beyond_grid and method is not None:
         raise typer.BadParameter("--beyond-grid is for the model's pixels; a --method "
                                  "baseline's are all integrated", param_hint="--beyond-grid")
@@ -150,12 +192,12 @@ def map_command(
     require_open3d()
     _check_out(out, recording, [calib, trajectory, *model.input_files()], overwrite)
     check_viewer(rerun, rerun_save)
+    _check_rerun_save(rerun_save, out, recording, [calib, trajectory, *model.input_files()])
     calibration = None
     if calib is not None:
         from deltar.calibration.rig import RigCalibration
 
         calibration = RigCalibration.load(calib)
-    is_bag = (recording / "metadata.yaml").is_file()
     if depth_topic is not None and (not is_bag or method != RECORDED):
         raise typer.BadParameter("--depth-topic names the depth --method recorded maps from "
                                  "a ROS 2 bag (a recording keeps its depth in depth/)",
@@ -197,6 +239,10 @@ def map_command(
                f" MiB, estimated <= {plan.estimated_blocks * _block_mib(settings):.0f} MiB "
                f"(voxel {settings.voxel_size_m * 100:g} cm, truncation "
                f"{settings.truncation_m * 100:g} cm, depth <= {settings.max_depth_m:g} m)")
+    if settings.memory_clipped:
+        warn(f"--max-memory {max_memory:g} MiB is clipped to {settings.max_blocks} blocks "
+             f"({settings.max_blocks * _block_mib(settings):.0f} MiB): Open3D crashes "
+             "extracting the surface of larger volumes")
     if depth is None:
         depth = DepthSource(model.load(), max_relative_sigma=max_relative_sigma,
                             truncation_m=settings.truncation_m, beyond_grid=beyond_grid)
@@ -223,7 +269,8 @@ def map_command(
         "input": str(recording), "depth": depth.name, "poses": plan.pose_source,
         "frames": len(result.poses), "empty_frames": result.empty_frames,
         "voxel_size_m": settings.voxel_size_m, "truncation_m": settings.truncation_m,
-        "max_depth_m": settings.max_depth_m, "max_relative_sigma": max_relative_sigma,
+        "max_depth_m": settings.max_depth_m,
+        "max_relative_sigma": max_relative_sigma if method is None else None,
         "beyond_grid": beyond_grid if method is None else None,
         "blocks": volume.block_count, "capacity_blocks": volume.capacity_blocks,
         "memory_bytes": volume.memory_bytes, "used_bytes": volume.used_bytes,
@@ -250,6 +297,9 @@ def map_command(
                  f"frames (more than {MAX_CAMERA_SPEED_M_S:g} m/s): the frames may not be "
                  "one continuous sequence (e.g. generated rooms), so the map is unreliable; "
                  "give poses (pose/ folder, --trajectory) if there are any")
+    if result.empty_frames:
+        warn(f"{result.empty_frames} of {len(result.poses)} frames had no depth to fuse "
+             "(e.g. no valid zone for a --method baseline)")
     extent = "empty" if bounds is None else \
         " x ".join(f"{v:.2f}" for v in bounds[1] - bounds[0]) + " m"
     typer.echo(f"volume: {volume.block_count} blocks ({extent}), "

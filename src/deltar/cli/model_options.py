@@ -10,7 +10,7 @@ the three weight options alone (:data:`PresetOption`, ...).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -100,6 +100,11 @@ class ModelOptions:
             if value is not None:
                 return value, kind
         return None, None
+
+    def given_options(self) -> list[str]:
+        """The options given other than at their defaults (``["--flip", "--size"]``)."""
+        return [f"--{f.name.replace('_', '-')}" for f in fields(self)
+                if getattr(self, f.name) != f.default]
 
     def input_files(self) -> list[Path]:
         """The model files given (``--checkpoint``, ``--official``, ``--onnx`` and an ONNX

@@ -48,6 +48,10 @@ from deltar.mapping.tsdf import (
 
 #: Frames sampled evenly for the odometry motion check.
 _MOTION_SAMPLES = 24
+#: The truncation distance may be at most this share of the depth limit: a surface is
+#: made of the voxels within the truncation distance on both sides of the depth, so a
+#: band as deep as the depth range (or voxels as large) leaves no surface to extract.
+MAX_TRUNCATION_SHARE = 0.25
 #: A camera faster than this (median over the frames, metres a second) is warned of:
 #: poses in millimetres, or a time base that is off, look like this.
 IMPLAUSIBLE_SPEED_M_S = 20.0
@@ -109,6 +113,12 @@ class MapResult:
 def _given_poses(source: FrameSource, trajectory: Path | None, pose_topic: str | None,
                  tolerance_s: float) -> tuple[np.ndarray, np.ndarray, str] | None:
     """(poses, covered, description) from the first pose source there is, or None."""
+    if pose_topic is not None and source.kind != "bag":
+        raise ValueError("--pose-topic is for ROS 2 bags; a recording keeps its poses in "
+                         f"{POSE_DIR}/ (or give --trajectory)")
+    if pose_topic is not None and trajectory is not None:
+        raise ValueError(f"--trajectory {trajectory} would replace the bag's --pose-topic "
+                         f"{pose_topic}: give only one")
     names = [f.name for f in source.frames]
     times = np.array([f.time_s for f in source.frames])
     own = source.path / POSE_DIR
@@ -129,9 +139,6 @@ def _given_poses(source: FrameSource, trajectory: Path | None, pose_topic: str |
         if found is not None:
             poses, covered = match_poses(found, times, names, tolerance_s)
             return poses, covered, found.source
-    elif pose_topic is not None:
-        raise ValueError("--pose-topic is for ROS 2 bags; a recording keeps its poses in "
-                         f"{POSE_DIR}/")
     return None
 
 
@@ -148,7 +155,8 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
     """Find the poses and check the input and the memory, before any depth is made.
 
     Raises:
-        ValueError: no frames; poses that are not rigid transforms or cover no frame; a
+        ValueError: no frames; a truncation distance above a quarter of the depth
+            limit; poses that are not rigid transforms or cover no frame; a
             recording too short or too still for odometry; a map whose single view
             already exceeds ``settings.max_memory_bytes``, or whose estimate exceeds the
             machine's available memory (each with its own message).
@@ -156,6 +164,7 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
     if not source.frames:
         raise ValueError(f"{source.path}: no frame to map (no zone frame has a camera image "
                          "near it)")
+    _check_scale(settings)
     given = _given_poses(source, trajectory, pose_topic, tolerance_s)
     frames, poses, reference, skipped = source.frames, None, None, 0
     description = "RGB-D odometry on the mapped depth"
@@ -178,12 +187,15 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
     estimated = estimate_blocks(settings, positions, per_frame, len(frames))
     unit = block_bytes(settings.block_resolution)
     if per_frame > settings.max_blocks:
+        limit = f"the volume's limit of {settings.max_blocks} blocks (Open3D's)" \
+            if settings.memory_clipped else \
+            f"--max-memory {settings.max_memory_bytes / 2**20:.0f} MiB"
         raise ValueError(
             f"one frame's view alone needs up to {per_frame * unit / 2**20:.0f} MiB "
             f"({per_frame} blocks of {settings.block_size_m * 100:g} cm at voxel "
             f"{settings.voxel_size_m * 100:g} cm and depth up to {settings.max_depth_m:g} m), "
-            f"more than --max-memory {settings.max_memory_bytes / 2**20:.0f} MiB; use a "
-            "coarser --voxel, a smaller --max-depth or a larger --max-memory")
+            f"more than {limit}; use a coarser --voxel, a smaller --max-depth"
+            + ("" if settings.memory_clipped else " or a larger --max-memory"))
     available = available_memory_bytes()
     if available is not None and min(estimated, settings.max_blocks) * unit > available:
         raise ValueError(
@@ -192,6 +204,18 @@ def plan_map(source: FrameSource, settings: MapSettings, *, trajectory: Path | N
             "--max-memory, use a coarser --voxel or a smaller --max-depth")
     capacity = min(INITIAL_BLOCKS, estimated, settings.max_blocks)
     return MapPlan(frames, poses, description, reference, capacity, estimated, skipped)
+
+
+def _check_scale(settings: MapSettings) -> None:
+    """Refuse a voxel size or truncation that leaves no room for a surface below the
+    depth limit (every frame would be fused for nothing)."""
+    if settings.truncation_m > MAX_TRUNCATION_SHARE * settings.max_depth_m:
+        raise ValueError(
+            f"the truncation distance ({settings.truncation_voxels:g} voxels of "
+            f"{settings.voxel_size_m * 100:g} cm = {settings.truncation_m * 100:g} cm, "
+            "--truncation x --voxel) must be at most a quarter of the depth limit "
+            f"(--max-depth {settings.max_depth_m:g} m): no surface could be made; use a "
+            "smaller --voxel or --truncation, or a larger --max-depth")
 
 
 def _check_positions(positions: np.ndarray, times_s: list[float], settings: MapSettings,
