@@ -191,3 +191,33 @@ def test_simulated_targets_survive_record_and_replay(tmp_path, storage):
     recorded = [c.zone_frame for c in iter(again.grab, None) if c.zone_frame is not None]
     for replayed, original in zip(collector.frames, recorded, strict=True):
         np.testing.assert_allclose(replayed.target_signal, original.target_signal, rtol=1e-6)
+
+
+def double_zone_frames(folder, after_s=0.008):
+    """A second zone frame ``after_s`` after each (a sensor twice the camera's rate):
+    both find the same image nearest."""
+    path = folder / "zones.jsonl"
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    doubled = [d for line in lines
+               for d in (line, {**line, "timestamp_s": line["timestamp_s"] + after_s})]
+    path.write_text("".join(json.dumps(d) + "\n" for d in doubled))
+
+
+def test_one_zone_frame_per_image_is_replayed_the_nearest(tmp_path):
+    record_wall(tmp_path / "rec", frames=8)
+    double_zone_frames(tmp_path / "rec")
+    rec = Recording(tmp_path / "rec")
+    pairs = rec.pairs()
+    assert len(pairs) == 8 and len({p.color_path for p in pairs}) == 4
+    with pytest.warns(UserWarning, match=r"4 of 8 zone frames share a colour image with a "
+                      r"zone frame nearer to it in time and are left out"):
+        written = replay_to_folder(tmp_path / "rec", _estimator(), tmp_path / "out",
+                                   kinds=("npy",))
+    # Each image once: the second zone frame neither refuses nor replaces the first.
+    assert sorted(p.name for p in written) == sorted(f"{p.color_path.stem}_depth_m.npy"
+                                                     for p in pairs[::2])
+    with pytest.warns(UserWarning, match="share a colour image"):
+        items = list(replay(rec, _estimator()))
+    # The nearer of the two: 4 ms after its image, not 12 ms.
+    assert [i.pair.zone_frame.timestamp_s for i in items] == \
+        [p.zone_frame.timestamp_s for p in pairs[::2]]

@@ -209,3 +209,22 @@ def test_replay_without_calib_warns_unless_the_recording_is_simulated(tmp_path):
     rig = runner.invoke(app, ["replay", str(tmp_path / "board"), "--out", str(tmp_path / "c"),
                               *lite])
     assert "warning: no --calib" in rig.output
+
+
+def test_replay_writes_each_image_once_when_zone_frames_share_it(tmp_path):
+    from deltar.cli.capture import _check_replay
+    from tests.capture.test_replay import double_zone_frames
+
+    rec, out = tmp_path / "rec", tmp_path / "o"
+    assert runner.invoke(app, ["record", str(rec), "--simulate", "wall:1.5:6:48x64"]
+                         ).exit_code == 0
+    double_zone_frames(rec)  # two zone frames nearest each paired image
+    images = len({p.color_path for p in Recording(rec).pairs()})
+    assert _check_replay(rec, out, ("npy",), (0.02, 0.0), 1, None, False, False) == images
+    args = ["replay", str(rec), "--out", str(out), "--outputs", "npy", "--preset",
+            "deltar-lite", "--threads", "1"]
+    with pytest.warns(UserWarning, match="share a colour image with a zone frame nearer"):
+        result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert f"wrote {images} files" in result.output
+    assert len(list(out.iterdir())) == images

@@ -19,6 +19,7 @@ import numpy as np
 
 from deltar.calibration.rig import RigCalibration
 from deltar.inference.folder import FRAME_ERRORS
+from deltar.io.pairing import one_per_image
 from deltar.io.read_ahead import read_ahead
 from deltar.io.recording import META_FILE, Recording, RecordingPair
 from deltar.sensor.geometry import SensorExtrinsics
@@ -93,6 +94,15 @@ def check_gaps(recording: Recording, pairs: list[RecordingPair]) -> list[tuple[f
     return gaps
 
 
+def replay_pairs(recording: Recording, pairs: list[RecordingPair], time_offset_s: float
+                 ) -> list[RecordingPair]:
+    """The pairs a replay predicts: one per colour image, the zone frame nearest it
+    (the others counted in a warning). Outputs are named by the image, so a second
+    zone frame on one image would write over the first."""
+    return one_per_image(pairs, lambda p: p.color_path,
+                         lambda p: abs(p.color_offset_s - time_offset_s), recording.folder)
+
+
 def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, *,
            calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
            time_offset_s: float | None = None, every: int = 1, limit: int | None = None,
@@ -103,7 +113,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     """Predict depth for each zone frame of a recording that has a colour image near it.
 
     Zone frames without a colour image within ``tolerance_s`` are skipped with a
-    warning (by ``Recording.pairs``); gaps in the stream are warned about.
+    warning (by ``Recording.pairs``), as are those that share an image with a zone
+    frame nearer to it (:func:`replay_pairs`); gaps in the stream are warned about.
 
     Args:
         recording: the recording folder (or an open :class:`Recording`).
@@ -138,7 +149,8 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
                            f"the recording {rec.folder}")
     offset = calib.time_offset_s if time_offset_s is None else float(time_offset_s)
     pairs = rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
-    check_gaps(rec, pairs)
+    check_gaps(rec, pairs)  # gaps in the sensor's own stream: before any is left out
+    pairs = replay_pairs(rec, pairs, offset)
 
     def selected() -> Iterator[RecordingPair]:
         for pair in pairs[::int(every)]:

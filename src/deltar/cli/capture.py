@@ -295,13 +295,15 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
                   skip_existing: bool = False, skip_no_zones: bool = True) -> int:
     """Check a replay's recording and outputs before the model; return how many frames
     it will predict (with ``skip_existing``, those still missing an output), chosen as
-    :func:`~deltar.capture.replay.replay` chooses them (every ``every``-th pair, those
+    :func:`~deltar.capture.replay.replay` chooses them (one pair per colour image,
+    :func:`~deltar.capture.replay.replay_pairs`; every ``every``-th pair, those
     without a valid zone left out when ``skip_no_zones``, at most ``limit``).
 
     ``pairing`` is (tolerance, time offset) in seconds.
     """
     import warnings
 
+    from deltar.capture.replay import replay_pairs
     from deltar.cli.checks import display, existing_outputs, output_folder
     from deltar.inference.outputs import OUTPUT_KINDS
     from deltar.io.input_file import refuse_input_as_output
@@ -312,7 +314,8 @@ def _check_replay(recording: Path, out: Path | None, kinds, pairing: tuple[float
     rec = Recording(recording)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # replaying warns about skipped frames itself
-        pairs = rec.pairs(tolerance_s=pairing[0], time_offset_s=pairing[1])
+        pairs = replay_pairs(rec, rec.pairs(tolerance_s=pairing[0],
+                                            time_offset_s=pairing[1]), pairing[1])
     if not pairs:
         frames = len(rec.zone_frames())
         raise ValueError(f"{recording}: nothing to replay: " + (

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from deltar.io.pairing import one_per_image
 from deltar.io.read_ahead import read_ahead
 from deltar.sensor.zone_values import sensor_max_range_m
 
@@ -111,7 +111,7 @@ class FrameSource:
         _check_grid(calibration, rec.meta.grid, f"the recording {self.path}")
         # The recording warns of zone frames without an image near them itself.
         offset = calib.time_offset_s
-        pairs = _one_per_image(rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset),
+        pairs = one_per_image(rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset),
                                lambda p: p.color_path, lambda p: abs(p.color_offset_s - offset),
                                self.path)
         self.frames = [MapFrame(p.color_path.stem, int(p.color_path.stem) * 1e-9, None,
@@ -125,7 +125,7 @@ class FrameSource:
 
         bag = BagInput(self.path, **options)
         self.bag = bag
-        pairs = _one_per_image(bag.pairs(tolerance_s=tolerance_s), lambda p: p.image_index,
+        pairs = one_per_image(bag.pairs(tolerance_s=tolerance_s), lambda p: p.image_index,
                                lambda p: abs(p.offset_s), self.path)
         for pair in pairs[:1]:  # one zone topic: one grid
             _check_grid(calibration, pair.zone_frame.grid, f"the bag {self.path}")
@@ -333,26 +333,6 @@ class DepthSource:
 
             weight[~zone_grid_mask(prediction.zone_rects, weight.shape)] = 0.0
         return prediction.depth_m, weight
-
-
-def _one_per_image(pairs: list, image_of: Callable[[Any], Any],
-                   distance_of: Callable[[Any], float], path: Path) -> list:
-    """Keep one pair per image, the zone frame nearest it in time (the first of a tie).
-
-    A sensor faster than the camera pairs several zone frames with one image: fusing
-    that image twice weighs it double and repeats its time in the trajectory.
-    """
-    best: dict[Any, Any] = {}
-    for pair in pairs:
-        key = image_of(pair)
-        if key not in best or distance_of(pair) < distance_of(best[key]):
-            best[key] = pair
-    kept = {id(pair) for pair in best.values()}
-    if len(kept) < len(pairs):
-        warnings.warn(f"{path}: {len(pairs) - len(kept)} of {len(pairs)} zone frames share "
-                      "a colour image with a zone frame nearer to it in time and are left "
-                      "out (one zone frame per image)", stacklevel=3)
-    return [pair for pair in pairs if id(pair) in kept]
 
 
 def _check_grid(calibration: RigCalibration | None, grid: int, what: str) -> None:
