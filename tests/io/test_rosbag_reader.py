@@ -199,8 +199,9 @@ def test_unpaired_stamps_are_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match=r"no ToF message on /tof/zones has a camera image "
                                          r"within 0.02 s"):
         BagInput(tmp_path / "bag").pairs()
-    pairs = BagInput(tmp_path / "bag").pairs(tolerance_s=6.0)
-    assert len(pairs) == 3
+    with pytest.warns(UserWarning, match="2 of 3 ToF frames share a colour image"):
+        pairs = BagInput(tmp_path / "bag").pairs(tolerance_s=6.0)
+    assert [p.image_index for p in pairs] == [2]  # all three nearest the last image
 
 
 def test_partly_unpaired_stamps_warn_and_skip(tmp_path):
@@ -342,3 +343,33 @@ def test_depth_logged_after_the_next_image_keeps_the_images_order(tmp_path):
     assert plain == [0, 1, 2, 3] and joined == [(0, False), (1, True), (2, False), (3, False)]
     auto = BagInput(tmp_path / "bag", depth_topic="auto")
     assert auto.depth_topic is None  # no topic of deltar record's name: none found
+
+
+def test_a_repeated_tof_stamp_is_refused_naming_topic_and_stamp(tmp_path):
+    # The second ToF message carries the first one's stamp (100 ms - 96 ms after T0 + 4).
+    write_input_bag(tmp_path / "bag", tof_offset_ns=[4_000_000, -96_000_000, 4_000_000])
+    with pytest.raises(ValueError, match=rf"2 messages on the ToF topic /tof/zones have "
+                       rf"the header stamp {T0 + 4_000_000} ns"):
+        BagInput(tmp_path / "bag").pairs()
+
+
+def test_one_tof_frame_per_image_the_nearest(tmp_path):
+    # ToF 1 lands 8 ms after image 0, nearer to it than to image 1: image 0 has two.
+    write_input_bag(tmp_path / "bag", tof_offset_ns=[4_000_000, -92_000_000, 4_000_000])
+    with pytest.warns(UserWarning, match=r"1 of 3 ToF frames share a colour image with a "
+                      r"ToF frame nearer to it in time and are left out"):
+        pairs = BagInput(tmp_path / "bag").pairs()
+    assert [p.image_index for p in pairs] == [0, 2]
+    assert [p.tof_stamp_ns for p in pairs] == [T0 + 4_000_000, T0 + 204_000_000]
+
+
+def test_pairs_apply_the_time_offset(tmp_path):
+    # The sensor's clock runs 300 ms behind the camera's.
+    write_input_bag(tmp_path / "bag", tof_offset_ns=-300_000_000)
+    bag = BagInput(tmp_path / "bag")
+    with pytest.raises(ValueError, match=r"within 0.02 s .*check the header stamps, the "
+                       "time offset"):
+        bag.pairs()
+    pairs = bag.pairs(time_offset_s=0.3)
+    assert [p.image_index for p in pairs] == [0, 1, 2]
+    assert all(p.offset_s == pytest.approx(0.3) for p in pairs)

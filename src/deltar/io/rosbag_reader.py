@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from deltar.camera import CameraIntrinsics
+from deltar.io.pairing import one_per_image
 from deltar.io.recording import nearest_in_time
 from deltar.io.ros_messages import (
     CAMERA_INFO_TYPE,
@@ -67,7 +68,10 @@ class BagPair:
         image_log_ns: the image's time in the bag (when it was recorded).
         frame_id: the image's ``header.frame_id``.
         intrinsics: from the CameraInfo nearest the image (None without one).
-        offset_s: image stamp minus ToF stamp, seconds.
+        offset_s: image stamp minus ToF stamp, seconds (including any time offset the
+            pairing applied).
+        tof_stamp_ns: the ToF message's header stamp (exact; ``zone_frame.timestamp_s``
+            holds it in float seconds).
     """
 
     zone_frame: ZoneFrame
@@ -77,6 +81,7 @@ class BagPair:
     frame_id: str
     intrinsics: CameraIntrinsics | None
     offset_s: float
+    tof_stamp_ns: int = 0
 
 
 class BagInput:
@@ -190,23 +195,33 @@ class BagInput:
         return zone_frame_from_vl53l5cx_ros2(msg, orientation=self.tof_orientation,
                                              sigma_m=self.tof_sigma_m, source=self.tof_topic)
 
-    def pairs(self, tolerance_s: float = 0.02) -> list[BagPair]:
-        """Pair every ToF frame with the camera image nearest in header stamp.
+    def pairs(self, tolerance_s: float = 0.02, time_offset_s: float = 0.0) -> list[BagPair]:
+        """Pair every ToF frame with the camera image nearest in header stamp, one ToF
+        frame per image.
 
         ToF frames without an image within ``tolerance_s`` are skipped with one warning;
-        camera images are not decoded here.
+        of several ToF frames nearest one image only the nearest is kept (a warning
+        counts the others: an image gives one output). Camera images are not decoded here.
+
+        Args:
+            tolerance_s: largest |image stamp - (ToF stamp + offset)|, seconds.
+            time_offset_s: how far the camera's stamps run ahead of the sensor's, seconds
+                (as for recordings: ``deltar calibrate --time-offset`` estimates it).
 
         Raises:
-            ValueError: no ToF message, no camera message, or no pair at all (the message
-                gives both stamp ranges).
+            ValueError: no ToF message, no camera message, two ToF messages with one
+                stamp, or no pair at all (the message gives both stamp ranges).
         """
         from rosbags.rosbag2 import Reader
 
         if not tolerance_s >= 0:
             raise ValueError(f"tolerance_s must be >= 0, got {tolerance_s}")
+        if not np.isfinite(time_offset_s):
+            raise ValueError(f"time_offset_s must be finite, got {time_offset_s}")
         images: list[tuple[int, int, str, tuple[int, int]]] = []  # stamp, log, frame, size
         infos: list[tuple[int, Any]] = []
         frames: list[ZoneFrame] = []
+        tof_stamps: list[int] = []
         with Reader(self.path) as reader:
             wanted = [c for c in reader.connections
                       if c.topic in (self.image_topic, self.tof_topic, self.info_topic)]
@@ -218,6 +233,7 @@ class BagInput:
                     images.append((stamp, int(log_ns), str(msg.header.frame_id), size))
                 elif connection.topic == self.tof_topic:
                     frames.append(self._zone_frame(msg))
+                    tof_stamps.append(stamp)
                 else:
                     infos.append((stamp, msg))
         if not frames:
@@ -225,14 +241,16 @@ class BagInput:
         if not images:
             raise ValueError(f"{self.path}: the camera topic {self.image_topic} has no "
                              "messages")
+        self._refuse_repeated_stamps(tof_stamps)
         order = np.argsort([i[0] for i in images], kind="stable")
         image_times = np.array([images[i][0] for i in order], dtype=np.float64) / 1e9
         info_order = sorted(range(len(infos)), key=lambda i: infos[i][0])
         info_times = np.array([infos[i][0] for i in info_order], dtype=np.float64) / 1e9
         tof_times = np.array([f.timestamp_s for f in frames], dtype=np.float64)
-        nearest, gap = nearest_in_time(image_times, tof_times)
+        nearest, gap = nearest_in_time(image_times, tof_times + time_offset_s)
         out: list[BagPair] = []
-        for frame, idx, distance in zip(frames, nearest, gap, strict=True):
+        for frame, tof_stamp, idx, distance in zip(frames, tof_stamps, nearest, gap,
+                                                   strict=True):
             if distance > tolerance_s:
                 continue
             index = int(order[idx])
@@ -244,17 +262,32 @@ class BagInput:
                 intrinsics = intrinsics_from_camera_info(
                     info, size if size[0] else None, source=self.info_topic)
             out.append(BagPair(frame, index, stamp, log_ns, frame_id, intrinsics,
-                               stamp / 1e9 - float(frame.timestamp_s)))
+                               stamp / 1e9 - float(frame.timestamp_s), tof_stamp))
         if not out:
+            shifted = f" plus the time offset {time_offset_s:g} s:" if time_offset_s else ""
             raise ValueError(
                 f"{self.path}: no ToF message on {self.tof_topic} has a camera image within "
-                f"{tolerance_s} s (ToF stamps {tof_times.min():.3f}..{tof_times.max():.3f} s, "
-                f"images {image_times.min():.3f}..{image_times.max():.3f} s); check the "
-                "header stamps or raise --tolerance")
+                f"{tolerance_s} s (ToF stamps{shifted} {tof_times.min() + time_offset_s:.3f}.."
+                f"{tof_times.max() + time_offset_s:.3f} s, images {image_times.min():.3f}.."
+                f"{image_times.max():.3f} s); check the header stamps, the time offset or "
+                "raise --tolerance")
         if len(out) < len(frames):
             warnings.warn(f"{self.path}: skipped {len(frames) - len(out)} of {len(frames)} ToF "
                           f"frames with no camera image within {tolerance_s} s", stacklevel=2)
-        return out
+        return one_per_image(out, lambda p: p.image_index,
+                             lambda p: abs(p.offset_s - time_offset_s), self.path, "ToF frame")
+
+    def _refuse_repeated_stamps(self, stamps: list[int]) -> None:
+        """Two ToF messages with one header stamp are one reading sent twice, or a
+        driver that does not stamp: either way no time tells them apart (a recording
+        refuses a repeated timestamp too)."""
+        unique, counts = np.unique(np.asarray(stamps, dtype=np.int64), return_counts=True)
+        if (counts > 1).any():
+            first = int(np.argmax(counts > 1))
+            stamp = int(unique[first])
+            raise ValueError(f"{self.path}: {int(counts[first])} messages on the ToF topic "
+                             f"{self.tof_topic} have the header stamp {stamp} ns "
+                             f"({stamp / 1e9:.9f} s); each reading needs its own stamp")
 
     def images(self, pairs: list[BagPair]) -> Iterator[tuple[BagPair, np.ndarray]]:
         """Decode the camera images of ``pairs`` in bag order: (pair, (H, W, 3) uint8 RGB).

@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from deltar.io.pairing import one_per_image
 from deltar.io.read_ahead import read_ahead
 from deltar.sensor.zone_values import sensor_max_range_m
 
@@ -98,7 +97,7 @@ class FrameSource:
         self.sensor_model = models.pop() if len(models) == 1 else "VL53L5CX"
 
     def _list_recording(self, calibration: RigCalibration | None, tolerance_s: float) -> None:
-        from deltar.capture.replay import recording_calibration
+        from deltar.capture.replay import recording_calibration, replay_pairs
         from deltar.io.recording import Recording
 
         rec = Recording(self.path)
@@ -111,9 +110,8 @@ class FrameSource:
         _check_grid(calibration, rec.meta.grid, f"the recording {self.path}")
         # The recording warns of zone frames without an image near them itself.
         offset = calib.time_offset_s
-        pairs = one_per_image(rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset),
-                               lambda p: p.color_path, lambda p: abs(p.color_offset_s - offset),
-                               self.path)
+        pairs = replay_pairs(rec, rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset),
+                             offset)  # one zone frame per image, as replay
         self.frames = [MapFrame(p.color_path.stem, int(p.color_path.stem) * 1e-9, None,
                                 p.zone_frame, calib) for p in pairs]
         self._pairs = pairs
@@ -125,8 +123,10 @@ class FrameSource:
 
         bag = BagInput(self.path, **options)
         self.bag = bag
-        pairs = one_per_image(bag.pairs(tolerance_s=tolerance_s), lambda p: p.image_index,
-                               lambda p: abs(p.offset_s), self.path)
+        # The calibration's clock offset, as for recordings and `deltar replay --bag`;
+        # the bag gives one ToF frame per image.
+        offset = calibration.time_offset_s if calibration is not None else 0.0
+        pairs = bag.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
         for pair in pairs[:1]:  # one zone topic: one grid
             _check_grid(calibration, pair.zone_frame.grid, f"the bag {self.path}")
         self.frames = [MapFrame(str(p.image_stamp_ns), p.image_stamp_ns / 1e9, None,
