@@ -143,10 +143,11 @@ def test_replay_of_a_bag_refuses_the_folder_options(tmp_path):
     bag = tmp_path / "bag"
     assert runner.invoke(app, ["record", str(bag), "--bag", "--simulate", "wall:1.5:2:48x64"]
                          ).exit_code == 0
-    for option in ("--keep-going", "--skip-existing"):
+    for option in (["--keep-going"], ["--skip-existing"], ["--overwrite"],
+                   ["--outputs", "npy"]):
         result = runner.invoke(app, ["replay", "--bag", str(bag), "--out-bag",
-                                     str(tmp_path / "out"), option])
-        assert result.exit_code == 2 and f"{option} is for replays into an --out folder" \
+                                     str(tmp_path / "out"), *option])
+        assert result.exit_code == 2 and f"{option[0]} is for replays into an --out folder" \
             in result.output
     assert not (tmp_path / "out").exists()
 
@@ -228,3 +229,37 @@ def test_replay_writes_each_image_once_when_zone_frames_share_it(tmp_path):
     assert result.exit_code == 0, result.output
     assert f"wrote {images} files" in result.output
     assert len(list(out.iterdir())) == images
+
+
+def test_replay_of_a_bag_checks_calib_before_the_model_and_applies_its_options(
+        tmp_path, monkeypatch):
+    from deltar.calibration.rig import RigCalibration
+    from deltar.cli.model_options import ModelOptions
+    from deltar.sensor.geometry import SensorExtrinsics
+    from tests.capture.test_bag_replay import INTR, MS, _bag
+
+    _bag(tmp_path / "bag", [4 * MS, 104 * MS, 204 * MS], invalid=(1,))
+    args = ["replay", "--bag", str(tmp_path / "bag"), "--preset", "deltar-lite",
+            "--threads", "1"]
+    for grid, size, named in ((4, INTR, "--calib is for a 4x4 zone grid, the bag"),
+                              (8, INTR.scaled(96, 128), "the images of /camera/image is 48x64 "
+                               "pixels but --calib is for the calibrated resolution 96x128")):
+        calib = RigCalibration(size, SensorExtrinsics(), grid=grid).save(
+            tmp_path / f"calib{grid}.json")
+        with monkeypatch.context() as patch:
+            patch.setattr(ModelOptions, "load", lambda self: pytest.fail("model loaded"))
+            result = runner.invoke(app, [*args, "--out-bag", str(tmp_path / "o"),
+                                         "--calib", str(calib)])
+        assert result.exit_code == 1 and named in result.output, result.output
+    with pytest.warns(UserWarning, match="has no valid zone; skipped"):
+        result = runner.invoke(app, [*args, "--out-bag", str(tmp_path / "skip")])
+    assert result.exit_code == 0 and "wrote 2 frames" in result.output, result.output
+    with pytest.warns(UserWarning, match="has no valid zone; image-only estimate"):
+        result = runner.invoke(app, [*args, "--out-bag", str(tmp_path / "all"),
+                                     "--allow-no-zones"])
+    assert result.exit_code == 0 and "wrote 3 frames" in result.output, result.output
+    # Stamps 4 ms after each image, shifted 30 ms more: 34 ms from every image.
+    result = runner.invoke(app, [*args, "--out-bag", str(tmp_path / "late"),
+                                 "--time-offset", "0.03", "--allow-no-zones"])
+    assert result.exit_code == 1 and "no ToF message on /tof/zones has a camera image" \
+        in result.output, result.output

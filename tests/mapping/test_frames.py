@@ -174,3 +174,15 @@ def test_a_baseline_frame_without_a_valid_zone_fuses_nothing_and_is_counted(wall
     plan = plan_map(source, COARSE)
     result = build_map(source, depth, plan, COARSE)
     assert result.empty_frames == 2 and len(result.poses) == 6
+
+
+def test_a_bags_tof_frames_are_paired_with_the_calibrations_time_offset(tmp_path):
+    from deltar.calibration.rig import RigCalibration
+    from deltar.sensor.geometry import SensorExtrinsics
+    from tests.capture.test_bag_replay import INTR, MS, _bag
+
+    # The sensor's clock runs 300 ms behind the camera's, as `deltar replay --bag` pairs.
+    _bag(tmp_path / "bag", [-296 * MS, -196 * MS, -96 * MS])
+    calib = RigCalibration(INTR, SensorExtrinsics(), grid=8, time_offset_s=0.3)
+    source = FrameSource(tmp_path / "bag", calibration=calib)
+    assert [f.time_s for f in source.frames] == pytest.approx([0.0, 0.1, 0.2])

@@ -71,8 +71,9 @@ def pair_calibration(pair: BagPair, calibration: RigCalibration | None,
 
 def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
                calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
-               every: int = 1, limit: int | None = None,
-               fov_deg: tuple[float, float] = DEFAULT_FOV_DEG) -> Iterator[BagReplayItem]:
+               time_offset_s: float | None = None, every: int = 1, limit: int | None = None,
+               fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, skip_no_zones: bool = False,
+               pairs: list[BagPair] | None = None) -> Iterator[BagReplayItem]:
     """Predict depth for every ToF frame of a bag that has a camera image near it.
 
     Args:
@@ -80,18 +81,43 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
         estimator: the depth estimator.
         calibration: rig calibration (its resolution must match the images); nominal
             from CameraInfo when None.
-        tolerance_s: largest |image stamp - ToF stamp|, seconds.
+        tolerance_s: largest |image stamp - (ToF stamp + offset)|, seconds.
+        time_offset_s: camera clock minus sensor clock, seconds, applied when pairing
+            (default: the calibration's ``time_offset_s``, 0 without one).
         every: use every ``every``-th pair.
         limit: stop after this many predictions.
         fov_deg: sensor field of view of the nominal placement, degrees.
+        skip_no_zones: skip ToF frames without any valid zone (with a warning) instead
+            of predicting image-only estimates (see ``DepthPrediction.image_only``; they
+            are warned about either way).
+        pairs: the bag's pairs when already made (``bag.pairs(tolerance_s,
+            time_offset_s)``: the CLI checks the first before the model); then
+            ``tolerance_s`` and ``time_offset_s`` are not used.
 
     Yields:
         :class:`BagReplayItem` per predicted frame, in bag order of the images.
+
+    Raises:
+        ValueError: images of another size than the intrinsics (naming the topic), or a
+            frame the estimator refuses (naming the ToF topic and stamp).
     """
-    pairs = bag.pairs(tolerance_s=tolerance_s)[::max(1, int(every))]
-    if limit is not None:
-        pairs = pairs[:limit]
-    for pair, image in bag.images(pairs):
+    if pairs is None:
+        offset = time_offset_s if time_offset_s is not None else \
+            calibration.time_offset_s if calibration is not None else 0.0
+        pairs = bag.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
+    chosen: list[BagPair] = []
+    for pair in pairs[::max(1, int(every))]:
+        if limit is not None and len(chosen) >= limit:
+            break
+        if pair.zone_frame.valid_count == 0:
+            # As folder replay: no metric anchor, so never written without a word.
+            what = "skipped" if skip_no_zones else "image-only estimate"
+            warnings.warn(f"{bag.path}: {bag.tof_topic} frame stamped "
+                          f"{pair.tof_stamp_ns} ns has no valid zone; {what}", stacklevel=2)
+            if skip_no_zones:
+                continue
+        chosen.append(pair)
+    for pair, image in bag.images(chosen):
         calib = pair_calibration(pair, calibration, fov_deg)
         size = (calib.intrinsics.height, calib.intrinsics.width)
         if image.shape[:2] != size:
@@ -100,7 +126,11 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
         # The depth is for the undistorted image: undistorted once, here, and predicted
         # with the calibration of undistorted images (predict would undistort again).
         image = calib.undistort_image(image)
-        prediction = estimator.predict(image, pair.zone_frame, calib.undistorted())
+        try:
+            prediction = estimator.predict(image, pair.zone_frame, calib.undistorted())
+        except ValueError as err:  # name the frame: the message may not
+            raise ValueError(f"{bag.path}: {bag.tof_topic} frame stamped {pair.tof_stamp_ns} "
+                             f"ns: {err}") from err
         yield BagReplayItem(pair, image, prediction, calib)
 
 

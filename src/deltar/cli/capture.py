@@ -29,6 +29,8 @@ from deltar.cli.robotics import (
     bag_topic_options,
 )
 
+#: ``deltar replay --outputs`` when not given.
+DEFAULT_OUTPUTS = "png16,npy,color"
 #: Largest depth a recording's 16-bit millimetre depth images hold, metres.
 MAX_RECORDED_DEPTH_M = 65.535
 
@@ -162,7 +164,7 @@ def replay_command(
     show: bool = typer.Option(False, help="Show depth live in an OpenCV window instead."),
     calib: Path | None = CalibOption,
     model: ModelOptions = MODEL_OPTIONS,
-    outputs: str = typer.Option("png16,npy,color", help="Comma list of output kinds."),
+    outputs: str = typer.Option(DEFAULT_OUTPUTS, help="Comma list of output kinds."),
     tolerance: float = typer.Option(0.02, min=0.0, help="Largest image-zone time offset, "
                                     "seconds."),
     time_offset: float | None = typer.Option(None, "--time-offset", help="Camera clock minus "
@@ -202,8 +204,13 @@ def replay_command(
     if (recording is None) == (bag is None):
         raise typer.BadParameter("give a RECORDING folder or --bag BAG")
     check_viewer(rerun, rerun_save)  # before the model
+    if time_offset is not None and not math.isfinite(time_offset):
+        raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
     if bag is not None:
-        refuse_unused_options({"--keep-going": keep_going, "--skip-existing": skip_existing},
+        # --out-bag is never replaced (it must not exist), so --overwrite has nothing to do.
+        refuse_unused_options({"--keep-going": keep_going, "--skip-existing": skip_existing,
+                               "--overwrite": overwrite,
+                               "--outputs": outputs != DEFAULT_OUTPUTS},
                               "for replays into an --out folder",
                               "with --bag the output is a new bag, written whole")
         model.check()
@@ -213,7 +220,8 @@ def replay_command(
                 load_calibration(calib), out=out, show=show, out_bag=out_bag,
                 storage=bag_storage, topics=topics, points=points,
                 prefix=topic_prefix, rerun=rerun, rerun_save=rerun_save,
-                tolerance=tolerance, every=every, limit=limit))
+                tolerance=tolerance, every=every, limit=limit, time_offset=time_offset,
+                skip_no_zones=not allow_no_zones))
         except (ValueError, FileNotFoundError, FileExistsError, ImportError) as err:
             fail(err)
         return
@@ -231,8 +239,6 @@ def replay_command(
     calibration = load_calibration(calib)
     if time_offset is None:
         time_offset = calibration.time_offset_s if calibration is not None else 0.0
-    elif not math.isfinite(time_offset):
-        raise typer.BadParameter(f"must be finite, got {time_offset}", param_hint="--time-offset")
     total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
                           overwrite, show, skip_existing, skip_no_zones=not allow_no_zones)
     _check_calibration_fits(calibration, calib, recording)

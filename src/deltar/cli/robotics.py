@@ -154,7 +154,8 @@ def open_viewer(rerun: bool, rerun_save: Path | None) -> RerunLogger | None:
 def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, out_bag,
                        storage: str, topics: BagTopics, points: bool, prefix: str,
                        rerun: bool, rerun_save: Path | None, tolerance: float, every: int,
-                       limit: int | None) -> str:
+                       limit: int | None, time_offset: float | None = None,
+                       skip_no_zones: bool = True) -> str:
     """Run ``deltar replay --bag``: write the output bag and/or feed the viewer.
 
     Args:
@@ -162,6 +163,8 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
         build_estimator: returns the depth estimator (called after the checks).
         calibration: a rig calibration, or None (nominal, from CameraInfo).
         topics: the bag's topics and ToF format.
+        time_offset: ``--time-offset`` (None: the calibration's, else 0).
+        skip_no_zones: not ``--allow-no-zones``.
         other arguments: the command's options.
 
     Returns:
@@ -184,10 +187,16 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
             raise typer.BadParameter(f"{out_bag} exists; a bag is written whole into a new "
                                      "path: choose another", param_hint="--out-bag")
     bag_input = BagInput(bag, **topics.bag_input_options())
-    estimator = build_estimator()  # after the bag is opened: a bad bag fails first
+    if time_offset is None:
+        time_offset = calibration.time_offset_s if calibration is not None else 0.0
+    pairs = bag_input.pairs(tolerance_s=tolerance, time_offset_s=time_offset)
+    grid = _check_bag_fits(bag_input, pairs[0], calibration)
+    estimator = build_estimator()  # after the checks: a bad bag fails first
+    if estimator.onnx_model is not None:  # its zone grid is fixed: checked before any frame
+        estimator.onnx_model.check_grid(grid, f"the bag {bag}")
     viewer = open_viewer(rerun, rerun_save)
-    kwargs = {"calibration": calibration, "tolerance_s": tolerance, "every": every,
-              "limit": limit}
+    kwargs = {"calibration": calibration, "pairs": pairs, "every": every, "limit": limit,
+              "skip_no_zones": skip_no_zones}
     with ProgressReport("replaying") as progress:
 
         def each(item) -> None:
@@ -211,6 +220,34 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
         finally:
             if viewer is not None:
                 viewer.close()
+
+
+def _check_bag_fits(bag, pair, calibration) -> int:
+    """The bag's first pair against ``--calib`` (zone grid, image size), or its
+    CameraInfo (without ``--calib``), before the model; returns the zone grid.
+
+    Raises:
+        ValueError: naming ``--calib`` and the topic that disagrees with it.
+    """
+    from deltar.capture.bag_replay import pair_calibration
+
+    pair_calibration(pair, calibration)  # no CameraInfo and no --calib: refused here
+    grid = pair.zone_frame.grid
+    if calibration is None:
+        return grid
+    if calibration.grid != grid:
+        raise ValueError(f"--calib is for a {calibration.grid}x{calibration.grid} zone grid, "
+                         f"the bag {bag.path} has {grid}x{grid} on {bag.tof_topic}")
+    # One image decoded (a compressed one has no size otherwise); the bag is read no
+    # further than it.
+    images = bag.images([pair])
+    try:
+        _, image = next(images)
+    finally:
+        images.close()
+    calibration.check_image_size(image.shape[:2], f"the images of {bag.image_topic}",
+                                 "--calib")
+    return grid
 
 
 class CaptureLogger:
