@@ -130,6 +130,9 @@ class OnnxDepthModel:
             options.inter_op_num_threads = 1
         if not allow_spinning:
             options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        # Fatal only (its errors are level 3): onnxruntime's own coloured log line would
+        # precede and repeat the ValueError below, which names the file.
+        options.log_severity_level = 4
         try:
             self.session = ort.InferenceSession(str(path), options,
                                                 providers=["CPUExecutionProvider"])
@@ -144,40 +147,50 @@ class OnnxDepthModel:
                              "with deltar export)")
         #: Whether the graph takes the (B, Z) bool no-target flags.
         self.takes_no_target = NO_TARGET_INPUT in names
-        #: Target slots per zone the graph reads (1: the primary reading alone).
-        self.target_slots = 1
-        if TARGETS_INPUT in names:
-            self.target_slots = int(
-                {i.name: i.shape for i in self.session.get_inputs()}[TARGETS_INPUT][2])
-        meta = self.session.get_modelmeta().custom_metadata_map
-        if SIGNATURE_KEY not in meta:
+        if SIGNATURE_KEY not in self.session.get_modelmeta().custom_metadata_map:
             raise ValueError(f"{path}: no {SIGNATURE_KEY} metadata (export with deltar export)")
-        self.signature = json.loads(meta[SIGNATURE_KEY])
-        self.grid = int(meta["deltar_grid"])
-        self.metadata = dict(meta)
-        shapes = {i.name: i.shape for i in self.session.get_inputs()}
-        self.input_size = (int(shapes["image"][2]), int(shapes["image"][3]))
-        self.num_hypotheses = int(shapes["hypotheses"][2])
-        try:
-            config = json.loads(meta.get("deltar_config", "{}"))
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}: unreadable deltar_config metadata: {err}") from err
-        self.contract = {**network_contract(config), "num_hypotheses": self.num_hypotheses}
-        self._files = {self.input_size: path}
-        try:
-            listed = json.loads(meta.get(SIZES_KEY, "{}"))
-            for text, name in listed.items():
-                height, width = (int(v) for v in text.split("x"))
-                if (height, width) != self.input_size:
-                    self._files[(height, width)] = path.with_name(Path(name).name)
-        except (json.JSONDecodeError, ValueError, AttributeError) as err:
-            raise ValueError(f"{path}: unreadable {SIZES_KEY} metadata: {err}") from err
+        try:  # a file edited or written by another tool: one error naming it
+            self._read_metadata(path)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            what = f"no {err.args[0]} metadata" if isinstance(err, KeyError) else err
+            raise ValueError(f"{path}: cannot read its deltar metadata: {what} (export "
+                             "with deltar export)") from err
         for size, other in self._files.items():
             if not other.is_file():
                 raise ValueError(f"{path}: the {size_text(size)} export it lists, {other}, "
                                  "is missing (keep the files of one export together)")
         self.input_sizes = tuple(self._files)
         self._loaded: dict[tuple[int, int], OnnxDepthModel] = {self.input_size: self}
+
+    def _read_metadata(self, path: Path) -> None:
+        """Set the grid, signature, sizes and contract from the file's inputs and metadata.
+
+        Raises:
+            KeyError (the missing key), TypeError or ValueError: metadata not as
+            ``deltar export`` writes it.
+        """
+        inputs = {i.name: i.shape for i in self.session.get_inputs()}
+        #: Target slots per zone the graph reads (1: the primary reading alone).
+        self.target_slots = (_dimension(inputs[TARGETS_INPUT], 2, TARGETS_INPUT)
+                             if TARGETS_INPUT in inputs else 1)
+        meta = self.session.get_modelmeta().custom_metadata_map
+        self.metadata = dict(meta)
+        self.signature = _json_value(meta, SIGNATURE_KEY, list)
+        if not all(isinstance(s, dict) and {"patch", "max_length"} <= set(s)
+                   for s in self.signature):
+            raise ValueError(f"{SIGNATURE_KEY} must list {{stride, patch, max_length}} "
+                             f"per fusion stride, got {meta[SIGNATURE_KEY][:80]!r}")
+        self.grid = _positive_int(meta["deltar_grid"], "deltar_grid")
+        self.input_size = (_dimension(inputs["image"], 2, "image"),
+                           _dimension(inputs["image"], 3, "image"))
+        self.num_hypotheses = _dimension(inputs["hypotheses"], 2, "hypotheses")
+        config = _json_value(meta, "deltar_config", dict, default="{}")
+        self.contract = {**network_contract(config), "num_hypotheses": self.num_hypotheses}
+        self._files = {self.input_size: path}
+        for text, name in _json_value(meta, SIZES_KEY, dict, default="{}").items():
+            height, width = (_positive_int(v, SIZES_KEY) for v in str(text).split("x"))
+            if (height, width) != self.input_size:
+                self._files[(height, width)] = path.with_name(Path(str(name)).name)
 
     def for_input_size(self, size: tuple[int, int]) -> OnnxDepthModel:
         """The model for (H, W) input images of ``size`` pixels (one of :attr:`input_sizes`):
@@ -303,3 +316,36 @@ class OnnxDepthModel:
         outputs = self.session.run(list(OUTPUT_NAMES), feeds)
         return dict(zip(OUTPUT_NAMES, outputs, strict=True))
 
+
+def _json_value(meta: dict, key: str, kind: type, default: str | None = None):
+    """The JSON value of metadata ``key``, which must be a ``kind`` (KeyError if absent
+    without a default)."""
+    text = meta[key] if default is None else meta.get(key, default)
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{key} is not JSON ({err})") from None
+    if not isinstance(value, kind):
+        raise ValueError(f"{key} must be a JSON {'list' if kind is list else 'object'}, "
+                         f"got {text[:80]!r}")
+    return value
+
+
+def _positive_int(text, name: str) -> int:
+    """``text`` as a positive whole number; ``ValueError`` naming ``name`` otherwise."""
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        value = 0
+    if value < 1:
+        raise ValueError(f"{name} must be a positive whole number, got {text!r}")
+    return value
+
+
+def _dimension(shape: list, axis: int, name: str) -> int:
+    """A fixed axis of an input's shape (onnxruntime gives a symbolic one as text)."""
+    value = shape[axis] if len(shape) > axis else None
+    if not isinstance(value, int) or value < 1:
+        raise ValueError(f"input {name!r} has shape {shape}; axis {axis} must be fixed "
+                         "(deltar export fixes every axis but the batch)")
+    return value
