@@ -151,8 +151,54 @@ def test_missing_checkpoint_and_official_files_are_named(tmp_path: Path, tiny_sa
         result = runner.invoke(app, ["evaluate", option, str(missing), "--data", str(data)])
         # Checked as an option value before any work (docs/errors.md): a usage error.
         assert result.exit_code == 2, result.output
-        assert "error: Invalid value for --checkpoint/--official" in result.output
+        assert f"error: Invalid value for {option}: " in result.output
         assert "nope.pt" in result.output
+
+
+def test_a_methods_unreadable_model_is_named_as_method(tmp_path: Path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a model")
+    result = runner.invoke(app, ["evaluate", "--method", f"nearest,onnx:{bad}",
+                                 "--data", str(data)])
+    assert result.exit_code == 2, result.output
+    assert "error: Invalid value for --method: " in result.output and "bad.onnx" in result.output
+
+
+@pytest.mark.parametrize(("method", "files"), [
+    ("onnx:{}/m.onnx", ["m.onnx", "m.onnx.data"]),
+    ("onnx:{}/m.onnx+network", ["m.onnx", "m.onnx.data"]),
+    ("model:{}/c.pt", ["c.pt"]),
+    ("official:{}/o.pt+flip", ["o.pt"]),
+])
+def test_no_output_replaces_a_methods_model_file(tmp_path: Path, tiny_samples, method,
+                                                files) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    for name in files:
+        (tmp_path / name).write_bytes(b"weights")
+    for name in files:
+        result = runner.invoke(app, ["evaluate", "--method", method.format(tmp_path),
+                                     "--data", str(data), "--json", str(tmp_path / name),
+                                     "--overwrite"])
+        assert result.exit_code == 1, result.output
+        assert f"is the input {tmp_path / name}" in result.output
+        assert (tmp_path / name).read_bytes() == b"weights"
+
+
+def test_a_missing_frame_file_is_found_before_any_model(tmp_path: Path, tiny_samples) -> None:
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    frame = data.parent / "scene_b" / "0001.h5"
+    frame.unlink()
+    # The missing checkpoint would fail when the methods are built: the frame is named first.
+    result = runner.invoke(app, ["evaluate", "--method", "nearest,model:missing.pt",
+                                 "--data", str(data)])
+    assert result.exit_code == 2, result.output
+    assert f"frame file not found: {frame}" in result.output
+    assert "missing.pt" not in result.output
+    # Frames past --limit are not read, so they need not exist.
+    result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data),
+                                 "--limit", "2"])
+    assert result.exit_code == 0, result.output
 
 
 def test_no_method_at_all_is_an_error(tmp_path: Path, tiny_samples) -> None:
@@ -189,3 +235,16 @@ def test_network_adds_the_network_alone_for_a_plane_select_model(tmp_path: Path,
     assert metrics[key]["rmse"] != metrics[f"{key}+network"]["rmse"]
     assert checkpoint_predictor(str(checkpoint)).estimator.blend is not None
     assert checkpoint_predictor(f"{checkpoint}+network").estimator.blend is None
+
+
+def test_a_missing_thdr3k_file_is_found_before_any_model(tmp_path: Path) -> None:
+    from tests.data.thdr3k_set import write_set
+
+    list_path = write_set(tmp_path / "thdr", train=1, test=2)
+    last = json.loads(list_path.read_text())["test"][-1]["filename"]
+    depth = list_path.parent / f"{last}_depth.png"
+    depth.unlink()
+    result = runner.invoke(app, ["evaluate", "--method", "nearest,model:missing.pt",
+                                 "--data", str(list_path)])
+    assert result.exit_code == 2, result.output
+    assert f"frame file not found: {depth}" in result.output

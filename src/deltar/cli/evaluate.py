@@ -93,6 +93,7 @@ def evaluate(
     from deltar.cli.checks import output_file, output_folder
     from deltar.cli.progress import ProgressReport, table_console
     from deltar.data.zone_sets import open_zone_set
+    from deltar.evaluation.model_methods import method_input_files
     from deltar.evaluation.runner import create_predictor, evaluate_methods, resolve_method_names
     from deltar.evaluation.visualize import safe_filename, save_frame_panel
     from deltar.io.atomic import write_text_atomic
@@ -109,8 +110,11 @@ def evaluate(
             raise typer.BadParameter(f"{option} adds a variant of each {what} model; give "
                                      "one (for the bundled model: --checkpoint default)",
                                      param_hint=option)
-    specs += models + ([f"{m}+flip" for m in models] if flip else []) + \
-        ([f"model:{c}+network" for c in checkpoint] if network else [])
+    flipped = [f"{m}+flip" for m in models] if flip else []
+    networks = [f"model:{c}+network" for c in checkpoint] if network else []
+    specs += models + flipped + networks
+    checkpoint_names = {n for n in models + flipped + networks if n.startswith("model:")}
+    official_names = {n for n in models + flipped if n.startswith("official:")}
     if not specs:
         raise typer.BadParameter("give --method, --checkpoint or --official",
                                  param_hint="--method")
@@ -129,8 +133,17 @@ def evaluate(
     if len(dataset) == 0:
         raise typer.BadParameter(f"split {split!r} of {data} lists no frames",
                                  param_hint="--data")
-    # The set's files and the model files: no output replaces either.
-    inputs = [*_set_files(dataset, data), *map(Path, checkpoint), official]
+    total = len(dataset) if limit is None else min(limit, len(dataset))
+    # A missing frame file fails now, not after predicting the frames before it.
+    for index in range(total):
+        for path in dataset.frame_files(index):
+            if not path.is_file():
+                index_file = data / "data.json" if data.is_dir() else data
+                raise typer.BadParameter(f"frame file not found: {path} (frame "
+                                         f"{dataset.filenames[index]!r} of {index_file})",
+                                         param_hint="--data")
+    # The set's files and every method's model files: no output replaces either.
+    inputs = [*_set_files(dataset, data), *(f for n in names for f in method_input_files(n))]
     if json_out is not None:
         refuse_input_as_output(json_out, inputs, "--json")
         output_file(json_out, "--json", overwrite)
@@ -144,11 +157,14 @@ def evaluate(
         if used and not overwrite:
             raise FileExistsError(f"--save-vis: {used[0]} already holds panels; pass "
                                   "--overwrite to replace them or choose another folder")
-    try:
-        predictors = {name: create_predictor(name) for name in names}
-    except (OSError, ValueError) as err:
-        raise typer.BadParameter(str(err), param_hint="--checkpoint/--official") from err
-    total = len(dataset) if limit is None else min(limit, len(dataset))
+    predictors = {}
+    for name in names:
+        try:
+            predictors[name] = create_predictor(name)
+        except (OSError, ValueError) as err:  # named as the option that gave the method
+            option = ("--checkpoint" if name in checkpoint_names else
+                      "--official" if name in official_names else "--method")
+            raise typer.BadParameter(str(err), param_hint=option) from err
 
     with ProgressReport("evaluating", total=total) as progress:
 

@@ -179,6 +179,11 @@ class THDR3KDataset(Sequence):
     def __len__(self) -> int:
         return len(self.filenames)
 
+    def frame_files(self, index: int) -> list[Path]:
+        """The files sample ``index`` reads (``<root>_rgb.jpg``, ...), without reading them."""
+        base = self.root / self.filenames[checked_index(index, len(self), "sample")]
+        return [base.with_name(base.name + suffix) for suffix in SUFFIXES.values()]
+
     def __getitem__(self, index: int) -> ZJUL5Sample:  # type: ignore[override]
         rel = self.filenames[checked_index(index, len(self), "sample")]
         return read_thdr3k_sample(self.root / rel, Path(rel).as_posix(),

@@ -303,6 +303,10 @@ class ZJUL5Dataset(Sequence):
     def __len__(self) -> int:
         return len(self.filenames)
 
+    def frame_files(self, index: int) -> list[Path]:
+        """The file frame ``index`` reads (its ``.h5``), without reading it."""
+        return [self.root / self.filenames[checked_index(index, len(self))]]
+
     def __getitem__(self, index: int) -> ZJUL5Sample:  # type: ignore[override]
         rel = self.filenames[checked_index(index, len(self))]
         name = rel[:-3] if rel.endswith(".h5") else rel

@@ -19,6 +19,7 @@ size's pixel budget, multiples of 32; an ONNX file at its exported size), exactl
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from deltar.evaluation.runner import register_method_family
@@ -118,6 +119,18 @@ def onnx_predictor(path: str) -> EstimatorPredictor:
     check_backend_options("float32", bool(options.get("flip_average")), True,
                           names=("precision", f"onnx:{path}: +flip"))
     return EstimatorPredictor(load_estimator(path, kind="onnx", **options))
+
+
+def method_input_files(name: str) -> list[Path]:
+    """The existing files a ``model:`` / ``onnx:`` / ``official:`` method reads (an ONNX
+    file's ``.data`` weights too): inputs no output of the evaluation may replace. None
+    for other methods or a bundled name."""
+    prefix, _, rest = name.partition(":")
+    if prefix not in ("model", "onnx", "official") or not rest:
+        return []
+    path = Path(_split_suffixes(rest)[0])
+    files = [path, path.with_name(path.name + ".data")] if prefix == "onnx" else [path]
+    return [file for file in files if file.exists()]
 
 
 register_method_family("model", checkpoint_predictor)
