@@ -754,7 +754,8 @@ def test_evaluate_refuses_zones_beyond_the_sensor_range(tmp_path, zju_set):
         f["hist_data"][...] = zones
     result = _run(["evaluate", "--data", zju_set, "--method", "nearest"])
     assert result.exit_code == 1
-    _one_error_line(result, f"frame '{frame.parent.name}/{frame.stem}': 1 valid zone(s) read "
+    _one_error_line(result, f"frame '{frame.parent.name}/{frame.stem}' ({frame}): 1 valid "
+                    "zone(s) read "
                     "distances outside the VL53L5CX range 0 < d <= 4 m", "1e+06")
 
 

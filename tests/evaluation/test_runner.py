@@ -110,6 +110,27 @@ def test_a_method_refusing_a_frame_is_named_with_the_frame(tiny_samples) -> None
         evaluate_methods(tiny_samples, {"picky": refuses})
 
 
+class _ListedFrames(list):
+    """Samples of a set that names each frame's files (as ZJUL5Dataset does)."""
+
+    def frame_files(self, index):
+        return [f"set/{self[index].name}.h5"]
+
+
+def test_a_frame_whose_zones_all_lie_outside_the_image_is_refused_for_every_method(
+        tiny_samples) -> None:
+    import dataclasses
+
+    away = dataclasses.replace(tiny_samples[1], zone_rects=tiny_samples[1].zone_rects + 1e5)
+    frames = _ListedFrames([tiny_samples[0], away])
+    scored = []
+    with pytest.raises(ValueError, match=r"^frame 'scene_a/0002' \(set/scene_a/0002\.h5\): "
+                       r"all 16 valid zones fall outside the 32x48 image"):
+        evaluate_methods(frames, {"nearest": BaselinePredictor("nearest"),
+                                  "spy": lambda s: scored.append(s.name) or s.depth_m})
+    assert scored == ["scene_a/0001"]  # refused before any method ran on it
+
+
 def test_baseline_predictor_ignores_valid_zones_without_distance() -> None:
     sample = make_sample("zero", 0)
     sample.zone_mean_sigma[3, 0] = 0.0  # flagged valid, but no distance reported

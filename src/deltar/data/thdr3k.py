@@ -180,9 +180,10 @@ class THDR3KDataset(Sequence):
         return len(self.filenames)
 
     def frame_files(self, index: int) -> list[Path]:
-        """The files sample ``index`` reads (``<root>_rgb.jpg``, ...), without reading them."""
+        """The files sample ``index`` reads, without reading them: its zone reading
+        (``<root>_tof.json``) first, then its image and depth."""
         base = self.root / self.filenames[checked_index(index, len(self), "sample")]
-        return [base.with_name(base.name + suffix) for suffix in SUFFIXES.values()]
+        return [base.with_name(base.name + SUFFIXES[kind]) for kind in ("tof", "rgb", "depth")]
 
     def __getitem__(self, index: int) -> ZJUL5Sample:  # type: ignore[override]
         rel = self.filenames[checked_index(index, len(self), "sample")]

@@ -212,21 +212,37 @@ class EvaluationResult:
 FrameCallback = Callable[[int, "ZJUL5Sample", Mapping[str, np.ndarray]], None]
 
 
-def check_sample_zones(sample: ZJUL5Sample) -> None:
+def check_sample_zones(sample: ZJUL5Sample, source: str | None = None) -> None:
     """Refuse a frame whose zone reading is physically impossible (before scoring it).
 
-    The checks of :meth:`~deltar.sensor.zone_frame.ZoneFrame.physical_error`: valid
-    zones beyond the sensor's range, sigmas larger than it, empty histograms.
+    The checks of :meth:`~deltar.sensor.zone_frame.ZoneFrame.physical_error` (valid
+    zones beyond the sensor's range, sigmas larger than it, empty histograms), and valid
+    zones whose rectangles all lie outside the image: the model methods refuse such a
+    frame, so every method does (a baseline would score a constant map).
+
+    Args:
+        sample: the frame.
+        source: its file, for the message.
 
     Raises:
-        ValueError: ``"frame '<name>': <problem>"``.
+        ValueError: ``"frame '<name>' (<source>): <problem>"``.
     """
+    from deltar.sensor.geometry import zones_in_image
+
     try:
         problem = sample.zone_frame().physical_error()
     except ValueError as err:
         problem = str(err)
+    # The zones the estimator takes as readings (ZJUL5Sample.zone_frame).
+    valid = np.asarray(sample.zone_valid, dtype=bool) & (sample.zone_mean_sigma[:, 0] > 0)
+    height, width = sample.rgb.shape[:2]
+    if problem is None and valid.any() and not (
+            zones_in_image(sample.zone_rects, height, width) & valid).any():
+        problem = (f"all {int(valid.sum())} valid zones fall outside the {height}x{width} "
+                   "image; check the zone rectangles")
     if problem is not None:
-        raise ValueError(f"frame {sample.name!r}: {problem}")
+        where = f"frame {sample.name!r}" + ("" if source is None else f" ({source})")
+        raise ValueError(f"{where}: {problem}")
 
 
 def evaluate_methods(
@@ -268,7 +284,9 @@ def evaluate_methods(
     result = EvaluationResult()
     for index in range(count):
         sample = samples[index]
-        check_sample_zones(sample)
+        # The file holding the zone reading, from sets that list their files.
+        files = samples.frame_files(index) if hasattr(samples, "frame_files") else None
+        check_sample_zones(sample, None if not files else str(files[0]))
         predictions: dict[str, np.ndarray] = {}
         sigmas: dict[str, np.ndarray] = {}
         for name, predictor in predictors.items():
