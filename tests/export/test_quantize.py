@@ -151,3 +151,16 @@ def test_a_file_that_takes_the_no_target_flags_quantises_with_them(tmp_path):
                                                "zone_valid", "zone_no_target",
                                                "zone_targets")))
     assert np.all(np.isfinite(out["depth"])) and out["depth"].shape == (1, 1, 32, 48)
+
+
+def test_a_folder_that_is_not_rgbd_fails_before_the_float_export(tmp_path, monkeypatch):
+    import deltar.export.onnx
+
+    def no_export(*args, **kwargs):
+        raise AssertionError("exported before checking the calibration folder")
+
+    monkeypatch.setattr(deltar.export.onnx, "export_onnx", no_export)
+    (tmp_path / "plain").mkdir()
+    with pytest.raises(ValueError, match="cannot tell the layout of"):
+        export_int8(_small_model(), tmp_path / "x.onnx", *SIZE, tmp_path / "plain")
+    assert not (tmp_path / "x.onnx").exists()

@@ -35,7 +35,22 @@ FLOAT_PARTS = ("/head/",)
 QUANT_KEY = "deltar_quantization"
 
 
-def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
+def open_calibration_frames(source: str | os.PathLike) -> Sequence:
+    """The RGB-D reader of an ``--int8`` calibration folder, opened without reading a
+    frame, so a missing folder or one that is not an RGB-D folder fails before the export.
+
+    Raises:
+        FileNotFoundError / ValueError: naming the folder (no frames, unknown layout).
+    """
+    from deltar.data.rgbd import open_rgbd
+
+    reader = open_rgbd(source)
+    if len(reader) == 0:
+        raise ValueError(f"{source}: no RGB-D frames")
+    return reader
+
+
+def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike | Sequence,
                       frames: int = 16, zone_rects: np.ndarray | None = None,
                       rects_size: tuple[int, int] | None = None
                       ) -> list[dict[str, np.ndarray]]:
@@ -48,7 +63,8 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
 
     Args:
         estimator: the estimator of the exported model (its layout and input size).
-        source: an RGB-D folder (:func:`~deltar.data.rgbd.open_rgbd`).
+        source: an RGB-D folder (:func:`~deltar.data.rgbd.open_rgbd`), or its reader
+            (:func:`open_calibration_frames`).
         frames: number of frames (>= 1); all of them when the folder has fewer.
         zone_rects: (Z, 4) zone layout in pixels of a ``rects_size`` image (the layout
             a model was exported for); the estimator's nominal layout when None.
@@ -61,7 +77,6 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
         ``zone_targets`` (1, Z, T, 2) float32 for one that reads several targets per
         zone (simulated with that many).
     """
-    from deltar.data.rgbd import open_rgbd
     from deltar.inference.onnx_runtime import INPUT_NAMES, NO_TARGET_INPUT, TARGETS_INPUT
     from deltar.inference.preprocess import scale_rects
     from deltar.sensor.simulate_frame import simulate_zone_frame
@@ -70,9 +85,8 @@ def calibration_feeds(estimator: DepthEstimator, source: str | os.PathLike,
 
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
-    reader = open_rgbd(source)
-    if len(reader) == 0:
-        raise ValueError(f"{source}: no RGB-D frames")
+    reader = (open_calibration_frames(source) if isinstance(source, (str, os.PathLike))
+              else source)
     picks = np.unique(np.linspace(0, len(reader) - 1, min(frames, len(reader))).round())
     grid = estimator.onnx_model.grid if estimator.onnx_model is not None else 8
     layout = ZoneFrame(mean_m=np.ones((grid, grid)), sigma_m=np.zeros((grid, grid)),
@@ -205,7 +219,7 @@ def quantize_onnx(float_path: str | os.PathLike, out_path: str | os.PathLike,
 
 
 def export_int8(model, path: str | os.PathLike, height: int, width: int,
-                calibration: str | os.PathLike, *, frames: int = 16,
+                calibration: str | os.PathLike | Sequence, *, frames: int = 16,
                 zone_rects: np.ndarray | None = None, overwrite: bool = False,
                 metadata: dict[str, str] | None = None) -> Path:
     """Export ``model`` to ONNX and write only its int8 quantisation to ``path``.
@@ -217,7 +231,8 @@ def export_int8(model, path: str | os.PathLike, height: int, width: int,
         model: the network (``DeltarNet``).
         path: destination ``.onnx`` file.
         height, width: camera image size in pixels (as :func:`~deltar.export.onnx.export_onnx`).
-        calibration: RGB-D folder with calibration frames.
+        calibration: RGB-D folder with calibration frames, or its reader
+            (:func:`open_calibration_frames`).
         frames: number of calibration frames.
         zone_rects: (Z, 4) zone layout in image pixels; the nominal one when None.
         overwrite: replace an existing file (default: ``FileExistsError``).
@@ -234,7 +249,9 @@ def export_int8(model, path: str | os.PathLike, height: int, width: int,
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"refusing to overwrite existing file: {path}")
-    input_folder(calibration, "calibration RGB-D folder")
+    if isinstance(calibration, (str, os.PathLike)):  # checked before the long export
+        input_folder(calibration, "calibration RGB-D folder")
+        calibration = open_calibration_frames(calibration)
     with tempfile.TemporaryDirectory(prefix="deltar-int8-") as folder:
         float_path = Path(folder) / "float32.onnx"
         export_onnx(model, float_path, height, width, zone_rects=zone_rects,
