@@ -443,3 +443,38 @@ def test_export_leaves_the_callers_model_as_it_was_and_names_bad_arguments(tmp_p
             export_onnx(arguments["model"], tmp_path / "n.onnx", arguments["height"], 64,
                         zone_rects=arguments["zone_rects"])
     assert not (tmp_path / "n.onnx").exists()
+
+
+def test_a_failed_multi_size_export_leaves_no_file_under_the_final_names(tmp_path,
+                                                                        monkeypatch):
+    import deltar.io.atomic
+    from deltar.export.onnx import export_onnx_sizes, sized_export_paths
+
+    torch.manual_seed(0)
+    model = create_model("deltar-lite", design_size=(64, 96)).eval()
+    sizes = [(64, 96), (96, 96)]
+    out = tmp_path / "m.onnx"
+    files = list(sized_export_paths(model, out, sizes).values())
+    assert [f.name for f in files] == ["m.onnx", "m.64x64.onnx"]
+    # A folder under one of the names: refused naming it, before anything is written.
+    files[1].mkdir()
+    with pytest.raises(ValueError, match=rf"^{files[1]} is a folder, not a file"):
+        export_onnx_sizes(model, out, sizes, overwrite=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [files[1].name]
+    files[1].rmdir()
+    # A failure while moving the files into place (the disk, a folder made meanwhile):
+    # the ones moved before are removed again, and the error names the final path.
+    moves = []
+    move = deltar.io.atomic.move_into_place
+
+    def fails_on_the_last(tmp, final, overwrite):
+        moves.append(final)
+        if len(moves) == 3:
+            raise IsADirectoryError(21, "Is a directory", str(tmp), None, str(final))
+        move(tmp, final, overwrite)
+
+    monkeypatch.setattr(deltar.io.atomic, "move_into_place", fails_on_the_last)
+    with pytest.raises(IsADirectoryError) as caught:
+        export_onnx_sizes(model, out, sizes)
+    assert caught.value.filename == str(moves[-1])
+    assert list(tmp_path.iterdir()) == []  # no final name, no temporary left

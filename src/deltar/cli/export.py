@@ -70,7 +70,7 @@ def export_command(
     for module in ("onnx", "torch"):  # one line naming the 'export' extra
         require_extra(module, "deltar export", "export")
     from deltar.cli.checks import output_file
-    from deltar.export.onnx import export_onnx, export_onnx_sizes
+    from deltar.export.onnx import export_onnx, export_onnx_sizes, sized_export_paths
     from deltar.export.quantize import export_int8
     from deltar.io.input_file import refuse_input_as_output
 
@@ -96,8 +96,17 @@ def export_command(
     if int8 != (calibration is not None):
         raise typer.BadParameter("--int8 and --calibration DIR go together",
                                  param_hint="--calibration")
-    # A bad --layout-from fails before the model is built.
+    # A bad --layout-from or --calibration fails before the model is built.
     rects = None if layout_from is None else _layout_rects(layout_from, height, width)
+    if calibration is not None:
+        from deltar.export.quantize import open_calibration_frames
+        from deltar.io.input_file import input_folder
+
+        try:
+            input_folder(calibration, "calibration RGB-D folder")
+            calibration = open_calibration_frames(calibration)
+        except (ValueError, FileNotFoundError) as err:
+            raise ValueError(f"--calibration: {err}") from err
     try:
         estimator = ModelOptions(preset=preset, checkpoint=checkpoint,
                                  official=official).load()
@@ -107,6 +116,11 @@ def export_command(
                                frames=calibration_frames, zone_rects=rects,
                                overwrite=overwrite, metadata=metadata)
         elif len(sizes) > 1:
+            # The other sizes' names follow the weights' design size: checked once the
+            # model is there, before the export.
+            for other in sized_export_paths(estimator.model, out, sizes).values():
+                refuse_input_as_output(other, [checkpoint, official], "--out")
+                output_file(other, "--out", overwrite)
             paths = export_onnx_sizes(estimator.model, out, sizes, overwrite=overwrite,
                                       metadata=metadata)
             path = ", ".join(str(p) for p in paths)

@@ -231,6 +231,29 @@ def export_onnx(model: DeltarNet, path: str | os.PathLike, height: int, width: i
     return path
 
 
+def sized_export_paths(model: DeltarNet, path: str | os.PathLike,
+                       image_sizes: list[tuple[int, int]]) -> dict[tuple[int, int], Path]:
+    """The files :func:`export_onnx_sizes` writes, by network input size (H, W): ``path``
+    for the first size, ``<stem>.<h>x<w>.onnx`` beside it for the others (camera sizes
+    that give a network size already listed add none). The weights go to
+    ``<path>.data`` besides.
+
+    Raises:
+        ValueError: no image size, or a non-positive one.
+    """
+    if not image_sizes:
+        raise ValueError("image_sizes must name at least one (height, width) camera size")
+    path = Path(path)
+    paths: dict[tuple[int, int], Path] = {}
+    for height, width in image_sizes:
+        if height < 1 or width < 1:
+            raise ValueError(f"image sizes must be positive, got {height}x{width}")
+        size = export_input_size(model, height, width)
+        paths.setdefault(size, path if not paths else
+                         path.with_name(sized_file_name(path.name, size)))
+    return paths
+
+
 def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
                       image_sizes: list[tuple[int, int]], *, overwrite: bool = False,
                       metadata: dict[str, str] | None = None) -> list[Path]:
@@ -239,11 +262,16 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
     Each distinct network input size (:func:`export_input_size` of a camera size: the one
     size rule) gets its own fixed-size file, :func:`export_onnx`'s graph: the first at
     ``path``, the others beside it as ``<stem>.<h>x<w>.onnx`` (network input size in
-    pixels). Their weights are the same, so they are written once, to ``<path>.data``
-    (ONNX external data, which onnxruntime reads from beside the file): an extra size
-    costs its graph alone. Every file lists all the sizes in its ``deltar_input_sizes``
-    metadata, so :class:`~deltar.inference.onnx_runtime.OnnxDepthModel` of the first
-    runs each image at the size the size rule gives it (PyTorch's size), when listed.
+    pixels; :func:`sized_export_paths`). Their weights are the same, so they are written
+    once, to ``<path>.data`` (ONNX external data, which onnxruntime reads from beside the
+    file): an extra size costs its graph alone. Every file lists all the sizes in its
+    ``deltar_input_sizes`` metadata, so :class:`~deltar.inference.onnx_runtime.OnnxDepthModel`
+    of the first runs each image at the size the size rule gives it (PyTorch's size),
+    when listed.
+
+    The files are written beside their final names and moved there only once all are
+    written: a failure leaves none of them under the final names (files they replace
+    with ``overwrite`` are kept, unless the failure comes while moving).
 
     Args:
         model: the network, as for :func:`export_onnx`.
@@ -257,51 +285,67 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
         The written ``.onnx`` paths, the first size's first, then the weights file.
 
     Raises:
-        ValueError: no image size, or a non-positive one.
+        ValueError: no image size, a non-positive one, or a file to write that is a
+            folder (named by its final path).
         FileExistsError: a file to write exists and ``overwrite`` is False.
     """
     import tempfile
 
     import onnx
 
-    from deltar.io.atomic import atomic_path
-
-    if not image_sizes:
-        raise ValueError("image_sizes must name at least one (height, width) camera size")
     path = Path(path)
-    by_network: dict[tuple[int, int], tuple[int, int]] = {}
-    for height, width in image_sizes:
-        if height < 1 or width < 1:
-            raise ValueError(f"image sizes must be positive, got {height}x{width}")
-        by_network.setdefault(export_input_size(model, height, width), (height, width))
-    first = next(iter(by_network))
-    names = {size: path.name if size == first else sized_file_name(path.name, size)
-             for size in by_network}
+    files = sized_export_paths(model, path, image_sizes)
     data_path = path.with_name(path.name + ".data")
-    targets = [path.with_name(name) for name in names.values()] + [data_path]
-    for target in targets:
+    targets = [*files.values(), data_path]
+    for target in targets:  # checked before the long part, named as the user knows them
+        if target.is_dir():
+            raise ValueError(f"{target} is a folder, not a file (an export writes "
+                             f"{', '.join(t.name for t in targets)} there)")
         if target.exists() and not overwrite:
             raise FileExistsError(f"refusing to overwrite existing file: {target} (overwrite "
                                   "replaces it: --overwrite)")
-    listing = json.dumps({size_text(size): name for size, name in names.items()})
+    by_network: dict[tuple[int, int], tuple[int, int]] = {}
+    for height, width in image_sizes:  # the first camera size of each network size
+        by_network.setdefault(export_input_size(model, height, width), (height, width))
+    listing = json.dumps({size_text(size): file.name for size, file in files.items()})
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".deltar-export-") as tmp:
         protos = {}
-        for size, (height, width) in by_network.items():
-            single = export_onnx(model, Path(tmp) / f"{size_text(size)}.onnx", height, width,
-                                 metadata=metadata)
+        for size in files:
+            single = export_onnx(model, Path(tmp) / f"{size_text(size)}.onnx",
+                                 *by_network[size], metadata=metadata)
             protos[size] = onnx.load(str(single))
         for proto in protos.values():
             name_constants_by_contents(proto)
         blob, where = shared_weights(list(protos.values()))
-        with atomic_path(data_path, overwrite=overwrite) as tmp_data:
-            tmp_data.write_bytes(blob)
+        staged = {data_path: Path(tmp) / "weights.data"}
+        staged[data_path].write_bytes(blob)
         for size, proto in protos.items():
             point_to_shared(proto, where, data_path.name)
             entry = proto.metadata_props.add()
             entry.key, entry.value = SIZES_KEY, listing
-            with atomic_path(path.with_name(names[size]), overwrite=overwrite) as tmp_model:
-                tmp_model.write_bytes(proto.SerializeToString())
+            staged[files[size]] = Path(tmp) / f"{size_text(size)}.final.onnx"
+            staged[files[size]].write_bytes(proto.SerializeToString())
+        _move_all_into_place(staged, overwrite)
     return targets
+
+
+def _move_all_into_place(staged: dict[Path, Path], overwrite: bool) -> None:
+    """Move each staged file (same file system) onto its final path; if one move fails,
+    remove those already moved, so no final name holds part of the set."""
+    from deltar.io.atomic import move_into_place
+
+    moved: list[Path] = []
+    try:
+        for final, tmp in staged.items():
+            move_into_place(tmp, final, overwrite)
+            moved.append(final)
+    except OSError as err:
+        for final in moved:
+            final.unlink(missing_ok=True)
+        if isinstance(err, FileExistsError) or err.filename == str(final):
+            raise
+        # Name the output, not the hidden temporary it was written to.
+        raise OSError(err.errno, err.strerror, str(final)) from err
 
 
 @contextlib.contextmanager

@@ -85,7 +85,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
         try:
             os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
             yield tmp
-            _move_into_place(tmp, final, overwrite)
+            move_into_place(tmp, final, overwrite)
         except OSError as err:
             if err.errno not in _DISK_ERRORS:
                 raise
@@ -96,7 +96,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
         _UNFINISHED.discard(tmp)
 
 
-def _move_into_place(tmp: Path, final: Path, overwrite: bool) -> None:
+def move_into_place(tmp: Path, final: Path, overwrite: bool) -> None:
     """``os.replace(tmp, final)``; without ``overwrite`` a hard link instead, which fails
     atomically where ``final`` exists: a check and then a rename would replace a file
     another process made in between. (The temporary's name is removed by the caller.)
