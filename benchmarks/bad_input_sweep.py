@@ -300,6 +300,23 @@ class _Silent(Exception):
     """Raised by a custom check: the call succeeded but should not have, silently."""
 
 
+def _zju_copy(inp: Path, out: Path) -> list[Path]:
+    """A copy of the ZJU-L5 set in the case's output folder; its frame files."""
+    shutil.copytree(inp / "zju", out / "zju", dirs_exist_ok=True)
+    return sorted((out / "zju").rglob("*.h5"))
+
+
+def _zju_without_a_frame(inp: Path, out: Path) -> None:
+    _zju_copy(inp, out)[-1].unlink()
+
+
+def _zju_zones_away(inp: Path, out: Path) -> None:
+    import h5py
+
+    with h5py.File(_zju_copy(inp, out)[0], "r+") as f:  # the frame with valid zones
+        f["fr"][...] = f["fr"][()] + 1e5
+
+
 def cases() -> list[Case]:
     """Every case of the sweep."""
     from deltar.sensor.zone_frame import ZoneFrame  # noqa: F401  (import check)
@@ -516,6 +533,17 @@ def cases() -> list[Case]:
                                   "--limit", "0"], needles=("--limit",)),
         Case("evaluate-valid", ["evaluate", "--data", zju, "--method", "nearest", "--json",
                                 "{out}/m.json"], expect="ok"),
+        Case("evaluate-json-on-onnx-method", ["evaluate", "--data", zju, "--method",
+                                              "onnx:{out}/v.onnx", "--json", "{out}/v.onnx",
+                                              "--overwrite"],
+             needles=("v.onnx", "is the input"),
+             setup=lambda inp, out: (out / "v.onnx").write_bytes(b"model")),
+        Case("evaluate-frame-missing", ["evaluate", "--data", "{out}/zju/data.json",
+                                        "--method", "nearest"],
+             needles=("--data", "frame file not found", ".h5"), setup=_zju_without_a_frame),
+        Case("evaluate-zones-outside-image", ["evaluate", "--data", "{out}/zju/data.json",
+                                              "--method", "nearest"],
+             needles=(".h5", "fall outside the"), setup=_zju_zones_away),
         # ---- calibrate
         Case("calibrate-roll-nan", ["calibrate", cal, "--out", "{out}/c.json",
                                     "--nominal-roll-deg", "nan"],
@@ -549,6 +577,16 @@ def cases() -> list[Case]:
         Case("export-layout-missing", ["export", "--preset", "deltar-lite", "--out",
                                        "{out}/m.onnx", "--layout-from", "{in}/nocal.json"],
              needles=("nocal.json",)),
+        Case("export-int8-calibration-not-rgbd", ["export", "--preset", "deltar-lite",
+                                                  "--out", "{out}/m.onnx", "--size", "64x96",
+                                                  "--int8", "--calibration", "{in}/empty"],
+             needles=("--calibration", "empty")),
+        # The other size's name follows the model's design size: found once it is built.
+        Case("export-size-file-is-folder", ["export", "--preset", "deltar-lite", "--out",
+                                            "{out}/m.onnx", "--size", "240x320,480x480"],
+             needles=("m.544x544.onnx", "folder"), early=False,
+             no_output=("m.onnx", "m.onnx.data"),
+             setup=lambda inp, out: (out / "m.544x544.onnx").mkdir(exist_ok=True)),
         Case("wall-test-missing", ["wall-test", "{in}/norec", "--out", "{out}", *LITE],
              needles=("norec",)),
         Case("wall-test-every-0", ["wall-test", rec, "--out", "{out}", "--every", "0", *LITE],
