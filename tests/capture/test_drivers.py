@@ -282,3 +282,47 @@ def test_simulated_rig_without_histogram_keeps_the_targets():
     np.testing.assert_array_equal(single.mean_m, frame.mean_m)
     with pytest.raises(ValueError, match=r"max_targets must be an integer in 1\.\.4"):
         SimulatedRig(StepSource(1.0, frames=1), max_targets=5)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"grid": 8.0}, "grid must be 4 or 8, got 8.0"),
+    ({"poll_interval_s": -1}, "poll_interval_s must be a finite number"),
+    ({"poll_interval_s": float("nan")}, "poll_interval_s must be a finite number"),
+])
+def test_adapter_refuses_bad_settings_naming_them(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        DriverAdapter(FakeDriver(), **kwargs)
+
+
+def test_adapter_refuses_a_nan_timeout_instead_of_waiting_forever():
+    sensor = DriverAdapter(FakeDriver(polls=10**9), clock=FakeClock(), poll_interval_s=0.0)
+    with pytest.raises(ValueError, match="timeout_s must be a number"):
+        sensor.read(timeout_s=float("nan"))
+    with pytest.raises(ValueError, match="timeout_s must be a number"):
+        sensor.read(timeout_s=None)
+
+
+def test_adapter_result_fields_that_are_not_lists_name_the_field():
+    driver = FakeDriver(polls=1)
+    driver.distance_mm = 1000
+    with pytest.raises(ValueError, match="field 'distance_mm' must be a list of numbers"):
+        DriverAdapter(driver, poll_interval_s=0.0).read()
+    # A driver wrapper that hands out (8, 8) numpy arrays in driver order reads as such.
+    driver = FakeDriver(polls=1)
+    driver.distance_mm = np.arange(1000, 1064).reshape(8, 8)
+    frame = DriverAdapter(driver, poll_interval_s=0.0).read()
+    np.testing.assert_allclose(frame.mean_m[0], np.arange(1000, 1008) / 1000, rtol=1e-6)
+
+
+@pytest.mark.parametrize("opener", [open_vl53l5cx_ctypes, open_sparkfun,
+                                    lambda **kw: open_circuitpython(i2c=None, **kw)])
+@pytest.mark.parametrize("kwargs, message", [
+    ({"grid": 6}, "grid must be 4 or 8, got 6"),
+    ({"grid": 8, "ranging_hz": 30}, r"ranging_hz must be an integer in 1\.\.15"),
+    ({"grid": 4, "ranging_hz": 0}, r"ranging_hz must be an integer in 1\.\.60"),
+    ({"grid": 4, "ranging_hz": 7.5}, r"ranging_hz must be an integer"),
+])
+def test_openers_check_grid_and_rate_before_the_driver(opener, kwargs, message):
+    # Checked before the driver is imported or told anything (none is installed here).
+    with pytest.raises(ValueError, match=message):
+        opener(**kwargs)

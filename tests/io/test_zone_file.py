@@ -343,3 +343,32 @@ def test_a_driver_orientation_is_refused_for_a_schema_file(tmp_path):
     with pytest.raises(ValueError, match=r"z\.json: a zone file in deltar's schema is "
                                          r"already in image orientation"):
         load_zone_frame(path, orientation=Orientation(flip_ud=True))
+
+
+def _dump(**extra):
+    return {"distance_mm": [1000] * 64, "range_sigma_mm": [5] * 64,
+            "target_status": [5] * 64, **extra}
+
+
+@pytest.mark.parametrize("data, message", [
+    (_dump(grid=8.0), r"zones\.json: grid must be 4 or 8 \(the driver's resolution\), got 8\.0"),
+    (_dump(timestamp_s=float("nan")), r"^\S*zones\.json: timestamp_s must be finite"),
+])
+def test_driver_dump_settings_name_the_file_and_key_once(tmp_path, data, message):
+    path = tmp_path / "zones.json"
+    path.write_text(json.dumps(data))  # NaN written as JSON's NaN, as Python does
+    with pytest.raises(ValueError, match=message) as info:
+        load_zone_frame(path)
+    assert "invalid driver output" not in str(info.value)
+
+
+def test_schema_version_true_is_not_version_1(tmp_path, rng):
+    data = zone_frame_to_dict(_frame(rng, with_hist=False))
+    data["schema_version"] = True
+    with pytest.raises(ValueError, match="unsupported schema_version True"):
+        zone_frame_from_dict(data, source="z.json")
+
+
+def test_driver_grid_float_is_refused_in_python_too():
+    with pytest.raises(ValueError, match=r"grid must be one of \(4, 8\), got 8\.0"):
+        ZoneFrame.from_driver([1000] * 64, [5] * 64, [5] * 64, grid=8.0)

@@ -285,3 +285,16 @@ def test_an_unknown_sensor_model_is_still_held_to_a_range_no_sensor_reaches():
     assert "outside the VL53L5 range 0 < d <= 20 m" in frame("VL53L5", 2000.0).physical_error()
     assert frame("simulated", 6.0).physical_error() is None  # beyond 4 m, within 20
     assert frame("VL53L5CX", 6.0).physical_error() is not None
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"rot90": 1.5}, "Orientation.rot90 must be an integer"),
+    ({"rot90": True}, "Orientation.rot90 must be an integer"),
+    ({"flip_ud": "no"}, "Orientation.flip_ud must be True or False, got 'no'"),
+    ({"flip_lr": 1}, "Orientation.flip_lr must be True or False"),
+])
+def test_orientation_refuses_values_it_would_apply_wrongly(kwargs, message):
+    # rot90=1.5 turned like rot90=3 and flip_ud="no" flipped (a non-empty string is true).
+    with pytest.raises(ValueError, match=message):
+        Orientation(**kwargs)
+    assert Orientation(flip_ud=np.bool_(True), rot90=np.int64(-1)).rot90 == -1

@@ -17,6 +17,7 @@ All timestamps are seconds on ``time.monotonic`` (hardware) or a simulated clock
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -95,8 +96,12 @@ class DriverAdapter(SensorAdapter):
         for name in (data_ready, get_data, start, stop):
             if name is not None and not callable(getattr(driver, name, None)):
                 raise ValueError(f"driver {type(driver).__name__} has no method {name!r}")
-        if grid not in (4, 8):
-            raise ValueError(f"grid must be 4 or 8, got {grid}")
+        _check_grid(grid)
+        if isinstance(poll_interval_s, bool) or not isinstance(
+                poll_interval_s, int | float | np.integer | np.floating) or not (
+                math.isfinite(poll_interval_s) and poll_interval_s >= 0):
+            raise ValueError(f"poll_interval_s must be a finite number of seconds >= 0, "
+                             f"got {poll_interval_s!r}")
         self.driver = driver
         self._names = (data_ready, get_data, start, stop)
         self._start_args = tuple(start_args)
@@ -135,7 +140,17 @@ class DriverAdapter(SensorAdapter):
             A :class:`ZoneFrame` (``grid`` x ``grid`` zones, metres, reoriented to the
             image, stamped in seconds of ``clock`` when the data was seen ready), or
             None when no frame was ready in time.
+
+        Raises:
+            ValueError: ``timeout_s`` not a number or NaN (a negative one polls once);
+                a result the driver returns that is not a reading (its fields missing,
+                not lists of numbers, lengths that do not fit ``grid``), naming the field.
         """
+        if isinstance(timeout_s, bool) or not isinstance(
+                timeout_s, int | float | np.integer | np.floating) or math.isnan(timeout_s):
+            # NaN would never compare past the deadline: the read would wait forever.
+            raise ValueError(f"timeout_s must be a number of seconds (inf: wait for a "
+                             f"frame), got {timeout_s!r}")
         data_ready, get_data = (getattr(self.driver, n) for n in self._names[:2])
         deadline = self.clock() + timeout_s
         while not data_ready():
@@ -150,6 +165,27 @@ class DriverAdapter(SensorAdapter):
             sensor_model=self.sensor_model,
             grid=self.grid, targets_per_zone=self.targets_per_zone,
             target_order=self.target_order)
+
+
+#: Highest ranging frequency per zones per side, Hz (ST's datasheets: 15 Hz at 8x8,
+#: 60 Hz at 4x4); the drivers pass it on as a uint8 without checking it.
+MAX_RANGING_HZ = {4: 60, 8: 15}
+
+
+def _check_grid(grid: Any) -> None:
+    """``ValueError`` naming ``grid`` unless it is the integer 4 or 8."""
+    if isinstance(grid, bool) or not isinstance(grid, int | np.integer) or grid not in (4, 8):
+        raise ValueError(f"grid must be 4 or 8, got {grid!r}")
+
+
+def _check_setup(grid: Any, ranging_hz: Any) -> None:
+    """Check what an opener sends to the sensor before it touches the hardware."""
+    _check_grid(grid)
+    top = MAX_RANGING_HZ[int(grid)]
+    if isinstance(ranging_hz, bool) or not isinstance(ranging_hz, int | np.integer) or \
+            not 1 <= ranging_hz <= top:
+        raise ValueError(f"ranging_hz must be an integer in 1..{top} for a {grid}x{grid} "
+                         f"grid (ST's limit), got {ranging_hz!r}")
 
 
 def _import(module: str, package: str) -> Any:
@@ -174,6 +210,7 @@ def open_vl53l5cx_ctypes(grid: int = 8, ranging_hz: int = 15,
     ``target_order``: as the driver library was built and configured (see
     :class:`DriverAdapter`).
     """
+    _check_setup(grid, ranging_hz)
     driver_module = _import("vl53l5cx_ctypes", "vl53l5cx-ctypes")
     driver = driver_module.VL53L5CX()
     driver.set_resolution(grid * grid)
@@ -190,6 +227,7 @@ def open_sparkfun(grid: int = 8, ranging_hz: int = 15,
 
     ``targets_per_zone`` and ``target_order``: see :class:`DriverAdapter`.
     """
+    _check_setup(grid, ranging_hz)
     driver_module = _import("qwiic_vl53l5cx", "sparkfun-qwiic-vl53l5cx")
     driver = driver_module.QwiicVL53L5CX()
     if not driver.begin():
@@ -217,11 +255,12 @@ def open_circuitpython(i2c: Any, grid: int = 8, model: str = "VL53L5CX",
         i2c: the board's ``busio.I2C`` object.
         grid: zones per side.
         model: ``"VL53L5CX"`` or ``"VL53L8CX"`` (the driver class of that name).
-        ranging_hz: ranging frequency.
+        ranging_hz: ranging frequency, Hz: 1..15 for 8x8, 1..60 for 4x4.
         orientation: how the driver grid maps onto the image.
         targets_per_zone, target_order: as the driver was built and configured (see
             :class:`DriverAdapter`).
     """
+    _check_setup(grid, ranging_hz)
     driver_module = _import("vl53lxcx", "circuitpython-vl53lxcx")
     if model not in ("VL53L5CX", "VL53L8CX"):
         raise ValueError(f"model must be VL53L5CX or VL53L8CX, got {model!r}")

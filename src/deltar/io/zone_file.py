@@ -142,7 +142,8 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     if all(k in data for k in _DRIVER_FIELDS):
         fields = [number_array(data[k], f"{source}: {k}") for k in _DRIVER_FIELDS]
         grid = data.get("grid")
-        if grid is not None and (isinstance(grid, bool) or grid not in (4, 8)):
+        if grid is not None and (isinstance(grid, (bool, np.bool_)) or not isinstance(
+                grid, (int, np.integer)) or grid not in (4, 8)):
             raise ValueError(f"{source}: grid must be 4 or 8 (the driver's resolution), got "
                              f"{grid!r}")
         detected, signal = data.get("nb_target_detected"), data.get("signal_per_spad")
@@ -153,10 +154,11 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
         per_zone = data.get("targets_per_zone")
         if isinstance(per_zone, np.integer):
             per_zone = int(per_zone)
+        timestamp = _optional_float(data.get("timestamp_s"), source, "timestamp_s")
         try:
             return ZoneFrame.from_driver(
                 *fields, orientation=orientation, valid_status=valid_status,
-                timestamp_s=_optional_float(data.get("timestamp_s"), source, "timestamp_s"),
+                timestamp_s=timestamp,
                 sensor_model=sensor_model, nb_target_detected=detected, grid=grid,
                 targets_per_zone=per_zone, signal_per_spad=signal,
                 target_order=data.get("target_order", "strongest"))
@@ -170,7 +172,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     if data.get("schema", SCHEMA_NAME) != SCHEMA_NAME:
         raise ValueError(f"{source}: schema is {data.get('schema')!r}, expected {SCHEMA_NAME!r}")
     version = data.get("schema_version")
-    if version != SCHEMA_VERSION:
+    if isinstance(version, (bool, np.bool_)) or version != SCHEMA_VERSION:  # true == 1
         found = "no schema_version" if version is None else \
             f"unsupported schema_version {version!r}"
         raise ValueError(f"{source}: {found} (this version reads {SCHEMA_VERSION})")
@@ -374,8 +376,15 @@ def zone_frame_from_driver_result(result: Any, *, orientation: Orientation | Non
             value = getattr(result, name, None)
         if value is None and name in _DRIVER_FIELDS:
             raise ValueError(f"driver result has no field {name!r}")
-        fields[name] = None if value is None else list(value)
-    several = targets_per_zone is not None or len(fields["distance_mm"]) not in (16, 64)
+        if value is None or isinstance(value, np.ndarray):
+            fields[name] = value
+            continue
+        try:  # ctypes arrays, array.array, lists, tuples
+            fields[name] = list(value)
+        except TypeError:
+            raise ValueError(f"driver result field {name!r} must be a list of numbers, got "
+                             f"{type(value).__name__} {value!r}") from None
+    several = targets_per_zone is not None or np.size(fields["distance_mm"]) not in (16, 64)
     return ZoneFrame.from_driver(fields["distance_mm"], fields["range_sigma_mm"],
                                  fields["target_status"], orientation=orientation,
                                  timestamp_s=timestamp_s, sensor_model=sensor_model, grid=grid,

@@ -74,6 +74,17 @@ class Orientation:
     flip_lr: bool = False
     rot90: int = 0
 
+    def __post_init__(self) -> None:
+        # A string flag ("no") is truthy and rot90=1.5 turns like 3 in numpy: refuse both.
+        for name in ("flip_ud", "flip_lr"):
+            value = getattr(self, name)
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"Orientation.{name} must be True or False, got {value!r}")
+        if isinstance(self.rot90, (bool, np.bool_)) or not isinstance(
+                self.rot90, (int, np.integer)):
+            raise ValueError(f"Orientation.rot90 must be an integer number of quarter "
+                             f"turns, got {self.rot90!r}")
+
     def apply(self, grid: np.ndarray) -> np.ndarray:
         """Reorient an array whose first two axes are the ``(n, n)`` zone grid."""
         out = grid

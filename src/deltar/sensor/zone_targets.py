@@ -231,7 +231,9 @@ def driver_readings(
         raise ValueError(f"targets_per_zone must be an integer in "
                          f"1..{MAX_TARGETS_PER_ZONE}, got {targets_per_zone!r}")
     if grid is not None:
-        n = grid
+        if isinstance(grid, (bool, np.bool_)) or not isinstance(grid, (int, np.integer)):
+            raise ValueError(f"grid must be one of {SUPPORTED_GRIDS}, got {grid!r}")
+        n = int(grid)
     elif detected is not None:
         n = grid_from_count(detected.size, "nb_target_detected")
     elif targets_per_zone is not None and sizes[0] % targets_per_zone == 0:
