@@ -30,6 +30,7 @@ from deltar.camera import CameraIntrinsics
 from deltar.io.zone_file import zone_frame_from_driver_result
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects
 from deltar.sensor.zone_frame import Orientation, ZoneFrame
+from deltar.sensor.zone_values import is_supported_grid
 
 
 class SensorAdapter(ABC):
@@ -174,7 +175,7 @@ MAX_RANGING_HZ = {4: 60, 8: 15}
 
 def _check_grid(grid: Any) -> None:
     """``ValueError`` naming ``grid`` unless it is the integer 4 or 8."""
-    if isinstance(grid, bool) or not isinstance(grid, int | np.integer) or grid not in (4, 8):
+    if not is_supported_grid(grid):
         raise ValueError(f"grid must be 4 or 8, got {grid!r}")
 
 

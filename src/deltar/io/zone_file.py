@@ -47,7 +47,7 @@ from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_json
 from deltar.sensor.zone_frame import Orientation, ZoneFrame
-from deltar.sensor.zone_values import DEFAULT_VALID_STATUS, number_array
+from deltar.sensor.zone_values import DEFAULT_VALID_STATUS, is_supported_grid, number_array
 
 SCHEMA_NAME = "deltar.zone_frame"
 SCHEMA_VERSION = 1
@@ -142,8 +142,7 @@ def zone_frame_from_dict(data: Mapping[str, Any], *, source: str = "zone frame",
     if all(k in data for k in _DRIVER_FIELDS):
         fields = [number_array(data[k], f"{source}: {k}") for k in _DRIVER_FIELDS]
         grid = data.get("grid")
-        if grid is not None and (isinstance(grid, (bool, np.bool_)) or not isinstance(
-                grid, (int, np.integer)) or grid not in (4, 8)):
+        if grid is not None and not is_supported_grid(grid):
             raise ValueError(f"{source}: grid must be 4 or 8 (the driver's resolution), got "
                              f"{grid!r}")
         detected, signal = data.get("nb_target_detected"), data.get("signal_per_spad")

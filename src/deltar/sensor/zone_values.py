@@ -20,6 +20,15 @@ MAX_TARGETS_PER_ZONE = 4
 TARGET_ORDERS: tuple[str, ...] = ("strongest", "closest")
 
 SUPPORTED_GRIDS: tuple[int, ...] = (4, 8)
+
+
+def is_supported_grid(value: Any) -> bool:
+    """Whether ``value`` is one of :data:`SUPPORTED_GRIDS` as an integer (zones per side):
+    ``True`` and ``8.0`` are not (a float grid fails later, as a slice bound)."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_) \
+        and value in SUPPORTED_GRIDS
+
+
 #: The eight neighbours of a zone, (dy, dx) row by row.
 NEIGHBOURS_3x3: tuple[tuple[int, int], ...] = tuple(
     (dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
