@@ -248,3 +248,27 @@ def test_a_missing_thdr3k_file_is_found_before_any_model(tmp_path: Path) -> None
                                  "--data", str(list_path)])
     assert result.exit_code == 2, result.output
     assert f"frame file not found: {depth}" in result.output
+
+
+def test_a_json_path_no_file_can_be_made_in_fails_before_evaluating(
+        data_json: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import deltar.evaluation.runner as runner_module
+
+    def never(*args, **kwargs):
+        raise AssertionError("evaluated before the --json check")
+
+    monkeypatch.setattr(runner_module, "evaluate_methods", never)
+    # /proc passes the permission bits for root, yet no file can be created in it.
+    result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data_json),
+                                 "--json", "/proc/x.json"])
+    assert result.exit_code == 1, result.output
+    assert "--json /proc/x.json: cannot write in /proc" in result.output
+    assert ".tmp" not in result.output
+    # A folder that can be written in keeps no trace of the check.
+    monkeypatch.undo()
+    out = tmp_path / "new" / "metrics.json"
+    result = runner.invoke(app, ["evaluate", "-m", "nearest", "--data", str(data_json),
+                                 "--json", str(out), "--limit", "1"])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new", "set"]
+    assert list((tmp_path / "new").iterdir()) == [out]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -19,7 +20,9 @@ import typer
 def output_folder(path: Path, option: str) -> Path:
     """Check that ``path`` is, or can become, a folder this process can write in.
 
-    Nothing is created: the nearest existing ancestor must be a writable folder.
+    Nothing is left behind: the nearest existing ancestor must be a writable folder,
+    which a hidden probe file, created and removed at once, proves. Permission bits alone
+    do not (root may "write" in /proc, or on a read-only mount, and cannot).
 
     Args:
         path: the output folder.
@@ -31,14 +34,27 @@ def output_folder(path: Path, option: str) -> Path:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{option} {path} is a file, not a folder")
-    ancestor = path
+    _can_write_in(path, option, path)
+    return path
+
+
+def _can_write_in(folder: Path, option: str, named: Path) -> None:
+    """Check that ``folder``'s nearest existing ancestor is a folder a file can be created
+    in; messages name ``option`` and ``named`` (the user's output path)."""
+    ancestor = folder
     while not ancestor.exists() and ancestor != ancestor.parent:
         ancestor = ancestor.parent
     if not ancestor.is_dir():
-        raise ValueError(f"{option} {path}: {ancestor} is a file, not a folder")
+        raise ValueError(f"{option} {named}: {ancestor} is a file, not a folder")
     if not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ValueError(f"{option} {path}: cannot write in {ancestor} (permission denied)")
-    return path
+        raise ValueError(f"{option} {named}: cannot write in {ancestor} (permission denied)")
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".deltar-write-test.", dir=ancestor)
+    except OSError as err:
+        raise ValueError(f"{option} {named}: cannot write in {ancestor} "
+                         f"({err.strerror or err})") from None
+    os.close(handle)
+    os.unlink(probe)
 
 
 def output_file(path: Path, option: str, overwrite: bool) -> Path:
@@ -52,7 +68,7 @@ def output_file(path: Path, option: str, overwrite: bool) -> Path:
         raise ValueError(f"{option} {path} is a folder, not a file")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{option} {path} exists; pass --overwrite to replace it")
-    output_folder(path.parent, option)
+    _can_write_in(path.parent, option, path)
     return path
 
 
