@@ -301,6 +301,19 @@ def test_driver_dumps_and_results_with_several_targets(tmp_path):
         zone_frame_from_dict({**dump, "target_order": "nearest"}, source=str(path))
 
 
+def test_a_driver_dict_counting_more_than_four_targets_in_a_zone_is_refused(tmp_path):
+    reading = {"distance_mm": [1000.0] * 16, "range_sigma_mm": [10.0] * 16,
+               "target_status": [5] * 16, "nb_target_detected": [1] * 15 + [9]}
+    with pytest.raises(ValueError, match=r"nb_target_detected must hold target counts in "
+                       r"0\.\.4 .*got 9 for zone 15"):
+        zone_frame_from_driver_result(reading)
+    path = tmp_path / "dump.json"
+    path.write_text(json.dumps(reading))
+    with pytest.raises(ValueError, match=r"dump\.json: .*nb_target_detected must hold "
+                       r"target counts in 0\.\.4"):
+        load_zone_frame(path)
+
+
 def test_driver_signal_per_spad_becomes_the_target_signal(tmp_path):
     distance = np.repeat(np.arange(16) * 100.0 + 500, 2)
     distance[1::2] += 1500

@@ -84,6 +84,10 @@ def test_from_driver_reads_a_4x4_frame_from_an_8x8_sized_buffer():
     (dict(grid=8, nb_target_detected=[2] * 16), "nb_target_detected has 16 entries; "
      "expected 64"),
     (dict(nb_target_detected=[2.5] * 64), "nb_target_detected must hold integer codes"),
+    (dict(nb_target_detected=[2] * 5 + [5] + [2] * 58), r"nb_target_detected must hold "
+     r"target counts in 0..4 \(the sensor reports at most 4 targets per zone\), got 5 for "
+     r"zone 5"),
+    (dict(nb_target_detected=[-1] * 64), "nb_target_detected must hold integer codes"),
 ])
 def test_from_driver_refuses_inconsistent_target_input(kwargs, message):
     distance, sigma, status = _driver_targets(64, 2)

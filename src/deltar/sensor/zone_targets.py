@@ -176,8 +176,9 @@ def driver_readings(
             grid maps onto the image (identity when None).
         sensor_model: the sensor model, whose range applies.
         nb_target_detected: optional flat list of ``zones`` counts (driver order), the
-            number of targets each zone detected; target ``t`` of a zone is valid only
-            when ``t`` is below its count (the driver leaves stale values beyond it).
+            number of targets each zone detected, each in 0..4; target ``t`` of a zone
+            is valid only when ``t`` is below its count (the driver leaves stale values
+            beyond it).
         targets_per_zone: T, 1..4; inferred from the lengths when None (``len /
             zones``), except that a 4x4 reading of ``64 * T`` entries is ST's results
             buffer, sized for 8x8 whatever the resolution, as the Python drivers return
@@ -196,7 +197,8 @@ def driver_readings(
     Raises:
         ValueError: a required list missing, lengths that do not fit ``grid`` and
             ``targets_per_zone``, codes (also ``valid_status``) that are not integers in
-            0..255, an ``orientation`` that is not one, an unknown ``target_order``,
+            0..255, target counts (``nb_target_detected``) above 4, an ``orientation``
+            that is not one, an unknown ``target_order``,
             distances that are metres (every valid one below :data:`MILLIMETRE_FLOOR_M`),
             naming the argument.
     """
@@ -277,6 +279,12 @@ def driver_readings(
         if detected.size != zones:
             raise ValueError(f"nb_target_detected has {detected.size} entries; expected "
                              f"{zones} (one per zone of the {n}x{n} grid)")
+        many = np.flatnonzero(detected > MAX_TARGETS_PER_ZONE)
+        if many.size:
+            raise ValueError(f"nb_target_detected must hold target counts in "
+                             f"0..{MAX_TARGETS_PER_ZONE} (the sensor reports at most "
+                             f"{MAX_TARGETS_PER_ZONE} targets per zone), got "
+                             f"{detected[many[0]]} for zone {many[0]} (driver order)")
     for name, arr in arrays.items():
         # Zone-major: target t of zone z at z * per_zone + t.
         arrays[name] = arr[: zones * per_zone].reshape(zones, per_zone)
