@@ -235,6 +235,20 @@ def test_driver_status_codes_are_refused_not_truncated_and_wide_sigmas_invalid()
     assert frame.valid_count == 0  # "no target" is never a reading
 
 
+def test_an_unknown_sensor_models_range_is_checked_when_the_frame_is_built():
+    # No listed range: the frame is held to the physical checks' 20 m at once, with the
+    # driver semantics of a known model (marked invalid, with a warning naming why).
+    with pytest.warns(RuntimeWarning, match=r"1 zone.s. with a valid status read more "
+                      r"than the 20 m range held for the unknown sensor model 'VL53L9X' "
+                      r"\(known: VL53L5CX, VL53L8CX\) \(up to 30 m\); marked invalid"):
+        frame = ZoneFrame.from_driver([30000] + [1500] * 63, [20] * 64, [5] * 64,
+                                      sensor_model="VL53L9X")
+    assert frame.valid_count == 63 and frame.physical_error() is None
+    # Within 20 m an unknown model's readings stay valid (its range is not known).
+    frame = ZoneFrame.from_driver([6000] * 64, [20] * 64, [5] * 64, sensor_model="VL53L9X")
+    assert frame.valid_count == 64 and frame.physical_error() is None
+
+
 @pytest.mark.parametrize("changes, message", [
     ({"timestamp_s": "12.5"}, "ZoneFrame.timestamp_s must be a finite number of seconds, got "
      "'12.5'"),

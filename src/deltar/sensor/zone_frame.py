@@ -17,6 +17,8 @@ from deltar.sensor.zone_values import (
     DEFAULT_VALID_STATUS,
     NO_TARGET_STATUS,
     SUPPORTED_GRIDS,
+    UNKNOWN_MODEL_MAX_RANGE_M,  # noqa: F401  (its home before zone_values; docs name it)
+    checked_range_m,
     flags,
     grid_from_count,
     numbers,
@@ -53,12 +55,6 @@ def no_target_as_readings(zone_mean_m: np.ndarray, zone_valid: np.ndarray,
     far = np.asarray(zone_no_target, dtype=bool) & ~valid
     return np.where(far, far_depth_m, zone_mean_m), valid | far
 
-
-
-
-#: The range the physical checks hold a frame of an unknown sensor model to, metres: no
-#: multi-zone ToF sensor reads this far (its list: SENSOR_MAX_RANGE_M).
-UNKNOWN_MODEL_MAX_RANGE_M = 20.0
 
 
 @dataclass(frozen=True)
@@ -303,8 +299,7 @@ class ZoneFrame:
         """:meth:`range_limit_m` for the physical checks: an unknown model (a typo, or a
         sensor not listed) is still held to :data:`UNKNOWN_MODEL_MAX_RANGE_M`, which no
         multi-zone ToF sensor reaches (millimetres written as metres exceed it)."""
-        limit = self.range_limit_m(max_range_m)
-        return limit if math.isfinite(limit) else UNKNOWN_MODEL_MAX_RANGE_M
+        return checked_range_m(self.sensor_model) if max_range_m is None else max_range_m
 
     def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
         """Valid zones whose distance is physically impossible for the sensor.

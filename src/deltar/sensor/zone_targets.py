@@ -17,11 +17,12 @@ from deltar.sensor.zone_values import (
     NO_TARGET_STATUS,
     SUPPORTED_GRIDS,
     TARGET_ORDERS,
+    checked_range_m,
     flags,
     grid_from_count,
     number_array,
     numbers,
-    sensor_max_range_m,
+    range_name,
     status_codes,
     valid_status_codes,
 )
@@ -164,8 +165,9 @@ def driver_readings(
     Args:
         distance_mm: flat list of ``zones * T`` distances in millimetres (driver
             order). Targets reading 0 or less (error codes) or more than the sensor
-            model's range (:data:`SENSOR_MAX_RANGE_M`, with a ``RuntimeWarning``) are
-            invalid.
+            model's range (:data:`SENSOR_MAX_RANGE_M`; for a model not listed there
+            :data:`UNKNOWN_MODEL_MAX_RANGE_M`, as the physical checks hold it; with a
+            ``RuntimeWarning``) are invalid.
         range_sigma_mm: flat list of the same length, sigma in millimetres.
         target_status: flat list of the same length, ST's target status codes.
         grid: 4 or 8; inferred when None: from ``nb_target_detected``'s length when
@@ -174,7 +176,8 @@ def driver_readings(
         valid_status: status codes that count as a valid range (default 5 and 9).
         orientation: an :class:`~deltar.sensor.zone_frame.Orientation`, how the driver's
             grid maps onto the image (identity when None).
-        sensor_model: the sensor model, whose range applies.
+        sensor_model: the sensor model, whose range applies (free text: a model not
+            listed is held to :data:`UNKNOWN_MODEL_MAX_RANGE_M`, said in the warning).
         nb_target_detected: optional flat list of ``zones`` counts (driver order), the
             number of targets each zone detected, each in 0..4; target ``t`` of a zone
             is valid only when ``t`` is below its count (the driver leaves stale values
@@ -301,16 +304,16 @@ def driver_readings(
         raise ValueError(f"distance_mm must be millimetres, but every valid reading is "
                          f"below {MILLIMETRE_FLOOR_M * 1000:g} mm (up to "
                          f"{mean[valid].max() * 1000:.4g}); were metres written?")
-    # Readings beyond the sensor's range are not measurements: invalid, visibly.
-    limit = sensor_max_range_m(sensor_model)
+    # Readings beyond the sensor's range are not measurements: invalid, visibly (an
+    # unknown model is held to the range the physical checks hold it to, now).
+    limit = checked_range_m(sensor_model)
     for far, what, values in ((valid & (mean > limit), "read more than", mean),
                               (valid & (sigma > limit), "have a sigma larger than", sigma)):
         if far.any():
             unit = "zone(s)" if per_zone == 1 else "target(s)"
             warnings.warn(f"{int(far.sum())} {unit} with a valid status {what} the "
-                          f"{sensor_model}'s {limit:g} m range (up to "
-                          f"{values[far].max():.6g} m); marked invalid", RuntimeWarning,
-                          stacklevel=2)
+                          f"{range_name(sensor_model)} (up to {values[far].max():.6g} m); "
+                          "marked invalid", RuntimeWarning, stacklevel=2)
             valid &= ~far
     signal = arrays.get("signal_per_spad", np.zeros_like(mean))
     mean, sigma, valid, status, signal = (a.reshape(n, n, per_zone)

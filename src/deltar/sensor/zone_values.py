@@ -35,13 +35,36 @@ NEIGHBOURS_3x3: tuple[tuple[int, int], ...] = tuple(
 
 #: Largest distance each sensor model reports, metres (ST datasheets: "up to 4 m").
 #: A valid zone must read ``0 < d <= range``; the physical checks hold unknown models
-#: to ``deltar.sensor.zone_frame.UNKNOWN_MODEL_MAX_RANGE_M``.
+#: to :data:`UNKNOWN_MODEL_MAX_RANGE_M`.
 SENSOR_MAX_RANGE_M: dict[str, float] = {"VL53L5CX": 4.0, "VL53L8CX": 4.0}
+
+#: The range the physical checks hold a frame of an unknown sensor model to, metres: no
+#: multi-zone ToF sensor reads this far (its list: SENSOR_MAX_RANGE_M).
+UNKNOWN_MODEL_MAX_RANGE_M = 20.0
 
 
 def sensor_max_range_m(sensor_model: str) -> float:
     """The largest distance ``sensor_model`` reports, metres (``inf`` when unknown)."""
     return SENSOR_MAX_RANGE_M.get(str(sensor_model).upper(), math.inf)
+
+
+def checked_range_m(sensor_model: str) -> float:
+    """The range a reading of ``sensor_model`` is held to, metres: the model's
+    (:data:`SENSOR_MAX_RANGE_M`), or :data:`UNKNOWN_MODEL_MAX_RANGE_M` for a model not
+    listed (a typo, or a sensor deltar does not know), which no multi-zone ToF sensor
+    reaches (millimetres written as metres exceed it)."""
+    limit = sensor_max_range_m(sensor_model)
+    return limit if math.isfinite(limit) else UNKNOWN_MODEL_MAX_RANGE_M
+
+
+def range_name(sensor_model: str) -> str:
+    """How messages name the range :func:`checked_range_m` holds ``sensor_model`` to:
+    ``"VL53L5CX's 4 m range"``, or for an unknown model ``"20 m range held for the
+    unknown sensor model 'X' (known: VL53L5CX, VL53L8CX)"``."""
+    if math.isfinite(sensor_max_range_m(sensor_model)):
+        return f"{sensor_model}'s {checked_range_m(sensor_model):g} m range"
+    return (f"{UNKNOWN_MODEL_MAX_RANGE_M:g} m range held for the unknown sensor model "
+            f"{sensor_model!r} (known: {', '.join(SENSOR_MAX_RANGE_M)})")
 
 
 def number_array(values, name: str) -> np.ndarray:
