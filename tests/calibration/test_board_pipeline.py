@@ -109,9 +109,16 @@ def test_a_depth_image_among_the_colour_images_is_named(tmp_path):
     recording = Recording(folder)
     depth_like = recording.color_paths[3]
     cv2.imwrite(str(depth_like), np.full((SMALL.height, SMALL.width), 1500, np.uint16))
-    with pytest.raises(ValueError, match=rf"{re.escape(str(depth_like))}: a uint16 image "
-                                         r"\(a depth map\?\), not an 8-bit colour image"):
+    with pytest.raises(ValueError, match=rf"{re.escape(str(depth_like))}: a single-channel "
+                       r"uint16 image \(a depth map\?\), not an 8-bit colour image"):
         calibrate_recording_with_board(Recording(folder), SPEC, NOMINAL)
+    # A 16-bit colour photo is no depth map: it is said to need 8 bits per channel.
+    cv2.imwrite(str(depth_like), np.full((SMALL.height, SMALL.width, 3), 1500, np.uint16))
+    with pytest.raises(ValueError, match=rf"{re.escape(str(depth_like))}: a 3-channel uint16 "
+                       r"image; a colour image must be 8-bit RGB \(convert it, e.g. "
+                       r"image >> 8") as caught:
+        calibrate_recording_with_board(Recording(folder), SPEC, NOMINAL)
+    assert "depth map" not in str(caught.value)
 
 
 def test_too_few_views_with_the_board(tmp_path):

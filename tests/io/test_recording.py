@@ -147,8 +147,16 @@ def test_a_depth_map_in_the_colour_folder_is_refused_by_name(tmp_path):
     (pair,) = rec.pairs()
     assert pair.load_color().shape == (24, 32, 3)
     cv2.imwrite(str(pair.color_path), np.full((24, 32), 1234, np.uint16))
-    with pytest.raises(ValueError, match=r"1000000000.png: a uint16 image .*a depth map"):
+    with pytest.raises(ValueError, match=r"1000000000.png: a single-channel uint16 image "
+                       r"\(a depth map\?\), not an 8-bit colour image"):
         pair.load_color()
+    # A 16-bit colour photo is no depth map: it is said to need 8 bits per channel.
+    cv2.imwrite(str(pair.color_path), np.full((24, 32, 3), 1234, np.uint16))
+    with pytest.raises(ValueError, match=r"1000000000.png: a 3-channel uint16 image; a "
+                       r"colour image must be 8-bit RGB \(convert it, e.g. image >> 8 for "
+                       r"16 bits per channel\)$") as caught:
+        pair.load_color()
+    assert "depth map" not in str(caught.value)
     cv2.imwrite(str(pair.color_path), np.full((24, 32), 7, np.uint8))  # 8-bit grey: fine
     np.testing.assert_array_equal(pair.load_color(), np.full((24, 32, 3), 7, np.uint8))
 

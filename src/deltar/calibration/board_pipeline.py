@@ -240,9 +240,12 @@ def calibrate_recording_with_board(
             image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
             if image is None:
                 raise ValueError(f"{path}: unreadable image")
-            if image.dtype != np.uint8:
-                raise ValueError(f"{path}: a {image.dtype} image (a depth map?), not an "
-                                 "8-bit colour image")
+            if image.dtype != np.uint8:  # read as it is, for its channels
+                from deltar.io.input_file import not_8bit_colour
+
+                full = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+                raise ValueError(not_8bit_colour(path, image.dtype, 1 if full is None or
+                                                 full.ndim == 2 else full.shape[2]))
             if image.shape != (camera.height, camera.width):
                 raise ValueError(f"{path} is {image.shape[0]}x{image.shape[1]}, the "
                                  f"intrinsics are for {camera.height}x{camera.width}")

@@ -150,6 +150,28 @@ def _is_decompression_bomb(err: BaseException) -> bool:
     return isinstance(err, (Image.DecompressionBombError, Image.DecompressionBombWarning))
 
 
+def not_8bit_colour(path: str | os.PathLike, dtype: object, channels: int) -> str:
+    """Why a colour image file decoded to ``dtype`` with ``channels`` channels (not 8-bit)
+    is refused: one channel deeper than 8 bits is most likely a depth map; several
+    channels are a colour image of the wrong depth (a 16-bit RGB photo).
+
+    Args:
+        path: the image file, named first.
+        dtype: the decoded sample type (e.g. ``numpy.uint16``).
+        channels: 1 (grey), 3 or 4.
+
+    Returns:
+        The message, e.g. ``"x.png: a single-channel uint16 image (a depth map?), not an
+        8-bit colour image"`` or ``"x.png: a 3-channel uint16 image; a colour image must
+        be 8-bit RGB (convert it, e.g. image >> 8 for 16 bits per channel)"``.
+    """
+    if channels == 1:
+        return f"{path}: a single-channel {dtype} image (a depth map?), not an 8-bit colour image"
+    how = " (convert it, e.g. image >> 8 for 16 bits per channel)" if str(dtype) in (
+        "uint16", "int16") else " (convert it to 8 bits per channel)"
+    return f"{path}: a {channels}-channel {dtype} image; a colour image must be 8-bit RGB{how}"
+
+
 def refuse_input_as_output(output: str | os.PathLike, inputs: Iterable[str | os.PathLike | None],
                            option: str, *, folder: bool = False) -> Path:
     """Refuse an output that would write over (or into) an input of the same command.

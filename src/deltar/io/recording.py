@@ -27,7 +27,7 @@ import numpy as np
 
 from deltar.camera import CameraIntrinsics, check_image, strict_integer, strict_number
 from deltar.io.atomic import atomic_path, write_bytes_atomic, write_text_atomic
-from deltar.io.input_file import input_file, input_folder, reading
+from deltar.io.input_file import input_file, input_folder, not_8bit_colour, reading
 from deltar.io.json_file import read_json
 from deltar.io.pose_file import POSE_DIR, write_pose_file
 from deltar.io.zone_file import check_writable, zone_frame_from_dict, zone_frame_to_dict
@@ -258,9 +258,8 @@ class RecordingPair:
         if image is None:
             raise ValueError(f"{self.color_path}: unreadable image")
         if image.dtype != np.uint8:
-            raise ValueError(f"{self.color_path}: a {image.dtype} image with "
-                             f"{1 if image.ndim == 2 else image.shape[2]} channel(s) (a depth "
-                             "map?), not an 8-bit colour image")
+            raise ValueError(not_8bit_colour(self.color_path, image.dtype,
+                                             1 if image.ndim == 2 else image.shape[2]))
         if image.ndim == 2:
             return cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
         code = cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
