@@ -48,7 +48,8 @@ def test_the_values_lightning_takes_pass():
 @pytest.mark.parametrize(("overrides", "message"), [
     # 50 zones of 12 px (600 px) on 64 x 96 procedural frames.
     (["data.training_grid=50"], r"data\.training_grid x data\.training_zone_px \(50 x 12 = 600 "
-     r"px\) is wider than the 64x96 images the network reads from data\.sources\.0 "),
+     r"px\) is wider than the 64x96 images the network reads from data\.sources\.0 "
+     r"\(procedural, 10 frames from seed 0\): the outer zones"),
     # Only the validation frames read the training layout: checked on them.
     (["data.zone_layout=calibrated", "data.val_zone_layout=training", "data.training_grid=8"],
      r"\(8 x 12 = 96 px\) is wider than the 64x96 images"),

@@ -180,7 +180,8 @@ def test_frames_the_network_cannot_take_are_refused_before_training(shared_data)
                           resize=[60, 90], intrinsics=[525.0, 525.0, 319.5, 239.5])
     config = DataConfig(sources=[source], zone_layout="calibrated", grid=8,
                         num_hypotheses=4, num_workers=0)
-    with pytest.raises(ValueError, match=r"data\.sources\.0 \(.*\): frames are 60x90, the "
+    with pytest.raises(ValueError, match=r"data\.sources\.0 \(rgbd .*icl_livingroom1\): "
+                                         r"frames are 60x90, the "
                                          r"network takes sides divisible by 32: set "
                                          r"data\.sources\.0\.resize \(e\.g\. \[64, 96\]\)"):
         build_datasets(config, seed=0)

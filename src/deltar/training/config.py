@@ -78,6 +78,14 @@ class SourceConfig:
     holdout_position: str = "end"
     every: int = 1
 
+    def label(self) -> str:
+        """How messages name the source after its key: ``rgbd /data/office`` (its kind
+        and path), or for a procedural source (which has no path) ``procedural, 8 frames
+        from seed 0``."""
+        if self.kind == "procedural":
+            return f"procedural, {self.frames} frames from seed {self.seed}"
+        return f"{self.kind} {self.path}"
+
     def validate(self, where: str) -> None:
         if self.every < 1:
             raise ValueError(f"{where}.every must be >= 1, got {self.every}")

@@ -83,7 +83,7 @@ def check_frames_fit(data: Any, frame_size: tuple[int, int], number: int, source
         frame_size: (height, width) pixels of the source's frames.
         number: the source's index in ``data.sources``; ``source`` its section.
     """
-    where = f"data.sources.{number} ({source.path})"
+    where = f"data.sources.{number} ({source.label()})"
     crop = data.image_augmentation.crop if data.image_augmentation.enabled else None
     if crop is not None and source.role != "val" and (
             crop[0] > frame_size[0] or crop[1] > frame_size[1]):

@@ -253,7 +253,7 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
         if source.every > 1:
             reader = SubsetReader(reader, range(0, len(reader), source.every))
         if len(reader) == 0:
-            raise ValueError(f"data source {number} ({source.kind} {source.path}) has no frames")
+            raise ValueError(f"data.sources.{number} ({source.label()}) has no frames")
         if source.kind not in ZONE_SET_SOURCE_KINDS:
             first = reader[0].depth_m
             if source.kind != "procedural":
@@ -261,7 +261,7 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
                 picks = np.unique(np.linspace(0, len(reader) - 1, min(5, len(reader)))
                                   .round().astype(int))
                 check_depth_units([first, *(reader[int(i)].depth_m for i in picks[1:])],
-                                  f"data.sources.{number} ({source.path})")
+                                  f"data.sources.{number} ({source.label()})")
             check_frames_fit(config, first.shape[:2], number, source)
             crop = config.image_augmentation.crop if config.image_augmentation.enabled else None
             # Only a source whose every frame trains is cropped to the network's sides.
@@ -269,7 +269,7 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
             if not cropped and (first.shape[0] % 32 or first.shape[1] % 32):
                 # Found here, not at the first batch of an epoch's validation.
                 near = [max(32, 32 * round(side / 32)) for side in first.shape[:2]]
-                raise ValueError(f"data.sources.{number} ({source.path}): frames are "
+                raise ValueError(f"data.sources.{number} ({source.label()}): frames are "
                                  f"{first.shape[0]}x{first.shape[1]}, the network takes "
                                  "sides divisible by 32: set data.sources."
                                  f"{number}.resize (e.g. {near})")
