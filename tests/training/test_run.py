@@ -283,6 +283,39 @@ def test_a_resume_refuses_a_config_edited_in_what_the_run_learns(tmp_path, tiny_
         train(shown, run, resume=True)
 
 
+def test_a_resume_from_a_checkpoint_of_another_network_names_what_differs(tmp_path,
+                                                                           tiny_config):
+    """A checkpoint of another network (copied from another run, or saved before the run
+    kept its config in checkpoints) is refused before training, naming the checkpoint,
+    the setting and the tensors that differ; not a traceback from Lightning's load."""
+    settings = ("trainer.checkpoint_every_n_steps=2", "trainer.max_epochs=1")
+    run = train(tiny_config(*settings), tmp_path / "run")
+    other = train(tiny_config(*settings, "model.overrides.head_channels=8"), tmp_path / "b")
+    last = run / "checkpoints" / "last.ckpt"
+    state = torch.load(other / "checkpoints" / "last.ckpt", weights_only=False)
+    for keep_config in (True, False):
+        if not keep_config:
+            del state["deltar_train_config"]
+        torch.save(state, last)
+        with pytest.raises(ValueError, match=rf"^{last}: its network is not the one "
+                           rf"{run / 'config.yaml'} builds \(decoder\.out_channels 8 in the "
+                           r"checkpoint, 16 configured; \d+ tensor\(s\) of other shapes "
+                           r"\(model\.decoder\.out_conv\.weight: \[8, 8, 3, 3\] in the "
+                           r"checkpoint, \[16, 8, 3, 3\] configured"):
+            train(tiny_config(*settings), run, resume=True)
+
+
+def test_network_mismatch_names_missing_and_unexpected_tensors():
+    from deltar.training.run_folder import network_mismatch
+
+    system = torch.nn.Sequential(torch.nn.Linear(2, 3))
+    state = dict(system.state_dict())
+    assert network_mismatch({"state_dict": state}, system) is None
+    state["1.weight"] = state.pop("0.bias")
+    assert network_mismatch({"state_dict": state}, system) == (
+        "1 tensor(s) missing from the checkpoint (0.bias); 1 tensor(s) unexpected (1.weight)")
+
+
 def test_a_resume_reads_no_starting_weights(tmp_path, tiny_config):
     """A run started from other weights resumes after those have moved or gone: every
     weight comes from its checkpoint."""

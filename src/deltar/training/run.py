@@ -42,6 +42,7 @@ from deltar.training.run_folder import (
     TrainingHistory,
     appending_csv_logger,
     config_changes,
+    network_mismatch,
 )
 
 CONFIG_NAME = "config.yaml"
@@ -220,7 +221,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)
-    if resume and resumed_run_finished(checkpoint, system.schedule_steps, config):
+    if resume and resumed_run_finished(checkpoint, system.schedule_steps, config, system):
         # Nothing left to train (e.g. a finished job requeued): keep the run's model.pt
         # (a resumed fit would hold the raw weights, not the averaged ones it saved).
         model_path = run_dir / "model.pt"
@@ -287,12 +288,15 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
 
 
 def resumed_run_finished(checkpoint: Path, schedule_steps: int,
-                         config: TrainConfig | None = None) -> bool:
+                         config: TrainConfig | None = None,
+                         system: DeltarSystem | None = None) -> bool:
     """Whether the run saved in ``checkpoint`` has trained all of its ``schedule_steps``.
 
     Raises:
         ValueError: the checkpoint does not read (the message names the run's other
-            checkpoints to resume from), its schedule spans another number of steps
+            checkpoints to resume from), its network is not the one ``system`` (built
+            from the configuration) is (:func:`network_mismatch`: which settings and
+            tensors differ), its schedule spans another number of steps
             than the configuration now gives, or ``config`` differs from the one it was
             saved with in settings that change what the run learns (a resumed run keeps
             them; :func:`config_changes`).
@@ -303,6 +307,7 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int,
         saved_config = state.get(CHECKPOINT_CONFIG_KEY)
         planned = [int(s["total_steps"]) for s in state.get("lr_schedulers", [])
                    if "total_steps" in s]
+        mismatch = None if system is None else network_mismatch(state, system)
     except (ValueError, KeyError, TypeError, AttributeError) as err:
         partial = leftover_temporaries(checkpoint.parent, ".ckpt")
         others = sorted(p.name for p in checkpoint.parent.glob("*.ckpt")
@@ -313,6 +318,11 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int,
             f"{checkpoint}: cannot read training checkpoint: no training state "
             f"({type(err).__name__}: {err})")
         raise ValueError(f"{reason}{hint}") from err
+    if mismatch is not None:
+        raise ValueError(f"{checkpoint}: its network is not the one "
+                         f"{checkpoint.parent.parent / CONFIG_NAME} builds ({mismatch}); "
+                         "resume a run from its own checkpoint, with the model settings "
+                         "it was started with")
     if planned and planned[0] != schedule_steps:
         raise ValueError(f"{checkpoint}: the run's learning-rate schedule spans {planned[0]} "
                          f"steps, the configuration now gives {schedule_steps} "

@@ -136,21 +136,74 @@ def config_changes(saved: dict[str, Any], config: dict[str, Any]) -> list[str]:
     between two configuration dicts, except :data:`RESUMABLE_CHANGES`."""
     from fnmatch import fnmatchcase
 
+    before, after = _flat_settings(saved), _flat_settings(config)
+    return sorted(key for key in before.keys() | after.keys()
+                  if before.get(key) != after.get(key) and not any(
+                      fnmatchcase(key, pattern) for pattern in RESUMABLE_CHANGES))
+
+
+def _flat_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """A nested settings dict as ``{dotted key: value}`` (list entries that are dicts by
+    index: ``data.sources.0.frames``), values as the YAML file holds them (a config
+    built in code may hold tuples)."""
+
     def flat(value: Any, prefix: str) -> dict[str, Any]:
         if isinstance(value, dict):
             items = value.items()
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
             items = ((str(i), v) for i, v in enumerate(value))
         else:
-            return {prefix: value}
+            return {prefix.rstrip("."): value}
         return {k: v for key, item in items for k, v in flat(item, f"{prefix}{key}.").items()}
 
-    # Compared as the YAML file holds them (a config built in code may hold tuples).
-    saved, config = json.loads(json.dumps(saved)), json.loads(json.dumps(config))
-    before, after = flat(saved, ""), flat(config, "")
-    return sorted(key.rstrip(".") for key in before.keys() | after.keys()
-                  if before.get(key) != after.get(key) and not any(
-                      fnmatchcase(key.rstrip("."), pattern) for pattern in RESUMABLE_CHANGES))
+    return flat(json.loads(json.dumps(settings)), "")
+
+
+def network_mismatch(checkpoint: dict[str, Any], system: torch.nn.Module) -> str | None:
+    """What differs between the network a training checkpoint holds and ``system`` (the
+    one the configuration builds), or None when the checkpoint's weights load into it.
+
+    Loads the weights into ``system`` to find out (with the model's own load hooks, so
+    tensors a model skips on loading are not counted): a resume loads the same ones.
+
+    Args:
+        checkpoint: the Lightning checkpoint dict (``state_dict``, ``deltar_model``).
+        system: the :class:`~deltar.training.module.DeltarSystem` to resume into.
+
+    Returns:
+        e.g. ``"head_channels 8 in the checkpoint, 16 configured; 3 tensor(s) of other
+        shapes (model.head.conv.weight: [8, 8, 1, 1] in the checkpoint, [16, 16, 1, 1]
+        configured, ...)"``, also naming missing and unexpected tensors.
+    """
+    state = checkpoint["state_dict"]
+    own = system.state_dict()
+    wrong = [f"{key}: {list(value.shape)} in the checkpoint, {list(own[key].shape)} "
+             "configured" for key, value in state.items()
+             if key in own and tuple(value.shape) != tuple(own[key].shape)]
+    if wrong:
+        problems = [f"{len(wrong)} tensor(s) of other shapes ({'; '.join(wrong[:2])}"
+                    f"{'; ...' if len(wrong) > 2 else ''})"]
+    else:  # every shape fits: the load itself names what is missing or unexpected
+        result = system.load_state_dict(state, strict=False)
+        problems = [f"{len(keys)} tensor(s) {kind} ({', '.join(keys[:3])}"
+                    f"{', ...' if len(keys) > 3 else ''})"
+                    for kind, keys in (("missing from the checkpoint", result.missing_keys),
+                                       ("unexpected", result.unexpected_keys)) if keys]
+    if not problems:
+        return None
+    # Why, where the checkpoint says how its network was built.
+    saved = checkpoint.get("deltar_model") or {}
+    model = getattr(system, "model", None)
+    settings = []
+    if saved.get("preset") not in (None, getattr(system, "preset", None)):
+        settings.append(f"preset {saved['preset']} in the checkpoint, "
+                        f"{getattr(system, 'preset', None)} configured")
+    if isinstance(saved.get("config"), dict) and callable(getattr(model, "config", None)):
+        before, now = _flat_settings(saved["config"]), _flat_settings(model.config())
+        settings += [f"{key} {before.get(key)} in the checkpoint, {now.get(key)} configured"
+                     for key in sorted(before.keys() | now.keys())
+                     if before.get(key) != now.get(key)]
+    return "; ".join(settings + problems)
 
 
 class TrainingHistory(Callback):
