@@ -45,6 +45,20 @@ def test_cli_replay_bag_with_the_bundled_model(tmp_path):
     assert inside.exit_code == 1 and "is inside the input" in inside.output
 
 
+def test_cli_replay_bag_progress_counts_towards_the_frames_it_will_predict(tmp_path,
+                                                                           monkeypatch):
+    monkeypatch.setenv("DELTAR_PROGRESS_SECONDS", "0")  # a line per frame (not a terminal)
+    source = tmp_path / "in_bag"
+    write_input_bag(source, frames=3)
+    result = runner.invoke(app, ["replay", "--bag", str(source), "--out-bag",
+                                 str(tmp_path / "depth_bag"), "--every", "2"])
+    assert result.exit_code == 0, result.output
+    assert "wrote 2 frames" in result.output
+    # Every second of the 3 pairs: 2 frames, the total known before the first.
+    assert "replaying: 1/2 frames" in result.output
+    assert "replaying: 2/2 frames" in result.output and "done in" in result.output
+
+
 def test_record_writes_a_bag_that_replays(tmp_path):
     bag_path = tmp_path / "rec_bag"
     result = runner.invoke(app, ["record", str(bag_path), "--bag", "--simulate",

@@ -73,7 +73,8 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
                calibration: RigCalibration | None = None, tolerance_s: float = 0.02,
                time_offset_s: float | None = None, every: int = 1, limit: int | None = None,
                fov_deg: tuple[float, float] = DEFAULT_FOV_DEG, skip_no_zones: bool = False,
-               pairs: list[BagPair] | None = None) -> Iterator[BagReplayItem]:
+               pairs: list[BagPair] | None = None,
+               on_total: Callable[[int], None] | None = None) -> Iterator[BagReplayItem]:
     """Predict depth for every ToF frame of a bag that has a camera image near it.
 
     Args:
@@ -93,6 +94,9 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
         pairs: the bag's pairs when already made (``bag.pairs(tolerance_s,
             time_offset_s)``: the CLI checks the first before the model); then
             ``tolerance_s`` and ``time_offset_s`` are not used.
+        on_total: called once, before the first prediction, with the number of frames
+            that will be predicted (after ``every``, ``limit`` and skipped frames): a
+            progress display's total.
 
     Yields:
         :class:`BagReplayItem` per predicted frame, in bag order of the images.
@@ -117,6 +121,8 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
             if skip_no_zones:
                 continue
         chosen.append(pair)
+    if on_total is not None:
+        on_total(len(chosen))
     for pair, image in bag.images(chosen):
         calib = pair_calibration(pair, calibration, fov_deg)
         size = (calib.intrinsics.height, calib.intrinsics.width)

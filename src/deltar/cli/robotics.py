@@ -198,6 +198,7 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
     kwargs = {"calibration": calibration, "pairs": pairs, "every": every, "limit": limit,
               "skip_no_zones": skip_no_zones}
     with ProgressReport("replaying") as progress:
+        kwargs["on_total"] = progress.set_total  # the frames replay_bag chose to predict
 
         def each(item) -> None:
             if viewer is not None:
