@@ -178,3 +178,11 @@ def test_check_calibration_names_the_files_it_cannot_match(board_recording, tmp_
     assert result.exit_code == 1
     assert (f"no zone frame pairs with an image within 0.02 s at --calib {late}'s time offset "
             "of +30 s") in " ".join(result.output.split())
+
+
+def test_check_calibration_refuses_an_infinite_tolerance(tmp_path):
+    # As calibrate does: inf would pair each zone frame with an image any time apart.
+    result = _run("check-calibration", tmp_path, "--calib", tmp_path / "c.json",
+                  "--tolerance-s", "inf")
+    assert result.exit_code == 2
+    assert "--tolerance-s" in result.output and "finite" in result.output

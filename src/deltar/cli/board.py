@@ -65,9 +65,10 @@ def check_calibration_command(
         plot_check,
     )
     from deltar.calibration.rig import RigCalibration
-    from deltar.cli.checks import output_file
+    from deltar.cli.checks import finite, output_file
     from deltar.io.recording import Recording
 
+    finite(tolerance_s, "--tolerance-s")  # inf would pair frames any time apart
     spec = board_spec_option(target) if target else None
     offset = time_offset_option(time_offset, allow_auto=False) if time_offset else None
     if plot is not None:
