@@ -89,3 +89,15 @@ def test_calibrate_from_a_slam_map(tmp_path):
                                           str(tmp_path / "d.json"), "--slam-cloud",
                                           str(tmp_path / "map.ply")])
     assert half_given.exit_code != 0
+
+
+def test_calibrate_refuses_plot_folder_equal_to_out(tmp_path):
+    # Found before calibrating: not after writing --out, as a "File exists" error.
+    frames = synthetic_rig_frames(TRUE, CAMERA, frames_per_plane=2, mean_noise_m=0.01, seed=5)
+    write_synthetic_recording(tmp_path / "rec", frames, CAMERA)
+    out = tmp_path / "same"
+    result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "rec"), "--out", str(out),
+                                      "--plot", str(out)])
+    assert result.exit_code == 2
+    assert "--plot" in result.output and "also --out" in result.output
+    assert not out.exists()

@@ -97,6 +97,9 @@ def calibrate_command(
                                  "millimetres)", param_hint="--nominal-translation")
     if plot is not None:
         refuse_input_as_output(plot, inputs, "--plot", folder=True)
+        if plot.resolve() == out.resolve():  # found only after calibrating, otherwise
+            raise typer.BadParameter(f"{plot} is also --out: the pictures go in a folder "
+                                     "of their own", param_hint="--plot")
         output_folder(plot, "--plot")
         if not overwrite and plot.is_dir() and any(plot.glob("zones_*.png")):
             raise FileExistsError(f"--plot {plot} already holds zone pictures; pass "
