@@ -44,6 +44,9 @@ def test_config_round_trips_through_the_network():
     (lambda: PRESETS["deltar-lite"].with_options(planar=False),
      r"head 'zone_prior' has no option \['planar'\]"),
     (lambda: InputConfig(design_size=(65, 96)), "design_size"),
+    # Divisible by 32 too: a traceback at the first forward pass (train, export) before.
+    (lambda: InputConfig(design_size=(0, 0)), "design_size"),
+    (lambda: InputConfig(design_size=(-32, 64)), "design_size"),
     (lambda: InputConfig(image_std=(0.5, 0.0, 0.5)), "image_std"),
     (lambda: OutputConfig(min_depth=2.0, max_depth=1.0), "min_depth"),
     (lambda: OutputConfig(max_depth=4.0), "no_target_depth"),

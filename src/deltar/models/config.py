@@ -86,9 +86,9 @@ class InputConfig:
         for switch in ("zone_scale_norm", "histogram_hypotheses"):
             _set(self, switch, as_switch(switch, getattr(self, switch)))
         if (len(self.design_size) != 2 or self.design_size[0] % SIZE_DIVISOR
-                or self.design_size[1] % SIZE_DIVISOR):
-            raise ValueError(f"design_size must be (H, W) divisible by {SIZE_DIVISOR}: "
-                             f"{self.design_size}")
+                or self.design_size[1] % SIZE_DIVISOR or min(self.design_size) < SIZE_DIVISOR):
+            raise ValueError(f"design_size must be (H, W) positive and divisible by "
+                             f"{SIZE_DIVISOR}: {self.design_size}")
         if len(self.image_mean) != 3 or len(self.image_std) != 3 or min(self.image_std) <= 0:
             raise ValueError(f"image_mean and image_std need 3 values (std > 0), got "
                              f"{self.image_mean}, {self.image_std}")
