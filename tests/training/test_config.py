@@ -47,6 +47,7 @@ def test_nyu_official_matches_the_release_recipe():
     ("data.sources.0.role=val", "no source has role 'train'"),
     ("data.zone_layout=diagonal", "data.zone_layout"),
     ("data.max_targets=5", "data.max_targets must be 1, 2, 3 or 4"),
+    ("data.sources.0.seed=-1", r"data.sources.0.seed must be >= 0, got -1"),
     ("model.preset=bogus", "model.preset must be one of .*deltar-select.*got 'bogus'"),
 ])
 def test_invalid_values_raise_naming_the_key(override, message):

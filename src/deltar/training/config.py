@@ -89,6 +89,8 @@ class SourceConfig:
     def validate(self, where: str) -> None:
         if self.every < 1:
             raise ValueError(f"{where}.every must be >= 1, got {self.every}")
+        if self.seed < 0:  # numpy's seeds: refused at the first frame, without the key
+            raise ValueError(f"{where}.seed must be >= 0, got {self.seed}")
         _choice(f"{where}.kind", self.kind, DATA_SOURCE_KINDS)
         _choice(f"{where}.role", self.role, SOURCE_ROLES)
         _choice(f"{where}.holdout_position", self.holdout_position, HOLDOUT_POSITIONS)
