@@ -35,6 +35,17 @@ def test_holdout_rejects_bad_arguments():
         holdout_split(10, 0.5, "middle")
 
 
+def test_a_train_val_source_of_one_frame_is_named():
+    # A source thinned to one frame (every: 100): the message names which, and the fix.
+    config = DataConfig(sources=[SourceConfig(kind="procedural", frames=10, every=100,
+                                              resize=[64, 96])],
+                        training_grid=4, training_zone_px=12)
+    config.validate("data")
+    with pytest.raises(ValueError, match=r"^data.sources.0 \(None\): need at least 2 frames "
+                       r"to hold some out, got 1"):
+        build_datasets(config)
+
+
 def test_sharded_sampler_splits_every_epoch_between_ranks():
     items = 11
     shards = [ShardedSampler(items, True, seed=3, rank=r, world_size=2) for r in range(2)]

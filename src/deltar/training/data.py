@@ -77,7 +77,7 @@ class SubsetReader(Sequence):
         return self.reader[self.indices[index]]
 
 
-def holdout_split(num_frames: int, fraction: float, position: str = "end"
+def holdout_split(num_frames: int, fraction: float, position: str = "end", where: str = ""
                   ) -> tuple[list[int], list[int]]:
     """Split ``range(num_frames)`` into training frames and one contiguous held-out block.
 
@@ -86,6 +86,7 @@ def holdout_split(num_frames: int, fraction: float, position: str = "end"
         fraction: share of frames held out, in (0, 1); at least one frame is held out
             and at least one trains.
         position: ``end`` (the last frames) or ``start`` (the first frames).
+        where: what the frames are (e.g. ``data.sources.0 (path)``), for the message.
 
     Returns:
         ``(train_indices, val_indices)``.
@@ -94,7 +95,8 @@ def holdout_split(num_frames: int, fraction: float, position: str = "end"
         ValueError: fewer than two frames, a fraction outside (0, 1) or a bad position.
     """
     if num_frames < 2:
-        raise ValueError(f"need at least 2 frames to hold some out, got {num_frames}")
+        raise ValueError(f"{where + ': ' if where else ''}need at least 2 frames to hold "
+                         f"some out, got {num_frames}")
     if not 0.0 < fraction < 1.0:
         raise ValueError(f"holdout fraction must be in (0, 1), got {fraction}")
     held = min(max(round(num_frames * fraction), 1), num_frames - 1)
@@ -275,7 +277,8 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
                                  f"{number}.resize (e.g. {near})")
         if source.role == "train_val":
             train_idx, val_idx = holdout_split(len(reader), source.holdout_fraction,
-                                               source.holdout_position)
+                                               source.holdout_position,
+                                               f"data.sources.{number} ({source.path})")
         elif source.role == "train":
             train_idx, val_idx = list(range(len(reader))), []
         else:
