@@ -347,3 +347,19 @@ def test_config_changes_name_what_a_resume_may_not_change():
     other = {**same, "trainer": {"devices": 2, "num_threads": 1},
              "data": {"sources": [{"path": "/shared/a", "frames": 12}]}}
     assert config_changes(saved, other) == ["data.sources.0.frames", "trainer.devices"]
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("trainer.val_check_interval=100", r"trainer.val_check_interval is 100 steps but an "
+                                       r"epoch trains 4 batches per process"),
+    ("trainer.limit_val_batches=0.5", r"trainer.limit_val_batches 0.5 of the 1 validation "
+                                      r"batches per process is less than one batch"),
+])
+def test_validation_limits_lightning_refuses_late_are_refused_before_the_run(
+        tmp_path, tiny_config, override, message):
+    # Lightning refused them once training started (the fraction: after an epoch, with a
+    # traceback), leaving a run folder that a new start then refused.
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match=message):
+        train(tiny_config(override), run)
+    assert not (run / "config.yaml").exists() and not (run / "checkpoints").exists()

@@ -221,6 +221,7 @@ def train(config: TrainConfig, run_dir: str | Path | None = None, resume: bool =
     data.setup()
     trainer = build_trainer(config, run_dir, extra_callbacks)
     system.schedule_steps = count_training_steps(config, len(data.train_set), trainer.world_size)
+    _check_validation_limits(config, data, trainer)
     if resume and resumed_run_finished(checkpoint, system.schedule_steps, config, system):
         # Nothing left to train (e.g. a finished job requeued): keep the run's model.pt
         # (a resumed fit would hold the raw weights, not the averaged ones it saved).
@@ -342,6 +343,44 @@ def resumed_run_finished(checkpoint: Path, schedule_steps: int,
     return step >= schedule_steps
 
 
+def _check_validation_limits(config: TrainConfig, data: DeltarDataModule,
+                             trainer: L.Trainer) -> None:
+    """The validation settings Lightning refuses only once it trains (``val_check_interval``)
+    or first validates (``limit_val_batches``): here, before ``config.yaml`` is written.
+
+    Raises:
+        ValueError: ``trainer.val_check_interval`` above the training batches of an epoch,
+            or a ``trainer.limit_val_batches`` fraction that is less than one batch.
+    """
+    tcfg = config.trainer
+    if tcfg.limit_val_batches == 0:  # no validation: Lightning checks neither
+        return
+    batches = train_batches_per_epoch(config, len(data.train_set), trainer.world_size)
+    if tcfg.val_check_interval is not None and tcfg.val_check_interval > batches:
+        raise ValueError(f"trainer.val_check_interval is {tcfg.val_check_interval} steps but an "
+                         f"epoch trains {batches} batches per process: lower it, or set it to "
+                         "null to validate at each epoch's end")
+    limit = tcfg.limit_val_batches
+    if isinstance(limit, float) and data.val_set is not None and len(data.val_set):
+        val_batches = len(data.val_dataloader((trainer.global_rank, trainer.world_size)))
+        if int(limit * val_batches) == 0:
+            raise ValueError(f"trainer.limit_val_batches {limit} of the {val_batches} validation "
+                             f"batches per process is less than one batch: raise it to at "
+                             f"least {1 / val_batches:.3g}, or give a number of batches")
+
+
+def train_batches_per_epoch(config: TrainConfig, num_train_items: int, world_size: int) -> int:
+    """Training batches each process takes per epoch: ``ceil(items / world_size)`` items in
+    full batches, limited by ``limit_train_batches`` (as Lightning limits them)."""
+    batches = math.ceil(num_train_items / world_size) // config.data.batch_size
+    limit = config.trainer.limit_train_batches
+    if isinstance(limit, int):
+        batches = min(batches, limit)
+    elif isinstance(limit, float):
+        batches = int(batches * limit)
+    return batches
+
+
 def count_training_steps(config: TrainConfig, num_train_items: int, world_size: int) -> int:
     """Optimiser steps of the whole run (what the OneCycle schedule spans).
 
@@ -349,14 +388,8 @@ def count_training_steps(config: TrainConfig, num_train_items: int, world_size: 
     epoch in full batches, limited by ``limit_train_batches``, over ``max_epochs`` epochs,
     capped by ``max_steps``.
     """
-    per_rank = math.ceil(num_train_items / world_size)
-    batches = per_rank // config.data.batch_size
-    limit = config.trainer.limit_train_batches
-    if isinstance(limit, int):
-        batches = min(batches, limit)
-    elif isinstance(limit, float):
-        batches = int(batches * limit)
-    total = batches * config.trainer.max_epochs
+    total = train_batches_per_epoch(config, num_train_items, world_size) * \
+        config.trainer.max_epochs
     if config.trainer.max_steps > 0:
         total = min(total, config.trainer.max_steps)
     if total < 1:
