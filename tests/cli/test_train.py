@@ -34,6 +34,14 @@ def test_cli_resume_takes_no_other_config(tmp_path):
     assert result.exit_code == 2 and "--run-dir" in result.output and "is a file" in \
         result.output and afile.read_text(encoding="utf-8") == "notes"
 
+    # A file on the way to the run folder: named before the network and data are built.
+    for option in (["--run-dir", str(afile / "run")], ["-o", f"output_dir={afile}"]):
+        result = _cli("--config", str(TINY_CONFIG), *option)
+        assert result.exit_code == 2, result.output
+        assert "is a file, not a folder" in result.output, result.output
+        assert "--run-dir" in result.output or "output_dir" in result.output
+    assert afile.read_text(encoding="utf-8") == "notes"
+
 
 def test_cli_reports_missing_data_without_a_traceback(tmp_path):
     missing = tmp_path / "no_such_folder"

@@ -54,7 +54,9 @@ def train_command(
         typer.echo(cfg.to_yaml())
         return
     _check_machine(cfg.trainer)
-    from deltar.training.run import TrainingInterrupted, train
+    from deltar.training.run import RUN_DIR_ENV, TrainingInterrupted, train
+
+    _check_run_folder(run_dir, resume is not None, cfg.output_dir, os.environ.get(RUN_DIR_ENV))
 
     # Missing data / weights or an occupied run folder reach the user as one error line.
     try:
@@ -68,6 +70,25 @@ def train_command(
             stop = TrainingInterrupted(stop.run_dir, name, stop.step)
         fail(stop, stop.exit_code)
     typer.echo(f"run folder: {folder}")
+
+
+def _check_run_folder(run_dir: Path | None, resume: bool, output_dir: str,
+                      inherited: str | None) -> None:
+    """The run folder (``--run-dir``, or a new one in the config's ``output_dir``) can be
+    made: no file on its path, before the network and the data are built.
+
+    Raises:
+        typer.BadParameter: naming the option or key.
+    """
+    from deltar.cli.checks import output_folder
+
+    if run_dir is None and inherited:  # a process Lightning launched: its parent checked
+        return
+    option = "--resume" if resume else ("--run-dir" if run_dir is not None else "output_dir")
+    try:
+        output_folder(Path(output_dir) if run_dir is None else run_dir, option)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
 
 
 def _check_machine(trainer) -> None:
