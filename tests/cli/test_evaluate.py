@@ -272,3 +272,29 @@ def test_a_json_path_no_file_can_be_made_in_fails_before_evaluating(
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["new", "set"]
     assert list((tmp_path / "new").iterdir()) == [out]
+
+
+@pytest.mark.parametrize(("calibration", "message"), [
+    ("640", "is 48x64 pixels but --calib {calib} is for the calibrated resolution 480x640"),
+    ("grid4", "--calib {calib} is for a 4x4 zone grid, the recording {rec} has 8x8"),
+])
+def test_wall_test_refuses_a_calibration_of_another_rig_before_the_model(
+        tmp_path: Path, calibration, message) -> None:
+    from deltar.calibration.rig import RigCalibration
+    from deltar.camera import CameraIntrinsics
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    rec = tmp_path / "rec"
+    assert runner.invoke(app, ["record", str(rec), "--simulate", "wall:1.5:2:48x64"]
+                         ).exit_code == 0
+    camera = CameraIntrinsics(500, 500, 319.5, 239.5, 640, 480) if calibration == "640" \
+        else CameraIntrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    calib = RigCalibration(camera, SensorExtrinsics(), grid=4 if calibration == "grid4" else 8
+                           ).save(tmp_path / "calib.json")
+    result = runner.invoke(app, ["wall-test", str(rec), "--out", str(tmp_path / "o"), "--calib",
+                                 str(calib), "--preset", "deltar-lite", "--threads", "1"])
+    assert result.exit_code == 1
+    assert message.format(calib=calib, rec=rec) in " ".join(result.output.split())
+    # Before the model is built (it warns of its random weights), as replay does.
+    assert "random, untrained weights" not in result.output
+    assert not (tmp_path / "o").exists()

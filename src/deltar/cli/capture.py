@@ -12,6 +12,7 @@ from deltar.cli.errors import fail, format_error, warn
 from deltar.cli.frame_options import (
     AllowNoZonesOption,
     CalibOption,
+    check_calibration_fits,
     load_calibration,
     parse_outputs,
 )
@@ -357,11 +358,7 @@ def _check_calibration_fits(calibration, calib: Path | None, recording: Path) ->
                  "the sensor on its optical axis; give your rig's calibration with --calib "
                  "(docs/calibration.md)")
         return
-    calibration.check_image_size((meta.intrinsics.height, meta.intrinsics.width),
-                                 f"the recording {recording}", f"--calib {calib}")
-    if calibration.grid != meta.grid:
-        raise ValueError(f"--calib {calib} is for a {calibration.grid}x{calibration.grid} zone "
-                         f"grid, the recording {recording} has {meta.grid}x{meta.grid}")
+    check_calibration_fits(calibration, calib, meta, recording)
 
 
 def _show_live(items) -> None:

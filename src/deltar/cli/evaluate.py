@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from deltar.cli.errors import fail
-from deltar.cli.frame_options import CalibOption, load_calibration
+from deltar.cli.frame_options import CalibOption, check_calibration_fits, load_calibration
 from deltar.cli.model_options import MODEL_OPTIONS, ModelOptions, model_options
 
 #: Columns of the paper's ZJU-L5 table (metric key, header, higher is better).
@@ -238,6 +238,9 @@ def wall_test_command(
     if not overwrite:  # before the model and the frames, not after them
         existing_outputs(result_paths(out).values())
     calibration = load_calibration(calib)  # a bad --calib fails before the model
+    if calibration is not None:  # and one for another resolution or grid
+        for folder in recordings:
+            check_calibration_fits(calibration, calib, Recording(folder).meta, folder)
     try:
         estimator = model.load()
         results = wall_test(recordings, estimator, calibration=calibration,

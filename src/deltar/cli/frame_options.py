@@ -23,6 +23,20 @@ def load_calibration(path: Path | None):
     return RigCalibration.load(path)
 
 
+def check_calibration_fits(calibration, calib: Path, meta, recording: Path) -> None:
+    """``--calib`` against a recording's image size and zone grid (its ``meta``), before
+    the model is loaded.
+
+    Raises:
+        ValueError: naming ``--calib`` and the recording.
+    """
+    calibration.check_image_size((meta.intrinsics.height, meta.intrinsics.width),
+                                 f"the recording {recording}", f"--calib {calib}")
+    if calibration.grid != meta.grid:
+        raise ValueError(f"--calib {calib} is for a {calibration.grid}x{calibration.grid} zone "
+                         f"grid, the recording {recording} has {meta.grid}x{meta.grid}")
+
+
 def parse_outputs(text: str) -> tuple[str, ...]:
     """The output kinds of a comma list (``--outputs``), each one of ``OUTPUT_KINDS``."""
     from deltar.inference.outputs import OUTPUT_KINDS
