@@ -77,6 +77,20 @@ def test_fit_of_a_plane_select_model_fits_its_blend_first(tmp_path, tiny_samples
     assert estimator.blend == fit.blend and estimator.uncertainty == fit.calibration
 
 
+def test_too_few_pixels_for_the_two_regions_are_refused_before_any_pass(tmp_path,
+                                                                       tiny_samples) -> None:
+    # 1 frame x 100 pixels can never give 1000 per region: said before the checkpoint is
+    # read and the frames visited (three passes), naming the options.
+    data = write_zju_l5(tmp_path / "set", tiny_samples)
+    passes, visits = [], []
+    with pytest.raises(ValueError, match=r"1 frame\(s\) x 100 pixels per frame give at most "
+                       r"100 calibration pixels.*--frames-per-set, --pixels-per-frame"):
+        fit_checkpoint_uncertainty(_checkpoint(tmp_path / "model.pt"), [ZJUL5Dataset(data)],
+                                   tmp_path / "cal.pt", frames_per_set=1, pixels_per_frame=100,
+                                   on_frame=lambda: visits.append(1), on_passes=passes.append)
+    assert passes == [] and visits == [] and not (tmp_path / "cal.pt").exists()
+
+
 def test_cli_fits_and_refuses_bad_arguments(tmp_path, tiny_samples) -> None:
     data = write_zju_l5(tmp_path / "set", tiny_samples)
     source = _checkpoint(tmp_path / "model.pt")

@@ -40,6 +40,7 @@ from deltar.inference.blend_fit import BlendPixels, fit_confidence_blend
 from deltar.inference.uncertainty import (
     CalibrationPixels,
     UncertaintyCalibration,
+    check_pixel_budget,
     coverage,
     fit_uncertainty_calibration,
 )
@@ -419,10 +420,10 @@ def fit_checkpoint_uncertainty(checkpoint: str | os.PathLike, sets: Sequence[Seq
     from deltar.models.checkpoint import load_checkpoint, save_checkpoint
     from deltar.weights import resolve_checkpoint
 
-    source = Path(resolve_checkpoint(checkpoint))
-    out = Path(out)
+    source, out = Path(resolve_checkpoint(checkpoint)), Path(out)
     if out.exists() and out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the checkpoint being calibrated; write a new file")
+    check_pixel_budget(sets, frames_per_set, pixels_per_frame, min_pixels)  # before any pass
     model, preset, _ = load_checkpoint(source)
     if on_passes is not None:
         on_passes(5 if model.uses_no_target else 3)

@@ -30,7 +30,7 @@ points at one sigma for the two-sigma tail.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence, Sized
 from dataclasses import dataclass
 
 import numpy as np
@@ -174,6 +174,26 @@ def _fit_region(pixels: CalibrationPixels, mask: np.ndarray, min_pixels: int
     if best is None:
         raise ValueError("no calibration fits these pixels (every error or spread is 0)")
     return best[1]
+
+
+def check_pixel_budget(sets: Sequence[Sized], frames_per_set: int | None,
+                       pixels_per_frame: int, min_pixels: int = 1000) -> None:
+    """Refuse, before any frame is read, a fit whose frames cannot hold ``min_pixels`` in
+    each of its two regions (inside and beyond the zone grid): at most
+    ``pixels_per_frame`` pixels come from each of at most ``frames_per_set`` frames of
+    each set.
+
+    Raises:
+        ValueError: naming both numbers and what to raise.
+    """
+    frames = sum(len(s) if frames_per_set is None else min(len(s), frames_per_set)
+                 for s in sets)
+    if frames * pixels_per_frame < 2 * min_pixels:
+        raise ValueError(f"{frames} frame(s) x {pixels_per_frame} pixels per frame give at most "
+                         f"{frames * pixels_per_frame} calibration pixels, fewer than the "
+                         f"{min_pixels} each of the 2 regions (inside and beyond the zone grid) "
+                         "needs: give more frames or more pixels per frame (--data, "
+                         "--frames-per-set, --pixels-per-frame)")
 
 
 def fit_uncertainty_calibration(pixels: CalibrationPixels, min_pixels: int = 1000
