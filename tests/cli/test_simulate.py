@@ -86,6 +86,11 @@ def test_refuses_non_empty_output_and_bad_options(tmp_path):
     assert (out / "keep.txt").read_text() == "user data"
     result = runner.invoke(app, ["simulate", "procedural:1", str(tmp_path / "x"), "--grid", "5"])
     assert result.exit_code != 0
+    # An empty split name wrote data.json as {"": [...]}.
+    result = runner.invoke(app, ["simulate", "procedural:1:0:32x32", str(tmp_path / "y"),
+                                 "--split", " "])
+    assert result.exit_code == 2 and "--split" in result.output
+    assert "non-empty name" in result.output and not (tmp_path / "y").exists()
 
 
 @pytest.mark.parametrize("option", [["--stop", "-3"], ["--start", "-1"], ["--step", "0"],

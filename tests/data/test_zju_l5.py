@@ -89,6 +89,16 @@ def test_writer_refuses_to_overwrite(tmp_path, rng):
         write_zju_l5(tmp_path, [_sample(rng, "b")])
 
 
+def test_writer_refuses_an_empty_split_name_or_no_frames(tmp_path, rng):
+    # Both wrote a set silently (``{"": [...]}`` / ``{"test": []}``), e.g. from
+    # ``deltar simulate --split ""`` or simulate_set(..., indices=[]).
+    with pytest.raises(ValueError, match="split must be a non-empty name, got ''"):
+        write_zju_l5(tmp_path / "a", [_sample(rng, "a")], split="")
+    with pytest.raises(ValueError, match="no frames to write"):
+        write_zju_l5(tmp_path / "b", [])
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b" / "data.json").exists()
+
+
 def test_a_failing_frame_leaves_no_partial_set(tmp_path, rng):
     def frames():  # the third frame's source cannot be read
         yield _sample(rng, "scene/0001")

@@ -117,6 +117,8 @@ def simulate_command(
     if step < 1 or start < 0 or (limit is not None and limit < 1) or \
             (stop is not None and stop < 0):
         raise typer.BadParameter("--start and --stop must be >= 0, --step and --limit >= 1")
+    if not split.strip():  # the set's data.json would list its frames under ""
+        raise typer.BadParameter("must be a non-empty name", param_hint="--split")
     finite(bias_mean, "--bias-mean")
     finite(bias_std, "--bias-std")
     cnh_config = _cnh_config(cnh, cnh_bins, cnh_range)

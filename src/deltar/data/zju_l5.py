@@ -341,8 +341,11 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
 
     Raises:
         FileExistsError: ``data.json`` or a frame file already exists.
-        ValueError: a sample is inconsistent or two samples share a name.
+        ValueError: a sample is inconsistent or two samples share a name, no samples, or
+            an empty ``split`` name.
     """
+    if not isinstance(split, str) or not split.strip():  # before any frame is made
+        raise ValueError(f"split must be a non-empty name, got {split!r}")
     out = Path(out_dir)
     index_path = out / "data.json"
     if index_path.exists():
@@ -351,6 +354,8 @@ def write_zju_l5(out_dir: str | Path, samples: Iterable[ZJUL5Sample],
     made: list[Path] = []  # files and folders this call created, in order
     try:
         _write_frames(out, samples, filenames, made)
+        if not filenames:  # a set of no frame reads as an error in every reader
+            raise ValueError(f"no frames to write to {out}: a set holds at least one")
         text = json.dumps({split: [{"filename": rel} for rel in filenames]}, indent=2)
         if index_path.exists():  # appeared meanwhile: not this call's to remove
             raise FileExistsError(f"refusing to overwrite existing ZJU-L5 set: {index_path}")
