@@ -41,8 +41,8 @@ def test_a_train_val_source_of_one_frame_is_named():
                                               resize=[64, 96])],
                         training_grid=4, training_zone_px=12)
     config.validate("data")
-    with pytest.raises(ValueError, match=r"^data.sources.0 \(None\): need at least 2 frames "
-                       r"to hold some out, got 1"):
+    with pytest.raises(ValueError, match=r"^data.sources.0 \(procedural, 10 frames from seed "
+                       r"0\): need at least 2 frames to hold some out, got 1"):
         build_datasets(config)
 
 

@@ -17,8 +17,7 @@ from deltar.sensor.zone_values import (
     DEFAULT_VALID_STATUS,
     NO_TARGET_STATUS,
     SUPPORTED_GRIDS,
-    UNKNOWN_MODEL_MAX_RANGE_M,  # noqa: F401  (its home before zone_values; docs name it)
-    checked_range_m,
+    UNKNOWN_MODEL_MAX_RANGE_M,
     flags,
     grid_from_count,
     numbers,
@@ -299,7 +298,8 @@ class ZoneFrame:
         """:meth:`range_limit_m` for the physical checks: an unknown model (a typo, or a
         sensor not listed) is still held to :data:`UNKNOWN_MODEL_MAX_RANGE_M`, which no
         multi-zone ToF sensor reaches (millimetres written as metres exceed it)."""
-        return checked_range_m(self.sensor_model) if max_range_m is None else max_range_m
+        limit = self.range_limit_m(max_range_m)
+        return limit if math.isfinite(limit) else UNKNOWN_MODEL_MAX_RANGE_M
 
     def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
         """Valid zones whose distance is physically impossible for the sensor.

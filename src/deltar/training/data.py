@@ -278,7 +278,7 @@ def build_datasets(config: DataConfig, seed: int = 0, inputs: InputConfig | None
         if source.role == "train_val":
             train_idx, val_idx = holdout_split(len(reader), source.holdout_fraction,
                                                source.holdout_position,
-                                               f"data.sources.{number} ({source.path})")
+                                               f"data.sources.{number} ({source.label()})")
         elif source.role == "train":
             train_idx, val_idx = list(range(len(reader))), []
         else:
