@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from typer.testing import CliRunner
 
 from deltar.cli.main import app
@@ -35,11 +36,12 @@ def test_cli_resume_takes_no_other_config(tmp_path):
         result.output and afile.read_text(encoding="utf-8") == "notes"
 
     # A file on the way to the run folder: named before the network and data are built.
-    for option in (["--run-dir", str(afile / "run")], ["-o", f"output_dir={afile}"]):
+    for named, option in (("--run-dir", ["--run-dir", str(afile / "run")]),
+                          ("output_dir", ["-o", f"output_dir={afile}"])):
         result = _cli("--config", str(TINY_CONFIG), *option)
         assert result.exit_code == 2, result.output
         assert "is a file, not a folder" in result.output, result.output
-        assert "--run-dir" in result.output or "output_dir" in result.output
+        assert f"{named} {afile}" in " ".join(result.output.split()), result.output
     assert afile.read_text(encoding="utf-8") == "notes"
 
 
@@ -160,3 +162,25 @@ def test_several_nodes_without_a_launcher_are_refused_instead_of_waiting(monkeyp
     assert result.exit_code == 2
     assert "trainer.num_nodes is 2: start each node with a launcher" in \
         " ".join(result.output.split())
+
+
+def test_the_run_folder_check_probes_a_new_run_only(tmp_path, monkeypatch):
+    # A finished run resumed from a read-only folder writes nothing: it is not refused;
+    # a new run there is, with the reason the system gives.
+    import errno
+
+    import typer
+
+    import deltar.io.atomic as atomic
+    from deltar.cli.train import _check_run_folder
+
+    def read_only(folder):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(atomic, "prove_writable", read_only)
+    run = tmp_path / "run"
+    run.mkdir()
+    _check_run_folder(run, True, "runs", None)
+    with pytest.raises(typer.BadParameter, match=r"--run-dir .*run: cannot write in .*run "
+                                                 r"\(read-only file system\)"):
+        _check_run_folder(run, False, "runs", None)

@@ -107,3 +107,14 @@ def test_a_staging_folder_is_removed_whatever_ends_it(tmp_path):
     (unfinished.__enter__() / "half.db3").write_bytes(b"half")  # never exited
     remove_unfinished_temporaries()
     assert [p.name for p in tmp_path.iterdir()] == ["out_bag"]
+
+
+def test_prove_writable_leaves_nothing_and_says_why_it_cannot(tmp_path):
+    from deltar.io import atomic
+
+    atomic.prove_writable(tmp_path)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError) as caught:
+        atomic.prove_writable(tmp_path / "missing")
+    assert caught.value.strerror  # the system's reason, for the message
+    assert not atomic._UNFINISHED  # nothing left registered either way

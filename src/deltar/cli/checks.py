@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -46,15 +45,13 @@ def _can_write_in(folder: Path, option: str, named: Path) -> None:
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise ValueError(f"{option} {named}: {ancestor} is a file, not a folder")
-    if not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ValueError(f"{option} {named}: cannot write in {ancestor} (permission denied)")
-    try:
-        handle, probe = tempfile.mkstemp(prefix=".deltar-write-test.", dir=ancestor)
+    from deltar.io.atomic import prove_writable
+
+    try:  # the reason as the system gives it (permission denied, read-only file system)
+        prove_writable(ancestor)
     except OSError as err:
         raise ValueError(f"{option} {named}: cannot write in {ancestor} "
-                         f"({err.strerror or err})") from None
-    os.close(handle)
-    os.unlink(probe)
+                         f"({(err.strerror or str(err)).lower()})") from None
 
 
 def output_file(path: Path, option: str, overwrite: bool) -> Path:

@@ -75,7 +75,8 @@ def train_command(
 def _check_run_folder(run_dir: Path | None, resume: bool, output_dir: str,
                       inherited: str | None) -> None:
     """The run folder (``--run-dir``, or a new one in the config's ``output_dir``) can be
-    made: no file on its path, before the network and the data are built.
+    made: no file on its path and, for a new run, a folder a file can be written in,
+    before the network and the data are built.
 
     Raises:
         typer.BadParameter: naming the option or key.
@@ -85,8 +86,13 @@ def _check_run_folder(run_dir: Path | None, resume: bool, output_dir: str,
     if run_dir is None and inherited:  # a process Lightning launched: its parent checked
         return
     option = "--resume" if resume else ("--run-dir" if run_dir is not None else "output_dir")
+    folder = Path(output_dir) if run_dir is None else run_dir
     try:
-        output_folder(Path(output_dir) if run_dir is None else run_dir, option)
+        if not resume:
+            output_folder(folder, option)
+        # A finished run resumes from a read-only folder (it writes nothing): no probe.
+        elif folder.exists() and not folder.is_dir():
+            raise ValueError(f"{option} {folder} is a file, not a folder")
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
 

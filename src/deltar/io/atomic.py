@@ -60,6 +60,24 @@ def staging_folder(path: str | os.PathLike) -> Iterator[Path]:
         _UNFINISHED.discard(staging)
 
 
+def prove_writable(folder: str | os.PathLike) -> None:
+    """Create and remove a hidden empty file in the existing ``folder``: proof that a file
+    can be made there, which permission bits are not (root passes them on /proc or on a
+    read-only mount). Registered before it exists, so a stop at any moment leaves no
+    probe behind (:func:`remove_unfinished_temporaries`).
+
+    Raises:
+        OSError: the file could not be created (its ``strerror`` says why).
+    """
+    probe = Path(folder) / f".deltar-write-test.{secrets.token_hex(6)}"
+    _UNFINISHED.add(probe)
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    finally:
+        probe.unlink(missing_ok=True)
+        _UNFINISHED.discard(probe)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; move it onto ``path`` only on success.

@@ -83,7 +83,8 @@ class SourceConfig:
         and path), or for a procedural source (which has no path) ``procedural, 8 frames
         from seed 0``."""
         if self.kind == "procedural":
-            return f"procedural, {self.frames} frames from seed {self.seed}"
+            frames = "1 frame" if self.frames == 1 else f"{self.frames} frames"
+            return f"procedural, {frames} from seed {self.seed}"
         return f"{self.kind} {self.path}"
 
     def validate(self, where: str) -> None:
