@@ -478,3 +478,24 @@ def test_a_failed_multi_size_export_leaves_no_file_under_the_final_names(tmp_pat
         export_onnx_sizes(model, out, sizes)
     assert caught.value.filename == str(moves[-1])
     assert list(tmp_path.iterdir()) == []  # no final name, no temporary left
+
+    # With overwrite, the files a failed move would have replaced are put back as they
+    # were, also those already replaced when the last one fails.
+    old = {f: f"old {f.name}".encode() for f in (*files, out.with_name("m.onnx.data"))}
+    for f, content in old.items():
+        f.write_bytes(content)
+    finals = []
+
+    def fails_on_the_last_final_name(tmp, final, overwrite):
+        if final in old:  # not the exports into the staging folder
+            finals.append(final)
+            if len(finals) == len(old):
+                raise IsADirectoryError(21, "Is a directory", str(tmp), None, str(final))
+        move(tmp, final, overwrite)
+
+    monkeypatch.setattr(deltar.io.atomic, "move_into_place", fails_on_the_last_final_name)
+    with pytest.raises(IsADirectoryError):
+        export_onnx_sizes(model, out, sizes, overwrite=True)
+    assert sorted(finals) == sorted(old)
+    assert {f: f.read_bytes() for f in old} == old
+    assert sorted(tmp_path.iterdir()) == sorted(old)  # no backup or temporary left

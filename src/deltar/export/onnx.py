@@ -270,8 +270,8 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
     when listed.
 
     The files are written beside their final names and moved there only once all are
-    written: a failure leaves none of them under the final names (files they replace
-    with ``overwrite`` are kept, unless the failure comes while moving).
+    written: a failure leaves none of them under the final names, and files they replace
+    with ``overwrite`` as they were (also when the failure comes while moving).
 
     Args:
         model: the network, as for :func:`export_onnx`.
@@ -331,17 +331,37 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
 
 def _move_all_into_place(staged: dict[Path, Path], overwrite: bool) -> None:
     """Move each staged file (same file system) onto its final path; if one move fails,
-    remove those already moved, so no final name holds part of the set."""
+    put every final path back as it was: those moved are removed, or restored where they
+    replaced a file (so no final name holds part of the set, and nothing is lost).
+
+    Each file to be replaced is first hard-linked beside its staged one (a copy where the
+    file system has no hard links): its final name keeps it throughout, and the staged
+    copy's folder (a temporary) removes the backups with it.
+    """
+    import shutil
+
     from deltar.io.atomic import move_into_place
 
+    backups: dict[Path, Path] = {}
+    for final, tmp in staged.items():
+        if overwrite and final.exists():
+            backup = tmp.with_name(tmp.name + ".replaced")
+            try:
+                os.link(final, backup)
+            except OSError:
+                shutil.copy2(final, backup)
+            backups[final] = backup
     moved: list[Path] = []
     try:
         for final, tmp in staged.items():
             move_into_place(tmp, final, overwrite)
             moved.append(final)
     except OSError as err:
-        for final in moved:
-            final.unlink(missing_ok=True)
+        for done in moved:
+            if done in backups:
+                os.replace(backups[done], done)
+            else:
+                done.unlink(missing_ok=True)
         if isinstance(err, FileExistsError) or err.filename == str(final):
             raise
         # Name the output, not the hidden temporary it was written to.
