@@ -55,6 +55,14 @@ def test_the_values_lightning_takes_pass():
      r"\(8 x 12 = 96 px\) is wider than the 64x96 images"),
     (["data.image_augmentation.crop=[96, 96]"],
      r"data\.image_augmentation\.crop \[96, 96\] is larger than the 64x96 frames"),
+    # The 48 px grid on 64 px high frames: 8 px of room on each side.
+    (["data.training_max_offset_px=9"],
+     r"data\.training_max_offset_px 9 would shift the 48 px zone grid off the 64x96 images "
+     r"the network trains on from data\.sources\.0 .*: at most 8 px"),
+    (["data.training_max_offset_px=100000"], "data.training_max_offset_px 100000"),
+    (["data.layout_jitter_px=32"],
+     r"data\.layout_jitter_px 32\.0 is not less than half the smaller side of the 64x96 "
+     r"images the network trains on from data\.sources\.0"),
 ])
 def test_a_layout_or_crop_larger_than_the_frames_is_refused_before_training(overrides,
                                                                            message):
@@ -70,3 +78,15 @@ def test_the_tiny_layout_fits_its_frames():
 
     train, val = build_datasets(load_config(TINY, ["data.training_grid=5"]).data, seed=0)
     assert train[0]["zone_rects"].shape[0] == 25 and len(val) > 0
+    # The largest offset and a jitter below half the 64 px side still train.
+    train, _ = build_datasets(load_config(TINY, ["data.training_max_offset_px=8",
+                                                 "data.layout_jitter_px=31.5"]).data, seed=0)
+    assert train[0]["zone_rects"].shape[0] == 16
+
+
+@pytest.mark.parametrize("scale", ["[1e-6, 1e-6]", "[0.05, 1.0]", "[1.0, 20.0]", "[0, 1]"])
+def test_a_depth_scale_range_outside_0_1_to_10_is_refused(scale):
+    with pytest.raises(ValueError, match=r"data\.depth_scale_range must be \[low, high\] "
+                                         r"with 0\.1 <= low <= high <= 10\.0"):
+        load_config(TINY, [f"data.depth_scale_range={scale}"])
+    assert load_config(TINY, ["data.depth_scale_range=[0.1, 10]"]).data.depth_scale_range

@@ -25,6 +25,8 @@ SOURCE_ROLES: tuple[str, ...] = ("train_val", "train", "val")
 HOLDOUT_POSITIONS: tuple[str, ...] = ("end", "start")
 ZONE_LAYOUTS: tuple[str, ...] = ("training", "calibrated")
 STRATEGIES: tuple[str, ...] = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_true")
+#: ``data.depth_scale_range``'s band: a room x10 is out of the sensor's 4 m, x0.1 a toy.
+DEPTH_SCALE_BAND: tuple[float, float] = (0.1, 10.0)
 
 
 @dataclass
@@ -197,15 +199,18 @@ class DataConfig:
             camera intrinsics into ``grid`` x ``grid`` zones).
         val_zone_layout: layout for validation frames (None: same as ``zone_layout``).
         grid: zones per side of the calibrated layout (4 or 8).
-        training_grid, training_zone_px, training_max_offset_px: the training layout.
+        training_grid, training_zone_px, training_max_offset_px: the training layout
+            (an offset that could shift the grid off the training images is refused).
         num_hypotheses: depth hypotheses sampled per zone (K).
         sampling: ``icdf`` or ``uniform`` hypothesis sampling.
         image_augmentation: training image augmentation.
         signal_augmentation: training zone-signal augmentation.
         depth_scale_range: ``[low, high]``: training scenes are scaled by a factor drawn
-            log-uniformly from it (ground truth and simulated zones together); null: off.
+            log-uniformly from it (ground truth and simulated zones together), with
+            ``0.1 <= low <= high <= 10``; null: off.
         layout_jitter_px: training zone layouts handed to the network are shifted by up
-            to this many pixels (a calibration error; zones are simulated unshifted).
+            to this many pixels (a calibration error; zones are simulated unshifted); less
+            than half the smaller side of the training images (checked with the frames).
         layout_rotation_deg: ... and rotated about the image centre by up to this.
         max_targets: targets per zone the simulated sensor reports (1..4, ST's
             targets-per-zone setting); above 1 every item carries ``zone_targets``
@@ -237,9 +242,10 @@ class DataConfig:
         if isinstance(self.max_targets, bool) or self.max_targets not in (1, 2, 3, 4):
             raise ValueError(f"{where}.max_targets must be 1, 2, 3 or 4, got "
                              f"{self.max_targets!r}")
-        if scale is not None and (len(scale) != 2 or not 0 < scale[0] <= scale[1]):
+        low, high = DEPTH_SCALE_BAND
+        if scale is not None and (len(scale) != 2 or not low <= scale[0] <= scale[1] <= high):
             raise ValueError(f"{where}.depth_scale_range must be [low, high] with "
-                             f"0 < low <= high, got {scale}")
+                             f"{low} <= low <= high <= {high}, got {scale}")
         if self.layout_jitter_px < 0 or self.layout_rotation_deg < 0:
             raise ValueError(f"{where}.layout_jitter_px and layout_rotation_deg must be >= 0")
         if not self.sources:

@@ -76,7 +76,10 @@ def check_frames_fit(data: Any, frame_size: tuple[int, int], number: int, source
     """A data source's frames against the data section, before any training: a random
     crop larger than the frames it crops, or a ``training`` zone layout (``training_grid``
     x ``training_zone_px`` pixels, centred) wider than the images the network reads from
-    them (the crop, or whole frames), whose outer zones would lie off the image.
+    them (the crop, or whole frames), whose outer zones would lie off the image; for the
+    training images, a ``training_max_offset_px`` that could shift that grid off them, or a
+    ``layout_jitter_px`` of half their smaller side or more (the layout the network is
+    given could be centred off the image).
 
     Args:
         data: the ``data`` section (:class:`~deltar.training.config.DataConfig`).
@@ -89,16 +92,30 @@ def check_frames_fit(data: Any, frame_size: tuple[int, int], number: int, source
             crop[0] > frame_size[0] or crop[1] > frame_size[1]):
         raise ValueError(f"data.image_augmentation.crop {list(crop)} is larger than the "
                          f"{frame_size[0]}x{frame_size[1]} frames of {where}")
-    read = []  # (the images the network reads, their zone layout) for each use
+    read = []  # (the images the network reads, their zone layout, trained on) per use
     if source.role != "val":
-        read.append((frame_size if crop is None else tuple(crop), data.zone_layout))
+        read.append((frame_size if crop is None else tuple(crop), data.zone_layout, True))
     if source.role != "train":
-        read.append((frame_size, data.val_zone_layout or data.zone_layout))
+        read.append((frame_size, data.val_zone_layout or data.zone_layout, False))
     side = data.training_grid * data.training_zone_px
-    for (height, width), layout in read:
+    for (height, width), layout, train in read:
         if layout == "training" and side > min(height, width):
             raise ValueError(f"data.training_grid x data.training_zone_px ("
                              f"{data.training_grid} x {data.training_zone_px} = {side} px) "
                              f"is wider than the {height}x{width} images the network reads "
                              f"from {where}: the outer zones would lie off the image; "
                              "lower either")
+        if not train:  # validation items are neither shifted nor jittered
+            continue
+        offset = data.training_max_offset_px
+        if layout == "training" and side + 2 * offset > min(height, width):
+            raise ValueError(f"data.training_max_offset_px {offset} would shift the {side} px "
+                             f"zone grid off the {height}x{width} images the network trains "
+                             f"on from {where}: at most {(min(height, width) - side) // 2} px "
+                             "keeps it on the image")
+        if data.layout_jitter_px >= min(height, width) / 2:
+            raise ValueError(f"data.layout_jitter_px {data.layout_jitter_px} is not less than "
+                             f"half the smaller side of the {height}x{width} images the "
+                             f"network trains on from {where}: the zone layout it is given "
+                             "could be centred off the image (a calibration error is a few "
+                             "pixels)")
