@@ -90,3 +90,16 @@ def test_a_depth_scale_range_outside_0_1_to_10_is_refused(scale):
                                          r"with 0\.1 <= low <= high <= 10\.0"):
         load_config(TINY, [f"data.depth_scale_range={scale}"])
     assert load_config(TINY, ["data.depth_scale_range=[0.1, 10]"]).data.depth_scale_range
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("data.num_hypotheses=100000000", "data.num_hypotheses must be at most 1024, got 100000000"),
+    ("data.sources.0.frames=100000000000", "data.sources.0.frames must be at most 10000000 for "
+     "procedural sources, got 100000000000"),
+])
+def test_sizes_that_would_run_out_of_memory_are_refused(override, message):
+    # Only the configuration is read: nothing of that size is built.
+    with pytest.raises(ValueError, match=message):
+        load_config(TINY, [override])
+    largest = load_config(TINY, ["data.num_hypotheses=1024", "data.sources.0.frames=10000000"])
+    assert largest.data.num_hypotheses == 1024

@@ -15,7 +15,7 @@ from typing import Any
 import yaml
 
 from deltar.contract import HYPOTHESIS_SAMPLINGS
-from deltar.training.config_checks import check_finite, check_trainer_limits
+from deltar.training.config_checks import check_data_sizes, check_finite, check_trainer_limits
 
 #: The kinds of data source a training configuration can read (``data.sources[].kind``).
 DATA_SOURCE_KINDS: tuple[str, ...] = ("rgbd", "procedural", "nyu", "zju_l5", "thdr3k")
@@ -42,7 +42,7 @@ class SourceConfig:
         path: folder or file (``data.json`` folder for ``zju_l5``, the file list JSON
             for ``thdr3k``); unused for ``procedural``. Relative paths are taken
             relative to the working directory.
-        frames: number of frames (``procedural`` only).
+        frames: number of frames (``procedural`` only; at most 10 million).
         seed: seed of the first procedural frame.
         depth_scale: raw depth units per metre for ``rgbd`` (None: the layout's default).
         split: list to read from a NYU ``.json``, a ZJU-L5 ``data.json`` or a THDR3K
@@ -201,7 +201,7 @@ class DataConfig:
         grid: zones per side of the calibrated layout (4 or 8).
         training_grid, training_zone_px, training_max_offset_px: the training layout
             (an offset that could shift the grid off the training images is refused).
-        num_hypotheses: depth hypotheses sampled per zone (K).
+        num_hypotheses: depth hypotheses sampled per zone (K, at most 1024).
         sampling: ``icdf`` or ``uniform`` hypothesis sampling.
         image_augmentation: training image augmentation.
         signal_augmentation: training zone-signal augmentation.
@@ -260,6 +260,7 @@ class DataConfig:
                      "training_zone_px"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{where}.{name} must be >= 1")
+        check_data_sizes(self, where)
         if self.num_workers < 0 or self.training_max_offset_px < 0:
             raise ValueError(f"{where}.num_workers and training_max_offset_px must be >= 0")
         _choice(f"{where}.zone_layout", self.zone_layout, ZONE_LAYOUTS)

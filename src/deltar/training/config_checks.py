@@ -14,6 +14,10 @@ from typing import Any
 PRECISIONS: tuple[str, ...] = ("64-true", "64", "32-true", "32", "16-mixed", "16",
                                "bf16-mixed", "bf16", "16-true", "bf16-true",
                                "transformer-engine", "transformer-engine-float16")
+#: Upper bounds no real run reaches (the presets use 16 hypotheses, the recipes 200
+#: procedural frames); above them building the data would end out of memory.
+MAX_HYPOTHESES = 1024
+MAX_PROCEDURAL_FRAMES = 10_000_000
 #: Lightning's accelerator names (``Trainer(accelerator=...)``).
 ACCELERATORS: tuple[str, ...] = ("auto", "cpu", "gpu", "cuda", "mps", "tpu", "hpu")
 
@@ -33,6 +37,21 @@ def check_finite(section: Any, where: str) -> None:
             check_finite(value, f"{where}[{index}]")
     elif isinstance(section, float) and not math.isfinite(section):
         raise ValueError(f"{where} must be a finite number, got {section}")
+
+
+def check_data_sizes(data: Any, where: str) -> None:
+    """The data section's sizes below the bounds no real run reaches: ``num_hypotheses``
+    (K per zone, <= :data:`MAX_HYPOTHESES`) and each procedural source's ``frames``
+    (<= :data:`MAX_PROCEDURAL_FRAMES`), which would otherwise end in an out-of-memory
+    traceback once the data is built."""
+    if data.num_hypotheses > MAX_HYPOTHESES:
+        raise ValueError(f"{where}.num_hypotheses must be at most {MAX_HYPOTHESES}, got "
+                         f"{data.num_hypotheses}")
+    for number, source in enumerate(data.sources):
+        if source.kind == "procedural" and source.frames > MAX_PROCEDURAL_FRAMES:
+            raise ValueError(f"{where}.sources.{number}.frames must be at most "
+                             f"{MAX_PROCEDURAL_FRAMES} for procedural sources, got "
+                             f"{source.frames}")
 
 
 def check_trainer_limits(trainer: Any, where: str) -> None:
