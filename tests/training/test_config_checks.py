@@ -27,6 +27,10 @@ TINY = Path(__file__).parents[2] / "configs" / "tiny_test.yaml"
     ("trainer.limit_val_batches=1.5", "trainer.limit_val_batches must be a number"),
     ("trainer.precision=8-bit", "trainer.precision must be one of"),
     ("trainer.accelerator=tpuu", "trainer.accelerator must be one of"),
+    # Lightning's names that training does not support (tpu: a torch_xla error, no key).
+    ("trainer.accelerator=tpu", r"trainer\.accelerator must be one of \('auto', 'cpu', 'gpu', "
+     r"'cuda', 'mps'\), got 'tpu'"),
+    ("trainer.accelerator=hpu", "trainer.accelerator must be one of"),
 ])
 def test_values_a_run_would_fail_on_are_refused_naming_the_key(override, message):
     with pytest.raises(ValueError, match=message):

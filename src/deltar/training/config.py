@@ -393,7 +393,7 @@ class TrainerConfig:
     Attributes:
         max_epochs: epochs to train.
         max_steps: stop after this many optimiser steps (-1: no limit).
-        accelerator: ``auto``, ``cpu``, ``gpu``.
+        accelerator: ``auto``, ``cpu``, ``gpu`` (``cuda``), ``mps``.
         devices: devices per node (int) or ``auto``.
         num_nodes: nodes.
         strategy: ``auto``, ``ddp`` (also under torchrun / SLURM) or ``ddp_spawn``.

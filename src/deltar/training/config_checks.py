@@ -18,8 +18,10 @@ PRECISIONS: tuple[str, ...] = ("64-true", "64", "32-true", "32", "16-mixed", "16
 #: procedural frames); above them building the data would end out of memory.
 MAX_HYPOTHESES = 1024
 MAX_PROCEDURAL_FRAMES = 10_000_000
-#: Lightning's accelerator names (``Trainer(accelerator=...)``).
-ACCELERATORS: tuple[str, ...] = ("auto", "cpu", "gpu", "cuda", "mps", "tpu", "hpu")
+#: The accelerators training supports (Lightning's names, ``Trainer(accelerator=...)``):
+#: not ``tpu`` nor ``hpu``, which need torch_xla / Habana packages and code paths (e.g. the
+#: random-state saving of :mod:`deltar.training.module`) it does not have.
+ACCELERATORS: tuple[str, ...] = ("auto", "cpu", "gpu", "cuda", "mps")
 
 
 def check_finite(section: Any, where: str) -> None:
