@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 from deltar.calibration.board import BoardSpec
+from deltar.camera import strict_number
 from deltar.io.atomic import atomic_path
 
 #: Paper sizes (width, height) in millimetres, portrait.
@@ -41,9 +43,12 @@ def write_board_page(path: str | os.PathLike, spec: BoardSpec, *, paper: str = "
         The written path.
 
     Raises:
-        ValueError: unknown paper or suffix, or a board larger than the printable area
-            (the message names ``--target`` and the largest square size that fits).
+        ValueError: unknown paper or suffix, a ``dpi`` that is not a finite number > 0,
+            or a board larger than the printable area (the message names ``--target`` and
+            the largest square size that fits).
     """
+    if not math.isfinite(strict_number(dpi, "dpi")) or not dpi > 0:
+        raise ValueError(f"dpi must be a finite number > 0 (dots per inch), got {dpi!r}")
     import matplotlib
 
     matplotlib.use("Agg")
