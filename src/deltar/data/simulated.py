@@ -31,7 +31,9 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
     Args:
         source: RGB-D frames (any reader of :mod:`deltar.data.sources`).
         out: output folder (written by :func:`deltar.data.zju_l5.write_zju_l5`).
-        indices: frames of ``source`` to use (all by default).
+        indices: frame numbers of ``source`` to use, each in ``0..len(source) - 1`` (all
+            by default). Negative numbers are refused, not counted from the end: a frame's
+            degradation and its place in the set follow its number.
         grid: zones per side (4 or 8).
         layout: ``calibrated`` (the 45 x 45 deg FoV projected with each frame's
             intrinsics) or ``aligned`` (the release's 56 px grid centred in the image,
@@ -64,6 +66,12 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
     if layout not in SET_LAYOUTS:
         raise ValueError(f"layout must be one of {SET_LAYOUTS}, got {layout!r}")
     indices = list(range(len(source))) if indices is None else list(indices)
+    bad = [i for i in indices if isinstance(i, bool) or not isinstance(i, int | np.integer)
+           or not 0 <= i < len(source)]
+    if bad:  # before any frame is simulated or written
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        raise ValueError(f"indices must be frame numbers in 0..{len(source) - 1} of the "
+                         f"{len(source)} frames of source, got {bad[0]!r}{more}")
     valid_counts: list[int] = []
 
     def simulated(frame: RGBDFrame, index: int) -> ZJUL5Sample:
