@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import pytest
 
 from deltar.capture.drivers import SimulatedRig
 from deltar.capture.record import record
 from deltar.data.flat_wall import FlatWallSource
+from deltar.data.procedural import ProceduralReader
 from deltar.evaluation.wall_test import evaluate_recording, wall_test, write_results
 from deltar.inference.estimator import DepthEstimator
 from tests.inference.fakes import ZonePainterNet
@@ -27,7 +29,9 @@ def test_wall_test_bias_is_the_bin_quantisation(tmp_path):
     """
     estimator = DepthEstimator(ZonePainterNet(), weights="painter")
     recordings = [_recording(tmp_path / "far", 2.05), _recording(tmp_path / "near", 1.01)]
-    results = wall_test(recordings, estimator)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*flat wall")  # walls: no warning
+        results = wall_test(recordings, estimator)
     assert [r.distance_m for r in results] == pytest.approx([1.02, 2.06], abs=1e-5)
     for result in results:
         assert result.frames == 2 and result.reference == "depth"
@@ -57,3 +61,17 @@ def test_recording_without_reference_depth_fits_the_plane_to_itself(tmp_path):
 def test_wall_test_needs_recordings():
     with pytest.raises(ValueError, match="at least one"):
         wall_test([], DepthEstimator(ZonePainterNet(), weights="painter"))
+
+
+def test_a_recording_that_is_not_a_flat_wall_is_warned_about_once(tmp_path):
+    # Procedural rooms: several planes, few pixels on any one plane fit. Before, their
+    # bias and jitter came out as a wall's, without a word.
+    folder = tmp_path / "room"
+    record(folder, SimulatedRig(ProceduralReader(4, 1, 96, 128)))
+    estimator = DepthEstimator(ZonePainterNet(), weights="painter")
+    with pytest.warns(UserWarning, match=r"room: the plane fitted to its reference depth "
+                      r"keeps only \d+% of the pixels as inliers \(mean over \d frames; a "
+                      r"flat wall keeps over 80%\): it does not look like one flat wall") as got:
+        result = evaluate_recording(folder, estimator)
+    assert result.reference == "depth"
+    assert sum("flat wall" in str(w.message) for w in got) == 1
