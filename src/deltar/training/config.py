@@ -84,10 +84,9 @@ class SourceConfig:
         """How messages name the source after its key: ``rgbd /data/office`` (its kind
         and path), or for a procedural source (which has no path) ``procedural, 8 frames
         from seed 0``."""
-        if self.kind == "procedural":
-            frames = "1 frame" if self.frames == 1 else f"{self.frames} frames"
-            return f"procedural, {frames} from seed {self.seed}"
-        return f"{self.kind} {self.path}"
+        if self.kind != "procedural":
+            return f"{self.kind} {self.path}"
+        return f"procedural, {self.frames} frame{'s' * (self.frames != 1)} from seed {self.seed}"
 
     def validate(self, where: str) -> None:
         if self.every < 1:
