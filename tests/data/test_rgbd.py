@@ -212,3 +212,25 @@ def test_the_frames_poses_from_the_folders_pose_files(shared_data, tmp_path, rng
     (tmp_path / "pose" / "a.txt").write_text("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     with pytest.raises(ValueError, match=r"a\.txt: the pose's 3x3 block is not a rotation"):
         FolderReader(tmp_path, 1000.0, intr).poses()
+
+
+@pytest.mark.parametrize("settings, words", [
+    ({"depth_scale": "1000"}, "depth_scale must be a finite number > 0"),
+    ({"depth_scale": [1000]}, "depth_scale must be a finite number > 0"),
+    ({"depth_scale": -1}, "depth_scale must be a finite number > 0"),
+    ({"layout": "xyz"}, "layout must be one of"),
+    ({"intrinsics": 5}, "intrinsics must be an object with fx, fy, cx, cy"),
+    ({"intrinsics": {"fx": "a", "fy": 1, "cx": 1, "cy": 1}}, "intrinsics fx must be a number"),
+])
+def test_sidecar_values_of_the_wrong_kind_name_the_file(tmp_path, rng, settings, words):
+    _write_rgb(tmp_path / "color" / "a.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / "depth" / "a.png", np.full((6, 8), 300))
+    (tmp_path / "deltar_rgbd.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match=r"deltar_rgbd\.json: " + words):
+        open_rgbd(tmp_path)
+
+
+def test_a_tum_list_that_is_not_text_names_the_file(tmp_path):
+    (tmp_path / "associations.txt").write_bytes(b"\xff\xfe\x00 binary\n")
+    with pytest.raises(ValueError, match=r"associations\.txt: cannot read TUM list: not UTF-8"):
+        open_rgbd(tmp_path)

@@ -13,6 +13,7 @@ Per-folder option: a ``deltar_rgbd.json`` file in the dataset folder may set
 from __future__ import annotations
 
 import json
+import math
 import re
 import warnings
 from collections.abc import Sequence
@@ -32,7 +33,7 @@ from deltar.data.rgbd_files import (
 )
 from deltar.data.sequence import checked_index
 from deltar.io.file_pairs import IMAGE_SUFFIXES
-from deltar.io.input_file import input_folder
+from deltar.io.input_file import input_folder, reading
 from deltar.io.pose_file import frame_pose_file, read_pose_file
 
 #: Name of the optional per-folder settings file read by :func:`open_rgbd`.
@@ -72,11 +73,22 @@ class RGBDFrame:
                              f"{self.image.shape[:2]}")
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _intrinsics_from_dict(data: dict, height: int, width: int, source: str
                           ) -> CameraIntrinsics:
+    if not isinstance(data, dict):
+        raise ValueError(f"{source}: intrinsics must be an object with fx, fy, cx, cy, got "
+                         f"{type(data).__name__} {data!r}")
     missing = {"fx", "fy", "cx", "cy"} - set(data)
     if missing:
         raise ValueError(f"{source}: intrinsics are missing {sorted(missing)}")
+    bad = [key for key, value in data.items() if not _is_number(value)]
+    if bad:
+        raise ValueError(f"{source}: intrinsics {bad[0]} must be a number of pixels, got "
+                         f"{data[bad[0]]!r}")
     return CameraIntrinsics(float(data["fx"]), float(data["fy"]), float(data["cx"]),
                             float(data["cy"]), int(data.get("width", width)),
                             int(data.get("height", height)))
@@ -206,7 +218,9 @@ def _read_tum_table(path: Path, columns: tuple[str, ...]) -> list[tuple]:
         ValueError: ``"<path>:<line>: ..."`` for a short row or a bad timestamp.
     """
     rows = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    with reading(path, "TUM list"):
+        lines = path.read_text(encoding="utf-8").splitlines()
+    for number, line in enumerate(lines, 1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
             continue
@@ -377,6 +391,12 @@ def _read_sidecar(root: Path) -> dict:
         else {"<not an object>"}
     if unknown:
         raise ValueError(f"{path}: unknown settings {sorted(unknown)}")
+    scale = data.get("depth_scale", 1.0)
+    if not (_is_number(scale) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"{path}: depth_scale must be a finite number > 0 of raw depth units "
+                         f"per metre (1000 for millimetres), got {scale!r}")
+    if data.get("layout", "folder") not in LAYOUTS:
+        raise ValueError(f"{path}: layout must be one of {LAYOUTS}, got {data['layout']!r}")
     return data
 
 
