@@ -87,3 +87,35 @@ def test_release_border_crop(tmp_path, rng):
 def test_default_intrinsics_are_nyu():
     assert (NYU_INTRINSICS.fx, NYU_INTRINSICS.fy, NYU_INTRINSICS.cx, NYU_INTRINSICS.cy) == (
         518.86, 519.47, 325.58, 253.74)
+
+
+def test_integer_depth_and_datasets_of_the_wrong_kind_name_the_file(tmp_path):
+    """Millimetre depth would read 1000 times too far; a group where an array belongs
+    was a TypeError / AttributeError traceback."""
+    with h5py.File(tmp_path / "mm.mat", "w") as f:
+        f["images"] = np.zeros((1, 3, 8, 6), np.uint8)
+        f["depths"] = np.full((1, 8, 6), 1500, np.uint16)
+    with pytest.raises(ValueError, match=r"mm\.mat: depths must be float metres, got uint16"):
+        NYULabeledReader(tmp_path / "mm.mat", intrinsics=SMALL)
+    with h5py.File(tmp_path / "float_images.mat", "w") as f:
+        f["images"] = np.full((1, 3, 8, 6), 0.5)
+        f["depths"] = np.full((1, 8, 6), 1.5)
+    with pytest.raises(ValueError, match=r"float_images\.mat: images must be uint8"):
+        NYULabeledReader(tmp_path / "float_images.mat", intrinsics=SMALL)
+    with h5py.File(tmp_path / "group.mat", "w") as f:
+        f.create_group("images")
+        f["depths"] = np.full((1, 8, 6), 1.5)
+    with pytest.raises(ValueError, match=r"group\.mat: cannot read NYU labeled file"):
+        NYULabeledReader(tmp_path / "group.mat", intrinsics=SMALL)
+    with h5py.File(tmp_path / "mm.h5", "w") as f:
+        f["rgb"], f["depth"] = np.zeros((3, 6, 8), np.uint8), np.full((6, 8), 1500, np.uint16)
+    with h5py.File(tmp_path / "group.h5", "w") as f:
+        f["rgb"] = np.zeros((3, 6, 8), np.uint8)
+        f.create_group("depth")
+    (tmp_path / "split.json").write_text(json.dumps(
+        {"train": [{"filename": "mm.h5"}, {"filename": "group.h5"}]}))
+    reader = NYUH5Reader(tmp_path / "split.json", intrinsics=SMALL)
+    with pytest.raises(ValueError, match=r"mm\.h5: depth must be float metres, got uint16"):
+        reader[0]
+    with pytest.raises(ValueError, match=r"group\.h5: cannot read NYU frame file"):
+        reader[1]

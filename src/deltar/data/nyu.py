@@ -22,7 +22,7 @@ import numpy as np
 from deltar.camera import CameraIntrinsics
 from deltar.data.rgbd import RGBDFrame
 from deltar.data.sequence import checked_index
-from deltar.io.input_file import input_file
+from deltar.io.input_file import input_file, reading
 from deltar.io.json_file import read_split_filenames
 
 #: NYU-Depth V2 colour camera at 480x640 (fx, fy, cx, cy from the dataset's toolbox).
@@ -42,6 +42,17 @@ def _check_intrinsics(intrinsics: CameraIntrinsics, shape: tuple[int, int],
         return intrinsics
     raise ValueError(f"{source}: images are {shape[0]}x{shape[1]} but the intrinsics are for "
                      f"{intrinsics.height}x{intrinsics.width}; pass matching intrinsics")
+
+
+def _check_dtypes(path: Path, image: np.dtype, depth: np.dtype, image_key: str,
+                  depth_key: str) -> None:
+    """Refuse a colour dataset that is not uint8 and a depth dataset that is not float
+    metres (integers are a depth camera's raw units, millimetres: 1000 times too far)."""
+    if image != np.uint8:
+        raise ValueError(f"NYU file {path}: {image_key} must be uint8, got {image}")
+    if depth.kind != "f":
+        raise ValueError(f"NYU file {path}: {depth_key} must be float metres, got {depth} "
+                         "(millimetres? store depth / 1000 as float32)")
 
 
 def _open_h5(path: Path, what: str) -> h5py.File:
@@ -69,11 +80,13 @@ class NYULabeledReader(Sequence):
     def __init__(self, mat_path: str | Path, indices: Sequence[int] | None = None,
                  intrinsics: CameraIntrinsics = NYU_INTRINSICS) -> None:
         self.path = Path(mat_path)
-        with _open_h5(self.path, "NYU labeled file") as f:
+        with _open_h5(self.path, "NYU labeled file") as f, reading(self.path,
+                                                                   "NYU labeled file"):
             missing = [k for k in ("images", "depths") if k not in f]
             if missing:
                 raise ValueError(f"NYU labeled file {self.path} lacks datasets {missing}")
             images, depths = f["images"].shape, f["depths"].shape
+            _check_dtypes(self.path, f["images"].dtype, f["depths"].dtype, "images", "depths")
         if len(images) != 4 or images[1] != 3 or len(depths) != 3 or (
                 images[0], images[2], images[3]) != depths:
             raise ValueError(f"NYU labeled file {self.path}: expected images (N, 3, W, H) and "
@@ -91,7 +104,7 @@ class NYULabeledReader(Sequence):
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
         i = self.indices[checked_index(index, len(self))]
         # Opened per access: h5py handles must not be shared across DataLoader workers.
-        with h5py.File(self.path, "r") as f:
+        with h5py.File(self.path, "r") as f, reading(self.path, "NYU labeled file"):
             image = np.ascontiguousarray(f["images"][i].transpose(2, 1, 0))  # (3,W,H)->(H,W,3)
             depth = f["depths"][i].T  # (W, H) -> (H, W)
         return RGBDFrame(image=image.astype(np.uint8), depth_m=_clean_depth(depth),
@@ -131,11 +144,12 @@ class NYUH5Reader(Sequence):
     def __getitem__(self, index: int) -> RGBDFrame:  # type: ignore[override]
         rel = self.filenames[checked_index(index, len(self))]
         path = self.root / rel
-        with _open_h5(path, "NYU frame file") as f:
+        with _open_h5(path, "NYU frame file") as f, reading(path, "NYU frame file"):
             missing = [k for k in ("rgb", "depth") if k not in f]
             if missing:
                 raise ValueError(f"NYU frame file {path} lacks datasets {missing}")
             rgb, depth = f["rgb"][()], f["depth"][()]
+        _check_dtypes(path, rgb.dtype, depth.dtype, "rgb", "depth")
         if rgb.ndim != 3 or rgb.shape[0] != 3 or rgb.dtype != np.uint8:
             raise ValueError(f"NYU frame file {path}: rgb must be (3, H, W) uint8, got "
                              f"{rgb.shape} {rgb.dtype}")
