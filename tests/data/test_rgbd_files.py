@@ -41,3 +41,14 @@ def test_depth_scale_must_be_finite_and_positive(tmp_path):
             check_depth_scale(bad)
     with pytest.raises(ValueError, match="depth_scale must be finite and > 0, got 0"):
         read_depth(tmp_path / "missing.png", 0)
+
+
+def test_8_bit_boolean_and_complex_depth_images_are_refused(tmp_path):
+    """An 8-bit PNG holds at most 0.255 m in millimetres: a picture, not a depth map."""
+    Image.fromarray(np.full((4, 6), 200, np.uint8)).save(tmp_path / "grey.png")
+    np.save(tmp_path / "mask.npy", np.ones((4, 6), bool))
+    np.save(tmp_path / "complex.npy", np.ones((4, 6), complex))
+    for name, dtype in (("grey.png", "uint8"), ("mask.npy", "bool"),
+                        ("complex.npy", "complex128")):
+        with pytest.raises(ValueError, match=rf"depth image \S*{name} holds {dtype} values"):
+            read_depth(tmp_path / name, 1000.0)

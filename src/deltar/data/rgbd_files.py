@@ -88,6 +88,11 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
             raise ValueError(f"cannot decode depth image {path}: {err}") from err
     if raw.ndim != 2:
         raise ValueError(f"depth image {path} must be single-channel, got shape {raw.shape}")
+    if raw.dtype.kind not in "iuf" or raw.dtype.itemsize < 2:
+        # 8 bits hold at most 255 units (0.255 m in millimetres): a grey picture or a
+        # normalised visualisation, not a depth camera's depth.
+        raise ValueError(f"depth image {path} holds {raw.dtype} values; depth images are "
+                         "16-bit integers (1 / depth_scale metres) or float")
     invalid = ~np.isfinite(raw) if raw.dtype.kind == "f" else np.zeros(raw.shape, bool)
     if raw.dtype.kind in "iu":  # Pillow may decode 16-bit PNGs as uint16 or int32
         invalid |= raw == _SATURATED_U16
