@@ -106,6 +106,17 @@ def test_zone_frame_from_cnh_errors_name_the_field():
         zone_frame_from_cnh(np.full(10, 1000.0), np.ones((10, 18)))
 
 
+
+@pytest.mark.parametrize("field", ["distance_mm", "nb_target_detected", "range_sigma_mm",
+                                   "target_status"])
+def test_zone_frame_from_cnh_refuses_strings_and_booleans(field):
+    """A THDR3K tof.json with "1500" strings read as numbers (and true as 1) before."""
+    fields = {"distance_mm": [1000.0] * 64, "nb_target_detected": [1] * 64,
+              "range_sigma_mm": [20.0] * 64, "target_status": [5] * 64}
+    for bad in (["1500"] * 64, [True] * 64):
+        with pytest.raises(ValueError, match=f"{field} must hold numbers"):
+            zone_frame_from_cnh(bin_values=np.ones((64, 18)), **{**fields, field: bad})
+
 def test_histogram_sigma_single_bin_is_uniform_spread():
     edges = np.array([0.0, 0.1, 0.2, 0.3])
     sigma = histogram_sigma_m(np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]), edges)

@@ -28,6 +28,7 @@ from deltar.sensor.zone_frame import Orientation, ZoneFrame
 from deltar.sensor.zone_values import (
     DEFAULT_VALID_STATUS,
     NO_TARGET_STATUS,
+    number_array,
     valid_status_codes,
 )
 
@@ -293,10 +294,10 @@ def simulate_cnh(depth_m: np.ndarray, rects: np.ndarray,
 
 
 def _flat(name: str, values, count: int | None = None) -> np.ndarray:
-    try:
-        arr = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{name} must be a flat list of numbers: {err}") from err
+    # Numbers stay numbers: strings ("1500") and booleans are refused, never converted.
+    if not isinstance(values, np.ndarray | list | tuple):
+        values = np.asarray(values)
+    arr = number_array(values, name)
     if count is not None and arr.size != count:
         raise ValueError(f"{name} has {arr.size} entries; expected {count}")
     return arr
