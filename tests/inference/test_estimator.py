@@ -394,3 +394,17 @@ def test_a_zone_frame_changed_after_it_was_made_is_checked_again(rng):
     with pytest.raises(ValueError, match=r"^zone_frame\[1\]: ZoneFrame\.mean_m"):
         estimator.predict([image, image], [ZoneFrame(np.full((8, 8), 2.0), np.full((8, 8), 0.02),
                                                      np.ones((8, 8), bool)), frame])
+
+
+@pytest.mark.parametrize("fov", [60.0, (60.0,), (45.0, 45.0, 45.0), ("45", "45"),
+                                 (float("nan"), 45.0), (0.0, 45.0), (True, 45.0)])
+def test_a_field_of_view_that_is_not_two_angles_is_refused_when_built(lite_model, fov):
+    """A single number was a TypeError ('float' object is not iterable), one angle an
+    IndexError, NaN an error only at the first predict."""
+    with pytest.raises(ValueError, match=r"fov_deg must be two angles in \(0, 180\) degrees"):
+        DepthEstimator(lite_model, weights="test", fov_deg=fov)
+
+
+def test_a_field_of_view_of_numpy_numbers_is_kept(lite_model):
+    estimator = DepthEstimator(lite_model, weights="test", fov_deg=np.float32([45.0, 40.0]))
+    assert estimator.fov_deg == (45.0, 40.0)

@@ -8,6 +8,7 @@ hint of what to pass (a path names the reader, a torch tensor the conversion).
 
 from __future__ import annotations
 
+import numbers
 import os
 import re
 from typing import Any
@@ -108,6 +109,22 @@ def resolve_input_size(input_size: Any, onnx_model: Any) -> tuple[int, int] | No
         if len(sizes) == 1:
             input_size = sizes[0]
     return None if input_size is None else check_input_size(input_size, "input_size")
+
+
+def check_fov_deg(fov_deg: Any) -> tuple[float, float]:
+    """``fov_deg`` as (horizontal, vertical) degrees, each in (0, 180).
+
+    Raises:
+        ValueError: ``"fov_deg must be two angles in (0, 180) degrees, got ..."`` for a
+            single number, another count, non-numbers or angles out of range.
+    """
+    values = fov_deg.tolist() if isinstance(fov_deg, np.ndarray) else fov_deg
+    if not isinstance(values, tuple | list) or len(values) != 2 or not all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) and 0 < v < 180
+            for v in values):
+        raise ValueError(f"fov_deg must be two angles in (0, 180) degrees, "
+                         f"(horizontal, vertical), got {fov_deg!r}")
+    return float(values[0]), float(values[1])
 
 
 def describe_argument(value: Any,

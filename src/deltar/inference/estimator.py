@@ -167,7 +167,7 @@ class DepthEstimator:
         self.precision = precision
         self.input_size = input_size
         self.intrinsics = intrinsics
-        self.fov_deg = tuple(fov_deg)
+        self.fov_deg = checks.check_fov_deg(fov_deg)
         self.weights = weights
         self.flip_average, self.output_align_corners = flip_average, bool(output_align_corners)
         if max_range_m is not None and not (math.isfinite(max_range_m) and max_range_m > 0):
