@@ -312,3 +312,11 @@ def test_orientation_refuses_values_it_would_apply_wrongly(kwargs, message):
     with pytest.raises(ValueError, match=message):
         Orientation(**kwargs)
     assert Orientation(flip_ud=np.bool_(True), rot90=np.int64(-1)).rot90 == -1
+
+
+def test_an_infinite_sigma_is_named_among_the_bad_zones():
+    """The message listed no zone for an infinite sigma ('bad zones []')."""
+    sigma = np.full(64, 0.02)
+    sigma[9] = np.inf
+    with pytest.raises(ValueError, match=r"sigma_m must be finite .* bad zones \[\[1, 1\]\]"):
+        ZoneFrame(np.full(64, 1.5), sigma, np.ones(64, bool))

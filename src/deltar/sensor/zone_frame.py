@@ -225,9 +225,10 @@ class ZoneFrame:
         if np.any(self.mean_m[v] < 0):
             raise ValueError("ZoneFrame.mean_m has negative distances in valid zones "
                              f"{np.argwhere(v & (self.mean_m < 0)).tolist()}")
-        if not np.all(np.isfinite(self.sigma_m[v])) or np.any(self.sigma_m[v] < 0):
+        bad_sigma = v & ~(np.isfinite(self.sigma_m) & (self.sigma_m >= 0))
+        if np.any(bad_sigma):
             raise ValueError("ZoneFrame.sigma_m must be finite and >= 0 in valid zones, bad "
-                             f"zones {np.argwhere(v & ~(self.sigma_m >= 0)).tolist()}")
+                             f"zones {np.argwhere(bad_sigma).tolist()}")
         if (self.hist_counts is None) != (self.hist_edges_m is None):
             raise ValueError("ZoneFrame.hist_counts and hist_edges_m must be given together")
         if self.hist_counts is not None:
