@@ -271,6 +271,14 @@ def _driver_strings(inp):
     return ZoneFrame.from_driver(["1500"] * 64, [20] * 64, [5] * 64)
 
 
+def _fov_scalar(inp):
+    from deltar.inference.loading import load_estimator
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return load_estimator("deltar-lite", kind="preset", fov_deg=60.0)
+
+
 def _existing_outputs(inp, out):
     out.mkdir(parents=True, exist_ok=True)
     (out / "img_depth_m.npy").write_bytes(b"previous result")
@@ -460,6 +468,7 @@ def cases() -> list[Case]:
         Case("api-no-valid-zone", _api_no_zones, expect="ok"),
         Case("api-driver-strings", _api_call(_driver_strings),
              needles=("distance_mm", "number")),
+        Case("api-fov-deg-scalar", _api_call(_fov_scalar), needles=("fov_deg", "two angles")),
         Case("api-load-npz-strings", _api_call(_load_zone("z_strings.npz")),
              needles=("z_strings.npz", "mean_m")),
         Case("api-valid-batch", _api("predict", lambda v: [v["image"], v["image"]],
