@@ -52,3 +52,19 @@ def test_8_bit_boolean_and_complex_depth_images_are_refused(tmp_path):
                         ("complex.npy", "complex128")):
         with pytest.raises(ValueError, match=rf"depth image \S*{name} holds {dtype} values"):
             read_depth(tmp_path / name, 1000.0)
+
+
+def test_float_depth_in_metres_read_with_a_millimetre_scale_is_refused(tmp_path):
+    metres = np.full((4, 6), 2.5, dtype=np.float32)
+    metres[0, 0] = np.nan
+    np.save(tmp_path / "m.npy", metres)
+    with pytest.raises(ValueError, match=r"m\.npy: float values up to 2\.5 read as at most "
+                                         r"2\.5 mm with depth_scale 1000; if they are "
+                                         r"metres, set depth_scale to 1"):
+        read_depth(tmp_path / "m.npy", 1000.0)
+    assert read_depth(tmp_path / "m.npy", 1.0)[1, 1] == pytest.approx(2.5)
+    # Float millimetres with their scale, and an all-invalid frame, read as before.
+    np.save(tmp_path / "mm.npy", metres * 1000)
+    assert read_depth(tmp_path / "mm.npy", 1000.0)[1, 1] == pytest.approx(2.5)
+    np.save(tmp_path / "none.npy", np.zeros((4, 6), np.float32))
+    assert not read_depth(tmp_path / "none.npy", 1000.0).any()

@@ -66,12 +66,15 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     """Decode a depth image to (H, W) float32 metres, 0.0 where invalid.
 
     Args:
-        path: 16-bit PNG/TIFF/PGM (integers in ``1 / depth_scale`` metres) or ``.npy``.
+        path: 16-bit PNG/TIFF/PGM (integers in ``1 / depth_scale`` metres) or ``.npy``
+            (integers or floats, also in ``1 / depth_scale`` metres: 1 for float metres).
         depth_scale: raw units per metre (1000 for millimetres, 5000 for TUM).
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file is corrupt, not single-channel, or ``depth_scale`` <= 0.
+        ValueError: the file is corrupt, not single-channel, ``depth_scale`` <= 0, or
+            float depth that the scale puts within :data:`FLOAT_DEPTH_FLOOR_M` everywhere
+            (metres read as millimetres).
     """
     path = Path(path)
     depth_scale = check_depth_scale(depth_scale)
@@ -98,7 +101,18 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
         invalid |= raw == _SATURATED_U16
     depth = np.where(invalid, 0.0, raw.astype(np.float64) / depth_scale)
     depth[depth < 0] = 0.0
+    if raw.dtype.kind == "f" and 0 < depth.max() < FLOAT_DEPTH_FLOOR_M:
+        # Float depth is most often metres already: scaled again, a room would lie
+        # within a few millimetres, nearer than any depth camera measures.
+        raise ValueError(f"depth image {path}: float values up to {depth.max() * depth_scale:.4g}"
+                         f" read as at most {depth.max() * 1000:.3g} mm with depth_scale "
+                         f"{depth_scale:g}; if they are metres, set depth_scale to 1")
     return depth.astype(np.float32)
+
+
+#: A float depth image whose every depth, after ``depth_scale``, lies nearer than this
+#: (metres) is refused by :func:`read_depth`: metres divided by 1000.
+FLOAT_DEPTH_FLOOR_M = 0.05
 
 
 def color_image_size(path: str | Path) -> tuple[int, int]:
