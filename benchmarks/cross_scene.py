@@ -286,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.calibration_frames < 1:
         parser.error(f"--calibration-frames must be >= 1, got {args.calibration_frames}")
     template = yaml.safe_load(args.config.read_text())
+    # The deltar commands run in the project root: a relative --out is the caller's.
+    args.out = args.out.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
 
     summary: dict[str, dict] = {"train_seconds": {}}

@@ -40,3 +40,24 @@ def test_margins_against_the_means_each_folds_and_each_scenes_best() -> None:
     assert "each fold" not in cross_scene._comparison("x", ("a", "b"), scenes, means)
     with pytest.raises(ValueError, match="do not add up"):
         cross_scene._comparison("x", ("a", "b"), scenes, means, "trained", [2, 1])
+
+
+def test_a_relative_out_folder_is_the_callers_not_the_project_roots(tmp_path, monkeypatch):
+    # The deltar commands run with the project root as working folder: the paths they are
+    # given must not be relative to the caller's.
+    commands: list[tuple[str, ...]] = []
+
+    class Stop(Exception):
+        pass
+
+    def record(*args: str) -> None:
+        commands.append(args)
+        raise Stop
+
+    monkeypatch.setattr(cross_scene, "deltar", record)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(Stop):
+        cross_scene.main(["--out", "cs", "--folds", "kitchen-shelf", "--steps", "1"])
+    config = Path(commands[0][commands[0].index("-c") + 1])
+    assert config.is_absolute() and config.is_file()
+    assert config.parent.parent == tmp_path / "cs"
