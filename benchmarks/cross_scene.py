@@ -251,6 +251,13 @@ def table(title: str, rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def model_argument(name_or_path: str) -> str:
+    """An ``--extra-model`` as the deltar commands (run in the project root) must get it:
+    a bundled name as it is, a file relative to the caller's folder made absolute."""
+    path = Path(name_or_path)
+    return str(path.resolve()) if path.exists() else name_or_path
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=PROJECT / "configs" /
@@ -303,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
         # network blended with the colorization fill where it is unsure); "network" is the
         # network's own depth (the estimator without the blend).
         models = {"trained": str(model), "network": f"{model}+network"}
-        models.update({f"extra:{name}": name for name in args.extra_model})
+        models.update({f"extra:{name}": model_argument(name) for name in args.extra_model})
         for scene in FOLDS[fold]:
             summary[scene] = {}
             for condition in args.conditions:

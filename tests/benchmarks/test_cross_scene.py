@@ -61,3 +61,10 @@ def test_a_relative_out_folder_is_the_callers_not_the_project_roots(tmp_path, mo
     config = Path(commands[0][commands[0].index("-c") + 1])
     assert config.is_absolute() and config.is_file()
     assert config.parent.parent == tmp_path / "cs"
+
+
+def test_an_extra_model_file_is_the_callers_a_bundled_name_stays(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.pt").write_bytes(b"")
+    assert cross_scene.model_argument("mine.pt") == str(tmp_path / "mine.pt")
+    assert cross_scene.model_argument("default") == "default"
