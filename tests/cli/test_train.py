@@ -148,7 +148,7 @@ def test_fit_uncertainty_names_a_set_whose_split_is_empty(tmp_path):
         "fit-uncertainty", "default", "--data", str(tmp_path / "good"), "--data",
         str(tmp_path / "empty"), "--out", str(tmp_path / "fitted.pt")])
     assert result.exit_code == 2, result.output
-    assert f"split 'test' of {tmp_path / 'empty'} lists no frames" in \
+    assert f"{tmp_path / 'empty' / 'data.json'}: split 'test' lists no frames" in \
         " ".join(result.output.split())
     assert not (tmp_path / "fitted.pt").exists()
 

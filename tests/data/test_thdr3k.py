@@ -73,6 +73,14 @@ def test_dataset_splits_and_autodetection(tmp_path):
         THDR3KDataset(list_path, split="val")
 
 
+def test_an_entry_outside_the_set_is_refused(tmp_path):
+    list_path = tmp_path / "list.json"
+    list_path.write_text(json.dumps({"test": [{"filename": "../elsewhere/x"}]}))
+    with pytest.raises(ValueError, match=r"THDR3K file list .*list\.json: '\.\./elsewhere/x' "
+                       "must be a relative path without '..'"):
+        THDR3KDataset(list_path)
+
+
 def test_zju_sets_are_still_detected_as_zju(tmp_path, rng):
     from deltar.data.zju_l5 import write_zju_l5
     from tests.data.test_zju_l5 import _sample

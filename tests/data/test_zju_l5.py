@@ -184,6 +184,23 @@ def test_missing_split_and_missing_file(tmp_path):
         ZJUL5Dataset(tmp_path / "nope.json")
 
 
+@pytest.mark.parametrize("entry", ["/etc/passwd.h5", "../outside/1.h5", "x/../../1.h5", ""])
+def test_an_entry_outside_the_set_is_refused_naming_data_json(tmp_path, entry):
+    """Such an entry would read a file outside the set's folder."""
+    (tmp_path / "data.json").write_text(json.dumps({"test": [{"filename": "x/1.h5"},
+                                                             {"filename": entry}]}))
+    with pytest.raises(ValueError, match=r"ZJU-L5 index .*data\.json: '" +
+                       entry.replace(".", r"\.") + "' must be a relative path without '..'"):
+        ZJUL5Dataset(tmp_path)
+
+
+def test_a_split_of_no_frames_is_refused_naming_it_and_data_json(tmp_path):
+    (tmp_path / "data.json").write_text(json.dumps({"test": [], "train": [{"filename": "a"}]}))
+    with pytest.raises(ValueError, match=r"ZJU-L5 index .*data\.json: split 'test' lists no "
+                       "frames"):
+        ZJUL5Dataset(tmp_path)
+
+
 def test_corrupt_h5_and_missing_key_and_bad_shapes(tmp_path, rng):
     (tmp_path / "bad.h5").write_bytes(b"not an hdf5 file at all")
     rgb = rng.integers(0, 256, (8, 8, 3), dtype=np.uint8)

@@ -31,3 +31,12 @@ def test_split_filenames_and_their_errors(tmp_path):
     index.write_text(json.dumps({"test": [{"name": "x"}]}))
     with pytest.raises(ValueError, match="must be a list of"):
         read_split_filenames(index, "test", "index")
+
+
+def test_relative_entries_are_checked_only_when_asked(tmp_path):
+    index = tmp_path / "data.json"
+    index.write_text(json.dumps({"test": [{"filename": "a/1.h5"}, {"filename": "../b.h5"}]}))
+    assert read_split_filenames(index, "test", "index") == ["a/1.h5", "../b.h5"]
+    with pytest.raises(ValueError, match=r"index .*data\.json: '\.\./b\.h5' must be a "
+                       "relative path without '..'"):
+        read_split_filenames(index, "test", "index", relative=True)

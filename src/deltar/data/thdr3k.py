@@ -165,12 +165,7 @@ class THDR3KDataset(Sequence):
                  cnh_config: CNHConfig | None = None,
                  intrinsics: CameraIntrinsics | None = None) -> None:
         path = Path(list_path)
-        self.filenames = read_split_filenames(path, split, "THDR3K file list")
-        for rel in self.filenames:
-            parts = Path(rel).parts
-            if Path(rel).is_absolute() or ".." in parts or not parts:
-                raise ValueError(f"THDR3K file list {path}: {rel!r} must be a relative path "
-                                 "without '..'")
+        self.filenames = read_split_filenames(path, split, "THDR3K file list", relative=True)
         self.root = path.parent
         self.split = split
         self.cnh_config = cnh_config

@@ -286,7 +286,8 @@ class ZJUL5Dataset(Sequence):
 
     Raises:
         FileNotFoundError: ``data.json`` is missing.
-        ValueError: ``data.json`` is not valid JSON or lacks the split.
+        ValueError: ``data.json`` is not valid JSON or lacks the split, the split lists
+            no frames, or an entry is not a relative path without ``..``.
     """
 
     def __init__(self, data_json_path: str | Path, split: str = "test",
@@ -294,7 +295,10 @@ class ZJUL5Dataset(Sequence):
         path = Path(data_json_path)
         if path.is_dir():
             path = path / "data.json"
-        filenames = read_split_filenames(path, split, "ZJU-L5 index")
+        filenames = read_split_filenames(path, split, "ZJU-L5 index", relative=True)
+        if not filenames:  # an empty set would read as no frames, naming nothing
+            raise ValueError(f"ZJU-L5 index {path}: split {split!r} lists no frames (a set "
+                             "holds at least one)")
         self.root = path.parent
         self.split = split
         self.intrinsics = intrinsics

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import PurePath
 from typing import Any
 
 from deltar.io.input_file import InputFileError, input_file, reading
@@ -31,15 +32,24 @@ def read_json(path: str | os.PathLike, what: str) -> Any:
             raise InputFileError(path, f"{path}: corrupt JSON: {err}") from err
 
 
-def read_split_filenames(path: str | os.PathLike, split: str, what: str) -> list[str]:
+def read_split_filenames(path: str | os.PathLike, split: str, what: str, *,
+                         relative: bool = False) -> list[str]:
     """File names of one split of a ``{"split": [{"filename": ...}, ...]}`` index.
 
     The layout of the DELTAR release's ``data.json`` (ZJU-L5) and NYU split files.
 
+    Args:
+        path: the index file.
+        split: the list to read.
+        what: what the file is, for the error message (e.g. ``"ZJU-L5 index"``).
+        relative: refuse entries that are absolute paths, empty or hold ``..``: names
+            of files beside the index, which must not reach outside its folder.
+
     Raises:
         FileNotFoundError: no such file.
-        ValueError: corrupt JSON, no such split (the message lists the splits), or
-            entries without a ``"filename"`` string.
+        ValueError: corrupt JSON, no such split (the message lists the splits),
+            entries without a ``"filename"`` string, or (``relative``) an entry that is
+            not a relative path without ``..``.
     """
     index = read_json(path, what)
 
@@ -57,4 +67,11 @@ def read_split_filenames(path: str | os.PathLike, split: str, what: str) -> list
     if not is_list(entries):
         raise ValueError(f"{what} {path}: split {split!r} must be a list of "
                          '{"filename": "..."} entries')
-    return [e["filename"] for e in entries]
+    names = [e["filename"] for e in entries]
+    if relative:
+        for name in names:
+            parts = PurePath(name).parts
+            if PurePath(name).is_absolute() or ".." in parts or not parts:
+                raise ValueError(f"{what} {path}: {name!r} must be a relative path without "
+                                 "'..'")
+    return names
