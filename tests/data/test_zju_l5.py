@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import h5py
@@ -81,6 +82,31 @@ def test_reads_release_layout_and_cleans_invalid_depth(tmp_path, rng):
     assert sample.intrinsics == ZJU_L5_INTRINSICS
     # Nor no-target flags: none is known.
     assert sample.zone_no_target is None and not sample.zone_frame().flat_no_target().any()
+
+
+@pytest.mark.parametrize(("mask", "shown"), [
+    (np.full(64, 0.5), "float64 holding 0.5"), (np.full(64, 2, np.uint8), "uint8 holding 2"),
+    (np.full(64, np.nan), "float64 holding nan"), (np.array(["1"] * 64, "S1"), "|S1")])
+def test_a_mask_that_is_not_bool_or_0_1_is_refused_naming_the_file(tmp_path, rng, mask, shown):
+    """Cast to bool, 0.5 read as a valid zone."""
+    rgb = rng.integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    _write_release_file(tmp_path / "0.h5", rgb, np.ones((8, 8)), np.ones((64, 2)),
+                        np.zeros((64, 4)), mask)
+    (tmp_path / "data.json").write_text(json.dumps({"test": [{"filename": "0.h5"}]}))
+    with pytest.raises(ValueError, match=r"ZJU-L5 file .*0\.h5: mask must be bool \(or 0/1\), "
+                       f"got {re.escape(shown)}$"):
+        ZJUL5Dataset(tmp_path)[0]
+
+
+def test_a_mask_of_0_1_numbers_or_an_8x8_grid_still_reads(tmp_path, rng):
+    rgb = rng.integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    mask = np.ones((8, 8), np.float32)
+    mask[0, 5] = 0
+    _write_release_file(tmp_path / "0.h5", rgb, np.ones((8, 8)), np.ones((64, 2)),
+                        np.zeros((64, 4)), mask)
+    (tmp_path / "data.json").write_text(json.dumps({"test": [{"filename": "0.h5"}]}))
+    valid = ZJUL5Dataset(tmp_path)[0].zone_valid
+    assert valid.dtype == bool and valid.sum() == 63 and not valid[5]
 
 
 def test_writer_refuses_to_overwrite(tmp_path, rng):

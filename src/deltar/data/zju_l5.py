@@ -8,7 +8,8 @@ relative to the folder holding it. Each HDF5 file holds:
 - ``hist_data``: (Z, 2) float per-zone [mean, sigma] in metres.
 - ``fr``: (Z, 4) float zone rectangles (y0, x0, y1, x1) in image pixels; they may
   extend past the image.
-- ``mask``: (Z,) bool valid zones.
+- ``mask``: (Z,) bool valid zones (0/1 numbers are read as bool; anything else is
+  refused).
 
 Z is 64 (8x8) for the released data; 16 (4x4) is accepted too. Files written by
 :func:`write_zju_l5` also carry the camera intrinsics as attributes ``fx, fy, cx, cy``,
@@ -257,7 +258,13 @@ def _decode_sample(path: Path, name: str, default_intrinsics: CameraIntrinsics |
             (intrinsics.height, intrinsics.width) != rgb.shape[:2]):
         intrinsics = intrinsics.scaled(rgb.shape[0], rgb.shape[1])
     mean_sigma = np.array(arrays["hist_data"], dtype=np.float32)
-    valid = np.asarray(arrays["mask"]).astype(bool).reshape(-1)
+    mask = np.asarray(arrays["mask"])
+    if mask.dtype != bool and (mask.dtype.kind not in "iuf" or not np.isin(mask, (0, 1)).all()):
+        # Cast to bool, 0.5 (or NaN) would read as a valid zone.
+        bad = mask[~np.isin(mask, (0, 1))].ravel() if mask.dtype.kind in "iuf" else None
+        raise ValueError(f"ZJU-L5 file {path}: mask must be bool (or 0/1), got {mask.dtype}"
+                         + (f" holding {bad[0].item()!r}" if bad is not None else ""))
+    valid = mask.astype(bool).reshape(-1)
     if mean_sigma.ndim == 2 and mean_sigma.shape[0] == valid.shape[0]:
         # Released files may keep stale values in masked zones; the convention is 0.0.
         mean_sigma[~valid] = 0.0
