@@ -145,6 +145,31 @@ def test_unknown_layout_and_missing_intrinsics_file(tmp_path, rng):
         open_rgbd(tmp_path)
 
 
+@pytest.mark.parametrize("layout", ["7scenes", "folder"])
+def test_an_intrinsics_file_that_is_a_folder_is_refused_naming_it(tmp_path, rng, layout):
+    """The folder layout ignored it and fell back to the Kinect default with a warning."""
+    colour, depth = (("frame-000000.color.png", "frame-000000.depth.png") if layout == "7scenes"
+                     else ("color/000000.png", "depth/000000.png"))
+    _write_rgb(tmp_path / colour, rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / depth, np.full((6, 8), 1000))
+    (tmp_path / "camera-intrinsics.txt").mkdir()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not the default-intrinsics warning
+        with pytest.raises(IsADirectoryError, match=r"intrinsics file .*camera-intrinsics\.txt "
+                           "is a folder, not a file"):
+            open_rgbd(tmp_path)
+
+
+def test_a_frames_intrinsics_file_that_is_a_folder_is_refused_naming_it(tmp_path, rng):
+    _write_rgb(tmp_path / "color" / "a.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    _write_png16(tmp_path / "depth" / "a.png", np.full((6, 8), 1000))
+    (tmp_path / "camera-intrinsics.txt").write_text("7 0 3.5\n0 7 2.5\n0 0 1\n")
+    (tmp_path / "intrinsics" / "a.txt").mkdir(parents=True)
+    with pytest.raises(IsADirectoryError, match=r"intrinsics file .*intrinsics/a\.txt is a "
+                       "folder, not a file"):
+        open_rgbd(tmp_path)
+
+
 def test_tum_lists_with_bad_lines_name_the_file_line_and_columns(tmp_path):
     (tmp_path / "associations.txt").write_text("# t rgb t depth\n\n0.5 c.png 0.5\n")
     with pytest.raises(ValueError, match=r"associations\.txt:3: expected 'timestamp rgb "

@@ -353,7 +353,7 @@ class FolderReader(RGBDReader):
         if intrinsics_dir is not None:
             for stem, _, _, _ in pairs:
                 k_file = root / intrinsics_dir / f"{stem}.txt"
-                if k_file.is_file():
+                if k_file.exists() or k_file.is_symlink():  # a folder there is refused
                     self.frame_intrinsics[stem] = read_intrinsics_matrix(k_file, height, width)
 
 
@@ -450,7 +450,7 @@ def open_rgbd(path: str | Path, *, layout: str | None = None, depth_scale: float
     if intrinsics is None:
         height, width = _first_color_size(root, layout)
         k_file = root / "camera-intrinsics.txt"
-        if k_file.is_file():
+        if k_file.exists() or k_file.is_symlink():  # a folder there is refused, not ignored
             intrinsics = read_intrinsics_matrix(k_file, height, width)
         else:
             warnings.warn(f"no intrinsics given for {root}; assuming the Kinect default "
