@@ -185,6 +185,23 @@ def test_tum_lists_with_bad_lines_name_the_file_line_and_columns(tmp_path):
         TUMReader(tmp_path)
 
 
+@pytest.mark.parametrize("stamp", ["nan", "inf", "-Infinity", "1e400"])
+@pytest.mark.parametrize("listed", ["associations.txt", "rgb.txt", "depth.txt"])
+def test_a_tum_time_stamp_that_is_not_finite_is_refused_naming_file_and_line(tmp_path, rng,
+                                                                             stamp, listed):
+    for name in ("c", "d"):
+        _write_rgb(tmp_path / f"{name}.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
+    lines = {"rgb.txt": "1.0 c.png\n", "depth.txt": "1.0 d.png\n"}
+    if listed == "associations.txt":
+        lines = {listed: "1.0 c.png 1.0 d.png\n"}
+    lines[listed] += f"{stamp} c.png {stamp} d.png\n"
+    for name, text in lines.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(ValueError, match=rf"{listed.replace('.', '[.]')}:2: bad timestamp "
+                       f"'{stamp}' \\(not a finite number of seconds\\)"):
+        TUMReader(tmp_path)
+
+
 def test_sidecar_intrinsics_for_a_tum_folder_with_other_subfolders(tmp_path, rng):
     _write_rgb(tmp_path / "cam" / "c1.png", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8))
     _write_png16(tmp_path / "tof" / "d1.png", np.full((6, 8), 2000))

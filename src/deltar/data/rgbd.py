@@ -215,7 +215,8 @@ def _read_tum_table(path: Path, columns: tuple[str, ...]) -> list[tuple]:
     ``#`` comments are skipped.
 
     Raises:
-        ValueError: ``"<path>:<line>: ..."`` for a short row or a bad timestamp.
+        ValueError: ``"<path>:<line>: ..."`` for a short row or a bad timestamp (not a
+            number, or NaN or infinite).
     """
     rows = []
     with reading(path, "TUM list"):
@@ -232,9 +233,13 @@ def _read_tum_table(path: Path, columns: tuple[str, ...]) -> list[tuple]:
                 row.append(field)
                 continue
             try:
-                row.append(float(field))
+                stamp = float(field)
             except ValueError as err:
                 raise ValueError(f"{path}:{number}: bad timestamp {field!r}") from err
+            if not math.isfinite(stamp):  # NaN pairs with nothing, inf with anything
+                raise ValueError(f"{path}:{number}: bad timestamp {field!r} (not a finite "
+                                 "number of seconds)")
+            row.append(stamp)
         rows.append(tuple(row))
     return rows
 
