@@ -23,7 +23,7 @@ import copy
 import functools
 import json
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -241,17 +241,30 @@ def sized_export_paths(model: DeltarNet, path: str | os.PathLike,
     Raises:
         ValueError: no image size, or a non-positive one.
     """
+    return _paths_by_size(Path(path), _camera_size_by_network_size(model, image_sizes))
+
+
+def _camera_size_by_network_size(model: DeltarNet, image_sizes: list[tuple[int, int]]
+                                 ) -> dict[tuple[int, int], tuple[int, int]]:
+    """The first camera size (H, W) of each distinct network input size, in order.
+
+    Raises:
+        ValueError: no image size, or a non-positive one.
+    """
     if not image_sizes:
         raise ValueError("image_sizes must name at least one (height, width) camera size")
-    path = Path(path)
-    paths: dict[tuple[int, int], Path] = {}
+    by_network: dict[tuple[int, int], tuple[int, int]] = {}
     for height, width in image_sizes:
         if height < 1 or width < 1:
             raise ValueError(f"image sizes must be positive, got {height}x{width}")
-        size = export_input_size(model, height, width)
-        paths.setdefault(size, path if not paths else
-                         path.with_name(sized_file_name(path.name, size)))
-    return paths
+        by_network.setdefault(export_input_size(model, height, width), (height, width))
+    return by_network
+
+
+def _paths_by_size(path: Path, sizes: Iterable[tuple[int, int]]) -> dict[tuple[int, int], Path]:
+    """``path`` for the first network size, ``<stem>.<h>x<w>.onnx`` beside it for the rest."""
+    return {size: path if i == 0 else path.with_name(sized_file_name(path.name, size))
+            for i, size in enumerate(sizes)}
 
 
 def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
@@ -294,7 +307,8 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
     import onnx
 
     path = Path(path)
-    files = sized_export_paths(model, path, image_sizes)
+    by_network = _camera_size_by_network_size(model, image_sizes)
+    files = _paths_by_size(path, by_network)
     data_path = path.with_name(path.name + ".data")
     targets = [*files.values(), data_path]
     for target in targets:  # checked before the long part, named as the user knows them
@@ -304,9 +318,6 @@ def export_onnx_sizes(model: DeltarNet, path: str | os.PathLike,
         if target.exists() and not overwrite:
             raise FileExistsError(f"refusing to overwrite existing file: {target} (overwrite "
                                   "replaces it: --overwrite)")
-    by_network: dict[tuple[int, int], tuple[int, int]] = {}
-    for height, width in image_sizes:  # the first camera size of each network size
-        by_network.setdefault(export_input_size(model, height, width), (height, width))
     listing = json.dumps({size_text(size): file.name for size, file in files.items()})
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".deltar-export-") as tmp:
         protos = {}
