@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from deltar.camera import CameraIntrinsics
+from deltar.camera import CameraIntrinsics, strict_number
 from deltar.io.zone_file import zone_frame_from_driver_result
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics, zone_rects
 from deltar.sensor.zone_frame import Orientation, ZoneFrame
@@ -98,9 +98,8 @@ class DriverAdapter(SensorAdapter):
             if name is not None and not callable(getattr(driver, name, None)):
                 raise ValueError(f"driver {type(driver).__name__} has no method {name!r}")
         _check_grid(grid)
-        if isinstance(poll_interval_s, bool) or not isinstance(
-                poll_interval_s, int | float | np.integer | np.floating) or not (
-                math.isfinite(poll_interval_s) and poll_interval_s >= 0):
+        interval = _number_or_nan(poll_interval_s)
+        if not (math.isfinite(interval) and interval >= 0):
             raise ValueError(f"poll_interval_s must be a finite number of seconds >= 0, "
                              f"got {poll_interval_s!r}")
         self.driver = driver
@@ -147,8 +146,7 @@ class DriverAdapter(SensorAdapter):
                 a result the driver returns that is not a reading (its fields missing,
                 not lists of numbers, lengths that do not fit ``grid``), naming the field.
         """
-        if isinstance(timeout_s, bool) or not isinstance(
-                timeout_s, int | float | np.integer | np.floating) or math.isnan(timeout_s):
+        if math.isnan(_number_or_nan(timeout_s)):
             # NaN would never compare past the deadline: the read would wait forever.
             raise ValueError(f"timeout_s must be a number of seconds (inf: wait for a "
                              f"frame), got {timeout_s!r}")
@@ -171,6 +169,15 @@ class DriverAdapter(SensorAdapter):
 #: Highest ranging frequency per zones per side, Hz (ST's datasheets: 15 Hz at 8x8,
 #: 60 Hz at 4x4); the drivers pass it on as a uint8 without checking it.
 MAX_RANGING_HZ = {4: 60, 8: 15}
+
+
+def _number_or_nan(value: Any) -> float:
+    """``value`` as a float (:func:`~deltar.camera.strict_number`), NaN when it is not a
+    number (a string, a boolean), for checks that refuse NaN anyway."""
+    try:
+        return strict_number(value, "value")
+    except ValueError:
+        return math.nan
 
 
 def _check_grid(grid: Any) -> None:
