@@ -17,7 +17,8 @@ from deltar.sensor.zone_values import (
     DEFAULT_VALID_STATUS,
     NO_TARGET_STATUS,
     SUPPORTED_GRIDS,
-    UNKNOWN_MODEL_MAX_RANGE_M,
+    UNKNOWN_MODEL_MAX_RANGE_M,  # noqa: F401  (its home before zone_values)
+    checked_range_m,
     flags,
     grid_from_count,
     numbers,
@@ -296,11 +297,10 @@ class ZoneFrame:
         return sensor_max_range_m(self.sensor_model) if max_range_m is None else max_range_m
 
     def _checked_limit_m(self, max_range_m: float | None) -> float:
-        """:meth:`range_limit_m` for the physical checks: an unknown model (a typo, or a
-        sensor not listed) is still held to :data:`UNKNOWN_MODEL_MAX_RANGE_M`, which no
-        multi-zone ToF sensor reaches (millimetres written as metres exceed it)."""
-        limit = self.range_limit_m(max_range_m)
-        return limit if math.isfinite(limit) else UNKNOWN_MODEL_MAX_RANGE_M
+        """:meth:`range_limit_m` for the physical checks
+        (:func:`~deltar.sensor.zone_values.checked_range_m`: an unknown model is still
+        held to :data:`UNKNOWN_MODEL_MAX_RANGE_M`)."""
+        return checked_range_m(self.sensor_model, max_range_m)
 
     def out_of_range(self, max_range_m: float | None = None) -> np.ndarray:
         """Valid zones whose distance is physically impossible for the sensor.

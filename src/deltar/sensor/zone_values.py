@@ -48,12 +48,13 @@ def sensor_max_range_m(sensor_model: str) -> float:
     return SENSOR_MAX_RANGE_M.get(str(sensor_model).upper(), math.inf)
 
 
-def checked_range_m(sensor_model: str) -> float:
-    """The range a reading of ``sensor_model`` is held to, metres: the model's
-    (:data:`SENSOR_MAX_RANGE_M`), or :data:`UNKNOWN_MODEL_MAX_RANGE_M` for a model not
-    listed (a typo, or a sensor deltar does not know), which no multi-zone ToF sensor
-    reaches (millimetres written as metres exceed it)."""
-    limit = sensor_max_range_m(sensor_model)
+def checked_range_m(sensor_model: str, max_range_m: float | None = None) -> float:
+    """The range a reading of ``sensor_model`` is held to, metres: ``max_range_m`` when
+    given, else the model's (:data:`SENSOR_MAX_RANGE_M`); where that is infinite (a model
+    not listed: a typo, or a sensor deltar does not know)
+    :data:`UNKNOWN_MODEL_MAX_RANGE_M`, which no multi-zone ToF sensor reaches (millimetres
+    written as metres exceed it)."""
+    limit = sensor_max_range_m(sensor_model) if max_range_m is None else max_range_m
     return limit if math.isfinite(limit) else UNKNOWN_MODEL_MAX_RANGE_M
 
 
