@@ -226,3 +226,13 @@ def test_a_file_whose_lens_distortion_folds_the_image_loads_with_a_warning(tmp_p
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         RigCalibration.load(good)
+
+
+def test_pairing_time_offset_is_the_given_one_else_the_calibrations_else_zero():
+    from deltar.calibration.rig import pairing_time_offset
+
+    calib = replace(_calib(), time_offset_s=0.03)
+    assert pairing_time_offset(calib, -0.01) == -0.01
+    assert pairing_time_offset(calib) == 0.03
+    assert pairing_time_offset(None) == 0.0
+    assert pairing_time_offset(None, 0.02) == 0.02

@@ -19,7 +19,7 @@ import numpy as np
 
 from deltar.calibration.board import BoardDetector, BoardSpec, estimate_board_pose
 from deltar.calibration.plane import zone_cells_tan
-from deltar.calibration.rig import RigCalibration
+from deltar.calibration.rig import RigCalibration, pairing_time_offset
 from deltar.camera import backproject
 from deltar.io.atomic import atomic_path
 
@@ -169,7 +169,7 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
     if calibration.grid != meta.grid:
         raise ValueError(f"{calibration_name} is for a {calibration.grid}x{calibration.grid} "
                          f"grid, the recording {recording.folder} has {meta.grid}x{meta.grid}")
-    offset = calibration.time_offset_s if time_offset_s is None else float(time_offset_s)
+    offset = pairing_time_offset(calibration, time_offset_s)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         pairs = recording.pairs(tolerance_s, time_offset_s=offset)

@@ -375,3 +375,13 @@ class RigCalibration:
                           UserWarning, stacklevel=2)
         return calibration
 
+
+
+def pairing_time_offset(calibration: RigCalibration | None,
+                        time_offset_s: float | None = None) -> float:
+    """The clock offset frames are paired with, seconds (how far the camera's time stamps
+    run ahead of the sensor's): ``time_offset_s`` when given (``--time-offset``), else
+    the calibration's ``time_offset_s``, else 0."""
+    if time_offset_s is not None:
+        return float(time_offset_s)
+    return calibration.time_offset_s if calibration is not None else 0.0

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from deltar.calibration.rig import RigCalibration
+from deltar.calibration.rig import RigCalibration, pairing_time_offset
 from deltar.sensor.geometry import DEFAULT_FOV_DEG, SensorExtrinsics
 
 if TYPE_CHECKING:
@@ -106,9 +106,8 @@ def replay_bag(bag: BagInput, estimator: DepthEstimator, *,
             frame the estimator refuses (naming the ToF topic and stamp).
     """
     if pairs is None:
-        offset = time_offset_s if time_offset_s is not None else \
-            calibration.time_offset_s if calibration is not None else 0.0
-        pairs = bag.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
+        pairs = bag.pairs(tolerance_s=tolerance_s,
+                          time_offset_s=pairing_time_offset(calibration, time_offset_s))
     chosen: list[BagPair] = []
     for pair in pairs[::max(1, int(every))]:
         if limit is not None and len(chosen) >= limit:

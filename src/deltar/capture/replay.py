@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from deltar.calibration.rig import RigCalibration
+from deltar.calibration.rig import RigCalibration, pairing_time_offset
 from deltar.inference.folder import FRAME_ERRORS
 from deltar.io.pairing import one_per_image
 from deltar.io.read_ahead import read_ahead
@@ -147,7 +147,7 @@ def replay(recording: str | os.PathLike | Recording, estimator: DepthEstimator, 
     calib = calibration or recording_calibration(rec)
     calib.check_image_size((rec.meta.intrinsics.height, rec.meta.intrinsics.width),
                            f"the recording {rec.folder}")
-    offset = calib.time_offset_s if time_offset_s is None else float(time_offset_s)
+    offset = pairing_time_offset(calib, time_offset_s)
     pairs = rec.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
     check_gaps(rec, pairs)  # gaps in the sensor's own stream: before any is left out
     pairs = replay_pairs(rec, pairs, offset)

@@ -238,8 +238,9 @@ def replay_command(
                                  "--overwrite", param_hint="--skip-existing")
     model.check()
     calibration = load_calibration(calib)
-    if time_offset is None:
-        time_offset = calibration.time_offset_s if calibration is not None else 0.0
+    from deltar.calibration.rig import pairing_time_offset
+
+    time_offset = pairing_time_offset(calibration, time_offset)
     total = _check_replay(recording, out, kinds, (tolerance, time_offset), every, limit,
                           overwrite, show, skip_existing, skip_no_zones=not allow_no_zones)
     _check_calibration_fits(calibration, calib, recording)

@@ -187,8 +187,9 @@ def replay_bag_command(bag: Path, build_estimator, calibration, *, out, show, ou
             raise typer.BadParameter(f"{out_bag} exists; a bag is written whole into a new "
                                      "path: choose another", param_hint="--out-bag")
     bag_input = BagInput(bag, **topics.bag_input_options())
-    if time_offset is None:
-        time_offset = calibration.time_offset_s if calibration is not None else 0.0
+    from deltar.calibration.rig import pairing_time_offset
+
+    time_offset = pairing_time_offset(calibration, time_offset)
     pairs = bag_input.pairs(tolerance_s=tolerance, time_offset_s=time_offset)
     grid = _check_bag_fits(bag_input, pairs[0], calibration)
     estimator = build_estimator()  # after the checks: a bad bag fails first

@@ -118,6 +118,7 @@ class FrameSource:
 
     def _list_bag(self, calibration: RigCalibration | None, tolerance_s: float,
                   options: dict[str, Any]) -> None:
+        from deltar.calibration.rig import pairing_time_offset
         from deltar.capture.bag_replay import pair_calibration
         from deltar.io.rosbag_reader import BagInput
 
@@ -125,8 +126,7 @@ class FrameSource:
         self.bag = bag
         # The calibration's clock offset, as for recordings and `deltar replay --bag`;
         # the bag gives one ToF frame per image.
-        offset = calibration.time_offset_s if calibration is not None else 0.0
-        pairs = bag.pairs(tolerance_s=tolerance_s, time_offset_s=offset)
+        pairs = bag.pairs(tolerance_s=tolerance_s, time_offset_s=pairing_time_offset(calibration))
         for pair in pairs[:1]:  # one zone topic: one grid
             _check_grid(calibration, pair.zone_frame.grid, f"the bag {self.path}")
         self.frames = [MapFrame(str(p.image_stamp_ns), p.image_stamp_ns / 1e9, None,
