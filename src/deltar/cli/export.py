@@ -100,10 +100,8 @@ def export_command(
     rects = None if layout_from is None else _layout_rects(layout_from, height, width)
     if calibration is not None:
         from deltar.export.quantize import open_calibration_frames
-        from deltar.io.input_file import input_folder
 
         try:
-            input_folder(calibration, "calibration RGB-D folder")
             calibration = open_calibration_frames(calibration)
         except (ValueError, FileNotFoundError) as err:
             raise ValueError(f"--calibration: {err}") from err

@@ -40,10 +40,12 @@ def open_calibration_frames(source: str | os.PathLike) -> Sequence:
     frame, so a missing folder or one that is not an RGB-D folder fails before the export.
 
     Raises:
-        FileNotFoundError / ValueError: naming the folder (no frames, unknown layout).
+        FileNotFoundError / ValueError: naming the folder (missing, not a folder, no
+            frames, unknown layout).
     """
     from deltar.data.rgbd import open_rgbd
 
+    input_folder(source, "calibration RGB-D folder")
     reader = open_rgbd(source)
     if len(reader) == 0:
         raise ValueError(f"{source}: no RGB-D frames")
@@ -250,7 +252,6 @@ def export_int8(model, path: str | os.PathLike, height: int, width: int,
     if path.exists() and not overwrite:
         raise FileExistsError(f"refusing to overwrite existing file: {path}")
     if isinstance(calibration, (str, os.PathLike)):  # checked before the long export
-        input_folder(calibration, "calibration RGB-D folder")
         calibration = open_calibration_frames(calibration)
     with tempfile.TemporaryDirectory(prefix="deltar-int8-") as folder:
         float_path = Path(folder) / "float32.onnx"
