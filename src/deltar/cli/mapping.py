@@ -190,9 +190,10 @@ def map_command(
     model = dataclasses.replace(model, network_only=not blend)
     model.check()
     require_open3d()
-    _check_out(out, recording, [calib, trajectory, *model.input_files()], overwrite)
+    inputs = [calib, trajectory, *model.input_files()]
+    _check_out(out, recording, inputs, overwrite)
     check_viewer(rerun, rerun_save)
-    _check_rerun_save(rerun_save, out, recording, [calib, trajectory, *model.input_files()])
+    _check_rerun_save(rerun_save, out, recording, inputs)
     calibration = None
     if calib is not None:
         from deltar.calibration.rig import RigCalibration
