@@ -34,6 +34,10 @@ def test_sources_are_told_apart(tmp_path):
     ("run/last.ckpt", None, ValueError, "last.ckpt is a Lightning training checkpoint"),
     ("default", "weights", ValueError, "kind must be one of bundled, checkpoint"),
     (None, "onnx", ValueError, "kind='onnx' needs a source"),
+    (5, None, TypeError, "source must be a model name or a file path .*got int 5"),
+    (b"model.pt", None, TypeError, "source must be a model name or a file path .*bytes"),
+    ("", None, ValueError, "source must name a model or a file, got ''"),
+    ("  ", "onnx", ValueError, "source must name a model or a file"),
 ])
 def test_bad_sources_name_the_source(source, kind, error, message):
     with pytest.raises(error, match=message):

@@ -72,9 +72,10 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
         ``(kind, source)`` with ``source`` as text (a path or a name).
 
     Raises:
-        ValueError: an unknown ``kind``, or ``kind`` given without a source (other than
-            ``"bundled"``), a Lightning ``.ckpt`` (package it first), or ``kind="preset"``
-            with a name that is none (:data:`deltar.contract.PRESET_NAMES`).
+        TypeError: a source that is neither text nor a path.
+        ValueError: an empty source, an unknown ``kind``, or ``kind`` given without a
+            source (other than ``"bundled"``), a Lightning ``.ckpt`` (package it first), or
+            ``kind="preset"`` with a name that is none (:data:`deltar.contract.PRESET_NAMES`).
         FileNotFoundError: no bundled model in this installation for ``source=None``, or
             a source that is neither a bundled model, an existing file nor a preset.
     """
@@ -87,7 +88,12 @@ def resolve_source(source: str | os.PathLike | None = None, kind: str | None = N
             raise FileNotFoundError("this installation has no bundled model; give a "
                                     "checkpoint, official weights, an ONNX file or a preset")
         return "bundled", DEFAULT_MODEL
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"source must be a model name or a file path (str or path), got "
+                        f"{type(source).__name__} {source!r}")
     text = os.fspath(source)
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"source must name a model or a file, got {text!r}")
     if Path(text).suffix.lower() == ".ckpt" and kind in (None, "checkpoint"):
         raise ValueError(f"{text} is a Lightning training checkpoint; use the run's model.pt "
                          "or package it (deltar.training.package.package_checkpoint)")
