@@ -282,3 +282,20 @@ def test_metadata_the_reader_would_refuse_is_not_made():
         with pytest.raises(ValueError, match=message):
             RecordingMeta(CAMERA, **changes)
     assert RecordingMeta(CAMERA, fov_deg=(np.float32(45.0), 45)).grid == 8
+
+
+def test_depth_is_the_one_of_the_paired_colour_image_not_of_another_camera_frame(tmp_path):
+    """Depth is aligned to colour: a zone frame between two camera frames gets the colour
+    image nearest it and that image's depth map, never the depth of the next camera frame
+    (here the colour image at 33 ms has none; the depth at 66 ms is 18 ms from the zone
+    frame but belongs to another image)."""
+    _write(tmp_path / "rec", zone_times=[0.048], color_times=[0.0, 0.033, 0.066],
+           depth_times=[0.0, 0.066])
+    (pair,) = Recording(tmp_path / "rec").pairs(tolerance_s=0.02)
+    assert pair.color_path.stem == "33000000"
+    assert pair.depth_path is None
+    # Depth stamped a little off its colour image (an RGB-D camera's two streams) pairs.
+    _write(tmp_path / "rgbd", zone_times=[0.05], color_times=[0.0, 0.04],
+           depth_times=[0.001, 0.041])
+    (pair,) = Recording(tmp_path / "rgbd").pairs(tolerance_s=0.02)
+    assert (pair.color_path.stem, pair.depth_path.stem) == ("40000000", "41000000")

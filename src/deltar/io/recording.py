@@ -360,7 +360,8 @@ class Recording:
         """Pair each zone frame with the nearest colour (and depth) image in time.
 
         Zone frames without a colour image within ``tolerance_s`` are skipped with one
-        warning naming how many; depth is attached when one lies within the tolerance.
+        warning naming how many; the depth map nearest the chosen colour image is attached
+        when one lies within the tolerance of it.
 
         Args:
             tolerance_s: largest allowed |image time - (zone time + offset)| in seconds.
@@ -381,7 +382,7 @@ class Recording:
                                     f"{self.folder / COLOR_DIR}")
         times = np.array([f.timestamp_s for f in frames], dtype=np.float64) + time_offset_s
         color_idx, color_gap = nearest_in_time(self.color_times_s, times)
-        depth_idx, depth_gap = nearest_in_time(self.depth_times_s, times)
+        depth_idx, depth_gap = nearest_in_time(self.depth_times_s, self.color_times_s[color_idx])
         out, skipped = [], 0
         for i, frame in enumerate(frames):
             if color_gap[i] > tolerance_s:
