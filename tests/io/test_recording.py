@@ -299,3 +299,20 @@ def test_depth_is_the_one_of_the_paired_colour_image_not_of_another_camera_frame
            depth_times=[0.001, 0.041])
     (pair,) = Recording(tmp_path / "rgbd").pairs(tolerance_s=0.02)
     assert (pair.color_path.stem, pair.depth_path.stem) == ("40000000", "41000000")
+
+
+def test_two_writers_on_one_folder_never_make_it_unreadable(tmp_path):
+    """Each writer knew only its own last frame: a second writer (a recording started
+    again while the first still runs) appended a frame older than the first writer's
+    newest, and the whole recording then failed to read ('unsorted timestamp')."""
+    first = _write(tmp_path / "rec", [1.0], [])
+    second = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    first.add_zone_frame(_zone_frame(2.0))
+    with pytest.raises(ValueError, match=r"zone frame timestamp 1.5 is not after the "
+                       r"previous one \(2.0\)"):
+        second.add_zone_frame(_zone_frame(1.5))
+    second.add_zone_frame(_zone_frame(2.5))
+    with pytest.raises(ValueError, match="not after"):
+        first.add_zone_frame(_zone_frame(2.25))
+    assert [f.timestamp_s for f in Recording(tmp_path / "rec").zone_frames()] == [1.0, 2.0,
+                                                                                  2.5]

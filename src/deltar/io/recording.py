@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import numbers
 import os
-import time
 import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -26,11 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from deltar.camera import CameraIntrinsics, check_image, strict_integer, strict_number
-from deltar.io.atomic import atomic_path, write_bytes_atomic, write_text_atomic
+from deltar.io.atomic import atomic_path, write_text_atomic
 from deltar.io.input_file import input_file, input_folder, not_8bit_colour, reading
 from deltar.io.json_file import read_json
 from deltar.io.pose_file import POSE_DIR, write_pose_file
 from deltar.io.zone_file import check_writable, zone_frame_from_dict, zone_frame_to_dict
+from deltar.io.zone_lines import append_zone_line, end_partial_line, last_zone_timestamp
 from deltar.sensor.geometry import DEFAULT_FOV_DEG
 from deltar.sensor.zone_frame import ZoneFrame
 
@@ -143,8 +143,7 @@ class RecordingWriter:
                 raise ValueError(f"{meta_path}: the existing recording has another "
                                  f"{', '.join(differ)} (another rig); write to a new folder")
             self.meta = existing
-            _end_partial_line(self.folder / ZONES_FILE)
-            self._last_zone_time = _last_zone_timestamp(self.folder / ZONES_FILE)
+            end_partial_line(self.folder / ZONES_FILE)
         else:
             check_recording_folder(self.folder)
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -153,7 +152,6 @@ class RecordingWriter:
                                       created)
             write_text_atomic(meta_path, json.dumps(self.meta.to_dict(), indent=2) + "\n",
                               overwrite=False)
-            self._last_zone_time = None
         (self.folder / COLOR_DIR).mkdir(exist_ok=True)
 
     def close(self) -> None:
@@ -173,17 +171,9 @@ class RecordingWriter:
         if frame.grid != self.meta.grid:
             raise ValueError(f"frame has a {frame.grid}x{frame.grid} grid, recording is "
                              f"{self.meta.grid}x{self.meta.grid}")
-        if self._last_zone_time is not None and frame.timestamp_s <= self._last_zone_time:
-            raise ValueError(f"zone frame timestamp {frame.timestamp_s} is not after the "
-                             f"previous one ({self._last_zone_time})")
         line = json.dumps(zone_frame_to_dict(frame), allow_nan=False) + "\n"
-        # One write per line in append mode: a crash leaves at most one partial last line,
-        # which the reader skips with a warning.
-        with open(self.folder / ZONES_FILE, "a", encoding="utf-8") as handle:
-            handle.write(line)
-            handle.flush()
-            os.fsync(handle.fileno())
-        self._last_zone_time = float(frame.timestamp_s)
+        # Checked against the file's last frame, under a lock: another writer may append.
+        append_zone_line(self.folder / ZONES_FILE, line, float(frame.timestamp_s))
 
     def add_color(self, timestamp_s: float, image_rgb: np.ndarray) -> Path:
         """Write ``color/<ns>.png`` from an (H, W, 3) uint8 RGB image of the camera size."""
@@ -315,7 +305,7 @@ class Recording:
         """The latest time of any colour image, depth map or zone frame, seconds; None
         for an empty recording (what a clock that appends must start after)."""
         times = [float(t[-1]) for t in (self.color_times_s, self.depth_times_s) if t.size]
-        last_zone = _last_zone_timestamp(self.zones_path)
+        last_zone = last_zone_timestamp(self.zones_path)
         if last_zone is not None:
             times.append(float(last_zone))
         return max(times) if times else None
@@ -452,48 +442,3 @@ def nearest_in_time(sorted_times: np.ndarray, query: np.ndarray
     pick_left = np.abs(query - sorted_times[left]) <= np.abs(sorted_times[right] - query)
     idx = np.where(pick_left, left, right)
     return idx, np.abs(sorted_times[idx] - query)
-
-
-def _end_partial_line(path: Path) -> None:
-    """Before appending to ``zones.jsonl``: an interrupted append can leave a last line
-    without its newline, and a new line written after it would join it (the file would
-    then hold a corrupt line in its middle). A complete reading that only lacks the
-    newline gets it; an incomplete one is moved, byte for byte, to
-    ``zones.jsonl.partial-<ns>`` beside it (with a warning) and cut from the file."""
-    if not path.is_file():
-        return
-    data = path.read_bytes()
-    if not data or data.endswith(b"\n"):
-        return
-    start = data.rfind(b"\n") + 1
-    tail = data[start:]
-    try:
-        zone_frame_from_dict(json.loads(tail.decode("utf-8")), source=str(path))
-    except (ValueError, UnicodeDecodeError):  # JSONDecodeError is a ValueError
-        kept = path.with_name(f"{path.name}.partial-{time.time_ns()}")
-        write_bytes_atomic(kept, tail, overwrite=False)
-        warnings.warn(f"{path}: its last line was cut off (an interrupted recording); "
-                      f"moved its {len(tail)} bytes to {kept.name} before appending",
-                      stacklevel=3)
-        with open(path, "r+b") as handle:
-            handle.truncate(start)
-            handle.flush()
-            os.fsync(handle.fileno())
-        return
-    with open(path, "ab") as handle:
-        handle.write(b"\n")
-        handle.flush()
-        os.fsync(handle.fileno())
-
-
-def _last_zone_timestamp(path: Path) -> float | None:
-    if not path.is_file():
-        return None
-    last = None
-    for line in path.read_text(encoding="utf-8").splitlines():
-        if line.strip():
-            try:
-                last = json.loads(line).get("timestamp_s", last)
-            except json.JSONDecodeError:
-                continue
-    return last
