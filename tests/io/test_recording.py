@@ -316,3 +316,23 @@ def test_two_writers_on_one_folder_never_make_it_unreadable(tmp_path):
         first.add_zone_frame(_zone_frame(2.25))
     assert [f.timestamp_s for f in Recording(tmp_path / "rec").zone_frames()] == [1.0, 2.0,
                                                                                   2.5]
+
+
+def test_appending_items_from_before_the_recordings_end_is_refused(tmp_path):
+    """A rig whose clock started again (time.monotonic after a reboot) appended its first
+    images among the old frames, where replay paired them with old zone frames, before
+    its first zone frame was refused; now nothing stamped before the end is written."""
+    _write(tmp_path / "rec", zone_times=[1.0, 2.0], color_times=[1.0, 2.0])
+    again = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    for add in (lambda: again.add_color(1.5, np.zeros((24, 32, 3), np.uint8)),
+                lambda: again.add_depth(1.5, np.ones((24, 32))),
+                lambda: again.add_pose(2.0, np.eye(4))):
+        with pytest.raises(ValueError, match=r"stamped 1.5 s|stamped 2.0 s"):
+            add()
+    rec = Recording(tmp_path / "rec")
+    assert rec.color_times_s.tolist() == [1.0, 2.0] and rec.depth_paths == []
+    assert not (tmp_path / "rec" / "pose").exists() or not any(
+        (tmp_path / "rec" / "pose").iterdir())
+    again.add_color(2.1, np.zeros((24, 32, 3), np.uint8))
+    again.add_zone_frame(_zone_frame(2.1))
+    assert len(Recording(tmp_path / "rec").pairs()) == 3

@@ -3,10 +3,11 @@
 The folder layout is :mod:`deltar.io.recording` (``meta.json``, ``zones.jsonl``,
 ``color/<ns>.png``, optional ``depth/<ns>.png`` and ``pose/<ns>.txt``). Nothing in a
 recording is ever overwritten: recording into an existing folder appends (same camera
-and sensor; a simulated rig's clock must then start after the recording's end,
-``Recording.end_time_s``), and a frame whose file already exists raises
-``FileExistsError``. With ``bag_storage`` the
-same items go into a new ROS 2 bag instead (:class:`deltar.io.rosbag_writer.BagRecordingWriter`).
+and sensor; the rig's clock must then run on after the recording's end,
+``Recording.end_time_s``: an earlier item raises ``ValueError``, a simulated rig starts
+after it), and a frame whose file already exists raises ``FileExistsError``. With
+``bag_storage`` the same items go into a new ROS 2 bag instead
+(:class:`deltar.io.rosbag_writer.BagRecordingWriter`).
 """
 
 from __future__ import annotations

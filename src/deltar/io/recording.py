@@ -133,7 +133,8 @@ class RecordingWriter:
         self.folder = Path(folder)
         meta_path = self.folder / META_FILE
         if meta_path.exists():
-            existing = Recording(self.folder).meta
+            recording = Recording(self.folder)
+            existing = recording.meta
             differ = [name for name, old, new in (
                 ("intrinsics", existing.intrinsics, meta.intrinsics),
                 ("sensor_model", existing.sensor_model, meta.sensor_model),
@@ -144,6 +145,7 @@ class RecordingWriter:
                                  f"{', '.join(differ)} (another rig); write to a new folder")
             self.meta = existing
             end_partial_line(self.folder / ZONES_FILE)
+            self.appends_after_s = recording.end_time_s()
         else:
             check_recording_folder(self.folder)
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -152,7 +154,16 @@ class RecordingWriter:
                                       created)
             write_text_atomic(meta_path, json.dumps(self.meta.to_dict(), indent=2) + "\n",
                               overwrite=False)
+            self.appends_after_s = None
         (self.folder / COLOR_DIR).mkdir(exist_ok=True)
+
+    def _check_after_end(self, timestamp_s: float, what: str) -> None:
+        """Appending: an item stamped before the end of the recording found at open would
+        land among its frames (a clock that started again, e.g. after a reboot)."""
+        if self.appends_after_s is not None and not timestamp_s > self.appends_after_s:
+            raise ValueError(f"{self.folder}: {what} stamped {timestamp_s} s is not after the "
+                             f"end of the recording it appends to ({self.appends_after_s} s): "
+                             "the clock started again? record into a new folder")
 
     def close(self) -> None:
         """Nothing to finish: every item is complete on disk once its call returns."""
@@ -171,6 +182,7 @@ class RecordingWriter:
         if frame.grid != self.meta.grid:
             raise ValueError(f"frame has a {frame.grid}x{frame.grid} grid, recording is "
                              f"{self.meta.grid}x{self.meta.grid}")
+        self._check_after_end(frame.timestamp_s, "zone frame")
         line = json.dumps(zone_frame_to_dict(frame), allow_nan=False) + "\n"
         # Checked against the file's last frame, under a lock: another writer may append.
         append_zone_line(self.folder / ZONES_FILE, line, float(frame.timestamp_s))
@@ -202,15 +214,18 @@ class RecordingWriter:
             ValueError: not a rigid transform (:func:`deltar.io.pose_file.check_pose`).
             FileExistsError: a pose of that time exists.
         """
+        path = self.folder / POSE_DIR / f"{timestamp_to_ns(timestamp_s)}.txt"
+        if not path.exists():  # an existing file: FileExistsError, as for images
+            self._check_after_end(timestamp_s, "pose")
         (self.folder / POSE_DIR).mkdir(exist_ok=True)
-        return write_pose_file(self.folder / POSE_DIR / f"{timestamp_to_ns(timestamp_s)}.txt",
-                               pose)
+        return write_pose_file(path, pose)
 
     def _write_png(self, subdir: str, timestamp_s: float, image: np.ndarray) -> Path:
         import cv2
 
         path = self.folder / subdir / f"{timestamp_to_ns(timestamp_s)}.png"
-        with atomic_path(path, overwrite=False) as tmp:
+        with atomic_path(path, overwrite=False) as tmp:  # an existing file: FileExistsError
+            self._check_after_end(timestamp_s, f"{subdir} image")
             ok, data = cv2.imencode(".png", image)
             if not ok:
                 raise ValueError(f"could not encode {path}")
