@@ -336,3 +336,13 @@ def test_appending_items_from_before_the_recordings_end_is_refused(tmp_path):
     again.add_color(2.1, np.zeros((24, 32, 3), np.uint8))
     again.add_zone_frame(_zone_frame(2.1))
     assert len(Recording(tmp_path / "rec").pairs()) == 3
+
+
+@pytest.mark.parametrize("time_s", [float("nan"), float("inf")])
+def test_an_image_or_pose_at_a_time_that_is_no_number_is_refused_naming_it(tmp_path, time_s):
+    writer = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    with pytest.raises(ValueError, match="timestamp_s must be a finite time in seconds, got"):
+        writer.add_color(time_s, np.zeros((24, 32, 3), np.uint8))
+    with pytest.raises(ValueError, match="timestamp_s must be a finite time in seconds"):
+        writer.add_pose(time_s, np.eye(4))
+    assert not any((tmp_path / "rec" / "color").iterdir())

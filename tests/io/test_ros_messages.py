@@ -97,3 +97,11 @@ def test_depth_images_in_metres_or_millimetres():
                 is_bigendian=0, step=4, data=np.zeros(4, np.uint8))
     with pytest.raises(ValueError, match="depth_topic: expected encoding 32FC1 or 16UC1"):
         metric_image_from_msg(msg, source="depth_topic")
+
+
+@pytest.mark.parametrize("stamp_ns", [2**31 * 1_000_000_000, -1])
+def test_a_stamp_a_ros_time_cannot_hold_is_named(stamp_ns):
+    message = rf"a ROS stamp holds 0 to 2147483647 s .*got {stamp_ns} ns"
+    with pytest.raises(ValueError, match=message):
+        stamped_header(stamp_ns, "tof")
+    assert stamped_header((2**31 - 1) * 1_000_000_000, "tof").stamp.sec == 2**31 - 1

@@ -92,8 +92,15 @@ class RecordingMeta:
 
 
 def timestamp_to_ns(timestamp_s: float) -> int:
-    """Seconds -> integer nanoseconds (the image file name)."""
-    return round(float(timestamp_s) * 1e9)
+    """Seconds -> integer nanoseconds (the image file name).
+
+    Raises:
+        ValueError: a time that is not a finite number of seconds.
+    """
+    value = float(timestamp_s)
+    if not np.isfinite(value):
+        raise ValueError(f"timestamp_s must be a finite time in seconds, got {timestamp_s}")
+    return round(value * 1e9)
 
 
 def check_recording_folder(folder: str | os.PathLike) -> Path:

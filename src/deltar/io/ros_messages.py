@@ -121,15 +121,27 @@ def deserialize(connection: Any, rawdata: bytes, source: str = "bag") -> Any:
         raise ValueError(f"{source}: corrupt {msgtype} message: {err}") from err
 
 
+#: The largest seconds a ``builtin_interfaces/msg/Time`` holds (int32).
+MAX_STAMP_SECONDS = 2**31 - 1
+
+
 def stamp_to_ns(stamp: Any) -> int:
     """``builtin_interfaces/msg/Time`` -> integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def stamped_header(stamp_ns: int, frame_id: str) -> Any:
-    """A ``std_msgs/msg/Header`` with the stamp ``stamp_ns`` (integer ns) and ``frame_id``."""
+    """A ``std_msgs/msg/Header`` with the stamp ``stamp_ns`` (integer ns) and ``frame_id``.
+
+    Raises:
+        ValueError: a stamp outside what ``builtin_interfaces/msg/Time`` holds (its
+            seconds are a signed 32-bit integer: 0 to 2**31 - 1 s, i.e. before 2038).
+    """
     types = typestore().types
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    if not 0 <= sec <= MAX_STAMP_SECONDS:
+        raise ValueError(f"a ROS stamp holds 0 to {MAX_STAMP_SECONDS} s (32-bit seconds), "
+                         f"got {stamp_ns} ns ({sec} s)")
     return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](
         sec=sec, nanosec=nanosec), frame_id=frame_id)
 
