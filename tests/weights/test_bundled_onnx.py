@@ -144,3 +144,22 @@ def test_other_aspects_run_at_the_pytorch_size_with_the_pytorch_depth(both_backe
     assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4
     assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4
     assert np.abs(a.uncertainty_m - b.uncertainty_m).max() <= 1e-4
+
+
+def test_more_further_targets_than_the_head_weighs_agree_across_backends(both_backends):
+    # Every zone reports a second target (more than SECONDARY_HYPOTHESES of them) with
+    # equal signals: the left half's shares tie, and both backends must keep the same
+    # ones (before: torch.topk kept an arbitrary subset, 0.26 m from onnxruntime's).
+    from deltar.sensor.zone_frame import ZoneFrame
+
+    lean, full = both_backends
+    frame = render_scene(2022, 240, 320)
+    mean = np.where(np.arange(8) < 4, 1.0, 3.0).astype(np.float32)[None].repeat(8, 0)
+    sigma, valid = np.full((8, 8), 0.02, np.float32), np.ones((8, 8), bool)
+    zones = ZoneFrame(mean, sigma, valid, target_mean_m=np.stack([mean, mean + 0.5], -1),
+                      target_sigma_m=np.stack([sigma, sigma], -1),
+                      target_valid=np.ones((8, 8, 2), bool),
+                      target_signal=np.ones((8, 8, 2), np.float32))
+    a, b = lean.predict(frame.image, zones), full.predict(frame.image, zones)
+    assert np.abs(a.network_depth_m - b.network_depth_m).max() <= 1e-4
+    assert np.abs(a.depth_m - b.depth_m).max() <= 1e-4

@@ -52,3 +52,23 @@ def test_the_largest_further_targets_are_kept_with_their_zones_and_depths():
     assert torch.all(primary[30:] == 0) and torch.all(primary[:30 - SECONDARY_HYPOTHESES] == 0)
     zone = 29
     assert math.isclose(float(primary[zone]), math.log(1 - float(share[zone])), rel_tol=1e-5)
+
+
+def test_among_equal_shares_the_first_zones_are_kept_as_the_onnx_export_keeps_them():
+    """More further targets than the choice weighs, all of one share (a simulated edge
+    along a column of zones, equal signals): the kept ones are the first in zone order,
+    as onnxruntime's TopK breaks ties (lower index first), so both backends weigh the
+    same targets; torch.topk alone keeps an arbitrary subset of the tied ones."""
+    zones = 64
+    rows, cols = torch.meshgrid(torch.arange(8), torch.arange(8), indexing="ij")
+    y0, x0 = (rows * 4).reshape(-1).float(), (cols * 4).reshape(-1).float()
+    rects = torch.stack([y0, x0, y0 + 4, x0 + 4], dim=-1)[None]
+    means = torch.full((1, zones), 1.0)
+    valid = torch.ones(1, zones, dtype=torch.bool)
+    targets = torch.zeros(1, zones, 2, 2)
+    targets[..., 0, 0], targets[..., 0, 1] = means, 0.3
+    targets[..., 1, 0], targets[..., 1, 1] = 1.5, 0.7
+    pooled = torch.nn.functional.normalize(torch.randn(1, 6, zones), dim=1)
+    centre = torch.zeros(1, 1)
+    further = further_targets(targets, valid, pooled, means, rects, centre)
+    assert further.zone[0].tolist() == list(range(SECONDARY_HYPOTHESES))

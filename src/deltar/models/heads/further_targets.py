@@ -138,8 +138,11 @@ def further_targets(zone_targets: torch.Tensor, zone_valid: torch.Tensor,
     log_share = torch.log(share.clamp_min(1e-6))
     present = present.flatten(1)  # (B, Z * S), zone-major
     kept = min(SECONDARY_HYPOTHESES, present.shape[1])
-    order = torch.topk(torch.where(present, log_share[..., 1:].flatten(1), -1e4),
-                       kept, dim=1).indices  # (B, K)
+    key = torch.where(present, log_share[..., 1:].flatten(1), -1e4)
+    # Equal shares keep the lower index, as the exported TopK does (ONNX's tie rule);
+    # torch.topk keeps an arbitrary subset of tied values.
+    order = (torch.topk(key, kept, dim=1).indices if torch.onnx.is_in_onnx_export() else
+             torch.sort(key, dim=1, descending=True, stable=True).indices[:, :kept])  # (B, K)
     present = present.gather(1, order)
     zone_of = torch.div(order, slots, rounding_mode="floor")
     has_more = torch.zeros_like(log_share[..., 0]).scatter_add(
