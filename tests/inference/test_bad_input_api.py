@@ -171,7 +171,7 @@ def test_zone_rectangles_outside_the_image_are_refused_or_counted(estimator, ima
     some = outside.copy()
     some[:16] = [0.0, 0.0, 6.0, 8.0]
     with pytest.warns(UserWarning, match=r"frames\[0\]: 48 of 64 valid zones fall outside "
-                      "the 48x64 image; the depth uses the 16 inside"):
+                      r"the 48x64 image \(16 inside\); they are still read"):
         estimator.predict(image, frame, zone_rects=some)
 
 

@@ -187,7 +187,8 @@ def check_zones_in_image(rects: np.ndarray, valid: np.ndarray, image_size: tuple
             from them would be constant): the calibration or rectangles are wrong.
 
     Warns:
-        UserWarning: some valid zones lie outside the image, saying how many remain.
+        UserWarning: some valid zones lie outside the image, saying how many lie inside.
+        Those outside are not dropped: a surface one reads may continue into the image.
     """
     valid = np.asarray(valid, dtype=bool).reshape(-1)
     inside = zones_in_image(rects, *image_size) & valid
@@ -198,8 +199,10 @@ def check_zones_in_image(rects: np.ndarray, valid: np.ndarray, image_size: tuple
                          "(extrinsics, intrinsics, fov_deg) or the zone rectangles")
     if int(inside.sum()) < total:
         warnings.warn(f"{source}: {total - int(inside.sum())} of {total} valid zones fall "
-                      f"outside the {image_size[0]}x{image_size[1]} image; the depth uses "
-                      f"the {int(inside.sum())} inside", UserWarning, stacklevel=3)
+                      f"outside the {image_size[0]}x{image_size[1]} image "
+                      f"({int(inside.sum())} inside); they are still read, and shape the "
+                      "depth near the image's edge (check the calibration if none should)",
+                      UserWarning, stacklevel=3)
 
 
 def zone_rects_to_pixel_bounds(rects: np.ndarray, height: int, width: int) -> np.ndarray:
