@@ -135,13 +135,13 @@ def stamped_header(stamp_ns: int, frame_id: str) -> Any:
 
     Raises:
         ValueError: a stamp outside what ``builtin_interfaces/msg/Time`` holds (its
-            seconds are a signed 32-bit integer: 0 to 2**31 - 1 s, i.e. before 2038).
+            seconds are a signed 32-bit integer: up to 2**31 - 1 s, i.e. before 2038).
     """
     types = typestore().types
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    if not 0 <= sec <= MAX_STAMP_SECONDS:
-        raise ValueError(f"a ROS stamp holds 0 to {MAX_STAMP_SECONDS} s (32-bit seconds), "
-                         f"got {stamp_ns} ns ({sec} s)")
+    if not -MAX_STAMP_SECONDS - 1 <= sec <= MAX_STAMP_SECONDS:
+        raise ValueError(f"a ROS stamp holds at most {MAX_STAMP_SECONDS} s either side of 0 "
+                         f"(32-bit seconds), got {stamp_ns} ns ({sec} s)")
     return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](
         sec=sec, nanosec=nanosec), frame_id=frame_id)
 
