@@ -188,3 +188,14 @@ def test_devices_and_zone_grids_without_torch_say_what_is_wrong(tmp_path, demo_w
     assert "the recording r4 has 4x4 zones, but the ONNX model" in line
     assert 'pip install "deltar[torch]"' in line
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_evaluate_a_histogram_set_without_torch(tmp_path):
+    # THDR3K's zones carry CNH histograms: their sigma is read in numpy, not PyTorch.
+    from tests.data.thdr3k_set import write_set
+
+    split = write_set(tmp_path / "thdr", train=1, test=2)
+    result = run_without_torch(tmp_path, "evaluate", "--method", "nearest", "--data",
+                               str(split))
+    assert result.returncode == 0, result.stderr
+    assert "nearest" in result.stdout and "2 frames" in result.stdout

@@ -239,11 +239,9 @@ def histogram_sigma_m(counts: np.ndarray, edges_m: np.ndarray) -> np.ndarray:
     Returns:
         (Z,) float64 metres; 0 for zones without counts.
     """
-    import torch
+    from deltar.sensor.simulate_frame import strongest_run  # numpy: no PyTorch needed
 
-    from deltar.sensor.simulate import strongest_cluster
-
-    weights = strongest_cluster(torch.from_numpy(np.asarray(counts, dtype=np.float64))).numpy()
+    weights = strongest_run(np.asarray(counts, dtype=np.float64))
     edges = np.asarray(edges_m, dtype=np.float64)
     centres = (edges[1:] + edges[:-1]) / 2
     widths = np.diff(edges)
