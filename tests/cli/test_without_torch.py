@@ -199,3 +199,30 @@ def test_evaluate_a_histogram_set_without_torch(tmp_path):
                                str(split))
     assert result.returncode == 0, result.stderr
     assert "nearest" in result.stdout and "2 frames" in result.stdout
+
+
+def test_calibration_plots_without_matplotlib_are_refused_before_the_work(tmp_path):
+    # Before: the calibration ran and was written, then the pictures failed (exit 1).
+    from scipy.spatial.transform import Rotation
+
+    from deltar.calibration.rig import RigCalibration
+    from deltar.calibration.synthetic import synthetic_rig_frames, write_synthetic_recording
+    from deltar.camera import CameraIntrinsics
+    from deltar.sensor.geometry import SensorExtrinsics
+
+    camera = CameraIntrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    true = SensorExtrinsics(Rotation.from_euler("zyx", [92.0, -1.0, 1.5], degrees=True)
+                            .as_matrix(), np.array([0.03, 0.01, -0.01]))
+    frames = synthetic_rig_frames(true, camera, frames_per_plane=2, mean_noise_m=0.01, seed=5)
+    write_synthetic_recording(tmp_path / "rec", frames, camera)
+    RigCalibration(camera, true).save(tmp_path / "calib.json")
+    line = _one_error_line(run_without_torch(
+        tmp_path, "calibrate", "rec", "--out", "new.json", "--nominal-roll-deg", "90",
+        "--plot", "plots"))
+    assert "--plot" in line and line.endswith('pip install "deltar[plots]"')
+    assert not (tmp_path / "new.json").exists()
+    result = run_without_torch(tmp_path, "check-calibration", "rec", "--calib", "calib.json",
+                               "--plot", "check.png")
+    line = _one_error_line(result)
+    assert "--plot" in line and line.endswith('pip install "deltar[plots]"')
+    assert result.stdout == ""  # nothing scored

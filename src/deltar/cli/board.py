@@ -79,6 +79,9 @@ def check_calibration_command(
                                      param_hint="--plot")
         refuse_input_as_output(plot, [recording, calib], "--plot")
         output_file(plot, "--plot", overwrite)
+        from deltar.extras import require_extra
+
+        require_extra("matplotlib", "--plot (residual picture)")  # before scoring
     calibration = RigCalibration.load(calib)
     rec = Recording(recording)
     check = check_calibration(rec, calibration, spec=spec, tolerance_s=tolerance_s,

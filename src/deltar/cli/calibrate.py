@@ -104,6 +104,9 @@ def calibrate_command(
         if not overwrite and plot.is_dir() and any(plot.glob("zones_*.png")):
             raise FileExistsError(f"--plot {plot} already holds zone pictures; pass "
                                   "--overwrite to replace them")
+        from deltar.extras import require_extra
+
+        require_extra("matplotlib", "--plot (zone pictures)")  # before calibrating
     nominal = nominal_extrinsics(nominal_roll_deg, translation)
     rec = Recording(recording)
     board = None
