@@ -226,3 +226,20 @@ def test_calibration_plots_without_matplotlib_are_refused_before_the_work(tmp_pa
     line = _one_error_line(result)
     assert "--plot" in line and line.endswith('pip install "deltar[plots]"')
     assert result.stdout == ""  # nothing scored
+
+
+def test_map_with_the_map_extra_alone(tmp_path):
+    # The 'map' extra is Open3D: the TSDF update must not need PyTorch either.
+    from deltar.mapping.tsdf import require_open3d
+
+    try:
+        require_open3d()
+    except ImportError:
+        pytest.skip("the 'map' extra is not installed")
+    from tests.mapping.conftest import write_wall_recording
+
+    write_wall_recording(tmp_path / "rec", frames=3)
+    result = run_without_torch(tmp_path, "map", "rec", "--out", "map", "--method", "recorded",
+                               "--voxel", "0.04", "--truncation", "3")
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "map" / "mesh.ply").stat().st_size > 0

@@ -6,7 +6,7 @@ colour, the number of pixels that observed it and the sum of their weights, all
 float32). Open3D allocates the blocks that a frame's depth
 touches (``compute_unique_block_coordinates``) and extracts the mesh and points
 (marching cubes); the per-voxel update, a weighted running average, is done here with
-torch on the grid's own attribute buffers (shared through DLPack) because Open3D's
+numpy on the grid's own attribute buffers (shared, not copied) because Open3D's
 ``integrate`` gives every pixel the weight 1 and the map weights each pixel by its
 confidence.
 
@@ -79,6 +79,15 @@ def require_open3d() -> Any:
             raise ImportError(f"{_OPEN3D_HINT}; Open3D needs libusb-1.0 (apt-get install "
                               f"libusb-1.0-0, or pip install libusb-package) ({err})") from err
     return open3d
+
+
+def _buffer(attribute: Any, channels: int) -> np.ndarray:
+    """A grid attribute as a flat (N,) or (N, channels) numpy view of Open3D's memory."""
+    array = attribute.numpy()
+    flat = array.reshape(-1) if channels == 1 else array.reshape(-1, channels)
+    if not np.may_share_memory(flat, array):  # a copy: the update would be lost
+        raise RuntimeError("the voxel grid's attribute is not contiguous")
+    return flat
 
 
 def block_bytes(block_resolution: int = BLOCK_RESOLUTION) -> int:
@@ -257,8 +266,6 @@ class TSDFMap:
         Returns:
             Number of voxels updated.
         """
-        import torch
-
         from deltar.camera import check_image
         from deltar.io.pose_file import check_pose
 
@@ -309,15 +316,7 @@ class TSDFMap:
                 hashmap.reserve(self.capacity_blocks)
             hashmap.activate(coords)
         buf_indices, _ = hashmap.find(coords)
-        threads = torch.get_num_threads()
-        # Open3D's thread pool and torch's spin against each other on few cores: the
-        # voxel update runs on one torch thread (measured 7x faster on 2 cores).
-        torch.set_num_threads(1)
-        try:
-            return self._update(buf_indices, depth, weight, color_rgb, intrinsics,
-                                camera_to_world)
-        finally:
-            torch.set_num_threads(threads)
+        return self._update(buf_indices, depth, weight, color_rgb, intrinsics, camera_to_world)
 
     def _update(self, buf_indices: Any, depth: np.ndarray, weight: np.ndarray | None,
                 color_rgb: np.ndarray, intrinsics: CameraIntrinsics,
@@ -328,58 +327,50 @@ class TSDFMap:
         ``w / (W + w)`` of its weight ``w`` in the weight sum ``W`` (stored as
         "confidence"); its observation count (Open3D's "weight") grows by one.
         """
-        import torch
-        from torch.utils.dlpack import from_dlpack
-
         height, width = depth.shape
         voxel_coords, voxel_indices = self.grid.voxel_coordinates_and_flattened_indices(
             buf_indices)
-        points = from_dlpack(voxel_coords.to_dlpack())
-        indices = from_dlpack(voxel_indices.to_dlpack())
+        points = voxel_coords.numpy()
+        indices = voxel_indices.numpy()
         # Camera coordinates and pixel of every voxel (elementwise: faster than a matmul
         # on (N, 3) for a 3x3 rotation).
         world_to_camera = np.linalg.inv(camera_to_world).astype(np.float32)
-        px, py, pz = points.T.contiguous()
-        x, y, z = (float(r[0]) * px + float(r[1]) * py + float(r[2]) * pz + float(r[3])
-                   for r in world_to_camera[:3])
+        px, py, pz = np.ascontiguousarray(points.T)
+        x, y, z = (r[0] * px + r[1] * py + r[2] * pz + r[3] for r in world_to_camera[:3])
         in_front = z > 1e-6
-        safe_z = torch.where(in_front, z, torch.ones_like(z))
-        u = torch.round(x * (intrinsics.fx / safe_z) + intrinsics.cx).to(torch.int64)
-        v = torch.round(y * (intrinsics.fy / safe_z) + intrinsics.cy).to(torch.int64)
+        safe_z = np.where(in_front, z, np.float32(1.0))
+        u = np.round(x * (np.float32(intrinsics.fx) / safe_z)
+                     + np.float32(intrinsics.cx)).astype(np.int64)
+        v = np.round(y * (np.float32(intrinsics.fy) / safe_z)
+                     + np.float32(intrinsics.cy)).astype(np.int64)
         inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         # One gather with a clamped pixel index, then one selection (boolean indexing is
         # what costs here).
-        pixel = torch.clamp(v, 0, height - 1) * width + torch.clamp(u, 0, width - 1)
-        flat_depth = torch.from_numpy(depth).view(-1)
-        observed = flat_depth.index_select(0, pixel)
+        pixel = np.clip(v, 0, height - 1) * width + np.clip(u, 0, width - 1)
+        observed = depth.reshape(-1)[pixel]
         sdf = observed - z
         truncation = float(self.settings.truncation_m)
-        selected = torch.nonzero(inside & (observed > 0) & (sdf >= -truncation)).view(-1)
-        if selected.numel() == 0:
+        selected = np.flatnonzero(inside & (observed > 0) & (sdf >= -truncation))
+        if selected.size == 0:
             return 0
-        pixel, indices = pixel.index_select(0, selected), indices.index_select(0, selected)
-        tsdf_new = torch.clamp(sdf.index_select(0, selected) * (1.0 / truncation), max=1.0)
-        w_new = torch.ones_like(tsdf_new) if weight is None else \
-            torch.from_numpy(np.require(weight, requirements=["C", "W"])).view(-1) \
-            .index_select(0, pixel)
-        # A bag's image buffer is read-only: torch wants a writable array.
-        color_new = torch.from_numpy(np.require(color_rgb, requirements=["C", "W"])).view(-1, 3) \
-            .index_select(0, pixel)
-        tsdf = from_dlpack(self.grid.attribute("tsdf").to_dlpack()).view(-1)
-        weights = from_dlpack(self.grid.attribute("confidence").to_dlpack()).view(-1)
-        counts = from_dlpack(self.grid.attribute("weight").to_dlpack()).view(-1)
-        colors = from_dlpack(self.grid.attribute("color").to_dlpack()).view(-1, 3)
-        w_old = weights.index_select(0, indices)
+        pixel, indices = pixel[selected], indices[selected]
+        tsdf_new = np.minimum(sdf[selected] * np.float32(1.0 / truncation), np.float32(1.0))
+        w_new = np.ones_like(tsdf_new) if weight is None else \
+            np.asarray(weight, dtype=np.float32).reshape(-1)[pixel]
+        color_new = np.asarray(color_rgb).reshape(-1, 3)[pixel].astype(np.float32)
+        tsdf, weights, counts = (_buffer(self.grid.attribute(name), 1)
+                                 for name in ("tsdf", "confidence", "weight"))
+        colors = _buffer(self.grid.attribute("color"), 3)
+        w_old = weights[indices]
         total = w_old + w_new
         share = w_new / total  # running weighted mean: old + share * (new - old)
-        tsdf_old = tsdf.index_select(0, indices)
-        tsdf.index_copy_(0, indices, tsdf_old + share * (tsdf_new - tsdf_old))
-        color_old = colors.index_select(0, indices)
-        colors.index_copy_(0, indices, color_old + share[:, None]
-                           * (color_new.to(torch.float32) - color_old))
-        weights.index_copy_(0, indices, total)
-        counts.index_copy_(0, indices, counts.index_select(0, indices) + 1.0)
-        return int(indices.numel())
+        tsdf_old = tsdf[indices]
+        tsdf[indices] = tsdf_old + share * (tsdf_new - tsdf_old)
+        color_old = colors[indices]
+        colors[indices] = color_old + share[:, None] * (color_new - color_old)
+        weights[indices] = total
+        counts[indices] += 1.0  # voxel indices are unique: one observation each
+        return int(indices.size)
 
     # ------------------------------------------------------------------ outputs
     def mesh(self, min_observations: int = MIN_OBSERVATIONS) -> Any:
