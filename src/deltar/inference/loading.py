@@ -129,7 +129,8 @@ def load_estimator(source: str | os.PathLike | None = None, *, kind: str | None 
         precision: ``"float32"``, ``"float16"`` or ``"bfloat16"`` (PyTorch backends; ONNX
             runs in float32 only).
         input_size: fixed network input (height, width) in pixels, multiples of 32; None:
-            the estimator's default for the weights (a checkpoint's design size).
+            each image by the one size rule (its aspect kept at the weights' design pixel
+            count, :func:`~deltar.inference.preprocess.network_input_size`).
         threads: CPU threads; sets torch's thread count for the process and the
             onnxruntime session's. None leaves both at their defaults.
         flip_average: test-time flip averaging (PyTorch backends only).
