@@ -188,3 +188,16 @@ def test_methods_that_give_a_sigma_are_scored_for_coverage() -> None:
     assert result.metrics["sigma"]["within_2sigma"] == 1.0
     assert result.metrics["sigma"]["rmse"] == pytest.approx(0.1, abs=1e-6)
     assert "within_1sigma" not in result.metrics["nearest"]
+
+
+def test_resize_like_release_clips_to_the_depth_range_before_resizing() -> None:
+    from deltar.evaluation.runner import resize_like_release
+
+    # The release clips to [min_depth, max_depth] first, then interpolates: the middle
+    # sample is half way between the clipped ends, not between 0 and 20 (then clipped).
+    resized = resize_like_release(np.array([[0.0, 20.0]]), 1, 3)
+    np.testing.assert_allclose(resized, [[1e-3, (1e-3 + 10.0) / 2, 10.0]], rtol=1e-6)
+    narrow = resize_like_release(np.array([[0.0, 20.0]]), 1, 3, min_depth=1.0, max_depth=3.0)
+    np.testing.assert_allclose(narrow, [[1.0, 2.0, 3.0]], rtol=1e-6)
+    with pytest.raises(ValueError, match="min_depth"):
+        resize_like_release(np.ones((2, 2)), 2, 2, min_depth=3.0, max_depth=1.0)

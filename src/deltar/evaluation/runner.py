@@ -76,7 +76,8 @@ class BaselinePredictor:
         return run_baseline(self.baseline, sample.rgb, means, valid, sample.zone_rects)
 
 
-def resize_like_release(depth_m: np.ndarray, height: int, width: int) -> np.ndarray:
+def resize_like_release(depth_m: np.ndarray, height: int, width: int, *,
+                        min_depth: float = 1e-3, max_depth: float = 10.0) -> np.ndarray:
     """Resize a predicted depth map the way the official evaluation does.
 
     The release clips the network output to the depth range and resizes it to the input
@@ -86,6 +87,8 @@ def resize_like_release(depth_m: np.ndarray, height: int, width: int) -> np.ndar
     Args:
         depth_m: (h, w) depth in metres.
         height, width: output size in pixels.
+        min_depth, max_depth: the depth range the map is clipped to before resizing,
+            metres (the release's 1e-3 and 10 by default).
 
     Returns:
         (height, width) float32 depth in metres.
@@ -97,6 +100,10 @@ def resize_like_release(depth_m: np.ndarray, height: int, width: int) -> np.ndar
         raise ValueError(f"depth_m must be an (h, w) array, got shape {depth.shape}")
     if height < 1 or width < 1:
         raise ValueError(f"output size must be positive, got {height}x{width}")
+    if not (0.0 < min_depth < max_depth):
+        raise ValueError(f"need 0 < min_depth < max_depth, got min_depth={min_depth}, "
+                         f"max_depth={max_depth}")
+    depth = np.clip(depth, np.float32(min_depth), np.float32(max_depth))
     return resize_to_image(depth[None, None], (height, width), align_corners=True)[0, 0]
 
 
