@@ -38,6 +38,23 @@ def test_hand_computed_values() -> None:
     assert set(m) == set(METRIC_KEYS)
 
 
+def test_delta_thresholds_compare_float32_ratios_as_the_release() -> None:
+    # Millimetre depths (float32, as the files and the predictions are): 0.63 / 0.504 is
+    # just below 1.25 in float64 but exactly 1.25 in float32, where the release compares
+    # it, so that pixel is not within 1.25. Likewise 0.8 / 0.512 (1.5625) and
+    # 1.5 / 0.768 (1.953125).
+    gt = np.array([0.504, 0.512, 0.768], dtype=np.float32)
+    pred = np.array([0.63, 0.8, 1.5], dtype=np.float32)
+    assert np.all(np.maximum(gt / pred.astype(np.float64), pred / gt.astype(np.float64))
+                  < [1.25, 1.5625, 1.953125])
+    ratio = np.maximum(gt / pred, pred / gt)
+    np.testing.assert_array_equal(ratio, np.float32([1.25, 1.5625, 1.953125]))
+    m = depth_metrics(pred, gt)
+    assert m["d1"] == 0.0
+    assert m["d2"] == pytest.approx(1 / 3)
+    assert m["d3"] == pytest.approx(2 / 3)
+
+
 def test_perfect_prediction() -> None:
     gt = np.array([0.5, 1.0, 3.0, 7.0])
     m = depth_metrics(gt.copy(), gt)

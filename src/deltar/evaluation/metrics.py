@@ -13,7 +13,11 @@ turn follows BTS / AdaBins):
 
 Only pixels whose ground truth lies strictly inside ``(min_depth, max_depth)`` count, and
 predictions are clipped to ``[min_depth, max_depth]`` first, as the release does.
-Metrics are computed per frame and then averaged over frames.
+Metrics are computed per frame and then averaged over frames. The ``d`` ratios are
+compared in float32, as the release computes them (millimetre depths give ratios that
+are exactly a threshold in float32, not in float64); the other metrics are computed in
+float64, more accurately than the release's float32 (on 480 x 640 frames they differ
+by about 1e-7 relative, ``silog``, a difference of two means, by up to about 2e-5).
 """
 
 from __future__ import annotations
@@ -92,7 +96,10 @@ def depth_metrics(
     gt = gt[valid]
     pred = np.clip(pred[valid], min_depth, max_depth)
 
-    ratio = np.maximum(gt / pred, pred / gt)
+    # The release compares float32 ratios with the thresholds: a ratio such as 0.63 / 0.504,
+    # just below 1.25 in float64, is exactly 1.25 in float32 and does not count.
+    gt32, pred32 = gt.astype(np.float32), pred.astype(np.float32)
+    ratio = np.maximum(gt32 / pred32, pred32 / gt32)
     diff = gt - pred
     log_err = np.log(pred) - np.log(gt)
     # mean(e^2) - mean(e)^2 can round to a tiny negative number for a perfect prediction.
