@@ -80,6 +80,20 @@ def test_range_and_clipping() -> None:
     assert m["d3"] == 0.0
 
 
+def test_range_bounds_compare_in_float32_as_the_release() -> None:
+    # Ground truth is float32 and the release compares it with the bounds in float32:
+    # a pixel at exactly 0.1 m (float32) is not > 0.1, although 0.1000000015 > 0.1 in
+    # float64. It is left out, so only the exact pixel at 1 m counts.
+    gt = np.array([0.1, 1.0], dtype=np.float32)
+    pred = np.array([1.0, 1.0], dtype=np.float32)
+    assert depth_metrics(pred, gt, min_depth=0.1, max_depth=3.0)["rel"] == 0.0
+    sigma = np.array([0.5, 0.5], dtype=np.float32)
+    assert coverage_metrics(pred, sigma, gt, min_depth=0.1)["within_1sigma"] == 1.0
+    # Likewise the upper bound: 0.7 m in float32 (0.69999999) is not < 0.7 in float32.
+    gt = np.array([0.7, 0.5], dtype=np.float32)
+    assert depth_metrics(np.float32([0.5, 0.5]), gt, max_depth=0.7)["rel"] == 0.0
+
+
 def test_custom_range() -> None:
     gt = np.array([0.5, 1.5, 2.5])
     pred = np.array([1.0, 1.5, 2.5])

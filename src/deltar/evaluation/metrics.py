@@ -13,11 +13,12 @@ turn follows BTS / AdaBins):
 
 Only pixels whose ground truth lies strictly inside ``(min_depth, max_depth)`` count, and
 predictions are clipped to ``[min_depth, max_depth]`` first, as the release does.
-Metrics are computed per frame and then averaged over frames. The ``d`` ratios are
-compared in float32, as the release computes them (millimetre depths give ratios that
-are exactly a threshold in float32, not in float64); the other metrics are computed in
-float64, more accurately than the release's float32 (on 480 x 640 frames they differ
-by about 1e-7 relative, ``silog``, a difference of two means, by up to about 2e-5).
+Metrics are computed per frame and then averaged over frames. The range bounds and the
+``d`` ratios are compared in float32, as the release compares them (millimetre depths
+give values that are exactly a bound or a threshold in float32, not in float64); the
+other metrics are computed in float64, more accurately than the release's float32 (on
+480 x 640 frames they differ by about 1e-7 relative, ``silog``, a difference of two
+means, by up to about 2e-5).
 """
 
 from __future__ import annotations
@@ -57,6 +58,13 @@ def _as_float_array(value: object, name: str) -> np.ndarray:
     return array
 
 
+def _valid_pixels(gt: np.ndarray, min_depth: float, max_depth: float) -> np.ndarray:
+    """Where the ground truth lies strictly inside the range, compared in float32 as the
+    release compares its float32 ground truth (0.1 m is not > 0.1 there)."""
+    gt32 = gt.astype(np.float32)
+    return (gt32 > np.float32(min_depth)) & (gt32 < np.float32(max_depth))
+
+
 def depth_metrics(
     pred_m: np.ndarray,
     gt_m: np.ndarray,
@@ -90,11 +98,12 @@ def depth_metrics(
     if pred.shape != gt.shape:
         raise ValueError(f"pred_m and gt_m must have the same shape, got {pred.shape} "
                          f"and {gt.shape}")
-    valid = (gt > min_depth) & (gt < max_depth)
+    valid = _valid_pixels(gt, min_depth, max_depth)
     if not np.any(valid):
         raise EmptyFrameError(f"no ground-truth pixel inside ({min_depth}, {max_depth}) m")
     gt = gt[valid]
-    pred = np.clip(pred[valid], min_depth, max_depth)
+    # Clipped to the float32 bounds, as the release clips its float32 prediction.
+    pred = np.clip(pred[valid], float(np.float32(min_depth)), float(np.float32(max_depth)))
 
     # The release compares float32 ratios with the thresholds: a ratio such as 0.63 / 0.504,
     # just below 1.25 in float64, is exactly 1.25 in float32 and does not count.
@@ -141,7 +150,7 @@ def coverage_metrics(pred_m: np.ndarray, sigma_m: np.ndarray, gt_m: np.ndarray,
     if not pred.shape == sigma.shape == gt.shape:
         raise ValueError(f"pred_m, sigma_m and gt_m must have one shape, got {pred.shape}, "
                          f"{sigma.shape} and {gt.shape}")
-    valid = (gt > min_depth) & (gt < max_depth)
+    valid = _valid_pixels(gt, min_depth, max_depth)
     if not np.any(valid):
         raise EmptyFrameError(f"no ground-truth pixel inside ({min_depth}, {max_depth}) m")
     error = np.abs(pred[valid] - gt[valid])
