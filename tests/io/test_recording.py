@@ -346,3 +346,25 @@ def test_an_image_or_pose_at_a_time_that_is_no_number_is_refused_naming_it(tmp_p
     with pytest.raises(ValueError, match="timestamp_s must be a finite time in seconds"):
         writer.add_pose(time_s, np.eye(4))
     assert not any((tmp_path / "rec" / "color").iterdir())
+
+
+def test_zone_frames_append_on_a_filesystem_without_flock(tmp_path, monkeypatch):
+    """Some network mounts (NFS without lockd) answer flock with ENOLCK: the append is
+    still checked against the file's last frame and written, not refused."""
+    import errno
+
+    from deltar.io import zone_lines
+
+    class NoFlock:
+        LOCK_EX = 2
+
+        @staticmethod
+        def flock(fd, op):
+            raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(zone_lines, "fcntl", NoFlock)
+    writer = _write(tmp_path / "rec", zone_times=[1.0], color_times=[])
+    writer.add_zone_frame(_zone_frame(2.0))
+    with pytest.raises(ValueError, match="not after"):
+        writer.add_zone_frame(_zone_frame(1.5))
+    assert [f.timestamp_s for f in Recording(tmp_path / "rec").zone_frames()] == [1.0, 2.0]

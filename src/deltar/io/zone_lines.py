@@ -9,6 +9,7 @@ writers on one folder cannot interleave timestamps the reader refuses.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import time
@@ -35,8 +36,7 @@ def append_zone_line(path: Path, line: str, timestamp_s: float) -> None:
             another writer on the same folder).
     """
     with open(path, "a+b") as handle:
-        if fcntl is not None:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_EX)  # released when closed
+        _lock(handle)
         if handle.seek(0, os.SEEK_END) and not _ends_with_newline(handle):
             end_partial_line(path)  # another writer was interrupted mid-line
         last = _last_timestamp(handle)
@@ -46,6 +46,22 @@ def append_zone_line(path: Path, line: str, timestamp_s: float) -> None:
         handle.write(line.encode("utf-8"))
         handle.flush()
         os.fsync(handle.fileno())
+
+
+#: What flock answers on a filesystem without it (e.g. NFS without lockd, some FUSE mounts).
+_NO_FLOCK = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EINVAL}
+
+
+def _lock(handle) -> None:
+    """Lock ``handle`` exclusively (released when closed); where the filesystem has no
+    flock, append unlocked (as a single writer always could) instead of failing."""
+    if fcntl is None:
+        return
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+    except OSError as err:
+        if err.errno not in _NO_FLOCK:
+            raise
 
 
 def _ends_with_newline(handle) -> bool:
