@@ -348,6 +348,22 @@ def test_an_image_or_pose_at_a_time_that_is_no_number_is_refused_naming_it(tmp_p
     assert not any((tmp_path / "rec" / "color").iterdir())
 
 
+def test_appending_zone_frames_on_a_sensor_clock_behind_the_camera_clock(tmp_path):
+    """The sensor's stamps may run behind the camera's (time_offset_s, camera minus
+    sensor clock): a recording appended to at its camera rate then has zone frames
+    stamped before its last colour image, which is no clock that started again."""
+    _write(tmp_path / "rec", zone_times=[0.9, 1.9], color_times=[1.0, 2.0])
+    again = RecordingWriter(tmp_path / "rec", RecordingMeta(CAMERA, grid=4))
+    again.add_color(2.1, np.zeros((24, 32, 3), np.uint8))
+    again.add_zone_frame(_zone_frame(2.0))  # the sensor time of the colour image at 2.1
+    assert len(Recording(tmp_path / "rec").pairs(time_offset_s=0.1)) == 3
+    # A clock that started again is still refused, in either stream.
+    with pytest.raises(ValueError, match="not after"):
+        again.add_zone_frame(_zone_frame(0.5))
+    with pytest.raises(ValueError, match="not after the end"):
+        again.add_color(0.5, np.zeros((24, 32, 3), np.uint8))
+
+
 def test_zone_frames_append_on_a_filesystem_without_flock(tmp_path, monkeypatch):
     """Some network mounts (NFS without lockd) answer flock with ENOLCK: the append is
     still checked against the file's last frame and written, not refused."""

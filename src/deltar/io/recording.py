@@ -153,6 +153,13 @@ class RecordingWriter:
             self.meta = existing
             end_partial_line(self.folder / ZONES_FILE)
             self.appends_after_s = recording.end_time_s()
+            # Each stream against its own end (the sensor's stamps may run behind or ahead
+            # of the camera's by time_offset_s); a stream still empty against the other's.
+            camera = [float(t[-1]) for t in (recording.color_times_s,
+                                             recording.depth_times_s) if t.size]
+            zones = last_zone_timestamp(self.folder / ZONES_FILE)
+            self._camera_end = max(camera) if camera else zones
+            self._zone_end = self._camera_end if zones is None else zones
         else:
             check_recording_folder(self.folder)
             created = meta.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -161,15 +168,15 @@ class RecordingWriter:
                                       created)
             write_text_atomic(meta_path, json.dumps(self.meta.to_dict(), indent=2) + "\n",
                               overwrite=False)
-            self.appends_after_s = None
+            self.appends_after_s = self._camera_end = self._zone_end = None
         (self.folder / COLOR_DIR).mkdir(exist_ok=True)
 
-    def _check_after_end(self, timestamp_s: float, what: str) -> None:
-        """Appending: an item stamped before the end of the recording found at open would
-        land among its frames (a clock that started again, e.g. after a reboot)."""
-        if self.appends_after_s is not None and not timestamp_s > self.appends_after_s:
+    def _check_after_end(self, timestamp_s: float, what: str, end_s: float | None) -> None:
+        """Appending: an item stamped before the end of its stream in the recording found
+        at open would land among its frames (a clock that started again, e.g. a reboot)."""
+        if end_s is not None and not timestamp_s > end_s:
             raise ValueError(f"{self.folder}: {what} stamped {timestamp_s} s is not after the "
-                             f"end of the recording it appends to ({self.appends_after_s} s): "
+                             f"end of the recording it appends to ({end_s} s): "
                              "the clock started again? record into a new folder")
 
     def close(self) -> None:
@@ -189,7 +196,7 @@ class RecordingWriter:
         if frame.grid != self.meta.grid:
             raise ValueError(f"frame has a {frame.grid}x{frame.grid} grid, recording is "
                              f"{self.meta.grid}x{self.meta.grid}")
-        self._check_after_end(frame.timestamp_s, "zone frame")
+        self._check_after_end(frame.timestamp_s, "zone frame", self._zone_end)
         line = json.dumps(zone_frame_to_dict(frame), allow_nan=False) + "\n"
         # Checked against the file's last frame, under a lock: another writer may append.
         append_zone_line(self.folder / ZONES_FILE, line, float(frame.timestamp_s))
@@ -223,7 +230,7 @@ class RecordingWriter:
         """
         path = self.folder / POSE_DIR / f"{timestamp_to_ns(timestamp_s)}.txt"
         if not path.exists():  # an existing file: FileExistsError, as for images
-            self._check_after_end(timestamp_s, "pose")
+            self._check_after_end(timestamp_s, "pose", self._camera_end)
         (self.folder / POSE_DIR).mkdir(exist_ok=True)
         return write_pose_file(path, pose)
 
@@ -232,7 +239,7 @@ class RecordingWriter:
 
         path = self.folder / subdir / f"{timestamp_to_ns(timestamp_s)}.png"
         with atomic_path(path, overwrite=False) as tmp:  # an existing file: FileExistsError
-            self._check_after_end(timestamp_s, f"{subdir} image")
+            self._check_after_end(timestamp_s, f"{subdir} image", self._camera_end)
             ok, data = cv2.imencode(".png", image)
             if not ok:
                 raise ValueError(f"could not encode {path}")
