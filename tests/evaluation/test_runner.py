@@ -195,8 +195,13 @@ def test_resize_like_release_clips_to_the_depth_range_before_resizing() -> None:
 
     # The release clips to [min_depth, max_depth] first, then interpolates: the middle
     # sample is half way between the clipped ends, not between 0 and 20 (then clipped).
-    resized = resize_like_release(np.array([[0.0, 20.0]]), 1, 3)
+    resized = resize_like_release(np.array([[0.0, 20.0]]), 1, 3, min_depth=1e-3,
+                                  max_depth=10.0)
     np.testing.assert_allclose(resized, [[1e-3, (1e-3 + 10.0) / 2, 10.0]], rtol=1e-6)
+    # Without a range nothing is clipped, as before: a method evaluated with --max-depth 20
+    # that calls resize_like_release(depth, H, W) keeps its depth beyond 10 m.
+    np.testing.assert_allclose(resize_like_release(np.array([[0.0, 20.0]]), 1, 3),
+                               [[0.0, 10.0, 20.0]], rtol=1e-6)
     narrow = resize_like_release(np.array([[0.0, 20.0]]), 1, 3, min_depth=1.0, max_depth=3.0)
     np.testing.assert_allclose(narrow, [[1.0, 2.0, 3.0]], rtol=1e-6)
     with pytest.raises(ValueError, match="min_depth"):

@@ -77,7 +77,8 @@ class BaselinePredictor:
 
 
 def resize_like_release(depth_m: np.ndarray, height: int, width: int, *,
-                        min_depth: float = 1e-3, max_depth: float = 10.0) -> np.ndarray:
+                        min_depth: float | None = None,
+                        max_depth: float | None = None) -> np.ndarray:
     """Resize a predicted depth map the way the official evaluation does.
 
     The release clips the network output to the depth range and resizes it to the input
@@ -88,7 +89,9 @@ def resize_like_release(depth_m: np.ndarray, height: int, width: int, *,
         depth_m: (h, w) depth in metres.
         height, width: output size in pixels.
         min_depth, max_depth: the depth range the map is clipped to before resizing,
-            metres (the release's 1e-3 and 10 by default).
+            metres (the release's are 1e-3 and 10; pass the evaluation's range). None:
+            that side is not clipped (the map's own depth, e.g. beyond 10 m for a
+            ``--max-depth 20`` evaluation).
 
     Returns:
         (height, width) float32 depth in metres.
@@ -100,10 +103,14 @@ def resize_like_release(depth_m: np.ndarray, height: int, width: int, *,
         raise ValueError(f"depth_m must be an (h, w) array, got shape {depth.shape}")
     if height < 1 or width < 1:
         raise ValueError(f"output size must be positive, got {height}x{width}")
-    if not (0.0 < min_depth < max_depth):
+    low = 0.0 if min_depth is None else min_depth
+    if (min_depth is not None and not min_depth > 0) or \
+            (max_depth is not None and not low < max_depth):
         raise ValueError(f"need 0 < min_depth < max_depth, got min_depth={min_depth}, "
                          f"max_depth={max_depth}")
-    depth = np.clip(depth, np.float32(min_depth), np.float32(max_depth))
+    if min_depth is not None or max_depth is not None:
+        depth = np.clip(depth, None if min_depth is None else np.float32(min_depth),
+                        None if max_depth is None else np.float32(max_depth))
     return resize_to_image(depth[None, None], (height, width), align_corners=True)[0, 0]
 
 
