@@ -69,6 +69,25 @@ def test_frames_without_ground_truth_are_skipped(tmp_path: Path) -> None:
     assert "1 frames" in result.output and "1 without valid ground truth" in result.output
 
 
+def test_keep_going_scores_the_other_frames_and_exits_1(tmp_path: Path) -> None:
+    import dataclasses
+
+    far = make_sample("far", 1)
+    far = dataclasses.replace(far, zone_mean_sigma=far.zone_mean_sigma.copy())
+    far.zone_mean_sigma[3, 0] = 4.5  # beyond the L5's 4 m range: not a real reading
+    data = write_zju_l5(tmp_path / "set", [make_sample("a", 0), far, make_sample("c", 2)])
+    out = tmp_path / "metrics.json"
+    args = ["evaluate", "-m", "nearest", "--data", str(data), "--json", str(out)]
+    stopped = runner.invoke(app, args)
+    assert stopped.exit_code == 1 and "frame 'far'" in stopped.output and not out.exists()
+    with pytest.warns(RuntimeWarning, match="leaving out frame 'far'"):
+        result = runner.invoke(app, [*args, "--keep-going"])
+    assert result.exit_code == 1, result.output
+    assert "2 frames (1 left out, --keep-going)" in result.output
+    assert "1 of 3 frames left out (first: frame 'far'" in result.output
+    assert json.loads(out.read_text())["nearest"]["d1"] == 1.0  # the two good frames
+
+
 def test_unknown_method_lists_valid_names(data_json: Path) -> None:
     result = runner.invoke(app, ["evaluate", "-m", "nearest,magic", "--data", str(data_json)])
     assert result.exit_code == 2

@@ -131,6 +131,37 @@ def test_a_frame_whose_zones_all_lie_outside_the_image_is_refused_for_every_meth
     assert scored == ["scene_a/0001"]  # refused before any method ran on it
 
 
+def test_keep_going_leaves_a_refused_frame_out_for_every_method(tiny_samples) -> None:
+    import dataclasses
+
+    away = dataclasses.replace(tiny_samples[1], zone_rects=tiny_samples[1].zone_rects + 1e5)
+    frames = _ListedFrames([tiny_samples[0], away, tiny_samples[2]])
+    seen = []
+    with pytest.warns(RuntimeWarning, match=r"leaving out frame 'scene_a/0002': frame "
+                      r"'scene_a/0002' \(set/scene_a/0002\.h5\): all 16 valid zones"):
+        result = evaluate_methods(frames, {"nearest": BaselinePredictor("nearest")},
+                                  keep_going=True,
+                                  on_frame=lambda i, s, p: seen.append((i, sorted(p))))
+    assert result.frames == 2 and [name for name, _ in result.refused] == ["scene_a/0002"]
+    assert seen == [(0, ["nearest"]), (1, []), (2, ["nearest"])]
+    kept = evaluate_methods([tiny_samples[0], tiny_samples[2]],
+                            {"nearest": BaselinePredictor("nearest")})
+    assert result.metrics == kept.metrics  # the same two frames, the same averages
+
+    def picky(sample):  # a method refusing one frame leaves it out for the others too
+        if sample.name == "scene_b/0001":
+            raise ValueError("4x4 zones")
+        return sample.depth_m
+
+    with pytest.warns(RuntimeWarning, match="method 'picky', frame 'scene_b/0001': 4x4"):
+        result = evaluate_methods(tiny_samples, {"nearest": BaselinePredictor("nearest"),
+                                                 "picky": picky}, keep_going=True)
+    assert result.frames == 2 and result.refused[0][0] == "scene_b/0001"
+    with pytest.warns(RuntimeWarning), pytest.raises(ValueError, match=r"all 1 frames were "
+                                                     r"left out \(first: method 'picky'"):
+        evaluate_methods(tiny_samples[2:], {"picky": picky}, keep_going=True)
+
+
 def test_baseline_predictor_ignores_valid_zones_without_distance() -> None:
     sample = make_sample("zero", 0)
     sample.zone_mean_sigma[3, 0] = 0.0  # flagged valid, but no distance reported

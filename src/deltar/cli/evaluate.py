@@ -80,6 +80,10 @@ def evaluate(
                                  "model without the estimator's confidence blend with the "
                                  "colorization fill: the network's own depth (reported as "
                                  "'model:NAME+network'; the released weights never blend)."),
+    keep_going: bool = typer.Option(False, "--keep-going", help="Leave out a frame that "
+                                    "would stop the run (zones that cannot be a real "
+                                    "reading, a method that refuses it) for every method and "
+                                    "go on; the table counts them (exit code 1 if any)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --json "
                                    "file and --save-vis panels."),
 ) -> None:
@@ -175,12 +179,20 @@ def evaluate(
                     save_frame_panel(target, sample, depth, name, max_depth_m=None)
             progress.advance()
 
-        result = evaluate_methods(dataset, predictors, min_depth=min_depth,
-                                  max_depth=max_depth, limit=limit, on_frame=on_frame)
+        try:
+            result = evaluate_methods(dataset, predictors, min_depth=min_depth,
+                                      max_depth=max_depth, limit=limit, on_frame=on_frame,
+                                      keep_going=keep_going)
+        except ValueError as err:
+            if not keep_going:
+                raise
+            fail(err)  # every frame was left out: nothing to score
 
     title = escape(f"{data} (split {split}): {result.frames} frames")
     if result.skipped:
         title += f" ({result.skipped} without valid ground truth skipped)"
+    if result.refused:
+        title += f" ({len(result.refused)} left out, --keep-going)"
     console.print(_metrics_table(result, title))
     if json_out is not None:
         write_text_atomic(json_out, json.dumps(result.metrics, indent=2) + "\n",
@@ -188,6 +200,9 @@ def evaluate(
         typer.echo(f"metrics written to {json_out}")
     if save_vis is not None:
         typer.echo(f"visualisations written to {save_vis}")
+    if result.refused:
+        fail(f"{len(result.refused)} of {total} frames left out (first: "
+             f"{result.refused[0][1]})")
 
 
 def _set_files(dataset, data: Path) -> list[Path]:

@@ -214,12 +214,15 @@ class EvaluationResult:
             ``COVERAGE_KEYS`` for methods that give a sigma).
         frames: frames evaluated per method (frames with valid ground truth).
         skipped: frames skipped for lack of valid ground truth.
+        refused: ``(frame name, reason)`` of the frames left out with ``keep_going``
+            (zones that cannot be a real reading, or a method refused the frame).
         seconds_per_frame: method name -> mean prediction time in seconds.
     """
 
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)
     frames: int = 0
     skipped: int = 0
+    refused: list[tuple[str, str]] = field(default_factory=list)
     seconds_per_frame: dict[str, float] = field(default_factory=dict)
 
 
@@ -258,6 +261,38 @@ def check_sample_zones(sample: ZJUL5Sample, source: str | None = None) -> None:
         check_zones_in_image(sample.zone_rects, valid, sample.rgb.shape[:2], where)
 
 
+def _predict_frame(sample: ZJUL5Sample, predictors: Mapping[str, Predictor]
+                   ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, float]]:
+    """Every method's depth (and sigma, where it gives one) of one frame, metres, and
+    its prediction time, seconds.
+
+    Raises:
+        ValueError: a method refuses the frame or returns a map of the wrong shape or
+            with NaN / inf; the message names the method and frame.
+    """
+    predictions: dict[str, np.ndarray] = {}
+    sigmas: dict[str, np.ndarray] = {}
+    seconds: dict[str, float] = {}
+    for name, predictor in predictors.items():
+        start = time.perf_counter()
+        try:
+            output = predictor(sample)
+        except ValueError as err:
+            raise ValueError(f"method {name!r}, frame {sample.name!r}: {err}") from err
+        seconds[name] = time.perf_counter() - start
+        if hasattr(output, "uncertainty_m"):
+            sigmas[name] = np.asarray(output.uncertainty_m)
+        depth = np.asarray(getattr(output, "depth_m", output))
+        if depth.shape != sample.depth_m.shape:
+            raise ValueError(f"method {name!r} returned shape {depth.shape} for frame "
+                             f"{sample.name!r}, expected {sample.depth_m.shape}")
+        if not np.all(np.isfinite(depth)):
+            raise ValueError(f"method {name!r} returned NaN or inf for frame "
+                             f"{sample.name!r}")
+        predictions[name] = depth
+    return predictions, sigmas, seconds
+
+
 def evaluate_methods(
     samples: Sequence[ZJUL5Sample],
     predictors: Mapping[str, Predictor],
@@ -266,6 +301,7 @@ def evaluate_methods(
     max_depth: float = 10.0,
     limit: int | None = None,
     on_frame: FrameCallback | None = None,
+    keep_going: bool = False,
 ) -> EvaluationResult:
     """Run every method on every frame and average the metrics per frame, then over frames.
 
@@ -275,7 +311,10 @@ def evaluate_methods(
         min_depth, max_depth: ground-truth range in metres (see ``depth_metrics``).
         limit: evaluate only the first ``limit`` frames.
         on_frame: called after each frame with (index, sample, {method: depth}), e.g. to
-            save visualisations or advance a progress bar.
+            save visualisations or advance a progress bar ({} for a frame left out).
+        keep_going: a frame that would raise (its zones, or a method refusing it) is left
+            out for every method, with a warning, and listed in ``result.refused``, so that
+            every method is scored on the same frames.
 
     Returns:
         An :class:`EvaluationResult`.
@@ -283,8 +322,8 @@ def evaluate_methods(
     Raises:
         ValueError: a frame's zones cannot be a real reading (:func:`check_sample_zones`),
             a method refuses a frame or returns a map of the wrong shape or with NaN /
-            inf (the message names the method and frame), or no frame has valid ground
-            truth.
+            inf (the message names the method and frame; without ``keep_going``), or no
+            frame has valid ground truth.
     """
     if not predictors:
         raise ValueError("predictors is empty")
@@ -299,26 +338,20 @@ def evaluate_methods(
         sample = samples[index]
         # The file holding the zone reading, from sets that list their files.
         files = samples.frame_files(index) if hasattr(samples, "frame_files") else None
-        check_sample_zones(sample, None if not files else str(files[0]))
-        predictions: dict[str, np.ndarray] = {}
-        sigmas: dict[str, np.ndarray] = {}
-        for name, predictor in predictors.items():
-            start = time.perf_counter()
-            try:
-                output = predictor(sample)
-            except ValueError as err:
-                raise ValueError(f"method {name!r}, frame {sample.name!r}: {err}") from err
-            seconds[name] += time.perf_counter() - start
-            if hasattr(output, "uncertainty_m"):
-                sigmas[name] = np.asarray(output.uncertainty_m)
-            depth = np.asarray(getattr(output, "depth_m", output))
-            if depth.shape != sample.depth_m.shape:
-                raise ValueError(f"method {name!r} returned shape {depth.shape} for frame "
-                                 f"{sample.name!r}, expected {sample.depth_m.shape}")
-            if not np.all(np.isfinite(depth)):
-                raise ValueError(f"method {name!r} returned NaN or inf for frame "
-                                 f"{sample.name!r}")
-            predictions[name] = depth
+        try:
+            check_sample_zones(sample, None if not files else str(files[0]))
+            predictions, sigmas, frame_seconds = _predict_frame(sample, predictors)
+        except ValueError as err:
+            if not keep_going:
+                raise
+            warnings.warn(f"leaving out frame {sample.name!r}: {err}", RuntimeWarning,
+                          stacklevel=2)
+            result.refused.append((sample.name, str(err)))
+            if on_frame is not None:
+                on_frame(index, sample, {})
+            continue
+        for name, spent in frame_seconds.items():
+            seconds[name] += spent
         try:
             frame_metrics = {name: depth_metrics(depth, sample.depth_m, min_depth, max_depth)
                              for name, depth in predictions.items()}
@@ -338,11 +371,14 @@ def evaluate_methods(
             result.frames += 1
         if on_frame is not None:
             on_frame(index, sample, predictions)
+    if len(result.refused) == count:
+        raise ValueError(f"all {count} frames were left out (first: {result.refused[0][1]})")
     if result.frames == 0:
         raise ValueError(f"none of the {count} frames has ground truth inside "
                          f"({min_depth}, {max_depth}) m")
     result.metrics = {name: acc.compute() for name, acc in accumulators.items()}
     for name, acc in coverages.items():
         result.metrics[name].update(acc.compute())
-    result.seconds_per_frame = {name: total / count for name, total in seconds.items()}
+    predicted = count - len(result.refused)
+    result.seconds_per_frame = {name: total / predicted for name, total in seconds.items()}
     return result
