@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 
 from deltar.data.procedural import ProceduralReader
@@ -28,3 +29,18 @@ def test_a_set_of_chosen_frames_is_written(tmp_path):
     index, valid_counts = simulate_set(ProceduralReader(2, 0, 32, 32), tmp_path / "set", [1],
                                        grid=4)
     assert index.is_file() and len(valid_counts) == 1
+
+
+def test_aligned_layout_covers_the_same_field_of_view_with_either_grid(tmp_path):
+    # The release's 8x8 grid of 56 px zones spans 448 px at 640 px wide; a 4x4 grid of the
+    # same sensor spans the same field of view with zones twice as wide (112 px). Before,
+    # the 4x4 zones were 28 px: the grid covered a quarter of the width.
+    from deltar.data.zju_l5 import ZJUL5Dataset
+
+    source = ProceduralReader(1, 0, 480, 640)
+    for grid, side in ((8, 56), (4, 112)):
+        simulate_set(source, tmp_path / f"g{grid}", grid=grid, layout="aligned")
+        rects = ZJUL5Dataset(tmp_path / f"g{grid}")[0].zone_rects
+        np.testing.assert_array_equal(rects[:, 2:] - rects[:, :2], side)
+        np.testing.assert_array_equal(rects[0, :2], [16, 96])
+        np.testing.assert_array_equal(rects[-1, 2:], [464, 544])

@@ -37,7 +37,8 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         grid: zones per side (4 or 8).
         layout: ``calibrated`` (the 45 x 45 deg FoV projected with each frame's
             intrinsics) or ``aligned`` (the release's 56 px grid centred in the image,
-            scaled with the width).
+            scaled with the width;
+            112 px zones for a 4x4 grid, the same field of view).
         degrade: optional signal degradation (zones dropped, means biased); frame ``i``
             draws from ``(seed, i)``.
         seed: seed of the degradation.
@@ -81,7 +82,7 @@ def simulate_set(source: Sequence[RGBDFrame], out, indices: Sequence[int] | None
         if layout == "calibrated":
             rects = zone_rects(frame.intrinsics, grid)
         else:
-            zone_px = max(1, round(56 * grid / 8 * width / 640))
+            zone_px = max(1, round(56 * 8 / grid * width / 640))  # the same FoV
             rects = training_zone_rects(height, width, grid=grid, zone_px=zone_px)
         zones = simulate_zone_frame(frame.depth_m, rects, max_targets=max_targets)
         targets = {}
