@@ -22,6 +22,7 @@ from deltar.calibration.plane import zone_cells_tan
 from deltar.calibration.rig import RigCalibration, pairing_time_offset
 from deltar.camera import backproject
 from deltar.io.atomic import atomic_path
+from deltar.sensor.geometry import DEFAULT_FOV_DEG
 
 #: A zone farther than this from the reference (metres) sees another surface: it is
 #: counted as off the surface and left out of the statistics.
@@ -29,6 +30,11 @@ OFF_SURFACE_M = 0.10
 #: Verdict thresholds: median |residual| and |median residual| (metres).
 FIT_MEDIAN_ABS_M = 0.025
 FIT_BIAS_M = 0.015
+#: Verdict threshold on the tilt between the measured and the predicted surface across
+#: the zone map (degrees, rms over frames, the zones' noise removed): a turned
+#: extrinsic tilts every view's residuals, which the median and bias can miss (they
+#: passed a calibration 5 deg off in pitch or 20 deg in roll).
+FIT_TILT_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -42,6 +48,9 @@ class CalibrationCheck:
         reference: ``"board"`` or ``"depth"``.
         grid: zones per side.
         skipped: frames without a reference (no board found, no depth image).
+        predicted_m: (F, Z) the predicted zone means, metres (NaN: no reference); None
+            leaves the tilt out of the verdict.
+        fov_deg: the sensor's field of view (degrees), for the zones' directions.
     """
 
     residuals_m: np.ndarray
@@ -49,6 +58,8 @@ class CalibrationCheck:
     reference: str
     grid: int
     skipped: int = 0
+    predicted_m: np.ndarray | None = None
+    fov_deg: tuple[float, float] = DEFAULT_FOV_DEG
 
     @property
     def on_surface(self) -> np.ndarray:
@@ -88,9 +99,36 @@ class CalibrationCheck:
             return np.nanmedian(values, axis=0).reshape(self.grid, self.grid)
 
     @property
+    def tilt_rms_deg(self) -> float:
+        """RMS over frames of the tilt between the measured and the predicted surface
+        (the per-frame linear trend of the residuals across the zone map over the
+        predicted depth, its noise-expected part taken off), degrees; 0 with too few
+        zones or no ``predicted_m``."""
+        if self.predicted_m is None:
+            return 0.0
+        cells = zone_cells_tan(self.grid, self.fov_deg)
+        uv = np.column_stack([(cells[:, 1] + cells[:, 3]) / 2, (cells[:, 0] + cells[:, 2]) / 2])
+        excess = []
+        for res, pred, keep in zip(self.residuals_m, self.predicted_m, self.on_surface,
+                                   strict=True):
+            if keep.sum() < 6:
+                continue
+            design = np.column_stack([np.ones(int(keep.sum())), uv[keep]])
+            coef, *_ = np.linalg.lstsq(design, res[keep], rcond=None)
+            dof = int(keep.sum()) - 3
+            noise = float(np.sum((res[keep] - design @ coef) ** 2)) / dof
+            cov = noise * np.linalg.inv(design.T @ design)
+            depth = float(np.mean(pred[keep]))
+            excess.append((coef[1] ** 2 + coef[2] ** 2 - cov[1, 1] - cov[2, 2]) / depth ** 2)
+        if not excess:
+            return 0.0
+        return float(np.degrees(np.arctan(np.sqrt(max(0.0, float(np.mean(excess)))))))
+
+    @property
     def fits(self) -> bool:
         """Whether the residuals look like zone noise (see the module's thresholds)."""
-        return self.median_abs_m <= FIT_MEDIAN_ABS_M and abs(self.bias_m) <= FIT_BIAS_M
+        return (self.median_abs_m <= FIT_MEDIAN_ABS_M and abs(self.bias_m) <= FIT_BIAS_M
+                and self.tilt_rms_deg <= FIT_TILT_DEG)
 
 
 def _cell_samples(grid: int, fov_deg, per_side: int = 4) -> np.ndarray:
@@ -174,7 +212,7 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
         warnings.simplefilter("ignore")
         pairs = recording.pairs(tolerance_s, time_offset_s=offset)
     detector = BoardDetector(spec) if spec is not None else None
-    rows, names, skipped = [], [], 0
+    rows, predictions, names, skipped = [], [], [], 0
     for pair in pairs:
         frame = pair.zone_frame
         if detector is not None:
@@ -192,6 +230,7 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
             predicted = predicted_from_points(points, calibration)
         mean, _, valid = frame.flat()
         rows.append(np.where(valid, mean - predicted, np.nan))
+        predictions.append(predicted)
         names.append(f"t={frame.timestamp_s:.3f}s")
     if not rows:
         what = "the board is found in no paired image" if spec is not None else \
@@ -211,7 +250,8 @@ def check_calibration(recording, calibration: RigCalibration, *, spec: BoardSpec
     if not np.isfinite(residuals).any():
         raise ValueError(f"{recording.folder}: no valid zone has a reference")
     result = CalibrationCheck(residuals, tuple(names), "board" if spec is not None else "depth",
-                              calibration.grid, skipped)
+                              calibration.grid, skipped, np.stack(predictions),
+                              tuple(calibration.fov_deg))
     if not result.on_surface.any():
         raise ValueError(f"{recording.folder}: every zone is more than "
                          f"{100 * OFF_SURFACE_M:.0f} cm from the reference surface: the "

@@ -61,6 +61,7 @@ def check_calibration_command(
     from deltar.calibration.check import (
         FIT_BIAS_M,
         FIT_MEDIAN_ABS_M,
+        FIT_TILT_DEG,
         check_calibration,
         plot_check,
     )
@@ -90,7 +91,8 @@ def check_calibration_command(
                + (f" ({check.skipped} without one)" if check.skipped else ""))
     typer.echo(f"zone residuals: median |r| {100 * check.median_abs_m:.2f} cm, bias "
                f"{100 * check.bias_m:+.2f} cm, RMS {100 * check.rms_m:.2f} cm; "
-               f"{100 * check.off_surface_fraction:.0f} % of zones off the surface")
+               f"{100 * check.off_surface_fraction:.0f} % of zones off the surface; tilt "
+               f"across the zones {check.tilt_rms_deg:.1f} deg rms")
     worst = check.zone_median_m()
     if np.isfinite(worst).any():
         r, c = np.unravel_index(np.nanargmax(np.abs(worst)), worst.shape)
@@ -99,10 +101,12 @@ def check_calibration_command(
         typer.echo(f"wrote {plot_check(plot, check, overwrite=overwrite)}")
     if check.fits:
         typer.echo(f"the calibration fits this recording (median |r| <= "
-                   f"{100 * FIT_MEDIAN_ABS_M:g} cm, |bias| <= {100 * FIT_BIAS_M:g} cm)")
+                   f"{100 * FIT_MEDIAN_ABS_M:g} cm, |bias| <= {100 * FIT_BIAS_M:g} cm, tilt <= "
+                   f"{FIT_TILT_DEG:g} deg)")
     else:
         typer.echo("the calibration does NOT fit this recording (median |r| > "
-                   f"{100 * FIT_MEDIAN_ABS_M:g} cm or |bias| > {100 * FIT_BIAS_M:g} cm): the rig "
+                   f"{100 * FIT_MEDIAN_ABS_M:g} cm, |bias| > {100 * FIT_BIAS_M:g} cm or tilt > "
+                   f"{FIT_TILT_DEG:g} deg): the rig "
                    "has moved or the calibration is for another rig; recalibrate (or, for a "
                    "moving camera, check the clocks' offset: --time-offset)")
         raise typer.Exit(CALIBRATION_DOES_NOT_FIT)
