@@ -152,13 +152,11 @@ class RecordingWriter:
                                  f"{', '.join(differ)} (another rig); write to a new folder")
             self.meta = existing
             end_partial_line(self.folder / ZONES_FILE)
-            self.appends_after_s = recording.end_time_s()
             # Each stream against its own end (the sensor's stamps may run behind or ahead
             # of the camera's by time_offset_s); a stream still empty against the other's.
-            camera = [float(t[-1]) for t in (recording.color_times_s,
-                                             recording.depth_times_s) if t.size]
+            camera = recording.camera_end_time_s()
             zones = last_zone_timestamp(self.folder / ZONES_FILE)
-            self._camera_end = max(camera) if camera else zones
+            self._camera_end = zones if camera is None else camera
             self._zone_end = self._camera_end if zones is None else zones
         else:
             check_recording_folder(self.folder)
@@ -168,7 +166,7 @@ class RecordingWriter:
                                       created)
             write_text_atomic(meta_path, json.dumps(self.meta.to_dict(), indent=2) + "\n",
                               overwrite=False)
-            self.appends_after_s = self._camera_end = self._zone_end = None
+            self._camera_end = self._zone_end = None
         (self.folder / COLOR_DIR).mkdir(exist_ok=True)
 
     def _check_after_end(self, timestamp_s: float, what: str, end_s: float | None) -> None:
@@ -330,14 +328,17 @@ class Recording:
         """The recording's zone-frame file (``zones.jsonl``, docs/formats.md)."""
         return self.folder / ZONES_FILE
 
+    def camera_end_time_s(self) -> float | None:
+        """The latest time of any colour image or depth map, seconds; None without one."""
+        times = [float(t[-1]) for t in (self.color_times_s, self.depth_times_s) if t.size]
+        return max(times) if times else None
+
     def end_time_s(self) -> float | None:
         """The latest time of any colour image, depth map or zone frame, seconds; None
         for an empty recording (what a clock that appends must start after)."""
-        times = [float(t[-1]) for t in (self.color_times_s, self.depth_times_s) if t.size]
-        last_zone = last_zone_timestamp(self.zones_path)
-        if last_zone is not None:
-            times.append(float(last_zone))
-        return max(times) if times else None
+        times = [t for t in (self.camera_end_time_s(), last_zone_timestamp(self.zones_path))
+                 if t is not None]
+        return max(float(t) for t in times) if times else None
 
     def zone_frames(self) -> list[ZoneFrame]:
         """All zone frames in file order (timestamps strictly increasing, checked)."""
